@@ -1,0 +1,66 @@
+"""Shared fixtures. Tests run in float64 on the CPU (x64 is never switched on at import)."""
+
+import os
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+from mujoco import mjx  # noqa: E402
+
+from wbc_jax import model  # noqa: E402
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "gpu: needs a GPU (skipped on the CPU)")
+    config.addinivalue_line("markers", "slow: long closed-loop runs")
+
+
+def pytest_collection_modifyitems(config, items):
+    if any(d.platform == "gpu" for d in jax.devices()):
+        return
+    skip = pytest.mark.skip(reason="needs a GPU")
+    for item in items:
+        if "gpu" in item.keywords:
+            item.add_marker(skip)
+
+
+@pytest.fixture(scope="session")
+def robot() -> model.Robot:
+    return model.load_robot("icub")
+
+
+@pytest.fixture(scope="session")
+def mx(robot) -> mjx.Model:
+    return robot.mjx_model
+
+
+def random_state(robot: model.Robot, seed: int, joint_scale: float = 0.3):
+    """A non-trivial state: random base orientation and velocity, joints around home."""
+    rng = np.random.default_rng(seed)
+    m = robot.mj_model
+    qpos = robot.home_qpos()
+    q = rng.normal(size=4)
+    qpos[3:7] = q / np.linalg.norm(q)
+    qpos[:3] += rng.normal(scale=0.1, size=3)
+    qpos[robot.index.qpos_joints] += rng.uniform(-joint_scale, joint_scale, robot.index.n)
+    qvel = rng.normal(size=m.nv)
+    return qpos, qvel
+
+
+def assert_close(actual, expected, name: str, rtol: float, atol: float = 0.0):
+    np.testing.assert_allclose(
+        np.asarray(actual), np.asarray(expected), rtol=rtol, atol=atol, err_msg=name
+    )
+
+
+def c_data(robot, qpos, qvel) -> mujoco.MjData:
+    d = mujoco.MjData(robot.mj_model)
+    d.qpos[:], d.qvel[:] = qpos, qvel
+    mujoco.mj_forward(robot.mj_model, d)
+    return d

@@ -1,0 +1,68 @@
+"""Small gradient-safe helpers shared by the pipeline stages."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from wbc_jax.types import Array
+
+
+def skew(v: Array) -> Array:
+    """Skew-symmetric matrix S(v) with S(v) w = v x w. v: (..., 3) -> (..., 3, 3)."""
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    o = jnp.zeros_like(x)
+    return jnp.stack(
+        [jnp.stack([o, -z, y], -1), jnp.stack([z, o, -x], -1), jnp.stack([-y, x, o], -1)], -2
+    )
+
+
+def quat_to_mat(q: Array) -> Array:
+    """Rotation matrix (3, 3) of a (not necessarily unit) quaternion q = (w, x, y, z)."""
+    q = q / jnp.sqrt(jnp.sum(q * q))
+    w, x, y, z = q
+    return jnp.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def quat_mul(a: Array, b: Array) -> Array:
+    """Hamilton product of two (w, x, y, z) quaternions."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return jnp.array(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ]
+    )
+
+
+def safe_norm(x: Array, axis: int = -1, eps: float = 1e-12) -> Array:
+    """Euclidean norm whose gradient is finite (zero) at x = 0 (double-where pattern)."""
+    sq = jnp.sum(x * x, axis=axis)
+    nonzero = sq > eps * eps
+    return jnp.where(nonzero, jnp.sqrt(jnp.where(nonzero, sq, 1.0)), 0.0)
+
+
+def damped_pinv(A: Array, damping: float) -> Array:
+    """Damped pseudo-inverse A^T (A A^T + damping I)^-1 (WBC ``wbc.pinvDamped``). A: (r, c)."""
+    r = A.shape[0]
+    return jnp.linalg.solve(A @ A.T + damping * jnp.eye(r, dtype=A.dtype), A).T
+
+
+def pinv_abs_tol(A: Array, tol: float) -> Array:
+    """Pseudo-inverse with an *absolute* singular-value cut-off (MATLAB ``pinv(A, tol)``).
+
+    ``jnp.linalg.pinv`` uses a relative cut-off; the WBC code (Reg.pinvTol = 1e-5) is absolute.
+    The where-guard keeps gradients finite for the discarded singular values.
+    """
+    U, s, Vt = jnp.linalg.svd(A, full_matrices=False)
+    keep = s > tol
+    s_inv = jnp.where(keep, 1.0 / jnp.where(keep, s, 1.0), 0.0)
+    return (Vt.T * s_inv) @ U.T
