@@ -1,0 +1,112 @@
+"""The torque law against its definition, the momentum task, and controller input checks."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import random_state
+from mujoco import mjx
+
+from wbc_jax import controller as C
+from wbc_jax import dynamics, momentum, torques
+
+
+@pytest.fixture(scope="module")
+def state_terms(robot):
+    qpos, qvel = random_state(robot, 11, joint_scale=0.2)
+    d = mjx.make_data(robot.mj_model).replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel))
+    return jax.jit(lambda d: dynamics.terms(robot.mjx_model, d, robot.index))(d)
+
+
+def _torque_terms(t, damping, postural="stable"):
+    gains = C.default_gains(23, jnp.float64)
+    return torques.torque_terms(
+        t, jnp.ones(2), postural=postural, kp_postural=gains.kp_postural,
+        kd_postural=gains.kd_postural, s_des=t.s + 0.05, pinv_damping=damping,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("postural", ["stable", "seed"])
+def test_torque_law_satisfies_its_definition(state_terms, postural):
+    """Lambda tau = J M^-1 (h - J^T f) - Jdot nu for the commanded f; the postural part lies in
+    the null space of Lambda. Exact with an undamped pseudo-inverse."""
+    t = state_terms
+    tt = _torque_terms(t, 1e-12, postural)
+    f = jnp.asarray(np.random.default_rng(0).normal(scale=50.0, size=12))
+    tau = tt.tau_model + tt.Sigma @ f
+    h = t.h - t.tau_passive
+    rhs = tt.J_c @ jnp.linalg.solve(t.M, h - tt.J_c.T @ f) - tt.Jdot_nu_c
+    rel = float(jnp.linalg.norm(tt.Lambda @ tau - rhs) / jnp.linalg.norm(rhs))
+    assert rel < 1e-6, rel
+    assert float(jnp.abs(tt.Lambda @ tt.N_Lambda).max()) < 1e-6 * float(jnp.abs(tt.Lambda).max())
+    # Then the feet do not accelerate: J_c nu_dot + Jdot nu = 0 with M nu_dot = B tau + J^T f - h.
+    nu_dot = jnp.linalg.solve(t.M, jnp.concatenate([jnp.zeros(6), tau]) + tt.J_c.T @ f - h)
+    acc = tt.J_c @ nu_dot + tt.Jdot_nu_c
+    assert float(jnp.linalg.norm(acc)) < 1e-6 * float(jnp.linalg.norm(tt.Jdot_nu_c) + 1.0)
+
+
+def test_damped_pseudo_inverse_residual_is_small(state_terms):
+    """With the WBC simulation damping (lambda = 1) the law is only approximately exact; measure."""
+    t = state_terms
+    tt = _torque_terms(t, 1.0)
+    f = jnp.asarray(np.random.default_rng(1).normal(scale=50.0, size=12))
+    tau = tt.tau_model + tt.Sigma @ f
+    rhs = tt.J_c @ jnp.linalg.solve(t.M, t.h - t.tau_passive - tt.J_c.T @ f) - tt.Jdot_nu_c
+    rel = float(jnp.linalg.norm(tt.Lambda @ tau - rhs) / jnp.linalg.norm(rhs))
+    print(f"relative residual of Lambda tau with lambda = 1: {rel:.2e}")
+    assert 1e-8 < rel < 0.05
+
+
+def test_force_distribution_realises_the_momentum_rate(robot, state_terms):
+    t = state_terms
+    gains = C.default_gains(23, jnp.float64)
+    config = C.ControllerConfig()
+    consts = C.constants_at_reference(t, config)
+    ref = C.Reference(
+        com_pos=t.W_p_CoM + jnp.array([0.0, 0.01, 0.0]), com_vel=jnp.zeros(3),
+        com_acc=jnp.zeros(3), s_des=t.s, activation=jnp.ones(2),
+    )  # fmt: skip
+    for forces in ("qp", "analytic"):
+        out, _ = C.step(gains, consts, C.init_state(jnp.float64), t, ref,
+                        config=C.ControllerConfig(forces=forces), mass=robot.index.mass, dt=0.01)  # fmt: skip
+        assert bool(jnp.all(jnp.isfinite(out.tau)))
+        # Two feet, feasible: A f + f_grav = L_dot* exactly.
+        np.testing.assert_allclose(out.Ldot_cmd, out.Ldot_star, atol=1e-6, err_msg=forces)
+        # Desired linear momentum rate: m (-Kp (x - x_d) - Kd v).
+        lin = robot.index.mass * (-gains.kp_com * (t.W_p_CoM - ref.com_pos) - gains.kd_com * t.W_v_CoM)
+        np.testing.assert_allclose(out.Ldot_star[:3], lin, rtol=1e-10)
+
+
+def test_wrench_map_matches_moment_arithmetic():
+    rng = np.random.default_rng(2)
+    p, c, f = rng.normal(size=(2, 3)), rng.normal(size=3), rng.normal(size=12)
+    A = np.asarray(momentum.wrench_map(jnp.asarray(p), jnp.asarray(c)))
+    net_force = f[:3] + f[6:9]
+    net_moment = f[3:6] + f[9:] + np.cross(p[0] - c, f[:3]) + np.cross(p[1] - c, f[6:9])
+    np.testing.assert_allclose(A @ f, np.concatenate([net_force, net_moment]), rtol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "field,value,match",
+    [("kp_com", [1.0, np.nan, 1.0], "NaN"), ("kd_com", [1.0, -1.0, 1.0], "negative"),
+     ("kp_postural", [1.0] * 5, "23 entries")],
+)  # fmt: skip
+def test_bad_gains_rejected(field, value, match):
+    gains = C.default_gains().replace(**{field: jnp.asarray(value)})
+    with pytest.raises(ValueError, match=match):
+        C.validate_gains(gains, 23)
+
+
+def test_bad_modes_and_gain_files(tmp_path):
+    with pytest.raises(ValueError, match=r"unknown forces mode 'lp'.*qp"):
+        C.ControllerConfig(forces="lp")
+    with pytest.raises(ValueError, match=r"unknown postural variant 'x'.*stable"):
+        C.ControllerConfig(postural="x")
+    with pytest.raises(ValueError, match=r"unknown keys \['kp_foo'\], missing keys \['kp_com'\]"):
+        d = C.gains_to_dict(C.default_gains())
+        d["kp_foo"] = d.pop("kp_com")
+        C.gains_from_dict(d)
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        C.load_gains(tmp_path / "nope.json")
+    round_trip = C.gains_from_dict(C.gains_to_dict(C.default_gains()))
+    np.testing.assert_allclose(round_trip.kp_postural, C.default_gains().kp_postural)

@@ -1,0 +1,66 @@
+"""Matplotlib figures of rollouts (host side, numpy in, PNG out)."""
+
+from __future__ import annotations
+
+import pathlib
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+def com_tracking(traj: dict, path: pathlib.Path, title: str = "") -> None:
+    """CoM vs reference, per axis, and the tracking error."""
+    t = traj["t"]
+    fig, axes = plt.subplots(4, 1, figsize=(8, 8), sharex=True)
+    for k, name in enumerate("xyz"):
+        axes[k].plot(t, traj["com_ref"][:, k], "k--", lw=1, label="reference")
+        axes[k].plot(t, traj["com"][:, k], lw=1.2, label="CoM")
+        axes[k].set_ylabel(f"{name} [m]")
+    axes[0].legend(loc="upper right")
+    err = np.linalg.norm(traj["com"] - traj["com_ref"], axis=1)
+    axes[3].plot(t, 1e3 * err, color="tab:red")
+    axes[3].set_ylabel("|error| [mm]")
+    axes[3].set_xlabel("time [s]")
+    fig.suptitle(title or "CoM tracking")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def contact_forces(traj: dict, path: pathlib.Path, title: str = "") -> None:
+    """Commanded vs measured (MuJoCo) contact forces of each foot."""
+    t = traj["t"]
+    fig, axes = plt.subplots(3, 2, figsize=(10, 7), sharex=True)
+    for foot, name in enumerate(("left", "right")):
+        for k, comp in enumerate(("f_x", "f_y", "f_z")):
+            ax = axes[k, foot]
+            ax.plot(t, traj["f_cmd"][:, 6 * foot + k], "k--", lw=1, label="commanded")
+            ax.plot(t, traj["f_meas"][:, 6 * foot + k], lw=1, label="MuJoCo")
+            ax.set_ylabel(f"{name} {comp} [N]")
+        axes[2, foot].set_xlabel("time [s]")
+    axes[0, 0].legend(loc="upper right")
+    fig.suptitle(title or "contact forces")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def joint_torques(traj: dict, joints: list[str], path: pathlib.Path, title: str = "") -> None:
+    """Joint torques, grouped by limb."""
+    t = traj["t"]
+    groups = {"torso": (0, 3), "left arm": (3, 7), "right arm": (7, 11),
+              "left leg": (11, 17), "right leg": (17, 23)}  # fmt: skip
+    fig, axes = plt.subplots(len(groups), 1, figsize=(8, 10), sharex=True)
+    for ax, (name, (a, b)) in zip(axes, groups.items()):
+        for j in range(a, min(b, traj["tau"].shape[1])):
+            ax.plot(t, traj["tau"][:, j], lw=1, label=joints[j])
+        ax.set_ylabel(f"{name} [N m]")
+        ax.legend(fontsize=6, ncol=3, loc="upper right")
+    axes[-1].set_xlabel("time [s]")
+    fig.suptitle(title or "joint torques")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,296 @@
+"""[closed loop] MJX physics at 1 kHz, the controller at 100 Hz, zero-order hold, one ``lax.scan``.
+
+``rollout`` is a pure function of (model, initial data, gains, pushes): jit it, vmap it over
+gains, pushes, initial states or model parameters (explicit ``in_axes``), differentiate it.
+This is the only module that writes ``ctrl`` and ``xfrc_applied`` and steps the physics.
+Diverged environments (NaN) are frozen at their last finite state and flagged; a fall is
+flagged and the simulation goes on, so one bad environment never poisons a batch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from mujoco import mjx
+from mujoco.mjx._src import support
+
+from wbc_jax import controller as ctrl_lib
+from wbc_jax import dynamics
+from wbc_jax.model import Robot, RobotIndex
+from wbc_jax.references import Schedule
+from wbc_jax.types import Array, pytree_dataclass
+
+RECOVERY_THRESHOLD = 0.01  # m: "recovered" = CoM back within 1 cm of its reference
+
+
+@dataclasses.dataclass(frozen=True)
+class SimConfig:
+    """Static rollout settings.
+
+    Attributes:
+      control_dt: controller period (s); physics dt comes from the model (1 ms).
+      duration: simulated time (s).
+      solver_iterations / ls_iterations: MJX contact solver settings (None: the model's).
+      push_body: body the pushes act on (at its CoM, world-axes force).
+      record: keep per-tick trajectories (False in large sweeps: metrics only).
+      fall_com_height: a fall is CoM height below this fraction of the initial one.
+    """
+
+    control_dt: float = 0.01
+    duration: float = 10.0
+    solver_iterations: int | None = None
+    ls_iterations: int | None = None
+    push_body: str = "chest"
+    record: bool = True
+    fall_com_height: float = 0.7
+
+    def __post_init__(self):
+        if not (self.control_dt > 0 and self.duration > 0):
+            raise ValueError(f"control_dt and duration must be positive: {self}")
+
+
+@pytree_dataclass
+class Push:
+    """External pushes (P of them), world-axes forces at the CoM of ``SimConfig.push_body``.
+
+    Attributes: force (P, 3) N; onset (P,) s; duration (P,) s.
+    """
+
+    force: Array
+    onset: Array
+    duration: Array
+
+
+def no_push(dtype=jnp.float32) -> Push:
+    return Push(force=jnp.zeros((1, 3), dtype), onset=jnp.zeros(1, dtype), duration=jnp.zeros(1, dtype))
+
+
+def push_force(push: Push, t: Array) -> Array:
+    """Total push force (3,) at time t."""
+    on = (t >= push.onset) & (t < push.onset + push.duration)
+    return jnp.sum(push.force * on[:, None], axis=0)
+
+
+@pytree_dataclass
+class Metrics:
+    """Per-environment running metrics (scalars; a batch axis under vmap)."""
+
+    com_sq_err_sum: Array
+    com_max_err: Array
+    max_abs_torque: Array
+    max_violation: Array
+    max_slip: Array
+    qp_infeasible_ticks: Array
+    fell: Array
+    nan: Array
+    last_time_off: Array  # last time the CoM error exceeded RECOVERY_THRESHOLD
+    min_com_height: Array
+    ticks: Array
+
+
+@pytree_dataclass
+class Trajectory:
+    """Per-tick record (time-major), when ``SimConfig.record``.
+
+    t (T,), qpos (T, nq), com (T, 3), com_ref (T, 3), tau (T, n), f_cmd (T, 12),
+    f_meas (T, 12), Ldot_star (T, 6), Ldot_meas (T, 6), activation (T, 2), feet_pos (T, 2, 3),
+    qp_infeasible (T,), qp_violation (T,), push (T, 3), s (T, n), s_des (T, n).
+    """
+
+    t: Array
+    qpos: Array
+    com: Array
+    com_ref: Array
+    tau: Array
+    f_cmd: Array
+    f_meas: Array
+    Ldot_star: Array
+    Ldot_meas: Array
+    activation: Array
+    feet_pos: Array
+    qp_infeasible: Array
+    qp_violation: Array
+    push: Array
+    s: Array
+    s_des: Array
+
+
+def measured_feet_wrenches(m: mjx.Model, d: mjx.Data, idx: RobotIndex, W_p_feet: Array) -> Array:
+    """Contact wrenches (12,) that MuJoCo applies on [left; right] foot, world axes, at the sole
+    origins (sum over the contact points of each foot)."""
+    contact = d._impl.contact
+    ncon = contact.dist.shape[0]
+    # efc addresses are static (numpy) in MJX: loop over the (few) contact slots.
+    forces = jnp.stack(
+        [support.contact_force(m, d, i, to_world_frame=True)[:3] for i in range(ncon)]
+    )
+    forces = jnp.where((contact.dist <= 0)[:, None], forces, 0.0)
+    geom_foot = np.full(m.ngeom, -1)
+    for k in range(2):
+        geom_foot[idx.foot_geoms[k]] = k
+    foot = jnp.asarray(geom_foot)[contact.geom[:, 1]]
+    wrenches = []
+    for k in range(2):
+        sel = (foot == k)[:, None]
+        F = jnp.where(sel, forces, 0.0)
+        moment = jnp.cross(contact.pos - W_p_feet[k], F)
+        wrenches.append(jnp.concatenate([F.sum(0), moment.sum(0)]))
+    return jnp.concatenate(wrenches)
+
+
+def initial_data(robot: Robot, qpos: np.ndarray | None = None, dtype=None) -> mjx.Data:
+    """MJX data at the home keyframe (or ``qpos``), zero velocity."""
+    qpos = robot.home_qpos() if qpos is None else np.asarray(qpos)
+    if qpos.shape != (robot.index.nq,):
+        raise ValueError(f"qpos must have shape ({robot.index.nq},), got {qpos.shape}")
+    d = mjx.make_data(robot.mj_model)
+    return d.replace(qpos=jnp.asarray(qpos, d.qpos.dtype if dtype is None else dtype))
+
+
+def configure_model(mx: mjx.Model, cfg: SimConfig) -> mjx.Model:
+    """Apply the solver overrides of ``cfg`` to the MJX model."""
+    opt = mx.opt
+    if cfg.solver_iterations is not None:
+        opt = opt.replace(iterations=int(cfg.solver_iterations))
+    if cfg.ls_iterations is not None:
+        opt = opt.replace(ls_iterations=int(cfg.ls_iterations))
+    return mx.replace(opt=opt)
+
+
+class Rollout:
+    """Closed-loop rollout of one environment, built by :func:`make_rollout`.
+
+    ``rollout(mx, d0, gains, consts, push) -> (Metrics, Trajectory | None)`` runs the whole
+    horizon in one ``lax.scan``: jit it, vmap it (e.g. ``in_axes=(None, None, 0, None, 0)``
+    for batches of gains and pushes), differentiate it. ``init`` + ``chunk`` run the same
+    ticks in fixed-size pieces (one compilation) so that long runs can show progress.
+    Static structure (schedule, settings, indices) is closed over.
+    """
+
+    def __init__(self, robot: Robot, schedule: Schedule, config, cfg: SimConfig):
+        idx = robot.index
+        self.physics_dt = float(robot.mj_model.opt.timestep)
+        n_sub = int(round(cfg.control_dt / self.physics_dt))
+        if n_sub < 1 or abs(n_sub * self.physics_dt - cfg.control_dt) > 1e-9:
+            raise ValueError(
+                f"control_dt {cfg.control_dt} must be a multiple of the physics timestep "
+                f"{self.physics_dt}"
+            )
+        self.n_sub = n_sub
+        self.n_ticks = int(round(cfg.duration / cfg.control_dt))
+        self.push_body = idx.body_id(cfg.push_body)
+        # Bodies that must stay off the floor: all but the feet and the ankle links above them.
+        feet_and_ankles = set(idx.foot_bodies.tolist()) | set(
+            robot.mj_model.body_parentid[idx.foot_bodies].tolist()
+        )
+        self.non_foot_bodies = np.array(
+            [b for b in range(1, robot.mj_model.nbody) if b not in feet_and_ankles]
+        )
+        self.idx, self.schedule, self.config, self.cfg = idx, schedule, config, cfg
+
+    def init(self, mx, d0):
+        """Initial carry (data, controller state, metrics, foot anchors, initial CoM height)."""
+        mx = configure_model(mx, self.cfg)
+        t0 = dynamics.terms(mx, d0, self.idx)
+        zero = jnp.zeros((), d0.qpos.dtype)
+        metrics0 = Metrics(
+            com_sq_err_sum=zero, com_max_err=zero, max_abs_torque=zero, max_violation=zero,
+            max_slip=zero, qp_infeasible_ticks=jnp.zeros((), jnp.int32),
+            fell=jnp.zeros((), bool), nan=jnp.zeros((), bool), last_time_off=zero,
+            min_com_height=t0.W_p_CoM[2], ticks=jnp.zeros((), jnp.int32),
+        )  # fmt: skip
+        return (d0, ctrl_lib.init_state(d0.qpos.dtype), metrics0, t0.W_p_feet, t0.W_p_CoM[2])
+
+    def _tick(self, mx, gains, consts, push, carry, k):
+        idx, cfg, config = self.idx, self.cfg, self.config
+        d, cstate, met, anchors, com0_height = carry
+        dtype = d.qpos.dtype
+        t_now = k * cfg.control_dt
+        terms = dynamics.terms(mx, d, idx)
+        ref = self.schedule.at(t_now, dtype)
+        out, cstate_new = ctrl_lib.step(
+            gains, consts, cstate, terms, ref, config=config, mass=idx.mass, dt=cfg.control_dt
+        )
+        ctrl = jnp.zeros(mx.nu, dtype).at[idx.actuators].set(out.tau)
+
+        def substep(dd, j):
+            t = t_now + j * self.physics_dt
+            xfrc = jnp.zeros((mx.nbody, 6), dtype).at[self.push_body, :3].set(push_force(push, t))
+            return mjx.step(mx, dd.replace(ctrl=ctrl, xfrc_applied=xfrc)), None
+
+        d_new, _ = jax.lax.scan(substep, d, jnp.arange(self.n_sub))
+        finite = jnp.all(jnp.isfinite(d_new.qpos)) & jnp.all(jnp.isfinite(d_new.qvel))
+        d_new = jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), d_new, d)
+
+        # Metrics, measured at the tick (the state this tick's torques were computed from).
+        com_err = jnp.linalg.norm(terms.W_p_CoM - ref.com_pos)
+        fully_active = ref.activation >= 1.0
+        anchors = jnp.where(fully_active[:, None], anchors, terms.W_p_feet)
+        slip_k = jnp.linalg.norm((terms.W_p_feet - anchors)[:, :2], axis=1)
+        slip = jnp.max(jnp.where(fully_active, slip_k, 0.0))
+        # d_new.xpos: kinematics of the last substep (d0 from make_data has none yet).
+        body_low = jnp.min(d_new.xpos[self.non_foot_bodies, 2]) < 0.05
+        fell = met.fell | (terms.W_p_CoM[2] < cfg.fall_com_height * com0_height) | body_low
+        met = Metrics(
+            com_sq_err_sum=met.com_sq_err_sum + com_err**2,
+            com_max_err=jnp.maximum(met.com_max_err, com_err),
+            max_abs_torque=jnp.maximum(met.max_abs_torque, jnp.max(jnp.abs(out.tau))),
+            max_violation=jnp.maximum(met.max_violation, out.qp_violation),
+            max_slip=jnp.maximum(met.max_slip, slip),
+            qp_infeasible_ticks=met.qp_infeasible_ticks + out.qp_infeasible.astype(jnp.int32),
+            fell=fell,
+            nan=met.nan | ~finite | ~jnp.all(jnp.isfinite(out.tau)),
+            last_time_off=jnp.where(com_err > RECOVERY_THRESHOLD, t_now, met.last_time_off),
+            min_com_height=jnp.minimum(met.min_com_height, terms.W_p_CoM[2]),
+            ticks=met.ticks + 1,
+        )
+        record = None
+        if cfg.record:
+            # Contact forces that the solver applied during this tick's last physics step.
+            f_meas = measured_feet_wrenches(mx, d_new, idx, terms.W_p_feet)
+            A = ctrl_lib.momentum.wrench_map(terms.W_p_feet, terms.W_p_CoM)
+            record = Trajectory(
+                t=t_now, qpos=d.qpos, com=terms.W_p_CoM, com_ref=ref.com_pos, tau=out.tau,
+                f_cmd=out.f, f_meas=f_meas, Ldot_star=out.Ldot_star,
+                Ldot_meas=A @ f_meas + ctrl_lib.momentum.gravity_wrench(idx.mass, dtype),
+                activation=ref.activation, feet_pos=terms.W_p_feet,
+                qp_infeasible=out.qp_infeasible, qp_violation=out.qp_violation,
+                push=push_force(push, t_now), s=terms.s, s_des=ref.s_des,
+            )  # fmt: skip
+        return (d_new, cstate_new, met, anchors, com0_height), record
+
+    def chunk(self, mx, gains, consts, push, carry, k0, n_ticks: int):
+        """Run ``n_ticks`` (static) ticks from tick ``k0`` (traced): (carry, Trajectory | None)."""
+        mx = configure_model(mx, self.cfg)
+        body = lambda c, k: self._tick(mx, gains, consts, push, c, k)  # noqa: E731
+        return jax.lax.scan(body, carry, k0 + jnp.arange(n_ticks))
+
+    def __call__(self, mx, d0, gains, consts, push):
+        carry, traj = self.chunk(mx, gains, consts, push, self.init(mx, d0), 0, self.n_ticks)
+        return carry[2], traj
+
+
+def make_rollout(robot: Robot, schedule: Schedule, config, cfg: SimConfig) -> Rollout:
+    """Build the closed-loop :class:`Rollout` of one environment (see its docstring)."""
+    return Rollout(robot, schedule, config, cfg)
+
+
+def summarize(metrics: Metrics, push_end: float = 0.0) -> dict:
+    """Host-side summary of (unbatched) metrics as plain floats."""
+    m = jax.tree_util.tree_map(np.asarray, metrics)
+    ticks = max(int(m.ticks), 1)
+    return {
+        "fell": bool(m.fell),
+        "nan": bool(m.nan),
+        "com_rmse_m": float(np.sqrt(m.com_sq_err_sum / ticks)),
+        "com_max_err_m": float(m.com_max_err),
+        "max_constraint_violation": float(m.max_violation),
+        "max_foot_slip_m": float(m.max_slip),
+        "max_abs_torque_nm": float(m.max_abs_torque),
+        "qp_infeasible_ticks": int(m.qp_infeasible_ticks),
+        "time_to_recover_s": float(max(0.0, float(m.last_time_off) - push_end)),
+        "min_com_height_m": float(m.min_com_height),
+    }

@@ -1,0 +1,167 @@
+"""[torques] Joint torques from the free-floating dynamics and the contact constraints.
+
+Substituting nu_dot from M nu_dot + h - J_c^T f = B tau into J_c nu_dot + Jdot_c nu = 0:
+
+    Lambda tau = J_c M^-1 (h - J_c^T f) - Jdot_c nu,          Lambda = J_c M^-1 B   (12, n)
+    tau = Lambda^+ (J_c M^-1 (h - J_c^T f) - Jdot_c nu) + N_Lambda tau_0,   N_Lambda = I - Lambda^+ Lambda
+    tau_0 = h_s - M_sb M_b^-1 h_b - (J_s^T - M_sb M_b^-1 J_b^T) f + u_0         (postural task)
+
+which is affine in the feet wrenches: tau = Sigma f + tau_model (controller-spec 1.5), with
+
+    Sigma     = -(Lambda^+ J_c M^-1 J_c^T + N_Lambda (J_s^T - M_sb M_b^-1 J_b^T))   (n, 12)
+    tau_model = Lambda^+ (J_c M^-1 h - Jdot_c nu) + N_Lambda (h_s - M_sb M_b^-1 h_b + u_0)
+
+Lambda^+ is the damped pseudo-inverse Lambda^T (Lambda Lambda^T + lambda I)^-1 (WBC
+``Reg.pinvDamp`` = 1 in simulation). Rows of J_c are scaled by each foot's contact activation
+(codyco ``torqueBalancing``), so contacts appear and vanish continuously.
+
+Postural u_0, two variants:
+* ``seed``  (seed paper, codyco C++):  u_0 = -K_imp (s - s_d) - K_d s_dot (diagonal gains);
+* ``stable`` (Nava et al. 2016, WBC): u_0 = -K_P N_Lambda Mbar s~ - K_D N_Lambda Mbar s_dot with
+  K_P = diag(k_p) pinv(N_Lambda Mbar) + 0.1 I and K_D = diag(k_d) pinv(N_Lambda Mbar).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from wbc_jax.dynamics import DynamicsTerms
+from wbc_jax.math import damped_pinv, pinv_abs_tol
+from wbc_jax.types import Array, pytree_dataclass
+
+POSTURAL_VARIANTS = ("stable", "seed")
+
+
+@pytree_dataclass
+class TorqueTerms:
+    """Terms of the affine torque law tau = Sigma f + tau_model (n joints, 12 = two wrenches).
+
+    Attributes:
+      J_c:        (12, nv) contact Jacobians, rows scaled by the activations
+      Jdot_nu_c:  (12,)    their Jdot nu
+      Lambda:     (12, n)  J_c M^-1 B
+      Lambda_pinv:(n, 12)  damped pseudo-inverse
+      N_Lambda:   (n, n)   I - Lambda^+ Lambda
+      Mbar:       (n, n)   joint-space inertia with the base eliminated
+      Sigma:      (n, 12)  d tau / d f
+      tau_model:  (n,)     torques for f = 0 (postural task included)
+      u0:         (n,)     postural term
+    """
+
+    J_c: Array
+    Jdot_nu_c: Array
+    Lambda: Array
+    Lambda_pinv: Array
+    N_Lambda: Array
+    Mbar: Array
+    Sigma: Array
+    tau_model: Array
+    u0: Array
+
+
+def contact_jacobians(t: DynamicsTerms, activation: Array) -> tuple[Array, Array]:
+    """Stacked contact Jacobian (12, nv) and Jdot nu (12,), each foot scaled by activation (2,)."""
+    J_c = (t.J_feet * activation[:, None, None]).reshape(12, -1)
+    Jdot_nu_c = (t.Jdot_nu_feet * activation[:, None]).reshape(12)
+    return J_c, Jdot_nu_c
+
+
+def postural_torque(
+    variant: str,
+    *,
+    kp: Array,
+    kd: Array,
+    s_err: Array,
+    s_dot: Array,
+    N_Lambda: Array,
+    Mbar: Array,
+    pinv_tol: float = 1e-5,
+    kp_reg: float = 0.1,
+) -> Array:
+    """u_0 (n,) of the postural task (module docstring). kp, kd, s_err, s_dot: (n,).
+
+    For ``stable``, diag(k) pinv(X) X v is evaluated as diag(k) P v with P = pinv(X) X the
+    projector on the row space of X = N_Lambda Mbar (absolute tolerance, as MATLAB's pinv).
+    P is held constant in derivatives (``stop_gradient``): SVD derivatives are undefined at its
+    repeated singular values; gradients still flow through the gains and the state.
+    """
+    if variant == "seed":
+        return -kp * s_err - kd * s_dot
+    if variant == "stable":
+        X = N_Lambda @ Mbar
+        P = jax.lax.stop_gradient(pinv_abs_tol(X, pinv_tol) @ X)
+        return -kp * (P @ s_err) - kp_reg * (X @ s_err) - kd * (P @ s_dot)
+    raise ValueError(f"unknown postural variant {variant!r}; valid: {list(POSTURAL_VARIANTS)}")
+
+
+def torque_terms(
+    t: DynamicsTerms,
+    activation: Array,
+    *,
+    postural: str,
+    kp_postural: Array,
+    kd_postural: Array,
+    s_des: Array,
+    pinv_damping: float = 1.0,
+    pinv_tol: float = 1e-5,
+    kp_postural_reg: float = 0.1,
+    compensate_passive: bool = True,
+) -> TorqueTerms:
+    """Build the affine torque law at one state.
+
+    Args:
+      t: dynamics terms (mixed representation).
+      activation: (2,) contact activations of [left, right] in [0, 1].
+      postural: ``"stable"`` or ``"seed"``.
+      kp_postural, kd_postural: (n,) postural gains.
+      s_des: (n,) postural reference.
+      pinv_damping: lambda of the damped pseudo-inverse of Lambda.
+      pinv_tol: absolute singular-value tolerance of pinv(N_Lambda Mbar).
+      kp_postural_reg: the 0.1 I added to K_P (WBC ``Reg.KP_postural``).
+      compensate_passive: include the model's joint damping in the bias h.
+
+    Returns:
+      :class:`TorqueTerms`.
+    """
+    n = t.s.shape[0]
+    M = t.M
+    h = t.h - t.tau_passive if compensate_passive else t.h
+    J_c, Jdot_nu_c = contact_jacobians(t, activation)
+    Minv_JcT = jnp.linalg.solve(M, J_c.T)  # (nv, 12)
+    Minv_h = jnp.linalg.solve(M, h)
+    Jc_Minv = Minv_JcT.T  # M symmetric
+    Lambda = Jc_Minv[:, 6:]
+    Lambda_pinv = damped_pinv(Lambda, pinv_damping)
+    N_Lambda = jnp.eye(n, dtype=M.dtype) - Lambda_pinv @ Lambda
+
+    M_b, M_bs, M_sb, M_s = M[:6, :6], M[:6, 6:], M[6:, :6], M[6:, 6:]
+    Mb_inv = jnp.linalg.solve(M_b, jnp.concatenate([M_bs, h[:6, None], J_c[:, :6].T], axis=1))
+    Mb_inv_Mbs, Mb_inv_hb, Mb_inv_JbT = Mb_inv[:, :n], Mb_inv[:, n], Mb_inv[:, n + 1 :]
+    Mbar = M_s - M_sb @ Mb_inv_Mbs
+    u0 = postural_torque(
+        postural,
+        kp=kp_postural,
+        kd=kd_postural,
+        s_err=t.s - s_des,
+        s_dot=t.s_dot,
+        N_Lambda=N_Lambda,
+        Mbar=Mbar,
+        pinv_tol=pinv_tol,
+        kp_reg=kp_postural_reg,
+    )
+    Sigma = -(Lambda_pinv @ (J_c @ Minv_JcT) + N_Lambda @ (J_c[:, 6:].T - M_sb @ Mb_inv_JbT))
+    tau_model = Lambda_pinv @ (J_c @ Minv_h - Jdot_nu_c) + N_Lambda @ (
+        h[6:] - M_sb @ Mb_inv_hb + u0
+    )
+    return TorqueTerms(
+        J_c=J_c,
+        Jdot_nu_c=Jdot_nu_c,
+        Lambda=Lambda,
+        Lambda_pinv=Lambda_pinv,
+        N_Lambda=N_Lambda,
+        Mbar=Mbar,
+        Sigma=Sigma,
+        tau_model=tau_model,
+        u0=u0,
+    )
