@@ -6,6 +6,8 @@ import argparse
 import json
 import sys
 
+import numpy as np
+
 
 def _info(args: argparse.Namespace) -> int:
     from wbc_jax import model
@@ -30,6 +32,32 @@ def _balance(args: argparse.Namespace) -> int:
     return 0
 
 
+def _push_sweep(args: argparse.Namespace) -> int:
+    from wbc_jax import sweep
+
+    def grid(lo_hi_n, name):
+        lo, hi, n = lo_hi_n
+        if int(n) < 1:
+            raise ValueError(f"--{name} needs at least one point, got {int(n)}")
+        return tuple(float(x) for x in np.linspace(lo, hi, int(n)))
+
+    cfg = sweep.SweepConfig(
+        magnitudes=grid(args.magnitudes, "magnitudes"),
+        directions=tuple(float(x) for x in np.arange(int(args.directions)) * 360.0 / int(args.directions))
+        if int(args.directions) >= 1 else (),
+        gain_sets=args.gain_sets, horizon=args.horizon, forces=args.forces,
+        postural=args.postural, seed=args.seed, chunk_size=args.chunk_size,
+        push_duration=args.push_duration, push_onset=args.push_onset, body=args.body,
+        joint_noise=args.joint_noise, friction=tuple(args.friction),
+        mass_scale=tuple(args.mass_scale), solver_iterations=args.solver_iterations,
+    )  # fmt: skip
+    summary = sweep.run_sweep(cfg, args.out, gains_file=args.gains, progress=not args.quiet)
+    keys = ("n_envs", "survival_rate", "nan_envs", "qp_infeasible_envs", "physics_steps_per_s",
+            "compile_s", "run_s", "n_devices")  # fmt: skip
+    print(json.dumps({k: summary[k] for k in keys}, separators=(",", ":")))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="wbc-jax", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -50,6 +78,28 @@ def build_parser() -> argparse.ArgumentParser:
     bal.add_argument("--push-duration", type=float, default=0.1)
     bal.add_argument("--quiet", action="store_true", help="no progress bar")
     bal.set_defaults(func=_balance)
+
+    sw = sub.add_parser("push-sweep", help="batched push-recovery sweep (the main job)")
+    sw.add_argument("--magnitudes", type=float, nargs=3, default=[30.0, 150.0, 5],
+                    metavar=("LO", "HI", "N"), help="push force grid [N]")  # fmt: skip
+    sw.add_argument("--directions", type=int, default=8, help="number of azimuths over 360 deg")
+    sw.add_argument("--gain-sets", type=int, default=1)
+    sw.add_argument("--gains", default=None, help="gains JSON file (the first gain set)")
+    sw.add_argument("--horizon", type=float, default=2.0, help="seconds per rollout")
+    sw.add_argument("--push-duration", type=float, default=0.1)
+    sw.add_argument("--push-onset", type=float, default=0.5)
+    sw.add_argument("--body", default="chest", help="pushed body")
+    sw.add_argument("--joint-noise", type=float, default=0.0, help="initial joint noise std [rad]")
+    sw.add_argument("--friction", type=float, nargs=2, default=[1.0, 1.0], metavar=("LO", "HI"))
+    sw.add_argument("--mass-scale", type=float, nargs=2, default=[1.0, 1.0], metavar=("LO", "HI"))
+    sw.add_argument("--forces", default="qp", choices=["qp", "analytic"])
+    sw.add_argument("--postural", default="stable", choices=["stable", "seed"])
+    sw.add_argument("--solver-iterations", type=int, default=None)
+    sw.add_argument("--seed", type=int, default=0)
+    sw.add_argument("--chunk-size", type=int, default=40, help="environments per compiled batch")
+    sw.add_argument("--out", default="runs/push_sweep")
+    sw.add_argument("--quiet", action="store_true")
+    sw.set_defaults(func=_push_sweep)
     return parser
 
 

@@ -204,7 +204,7 @@ class Rollout:
         )  # fmt: skip
         return (d0, ctrl_lib.init_state(d0.qpos.dtype), metrics0, t0.W_p_feet, t0.W_p_CoM[2])
 
-    def _tick(self, mx, gains, consts, push, carry, k):
+    def _tick(self, mx, gains, consts, push, carry, k, mx_plant=None):
         idx, cfg, config = self.idx, self.cfg, self.config
         d, cstate, met, anchors, com0_height = carry
         dtype = d.qpos.dtype
@@ -219,7 +219,8 @@ class Rollout:
         def substep(dd, j):
             t = t_now + j * self.physics_dt
             xfrc = jnp.zeros((mx.nbody, 6), dtype).at[self.push_body, :3].set(push_force(push, t))
-            return mjx.step(mx, dd.replace(ctrl=ctrl, xfrc_applied=xfrc)), None
+            plant = mx if mx_plant is None else mx_plant
+            return mjx.step(plant, dd.replace(ctrl=ctrl, xfrc_applied=xfrc)), None
 
         d_new, _ = jax.lax.scan(substep, d, jnp.arange(self.n_sub))
         finite = jnp.all(jnp.isfinite(d_new.qpos)) & jnp.all(jnp.isfinite(d_new.qvel))
@@ -262,14 +263,20 @@ class Rollout:
             )  # fmt: skip
         return (d_new, cstate_new, met, anchors, com0_height), record
 
-    def chunk(self, mx, gains, consts, push, carry, k0, n_ticks: int):
-        """Run ``n_ticks`` (static) ticks from tick ``k0`` (traced): (carry, Trajectory | None)."""
+    def chunk(self, mx, gains, consts, push, carry, k0, n_ticks: int, mx_plant=None):
+        """Run ``n_ticks`` (static) ticks from tick ``k0`` (traced): (carry, Trajectory | None).
+
+        ``mx`` is the controller's model; ``mx_plant`` (default: the same) is simulated, so a
+        sweep can perturb the plant (mass, friction) while the controller keeps the nominal one.
+        """
         mx = configure_model(mx, self.cfg)
-        body = lambda c, k: self._tick(mx, gains, consts, push, c, k)  # noqa: E731
+        plant = None if mx_plant is None else configure_model(mx_plant, self.cfg)
+        body = lambda c, k: self._tick(mx, gains, consts, push, c, k, plant)  # noqa: E731
         return jax.lax.scan(body, carry, k0 + jnp.arange(n_ticks))
 
-    def __call__(self, mx, d0, gains, consts, push):
-        carry, traj = self.chunk(mx, gains, consts, push, self.init(mx, d0), 0, self.n_ticks)
+    def __call__(self, mx, d0, gains, consts, push, mx_plant=None):
+        carry0 = self.init(mx, d0)
+        carry, traj = self.chunk(mx, gains, consts, push, carry0, 0, self.n_ticks, mx_plant)
         return carry[2], traj
 
 
