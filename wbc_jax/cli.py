@@ -80,12 +80,12 @@ def build_parser() -> argparse.ArgumentParser:
     bal.set_defaults(func=_balance)
 
     sw = sub.add_parser("push-sweep", help="batched push-recovery sweep (the main job)")
-    sw.add_argument("--magnitudes", type=float, nargs=3, default=[30.0, 150.0, 5],
+    sw.add_argument("--magnitudes", type=float, nargs=3, default=[20.0, 100.0, 3],
                     metavar=("LO", "HI", "N"), help="push force grid [N]")  # fmt: skip
-    sw.add_argument("--directions", type=int, default=8, help="number of azimuths over 360 deg")
+    sw.add_argument("--directions", type=int, default=4, help="number of azimuths over 360 deg")
     sw.add_argument("--gain-sets", type=int, default=1)
     sw.add_argument("--gains", default=None, help="gains JSON file (the first gain set)")
-    sw.add_argument("--horizon", type=float, default=2.0, help="seconds per rollout")
+    sw.add_argument("--horizon", type=float, default=1.5, help="seconds per rollout")
     sw.add_argument("--push-duration", type=float, default=0.1)
     sw.add_argument("--push-onset", type=float, default=0.5)
     sw.add_argument("--body", default="chest", help="pushed body")
@@ -96,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--postural", default="stable", choices=["stable", "seed"])
     sw.add_argument("--solver-iterations", type=int, default=None)
     sw.add_argument("--seed", type=int, default=0)
-    sw.add_argument("--chunk-size", type=int, default=40, help="environments per compiled batch")
+    sw.add_argument("--chunk-size", type=int, default=12, help="environments per compiled batch")
     sw.add_argument("--out", default="runs/push_sweep")
     sw.add_argument("--quiet", action="store_true")
     sw.set_defaults(func=_push_sweep)

@@ -199,6 +199,24 @@ def constraint_violation(f: Array, W_R_feet: Array, activation: Array, params) -
 _FZ_MIN_ROW = 14  # index of the unilateral row -f_z <= -fz_min in foot_constraints
 
 
+TORQUE_WEIGHT_SOFT = 1e-4  # weight of |tau|^2 against |A f - w|^2 (N^2 vs (N m)^2) in the soft QP
+
+
+def _two_feet_momentum_qp(A, wrench_des, tt, W_R_feet, config):
+    """min 1/2 |A f - w|^2 + (c/2) |tau_model + Sigma f|^2 + (eps/2) |f|^2  s.t. C_2 f <= b_2.
+
+    f (12,) both feet, world axes; C_2 = blkdiag(world constraints of each foot) (38, 12)."""
+    C_foot, b_foot = contact_qp.foot_constraints(config.contact)
+    Cs, bs = zip(*[contact_qp.world_constraints(C_foot, b_foot, W_R_feet[k]) for k in range(2)])
+    zeros = jnp.zeros_like(Cs[0])
+    C2 = jnp.block([[Cs[0], zeros], [zeros, Cs[1]]])
+    b2 = jnp.concatenate(bs)
+    c = TORQUE_WEIGHT_SOFT
+    H = A.T @ A + c * tt.Sigma.T @ tt.Sigma + config.hessian_reg * jnp.eye(12, dtype=A.dtype)
+    g = -A.T @ wrench_des + c * tt.Sigma.T @ tt.tau_model
+    return contact_qp.solve_qp(H, g, C2, b2, iterations=config.qp_iterations)
+
+
 def step(
     gains: Gains,
     consts: ControllerConstants,
@@ -277,7 +295,14 @@ def step(
             A_stance, wrench_des, R_stance, config.contact,
             iterations=config.qp_iterations, hessian_reg=config.hessian_reg,
         )  # fmt: skip
+        # WBC's two-feet QP keeps A f = L_dot* - f_grav as an equality; after a strong push that
+        # rate is not realisable by feasible wrenches and the QP is infeasible. Instead of the
+        # unconstrained (infeasible) wrenches, track the momentum rate as well as the contact
+        # constraints allow (always feasible): the one-foot formulation over both feet.
+        f_soft, info_soft = _two_feet_momentum_qp(A, wrench_des, tt, t.W_R_feet, config)
         infeasible_two, infeasible_one = info_two.infeasible, info_one.infeasible
+        f_two = jnp.where(infeasible_two, f_soft, f_two)
+        infeasible_two = infeasible_two & info_soft.infeasible
     else:
         # Seed paper C++: f0 minimises |tau| without inequality constraints (least squares over
         # range(N_A), regularised like the QP); one foot: f_k = A_k^-1 wrench_des.

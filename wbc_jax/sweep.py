@@ -195,6 +195,29 @@ def make_batched_runner(robot: model_lib.Robot, cfg: SweepConfig):
     return jax.jit(jax.vmap(env)), rollout
 
 
+_COMPILED: dict = {}  # (sweep key, robot, batch shape, devices) -> (compiled runner, rollout)
+
+
+def run_batch(robot: model_lib.Robot, cfg: SweepConfig, scen: Scenario):
+    """Closed loop over a Scenario batch, sharded over all devices, compiled once per shape.
+
+    Returns (Metrics with a batch axis, rollout, seconds spent compiling (0 if cached))."""
+    mesh = device_mesh()
+    size = int(np.asarray(scen.friction).shape[0])
+    sharded, _ = _shard(scen, mesh, size)
+    key = (cfg.key(), robot.index.robot, sharded.friction.shape, mesh.devices.size)
+    compile_s = 0.0
+    if key not in _COMPILED:  # ahead-of-time, so that compilation is timed apart
+        runner, rollout = make_batched_runner(robot, cfg)
+        t0 = time.perf_counter()
+        _COMPILED[key] = (runner.lower(sharded).compile(), rollout)
+        compile_s = time.perf_counter() - t0
+    compiled, rollout = _COMPILED[key]
+    metrics = compiled(sharded)
+    metrics = jax.tree_util.tree_map(lambda x: np.asarray(x)[:size], metrics)
+    return metrics, rollout, compile_s
+
+
 def device_mesh() -> Mesh:
     """1-D mesh over all (local, or global after jax.distributed) devices, axis 'batch'."""
     return Mesh(np.asarray(jax.devices()), ("batch",))
@@ -248,14 +271,12 @@ def run_sweep(cfg: SweepConfig, out: str | pathlib.Path, *, gains_file: str | No
         raise ValueError(f"{out} holds a different sweep (config changed); use another --out")
     io.atomic_write_json(manifest, {"key": key, "config": dataclasses.asdict(cfg)})
 
-    mesh = device_mesh()
-    runner, rollout = make_batched_runner(robot, cfg)
     push_end = cfg.push_onset + cfg.push_duration
     n_chunks = math.ceil(cfg.size / cfg.chunk_size)
     parts = out / "parts"
     compile_s = run_s = 0.0
     done_envs = 0
-    compiled = {}
+    rollout = None
     with tqdm(total=cfg.size, unit="env", disable=not progress) as bar:
         for c in range(n_chunks):
             part = parts / f"part-{c:05d}.parquet"
@@ -264,18 +285,12 @@ def run_sweep(cfg: SweepConfig, out: str | pathlib.Path, *, gains_file: str | No
                 bar.update(hi - lo)
                 continue
             chunk = jax.tree_util.tree_map(lambda x: np.asarray(x)[lo:hi], scen)
-            sharded, pad = _shard(chunk, mesh, hi - lo)
-            shape = sharded.friction.shape
-            if shape not in compiled:  # ahead-of-time, so that compilation is timed apart
-                t0 = time.perf_counter()
-                compiled[shape] = runner.lower(sharded).compile()
-                compile_s += time.perf_counter() - t0
             t0 = time.perf_counter()
-            metrics = compiled[shape](sharded)
-            jax.block_until_ready(metrics)
-            run_s += time.perf_counter() - t0
+            metrics, rollout, compiling = run_batch(robot, cfg, chunk)
+            compile_s += compiling
+            run_s += time.perf_counter() - t0 - compiling
             done_envs += hi - lo
-            cols = metrics_columns(jax.tree_util.tree_map(lambda x: np.asarray(x)[: hi - lo], metrics), push_end)
+            cols = metrics_columns(metrics, push_end)
             table = pd.DataFrame({"env": np.arange(lo, hi), **{k: v[lo:hi] for k, v in columns.items()}, **cols})
             buf = __import__("io").BytesIO()
             table.to_parquet(buf, index=False)
@@ -285,7 +300,7 @@ def run_sweep(cfg: SweepConfig, out: str | pathlib.Path, *, gains_file: str | No
     buf = __import__("io").BytesIO()
     table.to_parquet(buf, index=False)
     io.atomic_write_bytes(out / "results.parquet", buf.getvalue())
-    steps_per_env = rollout.n_ticks * rollout.n_sub
+    steps_per_env = int(round(cfg.horizon / 0.01)) * 10 if rollout is None else rollout.n_ticks * rollout.n_sub
     summary = summarize_table(table, cfg, robot)
     summary.update({
         "config": dataclasses.asdict(cfg),
