@@ -105,8 +105,11 @@ def main() -> None:
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 64])
     parser.add_argument("--horizon", type=float, default=1.0)
     parser.add_argument("--iterations", type=int, nargs="+", default=[4])
-    parser.add_argument("--cpu-baseline-envs", type=int, default=0)
-    parser.add_argument("--cpu-workers", type=int, default=os.cpu_count())
+    parser.add_argument("--cpu-baseline-envs", type=int, default=0,
+                        help="environments per CPU worker (0: no CPU baseline)")
+    parser.add_argument("--cpu-workers", type=int, nargs="+", default=[os.cpu_count()],
+                        help="worker counts to time (scaling over cores); the largest is the baseline")
+    parser.add_argument("--skip-physics-only", action="store_true")
     args = parser.parse_args()
     out = pathlib.Path(args.out)
     robot = model_lib.load_robot("icub")
@@ -118,9 +121,10 @@ def main() -> None:
                 row, _ = time_closed_loop(robot, batch, args.horizon, it)
                 row["peak_memory_bytes"] = peak_memory()
                 row["memory_per_env_bytes"] = (row["peak_memory_bytes"] / batch) if row["peak_memory_bytes"] else None
-                phys = time_physics_only(robot, batch, args.horizon, it)
-                row["physics_only_steps_per_s"] = phys
-                row["controller_share"] = 1.0 - row["physics_steps_per_s"] / phys
+                if not args.skip_physics_only:
+                    phys = time_physics_only(robot, batch, args.horizon, it)
+                    row["physics_only_steps_per_s"] = phys
+                    row["controller_share"] = 1.0 - row["physics_steps_per_s"] / phys
             except Exception as err:  # out of memory: report the size that failed
                 row = {"batch": batch, "solver_iterations": it, "error": repr(err)[:400]}
             print(json.dumps(row), flush=True)
@@ -129,13 +133,26 @@ def main() -> None:
     if args.cpu_baseline_envs:
         from wbc_jax import baseline_cpu
 
-        base = baseline_cpu.benchmark(
-            n_envs=args.cpu_baseline_envs, n_workers=args.cpu_workers, horizon=args.horizon
-        )
-        result["cpu_baseline"] = base
-        print(json.dumps(base), flush=True)
-        io.atomic_write_json(out / "bench.json", result)
-
+        scaling = []
+        for workers in sorted(set(args.cpu_workers)):
+            base = baseline_cpu.benchmark(
+                n_envs=args.cpu_baseline_envs * workers, n_workers=workers, horizon=args.horizon
+            )
+            scaling.append(base)
+            print(json.dumps(base), flush=True)
+            result["cpu_scaling"] = scaling
+            result["cpu_baseline"] = base  # the largest worker count
+            io.atomic_write_json(out / "bench.json", result)
+        ok = [r for r in result["runs"] if "physics_steps_per_s" in r]
+        if ok:
+            best = max(ok, key=lambda r: r["physics_steps_per_s"])
+            result["ratio_gpu_to_cpu"] = {
+                "gpu_batch": best["batch"], "gpu_steps_per_s": best["physics_steps_per_s"],
+                "cpu_workers": base["n_workers"], "cpu_steps_per_s": base["physics_steps_per_s"],
+                "ratio": best["physics_steps_per_s"] / base["physics_steps_per_s"],
+            }  # fmt: skip
+            print(json.dumps(result["ratio_gpu_to_cpu"]), flush=True)
+            io.atomic_write_json(out / "bench.json", result)
 
 if __name__ == "__main__":
     main()

@@ -1,37 +1,40 @@
 #!/usr/bin/env bash
 # One call on the GPU machine (see README): install the carried wheels without touching the
-# machine's jax, then run the jobs named as arguments. Results are packed into
-# $OUT/results.tar.gz (the device tool returns at most 8 files).
+# machine's jax, then run the jobs named as arguments. After each job the results so far are
+# packed into $OUT/results.tar.gz and the log is in $OUT/log.txt, so a call that runs past its
+# time limit still returns what finished.
 set -uo pipefail
+exec > >(tee -a $OUT/log.txt) 2>&1
 python3 -m pip install -q --no-deps .wheels/*.whl 2>&1 | grep -v WARNING
 export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 XLA_FLAGS=--xla_gpu_triton_gemm_any=true
 nvidia-smi -L
 python3 -c "import jax; print(jax.__version__, jax.devices())"
 R=/tmp/results; mkdir -p $R
+pack() { tar -czf $OUT/results.tar.gz -C $R . ; }
 sweep() {  # name, extra args
   local name=$1; shift
+  SECONDS=0
   python3 -m wbc_jax.cli push-sweep --out /tmp/sweeps/$name --quiet "$@" | tee $R/$name.json
+  echo "job $name: ${SECONDS}s"
   mkdir -p $R/$name && cp /tmp/sweeps/$name/{summary.json,survival.png,envelope.png,results.parquet} $R/$name/
+  pack
 }
 for job in "$@"; do
   case "$job" in
     sweep)  # the acceptance sweep: 64 magnitudes x 32 directions x 8 gain sets, 3 s
       sweep main --magnitudes 10 400 64 --directions 32 --gain-sets 8 --horizon 3 --chunk-size 16384 ;;
-    variants)  # same 32 x 16 grid for each controller variant
+    variants)  # same 32 x 16 grid (512 envs, one chunk) for each controller variant
       for v in "qp stable" "analytic stable" "qp seed"; do
         set -- $v
         sweep "grid-$1-$2" --magnitudes 10 320 32 --directions 16 --horizon 3 --chunk-size 512 \
           --forces $1 --postural $2
       done ;;
-    bench)
-      python3 experiments/benchmark.py --out $R/bench --batches 1024 16384 65536 --horizon 1.0 \
-        --iterations 4 ;;
+    bench)  # GPU closed loop over batch sizes, then the CPU baseline on all cores (scaling)
+      python3 experiments/benchmark.py --out $R/bench --batches 1024 16384 65536 --horizon 0.5 \
+        --iterations 4 --cpu-baseline-envs 16 --cpu-workers 1 4 16; pack ;;
     bench-iters)
-      python3 experiments/benchmark.py --out $R/bench_iters --batches 16384 --horizon 1.0 \
-        --iterations 2 1 ;;
-    baseline)
-      python3 experiments/benchmark.py --out $R/bench_cpu --batches 1 --horizon 1.0 \
-        --iterations 4 --cpu-baseline-envs 256 ;;
+      python3 experiments/benchmark.py --out $R/bench_iters --batches 65536 --horizon 0.5 \
+        --iterations 2 1 --skip-physics-only; pack ;;
   esac
 done
-tar -czf $OUT/results.tar.gz -C $R .
+pack

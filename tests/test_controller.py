@@ -57,24 +57,58 @@ def test_damped_pseudo_inverse_residual_is_small(state_terms):
     assert 1e-8 < rel < 0.05
 
 
-def test_force_distribution_realises_the_momentum_rate(robot, state_terms):
-    t = state_terms
+@pytest.fixture(scope="module")
+def standing_terms(robot):
+    """Near the home posture: feet almost flat, so the two-feet QP is feasible."""
+    rng = np.random.default_rng(5)
+    qpos = robot.home_qpos()
+    qpos[robot.index.qpos_joints] += rng.uniform(-0.03, 0.03, robot.index.n)
+    qvel = rng.normal(scale=0.05, size=robot.mj_model.nv)
+    d = mjx.make_data(robot.mj_model).replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel))
+    return jax.jit(lambda d: dynamics.terms(robot.mjx_model, d, robot.index))(d)
+
+
+def _step(robot, t, forces):
     gains = C.default_gains(23, jnp.float64)
-    config = C.ControllerConfig()
+    config = C.ControllerConfig(forces=forces)
     consts = C.constants_at_reference(t, config)
     ref = C.Reference(
         com_pos=t.W_p_CoM + jnp.array([0.0, 0.01, 0.0]), com_vel=jnp.zeros(3),
         com_acc=jnp.zeros(3), s_des=t.s, activation=jnp.ones(2),
     )  # fmt: skip
-    for forces in ("qp", "analytic"):
-        out, _ = C.step(gains, consts, C.init_state(jnp.float64), t, ref,
-                        config=C.ControllerConfig(forces=forces), mass=robot.index.mass, dt=0.01)  # fmt: skip
-        assert bool(jnp.all(jnp.isfinite(out.tau)))
-        # Two feet, feasible: A f + f_grav = L_dot* exactly.
-        np.testing.assert_allclose(out.Ldot_cmd, out.Ldot_star, atol=1e-6, err_msg=forces)
-        # Desired linear momentum rate: m (-Kp (x - x_d) - Kd v).
-        lin = robot.index.mass * (-gains.kp_com * (t.W_p_CoM - ref.com_pos) - gains.kd_com * t.W_v_CoM)
-        np.testing.assert_allclose(out.Ldot_star[:3], lin, rtol=1e-10)
+    out, _ = C.step(gains, consts, C.init_state(jnp.float64), t, ref,
+                    config=config, mass=robot.index.mass, dt=0.01)  # fmt: skip
+    return gains, ref, out
+
+
+@pytest.mark.parametrize("forces", ["qp", "analytic"])
+def test_force_distribution_realises_the_momentum_rate(robot, standing_terms, forces):
+    t = standing_terms
+    gains, ref, out = _step(robot, t, forces)
+    assert bool(jnp.all(jnp.isfinite(out.tau)))
+    assert not bool(out.qp_infeasible)
+    # Two feet, feasible: A f + f_grav = L_dot* exactly.
+    np.testing.assert_allclose(out.Ldot_cmd, out.Ldot_star, atol=1e-6, err_msg=forces)
+    # Desired linear momentum rate: m (-Kp (x - x_d) - Kd v).
+    lin = robot.index.mass * (-gains.kp_com * (t.W_p_CoM - ref.com_pos) - gains.kd_com * t.W_v_CoM)
+    np.testing.assert_allclose(out.Ldot_star[:3], lin, rtol=1e-10)
+    if forces == "qp":
+        # The QP wrenches satisfy friction, torsional friction, unilaterality and CoP.
+        assert float(out.qp_violation) < 1e-6
+
+
+def test_unrealisable_momentum_rate_keeps_the_contact_constraints(robot, state_terms):
+    """Random base orientation: the feet are tilted, the momentum rate cannot be realised by
+    admissible wrenches. The QP path then keeps the wrenches admissible (soft momentum QP)
+    instead of returning the unconstrained, inadmissible ones; the analytic path does not."""
+    t = state_terms
+    _, _, out_qp = _step(robot, t, "qp")
+    _, _, out_an = _step(robot, t, "analytic")
+    assert bool(jnp.all(jnp.isfinite(out_qp.tau)))
+    np.testing.assert_allclose(out_an.Ldot_cmd, out_an.Ldot_star, atol=1e-6)
+    assert float(jnp.abs(out_qp.Ldot_cmd - out_qp.Ldot_star).max()) > 1.0
+    assert float(out_an.qp_violation) > 0.1
+    assert float(out_qp.qp_violation) < 1e-3 or bool(out_qp.qp_infeasible)
 
 
 def test_wrench_map_matches_moment_arithmetic():
