@@ -45,7 +45,7 @@ def _push_sweep(args: argparse.Namespace) -> int:
         magnitudes=grid(args.magnitudes, "magnitudes"),
         directions=tuple(float(x) for x in np.arange(int(args.directions)) * 360.0 / int(args.directions))
         if int(args.directions) >= 1 else (),
-        gain_sets=args.gain_sets, horizon=args.horizon, forces=args.forces,
+        gain_sets=args.gain_sets, horizon=args.horizon, task=args.task, forces=args.forces,
         postural=args.postural, seed=args.seed, chunk_size=args.chunk_size,
         push_duration=args.push_duration, push_onset=args.push_onset, body=args.body,
         joint_noise=args.joint_noise, friction=tuple(args.friction),
@@ -92,6 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--joint-noise", type=float, default=0.0, help="initial joint noise std [rad]")
     sw.add_argument("--friction", type=float, nargs=2, default=[1.0, 1.0], metavar=("LO", "HI"))
     sw.add_argument("--mass-scale", type=float, nargs=2, default=[1.0, 1.0], metavar=("LO", "HI"))
+    sw.add_argument("--task", default="stand", choices=["stand", "one-foot"],
+                    help="two feet (stand) or pushed in the single-support phase of the one-foot "
+                         "task (7-9 s: e.g. --push-onset 7.5 --horizon 9)")  # fmt: skip
     sw.add_argument("--forces", default="qp", choices=["qp", "analytic"])
     sw.add_argument("--postural", default="stable", choices=["stable", "seed"])
     sw.add_argument("--solver-iterations", type=int, default=None)

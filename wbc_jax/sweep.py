@@ -30,6 +30,12 @@ from wbc_jax import rollout as rollout_lib
 from wbc_jax.types import Array, pytree_dataclass
 
 
+SWEEP_TASKS = ("stand", "one-foot")
+# The one-foot task (references.make_schedule) balances on the left foot from 7 to 9 s.
+ONE_FOOT_WINDOW = (7.0, 9.0)
+SUPPORTS = ("two-feet", "left-foot")
+
+
 @dataclasses.dataclass(frozen=True)
 class SweepConfig:
     """What a sweep covers (all sizes small by default: a laptop CPU in a few minutes).
@@ -76,6 +82,16 @@ class SweepConfig:
             raise ValueError("horizon must end after the push")
         if self.chunk_size < 1:
             raise ValueError(f"chunk_size must be >= 1, got {self.chunk_size}")
+        if self.task not in SWEEP_TASKS:
+            raise ValueError(f"unknown sweep task {self.task!r}; valid: {list(SWEEP_TASKS)}")
+        if self.task == "one-foot":
+            lo, hi = ONE_FOOT_WINDOW
+            if not (lo <= self.push_onset and self.push_onset + self.push_duration <= hi):
+                raise ValueError(
+                    f"one-foot sweeps push during the single-support phase {lo}-{hi} s of the "
+                    f"one-foot task: push onset {self.push_onset} s + duration "
+                    f"{self.push_duration} s is outside it (e.g. --push-onset 7.5 --horizon 9)"
+                )
         lo, hi = self.friction
         if not 0 < lo <= hi:
             raise ValueError(f"friction range must be positive and ordered, got {self.friction}")
@@ -321,19 +337,27 @@ def run_sweep(cfg: SweepConfig, out: str | pathlib.Path, *, gains_file: str | No
     return summary
 
 
-def lip_bound(robot: model_lib.Robot, directions_deg) -> dict:
+def lip_bound(robot: model_lib.Robot, directions_deg, support: str = "two-feet") -> dict:
     """Feet-in-place bound per direction: the LIP with the CoP at the support-polygon edge
-    survives a CoM velocity up to omega d (omega = sqrt(g / z_CoM)); as an impulse: m omega d."""
+    survives a CoM velocity up to omega d (omega = sqrt(g / z_CoM)); as an impulse: m omega d.
+
+    support: "two-feet" (home posture, CoM between the feet) or "left-foot" (the single-support
+    phase of the one-foot task: the left sole's contact points, CoM over the left sole)."""
     import mujoco
     from scipy.spatial import ConvexHull
 
+    if support not in SUPPORTS:
+        raise ValueError(f"unknown support {support!r}; valid: {list(SUPPORTS)}")
     m = robot.mj_model
     d = mujoco.MjData(m)
     d.qpos[:] = robot.home_qpos()
     mujoco.mj_forward(m, d)
-    pts = d.geom_xpos[robot.index.foot_geoms.ravel(), :2]
+    feet = robot.index.foot_geoms.ravel() if support == "two-feet" else robot.index.foot_geoms[0]
+    pts = d.geom_xpos[feet, :2]
     hull = ConvexHull(pts)
-    com = d.subtree_com[robot.index.base_body]
+    com = d.subtree_com[robot.index.base_body].copy()
+    if support == "left-foot":  # references.make_schedule("one-foot"): CoM y over the left sole
+        com[1] = d.site_xpos[robot.index.foot_sites[0], 1]
     omega = math.sqrt(9.81 / com[2])
     out = {}
     for az in directions_deg:
@@ -349,7 +373,8 @@ def lip_bound(robot: model_lib.Robot, directions_deg) -> dict:
 
 def summarize_table(table, cfg: SweepConfig, robot: model_lib.Robot) -> dict:
     """Survival rate, envelope (largest survived impulse per direction) and its bound."""
-    bound = lip_bound(robot, sorted(set(table["azimuth_deg"])))
+    support = "left-foot" if cfg.task == "one-foot" else "two-feet"
+    bound = lip_bound(robot, sorted(set(table["azimuth_deg"])), support)
     envelope = {}
     default = table[table["gain_set"] == 0]
     for az, group in default.groupby("azimuth_deg"):
@@ -363,6 +388,7 @@ def summarize_table(table, cfg: SweepConfig, robot: model_lib.Robot) -> dict:
         envelope[float(az)] = {"largest_survived_impulse_ns": best, "bound_impulse_ns": b,
                                "fraction_of_bound": best / b, "survival_islands": islands}  # fmt: skip
     return {
+        "support": support,
         "n_envs": int(len(table)),
         "survival_rate": float(table["survived"].mean()),
         "nan_envs": int(table["nan"].sum()),
