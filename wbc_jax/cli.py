@@ -58,6 +58,16 @@ def _push_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def _view(args: argparse.Namespace) -> int:
+    from wbc_jax import viz
+
+    if args.spawn and args.out is not None:
+        raise ValueError("--out and --spawn exclude each other: write a file or open a viewer")
+    path = viz.view(args.run_dir, args.env, out=args.out, spawn=args.spawn)
+    print(json.dumps({"rrd": None if path is None else str(path), "spawned": bool(args.spawn)}))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="wbc-jax", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -103,6 +113,13 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--out", default="runs/push_sweep")
     sw.add_argument("--quiet", action="store_true")
     sw.set_defaults(func=_push_sweep)
+
+    vw = sub.add_parser("view", help="log a run (or one env of a push sweep) to rerun: .rrd or viewer")
+    vw.add_argument("run_dir", help="output folder of a balance run or a push sweep")
+    vw.add_argument("--env", type=int, default=None, help="sweep env to re-simulate and show")
+    vw.add_argument("--out", default=None, help=".rrd file (default RUN_DIR/rollout.rrd or env_I.rrd)")
+    vw.add_argument("--spawn", action="store_true", help="open a rerun viewer instead of a file")
+    vw.set_defaults(func=_view)
     return parser
 
 

@@ -1,0 +1,172 @@
+"""rerun visualisation: a tiny real sweep, replay of its envs, the .rrd read back, CLI errors.
+
+Two compilations in all (the vmapped sweep and the recording replay, shared by every test)."""
+
+import collections
+import json
+
+import mujoco
+import numpy as np
+import pytest
+
+from wbc_jax import cli, io, sweep, viz
+
+rr = pytest.importorskip("rerun")
+from rerun.chunk import RrdReader  # noqa: E402
+
+# Two envs that differ in every scenario axis but the push: gain set 0 (default) and 1 (scaled),
+# random joint offsets, friction and mass scale of the plant.
+CFG = sweep.SweepConfig(
+    magnitudes=(150.0,), directions=(90.0,), gain_sets=2, horizon=0.3, push_onset=0.05,
+    push_duration=0.1, joint_noise=0.01, friction=(0.5, 1.0), mass_scale=(0.9, 1.1), chunk_size=2,
+    seed=3,
+)  # fmt: skip
+COMPARED = ("com_max_dev_m", "com_rmse_m", "peak_torque_nm", "min_com_height_m", "max_foot_slip_m")
+
+
+@pytest.fixture(scope="module")
+def sweep_dir(tmp_path_factory, robot):
+    out = tmp_path_factory.mktemp("sweep")
+    sweep.run_sweep(CFG, out, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def replays(sweep_dir):
+    return [viz.replay_sweep_env(sweep_dir, env) for env in range(CFG.size)]
+
+
+def read_rrd(path):
+    """Per entity: the set of sim_time values (ns) of its temporal rows; the static entities;
+    the temporal record batches per entity."""
+    times, static, batches = collections.defaultdict(set), set(), collections.defaultdict(list)
+    for chunk in RrdReader(path).stream():
+        if chunk.is_static:
+            static.add(chunk.entity_path)
+            continue
+        rb = chunk.to_record_batch()
+        if viz.TIMELINE in rb.schema.names:
+            times[chunk.entity_path].update(rb.column(viz.TIMELINE).cast("int64").to_pylist())
+            batches[chunk.entity_path].append(rb)
+    return times, static, batches
+
+
+def column_by_time(batches, component: str) -> dict:
+    """{sim_time ns: value} of one component over an entity's record batches."""
+    out = {}
+    for rb in batches:
+        t = rb.column(viz.TIMELINE).cast("int64").to_pylist()
+        for k, v in zip(t, rb.column(component).to_pylist()):
+            out[k] = v
+    return out
+
+
+def test_replay_equals_the_sweep_metrics(replays):
+    for env, (traj, metrics, row) in enumerate(replays):
+        assert traj["t"].shape == (int(round(CFG.horizon / 0.01)),)
+        assert bool(metrics["fell"]) == bool(row["fell"]) and bool(metrics["nan"]) == bool(row["nan"])
+        for name in COMPARED:
+            assert metrics[name] == pytest.approx(row[name], rel=1e-6, abs=1e-9), f"env {env} {name}"
+        # The recorded push is this env's push: 150 N to the left during [0.05, 0.15) s.
+        on = (traj["t"] >= CFG.push_onset) & (traj["t"] < CFG.push_onset + CFG.push_duration)
+        assert on.sum() in (10, 11)  # 0.1 s at 100 Hz (the end tick is decided by rounding)
+        np.testing.assert_allclose(traj["push"][on], [[0.0, 150.0, 0.0]] * on.sum(), atol=1e-9)
+        assert np.all(traj["push"][~on] == 0)
+    # The two scenarios differ measurably, so matching the wrong row would fail.
+    (_, m0, _), (_, m1, _) = replays
+    assert abs(m0["com_max_dev_m"] - m1["com_max_dev_m"]) > 1e-5
+
+
+def test_rrd_of_a_sweep_env(sweep_dir, replays, robot):
+    traj = replays[1][0]
+    T = len(traj["t"])
+    assert cli.main(["view", str(sweep_dir), "--env", "1"]) == 0
+    path = sweep_dir / "env_1.rrd"
+    times, static, batches = read_rrd(path)
+    m = viz.visual_model()
+    bodies = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b) for b in range(1, m.nbody)]
+    expected = {f"/world/robot/{b}" for b in bodies} | {
+        f"/{p}" for p in ("world/com", "world/com_ref", "world/com/trail", "world/com_ref/trail",
+                          "world/support_polygon", "world/contacts/f_meas", "world/contacts/f_cmd",
+                          "world/push", "plots/com_error_mm", "plots/Ldot_star", "plots/Ldot_meas",
+                          "plots/tau", "plots/f_cmd", "plots/f_meas")
+    }  # fmt: skip
+    assert expected <= set(times), sorted(expected - set(times))
+    want = {int(round(t * 1e9)) for t in traj["t"]}
+    for entity in expected:
+        assert times[entity] == want, entity  # one row per controller tick, at the tick's time
+    # Every mesh logged once (static), under its body.
+    meshes = [p for p in static if "/geom_" in p]
+    assert len(meshes) == int((m.geom_type == mujoco.mjtGeom.mjGEOM_MESH).sum()) == 39
+    # The floating base's pose is the trajectory's base position (free joint: xpos = qpos[:3]).
+    base = column_by_time(batches["/world/robot/root_link"], "Transform3D:translation")
+    got = np.array([base[int(round(t * 1e9))][0] for t in traj["t"]])
+    np.testing.assert_allclose(got, traj["qpos"][:, :3], atol=1e-5)
+    # Push arrow only while the push acts, pointing along it (+y), scaled by FORCE_SCALE.
+    push = column_by_time(batches["/world/push"], "Arrows3D:vectors")
+    for t, f in zip(traj["t"], traj["push"]):
+        v = push[int(round(t * 1e9))] or []
+        if np.any(f != 0):
+            np.testing.assert_allclose(v[0], f * viz.FORCE_SCALE, rtol=1e-5)
+        else:
+            assert v == []
+    # Series values: the CoM error is |com - com_ref| in mm.
+    err = column_by_time(batches["/plots/com_error_mm"], "Scalars:scalars")
+    np.testing.assert_allclose(
+        [err[int(round(t * 1e9))][0] for t in traj["t"]],
+        1e3 * np.linalg.norm(traj["com"] - traj["com_ref"], axis=1), rtol=1e-5,
+    )  # fmt: skip
+
+
+def test_rrd_of_a_balance_run_dir(replays, robot, tmp_path):
+    # A balance run dir holds trajectory.npz as balance.run writes it (same writer, real data).
+    traj = replays[0][0]
+    io.atomic_save_npz(tmp_path / "trajectory.npz", joints=np.array(robot.index.joints), **traj)
+    out = tmp_path / "x" / "mine.rrd"
+    assert cli.main(["view", str(tmp_path), "--out", str(out)]) == 0
+    times, _, _ = read_rrd(out)
+    assert len(times["/world/com"]) == len(traj["t"])
+    assert len(times["/plots/tau"]) == len(traj["t"])
+
+
+def test_view_errors_name_the_problem(sweep_dir, tmp_path, capsys):
+    cases = [
+        (["view", str(tmp_path / "nope")], "does not exist"),
+        (["view", str(tmp_path)], "neither a balance run"),
+        (["view", str(sweep_dir)], r"push sweep of 2 envs: choose one with --env I, I in 0..1"),
+        (["view", str(sweep_dir), "--env", "2"], r"env 2 is out of range: this sweep has envs 0..1"),
+        (["view", str(sweep_dir), "--env", "-1"], r"out of range"),
+    ]
+    for argv, message in cases:
+        assert cli.main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert __import__("re").search(message, err), (argv, err)
+    io.atomic_save_npz(tmp_path / "trajectory.npz", t=np.zeros(1))
+    assert cli.main(["view", str(tmp_path), "--env", "0"]) == 2
+    assert "--env applies to sweeps only" in capsys.readouterr().err
+    assert cli.main(["view", str(tmp_path)]) == 2
+    assert "trajectory lacks fields" in capsys.readouterr().err
+    summary = json.loads((sweep_dir / "summary.json").read_text())
+    assert viz.sweep_config(summary) == CFG
+
+
+def test_support_polygon_at_home_is_the_hull_of_both_soles(robot):
+    from scipy.spatial import ConvexHull
+
+    m = viz.visual_model()
+    _, _, gpos = viz.body_poses(m, robot.home_qpos()[None])
+    (poly,) = viz.support_polygons(m, gpos)
+    assert np.array_equal(poly[0], poly[-1])  # closed
+    x, y = poly[:, 0], poly[:, 1]
+    area = 0.5 * abs(np.dot(x[:-1], y[1:]) - np.dot(x[1:], y[:-1]))
+    names = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g) or "" for g in range(m.ngeom)]
+    soles = gpos[0, [g for g, n in enumerate(names) if "_foot_contact" in n]]
+    assert len(soles) == 8
+    assert area == pytest.approx(ConvexHull(soles[:, :2]).volume, rel=1e-9)
+    # Both soles (0.195 m long, feet 0.14 m apart, ~0.096 m wide) span ~0.195 x 0.23 m.
+    assert np.ptp(x) == pytest.approx(0.195, abs=0.01) and np.ptp(y) > 0.2
+    # A lifted robot touches nothing.
+    q = robot.home_qpos()
+    q[2] += 0.05
+    _, _, gpos = viz.body_poses(m, q[None])
+    assert len(viz.support_polygons(m, gpos)[0]) == 0
