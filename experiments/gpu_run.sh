@@ -29,10 +29,17 @@ for job in "$@"; do
         sweep "grid-$1-$2" --magnitudes 10 320 32 --directions 16 --horizon 3 --chunk-size 512 \
           --forces $1 --postural $2
       done ;;
-    bench)  # GPU closed loop over batch sizes, then the CPU baseline on all cores (scaling)
-      python3 experiments/benchmark.py --out $R/bench --batches 1024 16384 65536 --horizon 0.5 \
-        --iterations 4 --cpu-baseline-envs 16 --cpu-workers 1 4 16; pack ;;
-    bench-iters)
+    one-foot)  # the same grid, pushed while balancing on the left foot (one-foot task, 7-9 s)
+      sweep grid-one-foot --task one-foot --push-onset 7.5 --horizon 9 \
+        --magnitudes 10 320 32 --directions 16 --chunk-size 512 ;;
+    bench)  # trajectory check, GPU closed loop over batch sizes, then the CPU baseline on 1,
+            # 4 and all 16 cores (scaling)
+      python3 experiments/benchmark.py --out $R/bench --batches 1 1024 16384 65536 --horizon 0.5 \
+        --iterations 4 --cpu-baseline-envs 64 --cpu-workers 1 4 16; pack ;;
+    bench-large)  # the largest batch that fits: doublings past 65,536 until one fails
+      python3 experiments/benchmark.py --out $R/bench_large --batches 131072 --horizon 0.5 \
+        --iterations 4 --find-largest 1 --skip-physics-only --skip-equivalence; pack ;;
+    bench-iters)  # fewer Newton iterations: throughput and whether the balance figures hold
       python3 experiments/benchmark.py --out $R/bench_iters --batches 65536 --horizon 0.5 \
         --iterations 2 1 --skip-physics-only; pack ;;
   esac
