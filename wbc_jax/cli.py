@@ -68,6 +68,18 @@ def _view(args: argparse.Namespace) -> int:
     return 0
 
 
+def _tune(args: argparse.Namespace) -> int:
+    from wbc_jax import tune
+
+    kw = dict(steps=args.steps, batch=args.batch, horizon=args.horizon, seed=args.seed, lr=args.lr)
+    tc = tune.TuneConfig(**{k: v for k, v in kw.items() if v is not None})
+    report = tune.run(tc, args.out, baseline=not args.no_baseline, progress=not args.quiet)
+    held = report["held_out"]
+    print(json.dumps({name: {k: r[k] for k in ("objective", "survival_rate", "com_rmse_m", "effort_rms_nm")}
+                      for name, r in held.items()}, separators=(",", ":")))  # fmt: skip
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="wbc-jax", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -120,6 +132,16 @@ def build_parser() -> argparse.ArgumentParser:
     vw.add_argument("--out", default=None, help=".rrd file (default RUN_DIR/rollout.rrd or env_I.rrd)")
     vw.add_argument("--spawn", action="store_true", help="open a rerun viewer instead of a file")
     vw.set_defaults(func=_view)
+    tn = sub.add_parser("tune", help="gradient-based gain tuning + held-out comparison")
+    tn.add_argument("--out", default="runs/tune", help="output folder (resumes a run there)")
+    tn.add_argument("--steps", type=int, default=None, help="optimiser steps (default 12)")
+    tn.add_argument("--batch", type=int, default=None, help="push scenarios per step (default 4)")
+    tn.add_argument("--horizon", type=float, default=None, help="seconds per rollout (default 1.0)")
+    tn.add_argument("--seed", type=int, default=None, help="training scenarios seed (default 0)")
+    tn.add_argument("--lr", type=float, default=None, help="adam learning rate (default 0.1)")
+    tn.add_argument("--no-baseline", action="store_true", help="skip the random-search baseline")
+    tn.add_argument("--quiet", action="store_true")
+    tn.set_defaults(func=_tune)
     return parser
 
 

@@ -339,6 +339,7 @@ def step(
 
 
 GAIN_FIELDS = tuple(f.name for f in dataclasses.fields(Gains))
+NON_NEGATIVE_GAINS = ("ki_com",)  # may be 0 in a gains file; all the others must be > 0
 
 
 def gains_to_dict(gains: Gains) -> dict:
@@ -356,8 +357,20 @@ def gains_from_dict(values: dict, n: int = 23, dtype=jnp.float32) -> Gains:
         raise ValueError(
             f"gains: unknown keys {unknown}, missing keys {missing}; expected {list(GAIN_FIELDS)}"
         )
-    gains = Gains(**{k: np.asarray(values[k], dtype=float) for k in GAIN_FIELDS})
+    arrays = {}
+    for k in GAIN_FIELDS:
+        try:
+            arrays[k] = np.asarray(values[k], dtype=float)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"gain {k} must be a list of numbers, got {values[k]!r}") from err
+    gains = Gains(**arrays)
     validate_gains(gains, n)
+    # A gains file must have strictly positive gains (a zero gain disables a task); only the
+    # CoM integral ki_com may be 0 (the WBC law has none).
+    zero = {k: np.flatnonzero(arrays[k] <= 0).tolist() for k in GAIN_FIELDS
+            if k not in NON_NEGATIVE_GAINS and np.any(arrays[k] <= 0)}  # fmt: skip
+    if zero:
+        raise ValueError(f"gains must be positive: non-positive entries (indices) {zero}")
     return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), gains)
 
 

@@ -37,6 +37,10 @@ class SimConfig:
       push_body: body the pushes act on (at its CoM, world-axes force).
       record: keep per-tick trajectories (False in large sweeps: metrics only).
       fall_com_height: a fall is CoM height below this fraction of the initial one.
+      loss_trace: per tick, emit a small :class:`LossTrace` (for smooth, differentiable losses;
+        gain tuning) instead of a Trajectory; exclusive with ``record``.
+      checkpoint: wrap the tick in ``jax.checkpoint`` (reverse mode: the residuals of one tick
+        are recomputed instead of stored for the whole horizon; same values).
     """
 
     control_dt: float = 0.01
@@ -46,10 +50,14 @@ class SimConfig:
     push_body: str = "chest"
     record: bool = True
     fall_com_height: float = 0.7
+    loss_trace: bool = False
+    checkpoint: bool = False
 
     def __post_init__(self):
         if not (self.control_dt > 0 and self.duration > 0):
             raise ValueError(f"control_dt and duration must be positive: {self}")
+        if self.loss_trace and self.record:
+            raise ValueError("loss_trace and record are exclusive (set record=False)")
 
 
 @pytree_dataclass
@@ -116,6 +124,23 @@ class Trajectory:
     push: Array
     s: Array
     s_des: Array
+
+
+@pytree_dataclass
+class LossTrace:
+    """Per-tick quantities for smooth losses (time-major under scan), when ``SimConfig.loss_trace``.
+
+    com (T, 3), com_ref (T, 3), com_vel (T, 3): CoM, its reference, its velocity (world);
+    tau (T, n): applied torques; support_xy (T, F, 2): xy of the F foot contact geoms (world);
+    com_height0 (T,): the initial CoM height (constant, for height losses).
+    """
+
+    com: Array
+    com_ref: Array
+    com_vel: Array
+    tau: Array
+    support_xy: Array
+    com_height0: Array
 
 
 def measured_feet_wrenches(m: mjx.Model, d: mjx.Data, idx: RobotIndex, W_p_feet: Array) -> Array:
@@ -261,6 +286,12 @@ class Rollout:
                 qp_infeasible=out.qp_infeasible, qp_violation=out.qp_violation,
                 push=push_force(push, t_now), s=terms.s, s_des=ref.s_des,
             )  # fmt: skip
+        elif cfg.loss_trace:
+            record = LossTrace(
+                com=terms.W_p_CoM, com_ref=ref.com_pos, com_vel=terms.W_v_CoM, tau=out.tau,
+                support_xy=d_new.geom_xpos[np.asarray(idx.foot_geoms).ravel(), :2],
+                com_height0=com0_height,
+            )  # fmt: skip
         return (d_new, cstate_new, met, anchors, com0_height), record
 
     def chunk(self, mx, gains, consts, push, carry, k0, n_ticks: int, mx_plant=None):
@@ -272,6 +303,8 @@ class Rollout:
         mx = configure_model(mx, self.cfg)
         plant = None if mx_plant is None else configure_model(mx_plant, self.cfg)
         body = lambda c, k: self._tick(mx, gains, consts, push, c, k, plant)  # noqa: E731
+        if self.cfg.checkpoint:
+            body = jax.checkpoint(body)
         return jax.lax.scan(body, carry, k0 + jnp.arange(n_ticks))
 
     def __call__(self, mx, d0, gains, consts, push, mx_plant=None):
