@@ -4,17 +4,17 @@ from __future__ import annotations
 
 import pathlib
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+# Figure objects render without pyplot: no global backend switch, so importing this module
+# inside Jupyter leaves the inline backend alone.
+import numpy as np
+from matplotlib.figure import Figure
 
 
 def com_tracking(traj: dict, path: pathlib.Path, title: str = "") -> None:
     """CoM vs reference, per axis, and the tracking error."""
     t = traj["t"]
-    fig, axes = plt.subplots(4, 1, figsize=(8, 8), sharex=True)
+    fig = Figure(figsize=(8, 8))
+    axes = fig.subplots(4, 1, sharex=True)
     for k, name in enumerate("xyz"):
         axes[k].plot(t, traj["com_ref"][:, k], "k--", lw=1, label="reference")
         axes[k].plot(t, traj["com"][:, k], lw=1.2, label="CoM")
@@ -27,13 +27,13 @@ def com_tracking(traj: dict, path: pathlib.Path, title: str = "") -> None:
     fig.suptitle(title or "CoM tracking")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def contact_forces(traj: dict, path: pathlib.Path, title: str = "") -> None:
     """Commanded vs measured (MuJoCo) contact forces of each foot."""
     t = traj["t"]
-    fig, axes = plt.subplots(3, 2, figsize=(10, 7), sharex=True)
+    fig = Figure(figsize=(10, 7))
+    axes = fig.subplots(3, 2, sharex=True)
     for foot, name in enumerate(("left", "right")):
         for k, comp in enumerate(("f_x", "f_y", "f_z")):
             ax = axes[k, foot]
@@ -45,7 +45,6 @@ def contact_forces(traj: dict, path: pathlib.Path, title: str = "") -> None:
     fig.suptitle(title or "contact forces")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def joint_torques(traj: dict, joints: list[str], path: pathlib.Path, title: str = "") -> None:
@@ -53,7 +52,8 @@ def joint_torques(traj: dict, joints: list[str], path: pathlib.Path, title: str 
     t = traj["t"]
     groups = {"torso": (0, 3), "left arm": (3, 7), "right arm": (7, 11),
               "left leg": (11, 17), "right leg": (17, 23)}  # fmt: skip
-    fig, axes = plt.subplots(len(groups), 1, figsize=(8, 10), sharex=True)
+    fig = Figure(figsize=(8, 10))
+    axes = fig.subplots(len(groups), 1, sharex=True)
     for ax, (name, (a, b)) in zip(axes, groups.items()):
         for j in range(a, min(b, traj["tau"].shape[1])):
             ax.plot(t, traj["tau"][:, j], lw=1, label=joints[j])
@@ -63,4 +63,3 @@ def joint_torques(traj: dict, joints: list[str], path: pathlib.Path, title: str 
     fig.suptitle(title or "joint torques")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)

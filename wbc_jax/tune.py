@@ -519,12 +519,10 @@ def evaluate(robot, tc: TuneConfig, lc: LossConfig, gain_sets: dict) -> dict:
 def loss_plot(rows: list, rs_log: list, batch: int, path) -> None:
     """loss.png: gradient-tuning loss per step and the random search's best-so-far, against the
     number of rollouts spent."""
-    import matplotlib
+    from matplotlib.figure import Figure  # no pyplot: leaves a notebook's inline backend alone
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3.5))
+    fig = Figure(figsize=(6, 3.5))
+    ax = fig.subplots()
     ax.plot([(int(r["step"]) + 1) * batch for r in rows], [float(r["loss"]) for r in rows], "o-",
             label="gradient (adam), minibatch loss")  # fmt: skip
     if rs_log:
@@ -538,7 +536,6 @@ def loss_plot(rows: list, rs_log: list, batch: int, path) -> None:
     pathlib.Path(path).parent.mkdir(parents=True, exist_ok=True)
     buf = __import__("io").BytesIO()
     fig.savefig(buf, dpi=110, format="png")
-    plt.close(fig)
     io.atomic_write_bytes(pathlib.Path(path), buf.getvalue())
 
 
