@@ -74,15 +74,20 @@ def main() -> None:
     parser.add_argument("--only", nargs="*", default=list(SCENARIOS), choices=list(SCENARIOS))
     parser.add_argument("--out", default=str(ROOT / "runs" / "acceptance"))
     parser.add_argument("--summary", default=str(ROOT / "docs" / "balance_acceptance.json"))
+    parser.add_argument("--solver-iterations", type=int, default=None,
+                        help="MJX Newton iterations (default: the model's 4); results keyed NAME-itN")
     args = parser.parse_args()
     out = pathlib.Path(args.out)
     summary_path = pathlib.Path(args.summary)
+    it = args.solver_iterations
     for name in args.only:
-        result = balance.run(out=out / name, progress=False, **SCENARIOS[name])
-        print(name, json.dumps(result), flush=True)
+        key = name if it is None else f"{name}-it{it}"
+        result = balance.run(out=out / key, progress=False, solver_iterations=it, **SCENARIOS[name])
+        print(key, json.dumps(result), flush=True)
         # Merge (re-read: other processes may have written other scenarios meanwhile).
         current = json.loads(summary_path.read_text()) if summary_path.exists() else {}
-        current[name] = {**result, "command": f"python experiments/balance_acceptance.py --only {name}"}
+        flag = "" if it is None else f" --solver-iterations {it}"
+        current[key] = {**result, "command": f"python experiments/balance_acceptance.py --only {name}{flag}"}
         io.atomic_write_json(summary_path, current)
     if (out / "sinusoid-60-stable").exists() or (out / "sinusoid-60-seed").exists():
         figure = ROOT / "docs" / "postural_joint_error.png"

@@ -32,11 +32,11 @@ from wbc_jax import io, sweep  # noqa: E402
 from wbc_jax import model as model_lib  # noqa: E402
 
 
-def scenario_batch(batch: int, horizon: float, seed: int = 0):
+def scenario_batch(batch: int, horizon: float, seed: int = 0, onset: float = 0.2, duration: float = 0.1):
     """Lateral/sagittal pushes of moderate size (all survivable), batch of `batch`."""
     cfg = sweep.SweepConfig(
         magnitudes=(40.0,), directions=tuple(np.linspace(0, 360, max(batch, 1), endpoint=False)),
-        horizon=horizon, push_onset=0.2, push_duration=0.1, chunk_size=batch, seed=seed,
+        horizon=horizon, push_onset=onset, push_duration=duration, chunk_size=batch, seed=seed,
     )  # fmt: skip
     return cfg
 
@@ -46,8 +46,8 @@ def peak_memory() -> float | None:
     return stats.get("peak_bytes_in_use")
 
 
-def time_closed_loop(robot, batch: int, horizon: float, iterations: int | None):
-    cfg = scenario_batch(batch, horizon)
+def time_closed_loop(robot, batch: int, horizon: float, iterations: int | None, **push):
+    cfg = scenario_batch(batch, horizon, **push)
     cfg = sweep.SweepConfig(**{**cfg.__dict__, "solver_iterations": iterations})
     scen, _ = sweep.build_scenarios(cfg, __import__("wbc_jax.controller").controller.default_gains(), robot.index.n)
     runner, rollout = sweep.make_batched_runner(robot, cfg)
@@ -134,6 +134,8 @@ def main() -> None:
                         help="environments per CPU worker (0: no CPU baseline)")
     parser.add_argument("--cpu-workers", type=int, nargs="+", default=[os.cpu_count()],
                         help="worker counts to time (scaling over cores); the largest is the baseline")
+    parser.add_argument("--push-onset", type=float, default=0.2, help="s (GPU side)")
+    parser.add_argument("--push-duration", type=float, default=0.1, help="s (GPU side)")
     parser.add_argument("--skip-physics-only", action="store_true")
     parser.add_argument("--skip-equivalence", action="store_true",
                         help="skip the MJX vs C MuJoCo trajectory check")
@@ -156,7 +158,8 @@ def main() -> None:
             batches += [max(args.batches) * 2**k for k in range(1, args.find_largest + 1)]
         for batch in batches:
             try:
-                row, _ = time_closed_loop(robot, batch, args.horizon, it)
+                row, _ = time_closed_loop(robot, batch, args.horizon, it, onset=args.push_onset,
+                                          duration=args.push_duration)  # fmt: skip
                 row["peak_memory_bytes"] = peak_memory()
                 row["memory_per_env_bytes"] = (row["peak_memory_bytes"] / batch) if row["peak_memory_bytes"] else None
                 if not args.skip_physics_only:
@@ -173,26 +176,38 @@ def main() -> None:
     if args.cpu_baseline_envs:
         from wbc_jax import baseline_cpu
 
-        scaling = []
-        for workers in sorted(set(args.cpu_workers)):
-            base = baseline_cpu.benchmark(
-                n_envs=args.cpu_baseline_envs * workers, n_workers=workers, horizon=args.horizon
-            )
-            scaling.append(base)
-            print(json.dumps(base), flush=True)
-            result["cpu_scaling"] = scaling
-            result["cpu_baseline"] = base  # the largest worker count
+        # The baseline runs the same solver settings as the GPU side: once per iteration count
+        # (the worker scaling only for the first), the ratio per iteration count.
+        for k, it in enumerate(args.iterations):
+            scaling = []
+            for workers in sorted(set(args.cpu_workers)) if k == 0 else [max(args.cpu_workers)]:
+                base = baseline_cpu.benchmark(
+                    n_envs=args.cpu_baseline_envs * workers, n_workers=workers, horizon=args.horizon,
+                    solver_iterations=it,
+                )
+                base["solver_iterations"] = it
+                scaling.append(base)
+                print(json.dumps(base), flush=True)
+            if k == 0:
+                result["cpu_scaling"] = scaling
+                result["cpu_baseline"] = base  # the largest worker count
+            result.setdefault("cpu_baseline_by_iterations", {})[str(it)] = base
             io.atomic_write_json(out / "bench.json", result)
-        ok = [r for r in result["runs"] if "physics_steps_per_s" in r]
-        if ok:
-            best = max(ok, key=lambda r: r["physics_steps_per_s"])
-            result["ratio_gpu_to_cpu"] = {
-                "gpu_batch": best["batch"], "gpu_steps_per_s": best["physics_steps_per_s"],
-                "cpu_workers": base["n_workers"], "cpu_steps_per_s": base["physics_steps_per_s"],
-                "ratio": best["physics_steps_per_s"] / base["physics_steps_per_s"],
-            }  # fmt: skip
-            print(json.dumps(result["ratio_gpu_to_cpu"]), flush=True)
-            io.atomic_write_json(out / "bench.json", result)
+            ok = [r for r in result["runs"] if "physics_steps_per_s" in r and r["solver_iterations"] == it]
+            if ok:
+                best = max(ok, key=lambda r: r["physics_steps_per_s"])
+                ratio = {
+                    "solver_iterations": it, "gpu_batch": best["batch"],
+                    "gpu_steps_per_s": best["physics_steps_per_s"], "cpu_workers": base["n_workers"],
+                    "cpu_steps_per_s": base["physics_steps_per_s"],
+                    "ratio": best["physics_steps_per_s"] / base["physics_steps_per_s"],
+                }  # fmt: skip
+                if k == 0:
+                    result["ratio_gpu_to_cpu"] = ratio
+                result.setdefault("ratio_by_iterations", {})[str(it)] = ratio
+                print(json.dumps(ratio), flush=True)
+                io.atomic_write_json(out / "bench.json", result)
+
 
 if __name__ == "__main__":
     main()

@@ -21,7 +21,27 @@ def pytest_configure(config):
     config.addinivalue_line("markers", "slow: long closed-loop runs")
 
 
+# pytest-xdist (`-n 2 --dist loadgroup`, pyproject's addopts): each test module is one unit of work,
+# so module-scoped fixtures (compiled programs) are built once; each notebook is a unit of its own.
+# Units start longest first (measured on the 2-core CI machine), so that the two gradient programs
+# (test_tune's check, notebook 04) compile side by side instead of one after the other.
+_LONGEST_FIRST = ["test_tune", "04_gain_tuning", "02_balancing", "03_push_recovery", "test_dynamics",
+                  "test_sweep", "test_viz", "01_dynamics", "test_mjx_physics", "test_baseline_cpu"]  # fmt: skip
+
+
+def _work_unit(item) -> str:
+    module = item.module.__name__.rsplit(".", 1)[-1]
+    if module == "test_notebooks" and hasattr(item, "callspec"):
+        return item.callspec.id  # the notebook's name
+    return module
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the xdist_group marks
 def pytest_collection_modifyitems(config, items):
+    for item in items:
+        item.add_marker(pytest.mark.xdist_group(_work_unit(item)))
+    rank = {name: k for k, name in enumerate(_LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(_work_unit(item), len(rank)))  # stable: file order otherwise
     if any(d.platform == "gpu" for d in jax.devices()):
         return
     skip = pytest.mark.skip(reason="needs a GPU")

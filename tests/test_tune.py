@@ -4,9 +4,9 @@ random scenarios, the bounded parameterisation, the NaN guard, checkpoint/resume
 
 import json
 import os
+import pathlib
 import subprocess
 import sys
-import textwrap
 
 import jax
 import jax.numpy as jnp
@@ -18,55 +18,18 @@ from wbc_jax import controller as C
 from wbc_jax import tune
 
 # One subprocess (float64, XLA backend optimisation lowered: compile ~3.5 min instead of ~5)
-# holds the one gradient program: per-scenario gradients over N random push scenarios at a
-# 0.1 s horizon, and central differences of the mean loss over two of them.
-GRAD_CHECK = textwrap.dedent(
-    """
-    import json, sys
-    import jax
-    jax.config.update("jax_enable_x64", True)
-    import jax.numpy as jnp, numpy as np
-    from wbc_jax import tune, model, controller as C, sweep
-    N = int(sys.argv[1])
-    robot = model.load_robot("icub")
-    rng = np.random.default_rng(7)
-    scfg = sweep.SweepConfig(magnitudes=(60.0,), directions=(0.0,), push_onset=0.02, push_duration=0.05,
-                             horizon=0.1, joint_noise=0.02, friction=(0.6, 1.2), mass_scale=(0.9, 1.1),
-                             gain_sets=N, seed=3)
-    base = C.default_gains(23, jnp.float64)
-    bounds = tune.default_bounds(base)
-    scen, _ = sweep.build_scenarios(scfg, base, 23, np.float64)
-    # random push magnitudes (0-150 N) and azimuths; random gains inside the bounds
-    az = rng.uniform(0, 2 * np.pi, N); mag = rng.uniform(0, 150, N)
-    force = np.stack([mag * np.cos(az), mag * np.sin(az), np.zeros(N)], 1)[:, None]
-    scen = scen.replace(push=scen.push.replace(force=force))
-    params = {k: jnp.asarray(rng.normal(scale=0.7, size=(N,) + v.shape)) for k, v in
-              tune.gains_to_params(base, bounds).items()}
-    loss_fn = tune.make_batched_loss(robot, scfg, tune.LossConfig(), checkpoint=True)
-    one = lambda p, s: loss_fn(tune.params_to_gains(p, bounds, base),
-                               jax.tree_util.tree_map(lambda x: x[None], s))[0]
-    vg = jax.jit(jax.vmap(jax.value_and_grad(one)))
-    loss, grad = vg(params, scen)
-    nonfinite = int(sum(np.sum(~np.isfinite(np.asarray(g)).reshape(N, -1).all(1)) for g in grad.values())
-                    + np.sum(~np.isfinite(np.asarray(loss))))
-    # central differences on scenario 0 at its random gains, a random direction per gain group
-    f = jax.jit(one)
-    p0 = {k: v[0] for k, v in params.items()}; s0 = jax.tree_util.tree_map(lambda x: x[0], scen)
-    fd = {}
-    for k in tune.TUNED_FIELDS:
-        d = rng.normal(size=p0[k].shape); eps = 1e-4
-        up = {**p0, k: p0[k] + eps * d}; dn = {**p0, k: p0[k] - eps * d}
-        fd[k] = [float((f(up, s0) - f(dn, s0)) / (2 * eps)), float(np.vdot(grad[k][0], d))]
-    print(json.dumps({"nonfinite": nonfinite, "n": N, "loss": np.asarray(loss).tolist(), "fd": fd}))
-    """
-)
+# holds the one gradient program: experiments/grad_check.py, per-scenario gradients over N random
+# push scenarios at a 0.1 s horizon, and central differences of the loss on one of them.
+GRAD_CHECK = pathlib.Path(__file__).resolve().parent.parent / "experiments" / "grad_check.py"
 
 
 @pytest.fixture(scope="module")
 def grad_check():
+    root = str(GRAD_CHECK.parent.parent)  # the package from this checkout, however it is installed
     env = {**os.environ, "JAX_PLATFORMS": "cpu",
+           "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]),
            "XLA_FLAGS": "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"}  # fmt: skip
-    proc = subprocess.run([sys.executable, "-c", GRAD_CHECK, "24"], capture_output=True, text=True,
+    proc = subprocess.run([sys.executable, str(GRAD_CHECK), "24"], capture_output=True, text=True,
                           timeout=1500, env=env)  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
     return json.loads(proc.stdout.strip().splitlines()[-1])

@@ -103,11 +103,13 @@ def run(
     robot_name: str = "icub",
     progress: bool = True,
     plots_on: bool = True,
+    solver_iterations: int | None = None,
 ) -> dict:
     """Run the balance job; write metrics.json, trajectory.npz and PNG plots into ``out``.
 
     Args:
       push: optional ``{"force": [fx, fy, fz] N, "onset": s, "duration": s}`` on the chest.
+      solver_iterations: MJX Newton iterations (None: the model's, 4).
 
     Returns:
       the metrics dict (also printed by the CLI as one JSON line).
@@ -115,7 +117,8 @@ def run(
     robot = model.load_robot(robot_name)
     gains = ctrl_lib.load_gains(gains_file, robot.index.n) if gains_file else None
     rollout, d0, gains, consts, schedule = setup(
-        robot, task, duration=duration, forces=forces, postural=postural, gains=gains
+        robot, task, duration=duration, forces=forces, postural=postural, gains=gains,
+        sim=None if solver_iterations is None else {"solver_iterations": int(solver_iterations)},
     )
     dtype = d0.qpos.dtype
     if push:
@@ -133,7 +136,9 @@ def run(
     start = time.time()
     metrics, traj = run_chunked(rollout, robot.mjx_model, d0, gains, consts, push_tree, progress=progress)
     wall = time.time() - start
-    result = {"task": task, "forces": forces, "postural": postural, "duration_s": schedule.duration}
+    result = {"task": task, "forces": forces, "postural": postural, "duration_s": schedule.duration,
+              "solver_iterations": int(robot.mj_model.opt.iterations if solver_iterations is None
+                                       else solver_iterations)}  # fmt: skip
     result.update(rollout_lib.summarize(metrics, push_end))
     result.update(force_task_error(traj))
     result["wall_time_s"] = round(wall, 2)

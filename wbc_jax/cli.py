@@ -27,6 +27,7 @@ def _balance(args: argparse.Namespace) -> int:
     result = balance.run(
         args.task, duration=args.duration, forces=args.forces, postural=args.postural,
         out=args.out, gains_file=args.gains, push=push, progress=not args.quiet,
+        solver_iterations=args.solver_iterations,
     )  # fmt: skip
     print(balance.main_json_line(result))
     return 0
@@ -98,6 +99,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="push on the chest, world axes [N]")  # fmt: skip
     bal.add_argument("--push-onset", type=float, default=1.0)
     bal.add_argument("--push-duration", type=float, default=0.1)
+    bal.add_argument("--solver-iterations", type=int, default=None,
+                     help="MJX Newton iterations (default: the model's, 4)")
     bal.add_argument("--quiet", action="store_true", help="no progress bar")
     bal.set_defaults(func=_balance)
 

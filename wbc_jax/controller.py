@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax import contact_qp, momentum, torques
+from wbc_jax import contact_qp, hierarchy, momentum, torques
 from wbc_jax.dynamics import DynamicsTerms
 from wbc_jax.types import Array, pytree_dataclass
 
@@ -227,6 +227,7 @@ def step(
     config: ControllerConfig,
     mass: float,
     dt: float,
+    levels: tuple = (),
 ) -> tuple[ControlOutput, ControllerState]:
     """One control tick: torques (n,) from the dynamics terms and the references.
 
@@ -234,6 +235,9 @@ def step(
       gains: controller gains (pytree). consts: arrays precomputed at the reference.
       state: controller memory. t: dynamics terms at the current state. ref: references.
       config: static settings. mass: total mass (kg). dt: control period (s).
+      levels: motion tasks between the force task and the postural task, highest priority first
+        (:class:`wbc_jax.hierarchy.TaskLevel`, from :func:`wbc_jax.tasks.levels`). The force task
+        does not see them (strict priority): f is chosen with the two-level torque law.
 
     Returns:
       ``(output, new_state)``.
@@ -324,7 +328,10 @@ def step(
     f = w_two * f_two + (1.0 - w_two) * f_one_padded
     infeasible = (w_two > 0) & infeasible_two | (w_two < 1) & infeasible_one
 
-    tau_unsat = tt.tau_model + tt.Sigma @ f
+    if levels:
+        tau_unsat = hierarchy.solve(t, tt, f, levels).tau
+    else:
+        tau_unsat = tt.tau_model + tt.Sigma @ f
     tau = jnp.clip(tau_unsat, -config.torque_limit, config.torque_limit)
     out = ControlOutput(
         tau=tau,

@@ -197,3 +197,60 @@ def terms(m: mjx.Model, d: mjx.Data, idx: RobotIndex) -> DynamicsTerms:
         A_G=A_G,
         L_G=L_G,
     )
+
+
+@pytree_dataclass
+class FrameTerms:
+    """Kinematics of the k task frames and of the CoM at one state (mixed representation).
+
+    Attributes:
+      W_p:          (k, 3)      frame points (body origin + offset in body axes)
+      W_R:          (k, 3, 3)   frame orientations (the body's)
+      J:            (k, 6, nv)  Jacobians [linear of the point; angular]
+      Jdot_nu:      (k, 6)      their Jdot nu
+      Jdot_nu_CoM:  (3,)        Jdot nu of the CoM Jacobian
+    """
+
+    W_p: Array
+    W_R: Array
+    J: Array
+    Jdot_nu: Array
+    Jdot_nu_CoM: Array
+
+
+def _frame_kinematics(m, d, idx: RobotIndex, qpos: Array, bodies: np.ndarray, offsets: np.ndarray):
+    _, A_G, _, dk = _kinematics(m, d, idx, qpos)
+    R_B = dk.xmat[idx.base_body]
+    c = dk.subtree_com[idx.base_body]
+    cdof_ang, cdof_lin = dk.cdof[:, :3], dk.cdof[:, 3:]
+    masks = jnp.asarray(idx.body_ancestor_dofs[bodies], dtype=dk.cdof.dtype)  # (k, nv)
+    W_R = dk.xmat[bodies]
+    W_p = dk.xpos[bodies] + jnp.einsum("kij,kj->ki", W_R, jnp.asarray(offsets, W_R.dtype))
+    jacp = (cdof_lin[None] + jnp.cross(cdof_ang[None], (W_p - c)[:, None])) * masks[..., None]
+    jacr = cdof_ang[None] * masks[..., None]
+    J = _to_mixed_cols(idx, jnp.concatenate([jacp, jacr], axis=2).transpose(0, 2, 1), R_B)
+    return W_p, W_R, J, A_G[:3] / idx.mass
+
+
+def frame_terms(m: mjx.Model, d: mjx.Data, idx: RobotIndex, bodies, offsets) -> FrameTerms:
+    """Task-frame kinematics at the state (``d.qpos``, ``d.qvel``).
+
+    Args:
+      m, d, idx: as :func:`terms`.
+      bodies: (k,) body ids (static numpy); offsets: (k, 3) points in the body frames (numpy).
+
+    Returns:
+      :class:`FrameTerms` (k may be 0: CoM terms only).
+    """
+    bodies = np.asarray(bodies, dtype=int).reshape(-1)
+    offsets = np.asarray(offsets, dtype=float).reshape(-1, 3)
+    qpos = d.qpos
+    nu = mixed_velocity(idx, qpos, d.qvel)
+
+    def velocities(q: Array):
+        _, _, J, J_CoM = _frame_kinematics(m, d, idx, q, bodies, offsets)
+        return J @ nu, J_CoM @ nu
+
+    W_p, W_R, J, _ = _frame_kinematics(m, d, idx, qpos, bodies, offsets)
+    _, (Jdot_nu, Jdot_nu_CoM) = jax.jvp(velocities, (qpos,), (qpos_rate(idx, qpos, nu),))
+    return FrameTerms(W_p=W_p, W_R=W_R, J=J, Jdot_nu=Jdot_nu, Jdot_nu_CoM=Jdot_nu_CoM)

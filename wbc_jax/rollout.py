@@ -56,6 +56,10 @@ class SimConfig:
     def __post_init__(self):
         if not (self.control_dt > 0 and self.duration > 0):
             raise ValueError(f"control_dt and duration must be positive: {self}")
+        for name in ("solver_iterations", "ls_iterations"):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, int) and value >= 1):
+                raise ValueError(f"{name} must be a positive integer or None, got {value!r}")
         if self.loss_trace and self.record:
             raise ValueError("loss_trace and record are exclusive (set record=False)")
 

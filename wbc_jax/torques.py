@@ -47,6 +47,10 @@ class TorqueTerms:
       Sigma:      (n, 12)  d tau / d f
       tau_model:  (n,)     torques for f = 0 (postural task included)
       u0:         (n,)     postural term
+      Sigma_c, tau_c: (n, 12), (n,)  contact part Lambda^+ (J_c M^-1 (h - J_c^T f) - Jdot_c nu)
+      Sigma_0, tau_0: (n, 12), (n,)  postural tau_0 = Sigma_0 f + tau_0 (before N_Lambda), so
+        Sigma = Sigma_c + N_Lambda Sigma_0 and tau_model = tau_c + N_Lambda tau_0; the motion-task
+        hierarchy (:mod:`wbc_jax.hierarchy`) replaces tau_0 by its prioritised solution.
     """
 
     J_c: Array
@@ -58,6 +62,10 @@ class TorqueTerms:
     Sigma: Array
     tau_model: Array
     u0: Array
+    Sigma_c: Array
+    tau_c: Array
+    Sigma_0: Array
+    tau_0: Array
 
 
 def contact_jacobians(t: DynamicsTerms, activation: Array) -> tuple[Array, Array]:
@@ -150,10 +158,12 @@ def torque_terms(
         pinv_tol=pinv_tol,
         kp_reg=kp_postural_reg,
     )
-    Sigma = -(Lambda_pinv @ (J_c @ Minv_JcT) + N_Lambda @ (J_c[:, 6:].T - M_sb @ Mb_inv_JbT))
-    tau_model = Lambda_pinv @ (J_c @ Minv_h - Jdot_nu_c) + N_Lambda @ (
-        h[6:] - M_sb @ Mb_inv_hb + u0
-    )
+    Sigma_c = -Lambda_pinv @ (J_c @ Minv_JcT)
+    tau_c = Lambda_pinv @ (J_c @ Minv_h - Jdot_nu_c)
+    Sigma_0 = -(J_c[:, 6:].T - M_sb @ Mb_inv_JbT)
+    tau_0 = h[6:] - M_sb @ Mb_inv_hb + u0
+    Sigma = Sigma_c + N_Lambda @ Sigma_0
+    tau_model = tau_c + N_Lambda @ tau_0
     return TorqueTerms(
         J_c=J_c,
         Jdot_nu_c=Jdot_nu_c,
@@ -164,4 +174,8 @@ def torque_terms(
         Sigma=Sigma,
         tau_model=tau_model,
         u0=u0,
+        Sigma_c=Sigma_c,
+        tau_c=tau_c,
+        Sigma_0=Sigma_0,
+        tau_0=tau_0,
     )
