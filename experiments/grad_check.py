@@ -5,7 +5,8 @@
 Per-scenario reverse-mode gradients of the tuning loss over N random push scenarios (0.1 s horizon,
 float64, random gains inside the bounds, random push magnitudes 0-150 N and azimuths), a count of
 non-finite values, and central finite differences against the gradient for every gain group on
-scenario 0. Prints one JSON line (and writes it to --out). tests/test_tune.py runs it with N = 24;
+scenario 0: the tuned groups (CoM, angular momentum, postural) and the regularisation
+(Reg.pinvDamp and Reg.KP_postural, as log-scale factors on their defaults 1 and 0.1). Prints one JSON line (and writes it to --out). tests/test_tune.py runs it with N = 24;
 docs/tuning/grad_check_100.json is N = 100. XLA's backend optimisation is lowered by the caller
 (XLA_FLAGS) to keep the compile to minutes on a 2-core CPU.
 """
@@ -27,10 +28,14 @@ from wbc_jax import controller as C  # noqa: E402
 from wbc_jax import io, model, sweep, tune  # noqa: E402
 
 
+FD_STEPS = (1e-3, 1e-4, 1e-5)  # central-difference steps in the (log-scale) parameters
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("n", type=int, help="number of random scenarios")
     parser.add_argument("--out", default=None, help="also write the JSON here")
+    parser.add_argument("--fd-scenarios", type=int, default=3, help="scenarios checked by central differences")
     args = parser.parse_args()
     n = args.n
     robot = model.load_robot("icub")
@@ -47,24 +52,42 @@ def main() -> None:
     scen = scen.replace(push=scen.push.replace(force=force))
     params = {k: jnp.asarray(rng.normal(scale=0.7, size=(n,) + v.shape))
               for k, v in tune.gains_to_params(base, bounds).items()}  # fmt: skip
+    params["regularisation"] = jnp.asarray(rng.normal(scale=0.3, size=(n, 2)))
+    reg_default = jnp.asarray([1.0, 0.1])  # Reg.pinvDamp, Reg.KP_postural (controller-spec 3)
     loss_fn = tune.make_batched_loss(robot, scfg, tune.LossConfig(), checkpoint=True)
 
     def one(p, s):
-        return loss_fn(tune.params_to_gains(p, bounds, base), jax.tree_util.tree_map(lambda x: x[None], s))[0]
+        gains = tune.params_to_gains({k: v for k, v in p.items() if k != "regularisation"}, bounds, base)
+        reg = reg_default * jnp.exp(p["regularisation"])
+        reg = {"pinv_damping": reg[0], "kp_postural_reg": reg[1]}
+        return loss_fn(gains, jax.tree_util.tree_map(lambda x: x[None], s), reg)[0]
 
     loss, grad = jax.jit(jax.vmap(jax.value_and_grad(one)))(params, scen)
     # Scenarios with any non-finite gradient entry, plus non-finite losses.
     nonfinite = int(sum(np.sum(~np.isfinite(np.asarray(g)).reshape(n, -1).all(1)) for g in grad.values())
                     + np.sum(~np.isfinite(np.asarray(loss))))  # fmt: skip
-    # Central differences on scenario 0 at its random gains, a random direction per gain group.
+    # Central differences along a random direction per gain group, on the first K scenarios, at
+    # three step sizes: where they agree (within 1 %) the loss is smooth at that scale and the
+    # gradient must match them; where they do not, a contact or active-set change lies within the
+    # step and no derivative is defined there.
     f = jax.jit(one)
-    p0 = {k: v[0] for k, v in params.items()}
-    s0 = jax.tree_util.tree_map(lambda x: x[0], scen)
-    fd, eps = {}, 1e-4
-    for k in tune.TUNED_FIELDS:
-        d = rng.normal(size=p0[k].shape)
-        up, dn = {**p0, k: p0[k] + eps * d}, {**p0, k: p0[k] - eps * d}
-        fd[k] = [float((f(up, s0) - f(dn, s0)) / (2 * eps)), float(np.vdot(grad[k][0], d))]
+    fd = {}
+    for k in (*tune.TUNED_FIELDS, "regularisation"):
+        d = rng.normal(size=params[k].shape[1:])
+        rows = []
+        for j in range(min(args.fd_scenarios, n)):
+            pj = {g: v[j] for g, v in params.items()}
+            sj = jax.tree_util.tree_map(lambda x: x[j], scen)  # noqa: B023
+            fds = {}
+            for eps in FD_STEPS:
+                up, dn = {**pj, k: pj[k] + eps * d}, {**pj, k: pj[k] - eps * d}
+                fds[str(eps)] = float((f(up, sj) - f(dn, sj)) / (2 * eps))
+            a, b = fds[str(FD_STEPS[1])], fds[str(FD_STEPS[2])]
+            smooth = abs(a - b) <= 0.01 * max(abs(a), abs(b)) and abs(b) > 1e-9
+            ad = float(np.vdot(grad[k][j], d))
+            rows.append({"scenario": j, "ad": ad, "fd": fds, "smooth": bool(smooth),
+                         "rel_err": abs(ad - b) / max(abs(b), 1e-300)})  # fmt: skip
+        fd[k] = rows
     result = {"nonfinite": nonfinite, "n": n, "loss": np.asarray(loss).tolist(), "fd": fd,
               "command": f"python experiments/grad_check.py {n}", "device": str(jax.devices()[0])}  # fmt: skip
     print(json.dumps(result))

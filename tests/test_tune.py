@@ -35,11 +35,15 @@ def grad_check():
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-@pytest.mark.parametrize("group", tune.TUNED_FIELDS)
+@pytest.mark.parametrize("group", (*tune.TUNED_FIELDS, "regularisation"))
 def test_closed_loop_gradient_matches_central_differences(grad_check, group):
-    fd, ad = grad_check["fd"][group]
-    assert abs(fd) > 1e-9, f"{group}: the loss does not depend on it (fd {fd})"
-    assert abs(ad - fd) / abs(fd) < 0.05, (group, fd, ad)
+    """On the first scenarios: where central differences at steps 1e-4 and 1e-5 agree (the loss is
+    smooth at that scale), the reverse-mode gradient matches them within 5 %."""
+    rows = grad_check["fd"][group]
+    smooth = [r for r in rows if r["smooth"]]
+    assert smooth, f"{group}: central differences disagree between steps on every scenario: {rows}"
+    for r in smooth:
+        assert r["rel_err"] < 0.05, (group, r)
 
 
 def test_no_nan_gradients_over_random_scenarios(grad_check):

@@ -13,6 +13,7 @@ import numpy as np
 
 from wbc_jax import controller as ctrl_lib
 from wbc_jax import dynamics, io, model, plots, references
+from wbc_jax import tasks as tasks_lib
 from wbc_jax import rollout as rollout_lib
 
 CHUNK_SECONDS = 1.0  # progress granularity: one compiled chunk of ticks
@@ -28,14 +29,19 @@ def setup(
     gains: ctrl_lib.Gains | None = None,
     sim: dict | None = None,
     controller: dict | None = None,
+    stack=None,
 ):
     """Validate everything (before any compilation) and build the pieces of a run.
+
+    ``stack``: motion tasks (a list of :class:`wbc_jax.tasks.MotionTask` or of mappings, the
+    postural task last) between the force task and the postural task; None: the two-level law.
 
     Returns (rollout, d0, gains, consts, schedule)."""
     ccfg = ctrl_lib.ControllerConfig(forces=forces, postural=postural, **(controller or {}))
     if task not in references.TASKS:
         raise ValueError(f"unknown task {task!r}; valid tasks: {list(references.TASKS)}")
     d0 = rollout_lib.initial_data(robot)
+    resolved = None if stack is None else tasks_lib.resolve(robot, stack, np.asarray(d0.qpos))
     dtype = d0.qpos.dtype
     gains = ctrl_lib.default_gains(robot.index.n, dtype) if gains is None else gains
     ctrl_lib.validate_gains(gains, robot.index.n)
@@ -46,7 +52,7 @@ def setup(
     )  # fmt: skip
     cfg = rollout_lib.SimConfig(duration=schedule.duration, **(sim or {}))
     consts = ctrl_lib.constants_at_reference(t0, ccfg)
-    return rollout_lib.make_rollout(robot, schedule, ccfg, cfg), d0, gains, consts, schedule
+    return rollout_lib.make_rollout(robot, schedule, ccfg, cfg, resolved), d0, gains, consts, schedule
 
 
 def run_chunked(rollout, mx, d0, gains, consts, push, *, progress: bool = True):
@@ -73,6 +79,19 @@ def run_chunked(rollout, mx, d0, gains, consts, push, *, progress: bool = True):
         for name in pieces[0].__dataclass_fields__
     }
     return carry[2], traj
+
+
+def task_tracking(stack, traj: dict, after: float = 0.0) -> dict:
+    """Per motion task: RMSE and max of the error norm (m, or the vee orientation error) over the
+    ticks after ``after`` s, from the trajectory's ``task_err`` columns (stack order)."""
+    sel = traj["t"] >= after
+    out, col = {}, 0
+    for task in stack.tasks:
+        rows = len(task.kp)
+        e = np.linalg.norm(traj["task_err"][sel, col : col + rows], axis=1)
+        out[task.name] = {"rmse": float(np.sqrt(np.mean(e**2))), "max": float(e.max())}
+        col += rows
+    return out
 
 
 def force_task_error(traj: dict, after: float = 1.0) -> dict:
@@ -104,21 +123,25 @@ def run(
     progress: bool = True,
     plots_on: bool = True,
     solver_iterations: int | None = None,
+    tasks_file: str | None = None,
 ) -> dict:
     """Run the balance job; write metrics.json, trajectory.npz and PNG plots into ``out``.
 
     Args:
       push: optional ``{"force": [fx, fy, fz] N, "onset": s, "duration": s}`` on the chest.
       solver_iterations: MJX Newton iterations (None: the model's, 4).
+      tasks_file: task specification (JSON/YAML, :func:`wbc_jax.tasks.load_stack_file`).
 
     Returns:
       the metrics dict (also printed by the CLI as one JSON line).
     """
     robot = model.load_robot(robot_name)
     gains = ctrl_lib.load_gains(gains_file, robot.index.n) if gains_file else None
+    stack = tasks_lib.load_stack_file(tasks_file) if tasks_file else None
     rollout, d0, gains, consts, schedule = setup(
         robot, task, duration=duration, forces=forces, postural=postural, gains=gains,
         sim=None if solver_iterations is None else {"solver_iterations": int(solver_iterations)},
+        stack=stack,
     )
     dtype = d0.qpos.dtype
     if push:
@@ -141,6 +164,8 @@ def run(
                                        else solver_iterations)}  # fmt: skip
     result.update(rollout_lib.summarize(metrics, push_end))
     result.update(force_task_error(traj))
+    if rollout.stack is not None:
+        result["tasks"] = task_tracking(rollout.stack, traj)
     result["wall_time_s"] = round(wall, 2)
     result["device"] = str(jax.devices()[0])
     result = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in result.items()}

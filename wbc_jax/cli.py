@@ -27,7 +27,7 @@ def _balance(args: argparse.Namespace) -> int:
     result = balance.run(
         args.task, duration=args.duration, forces=args.forces, postural=args.postural,
         out=args.out, gains_file=args.gains, push=push, progress=not args.quiet,
-        solver_iterations=args.solver_iterations,
+        solver_iterations=args.solver_iterations, tasks_file=args.tasks,
     )  # fmt: skip
     print(balance.main_json_line(result))
     return 0
@@ -51,6 +51,7 @@ def _push_sweep(args: argparse.Namespace) -> int:
         push_duration=args.push_duration, push_onset=args.push_onset, body=args.body,
         joint_noise=args.joint_noise, friction=tuple(args.friction),
         mass_scale=tuple(args.mass_scale), solver_iterations=args.solver_iterations,
+        tasks_file=args.tasks,
     )  # fmt: skip
     summary = sweep.run_sweep(cfg, args.out, gains_file=args.gains, progress=not args.quiet)
     keys = ("n_envs", "survival_rate", "nan_envs", "qp_infeasible_envs", "physics_steps_per_s",
@@ -101,6 +102,8 @@ def build_parser() -> argparse.ArgumentParser:
     bal.add_argument("--push-duration", type=float, default=0.1)
     bal.add_argument("--solver-iterations", type=int, default=None,
                      help="MJX Newton iterations (default: the model's, 4)")
+    bal.add_argument("--tasks", default=None, metavar="FILE",
+                     help="motion-task stack (JSON/YAML, e.g. experiments/tasks/reach_circle.yaml)")
     bal.add_argument("--quiet", action="store_true", help="no progress bar")
     bal.set_defaults(func=_balance)
 
@@ -124,6 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--postural", default="stable", choices=["stable", "seed"])
     sw.add_argument("--solver-iterations", type=int, default=None)
     sw.add_argument("--seed", type=int, default=0)
+    sw.add_argument("--tasks", default=None, metavar="FILE", help="motion-task stack (JSON/YAML)")
     sw.add_argument("--chunk-size", type=int, default=12, help="environments per compiled batch")
     sw.add_argument("--out", default="runs/push_sweep")
     sw.add_argument("--quiet", action="store_true")

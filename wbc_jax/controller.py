@@ -136,9 +136,18 @@ class Reference:
 
 @pytree_dataclass
 class ControllerConstants:
-    """Arrays fixed for a run: J_G,ang at the postural reference for a left/right stance (2, 3, n)."""
+    """Arrays fixed for a run.
+
+    Attributes:
+      centroidal_jacobian_ref: (2, 3, n) J_G,ang at the postural reference, left/right stance.
+      pinv_damping, kp_postural_reg: () the regularisation Reg.pinvDamp and Reg.KP_postural as
+        arrays, so that gradients reach them (gain tuning's gradient check); None: the values of
+        :class:`ControllerConfig`.
+    """
 
     centroidal_jacobian_ref: Array
+    pinv_damping: Array | None = None
+    kp_postural_reg: Array | None = None
 
 
 @pytree_dataclass
@@ -174,7 +183,12 @@ def constants_at_reference(t_ref: DynamicsTerms, config: ControllerConfig) -> Co
     J = jnp.stack(
         [momentum.centroidal_jacobian_at_posture(t_ref, k, config.base_vel_damping) for k in range(2)]
     )
-    return ControllerConstants(centroidal_jacobian_ref=J)
+    dtype = t_ref.M.dtype
+    return ControllerConstants(
+        centroidal_jacobian_ref=J,
+        pinv_damping=jnp.asarray(config.pinv_damping, dtype),
+        kp_postural_reg=jnp.asarray(config.kp_postural_reg, dtype),
+    )
 
 
 def init_state(dtype=jnp.float32) -> ControllerState:
@@ -278,9 +292,11 @@ def step(
         kp_postural=gains.kp_postural,
         kd_postural=gains.kd_postural,
         s_des=ref.s_des,
-        pinv_damping=config.pinv_damping,
+        pinv_damping=config.pinv_damping if consts.pinv_damping is None else consts.pinv_damping,
         pinv_tol=config.pinv_tol,
-        kp_postural_reg=config.kp_postural_reg,
+        kp_postural_reg=(
+            config.kp_postural_reg if consts.kp_postural_reg is None else consts.kp_postural_reg
+        ),
     )
 
     # Force distribution. A = [A_L, A_R] has full row rank 6, so A^+ = A^T (A A^T)^-1 exactly.

@@ -9,19 +9,32 @@ and the free-floating dynamics give the accelerations as an affine function of t
 
     nu_dot = nu_dot_c(f) + G tau_0,   nu_dot_c = M^-1 (B tau_c(f) + J_c^T f - h),   G = M^-1 B N_Lambda.
 
-A motion task i asks J_i nu_dot + Jdot_i nu = nu_dot*_i, i.e. A_i tau_0 = b_i with A_i = J_i G and
+Motion-task torques tau_m are kept in the exact null space of Lambda = J_c M^-1 B: they change no
+contact acceleration, so MuJoCo's contact wrenches (hence the force task) stay as commanded (the
+damped N_Lambda of the seed's law lets ~50 % of some contact directions through, which a hand task
+turned into foot slip and a 5 mm CoM error). There N_Lambda tau_m = tau_m, and a motion task i asks
+J_i nu_dot + Jdot_i nu = nu_dot*_i, i.e. A_i tau_m = b_i with A_i = J_i M^-1 B and
 b_i = nu_dot*_i - Jdot_i nu - J_i nu_dot_c. Levels are solved in priority order by recursive
 null-space projection (Siciliano-Slotine):
 
-    x_0 = 0, N_0 = I;   Ahat_i = A_i N_{i-1}
+    x_0 = 0, N_0 = I - Lambda^+ Lambda;   Ahat_i = A_i N_{i-1}
     x_i = x_{i-1} + Ahat_i^# (b_i - A_i x_{i-1})            (damped: singular tasks stay bounded)
     N_i = N_{i-1} - Ahat_i^+ Ahat_i                          (projector on the common null space)
 
-and the postural task is last: tau_0 = x_k + N_k tau_0,postural(f). Ahat_i^# = Ahat_i^T (...)^-1
-lies in the range of N_{i-1}, so a lower level never changes what the levels above achieve
-(strict priority) unless an upper level is itself singular. The projectors use a tiny
-regularisation relative to the level's scale instead of an SVD cut-off: smooth, so jit, vmap and
-grad stay finite at rank changes.
+and the postural task is last. Its torque is tau_0,postural = tau_0,model(f) + u_0: the model part
+(h_s - M_sb M_b^-1 h_b - (J_s^T - M_sb M_b^-1 J_b^T) f) is what makes the damped law consistent with
+the contacts, so it stays whole (the motion tasks' b_i include its accelerations); only the
+feedback u_0 yields: tau_0 = tau_0,model + x_k + P_k u_0, where P_k projects on the null space of
+the stacked J_i M^-1 B N_Lambda (u_0 passes through the damped N_Lambda).
+Ahat_i^# = Ahat_i^T (...)^-1 lies in the range of N_{i-1}, so a lower level never changes what the
+levels above achieve (strict priority) unless an upper level is itself singular. The damping and
+the projectors' regularisation are relative to the scale of the *unprojected* A_i (mean eigenvalue
+of A_i A_i^T), so a level that the levels above block entirely (A_i N_{i-1} = rounding noise) gets
+no torque from that noise; they replace an SVD cut-off: smooth, so jit, vmap and grad stay finite
+at rank changes. A regularised projector leaves A_j N_i = O(eps / s^2) instead of 0, which a lower
+level's pseudo-inverse amplifies by 1 / damping; squaring N_i (idempotent if exact) squares that
+leak, so what remains is rounding (1e-16 / damping in float64: strict priority to ~1e-10
+relative). Their defaults depend on the precision (float32 rounding is ~1e-7 relative).
 
 With no motion task this is exactly tau = Sigma f + tau_model, the two-level law of the seed.
 """
@@ -34,8 +47,10 @@ from wbc_jax.dynamics import DynamicsTerms
 from wbc_jax.torques import TorqueTerms
 from wbc_jax.types import Array, pytree_dataclass
 
-SOLUTION_DAMPING = 1e-6  # (s^2 units of A_i = J_i G): singular tasks get bounded torques
-PROJECTOR_REG = 1e-12  # relative to the mean eigenvalue of Ahat Ahat^T (plus the same absolute)
+# Relative to the mean eigenvalue of A_i A_i^T: {float64, float32}.
+SOLUTION_DAMPING = {8: 1e-6, 4: 1e-3}  # singular directions get bounded torques
+PROJECTOR_REG = {8: 1e-12, 4: 1e-5}  # directions below sqrt(reg) x scale count as singular
+_TINY = {8: 1e-150, 4: 1e-18}  # keeps an all-zero level (an inactive contact) regular
 
 
 @pytree_dataclass
@@ -53,21 +68,21 @@ class TaskLevel:
 
 @pytree_dataclass
 class HierarchySolution:
-    """tau (n,) unsaturated torques; tau0 (n,) the null-space torque; nu_dot (nv,) the
-    accelerations the model predicts for (tau, f); task_acc: per level J_i nu_dot + Jdot_i nu."""
+    """tau (n,) unsaturated torques; tau0 (n,) the null-space torque; tau_motion (n,) its motion-task
+    part (in the null space of Lambda); nu_dot (nv,) the accelerations the model predicts for
+    (tau, f); task_acc: per level J_i nu_dot + Jdot_i nu."""
 
     tau: Array
     tau0: Array
+    tau_motion: Array
     nu_dot: Array
     task_acc: tuple
 
 
-def _projector(A_hat: Array, reg: float) -> Array:
-    """Ahat^T (Ahat Ahat^T + eps I)^-1 Ahat (n, n): the projector on the row space of Ahat."""
+def _regularised_pinv(A_hat: Array, eps: Array) -> Array:
+    """Ahat^T (Ahat Ahat^T + eps I)^-1 (n, m)."""
     m = A_hat.shape[0]
-    AAt = A_hat @ A_hat.T
-    eps = reg * (jnp.trace(AAt) / m + 1.0)
-    return A_hat.T @ jnp.linalg.solve(AAt + eps * jnp.eye(m, dtype=A_hat.dtype), A_hat)
+    return jnp.linalg.solve(A_hat @ A_hat.T + eps * jnp.eye(m, dtype=A_hat.dtype), A_hat).T
 
 
 def solve(
@@ -76,8 +91,8 @@ def solve(
     f: Array,
     levels: tuple[TaskLevel, ...] | list[TaskLevel],
     *,
-    solution_damping: float = SOLUTION_DAMPING,
-    projector_reg: float = PROJECTOR_REG,
+    solution_damping: float | None = None,
+    projector_reg: float | None = None,
     compensate_passive: bool = True,
 ) -> HierarchySolution:
     """Joint torques for contact wrenches f (12,) with the motion-task levels in priority order.
@@ -87,8 +102,9 @@ def solve(
       f: (12,) feet wrenches chosen by the force task.
       levels: motion tasks in priority order (highest first), each a :class:`TaskLevel`; the
         postural task of ``tt`` is the implicit last level.
-      solution_damping: damping of each level's pseudo-inverse.
-      projector_reg: relative regularisation of the null-space projectors.
+      solution_damping: damping of each level's pseudo-inverse, relative to the level's scale
+        (None: ``SOLUTION_DAMPING`` for the dtype).
+      projector_reg: relative regularisation of the null-space projectors (None: ``PROJECTOR_REG``).
       compensate_passive: as in :func:`wbc_jax.torques.torque_terms` (same bias h).
 
     Returns:
@@ -96,27 +112,44 @@ def solve(
     """
     n = tt.N_Lambda.shape[0]
     dtype = t.M.dtype
+    size = jnp.dtype(dtype).itemsize
+    damping = SOLUTION_DAMPING[size] if solution_damping is None else solution_damping
+    reg = PROJECTOR_REG[size] if projector_reg is None else projector_reg
     h = t.h - t.tau_passive if compensate_passive else t.h
     tau_c = tt.Sigma_c @ f + tt.tau_c
-    tau0_postural = tt.Sigma_0 @ f + tt.tau_0
+    # tau_0 = tau_0,model(f) + u_0: the model part makes the damped law contact-consistent (Nava
+    # 2016) and is kept whole; only the postural feedback u_0 yields to the motion tasks.
+    tau0_model = tt.Sigma_0 @ f + tt.tau_0 - tt.u0
     B_tau_c = jnp.zeros_like(h).at[6:].set(tau_c)
     B_N = jnp.zeros((n + 6, n), dtype).at[6:].set(tt.N_Lambda)
     sol = jnp.linalg.solve(t.M, jnp.concatenate([(B_tau_c + tt.J_c.T @ f - h)[:, None], B_N], axis=1))
     nu_dot_c, G = sol[:, 0], sol[:, 1:]
+    nu_dot_c = nu_dot_c + G @ tau0_model
 
+    def null_space_step(N, A_hat, scale):
+        N = N - _regularised_pinv(A_hat, reg * scale) @ A_hat
+        return N @ N  # = N for an exact projector; squares the regularisation's leak (eps / s^2)
+
+    # Motion-task torques stay in the exact null space of Lambda (N_S starts there): they change no
+    # contact acceleration, so the contact wrenches, hence the force task, are left as they were.
+    # N_P (from the identity) keeps the postural torque, filtered by the damped N_Lambda of the
+    # seed's law, out of the motion tasks' accelerations.
+    Lam = tt.Lambda
     x = jnp.zeros(n, dtype)
-    N = jnp.eye(n, dtype=dtype)
+    N_S = null_space_step(jnp.eye(n, dtype=dtype), Lam, jnp.sum(Lam * Lam) / Lam.shape[0] + _TINY[size])
+    N_P = jnp.eye(n, dtype=dtype)
+    Minv_B = jnp.linalg.solve(t.M, jnp.zeros((n + 6, n), dtype).at[6:].set(jnp.eye(n, dtype=dtype)))
     for level in levels:
-        A = level.J @ G
+        A = level.J @ G  # postural torque -> task acceleration
+        A_S = level.J @ Minv_B  # motion torque (in null(Lambda), where N_Lambda = I) -> acceleration
         b = level.nu_dot_star - level.Jdot_nu - level.J @ nu_dot_c
-        A_hat = A @ N
-        m = A_hat.shape[0]
-        A_hat_sharp = jnp.linalg.solve(
-            A_hat @ A_hat.T + solution_damping * jnp.eye(m, dtype=dtype), A_hat
-        ).T
-        x = x + A_hat_sharp @ (b - A @ x)
-        N = N - _projector(A_hat, projector_reg)
-    tau0 = x + N @ tau0_postural
-    nu_dot = nu_dot_c + G @ tau0
+        A_hat = A_S @ N_S
+        scale = jnp.sum(A_S * A_S) / A_S.shape[0] + _TINY[size]
+        x = x + _regularised_pinv(A_hat, damping * scale) @ (b - A_S @ x)
+        N_S = null_space_step(N_S, A_hat, scale)
+        N_P = null_space_step(N_P, A @ N_P, jnp.sum(A * A) / A.shape[0] + _TINY[size])
+    tau0 = tau0_model + x + N_P @ tt.u0
+    nu_dot = nu_dot_c + G @ (tau0 - tau0_model)
     task_acc = tuple(level.J @ nu_dot + level.Jdot_nu for level in levels)
-    return HierarchySolution(tau=tau_c + tt.N_Lambda @ tau0, tau0=tau0, nu_dot=nu_dot, task_acc=task_acc)
+    return HierarchySolution(tau=tau_c + tt.N_Lambda @ tau0, tau0=tau0, tau_motion=x, nu_dot=nu_dot,
+                             task_acc=task_acc)  # fmt: skip

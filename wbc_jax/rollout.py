@@ -19,6 +19,7 @@ from mujoco.mjx._src import support
 
 from wbc_jax import controller as ctrl_lib
 from wbc_jax import dynamics
+from wbc_jax import tasks as tasks_lib
 from wbc_jax.model import Robot, RobotIndex
 from wbc_jax.references import Schedule
 from wbc_jax.types import Array, pytree_dataclass
@@ -109,7 +110,8 @@ class Trajectory:
 
     t (T,), qpos (T, nq), com (T, 3), com_ref (T, 3), tau (T, n), f_cmd (T, 12),
     f_meas (T, 12), Ldot_star (T, 6), Ldot_meas (T, 6), activation (T, 2), feet_pos (T, 2, 3),
-    qp_infeasible (T,), qp_violation (T,), push (T, 3), s (T, n), s_des (T, n).
+    qp_infeasible (T,), qp_violation (T,), push (T, 3), s (T, n), s_des (T, n),
+    task_err (T, m): the motion tasks' errors stacked in stack order (m = 0 without tasks).
     """
 
     t: Array
@@ -128,6 +130,7 @@ class Trajectory:
     push: Array
     s: Array
     s_des: Array
+    task_err: Array
 
 
 @pytree_dataclass
@@ -199,8 +202,9 @@ class Rollout:
     Static structure (schedule, settings, indices) is closed over.
     """
 
-    def __init__(self, robot: Robot, schedule: Schedule, config, cfg: SimConfig):
+    def __init__(self, robot: Robot, schedule: Schedule, config, cfg: SimConfig, stack=None):
         idx = robot.index
+        self.stack = stack if stack is not None and stack.tasks else None
         self.physics_dt = float(robot.mj_model.opt.timestep)
         n_sub = int(round(cfg.control_dt / self.physics_dt))
         if n_sub < 1 or abs(n_sub * self.physics_dt - cfg.control_dt) > 1e-9:
@@ -240,8 +244,14 @@ class Rollout:
         t_now = k * cfg.control_dt
         terms = dynamics.terms(mx, d, idx)
         ref = self.schedule.at(t_now, dtype)
+        levels, task_err = (), jnp.zeros(0, dtype)
+        if self.stack is not None:
+            frames = dynamics.frame_terms(mx, d, idx, self.stack.bodies, self.stack.offsets)
+            levels = tasks_lib.levels(self.stack, frames, terms, t_now)
+            task_err = jnp.concatenate(list(tasks_lib.task_errors(self.stack, frames, terms, t_now).values()))
         out, cstate_new = ctrl_lib.step(
-            gains, consts, cstate, terms, ref, config=config, mass=idx.mass, dt=cfg.control_dt
+            gains, consts, cstate, terms, ref, config=config, mass=idx.mass, dt=cfg.control_dt,
+            levels=levels,
         )
         ctrl = jnp.zeros(mx.nu, dtype).at[idx.actuators].set(out.tau)
 
@@ -288,7 +298,7 @@ class Rollout:
                 Ldot_meas=A @ f_meas + ctrl_lib.momentum.gravity_wrench(idx.mass, dtype),
                 activation=ref.activation, feet_pos=terms.W_p_feet,
                 qp_infeasible=out.qp_infeasible, qp_violation=out.qp_violation,
-                push=push_force(push, t_now), s=terms.s, s_des=ref.s_des,
+                push=push_force(push, t_now), s=terms.s, s_des=ref.s_des, task_err=task_err,
             )  # fmt: skip
         elif cfg.loss_trace:
             record = LossTrace(
@@ -317,9 +327,12 @@ class Rollout:
         return carry[2], traj
 
 
-def make_rollout(robot: Robot, schedule: Schedule, config, cfg: SimConfig) -> Rollout:
-    """Build the closed-loop :class:`Rollout` of one environment (see its docstring)."""
-    return Rollout(robot, schedule, config, cfg)
+def make_rollout(robot: Robot, schedule: Schedule, config, cfg: SimConfig, stack=None) -> Rollout:
+    """Build the closed-loop :class:`Rollout` of one environment (see its docstring).
+
+    ``stack``: an optional resolved :class:`wbc_jax.tasks.TaskStack` of motion tasks between the
+    force task and the postural task."""
+    return Rollout(robot, schedule, config, cfg, stack)
 
 
 def summarize(metrics: Metrics, push_end: float = 0.0) -> dict:

@@ -267,9 +267,11 @@ def make_batched_loss(robot: model_lib.Robot, scfg: sweep.SweepConfig, lc: LossC
                       *, checkpoint: bool = True):  # fmt: skip
     """Differentiable batched objective (unjitted; the caller jits / differentiates).
 
-    Returns ``fn(gains, scen) -> (loss (), terms {name: (B,)}, Metrics with a (B,) axis)``:
-    the rollout (as in ``sweep.make_batched_runner``: joint offsets, per-env plant) vmapped over
-    the Scenario batch (its ``gains`` field is ignored; ``gains`` is shared), with a LossTrace."""
+    Returns ``fn(gains, scen, regularisation=None) -> (loss (), terms {name: (B,)}, Metrics with
+    a (B,) axis)``: the rollout (as in ``sweep.make_batched_runner``: joint offsets, per-env plant)
+    vmapped over the Scenario batch (its ``gains`` field is ignored; ``gains`` is shared), with a
+    LossTrace. ``regularisation``: optional ``{"pinv_damping": (), "kp_postural_reg": ()}``
+    overriding the controller's Reg.pinvDamp and Reg.KP_postural (differentiable)."""
     rollout, d0, _, consts, _ = balance.setup(
         robot, scfg.task, duration=scfg.horizon, forces=scfg.forces, postural=scfg.postural,
         sim=dict(record=False, loss_trace=True, checkpoint=checkpoint, push_body=scfg.body,
@@ -279,16 +281,19 @@ def make_batched_loss(robot: model_lib.Robot, scfg: sweep.SweepConfig, lc: LossC
     dtype = d0.qpos.dtype
     iterations = scfg.solver_iterations or int(robot.mj_model.opt.iterations)
 
-    def env(gains, scen):
+    def env(gains, consts_run, scen):
         qpos = d0.qpos.at[idx.qpos_joints].add(scen.joint_offset.astype(dtype))
         plant = sweep.plant_model(mx, scen.friction, scen.mass_scale)
-        metrics, trace = rollout(mx, d0.replace(qpos=qpos), gains, consts, scen.push, mx_plant=plant)
+        metrics, trace = rollout(mx, d0.replace(qpos=qpos), gains, consts_run, scen.push, mx_plant=plant)
         return loss_terms(trace, lc), metrics
 
-    def fn(gains, scen):
+    def fn(gains, scen, regularisation=None):
         gains = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), gains)
+        consts_run = consts
+        if regularisation is not None:
+            consts_run = consts.replace(**{k: jnp.asarray(v, dtype) for k, v in regularisation.items()})
         with fixed_iteration_solver(iterations):
-            terms, metrics = jax.vmap(env, in_axes=(None, 0))(gains, scen)
+            terms, metrics = jax.vmap(env, in_axes=(None, None, 0))(gains, consts_run, scen)
         return jnp.mean(terms["total"]), terms, metrics
 
     return fn
