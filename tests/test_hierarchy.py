@@ -1,6 +1,7 @@
 """Motion-task hierarchy: frame kinematics against C MuJoCo, strict priority, an independent NumPy
 hierarchical least-squares reference, the dynamics, and clear errors for bad stacks (float64)."""
 
+import dataclasses
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -203,6 +204,12 @@ def test_circle_reference_derivatives(robot):
     # After the ramp: a circle of radius 5 cm in the y-z plane.
     center = np.asarray(task.target) - np.array([0, 0.05, 0])
     assert abs(float(jnp.linalg.norm(p - center)) - 0.05) < 1e-12 and abs(float(p[0] - center[0])) < 1e-12
+    # Signed axes: plane (-z, y) leaves the start point along +y and reaches 2 r above it at half a period.
+    signed = dataclasses.replace(task, reference=dataclasses.replace(task.reference, plane=("-z", "y")))
+    p_half, _, _ = tasks.reference_at(signed, 3.0, jnp.float64)  # t = 3 s: after the ramp, w t = 3 pi
+    np.testing.assert_allclose(p_half - np.asarray(task.target), [0.0, 0.0, 0.1], atol=1e-12)
+    p_quarter, _, _ = tasks.reference_at(signed, 2.5, jnp.float64)  # w t = 2.5 pi: +r along y, +r along z
+    np.testing.assert_allclose(p_quarter - np.asarray(task.target), [0.0, 0.05, 0.05], atol=1e-12)
 
 
 POSTURE = tasks.MotionTask("posture", "postural")
@@ -222,6 +229,8 @@ POSTURE = tasks.MotionTask("posture", "postural")
         ([tasks.MotionTask("j", "joints", joints=("r_elbow", "r_wrist")), POSTURE], "unknown joint 'r_wrist'"),
         ([tasks.MotionTask("h", "position", frame="r_hand", kp=-1.0), POSTURE], "task gain kp"),
         ([tasks.MotionTask("h", "position", frame="r_hand", weight=0.0), POSTURE], "weight must be positive"),
+        ([tasks.MotionTask("h", "com", reference=tasks.TaskReference(kind="circle", radius=0.05, frequency=0.5, plane=("-y", "y"))),
+          POSTURE], "circle plane must be two different axes"),
         ([tasks.MotionTask("h", "com", reference=tasks.TaskReference(kind="spiral")), POSTURE],
          "unknown reference kind 'spiral'"),
         ([tasks.MotionTask("h", "position", frame="r_hand", priority=2), tasks.MotionTask("posture", "postural", priority=1)],
@@ -243,3 +252,12 @@ def test_stack_from_dicts(robot):
     assert stack.tasks[0].kp == (10.0, 20.0, 30.0) and stack.tasks[0].reference.kind == "circle"
     with pytest.raises(ValueError, match="unknown keys"):
         tasks.resolve(robot, [{"name": "hand", "kind": "position", "frame": "r_hand", "gain": 3}, POSTURE])
+
+
+def test_joints_all_is_every_joint_at_home(robot):
+    stack = tasks.resolve(robot, [{"name": "all_joints", "kind": "joints", "joints": "all", "kp": 100.0},
+                                  {"name": "posture", "kind": "postural"}])  # fmt: skip
+    task = stack.tasks[0]
+    assert len(task.kp) == robot.index.n == 23
+    home = robot.home_qpos()
+    np.testing.assert_allclose(task.target, [home[robot.index.qpos_joints[k]] for k in range(robot.index.n)])

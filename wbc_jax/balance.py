@@ -124,6 +124,7 @@ def run(
     plots_on: bool = True,
     solver_iterations: int | None = None,
     tasks_file: str | None = None,
+    control_dt: float | None = None,
 ) -> dict:
     """Run the balance job; write metrics.json, trajectory.npz and PNG plots into ``out``.
 
@@ -131,6 +132,7 @@ def run(
       push: optional ``{"force": [fx, fy, fz] N, "onset": s, "duration": s}`` on the chest.
       solver_iterations: MJX Newton iterations (None: the model's, 4).
       tasks_file: task specification (JSON/YAML, :func:`wbc_jax.tasks.load_stack_file`).
+      control_dt: controller period in s, a multiple of the 1 ms physics step (None: 0.01).
 
     Returns:
       the metrics dict (also printed by the CLI as one JSON line).
@@ -140,7 +142,8 @@ def run(
     stack = tasks_lib.load_stack_file(tasks_file) if tasks_file else None
     rollout, d0, gains, consts, schedule = setup(
         robot, task, duration=duration, forces=forces, postural=postural, gains=gains,
-        sim=None if solver_iterations is None else {"solver_iterations": int(solver_iterations)},
+        sim={**({} if solver_iterations is None else {"solver_iterations": int(solver_iterations)}),
+             **({} if control_dt is None else {"control_dt": float(control_dt)})},
         stack=stack,
     )
     dtype = d0.qpos.dtype
@@ -161,7 +164,8 @@ def run(
     wall = time.time() - start
     result = {"task": task, "forces": forces, "postural": postural, "duration_s": schedule.duration,
               "solver_iterations": int(robot.mj_model.opt.iterations if solver_iterations is None
-                                       else solver_iterations)}  # fmt: skip
+                                       else solver_iterations),
+              "control_dt_s": rollout.cfg.control_dt}  # fmt: skip
     result.update(rollout_lib.summarize(metrics, push_end))
     result.update(force_task_error(traj))
     if rollout.stack is not None:

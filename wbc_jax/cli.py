@@ -27,7 +27,7 @@ def _balance(args: argparse.Namespace) -> int:
     result = balance.run(
         args.task, duration=args.duration, forces=args.forces, postural=args.postural,
         out=args.out, gains_file=args.gains, push=push, progress=not args.quiet,
-        solver_iterations=args.solver_iterations, tasks_file=args.tasks,
+        solver_iterations=args.solver_iterations, tasks_file=args.tasks, control_dt=args.control_dt,
     )  # fmt: skip
     print(balance.main_json_line(result))
     return 0
@@ -102,6 +102,8 @@ def build_parser() -> argparse.ArgumentParser:
     bal.add_argument("--push-duration", type=float, default=0.1)
     bal.add_argument("--solver-iterations", type=int, default=None,
                      help="MJX Newton iterations (default: the model's, 4)")
+    bal.add_argument("--control-dt", type=float, default=None,
+                     help="controller period in s, a multiple of the 1 ms physics step (default 0.01)")
     bal.add_argument("--tasks", default=None, metavar="FILE",
                      help="motion-task stack (JSON/YAML, e.g. experiments/tasks/reach_circle.yaml)")
     bal.add_argument("--quiet", action="store_true", help="no progress bar")

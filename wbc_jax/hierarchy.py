@@ -50,7 +50,8 @@ from wbc_jax.types import Array, pytree_dataclass
 # Relative to the mean eigenvalue of A_i A_i^T: {float64, float32}.
 SOLUTION_DAMPING = {8: 1e-6, 4: 1e-3}  # singular directions get bounded torques
 PROJECTOR_REG = {8: 1e-12, 4: 1e-5}  # directions below sqrt(reg) x scale count as singular
-_TINY = {8: 1e-150, 4: 1e-18}  # keeps an all-zero level (an inactive contact) regular
+_TINY = {8: 1e-150, 4: 1e-18}
+ROW_FLOOR = {8: 1e-12, 4: 1e-6}  # relative squared row norm below which a row is not normalised  # keeps an all-zero level (an inactive contact) regular
 
 
 @pytree_dataclass
@@ -127,7 +128,14 @@ def solve(
     nu_dot_c = nu_dot_c + G @ tau0_model
 
     def null_space_step(N, A_hat, scale):
-        N = N - _regularised_pinv(A_hat, reg * scale) @ A_hat
+        # Rows scaled to unit norm first (same null space): the rows of one level differ in scale
+        # by the inertia they move (leg joints vs. arm joints: ~1e3 in A A^T), so a regularisation
+        # relative to the level's mean would count the heavy rows as singular and leave them free
+        # for the levels below. Rows below ROW_FLOOR x the level scale (what the levels above
+        # block, rounding noise) are not amplified to unit norm.
+        row_sq = jnp.sum(A_hat * A_hat, axis=1, keepdims=True)
+        A_unit = A_hat / jnp.sqrt(row_sq + ROW_FLOOR[size] * scale)
+        N = N - _regularised_pinv(A_unit, jnp.asarray(reg, dtype)) @ A_unit
         return N @ N  # = N for an exact projector; squares the regularisation's leak (eps / s^2)
 
     # Motion-task torques stay in the exact null space of Lambda (N_S starts there): they change no

@@ -55,7 +55,8 @@ class TaskReference:
       target: the set-point (constant) or start point (circle); None: the value at the initial
         posture. Length: the task dimension (3; joints: the number of joints; orientation: a
         (w, x, y, z) quaternion).
-      radius (m), frequency (Hz), plane (two world axes, e1 then e2), ramp (s): circle only.
+      radius (m), frequency (Hz), plane (two world axes, e1 then e2, each optionally signed: the
+        circle leaves p0 along e2 and its far point is p0 - 2 r e1), ramp (s): circle only.
     """
 
     kind: str = "constant"
@@ -75,7 +76,7 @@ class MotionTask:
       kind: one of ``TASK_KINDS``.
       frame: body, site or named point (``NAMED_POINTS``) for position / orientation tasks.
       offset: (3,) point in the body frame, added to the frame's own offset (position tasks).
-      joints: joint names of a ``joints`` task.
+      joints: joint names of a ``joints`` task (``("all",)``: every controlled joint).
       kp, kd: PD gains, a number or one per row; kd None: 2 sqrt(kp) (critical damping).
       priority: tasks with equal values share a level; None: the position in the list.
       weight: relative weight inside a level (> 0).
@@ -180,6 +181,8 @@ def resolve(robot: Robot, stack, qpos: np.ndarray | None = None) -> TaskStack:
         duplicate names, no postural task at the bottom, bad gains or weights).
     """
     tasks = [task_from_dict(t) if isinstance(t, dict) else t for t in stack]
+    # joints: ["all"] is every controlled joint, in the robot's order.
+    tasks = [dataclasses.replace(t, joints=tuple(robot.index.joints)) if t.joints == ("all",) else t for t in tasks]
     if not tasks or tasks[-1].kind != "postural":
         raise ValueError(
             "the task stack must end with the postural task (kind 'postural', the lowest priority); "
@@ -233,8 +236,12 @@ def resolve(robot: Robot, stack, qpos: np.ndarray | None = None) -> TaskStack:
                 raise ValueError(f"task {task.name!r}: a circle reference needs a position or com task")
             if not (ref.radius > 0 and ref.frequency > 0 and ref.ramp >= 0):
                 raise ValueError(f"task {task.name!r}: circle needs radius > 0, frequency > 0, ramp >= 0")
-            if len(ref.plane) != 2 or any(a not in AXES for a in ref.plane) or ref.plane[0] == ref.plane[1]:
-                raise ValueError(f"task {task.name!r}: circle plane must be two different axes of {list(AXES)}")
+            axes = [a.lstrip("+-") for a in ref.plane]
+            if len(ref.plane) != 2 or any(a not in AXES for a in axes) or axes[0] == axes[1]:
+                raise ValueError(
+                    f"task {task.name!r}: circle plane must be two different axes of {list(AXES)}, each "
+                    f"optionally signed ('-z'), got {list(ref.plane)}"
+                )
         target_len = 4 if task.kind in ("orientation", "base_orientation") else rows
         if ref.target is not None:
             target = np.asarray(ref.target, dtype=float)
@@ -297,12 +304,18 @@ def task_from_dict(values: dict) -> MotionTask:
         raise ValueError(f"task {values['name']!r}: reference keys must be among {sorted(ref_fields)}")
     ref = {k: tuple(v) if isinstance(v, list) else v for k, v in ref.items()}
     values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
+    if isinstance(values.get("joints"), str):
+        values["joints"] = (values["joints"],)  # "all", or a single joint name
     return MotionTask(**values, reference=TaskReference(**ref))
 
 
+def _signed_axis(name: str, dtype) -> Array:
+    """Unit vector of a world axis name, optionally signed: "y", "+y", "-z"."""
+    return jnp.zeros(3, dtype).at[AXES[name.lstrip("+-")]].set(-1.0 if name.startswith("-") else 1.0)
+
+
 def _circle(ref: TaskReference, p0: Array, t: Array) -> Array:
-    e1 = jnp.zeros(3, p0.dtype).at[AXES[ref.plane[0]]].set(1.0)
-    e2 = jnp.zeros(3, p0.dtype).at[AXES[ref.plane[1]]].set(1.0)
+    e1, e2 = (_signed_axis(a, p0.dtype) for a in ref.plane)
     w = 2 * math.pi * ref.frequency
     radius = ref.radius * (references.min_jerk(t / ref.ramp)[0] if ref.ramp > 0 else 1.0)
     return p0 + radius * ((jnp.cos(w * t) - 1) * e1 + jnp.sin(w * t) * e2)
