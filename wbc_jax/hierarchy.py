@@ -28,8 +28,9 @@ feedback u_0 yields: tau_0 = tau_0,model + x_k + P_k u_0, where P_k projects on 
 the stacked J_i M^-1 B N_Lambda (u_0 passes through the damped N_Lambda).
 Ahat_i^# = Ahat_i^T (...)^-1 lies in the range of N_{i-1}, so a lower level never changes what the
 levels above achieve (strict priority) unless an upper level is itself singular. The damping and
-the projectors' regularisation are relative to the scale of the *unprojected* A_i (mean eigenvalue
-of A_i A_i^T), so a level that the levels above block entirely (A_i N_{i-1} = rounding noise) gets
+the projectors' row floor are relative to the scale of the *unprojected* A_i (mean eigenvalue of
+A_i A_i^T; the projectors are built from unit-norm rows), so a level that the levels above block
+entirely (A_i N_{i-1} = rounding noise) gets
 no torque from that noise; they replace an SVD cut-off: smooth, so jit, vmap and grad stay finite
 at rank changes. A regularised projector leaves A_j N_i = O(eps / s^2) instead of 0, which a lower
 level's pseudo-inverse amplifies by 1 / damping; squaring N_i (idempotent if exact) squares that
@@ -47,11 +48,12 @@ from wbc_jax.dynamics import DynamicsTerms
 from wbc_jax.torques import TorqueTerms
 from wbc_jax.types import Array, pytree_dataclass
 
-# Relative to the mean eigenvalue of A_i A_i^T: {float64, float32}.
+# {float64, float32}. Damping relative to the mean eigenvalue of A_i A_i^T.
 SOLUTION_DAMPING = {8: 1e-6, 4: 1e-3}  # singular directions get bounded torques
-PROJECTOR_REG = {8: 1e-12, 4: 1e-5}  # directions below sqrt(reg) x scale count as singular
-_TINY = {8: 1e-150, 4: 1e-18}
-ROW_FLOOR = {8: 1e-12, 4: 1e-6}  # relative squared row norm below which a row is not normalised  # keeps an all-zero level (an inactive contact) regular
+# Projectors work on unit-norm rows (see null_space_step): directions below sqrt(reg) count as singular.
+PROJECTOR_REG = {8: 1e-12, 4: 1e-5}
+_TINY = {8: 1e-150, 4: 1e-18}  # keeps an all-zero level (an inactive contact) regular
+ROW_FLOOR = {8: 1e-12, 4: 1e-6}  # rows with |row|^2 below this x the level scale: not normalised
 
 
 @pytree_dataclass
