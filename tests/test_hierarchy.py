@@ -261,3 +261,9 @@ def test_joints_all_is_every_joint_at_home(robot):
     assert len(task.kp) == robot.index.n == 23
     home = robot.home_qpos()
     np.testing.assert_allclose(task.target, [home[robot.index.qpos_joints[k]] for k in range(robot.index.n)])
+    # The Python API with a bare string (not a list): the same task, not one-letter joint names.
+    bare = tasks.resolve(robot, [tasks.MotionTask("all_joints", "joints", joints="all", kp=100.0),
+                                 tasks.MotionTask("posture", "postural")])  # fmt: skip
+    assert bare.tasks[0].dofs == task.dofs == tuple(range(23))
+    one = tasks.resolve(robot, [tasks.MotionTask("elbow", "joints", joints="r_elbow"), tasks.MotionTask("p", "postural")])
+    assert one.tasks[0].dofs == (robot.index.joints.index("r_elbow"),)

@@ -30,17 +30,23 @@ def setup(
     sim: dict | None = None,
     controller: dict | None = None,
     stack=None,
+    contact_set=None,
+    qpos=None,
 ):
     """Validate everything (before any compilation) and build the pieces of a run.
 
     ``stack``: motion tasks (a list of :class:`wbc_jax.tasks.MotionTask` or of mappings, the
     postural task last) between the force task and the postural task; None: the two-level law.
+    ``contact_set``: a :class:`wbc_jax.contacts.ContactSet` built with ``robot``
+    (:func:`load_scenario`); None: the two feet. ``qpos``: (nq,) initial posture (None: home).
 
     Returns (rollout, d0, gains, consts, schedule)."""
     ccfg = ctrl_lib.ControllerConfig(forces=forces, postural=postural, **(controller or {}))
     if task not in references.TASKS:
         raise ValueError(f"unknown task {task!r}; valid tasks: {list(references.TASKS)}")
-    d0 = rollout_lib.initial_data(robot)
+    if contact_set is not None and forces != "qp":
+        raise ValueError("a general contact set needs forces='qp' (friction cones at every contact)")
+    d0 = rollout_lib.initial_data(robot, qpos)
     resolved = None if stack is None else tasks_lib.resolve(robot, stack, np.asarray(d0.qpos))
     dtype = d0.qpos.dtype
     gains = ctrl_lib.default_gains(robot.index.n, dtype) if gains is None else gains
@@ -52,7 +58,29 @@ def setup(
     )  # fmt: skip
     cfg = rollout_lib.SimConfig(duration=schedule.duration, **(sim or {}))
     consts = ctrl_lib.constants_at_reference(t0, ccfg)
-    return rollout_lib.make_rollout(robot, schedule, ccfg, cfg, resolved), d0, gains, consts, schedule
+    rollout = rollout_lib.make_rollout(robot, schedule, ccfg, cfg, resolved, contact_set)
+    return rollout, d0, gains, consts, schedule
+
+
+def load_scenario(robot_name: str, tasks_file=None):
+    """Robot, motion tasks, contact set and initial posture of a specification file.
+
+    Returns ``(robot, stack, contact_set, qpos)``: without a file (or without ``contacts`` in it)
+    the robot is the plain model and contact_set None (the two feet); with ``contacts`` the robot
+    is the scene of :func:`wbc_jax.contacts.build_scene` (objects, collision spheres, pairs)."""
+    from wbc_jax import contacts as contacts_lib
+
+    robot = model.load_robot(robot_name)
+    if not tasks_file:
+        return robot, None, None, None
+    spec = tasks_lib.load_spec_file(tasks_file)
+    qpos = tasks_lib.initial_qpos(robot, spec["initial_posture_deg"])
+    contact_set = None
+    if spec["contacts"] is not None:
+        robot, contact_set = contacts_lib.build_scene(robot_name, spec["contacts"], spec["scene"], qpos)
+    elif spec["scene"]:
+        raise ValueError(f"{tasks_file}: scene objects need a 'contacts' list (what touches them)")
+    return robot, spec["tasks"], contact_set, qpos
 
 
 def run_chunked(rollout, mx, d0, gains, consts, push, *, progress: bool = True):
@@ -110,6 +138,29 @@ def force_task_error(traj: dict, after: float = 1.0) -> dict:
     }
 
 
+def contact_tracking(cset, traj: dict, after: float = 1.0) -> dict:
+    """Per contact of a general set, over the ticks after ``after`` s: the measured (MuJoCo) and
+    commanded normal forces (median, N) and, where a normal force is desired, the max and median of
+    |measured - desired|; and the max slip of the contact point (m)."""
+    sel = traj["t"] >= min(after, 0.5 * float(traj["t"][-1]))
+    out = {}
+    for k, (c, sl) in enumerate(zip(cset.contacts, cset.slices(), strict=True)):
+        n = traj["contact_normal"][sel, k]
+        meas = np.einsum("ti,ti->t", traj["f_meas"][sel, sl.start : sl.start + 3], n)
+        cmd = np.einsum("ti,ti->t", traj["f_cmd"][sel, sl.start : sl.start + 3], n)
+        entry = {"normal_force_meas_median_n": float(np.median(meas)),
+                 "normal_force_cmd_median_n": float(np.median(cmd))}  # fmt: skip
+        if math.isfinite(c.normal_force):
+            desired = c.normal_force * traj["activation"][sel, k]
+            entry["normal_force_desired_n"] = c.normal_force
+            entry["normal_force_err_max_n"] = float(np.max(np.abs(meas - desired)))
+            entry["normal_force_err_median_n"] = float(np.median(np.abs(meas - desired)))
+        p = traj["feet_pos"][:, k]
+        entry["max_drift_m"] = float(np.max(np.linalg.norm(p - p[0], axis=1)))
+        out[c.name] = entry
+    return out
+
+
 def run(
     task: str = "stand",
     *,
@@ -131,20 +182,19 @@ def run(
     Args:
       push: optional ``{"force": [fx, fy, fz] N, "onset": s, "duration": s}`` on the chest.
       solver_iterations: MJX Newton iterations (None: the model's, 4).
-      tasks_file: task specification (JSON/YAML, :func:`wbc_jax.tasks.load_stack_file`).
+      tasks_file: task/contact specification (JSON/YAML, :func:`wbc_jax.tasks.load_spec_file`).
       control_dt: controller period in s, a multiple of the 1 ms physics step (None: 0.01).
 
     Returns:
       the metrics dict (also printed by the CLI as one JSON line).
     """
-    robot = model.load_robot(robot_name)
+    robot, stack, contact_set, qpos = load_scenario(robot_name, tasks_file)
     gains = ctrl_lib.load_gains(gains_file, robot.index.n) if gains_file else None
-    stack = tasks_lib.load_stack_file(tasks_file) if tasks_file else None
     rollout, d0, gains, consts, schedule = setup(
         robot, task, duration=duration, forces=forces, postural=postural, gains=gains,
         sim={**({} if solver_iterations is None else {"solver_iterations": int(solver_iterations)}),
              **({} if control_dt is None else {"control_dt": float(control_dt)})},
-        stack=stack,
+        stack=stack, contact_set=contact_set, qpos=qpos,
     )
     dtype = d0.qpos.dtype
     if push:
@@ -170,6 +220,8 @@ def run(
     result.update(force_task_error(traj))
     if rollout.stack is not None:
         result["tasks"] = task_tracking(rollout.stack, traj)
+    if contact_set is not None:
+        result["contacts"] = contact_tracking(contact_set, traj)
     result["wall_time_s"] = round(wall, 2)
     result["device"] = str(jax.devices()[0])
     result = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in result.items()}
@@ -180,7 +232,11 @@ def run(
         if plots_on:
             title = f"{task}, forces={forces}, postural={postural}"
             plots.com_tracking(traj, out / "com.png", title)
-            plots.contact_forces(traj, out / "contact_forces.png", title)
+            if contact_set is None:
+                plots.contact_forces(traj, out / "contact_forces.png", title)
+            else:
+                plots.contact_normal_forces(traj, list(contact_set.names),
+                                            [c.dim for c in contact_set.contacts], out / "contact_forces.png", title)
             plots.joint_torques(traj, list(robot.index.joints), out / "torques.png", title)
     return result
 

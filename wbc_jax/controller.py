@@ -242,6 +242,8 @@ def step(
     mass: float,
     dt: float,
     levels: tuple = (),
+    contact_set=None,
+    contacts=None,
 ) -> tuple[ControlOutput, ControllerState]:
     """One control tick: torques (n,) from the dynamics terms and the references.
 
@@ -252,6 +254,9 @@ def step(
       levels: motion tasks between the force task and the postural task, highest priority first
         (:class:`wbc_jax.hierarchy.TaskLevel`, from :func:`wbc_jax.tasks.levels`). The force task
         does not see them (strict priority): f is chosen with the two-level torque law.
+      contact_set, contacts: a general contact set (:class:`wbc_jax.contacts.ContactSet`, static)
+        and its terms at this state (:class:`wbc_jax.contacts.ContactTerms`); None: the two feet
+        of the WBC controller. See :func:`contact_set_wrenches`.
 
     Returns:
       ``(output, new_state)``.
@@ -284,6 +289,10 @@ def step(
         ki_ang=gains.ki_ang,
     )
     wrench_des = Ldot_star - f_grav
+    if contact_set is not None:
+        return _step_contact_set(
+            gains, consts, t, ref, contact_set, contacts, wrench_des, Ldot_star, f_grav, config, levels
+        ), new_state
 
     tt = torques.torque_terms(
         t,
@@ -359,6 +368,86 @@ def step(
         qp_violation=constraint_violation(f, t.W_R_feet, act, config.contact),
     )
     return out, new_state
+
+
+# General contact set: weights of the force distribution (per N^2, against the torques' (N m)^2).
+NORMAL_FORCE_WEIGHT = 1e3  # desired normal forces (a hand on a table)
+INACTIVE_WEIGHT = 1e3  # x (1 - activation): the wrench of a contact being released goes to zero
+
+
+def contact_set_wrenches(A, wrench_des, tt, cset, cterms, config):
+    """Wrenches f (D,) of a general contact set (:mod:`wbc_jax.contacts`), the WBC two-feet QP
+    extended to any contacts:
+
+        minimise_f  |tau_model + Sigma f|^2 + w_n |S_n f - F_n|^2 + w_off sum_k (1 - a_k) |f_k|^2
+        subject to  A f = L_dot* - f_grav   (f = f1 + Z y, Z a basis of null(A), as in WBC)
+                    C f <= b                (each contact's friction cone, torsion, CoP, f_n >= a_k f_min)
+
+    S_n f are the normal forces of the contacts with a desired one F_n (a hand pressing a table
+    with 5 N, Nori et al. 2015). When the momentum rate is not realisable within the constraints
+    (a strong push), the equality becomes the leading cost term (as the two-feet path):
+    min |A f - w|^2 + c (the cost above), always feasible.
+
+    Returns (f (D,), infeasible ()).
+    """
+    from wbc_jax import contacts as contacts_lib
+
+    dtype = A.dtype
+    D = cset.dim
+    act = cterms.activation
+    C, b = contacts_lib.constraints(cset, cterms.W_R, act)
+    S_n, F_n = contacts_lib.normal_force_rows(cset, cterms.W_R, act)
+    off = INACTIVE_WEIGHT * (1.0 - contacts_lib.row_activation(cset, act))
+    A_pinv = jnp.linalg.solve(A @ A.T, A).T
+    f1 = A_pinv @ wrench_des
+    Z = contact_qp.range_basis(jnp.eye(D, dtype=dtype) - A_pinv @ A, D - 6)
+    SZ, NZ = tt.Sigma @ Z, S_n @ Z
+    H = SZ.T @ SZ + NORMAL_FORCE_WEIGHT * NZ.T @ NZ + Z.T @ (off[:, None] * Z)
+    H = H + config.hessian_reg * jnp.eye(D - 6, dtype=dtype)
+    g = SZ.T @ (tt.tau_model + tt.Sigma @ f1) + NORMAL_FORCE_WEIGHT * NZ.T @ (S_n @ f1 - F_n) + Z.T @ (off * f1)
+    y, info = contact_qp.solve_qp(H, g, C @ Z, b - C @ f1, iterations=config.qp_iterations)
+    c = TORQUE_WEIGHT_SOFT
+    H_soft = (A.T @ A + c * (tt.Sigma.T @ tt.Sigma + NORMAL_FORCE_WEIGHT * S_n.T @ S_n + jnp.diag(off))
+              + config.hessian_reg * jnp.eye(D, dtype=dtype))  # fmt: skip
+    g_soft = -A.T @ wrench_des + c * (tt.Sigma.T @ tt.tau_model - NORMAL_FORCE_WEIGHT * S_n.T @ F_n)
+    f_soft, info_soft = contact_qp.solve_qp(H_soft, g_soft, C, b, iterations=config.qp_iterations)
+    f = jnp.where(info.infeasible, f_soft, f1 + Z @ y)
+    return f, info.infeasible & info_soft.infeasible
+
+
+def _step_contact_set(gains, consts, t, ref, cset, cterms, wrench_des, Ldot_star, f_grav, config, levels):
+    from wbc_jax import contacts as contacts_lib
+
+    dtype = t.M.dtype
+    rows = contacts_lib.row_activation(cset, cterms.activation)
+    tt = torques.torque_terms(
+        t,
+        None,
+        postural=config.postural,
+        kp_postural=gains.kp_postural,
+        kd_postural=gains.kd_postural,
+        s_des=ref.s_des,
+        pinv_damping=config.pinv_damping if consts.pinv_damping is None else consts.pinv_damping,
+        pinv_tol=config.pinv_tol,
+        kp_postural_reg=(
+            config.kp_postural_reg if consts.kp_postural_reg is None else consts.kp_postural_reg
+        ),
+        contact=(cterms.J * rows[:, None], cterms.Jdot_nu * rows),
+    )
+    A = contacts_lib.wrench_map(cset, cterms.W_p, t.W_p_CoM).astype(dtype)
+    if config.forces != "qp":
+        raise ValueError("a general contact set needs forces='qp' (friction cones at every contact)")
+    f, infeasible = contact_set_wrenches(A, wrench_des, tt, cset, cterms, config)
+    tau_unsat = hierarchy.solve(t, tt, f, levels).tau if levels else tt.tau_model + tt.Sigma @ f
+    return ControlOutput(
+        tau=jnp.clip(tau_unsat, -config.torque_limit, config.torque_limit),
+        tau_unsat=tau_unsat,
+        f=f,
+        Ldot_star=Ldot_star,
+        Ldot_cmd=A @ f + f_grav,
+        qp_infeasible=infeasible,
+        qp_violation=contacts_lib.violation(cset, f, cterms.W_R, cterms.activation),
+    )
 
 
 GAIN_FIELDS = tuple(f.name for f in dataclasses.fields(Gains))

@@ -47,6 +47,26 @@ def contact_forces(traj: dict, path: pathlib.Path, title: str = "") -> None:
     fig.savefig(path, dpi=110)
 
 
+def contact_normal_forces(traj: dict, names: list[str], dims: list[int], path: pathlib.Path,
+                          title: str = "") -> None:
+    """Commanded vs measured (MuJoCo) normal force of each contact of a general contact set."""
+    t = traj["t"]
+    fig = Figure(figsize=(8, 2.2 * len(names) + 1))
+    axes = np.atleast_1d(fig.subplots(len(names), 1, sharex=True))
+    start = 0
+    for k, (ax, name, dim) in enumerate(zip(axes, names, dims)):
+        n = traj["contact_normal"][:, k]
+        ax.plot(t, np.einsum("ti,ti->t", traj["f_cmd"][:, start : start + 3], n), "k--", lw=1, label="commanded")
+        ax.plot(t, np.einsum("ti,ti->t", traj["f_meas"][:, start : start + 3], n), lw=1, label="MuJoCo")
+        ax.set_ylabel(f"{name} f_n [N]")
+        start += dim
+    axes[0].legend(loc="upper right")
+    axes[-1].set_xlabel("time [s]")
+    fig.suptitle(title or "contact normal forces")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
 def joint_torques(traj: dict, joints: list[str], path: pathlib.Path, title: str = "") -> None:
     """Joint torques, grouped by limb."""
     t = traj["t"]

@@ -17,6 +17,7 @@ import numpy as np
 from mujoco import mjx
 from mujoco.mjx._src import support
 
+from wbc_jax import contacts as contacts_lib
 from wbc_jax import controller as ctrl_lib
 from wbc_jax import dynamics
 from wbc_jax import tasks as tasks_lib
@@ -110,8 +111,11 @@ class Trajectory:
 
     t (T,), qpos (T, nq), com (T, 3), com_ref (T, 3), tau (T, n), f_cmd (T, 12),
     f_meas (T, 12), Ldot_star (T, 6), Ldot_meas (T, 6), activation (T, 2), feet_pos (T, 2, 3),
+    (with a general contact set of K contacts: f_cmd, f_meas (T, D), activation (T, K), feet_pos
+    (T, K, 3) = the contact points),
     qp_infeasible (T,), qp_violation (T,), push (T, 3), s (T, n), s_des (T, n),
-    task_err (T, m): the motion tasks' errors stacked in stack order (m = 0 without tasks).
+    task_err (T, m): the motion tasks' errors stacked in stack order (m = 0 without tasks),
+    contact_normal (T, K, 3): each contact's normal (world; the feet: the soles' z axes).
     """
 
     t: Array
@@ -131,6 +135,7 @@ class Trajectory:
     s: Array
     s_des: Array
     task_err: Array
+    contact_normal: Array
 
 
 @pytree_dataclass
@@ -173,6 +178,30 @@ def measured_feet_wrenches(m: mjx.Model, d: mjx.Data, idx: RobotIndex, W_p_feet:
     return jnp.concatenate(wrenches)
 
 
+def measured_contact_wrenches(m: mjx.Model, d: mjx.Data, cset, W_p: Array) -> Array:
+    """Contact wrenches (D,) that MuJoCo applies on each contact of a general set (world axes, at
+    the contact points; a point contact: the force only), summed over its collision geoms."""
+    contact = d._impl.contact
+    ncon = contact.dist.shape[0]
+    forces = jnp.stack([support.contact_force(m, d, i, to_world_frame=True)[:3] for i in range(ncon)])
+    forces = jnp.where((contact.dist <= 0)[:, None], forces, 0.0)
+    owner = np.full(m.ngeom, -1)
+    for k, c in enumerate(cset.contacts):
+        owner[list(c.geoms)] = k
+    # contact_force is the force on geom2; the collision pipeline may order a pair either way
+    # (a sphere on a box comes out as (sphere, box)), so find the robot's side of each contact.
+    owner = jnp.asarray(owner)
+    first, second = owner[contact.geom[:, 0]], owner[contact.geom[:, 1]]
+    who = jnp.maximum(first, second)
+    forces = jnp.where((second >= 0)[:, None], forces, -forces)
+    out = []
+    for k, c in enumerate(cset.contacts):
+        F = jnp.where((who == k)[:, None], forces, 0.0)
+        wrench = jnp.concatenate([F.sum(0), jnp.cross(contact.pos - W_p[k], F).sum(0)])
+        out.append(wrench[: c.dim])
+    return jnp.concatenate(out)
+
+
 def initial_data(robot: Robot, qpos: np.ndarray | None = None, dtype=None) -> mjx.Data:
     """MJX data at the home keyframe (or ``qpos``), zero velocity."""
     qpos = robot.home_qpos() if qpos is None else np.asarray(qpos)
@@ -202,8 +231,9 @@ class Rollout:
     Static structure (schedule, settings, indices) is closed over.
     """
 
-    def __init__(self, robot: Robot, schedule: Schedule, config, cfg: SimConfig, stack=None):
+    def __init__(self, robot: Robot, schedule: Schedule, config, cfg: SimConfig, stack=None, contact_set=None):
         idx = robot.index
+        self.contact_set = contact_set
         self.stack = stack if stack is not None and stack.tasks else None
         self.physics_dt = float(robot.mj_model.opt.timestep)
         n_sub = int(round(cfg.control_dt / self.physics_dt))
@@ -229,13 +259,17 @@ class Rollout:
         mx = configure_model(mx, self.cfg)
         t0 = dynamics.terms(mx, d0, self.idx)
         zero = jnp.zeros((), d0.qpos.dtype)
+        anchors = t0.W_p_feet
+        if self.contact_set is not None:
+            ones = jnp.ones(2, d0.qpos.dtype)
+            anchors = contacts_lib.contact_terms(mx, d0, self.idx, self.contact_set, zero, ones).W_p
         metrics0 = Metrics(
             com_sq_err_sum=zero, com_max_err=zero, max_abs_torque=zero, max_violation=zero,
             max_slip=zero, qp_infeasible_ticks=jnp.zeros((), jnp.int32),
             fell=jnp.zeros((), bool), nan=jnp.zeros((), bool), last_time_off=zero,
             min_com_height=t0.W_p_CoM[2], ticks=jnp.zeros((), jnp.int32),
         )  # fmt: skip
-        return (d0, ctrl_lib.init_state(d0.qpos.dtype), metrics0, t0.W_p_feet, t0.W_p_CoM[2])
+        return (d0, ctrl_lib.init_state(d0.qpos.dtype), metrics0, anchors, t0.W_p_CoM[2])
 
     def _tick(self, mx, gains, consts, push, carry, k, mx_plant=None):
         idx, cfg, config = self.idx, self.cfg, self.config
@@ -249,9 +283,12 @@ class Rollout:
             frames = dynamics.frame_terms(mx, d, idx, self.stack.bodies, self.stack.offsets)
             levels = tasks_lib.levels(self.stack, frames, terms, t_now)
             task_err = jnp.concatenate(list(tasks_lib.task_errors(self.stack, frames, terms, t_now).values()))
+        cset, cterms = self.contact_set, None
+        if cset is not None:
+            cterms = contacts_lib.contact_terms(mx, d, idx, cset, t_now, jnp.clip(ref.activation, 0.0, 1.0))
         out, cstate_new = ctrl_lib.step(
             gains, consts, cstate, terms, ref, config=config, mass=idx.mass, dt=cfg.control_dt,
-            levels=levels,
+            levels=levels, contact_set=cset, contacts=cterms,
         )
         ctrl = jnp.zeros(mx.nu, dtype).at[idx.actuators].set(out.tau)
 
@@ -267,9 +304,16 @@ class Rollout:
 
         # Metrics, measured at the tick (the state this tick's torques were computed from).
         com_err = jnp.linalg.norm(terms.W_p_CoM - ref.com_pos)
-        fully_active = ref.activation >= 1.0
-        anchors = jnp.where(fully_active[:, None], anchors, terms.W_p_feet)
-        slip_k = jnp.linalg.norm((terms.W_p_feet - anchors)[:, :2], axis=1)
+        activation, contact_pos = ref.activation, terms.W_p_feet
+        if cset is not None:
+            activation, contact_pos = cterms.activation, cterms.W_p
+        fully_active = activation >= 1.0
+        anchors = jnp.where(fully_active[:, None], anchors, contact_pos)
+        # Slip: displacement of each fully active contact (tangential to its surface).
+        dp = contact_pos - anchors
+        if cset is not None:
+            dp = dp - jnp.einsum("ki,ki->k", dp, cterms.W_R[:, :, 2])[:, None] * cterms.W_R[:, :, 2]
+        slip_k = jnp.linalg.norm(dp[:, :2] if cset is None else dp, axis=1)
         slip = jnp.max(jnp.where(fully_active, slip_k, 0.0))
         # d_new.xpos: kinematics of the last substep (d0 from make_data has none yet).
         body_low = jnp.min(d_new.xpos[self.non_foot_bodies, 2]) < 0.05
@@ -290,15 +334,20 @@ class Rollout:
         record = None
         if cfg.record:
             # Contact forces that the solver applied during this tick's last physics step.
-            f_meas = measured_feet_wrenches(mx, d_new, idx, terms.W_p_feet)
-            A = ctrl_lib.momentum.wrench_map(terms.W_p_feet, terms.W_p_CoM)
+            if cset is None:
+                f_meas = measured_feet_wrenches(mx, d_new, idx, terms.W_p_feet)
+                A = ctrl_lib.momentum.wrench_map(terms.W_p_feet, terms.W_p_CoM)
+            else:
+                f_meas = measured_contact_wrenches(mx, d_new, cset, cterms.W_p)
+                A = contacts_lib.wrench_map(cset, cterms.W_p, terms.W_p_CoM)
             record = Trajectory(
                 t=t_now, qpos=d.qpos, com=terms.W_p_CoM, com_ref=ref.com_pos, tau=out.tau,
                 f_cmd=out.f, f_meas=f_meas, Ldot_star=out.Ldot_star,
                 Ldot_meas=A @ f_meas + ctrl_lib.momentum.gravity_wrench(idx.mass, dtype),
-                activation=ref.activation, feet_pos=terms.W_p_feet,
+                activation=activation, feet_pos=contact_pos,
                 qp_infeasible=out.qp_infeasible, qp_violation=out.qp_violation,
                 push=push_force(push, t_now), s=terms.s, s_des=ref.s_des, task_err=task_err,
+                contact_normal=(terms.W_R_feet if cset is None else cterms.W_R)[:, :, 2],
             )  # fmt: skip
         elif cfg.loss_trace:
             record = LossTrace(
@@ -327,12 +376,14 @@ class Rollout:
         return carry[2], traj
 
 
-def make_rollout(robot: Robot, schedule: Schedule, config, cfg: SimConfig, stack=None) -> Rollout:
+def make_rollout(robot: Robot, schedule: Schedule, config, cfg: SimConfig, stack=None, contact_set=None) -> Rollout:
     """Build the closed-loop :class:`Rollout` of one environment (see its docstring).
 
     ``stack``: an optional resolved :class:`wbc_jax.tasks.TaskStack` of motion tasks between the
-    force task and the postural task."""
-    return Rollout(robot, schedule, config, cfg, stack)
+    force task and the postural task. ``contact_set``: an optional
+    :class:`wbc_jax.contacts.ContactSet` (with ``robot`` its scene, :func:`wbc_jax.contacts.build_scene`)
+    instead of the two feet."""
+    return Rollout(robot, schedule, config, cfg, stack, contact_set)
 
 
 def summarize(metrics: Metrics, push_end: float = 0.0) -> dict:

@@ -27,7 +27,6 @@ from wbc_jax import balance, io
 from wbc_jax import controller as ctrl_lib
 from wbc_jax import model as model_lib
 from wbc_jax import rollout as rollout_lib
-from wbc_jax import tasks as tasks_lib
 from wbc_jax.types import Array, pytree_dataclass
 
 
@@ -190,9 +189,14 @@ def build_scenarios(cfg: SweepConfig, base_gains: ctrl_lib.Gains, n: int, dtype=
     return scen, columns
 
 
+FLOOR_GEOM = 0  # the floor is the model's first geom (assets/build_icub_mjcf.py; tested)
+
+
 def plant_model(mx, friction: Array, mass_scale: Array):
-    """The simulated plant of one environment: floor friction (sliding) and scaled masses."""
-    pair_friction = mx.pair_friction.at[:, :2].set(friction)
+    """The simulated plant of one environment: floor friction (sliding) and scaled masses. Pairs
+    with scene objects (a table) keep their own friction."""
+    floor = (np.asarray(mx.pair_geom1) == FLOOR_GEOM) | (np.asarray(mx.pair_geom2) == FLOOR_GEOM)
+    pair_friction = mx.pair_friction.at[floor, :2].set(friction)
     return mx.replace(
         pair_friction=pair_friction,
         body_mass=mx.body_mass * mass_scale,
@@ -201,11 +205,16 @@ def plant_model(mx, friction: Array, mass_scale: Array):
 
 
 def make_batched_runner(robot: model_lib.Robot, cfg: SweepConfig):
-    """jit(vmap(env)) of the closed loop over a Scenario batch -> (Metrics, final CoM error)."""
+    """jit(vmap(env)) of the closed loop over a Scenario batch -> (Metrics, final CoM error).
+
+    With a ``tasks_file`` that lists contacts, the robot is that file's scene (same robot name)."""
+    stack = contact_set = qpos = None
+    if cfg.tasks_file is not None:
+        robot, stack, contact_set, qpos = balance.load_scenario(robot.index.robot, cfg.tasks_file)
     rollout, d0, _, consts, _ = balance.setup(
         robot, cfg.task, duration=cfg.horizon, forces=cfg.forces, postural=cfg.postural,
         sim=dict(record=False, push_body=cfg.body, solver_iterations=cfg.solver_iterations),
-        stack=None if cfg.tasks_file is None else tasks_lib.load_stack_file(cfg.tasks_file),
+        stack=stack, contact_set=contact_set, qpos=qpos,
     )  # fmt: skip
     mx = robot.mjx_model
     idx = robot.index

@@ -181,6 +181,8 @@ def resolve(robot: Robot, stack, qpos: np.ndarray | None = None) -> TaskStack:
         duplicate names, no postural task at the bottom, bad gains or weights).
     """
     tasks = [task_from_dict(t) if isinstance(t, dict) else t for t in stack]
+    # A bare string is one name ("all"), not a sequence of one-letter joint names.
+    tasks = [dataclasses.replace(t, joints=(t.joints,)) if isinstance(t.joints, str) else t for t in tasks]
     # joints: ["all"] is every controlled joint, in the robot's order.
     tasks = [dataclasses.replace(t, joints=tuple(robot.index.joints)) if t.joints == ("all",) else t for t in tasks]
     if not tasks or tasks[-1].kind != "postural":
@@ -390,9 +392,20 @@ def task_errors(stack: TaskStack, frames: FrameTerms, t: DynamicsTerms, time: Ar
     return {task.name: task_rows(task, frames, t, time)[3] for task in stack.tasks}
 
 
-def load_stack_file(path) -> list[MotionTask]:
-    """Read a task specification file (``.json``, ``.yaml``/``.yml``): a mapping with a ``tasks``
-    list (or the list itself) of task mappings, highest priority first, the postural task last."""
+SPEC_KEYS = ("tasks", "contacts", "scene", "initial_posture_deg")
+
+
+def load_spec_file(path) -> dict:
+    """Read a task/contact specification file (``.json``, ``.yaml``/``.yml``).
+
+    A mapping with any of: ``tasks`` (a list of task mappings, highest priority first, the postural
+    task last), ``contacts`` (a list of contact mappings, :class:`wbc_jax.contacts.Contact`; None:
+    the two feet), ``scene`` (a list of objects, :class:`wbc_jax.contacts.SceneObject`) and
+    ``initial_posture_deg`` (joint name -> angle in degrees, replacing the home posture's). A bare
+    list is a list of tasks.
+
+    Returns a dict with those keys (``tasks`` as :class:`MotionTask` list or None).
+    """
     import json
     import pathlib
 
@@ -414,7 +427,46 @@ def load_stack_file(path) -> list[MotionTask]:
             raise ValueError(f"task file {path} is not valid JSON: {err}") from err
     else:
         raise ValueError(f"task file {path}: unknown format {path.suffix!r}; valid: .json, .yaml, .yml")
-    entries = data.get("tasks") if isinstance(data, dict) else data
-    if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+    if isinstance(data, list):
+        data = {"tasks": data}
+    if not isinstance(data, dict) or not set(data) & {"tasks", "contacts"}:
+        raise ValueError(f"task file {path} must hold a mapping with 'tasks' and/or 'contacts' lists")
+    unknown = sorted(set(data) - set(SPEC_KEYS))
+    if unknown:
+        raise ValueError(f"task file {path}: unknown keys {unknown}; valid: {list(SPEC_KEYS)}")
+    entries = data.get("tasks")
+    if entries is not None and (not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries)):
         raise ValueError(f"task file {path} must hold a list of task mappings (under 'tasks')")
-    return [task_from_dict(e) for e in entries]
+    for key in ("contacts", "scene"):
+        value = data.get(key)
+        if value is not None and (not isinstance(value, list) or not all(isinstance(e, dict) for e in value)):
+            raise ValueError(f"task file {path}: '{key}' must be a list of mappings")
+    posture = data.get("initial_posture_deg") or {}
+    if not isinstance(posture, dict):
+        raise ValueError(f"task file {path}: 'initial_posture_deg' must map joint names to degrees")
+    return {
+        "tasks": None if entries is None else [task_from_dict(e) for e in entries],
+        "contacts": data.get("contacts"),
+        "scene": data.get("scene") or [],
+        "initial_posture_deg": posture,
+    }
+
+
+def load_stack_file(path) -> list[MotionTask]:
+    """The task list of a specification file (:func:`load_spec_file`)."""
+    tasks = load_spec_file(path)["tasks"]
+    if tasks is None:
+        raise ValueError(f"task file {path} has no 'tasks' list")
+    return tasks
+
+
+def initial_qpos(robot: Robot, posture_deg: dict) -> np.ndarray:
+    """The home keyframe's qpos with the joints of ``posture_deg`` (name -> degrees) replaced."""
+    qpos = robot.home_qpos()
+    for name, deg in posture_deg.items():
+        if name not in robot.index.joints:
+            raise ValueError(f"initial_posture_deg: unknown joint {name!r}; valid joints: {list(robot.index.joints)}")
+        if not isinstance(deg, (int, float)) or not math.isfinite(deg):
+            raise ValueError(f"initial_posture_deg: {name} must be a finite number of degrees, got {deg!r}")
+        qpos[robot.index.qpos_joints[robot.index.joints.index(name)]] = math.radians(deg)
+    return qpos

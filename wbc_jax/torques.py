@@ -41,7 +41,8 @@ class TorqueTerms:
     """Terms of the affine torque law tau = Sigma f + tau_model (n joints, 12 = two wrenches).
 
     Attributes:
-      J_c:        (12, nv) contact Jacobians, rows scaled by the activations
+      J_c:        (12, nv) contact Jacobians, rows scaled by the activations (a general contact
+                  set: D rows instead of 12, everywhere below)
       Jdot_nu_c:  (12,)    their Jdot nu
       Lambda:     (12, n)  J_c M^-1 B
       Lambda_pinv:(n, 12)  damped pseudo-inverse
@@ -121,6 +122,7 @@ def torque_terms(
     pinv_tol: float = 1e-5,
     kp_postural_reg: float = 0.1,
     compensate_passive: bool = True,
+    contact: tuple[Array, Array] | None = None,
 ) -> TorqueTerms:
     """Build the affine torque law at one state.
 
@@ -134,6 +136,8 @@ def torque_terms(
       pinv_tol: absolute singular-value tolerance of pinv(N_Lambda Mbar).
       kp_postural_reg: the 0.1 I added to K_P (WBC ``Reg.KP_postural``).
       compensate_passive: include the model's joint damping in the bias h.
+      contact: a general contact set instead of the two feet: (J_c (D, nv), Jdot_nu_c (D,)), rows
+        already scaled by the activations (:mod:`wbc_jax.contacts`); ``activation`` is then unused.
 
     Returns:
       :class:`TorqueTerms`.
@@ -141,7 +145,7 @@ def torque_terms(
     n = t.s.shape[0]
     M = t.M
     h = t.h - t.tau_passive if compensate_passive else t.h
-    J_c, Jdot_nu_c = contact_jacobians(t, activation)
+    J_c, Jdot_nu_c = contact_jacobians(t, activation) if contact is None else contact
     Minv_JcT = jnp.linalg.solve(M, J_c.T)  # (nv, 12)
     Minv_h = jnp.linalg.solve(M, h)
     Jc_Minv = Minv_JcT.T  # M symmetric

@@ -121,6 +121,12 @@ def _check_traj(traj: dict) -> int:
     bad = [f for f in TRAJ_FIELDS if len(traj[f]) != T]
     if T == 0 or bad:
         raise ValueError(f"trajectory fields {bad} do not have the length of t ({T})")
+    if np.shape(traj["f_cmd"])[1:] != (12,):
+        raise ValueError(
+            f"this run has a general contact set ({np.shape(traj['f_cmd'])[1]} wrench entries, "
+            f"{np.shape(traj['feet_pos'])[1]} contacts); the rerun view shows two-feet runs only (not done yet); "
+            "its plots (contact_forces.png) and metrics.json show the contacts"
+        )
     return T
 
 
@@ -303,6 +309,9 @@ def replay_sweep_env(run_dir: str | pathlib.Path, env: int, *, robot_name: str =
         raise ValueError(f"env {env} is out of range: this sweep has envs 0..{len(table) - 1}")
     cfg = sweep_config(summary)
     robot = model_lib.load_robot(robot_name)
+    stack = contact_set = qpos = None
+    if cfg.tasks_file is not None:  # the sweep's motion tasks, contacts and scene
+        robot, stack, contact_set, qpos = balance.load_scenario(robot_name, cfg.tasks_file)
     n = robot.index.n
     dtype = np.dtype(jnp.zeros(()).dtype)
     base = ctrl_lib.gains_from_dict(summary["gains"], n, dtype)
@@ -318,6 +327,7 @@ def replay_sweep_env(run_dir: str | pathlib.Path, env: int, *, robot_name: str =
         rollout, d0, _, consts, _ = balance.setup(
             robot, cfg.task, duration=cfg.horizon, forces=cfg.forces, postural=cfg.postural,
             sim=dict(record=True, push_body=cfg.body, solver_iterations=cfg.solver_iterations),
+            stack=stack, contact_set=contact_set, qpos=qpos,
         )  # fmt: skip
         _REPLAY[key] = (jax.jit(rollout), d0, consts)
     run, d0, consts = _REPLAY[key]

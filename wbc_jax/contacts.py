@@ -1,0 +1,532 @@
+"""[contacts] A general contact set: feet, hands or any body, on the floor or on objects of the scene.
+
+The two-feet controller (:mod:`wbc_jax.controller`) knows the soles only. Here a contact is data
+(Nori et al. 2015, "rigid non-coplanar contacts"): a frame on the robot, the normal of the surface
+it touches, its friction, its CoP rectangle (``surface`` contacts: a 6-D wrench, the constraints
+of the feet) or none (``point`` contacts: a 3-D force in the friction cone), a minimum normal
+force, an optional desired normal force, and an activation with minimum-jerk ramps.
+
+Contacts on bodies other than the feet need something to touch: :class:`SceneObject` boxes (a
+table, a wall) are added to the MuJoCo model, together with small collision spheres on the robot
+(one for a point contact, the four corners of the CoP rectangle for a surface one, like the feet)
+and the contact pairs between them. :func:`build_scene` does this before anything is compiled;
+:func:`contact_terms` evaluates the contact kinematics at one state (pure, jit/vmap/grad-safe).
+
+Conventions: the contact frame's z axis is the surface normal (pointing out of the surface, into
+the robot), fixed to the robot's body; wrenches are in world axes at the contact point, force
+first. The normal is given in world axes at the initial posture.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from wbc_jax import contact_qp, dynamics, references
+from wbc_jax import model as model_lib
+from wbc_jax.types import Array, pytree_dataclass
+
+CONTACT_TYPES = ("surface", "point")
+OBJECT_TYPES = ("box",)
+DIMENSION = {"surface": 6, "point": 3}
+SPHERE_RADIUS = 0.005  # m, as the feet's corner spheres (assets/build_icub_mjcf.py)
+CONTACT_SOLREF = (0.004, 1.0)  # as the feet
+FEET_FRAMES = {"l_sole": 0, "r_sole": 1}
+
+
+@dataclasses.dataclass(frozen=True)
+class ContactActivation:
+    """a(t) = mj((t - start) / ramp) - mj((t - stop) / ramp), mj the minimum-jerk ramp (0 -> 1).
+    (Not "on"/"off": YAML 1.1 reads those keys as booleans.)"""
+
+    start: float = 0.0
+    stop: float = math.inf
+    ramp: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Contact:
+    """One contact of the set (user-facing; names not yet resolved).
+
+    Attributes:
+      name: unique name.
+      frame: body, site or named point (``wbc_jax.tasks.NAMED_POINTS``) where the contact acts.
+      normal: (3,) surface normal in world axes at the initial posture (required).
+      type: ``"surface"`` (6-D wrench, friction cone, torsion, CoP rectangle) or ``"point"``.
+      offset: (3,) added to the frame's point, in the body frame.
+      mu, mu_t: friction and torsional friction coefficients (controller side).
+      fz_min: minimum normal force (N) while active.
+      cop: ((x_min, x_max), (y_min, y_max)) CoP rectangle in the contact frame (surface only;
+        None: the iCub sole's).
+      normal_force: desired normal force (N), tracked by the force distribution; None: free.
+      touches: scene object this contact touches: collision spheres are added on the body and
+        paired with it. None: the body's existing contact geoms (the feet on the floor).
+      activation: :class:`ContactActivation` (feet: multiplied by the task's foot activation).
+    """
+
+    name: str
+    frame: str
+    normal: tuple[float, float, float] | None = None
+    type: str = "surface"
+    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    mu: float = 1.0 / 3.0
+    mu_t: float = 1.0 / 75.0
+    fz_min: float = 10.0
+    cop: tuple[tuple[float, float], tuple[float, float]] | None = None
+    normal_force: float | None = None
+    touches: str | None = None
+    activation: ContactActivation = ContactActivation()
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneObject:
+    """A fixed box in the world.
+
+    Attributes:
+      name: geom name. size: (3,) half sizes (m). pos: (3,) centre (world); or
+      under: the name of a contact whose normal is +z: the box's top face is put at that contact's
+        point (at the initial posture), centred under it, then moved by ``shift``.
+      friction: sliding friction of the contacts with this object (physics).
+    """
+
+    name: str
+    type: str = "box"
+    size: tuple[float, float, float] = (0.1, 0.1, 0.1)
+    pos: tuple[float, float, float] | None = None
+    under: str | None = None
+    shift: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    friction: float = 1.0
+
+
+@dataclasses.dataclass(frozen=True)
+class ResolvedContact:
+    """A contact with indices (hashable: static configuration of the controller and rollout)."""
+
+    name: str
+    type: str
+    body: int
+    point: tuple[float, float, float]  # in the body frame
+    R_body_contact: tuple[float, ...]  # (9,) contact-frame axes in the body frame, row-major
+    params: contact_qp.ContactParams
+    normal_force: float  # nan: free
+    activation: ContactActivation
+    foot: int  # 0 / 1 for the soles (the schedule's activation applies), else -1
+    geoms: tuple[int, ...]  # collision geoms of this contact (measured wrenches)
+
+    @property
+    def dim(self) -> int:
+        return DIMENSION[self.type]
+
+
+@dataclasses.dataclass(frozen=True)
+class ContactSet:
+    """Resolved contacts, in order; ``dim`` = total wrench size D."""
+
+    contacts: tuple[ResolvedContact, ...]
+
+    @property
+    def dim(self) -> int:
+        return sum(c.dim for c in self.contacts)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.contacts)
+
+    def slices(self) -> list[slice]:
+        out, k = [], 0
+        for c in self.contacts:
+            out.append(slice(k, k + c.dim))
+            k += c.dim
+        return out
+
+
+# ------------------------------------------------------------------------------------------
+# Specification: parsing and checks (before anything is compiled)
+# ------------------------------------------------------------------------------------------
+
+
+def contact_from_dict(values: dict) -> Contact:
+    """A :class:`Contact` from a JSON/YAML mapping (``activation`` as a nested mapping)."""
+    if not isinstance(values, dict):
+        raise ValueError(f"a contact must be a mapping, got {values!r}")
+    fields = {f.name for f in dataclasses.fields(Contact)}
+    unknown = sorted(set(values) - fields)
+    if unknown or "name" not in values or "frame" not in values:
+        raise ValueError(f"contact {values.get('name')!r}: unknown keys {unknown} (valid: {sorted(fields)}); "
+                         "'name' and 'frame' are required")  # fmt: skip
+    values = dict(values)
+    act = values.pop("activation", {}) or {}
+    act_fields = {f.name for f in dataclasses.fields(ContactActivation)}
+    if not isinstance(act, dict) or set(act) - act_fields or not all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) for v in act.values()
+    ):
+        raise ValueError(f"contact {values['name']!r}: activation must map {sorted(act_fields)} to numbers, got {act!r}")
+    if "cop" in values and values["cop"] is not None:
+        values["cop"] = tuple(tuple(r) for r in values["cop"])
+    values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
+    return Contact(**values, activation=ContactActivation(**{k: float(v) for k, v in act.items()}))
+
+
+def object_from_dict(values: dict) -> SceneObject:
+    """A :class:`SceneObject` from a JSON/YAML mapping."""
+    if not isinstance(values, dict):
+        raise ValueError(f"a scene object must be a mapping, got {values!r}")
+    fields = {f.name for f in dataclasses.fields(SceneObject)}
+    unknown = sorted(set(values) - fields)
+    if unknown or "name" not in values:
+        raise ValueError(f"scene object {values.get('name')!r}: unknown keys {unknown} (valid: {sorted(fields)}); "
+                         "'name' is required")  # fmt: skip
+    return SceneObject(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
+
+
+def _vector(owner: str, name: str, value, size: int = 3) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{owner}: {name} must be {size} numbers, got {value!r}") from err
+    if arr.shape != (size,) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{owner}: {name} must be {size} finite numbers, got {value!r}")
+    return arr
+
+
+def check_spec(contacts, objects) -> tuple[tuple[Contact, ...], tuple[SceneObject, ...]]:
+    """Check a contact set and scene objects for errors that need no model (names, shapes, values)."""
+    contacts = tuple(contact_from_dict(c) if isinstance(c, dict) else c for c in contacts)
+    objects = tuple(object_from_dict(o) if isinstance(o, dict) else o for o in objects)
+    if not contacts:
+        raise ValueError("the contact set is empty; list at least one contact (e.g. the feet)")
+    for kind, items in (("contact", contacts), ("scene object", objects)):
+        names = [i.name for i in items]
+        duplicates = sorted({n for n in names if names.count(n) > 1})
+        if duplicates:
+            raise ValueError(f"duplicate {kind} names {duplicates}; each needs its own name")
+    object_names = [o.name for o in objects]
+    for c in contacts:
+        owner = f"contact {c.name!r}"
+        if c.type not in CONTACT_TYPES:
+            raise ValueError(f"{owner}: unknown type {c.type!r}; valid types: {list(CONTACT_TYPES)}")
+        if c.normal is None:
+            raise ValueError(f"{owner}: no normal direction; give 'normal: [nx, ny, nz]' (world axes, "
+                             "pointing out of the touched surface)")  # fmt: skip
+        n = _vector(owner, "normal", c.normal)
+        if np.linalg.norm(n) < 1e-6:
+            raise ValueError(f"{owner}: the normal must be a non-zero vector, got {list(c.normal)}")
+        _vector(owner, "offset", c.offset)
+        for name in ("mu", "mu_t", "fz_min"):
+            value = getattr(c, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{owner}: {name} must be positive and finite, got {value!r}")
+        if c.normal_force is not None and not (math.isfinite(c.normal_force) and c.normal_force >= c.fz_min):
+            raise ValueError(f"{owner}: normal_force must be finite and >= fz_min ({c.fz_min}), got {c.normal_force}")
+        if c.type == "point" and c.cop is not None:
+            raise ValueError(f"{owner}: a point contact has no CoP rectangle (got cop {c.cop}); use type 'surface'")
+        a = c.activation
+        if not (math.isfinite(a.start) and a.ramp >= 0 and math.isfinite(a.ramp) and a.stop > a.start + a.ramp):
+            raise ValueError(f"{owner}: activation needs finite start, ramp >= 0 and stop > start + ramp, got {a}")
+        if c.touches is not None and c.touches not in object_names + ["floor"]:
+            raise ValueError(f"{owner}: touches unknown object {c.touches!r}; valid: {object_names + ['floor']}")
+    contact_names = [c.name for c in contacts]
+    for o in objects:
+        owner = f"scene object {o.name!r}"
+        if o.type not in OBJECT_TYPES:
+            raise ValueError(f"{owner}: unknown type {o.type!r}; valid types: {list(OBJECT_TYPES)}")
+        if np.any(_vector(owner, "size", o.size) <= 0):
+            raise ValueError(f"{owner}: size (half sizes) must be positive, got {list(o.size)}")
+        _vector(owner, "shift", o.shift)
+        if (o.pos is None) == (o.under is None):
+            raise ValueError(f"{owner}: give exactly one of 'pos' or 'under' (a contact name)")
+        if o.pos is not None:
+            _vector(owner, "pos", o.pos)
+        if o.under is not None and o.under not in contact_names:
+            raise ValueError(f"{owner}: under unknown contact {o.under!r}; valid: {contact_names}")
+        if not (math.isfinite(o.friction) and o.friction > 0):
+            raise ValueError(f"{owner}: friction must be positive, got {o.friction}")
+    return contacts, objects
+
+
+# ------------------------------------------------------------------------------------------
+# Scene: objects, collision spheres, contact pairs
+# ------------------------------------------------------------------------------------------
+
+
+def _frame_point(m: mujoco.MjModel, idx: model_lib.RobotIndex, c: Contact):
+    """(body id, point in the body frame, site id or -1) of a contact's frame."""
+    from wbc_jax.tasks import NAMED_POINTS
+
+    offset = np.asarray(c.offset, float)
+    if c.frame in NAMED_POINTS:
+        body, point = NAMED_POINTS[c.frame]
+        return idx.body_id(body), np.asarray(point) + offset, -1
+    if c.frame and c.frame in idx.site_names:
+        sid = idx.site_id(c.frame)
+        return int(m.site_bodyid[sid]), m.site_pos[sid] + offset, sid
+    if c.frame and c.frame in idx.body_names:
+        return idx.body_id(c.frame), offset, -1
+    valid = sorted((set(idx.body_names) | set(idx.site_names) | set(NAMED_POINTS)) - {""})
+    raise ValueError(f"contact {c.name!r}: unknown frame {c.frame!r}; valid frames: {valid}")
+
+
+def _contact_rotation(normal: np.ndarray, site_R: np.ndarray | None) -> np.ndarray:
+    """World rotation of a contact frame with z = normal: the site's axes if its z is the normal
+    (the soles), else x = world x (or y) projected on the tangent plane."""
+    z = normal / np.linalg.norm(normal)
+    if site_R is not None and site_R[:, 2] @ z > 1 - 1e-6:
+        return site_R
+    ref = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = ref - (ref @ z) * z
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z], axis=1)
+
+
+def _pair_geoms(m: mujoco.MjModel, body: int) -> list[int]:
+    geoms = set(m.pair_geom1.tolist()) | set(m.pair_geom2.tolist())
+    return sorted(g for g in geoms if m.geom_bodyid[g] == body)
+
+
+def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
+    """Add the scene objects, the contacts' collision spheres and their pairs to the robot model.
+
+    Args:
+      robot: robot name (``wbc_jax.model.ROBOTS``). contacts, objects: sequences of
+        :class:`Contact` / :class:`SceneObject` (or mappings). qpos: (nq,) the initial posture
+        (normals and ``under`` placements refer to it); None: the home keyframe.
+
+    Returns:
+      ``(robot, contact_set)``: a :class:`wbc_jax.model.Robot` of the scene and the
+      :class:`ContactSet`.
+
+    Raises:
+      ValueError: unknown frames or objects, missing normals, bad values, a contact with nothing
+        to touch (naming the valid choices).
+    """
+    contacts, objects = check_spec(contacts, objects)
+    base = model_lib.load_mj_model(robot)
+    idx = model_lib.build_index(base, robot)
+    qpos = base.key("home").qpos.copy() if qpos is None else np.asarray(qpos, float)
+    if qpos.shape != (base.nq,):
+        raise ValueError(f"qpos must have shape ({base.nq},), got {qpos.shape}")
+    d = mujoco.MjData(base)
+    d.qpos[:] = qpos
+    mujoco.mj_forward(base, d)
+
+    frames = {}
+    for c in contacts:
+        body, point, sid = _frame_point(base, idx, c)
+        R_body = d.xmat[body].reshape(3, 3)
+        site_R = d.site_xmat[sid].reshape(3, 3) if sid >= 0 else None
+        W_R_c = _contact_rotation(np.asarray(c.normal, float), site_R)
+        W_p = d.xpos[body] + R_body @ point
+        frames[c.name] = (body, point, R_body.T @ W_R_c, W_p, W_R_c)
+
+    spec = mujoco.MjSpec.from_file(str(model_lib.ROBOTS[robot]))
+    for geom in list(spec.geoms):  # physics model: no meshes (as load_mj_model)
+        if geom.type == mujoco.mjtGeom.mjGEOM_MESH:
+            spec.delete(geom)
+    for mesh in list(spec.meshes):
+        spec.delete(mesh)
+    for o in objects:
+        if o.under is not None:
+            _, _, _, W_p, W_R_c = frames[o.under]
+            if W_R_c[2, 2] < 1 - 1e-6:
+                raise ValueError(f"scene object {o.name!r}: 'under' needs a contact with normal +z; "
+                                 f"{o.under!r} has normal {W_R_c[:, 2].round(3).tolist()}")  # fmt: skip
+            pos = W_p - np.array([0.0, 0.0, o.size[2]]) + np.asarray(o.shift, float)
+        else:
+            pos = np.asarray(o.pos, float)
+        spec.worldbody.add_geom(
+            name=o.name, type=mujoco.mjtGeom.mjGEOM_BOX, size=list(o.size), pos=pos.tolist(),
+            contype=0, conaffinity=0, rgba=[0.6, 0.45, 0.3, 1],
+        )  # fmt: skip
+    friction = {o.name: o.friction for o in objects}
+    friction["floor"] = 1.0
+    added: dict[str, list[str]] = {}
+    for c in contacts:
+        if c.touches is None:
+            continue
+        body, point, R_bc, _, _ = frames[c.name]
+        if c.type == "point":
+            corners = [np.zeros(2)]
+        else:
+            (x0, x1), (y0, y1) = c.cop or contact_qp.ContactParams().foot_size
+            corners = [np.array([x, y]) for x in (x0, x1) for y in (y0, y1)]
+        body_spec = spec.body(base.body(body).name)
+        names = []
+        for k, xy in enumerate(corners):
+            local = point + R_bc @ np.array([xy[0], xy[1], SPHERE_RADIUS])
+            name = f"{c.name}_contact_{k}"
+            body_spec.add_geom(
+                name=name, type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[SPHERE_RADIUS, 0, 0],
+                pos=local.tolist(), contype=0, conaffinity=0, group=3, mass=0.0, rgba=[0.2, 0.4, 0.9, 1],
+            )  # fmt: skip
+            mu = friction[c.touches]
+            spec.add_pair(
+                name=f"{name}_{c.touches}", geomname1=c.touches, geomname2=name, condim=3,
+                friction=[mu, mu, 0.005, 1e-4, 1e-4], solref=list(CONTACT_SOLREF),
+            )  # fmt: skip
+            names.append(name)
+        added[c.name] = names
+    m = spec.compile()
+    scene_robot = model_lib.Robot(mj_model=m, mjx_model=mjx.put_model(m), index=model_lib.build_index(m, robot))
+
+    resolved = []
+    for c in contacts:
+        body, point, R_bc, _, _ = frames[c.name]
+        if c.touches is not None:
+            geoms = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, g) for g in added[c.name]]
+        else:
+            geoms = _pair_geoms(m, body)
+            if not geoms:
+                raise ValueError(
+                    f"contact {c.name!r}: body {base.body(body).name!r} has no collision geoms; "
+                    f"give 'touches: <object>' (valid: {sorted(friction)})"
+                )
+        cop = c.cop or contact_qp.ContactParams().foot_size
+        params = contact_qp.ContactParams(mu=c.mu, mu_t=c.mu_t, fz_min=c.fz_min, foot_size=cop)
+        resolved.append(
+            ResolvedContact(
+                name=c.name, type=c.type, body=int(body), point=tuple(float(x) for x in point),
+                R_body_contact=tuple(float(x) for x in R_bc.ravel()), params=params,
+                normal_force=math.nan if c.normal_force is None else float(c.normal_force),
+                activation=c.activation, foot=FEET_FRAMES.get(c.frame, -1) if not np.any(c.offset) else -1,
+                geoms=tuple(int(g) for g in geoms),
+            )  # fmt: skip
+        )
+    return scene_robot, ContactSet(contacts=tuple(resolved))
+
+
+# ------------------------------------------------------------------------------------------
+# At run time
+# ------------------------------------------------------------------------------------------
+
+
+@pytree_dataclass
+class ContactTerms:
+    """Contact kinematics at one state (K contacts, D = total wrench size).
+
+    Attributes:
+      J: (D, nv) stacked contact Jacobians (surface: [linear; angular], point: linear), unscaled
+      Jdot_nu: (D,) their Jdot nu
+      W_p: (K, 3) contact points;  W_R: (K, 3, 3) contact frames (z = normal)
+      activation: (K,) in [0, 1]
+    """
+
+    J: Array
+    Jdot_nu: Array
+    W_p: Array
+    W_R: Array
+    activation: Array
+
+
+def activation_at(c: ResolvedContact, t: Array, foot_activation: Array, dtype) -> Array:
+    """Activation () of one contact at time t (feet: times the schedule's ``foot_activation`` (2,))."""
+    a = c.activation
+    t = jnp.asarray(t, dtype)
+    if a.ramp > 0:
+        up = references.min_jerk((t - a.start) / a.ramp)[0]
+        down = references.min_jerk((t - a.stop) / a.ramp)[0] if math.isfinite(a.stop) else 0.0
+    else:
+        up = (t >= a.start).astype(dtype)
+        down = (t >= a.stop).astype(dtype) if math.isfinite(a.stop) else 0.0
+    value = jnp.asarray(up - down, dtype)
+    return value * foot_activation[c.foot] if c.foot >= 0 else value
+
+
+def contact_terms(m: mjx.Model, d: mjx.Data, idx, cset: ContactSet, t: Array, foot_activation: Array) -> ContactTerms:
+    """Contact Jacobians, Jdot nu, poses and activations at the state (``d.qpos``, ``d.qvel``)."""
+    bodies = np.array([c.body for c in cset.contacts])
+    points = np.array([c.point for c in cset.contacts])
+    ft = dynamics.frame_terms(m, d, idx, bodies, points)
+    dtype = ft.W_p.dtype
+    R_bc = jnp.asarray(np.array([c.R_body_contact for c in cset.contacts]).reshape(-1, 3, 3), dtype)
+    rows = np.concatenate([np.arange(6 * k, 6 * k + c.dim) for k, c in enumerate(cset.contacts)])
+    act = jnp.stack([activation_at(c, t, foot_activation, dtype) for c in cset.contacts])
+    return ContactTerms(
+        J=ft.J.reshape(-1, ft.J.shape[-1])[rows],
+        Jdot_nu=ft.Jdot_nu.reshape(-1)[rows],
+        W_p=ft.W_p,
+        W_R=jnp.einsum("kij,kjl->kil", ft.W_R, R_bc),
+        activation=act,
+    )
+
+
+def row_activation(cset: ContactSet, activation: Array) -> Array:
+    """(D,) the activation of each wrench row."""
+    return jnp.concatenate([jnp.full(c.dim, activation[k]) for k, c in enumerate(cset.contacts)])
+
+
+def wrench_map(cset: ContactSet, W_p: Array, W_p_CoM: Array) -> Array:
+    """A (6, D): contact wrenches (world axes, at the contact points) -> rate of the centroidal momentum."""
+    from wbc_jax.math import skew
+
+    dtype = W_p.dtype
+    blocks = []
+    for k, c in enumerate(cset.contacts):
+        S = skew(W_p[k] - W_p_CoM)
+        force = jnp.concatenate([jnp.eye(3, dtype=dtype), S])
+        if c.dim == 6:
+            blocks.append(jnp.concatenate([force, jnp.concatenate([jnp.zeros((3, 3), dtype), jnp.eye(3, dtype=dtype)])], axis=1))
+        else:
+            blocks.append(force)
+    return jnp.concatenate(blocks, axis=1)
+
+
+_FZ_MIN_ROW = 14  # row of -f_z <= -fz_min in contact_qp.foot_constraints (n_points = 4)
+
+
+def constraints(cset: ContactSet, W_R: Array, activation: Array) -> tuple[Array, Array]:
+    """Block-diagonal C (M, D), b (M,) of all contacts, world axes; each minimum normal force is
+    scaled by the activation (a contact being released may go down to zero)."""
+    dtype = W_R.dtype
+    blocks, bs = [], []
+    for k, c in enumerate(cset.contacts):
+        C_f, b_f = contact_qp.foot_constraints(c.params)
+        b_f = jnp.asarray(b_f, dtype).at[_FZ_MIN_ROW].multiply(activation[k])
+        if c.type == "point":
+            keep = np.r_[np.arange(_FZ_MIN_ROW - 2), _FZ_MIN_ROW]  # cone edges and unilateral
+            C_w = jnp.asarray(C_f[keep, :3], dtype) @ W_R[k].T
+            b_f = b_f[keep]
+        else:
+            C_w, _ = contact_qp.world_constraints(C_f, np.zeros(len(b_f)), W_R[k])
+        blocks.append(C_w)
+        bs.append(b_f)
+    rows = sum(b.shape[0] for b in blocks)
+    C = jnp.zeros((rows, cset.dim), dtype)
+    r = 0
+    for blk, sl in zip(blocks, cset.slices(), strict=True):
+        C = C.at[r : r + blk.shape[0], sl].set(blk)
+        r += blk.shape[0]
+    return C, jnp.concatenate(bs)
+
+
+def normal_force_rows(cset: ContactSet, W_R: Array, activation: Array) -> tuple[Array, Array]:
+    """S (k, D), F (k,): S f = the normal forces of the k contacts that have a desired normal force
+    F (times their activation)."""
+    dtype = W_R.dtype
+    rows, targets = [], []
+    for k, (c, sl) in enumerate(zip(cset.contacts, cset.slices(), strict=True)):
+        if math.isnan(c.normal_force):
+            continue
+        rows.append(jnp.zeros(cset.dim, dtype).at[sl.start : sl.start + 3].set(W_R[k][:, 2]))
+        targets.append(activation[k] * c.normal_force)
+    if not rows:
+        return jnp.zeros((0, cset.dim), dtype), jnp.zeros(0, dtype)
+    return jnp.stack(rows), jnp.stack(targets)
+
+
+def violation(cset: ContactSet, f: Array, W_R: Array, activation: Array) -> Array:
+    """Max over active contacts of max(C_k f_k - b_k, 0) / max(f_n, fz_min) (dimensionless)."""
+    C, b = constraints(cset, W_R, activation)
+    excess = jnp.maximum(C @ f - b, 0.0)
+    out, r = jnp.zeros((), f.dtype), 0
+    for k, (c, sl) in enumerate(zip(cset.contacts, cset.slices(), strict=True)):
+        m = 2 * (c.params.n_points - 1) * 2 + (7 if c.dim == 6 else 1)
+        fn = jnp.maximum(W_R[k][:, 2] @ f[sl.start : sl.start + 3], c.params.fz_min)
+        v = jnp.max(excess[r : r + m]) / fn
+        out = jnp.maximum(out, jnp.where(activation[k] > 0, v, 0.0))
+        r += m
+    return out
