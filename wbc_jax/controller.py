@@ -231,6 +231,25 @@ def _two_feet_momentum_qp(A, wrench_des, tt, W_R_feet, config):
     return contact_qp.solve_qp(H, g, C2, b2, iterations=config.qp_iterations)
 
 
+def _torque_terms(gains, consts, t, ref, config, *, activation=None, contact=None):
+    """The affine torque law of this tick: the two feet (``activation``) or a general contact set
+    (``contact`` = scaled J_c, Jdot_nu_c); the regularisation from ``consts`` where it is an array."""
+    return torques.torque_terms(
+        t,
+        activation,
+        postural=config.postural,
+        kp_postural=gains.kp_postural,
+        kd_postural=gains.kd_postural,
+        s_des=ref.s_des,
+        pinv_damping=config.pinv_damping if consts.pinv_damping is None else consts.pinv_damping,
+        pinv_tol=config.pinv_tol,
+        kp_postural_reg=(
+            config.kp_postural_reg if consts.kp_postural_reg is None else consts.kp_postural_reg
+        ),
+        contact=contact,
+    )
+
+
 def step(
     gains: Gains,
     consts: ControllerConstants,
@@ -294,19 +313,7 @@ def step(
             gains, consts, t, ref, contact_set, contacts, wrench_des, Ldot_star, f_grav, config, levels
         ), new_state
 
-    tt = torques.torque_terms(
-        t,
-        act,
-        postural=config.postural,
-        kp_postural=gains.kp_postural,
-        kd_postural=gains.kd_postural,
-        s_des=ref.s_des,
-        pinv_damping=config.pinv_damping if consts.pinv_damping is None else consts.pinv_damping,
-        pinv_tol=config.pinv_tol,
-        kp_postural_reg=(
-            config.kp_postural_reg if consts.kp_postural_reg is None else consts.kp_postural_reg
-        ),
-    )
+    tt = _torque_terms(gains, consts, t, ref, config, activation=act)
 
     # Force distribution. A = [A_L, A_R] has full row rank 6, so A^+ = A^T (A A^T)^-1 exactly.
     A = momentum.wrench_map(t.W_p_feet, t.W_p_CoM).astype(dtype)
@@ -420,20 +427,7 @@ def _step_contact_set(gains, consts, t, ref, cset, cterms, wrench_des, Ldot_star
 
     dtype = t.M.dtype
     rows = contacts_lib.row_activation(cset, cterms.activation)
-    tt = torques.torque_terms(
-        t,
-        None,
-        postural=config.postural,
-        kp_postural=gains.kp_postural,
-        kd_postural=gains.kd_postural,
-        s_des=ref.s_des,
-        pinv_damping=config.pinv_damping if consts.pinv_damping is None else consts.pinv_damping,
-        pinv_tol=config.pinv_tol,
-        kp_postural_reg=(
-            config.kp_postural_reg if consts.kp_postural_reg is None else consts.kp_postural_reg
-        ),
-        contact=(cterms.J * rows[:, None], cterms.Jdot_nu * rows),
-    )
+    tt = _torque_terms(gains, consts, t, ref, config, contact=(cterms.J * rows[:, None], cterms.Jdot_nu * rows))
     A = contacts_lib.wrench_map(cset, cterms.W_p, t.W_p_CoM).astype(dtype)
     if config.forces != "qp":
         raise ValueError("a general contact set needs forces='qp' (friction cones at every contact)")

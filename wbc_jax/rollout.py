@@ -155,16 +155,20 @@ class LossTrace:
     com_height0: Array
 
 
+def _contact_forces(m: mjx.Model, d: mjx.Data):
+    """MJX's contact slots and the force (ncon, 3, world axes) on geom2 of each; zero where apart."""
+    contact = d._impl.contact
+    # efc addresses are static (numpy) in MJX: loop over the (few) contact slots.
+    forces = jnp.stack(
+        [support.contact_force(m, d, i, to_world_frame=True)[:3] for i in range(contact.dist.shape[0])]
+    )
+    return contact, jnp.where((contact.dist <= 0)[:, None], forces, 0.0)
+
+
 def measured_feet_wrenches(m: mjx.Model, d: mjx.Data, idx: RobotIndex, W_p_feet: Array) -> Array:
     """Contact wrenches (12,) that MuJoCo applies on [left; right] foot, world axes, at the sole
     origins (sum over the contact points of each foot)."""
-    contact = d._impl.contact
-    ncon = contact.dist.shape[0]
-    # efc addresses are static (numpy) in MJX: loop over the (few) contact slots.
-    forces = jnp.stack(
-        [support.contact_force(m, d, i, to_world_frame=True)[:3] for i in range(ncon)]
-    )
-    forces = jnp.where((contact.dist <= 0)[:, None], forces, 0.0)
+    contact, forces = _contact_forces(m, d)
     geom_foot = np.full(m.ngeom, -1)
     for k in range(2):
         geom_foot[idx.foot_geoms[k]] = k
@@ -181,10 +185,7 @@ def measured_feet_wrenches(m: mjx.Model, d: mjx.Data, idx: RobotIndex, W_p_feet:
 def measured_contact_wrenches(m: mjx.Model, d: mjx.Data, cset, W_p: Array) -> Array:
     """Contact wrenches (D,) that MuJoCo applies on each contact of a general set (world axes, at
     the contact points; a point contact: the force only), summed over its collision geoms."""
-    contact = d._impl.contact
-    ncon = contact.dist.shape[0]
-    forces = jnp.stack([support.contact_force(m, d, i, to_world_frame=True)[:3] for i in range(ncon)])
-    forces = jnp.where((contact.dist <= 0)[:, None], forces, 0.0)
+    contact, forces = _contact_forces(m, d)
     owner = np.full(m.ngeom, -1)
     for k, c in enumerate(cset.contacts):
         owner[list(c.geoms)] = k
