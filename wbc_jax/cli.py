@@ -105,7 +105,8 @@ def build_parser() -> argparse.ArgumentParser:
     bal.add_argument("--control-dt", type=float, default=None,
                      help="controller period in s, a multiple of the 1 ms physics step (default 0.01)")
     bal.add_argument("--tasks", default=None, metavar="FILE",
-                     help="motion-task stack (JSON/YAML, e.g. experiments/tasks/reach_circle.yaml)")
+                     help="task/contact file (JSON/YAML): motion tasks, contacts, scene objects, initial posture; "
+                          "e.g. experiments/tasks/reach_circle.yaml, experiments/tasks/hand_on_table.yaml")
     bal.add_argument("--quiet", action="store_true", help="no progress bar")
     bal.set_defaults(func=_balance)
 
@@ -129,7 +130,8 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--postural", default="stable", choices=["stable", "seed"])
     sw.add_argument("--solver-iterations", type=int, default=None)
     sw.add_argument("--seed", type=int, default=0)
-    sw.add_argument("--tasks", default=None, metavar="FILE", help="motion-task stack (JSON/YAML)")
+    sw.add_argument("--tasks", default=None, metavar="FILE",
+                    help="task/contact file (JSON/YAML), as balance --tasks")
     sw.add_argument("--chunk-size", type=int, default=12, help="environments per compiled batch")
     sw.add_argument("--out", default="runs/push_sweep")
     sw.add_argument("--quiet", action="store_true")
