@@ -1,112 +1,143 @@
-"""The ``balance`` job: one closed-loop run of the controller, with metrics, trajectory and plots."""
+"""[experiments] The ``balance`` job: one closed-loop run of the controller, with metrics,
+trajectory and plots."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import pathlib
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax import controller as ctrl_lib
-from wbc_jax import dynamics, io, model, plots, references
-from wbc_jax import tasks as tasks_lib
+from wbc_jax import io, physics, plots, references, runs, scenario
 from wbc_jax import rollout as rollout_lib
+from wbc_jax.controller import FORCE_MODES, ControllerConfig
+from wbc_jax.gains import gains_to_dict, load_gains
+from wbc_jax.torques import POSTURAL_VARIANTS
+from wbc_jax.types import option
 
-CHUNK_SECONDS = 1.0  # progress granularity: one compiled chunk of ticks
 
+@dataclasses.dataclass(frozen=True)
+class BalanceConfig:
+    """A balance run (the CLI flags of ``wbc-jax balance`` are generated from these fields)."""
 
-def setup(
-    robot: model.Robot,
-    task: str,
-    *,
-    duration: float | None,
-    forces: str = "qp",
-    postural: str = "stable",
-    gains: ctrl_lib.Gains | None = None,
-    sim: dict | None = None,
-    controller: dict | None = None,
-    stack=None,
-    contact_set=None,
-    qpos=None,
-):
-    """Validate everything (before any compilation) and build the pieces of a run.
-
-    ``stack``: motion tasks (a list of :class:`wbc_jax.tasks.MotionTask` or of mappings, the
-    postural task last) between the force task and the postural task; None: the two-level law.
-    ``contact_set``: a :class:`wbc_jax.contacts.ContactSet` built with ``robot``
-    (:func:`load_scenario`); None: the two feet. ``qpos``: (nq,) initial posture (None: home).
-
-    Returns (rollout, d0, gains, consts, schedule)."""
-    ccfg = ctrl_lib.ControllerConfig(forces=forces, postural=postural, **(controller or {}))
-    if task not in references.TASKS:
-        raise ValueError(f"unknown task {task!r}; valid tasks: {list(references.TASKS)}")
-    if contact_set is not None and forces != "qp":
-        raise ValueError("a general contact set needs forces='qp' (friction cones at every contact)")
-    d0 = rollout_lib.initial_data(robot, qpos)
-    resolved = None if stack is None else tasks_lib.resolve(robot, stack, np.asarray(d0.qpos))
-    dtype = d0.qpos.dtype
-    gains = ctrl_lib.default_gains(robot.index.n, dtype) if gains is None else gains
-    ctrl_lib.validate_gains(gains, robot.index.n)
-    t0 = dynamics.terms(robot.mjx_model, d0, robot.index)
-    schedule = references.make_schedule(
-        task, com0=np.asarray(t0.W_p_CoM), s0=np.asarray(t0.s),
-        left_sole=np.asarray(t0.W_p_feet[0]), joints=robot.index.joints, duration=duration,
+    task: str = option("stand", "balance task", choices=references.TASKS)
+    duration: float | None = option(None, "seconds (default: the task's: stand 10, sinusoid 20, one-foot 16)")
+    forces: str = option("qp", "force distribution", choices=FORCE_MODES)
+    postural: str = option("stable", "postural task variant", choices=POSTURAL_VARIANTS)
+    gains: str | None = option(None, "gains JSON file (default: WBC iCubGazeboV2_5)", metavar="FILE")
+    tasks: str | None = option(
+        None, "task/contact file (JSON/YAML): motion tasks, contacts, scene objects, initial posture; "
+        "e.g. experiments/tasks/reach_circle.yaml, experiments/tasks/hand_on_table.yaml", metavar="FILE",
     )  # fmt: skip
-    cfg = rollout_lib.SimConfig(duration=schedule.duration, **(sim or {}))
-    consts = ctrl_lib.constants_at_reference(t0, ccfg)
-    rollout = rollout_lib.make_rollout(robot, schedule, ccfg, cfg, resolved, contact_set)
-    return rollout, d0, gains, consts, schedule
+    push_force: tuple[float, float, float] | None = option(
+        None, "push on the chest, world axes [N]", nargs=3, metavar=("FX", "FY", "FZ")
+    )
+    push_onset: float = option(1.0, "push start [s]")
+    push_duration: float = option(0.1, "push length [s]")
+    control_dt: float = option(0.01, "controller period [s], a multiple of the 1 ms physics step")
+    solver_iterations: int | None = option(None, "contact solver Newton iterations (default: the model's, 4)")
+    backend: str = option("auto", "physics engine (auto: C MuJoCo on a CPU, MJX on a GPU)", choices=physics.BACKENDS)
+    out: str = option("runs/balance", "output folder")
+    plots: bool = option(True, "write PNG plots")
+
+    def check(self) -> None:
+        """Every check that needs no model or compilation."""
+        if self.duration is not None and not (math.isfinite(self.duration) and self.duration > 0):
+            raise ValueError(f"--duration must be a positive finite number of seconds, got {self.duration}")
+        if self.push_force is not None:
+            scenario.make_push(self.push_force, self.push_onset, self.push_duration)
+        if not (math.isfinite(self.control_dt) and self.control_dt > 0):
+            raise ValueError(f"--control-dt must be a positive number of seconds, got {self.control_dt}")
+        runs.check_output_dir(self.out, "balance")
 
 
-def load_scenario(robot_name: str, tasks_file=None):
-    """Robot, motion tasks, contact set and initial posture of a specification file.
-
-    Returns ``(robot, stack, contact_set, qpos)``: without a file (or without ``contacts`` in it)
-    the robot is the plain model and contact_set None (the two feet); with ``contacts`` the robot
-    is the scene of :func:`wbc_jax.contacts.build_scene` (objects, collision spheres, pairs)."""
-    from wbc_jax import contacts as contacts_lib
-
-    robot = model.load_robot(robot_name)
-    if not tasks_file:
-        return robot, None, None, None
-    spec = tasks_lib.load_spec_file(tasks_file)
-    qpos = tasks_lib.initial_qpos(robot, spec["initial_posture_deg"])
-    contact_set = None
-    if spec["contacts"] is not None:
-        robot, contact_set = contacts_lib.build_scene(robot_name, spec["contacts"], spec["scene"], qpos)
-    elif spec["scene"]:
-        raise ValueError(f"{tasks_file}: scene objects need a 'contacts' list (what touches them)")
-    return robot, spec["tasks"], contact_set, qpos
+def default_config() -> BalanceConfig:
+    return BalanceConfig()
 
 
-def run_chunked(rollout, mx, d0, gains, consts, push, *, progress: bool = True):
-    """Run a rollout in compiled chunks of ~1 s, with a progress bar. Returns (metrics, traj)."""
+def make_setup(cfg: BalanceConfig, robot_name: str = "icub") -> scenario.Setup:
+    """Scene, controller and closed loop of a balance run (checked, nothing compiled)."""
+    scene = scenario.load_scene(robot_name, cfg.tasks)
+    dtype = scenario.float_dtype()
+    gains = load_gains(cfg.gains, scene.robot.index.n, dtype) if cfg.gains else None
+    sim = rollout_lib.SimConfig(
+        control_dt=cfg.control_dt, record=True,
+        physics=physics.PhysicsConfig(backend=cfg.backend, solver_iterations=cfg.solver_iterations),
+    )  # fmt: skip
+    return scenario.setup(
+        cfg.task, duration=cfg.duration, controller=ControllerConfig(forces=cfg.forces, postural=cfg.postural),
+        sim=sim, gains=gains, scene=scene,
+    )  # fmt: skip
+
+
+def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: str = "icub", **overrides) -> dict:
+    """Run the balance job; write metrics.json, trajectory.npz and PNG plots into ``cfg.out``
+    (None: nothing written). ``overrides``: fields of :class:`BalanceConfig`.
+
+    Returns:
+      the metrics dict (also printed by the CLI as one JSON line).
+    """
     from tqdm.auto import tqdm
 
-    per_chunk = max(1, int(round(CHUNK_SECONDS / rollout.cfg.control_dt)))
-    n_ticks = rollout.n_ticks
-    chunk = jax.jit(rollout.chunk, static_argnames="n_ticks")
-    carry = jax.jit(rollout.init)(mx, d0)
-    pieces = []
-    k = 0
-    with tqdm(total=n_ticks * rollout.cfg.control_dt, unit="sim s", disable=not progress,
-              bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} sim s [{elapsed}<{remaining}]") as bar:  # fmt: skip
-        while k < n_ticks:
-            n = min(per_chunk, n_ticks - k)
-            carry, traj = chunk(mx, gains, consts, push, carry, k, n_ticks=n)
-            jax.block_until_ready(carry[2])
-            pieces.append(jax.tree_util.tree_map(np.asarray, traj))
-            k += n
-            bar.update(n * rollout.cfg.control_dt)
-    traj = {
-        name: np.concatenate([getattr(p, name) for p in pieces])
-        for name in pieces[0].__dataclass_fields__
-    }
-    return carry[2], traj
+    cfg = dataclasses.replace(default_config() if cfg is None else cfg, **overrides)
+    cfg.check()
+    st = make_setup(cfg, robot_name)
+    out = None if cfg.out is None else pathlib.Path(cfg.out)
+    if out is not None:
+        runs.claim_output_dir(out, "balance", runs.fingerprint(dataclasses.asdict(cfg), [cfg.gains, cfg.tasks]))
+    push, push_end = None, 0.0
+    if cfg.push_force is not None:
+        push = scenario.make_push(cfg.push_force, cfg.push_onset, cfg.push_duration, st.dtype)
+        push_end = cfg.push_onset + cfg.push_duration
+    loop = st.loop
+    start = time.time()
+    with tqdm(total=loop.n_ticks, unit="tick", disable=not progress, desc=f"{cfg.task} ({st.backend})") as bar:
+        result_run = scenario.run(st, scenario.single(st, push), on_tick=lambda k: bar.update(k - bar.n))
+    wall = time.time() - start
+    metrics = jax.tree_util.tree_map(lambda x: x[0], result_run.metrics)
+    traj = {name: np.asarray(v)[0] for name, v in dataclasses.asdict(result_run.records).items()}
+    result = {"task": cfg.task, "forces": cfg.forces, "postural": cfg.postural, "duration_s": loop.cfg.duration,
+              "solver_iterations": int(cfg.solver_iterations or st.robot.mj_model.opt.iterations),
+              "control_dt_s": loop.cfg.control_dt, "backend": st.backend}  # fmt: skip
+    result.update(rollout_lib.summarize(metrics, push_end))
+    result.update(force_task_error(traj))
+    if loop.controller.stack is not None:
+        result["tasks"] = task_tracking(loop.controller.stack, traj)
+    if st.scene.tasks_file is not None:
+        result["contacts"] = contact_tracking(loop.contact_set, traj)
+    result["compile_s"] = round(result_run.compile_s, 2)
+    result["loop_s"] = round(result_run.run_s, 2)
+    result["real_time_factor"] = round(loop.cfg.duration / result_run.run_s, 3) if result_run.run_s > 0 else None
+    result["wall_time_s"] = round(wall, 2)
+    result["device"] = str(jax.devices()[0])
+    result = _jsonable(result)
+    if out is not None:
+        io.atomic_write_json(out / "metrics.json", {**result, "gains": gains_to_dict(st.gains),
+                                                   "config": dataclasses.asdict(cfg)})  # fmt: skip
+        io.atomic_save_npz(out / "trajectory.npz", joints=np.array(st.robot.index.joints),
+                           contact_names=np.array(loop.contact_set.names),
+                           contact_dims=np.array([c.dim for c in loop.contact_set.contacts]), **traj)  # fmt: skip
+        if cfg.plots:
+            title = f"{cfg.task}, forces={cfg.forces}, postural={cfg.postural}"
+            plots.com_tracking(traj, out / "com.png", title)
+            plots.contact_forces(traj, list(loop.contact_set.names), [c.dim for c in loop.contact_set.contacts],
+                                 out / "contact_forces.png", title)  # fmt: skip
+            plots.joint_torques(traj, list(st.robot.index.joints), out / "torques.png", title)
+    return result
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (np.generic, np.ndarray)):
+        value = value.item() if np.ndim(value) == 0 else value.tolist()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 def task_tracking(stack, traj: dict, after: float = 0.0) -> dict:
@@ -123,10 +154,9 @@ def task_tracking(stack, traj: dict, after: float = 0.0) -> dict:
 
 
 def force_task_error(traj: dict, after: float = 1.0) -> dict:
-    """How well MuJoCo's contact wrenches realise the commanded ones (ticks after ``after`` s).
-
-    Returns the median and 95th percentile over ticks of |f_meas - f_cmd| / |f_cmd| (both feet
-    stacked) and of the momentum-rate error |Ldot_meas - Ldot*| / (m g)."""
+    """How well the simulator's contact wrenches realise the commanded ones (ticks after ``after``
+    s): median and 95th percentile over ticks of |f_meas - f_cmd| / |f_cmd| (all contacts
+    stacked) and the median momentum-rate error |Ldot_meas - Ldot*| (N)."""
     sel = traj["t"] >= min(after, 0.5 * float(traj["t"][-1]))
     df = np.linalg.norm(traj["f_meas"][sel] - traj["f_cmd"][sel], axis=1)
     rel = df / np.maximum(np.linalg.norm(traj["f_cmd"][sel], axis=1), 1e-9)
@@ -139,9 +169,9 @@ def force_task_error(traj: dict, after: float = 1.0) -> dict:
 
 
 def contact_tracking(cset, traj: dict, after: float = 1.0) -> dict:
-    """Per contact of a general set, over the ticks after ``after`` s: the measured (MuJoCo) and
-    commanded normal forces (median, N) and, where a normal force is desired, the max and median of
-    |measured - desired|; and the max slip of the contact point (m)."""
+    """Per contact, over the ticks after ``after`` s: the measured (simulator) and commanded normal
+    forces (median, N) and, where a normal force is desired, the max and median of
+    |measured - desired|; and the max drift of the contact point (m)."""
     sel = traj["t"] >= min(after, 0.5 * float(traj["t"][-1]))
     out = {}
     for k, (c, sl) in enumerate(zip(cset.contacts, cset.slices(), strict=True)):
@@ -155,90 +185,10 @@ def contact_tracking(cset, traj: dict, after: float = 1.0) -> dict:
             entry["normal_force_desired_n"] = c.normal_force
             entry["normal_force_err_max_n"] = float(np.max(np.abs(meas - desired)))
             entry["normal_force_err_median_n"] = float(np.median(np.abs(meas - desired)))
-        p = traj["feet_pos"][:, k]
+        p = traj["contact_pos"][:, k]
         entry["max_drift_m"] = float(np.max(np.linalg.norm(p - p[0], axis=1)))
         out[c.name] = entry
     return out
-
-
-def run(
-    task: str = "stand",
-    *,
-    duration: float | None = None,
-    forces: str = "qp",
-    postural: str = "stable",
-    out: str | pathlib.Path | None = None,
-    gains_file: str | None = None,
-    push: dict | None = None,
-    robot_name: str = "icub",
-    progress: bool = True,
-    plots_on: bool = True,
-    solver_iterations: int | None = None,
-    tasks_file: str | None = None,
-    control_dt: float | None = None,
-) -> dict:
-    """Run the balance job; write metrics.json, trajectory.npz and PNG plots into ``out``.
-
-    Args:
-      push: optional ``{"force": [fx, fy, fz] N, "onset": s, "duration": s}`` on the chest.
-      solver_iterations: MJX Newton iterations (None: the model's, 4).
-      tasks_file: task/contact specification (JSON/YAML, :func:`wbc_jax.tasks.load_spec_file`).
-      control_dt: controller period in s, a multiple of the 1 ms physics step (None: 0.01).
-
-    Returns:
-      the metrics dict (also printed by the CLI as one JSON line).
-    """
-    robot, stack, contact_set, qpos = load_scenario(robot_name, tasks_file)
-    gains = ctrl_lib.load_gains(gains_file, robot.index.n) if gains_file else None
-    rollout, d0, gains, consts, schedule = setup(
-        robot, task, duration=duration, forces=forces, postural=postural, gains=gains,
-        sim={**({} if solver_iterations is None else {"solver_iterations": int(solver_iterations)}),
-             **({} if control_dt is None else {"control_dt": float(control_dt)})},
-        stack=stack, contact_set=contact_set, qpos=qpos,
-    )
-    dtype = d0.qpos.dtype
-    if push:
-        force = np.asarray(push["force"], float).reshape(3)
-        onset, dur = float(push["onset"]), float(push["duration"])
-        if not (np.all(np.isfinite(force)) and onset >= 0 and dur >= 0):
-            raise ValueError(f"push needs a finite force and non-negative onset/duration: {push}")
-        push_tree = rollout_lib.Push(
-            force=jnp.asarray(force[None], dtype), onset=jnp.asarray([onset], dtype),
-            duration=jnp.asarray([dur], dtype),
-        )  # fmt: skip
-        push_end = onset + dur
-    else:
-        push_tree, push_end = rollout_lib.no_push(dtype), 0.0
-    start = time.time()
-    metrics, traj = run_chunked(rollout, robot.mjx_model, d0, gains, consts, push_tree, progress=progress)
-    wall = time.time() - start
-    result = {"task": task, "forces": forces, "postural": postural, "duration_s": schedule.duration,
-              "solver_iterations": int(robot.mj_model.opt.iterations if solver_iterations is None
-                                       else solver_iterations),
-              "control_dt_s": rollout.cfg.control_dt}  # fmt: skip
-    result.update(rollout_lib.summarize(metrics, push_end))
-    result.update(force_task_error(traj))
-    if rollout.stack is not None:
-        result["tasks"] = task_tracking(rollout.stack, traj)
-    if contact_set is not None:
-        result["contacts"] = contact_tracking(contact_set, traj)
-    result["wall_time_s"] = round(wall, 2)
-    result["device"] = str(jax.devices()[0])
-    result = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in result.items()}
-    if out is not None:
-        out = pathlib.Path(out)
-        io.atomic_write_json(out / "metrics.json", {**result, "gains": ctrl_lib.gains_to_dict(gains), "push": push})
-        io.atomic_save_npz(out / "trajectory.npz", joints=np.array(robot.index.joints), **traj)
-        if plots_on:
-            title = f"{task}, forces={forces}, postural={postural}"
-            plots.com_tracking(traj, out / "com.png", title)
-            if contact_set is None:
-                plots.contact_forces(traj, out / "contact_forces.png", title)
-            else:
-                plots.contact_normal_forces(traj, list(contact_set.names),
-                                            [c.dim for c in contact_set.contacts], out / "contact_forces.png", title)
-            plots.joint_torques(traj, list(robot.index.joints), out / "torques.png", title)
-    return result
 
 
 def main_json_line(result: dict) -> str:

@@ -1,12 +1,89 @@
-"""``wbc-jax`` command line: one subcommand per job."""
+"""``wbc-jax`` command line: one subcommand per job; each job's flags and defaults are generated
+from its ``default_config()`` (a frozen dataclass whose fields carry their help)."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
+import types
+import typing
 
-import numpy as np
+
+def _field_type(owner: type, field: dataclasses.Field) -> type:
+    """The scalar type of a config field (``float | None`` -> float, ``tuple[float, ...]`` -> float)."""
+    hint = typing.get_type_hints(owner)[field.name]
+    args = [a for a in typing.get_args(hint) if a is not type(None)]
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        hint = args[0]
+    if typing.get_origin(hint) is tuple:
+        inner = [a for a in typing.get_args(hint) if a is not Ellipsis]
+        return inner[0] if inner else float
+    return hint
+
+
+def _show(value) -> str:
+    if isinstance(value, (tuple, list)):
+        return " ".join(_show(v) for v in value)
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def _number(kind: type, flag: str):
+    def convert(text: str):
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{flag} expects a number, got {text!r}") from None
+        if kind is int:
+            if value != int(value):
+                raise argparse.ArgumentTypeError(f"{flag} expects a whole number, got {text!r}")
+            return int(value)
+        return value
+
+    return convert
+
+
+def add_config_arguments(parser: argparse.ArgumentParser, config, skip=()) -> None:
+    """One flag per field of the dataclass ``config`` (its values are the defaults)."""
+    for field in dataclasses.fields(config):
+        if field.name in skip:
+            continue
+        meta = field.metadata
+        flag = meta.get("flag", "--" + field.name.replace("_", "-"))
+        default = getattr(config, field.name)
+        kind = _field_type(type(config), field)
+        kwargs = {"dest": field.name, "help": meta.get("help", "")}
+        if kind is bool:
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default, **kwargs)
+            continue
+        if "choices" in meta:
+            kwargs["choices"] = list(meta["choices"])
+        if "metavar" in meta:
+            kwargs["metavar"] = meta["metavar"]
+        if "nargs" in meta:
+            kwargs["nargs"] = meta["nargs"]
+        # Values given to a parse hook are read as numbers (its own checks name the problem).
+        kwargs["type"] = _number(float if "parse" in meta else kind, flag) if kind in (int, float) else kind
+        shown = meta["show"](default) if "show" in meta and default is not None else default
+        kwargs["help"] += f" (default: {_show(shown)})"
+        parser.add_argument(flag, default=argparse.SUPPRESS, **kwargs)
+
+
+def config_from_args(args: argparse.Namespace, config):
+    """The config with the flags given on the command line (``parse`` hooks applied)."""
+    changes = {}
+    for field in dataclasses.fields(config):
+        if field.name not in vars(args):
+            continue
+        value = getattr(args, field.name)
+        parse = field.metadata.get("parse")
+        if parse is not None and value is not None:
+            value = parse(value)
+        elif isinstance(value, list):
+            value = tuple(value)
+        changes[field.name] = value
+    return dataclasses.replace(config, **changes)
 
 
 def _info(args: argparse.Namespace) -> int:
@@ -17,45 +94,24 @@ def _info(args: argparse.Namespace) -> int:
 
 
 def _balance(args: argparse.Namespace) -> int:
-    from wbc_jax import balance
+    from wbc_jax import balance, scenario
 
-    if args.duration is not None and not args.duration > 0:
-        raise ValueError(f"--duration must be positive, got {args.duration}")
-    push = None
-    if args.push_force is not None:
-        push = {"force": args.push_force, "onset": args.push_onset, "duration": args.push_duration}
-    result = balance.run(
-        args.task, duration=args.duration, forces=args.forces, postural=args.postural,
-        out=args.out, gains_file=args.gains, push=push, progress=not args.quiet,
-        solver_iterations=args.solver_iterations, tasks_file=args.tasks, control_dt=args.control_dt,
-    )  # fmt: skip
-    print(balance.main_json_line(result))
+    cfg = config_from_args(args, balance.default_config())
+    cfg.check()
+    scenario.enable_compilation_cache()
+    print(balance.main_json_line(balance.run(cfg, progress=not args.quiet)))
     return 0
 
 
 def _push_sweep(args: argparse.Namespace) -> int:
-    from wbc_jax import sweep
+    from wbc_jax import scenario, sweep
 
-    def grid(lo_hi_n, name):
-        lo, hi, n = lo_hi_n
-        if int(n) < 1:
-            raise ValueError(f"--{name} needs at least one point, got {int(n)}")
-        return tuple(float(x) for x in np.linspace(lo, hi, int(n)))
-
-    cfg = sweep.SweepConfig(
-        magnitudes=grid(args.magnitudes, "magnitudes"),
-        directions=tuple(float(x) for x in np.arange(int(args.directions)) * 360.0 / int(args.directions))
-        if int(args.directions) >= 1 else (),
-        gain_sets=args.gain_sets, horizon=args.horizon, task=args.task, forces=args.forces,
-        postural=args.postural, seed=args.seed, chunk_size=args.chunk_size,
-        push_duration=args.push_duration, push_onset=args.push_onset, body=args.body,
-        joint_noise=args.joint_noise, friction=tuple(args.friction),
-        mass_scale=tuple(args.mass_scale), solver_iterations=args.solver_iterations,
-        tasks_file=args.tasks,
-    )  # fmt: skip
-    summary = sweep.run_sweep(cfg, args.out, gains_file=args.gains, progress=not args.quiet)
-    keys = ("n_envs", "survival_rate", "nan_envs", "qp_infeasible_envs", "physics_steps_per_s",
-            "compile_s", "run_s", "n_devices")  # fmt: skip
+    cfg = config_from_args(args, sweep.default_config())
+    cfg.check()
+    scenario.enable_compilation_cache()
+    summary = sweep.run_sweep(cfg, progress=not args.quiet)
+    keys = ("n_envs", "survival_rate", "upright_rate", "nan_envs", "qp_infeasible_envs", "backend",
+            "physics_steps_per_s", "compile_s", "run_s", "n_devices")  # fmt: skip
     print(json.dumps({k: summary[k] for k in keys}, separators=(",", ":")))
     return 0
 
@@ -71,18 +127,19 @@ def _view(args: argparse.Namespace) -> int:
 
 
 def _tune(args: argparse.Namespace) -> int:
-    from wbc_jax import tune
+    from wbc_jax import scenario, tune
 
-    kw = dict(steps=args.steps, batch=args.batch, horizon=args.horizon, seed=args.seed, lr=args.lr)
-    tc = tune.TuneConfig(**{k: v for k, v in kw.items() if v is not None})
-    report = tune.run(tc, args.out, baseline=not args.no_baseline, progress=not args.quiet)
-    held = report["held_out"]
-    print(json.dumps({name: {k: r[k] for k in ("objective", "survival_rate", "com_rmse_m", "effort_rms_nm")}
-                      for name, r in held.items()}, separators=(",", ":")))  # fmt: skip
+    cfg = config_from_args(args, tune.default_config())
+    cfg.check()
+    scenario.enable_compilation_cache()
+    report = tune.run(cfg, progress=not args.quiet)
+    print(json.dumps(tune.report_line(report), separators=(",", ":")))
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from wbc_jax import balance, sweep, tune
+
     parser = argparse.ArgumentParser(prog="wbc-jax", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     info = sub.add_parser("info", help="print the robot model summary as JSON")
@@ -90,51 +147,13 @@ def build_parser() -> argparse.ArgumentParser:
     info.set_defaults(func=_info)
 
     bal = sub.add_parser("balance", help="closed-loop balancing run: metrics, trajectory, plots")
-    bal.add_argument("--task", default="stand", choices=["stand", "sinusoid", "one-foot"])
-    bal.add_argument("--duration", type=float, default=None, help="seconds (task default)")
-    bal.add_argument("--forces", default="qp", choices=["qp", "analytic"])
-    bal.add_argument("--postural", default="stable", choices=["stable", "seed"])
-    bal.add_argument("--gains", default=None, help="gains JSON file (default: WBC iCubGazeboV2_5)")
-    bal.add_argument("--out", default="runs/balance", help="output folder")
-    bal.add_argument("--push-force", type=float, nargs=3, default=None, metavar=("FX", "FY", "FZ"),
-                     help="push on the chest, world axes [N]")  # fmt: skip
-    bal.add_argument("--push-onset", type=float, default=1.0)
-    bal.add_argument("--push-duration", type=float, default=0.1)
-    bal.add_argument("--solver-iterations", type=int, default=None,
-                     help="MJX Newton iterations (default: the model's, 4)")
-    bal.add_argument("--control-dt", type=float, default=None,
-                     help="controller period in s, a multiple of the 1 ms physics step (default 0.01)")
-    bal.add_argument("--tasks", default=None, metavar="FILE",
-                     help="task/contact file (JSON/YAML): motion tasks, contacts, scene objects, initial posture; "
-                          "e.g. experiments/tasks/reach_circle.yaml, experiments/tasks/hand_on_table.yaml")
+    add_config_arguments(bal, balance.default_config())
     bal.add_argument("--quiet", action="store_true", help="no progress bar")
     bal.set_defaults(func=_balance)
 
     sw = sub.add_parser("push-sweep", help="batched push-recovery sweep (the main job)")
-    sw.add_argument("--magnitudes", type=float, nargs=3, default=[20.0, 100.0, 3],
-                    metavar=("LO", "HI", "N"), help="push force grid [N]")  # fmt: skip
-    sw.add_argument("--directions", type=int, default=4, help="number of azimuths over 360 deg")
-    sw.add_argument("--gain-sets", type=int, default=1)
-    sw.add_argument("--gains", default=None, help="gains JSON file (the first gain set)")
-    sw.add_argument("--horizon", type=float, default=1.5, help="seconds per rollout")
-    sw.add_argument("--push-duration", type=float, default=0.1)
-    sw.add_argument("--push-onset", type=float, default=0.5)
-    sw.add_argument("--body", default="chest", help="pushed body")
-    sw.add_argument("--joint-noise", type=float, default=0.0, help="initial joint noise std [rad]")
-    sw.add_argument("--friction", type=float, nargs=2, default=[1.0, 1.0], metavar=("LO", "HI"))
-    sw.add_argument("--mass-scale", type=float, nargs=2, default=[1.0, 1.0], metavar=("LO", "HI"))
-    sw.add_argument("--task", default="stand", choices=["stand", "one-foot"],
-                    help="two feet (stand) or pushed in the single-support phase of the one-foot "
-                         "task (7-9 s: e.g. --push-onset 7.5 --horizon 9)")  # fmt: skip
-    sw.add_argument("--forces", default="qp", choices=["qp", "analytic"])
-    sw.add_argument("--postural", default="stable", choices=["stable", "seed"])
-    sw.add_argument("--solver-iterations", type=int, default=None)
-    sw.add_argument("--seed", type=int, default=0)
-    sw.add_argument("--tasks", default=None, metavar="FILE",
-                    help="task/contact file (JSON/YAML), as balance --tasks")
-    sw.add_argument("--chunk-size", type=int, default=12, help="environments per compiled batch")
-    sw.add_argument("--out", default="runs/push_sweep")
-    sw.add_argument("--quiet", action="store_true")
+    add_config_arguments(sw, sweep.default_config())
+    sw.add_argument("--quiet", action="store_true", help="no progress bar")
     sw.set_defaults(func=_push_sweep)
 
     vw = sub.add_parser("view", help="log a run (or one env of a push sweep) to rerun: .rrd or viewer")
@@ -143,15 +162,10 @@ def build_parser() -> argparse.ArgumentParser:
     vw.add_argument("--out", default=None, help=".rrd file (default RUN_DIR/rollout.rrd or env_I.rrd)")
     vw.add_argument("--spawn", action="store_true", help="open a rerun viewer instead of a file")
     vw.set_defaults(func=_view)
-    tn = sub.add_parser("tune", help="gradient-based gain tuning + held-out comparison")
-    tn.add_argument("--out", default="runs/tune", help="output folder (resumes a run there)")
-    tn.add_argument("--steps", type=int, default=None, help="optimiser steps (default 12)")
-    tn.add_argument("--batch", type=int, default=None, help="push scenarios per step (default 4)")
-    tn.add_argument("--horizon", type=float, default=None, help="seconds per rollout (default 1.0)")
-    tn.add_argument("--seed", type=int, default=None, help="training scenarios seed (default 0)")
-    tn.add_argument("--lr", type=float, default=None, help="adam learning rate (default 0.1)")
-    tn.add_argument("--no-baseline", action="store_true", help="skip the random-search baseline")
-    tn.add_argument("--quiet", action="store_true")
+
+    tn = sub.add_parser("tune", help="gradient-based gain tuning + baselines + held-out comparison")
+    add_config_arguments(tn, tune.default_config())
+    tn.add_argument("--quiet", action="store_true", help="no progress bar")
     tn.set_defaults(func=_tune)
     return parser
 
@@ -160,7 +174,10 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (ValueError, FileNotFoundError) as err:
+    except (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError) as err:
+        print(f"wbc-jax {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except ImportError as err:
         print(f"wbc-jax {args.command}: error: {err}", file=sys.stderr)
         return 2
 

@@ -1,16 +1,18 @@
-"""[contacts] A general contact set: feet, hands or any body, on the floor or on objects of the scene.
+"""[contacts] The contact set: feet, hands or any body, on the floor or on objects of the scene.
 
-The two-feet controller (:mod:`wbc_jax.controller`) knows the soles only. Here a contact is data
-(Nori et al. 2015, "rigid non-coplanar contacts"): a frame on the robot, the normal of the surface
-it touches, its friction, its CoP rectangle (``surface`` contacts: a 6-D wrench, the constraints
-of the feet) or none (``point`` contacts: a 3-D force in the friction cone), a minimum normal
-force, an optional desired normal force, and an activation with minimum-jerk ramps.
+A contact is data (Nori et al. 2015, "rigid non-coplanar contacts"): a frame on the robot, the
+normal of the surface it touches, its friction, its CoP rectangle (``surface`` contacts: a 6-D
+wrench, the constraints of the feet) or none (``point`` contacts: a 3-D force in the friction
+cone), a minimum normal force, an optional desired normal force, and an activation with
+minimum-jerk ramps. The two soles on the floor are the default set (:func:`feet_contact_set`);
+the controller knows no other path.
 
 Contacts on bodies other than the feet need something to touch: :class:`SceneObject` boxes (a
 table, a wall) are added to the MuJoCo model, together with small collision spheres on the robot
 (one for a point contact, the four corners of the CoP rectangle for a surface one, like the feet)
 and the contact pairs between them. :func:`build_scene` does this before anything is compiled;
-:func:`contact_terms` evaluates the contact kinematics at one state (pure, jit/vmap/grad-safe).
+:func:`contact_terms` reads the contact kinematics out of the dynamics terms (pure,
+jit/vmap/grad-safe).
 
 Conventions: the contact frame's z axis is the surface normal (pointing out of the surface, into
 the robot), fixed to the robot's body; wrenches are in world axes at the contact point, force
@@ -22,13 +24,15 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 from mujoco import mjx
 
-from wbc_jax import contact_qp, dynamics, references
+from wbc_jax import constants
 from wbc_jax import model as model_lib
+from wbc_jax.dynamics import DynamicsTerms, Frames
 from wbc_jax.types import Array, pytree_dataclass
 
 CONTACT_TYPES = ("surface", "point")
@@ -37,6 +41,86 @@ DIMENSION = {"surface": 6, "point": 3}
 SPHERE_RADIUS = 0.005  # m, as the feet's corner spheres (assets/build_icub_mjcf.py)
 CONTACT_SOLREF = (0.004, 1.0)  # as the feet
 FEET_FRAMES = {"l_sole": 0, "r_sole": 1}
+
+
+@dataclasses.dataclass(frozen=True)
+class ContactParams:
+    """Static parameters of the rigid-contact constraints of one contact.
+
+    Registered as a pytree without leaves, so it can be passed to ``jax.jit``
+    functions as a normal argument (its values are part of the treedef, i.e.
+    static: a change recompiles).
+
+    Attributes:
+        mu: static friction coefficient (tangential force <= mu f_z).
+        n_points: points per quadrant of the linearised friction cone; the cone
+            is a polygon with 4 (n_points - 1) edges.
+        mu_t: torsional friction coefficient (|tau_z| <= mu_t f_z).
+        fz_min: minimal normal force [N].
+        foot_size: ((x_min, x_max), (y_min, y_max)) of the centre-of-pressure
+            rectangle in the contact frame [m] (default: the iCub sole's).
+    """
+
+    mu: float = 1.0 / 3.0
+    n_points: int = 4
+    mu_t: float = 1.0 / 75.0
+    fz_min: float = 10.0
+    foot_size: tuple[tuple[float, float], tuple[float, float]] = (
+        (-0.07, 0.12),
+        (-0.045, 0.045),
+    )
+
+    def __post_init__(self) -> None:
+        for name in ("mu", "mu_t", "fz_min"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ValueError(
+                    f"ContactParams.{name} must be a real number, got {value!r}"
+                )
+            if not math.isfinite(value) or value <= 0.0:
+                raise ValueError(
+                    f"ContactParams.{name} must be positive and finite, got {value!r}"
+                )
+            object.__setattr__(self, name, float(value))
+        n = self.n_points
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2:
+            raise ValueError(
+                f"ContactParams.n_points must be an integer >= 2, got {n!r}"
+            )
+        object.__setattr__(self, "n_points", int(n))
+        try:
+            (x_min, x_max), (y_min, y_max) = (
+                (float(a), float(b)) for a, b in self.foot_size
+            )
+        except (TypeError, ValueError) as err:
+            raise ValueError(
+                "ContactParams.foot_size must be ((x_min, x_max), (y_min, y_max)), "
+                f"got {self.foot_size!r}"
+            ) from err
+        if not all(math.isfinite(v) for v in (x_min, x_max, y_min, y_max)):
+            raise ValueError(
+                f"ContactParams.foot_size must be finite, got {self.foot_size!r}"
+            )
+        if not x_min < x_max:
+            raise ValueError(
+                f"ContactParams.foot_size needs x_min < x_max, got {self.foot_size!r}"
+            )
+        if not y_min < y_max:
+            raise ValueError(
+                f"ContactParams.foot_size needs y_min < y_max, got {self.foot_size!r}"
+            )
+        # A CoP rectangle that excludes the sole origin is legal (the rows stay
+        # meaningful), so only the ordering is checked.
+        object.__setattr__(self, "foot_size", ((x_min, x_max), (y_min, y_max)))
+
+
+jax.tree_util.register_dataclass(
+    ContactParams,
+    data_fields=[],
+    meta_fields=["mu", "n_points", "mu_t", "fz_min", "foot_size"],
+)
+
+
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,7 +139,7 @@ class Contact:
 
     Attributes:
       name: unique name.
-      frame: body, site or named point (``wbc_jax.tasks.NAMED_POINTS``) where the contact acts.
+      frame: body, site or named point (``wbc_jax.model.NAMED_POINTS``) where the contact acts.
       normal: (3,) surface normal in world axes at the initial posture (required).
       type: ``"surface"`` (6-D wrench, friction cone, torsion, CoP rectangle) or ``"point"``.
       offset: (3,) added to the frame's point, in the body frame.
@@ -112,7 +196,7 @@ class ResolvedContact:
     body: int
     point: tuple[float, float, float]  # in the body frame
     R_body_contact: tuple[float, ...]  # (9,) contact-frame axes in the body frame, row-major
-    params: contact_qp.ContactParams
+    params: ContactParams
     normal_force: float  # nan: free
     activation: ContactActivation
     foot: int  # 0 / 1 for the soles (the schedule's activation applies), else -1
@@ -143,6 +227,38 @@ class ContactSet:
             out.append(slice(k, k + c.dim))
             k += c.dim
         return out
+
+    @property
+    def frames(self) -> Frames:
+        """The contact points, in order (the first ``len(contacts)`` frames of the dynamics terms)."""
+        return Frames(tuple(c.body for c in self.contacts), tuple(c.point for c in self.contacts))
+
+    @property
+    def feet(self) -> tuple[int, int]:
+        """Indices in the set of the left and right sole contacts (for the angular-momentum
+        integral, linearised about the stance foot). Every contact set holds both soles."""
+        where = {c.foot: k for k, c in enumerate(self.contacts) if c.foot >= 0}
+        return where[0], where[1]
+
+
+def feet_contact_set(robot: model_lib.Robot, params: ContactParams | None = None) -> ContactSet:
+    """The default contact set: both soles on the floor (surface contacts of the WBC controller,
+    rigid-contact constraints ``params``, default :class:`ContactParams`), activated by the
+    task's foot schedule."""
+    idx = robot.index
+    params = ContactParams() if params is None else params
+    return ContactSet(
+        contacts=tuple(
+            ResolvedContact(
+                name=name, type="surface", body=int(idx.foot_bodies[k]),
+                point=tuple(float(x) for x in idx.foot_points[k]),
+                R_body_contact=tuple(float(x) for x in idx.foot_rotations[k].ravel()),
+                params=params, normal_force=math.nan, activation=ContactActivation(), foot=k,
+                geoms=tuple(int(g) for g in idx.foot_geoms[k]),
+            )  # fmt: skip
+            for k, name in enumerate(model_lib.FEET)
+        )
+    )
 
 
 # ------------------------------------------------------------------------------------------
@@ -230,6 +346,13 @@ def check_spec(contacts, objects) -> tuple[tuple[Contact, ...], tuple[SceneObjec
             raise ValueError(f"{owner}: activation needs finite start, ramp >= 0 and stop > start + ramp, got {a}")
         if c.touches is not None and c.touches not in object_names + ["floor"]:
             raise ValueError(f"{owner}: touches unknown object {c.touches!r}; valid: {object_names + ['floor']}")
+    soles = {c.frame for c in contacts if c.frame in FEET_FRAMES and not np.any(np.asarray(c.offset, float))}
+    missing = sorted(set(FEET_FRAMES) - soles)
+    if missing:
+        raise ValueError(
+            f"the contact set must hold both soles (frames {sorted(FEET_FRAMES)}, no offset): missing "
+            f"{missing}; contacts given: {[c.name for c in contacts]}"
+        )
     contact_names = [c.name for c in contacts]
     for o in objects:
         owner = f"scene object {o.name!r}"
@@ -256,18 +379,16 @@ def check_spec(contacts, objects) -> tuple[tuple[Contact, ...], tuple[SceneObjec
 
 def _frame_point(m: mujoco.MjModel, idx: model_lib.RobotIndex, c: Contact):
     """(body id, point in the body frame, site id or -1) of a contact's frame."""
-    from wbc_jax.tasks import NAMED_POINTS
-
     offset = np.asarray(c.offset, float)
-    if c.frame in NAMED_POINTS:
-        body, point = NAMED_POINTS[c.frame]
+    if c.frame in model_lib.NAMED_POINTS:
+        body, point = model_lib.NAMED_POINTS[c.frame]
         return idx.body_id(body), np.asarray(point) + offset, -1
     if c.frame and c.frame in idx.site_names:
         sid = idx.site_id(c.frame)
         return int(m.site_bodyid[sid]), m.site_pos[sid] + offset, sid
     if c.frame and c.frame in idx.body_names:
         return idx.body_id(c.frame), offset, -1
-    valid = sorted((set(idx.body_names) | set(idx.site_names) | set(NAMED_POINTS)) - {""})
+    valid = sorted((set(idx.body_names) | set(idx.site_names) | set(model_lib.NAMED_POINTS)) - {""})
     raise ValueError(f"contact {c.name!r}: unknown frame {c.frame!r}; valid frames: {valid}")
 
 
@@ -352,7 +473,7 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
         if c.type == "point":
             corners = [np.zeros(2)]
         else:
-            (x0, x1), (y0, y1) = c.cop or contact_qp.ContactParams().foot_size
+            (x0, x1), (y0, y1) = c.cop or ContactParams().foot_size
             corners = [np.array([x, y]) for x in (x0, x1) for y in (y0, y1)]
         body_spec = spec.body(base.body(body).name)
         names = []
@@ -385,8 +506,8 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
                     f"contact {c.name!r}: body {base.body(body).name!r} has no collision geoms; "
                     f"give 'touches: <object>' (valid: {sorted(friction)})"
                 )
-        cop = c.cop or contact_qp.ContactParams().foot_size
-        params = contact_qp.ContactParams(mu=c.mu, mu_t=c.mu_t, fz_min=c.fz_min, foot_size=cop)
+        cop = c.cop or ContactParams().foot_size
+        params = ContactParams(mu=c.mu, mu_t=c.mu_t, fz_min=c.fz_min, foot_size=cop)
         resolved.append(
             ResolvedContact(
                 name=c.name, type=c.type, body=int(body), point=tuple(float(x) for x in point),
@@ -427,8 +548,8 @@ def activation_at(c: ResolvedContact, t: Array, foot_activation: Array, dtype) -
     a = c.activation
     t = jnp.asarray(t, dtype)
     if a.ramp > 0:
-        up = references.min_jerk((t - a.start) / a.ramp)[0]
-        down = references.min_jerk((t - a.stop) / a.ramp)[0] if math.isfinite(a.stop) else 0.0
+        up = constants.min_jerk((t - a.start) / a.ramp)[0]
+        down = constants.min_jerk((t - a.stop) / a.ramp)[0] if math.isfinite(a.stop) else 0.0
     else:
         up = (t >= a.start).astype(dtype)
         down = (t >= a.stop).astype(dtype) if math.isfinite(a.stop) else 0.0
@@ -436,97 +557,27 @@ def activation_at(c: ResolvedContact, t: Array, foot_activation: Array, dtype) -
     return value * foot_activation[c.foot] if c.foot >= 0 else value
 
 
-def contact_terms(m: mjx.Model, d: mjx.Data, idx, cset: ContactSet, t: Array, foot_activation: Array) -> ContactTerms:
-    """Contact Jacobians, Jdot nu, poses and activations at the state (``d.qpos``, ``d.qvel``)."""
-    bodies = np.array([c.body for c in cset.contacts])
-    points = np.array([c.point for c in cset.contacts])
-    ft = dynamics.frame_terms(m, d, idx, bodies, points)
-    dtype = ft.W_p.dtype
+def contact_terms(cset: ContactSet, t: DynamicsTerms, time: Array, foot_activation: Array) -> ContactTerms:
+    """Contact Jacobians, Jdot nu, poses and activations at one state.
+
+    Args:
+      cset: the contact set. t: dynamics terms whose first frames are ``cset.frames``.
+      time: () s, for the activation schedules. foot_activation: (2,) the task's foot schedule.
+    """
+    K = len(cset.contacts)
+    dtype = t.M.dtype
     R_bc = jnp.asarray(np.array([c.R_body_contact for c in cset.contacts]).reshape(-1, 3, 3), dtype)
     rows = np.concatenate([np.arange(6 * k, 6 * k + c.dim) for k, c in enumerate(cset.contacts)])
-    act = jnp.stack([activation_at(c, t, foot_activation, dtype) for c in cset.contacts])
+    act = jnp.stack([activation_at(c, time, foot_activation, dtype) for c in cset.contacts])
     return ContactTerms(
-        J=ft.J.reshape(-1, ft.J.shape[-1])[rows],
-        Jdot_nu=ft.Jdot_nu.reshape(-1)[rows],
-        W_p=ft.W_p,
-        W_R=jnp.einsum("kij,kjl->kil", ft.W_R, R_bc),
+        J=t.J_frames[:K].reshape(-1, t.J_frames.shape[-1])[rows],
+        Jdot_nu=t.Jdot_nu_frames[:K].reshape(-1)[rows],
+        W_p=t.W_p_frames[:K],
+        W_R=jnp.einsum("kij,kjl->kil", t.W_R_frames[:K], R_bc),
         activation=act,
     )
 
 
 def row_activation(cset: ContactSet, activation: Array) -> Array:
-    """(D,) the activation of each wrench row."""
+    """(D,) the activation of each wrench row (activation: (K,))."""
     return jnp.concatenate([jnp.full(c.dim, activation[k]) for k, c in enumerate(cset.contacts)])
-
-
-def wrench_map(cset: ContactSet, W_p: Array, W_p_CoM: Array) -> Array:
-    """A (6, D): contact wrenches (world axes, at the contact points) -> rate of the centroidal momentum."""
-    from wbc_jax.math import skew
-
-    dtype = W_p.dtype
-    blocks = []
-    for k, c in enumerate(cset.contacts):
-        S = skew(W_p[k] - W_p_CoM)
-        force = jnp.concatenate([jnp.eye(3, dtype=dtype), S])
-        if c.dim == 6:
-            blocks.append(jnp.concatenate([force, jnp.concatenate([jnp.zeros((3, 3), dtype), jnp.eye(3, dtype=dtype)])], axis=1))
-        else:
-            blocks.append(force)
-    return jnp.concatenate(blocks, axis=1)
-
-
-_FZ_MIN_ROW = 14  # row of -f_z <= -fz_min in contact_qp.foot_constraints (n_points = 4)
-
-
-def constraints(cset: ContactSet, W_R: Array, activation: Array) -> tuple[Array, Array]:
-    """Block-diagonal C (M, D), b (M,) of all contacts, world axes; each minimum normal force is
-    scaled by the activation (a contact being released may go down to zero)."""
-    dtype = W_R.dtype
-    blocks, bs = [], []
-    for k, c in enumerate(cset.contacts):
-        C_f, b_f = contact_qp.foot_constraints(c.params)
-        b_f = jnp.asarray(b_f, dtype).at[_FZ_MIN_ROW].multiply(activation[k])
-        if c.type == "point":
-            keep = np.r_[np.arange(_FZ_MIN_ROW - 2), _FZ_MIN_ROW]  # cone edges and unilateral
-            C_w = jnp.asarray(C_f[keep, :3], dtype) @ W_R[k].T
-            b_f = b_f[keep]
-        else:
-            C_w, _ = contact_qp.world_constraints(C_f, np.zeros(len(b_f)), W_R[k])
-        blocks.append(C_w)
-        bs.append(b_f)
-    rows = sum(b.shape[0] for b in blocks)
-    C = jnp.zeros((rows, cset.dim), dtype)
-    r = 0
-    for blk, sl in zip(blocks, cset.slices(), strict=True):
-        C = C.at[r : r + blk.shape[0], sl].set(blk)
-        r += blk.shape[0]
-    return C, jnp.concatenate(bs)
-
-
-def normal_force_rows(cset: ContactSet, W_R: Array, activation: Array) -> tuple[Array, Array]:
-    """S (k, D), F (k,): S f = the normal forces of the k contacts that have a desired normal force
-    F (times their activation)."""
-    dtype = W_R.dtype
-    rows, targets = [], []
-    for k, (c, sl) in enumerate(zip(cset.contacts, cset.slices(), strict=True)):
-        if math.isnan(c.normal_force):
-            continue
-        rows.append(jnp.zeros(cset.dim, dtype).at[sl.start : sl.start + 3].set(W_R[k][:, 2]))
-        targets.append(activation[k] * c.normal_force)
-    if not rows:
-        return jnp.zeros((0, cset.dim), dtype), jnp.zeros(0, dtype)
-    return jnp.stack(rows), jnp.stack(targets)
-
-
-def violation(cset: ContactSet, f: Array, W_R: Array, activation: Array) -> Array:
-    """Max over active contacts of max(C_k f_k - b_k, 0) / max(f_n, fz_min) (dimensionless)."""
-    C, b = constraints(cset, W_R, activation)
-    excess = jnp.maximum(C @ f - b, 0.0)
-    out, r = jnp.zeros((), f.dtype), 0
-    for k, (c, sl) in enumerate(zip(cset.contacts, cset.slices(), strict=True)):
-        m = 2 * (c.params.n_points - 1) * 2 + (7 if c.dim == 6 else 1)
-        fn = jnp.maximum(W_R[k][:, 2] @ f[sl.start : sl.start + 3], c.params.fz_min)
-        v = jnp.max(excess[r : r + m]) / fn
-        out = jnp.maximum(out, jnp.where(activation[k] > 0, v, 0.0))
-        r += m
-    return out

@@ -17,6 +17,8 @@ are set; they recompute the kinematics themselves, so they are valid right after
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -27,26 +29,55 @@ from wbc_jax.model import RobotIndex
 from wbc_jax.types import Array, pytree_dataclass
 
 
+@dataclasses.dataclass(frozen=True)
+class Frames:
+    """Static list of the k points whose kinematics the controller needs (contacts, then the
+    motion tasks' frames): body ids and points in the body frames. Hashable (jit-static)."""
+
+    bodies: tuple[int, ...]
+    points: tuple[tuple[float, float, float], ...]
+
+    def __post_init__(self):
+        if len(self.bodies) != len(self.points):
+            raise ValueError(f"Frames: {len(self.bodies)} bodies but {len(self.points)} points")
+
+    def __len__(self) -> int:
+        return len(self.bodies)
+
+    def __add__(self, other: "Frames") -> "Frames":
+        return Frames(self.bodies + other.bodies, self.points + other.points)
+
+
+def sole_frames(idx: RobotIndex) -> Frames:
+    """The origins of the two sole sites (left, right): the frames of the default contact set."""
+    return Frames(
+        bodies=tuple(int(b) for b in idx.foot_bodies),
+        points=tuple(tuple(float(x) for x in p) for p in idx.foot_points),
+    )
+
+
 @pytree_dataclass
 class DynamicsTerms:
-    """Controller-side dynamics terms at one state (n = controlled joints, nv = 6 + n).
+    """Controller-side dynamics terms at one state (n = controlled joints, nv = 6 + n, k frames).
 
     Attributes:
-      nu:            (nv,)       mixed velocity [W_v_B, W_omega_B, s_dot]
-      s, s_dot:      (n,), (n,)  joint positions / velocities, controller order
-      W_p_B, W_R_B:  (3,), (3,3) base pose
-      M:             (nv, nv)    mass matrix
-      h:             (nv,)       Coriolis, centrifugal and gravity forces
-      tau_passive:   (nv,)       passive generalised forces (joint damping)
-      J_feet:        (2, 6, nv)  sole Jacobians [linear; angular], left then right
-      Jdot_nu_feet:  (2, 6)      Jdot nu of each sole
-      W_p_feet:      (2, 3)      sole origins
-      W_R_feet:      (2, 3, 3)   sole orientations
-      W_p_CoM:       (3,)        centre of mass
-      W_v_CoM:       (3,)        CoM velocity
-      J_CoM:         (3, nv)     CoM Jacobian
-      A_G:           (6, nv)     centroidal momentum matrix, G[W]
-      L_G:           (6,)        centroidal momentum [m v_CoM; angular momentum about CoM]
+      nu:             (nv,)       mixed velocity [W_v_B, W_omega_B, s_dot]
+      s, s_dot:       (n,), (n,)  joint positions / velocities, controller order
+      W_p_B, W_R_B:   (3,), (3,3) base pose
+      M:              (nv, nv)    mass matrix
+      h:              (nv,)       Coriolis, centrifugal and gravity forces
+      tau_passive:    (nv,)       passive generalised forces (joint damping)
+      W_p_frames:     (k, 3)      frame points (body origin + point in body axes)
+      W_R_frames:     (k, 3, 3)   orientations of the frames' bodies
+      J_frames:       (k, 6, nv)  frame Jacobians [linear of the point; angular]
+      Jdot_nu_frames: (k, 6)      their Jdot nu
+      W_p_CoM:        (3,)        centre of mass
+      W_v_CoM:        (3,)        CoM velocity
+      J_CoM:          (3, nv)     CoM Jacobian
+      Jdot_nu_CoM:    (3,)        its Jdot nu
+      A_G:            (6, nv)     centroidal momentum matrix, G[W]
+      L_G:            (6,)        centroidal momentum [m v_CoM; angular momentum about CoM]
+      xpos:           (nbody, 3)  body origins (fall detection)
     """
 
     nu: Array
@@ -57,15 +88,17 @@ class DynamicsTerms:
     M: Array
     h: Array
     tau_passive: Array
-    J_feet: Array
-    Jdot_nu_feet: Array
-    W_p_feet: Array
-    W_R_feet: Array
+    W_p_frames: Array
+    W_R_frames: Array
+    J_frames: Array
+    Jdot_nu_frames: Array
     W_p_CoM: Array
     W_v_CoM: Array
     J_CoM: Array
+    Jdot_nu_CoM: Array
     A_G: Array
     L_G: Array
+    xpos: Array
 
 
 def mixed_velocity(idx: RobotIndex, qpos: Array, qvel: Array) -> Array:
@@ -106,8 +139,8 @@ def _to_mixed_cols(idx: RobotIndex, J_mj: Array, R: Array) -> Array:
     return J.at[..., 3:6].set(J[..., 3:6] @ R.T)
 
 
-def _kinematics(m: mjx.Model, d: mjx.Data, idx: RobotIndex, qpos: Array):
-    """Sole Jacobians, centroidal momentum matrix, poses and CoM as functions of qpos only."""
+def _kinematics(m: mjx.Model, d: mjx.Data, idx: RobotIndex, qpos: Array, frames: Frames):
+    """Frame Jacobians, centroidal momentum matrix and poses as functions of qpos only."""
     d = d.replace(qpos=qpos)
     d = mjx.kinematics(m, d)
     d = mjx.com_pos(m, d)
@@ -121,50 +154,54 @@ def _kinematics(m: mjx.Model, d: mjx.Data, idx: RobotIndex, qpos: Array):
         jacr = cdof_ang * mask[:, None]
         return jacp.T, jacr.T  # (3, nv) each
 
-    # Sole Jacobians [linear; angular] of the site origins.
-    foot_masks = masks[idx.foot_bodies]
-    jp, jr = jax.vmap(point_jacobian)(d.site_xpos[idx.foot_sites], foot_masks)
-    J_feet = _to_mixed_cols(idx, jnp.concatenate([jp, jr], axis=1), R)
+    # Frame Jacobians [linear of the point; angular of its body].
+    bodies = np.asarray(frames.bodies, dtype=int)
+    W_R = d.xmat[bodies]
+    W_p = d.xpos[bodies] + jnp.einsum("kij,kj->ki", W_R, jnp.asarray(np.asarray(frames.points), W_R.dtype))
+    jp, jr = jax.vmap(point_jacobian)(W_p, masks[bodies])
+    J_frames = _to_mixed_cols(idx, jnp.concatenate([jp, jr], axis=1), R)
 
     # Centroidal momentum matrix: sum over bodies of [m Jp; I_W Jr + m S(c_b - c) Jp].
-    bodies = np.arange(1, masks.shape[0])
-    jp_b, jr_b = jax.vmap(point_jacobian)(d.xipos[bodies], masks[bodies])
-    mass_b = m.body_mass[bodies]
-    ximat = d.ximat[bodies]
-    I_W = jnp.einsum("bij,bj,bkj->bik", ximat, m.body_inertia[bodies], ximat)
+    all_bodies = np.arange(1, masks.shape[0])
+    jp_b, jr_b = jax.vmap(point_jacobian)(d.xipos[all_bodies], masks[all_bodies])
+    mass_b = m.body_mass[all_bodies]
+    ximat = d.ximat[all_bodies]
+    I_W = jnp.einsum("bij,bj,bkj->bik", ximat, m.body_inertia[all_bodies], ximat)
     lin = jnp.einsum("b,bjv->jv", mass_b, jp_b)
     ang = jnp.einsum("bij,bjv->iv", I_W, jr_b) + jnp.einsum(
-        "b,bij,bjv->iv", mass_b, skew(d.xipos[bodies] - c), jp_b
+        "b,bij,bjv->iv", mass_b, skew(d.xipos[all_bodies] - c), jp_b
     )
     A_G = _to_mixed_cols(idx, jnp.concatenate([lin, ang], axis=0), R)
-    poses = (d.site_xpos[idx.foot_sites], d.site_xmat[idx.foot_sites], c, d.xpos[idx.base_body], R)
-    return J_feet, A_G, poses, d
+    return (J_frames, A_G, W_p, W_R), d
 
 
-def terms(m: mjx.Model, d: mjx.Data, idx: RobotIndex) -> DynamicsTerms:
+def terms(m: mjx.Model, d: mjx.Data, idx: RobotIndex, frames: Frames | None = None) -> DynamicsTerms:
     """All controller-side dynamics terms at the state (``d.qpos``, ``d.qvel``).
 
     Args:
-      m: MJX model of the robot.
-      d: MJX data; only ``qpos`` (nq,) and ``qvel`` (nv,) are read.
+      m: MJX model of the robot (JAX implementation).
+      d: MJX data (JAX implementation); only ``qpos`` (nq,) and ``qvel`` (nv,) are read.
       idx: the robot's static index.
+      frames: the points whose Jacobians are needed (static); None: the two soles.
 
     Returns:
       :class:`DynamicsTerms`, mixed representation, controller joint order.
     """
+    frames = sole_frames(idx) if frames is None else frames
     qpos, qvel = d.qpos, d.qvel
     _check_shape("qpos", qpos, (idx.nq,))
     _check_shape("qvel", qvel, (idx.nv,))
     nu = mixed_velocity(idx, qpos, qvel)
 
-    # J(q) nu along the motion q(t) with nu held fixed: its time derivative is Jdot nu.
-    def feet_velocity(q: Array) -> Array:
-        J_feet, *_ = _kinematics(m, d, idx, q)
-        return J_feet @ nu
+    # One pass of the kinematics and its derivative along q(t) with nu held fixed:
+    # d/dt (J nu) = Jdot nu, for the frames and the CoM.
+    def kinematics(q: Array):
+        return _kinematics(m, d, idx, q, frames)
 
-    (J_feet, A_G, poses, dk) = _kinematics(m, d, idx, qpos)
-    _, Jdot_nu_feet = jax.jvp(feet_velocity, (qpos,), (qpos_rate(idx, qpos, nu),))
-    W_p_feet, W_R_feet, W_p_CoM, W_p_B, R = poses
+    (kin, dk), (dkin, _) = jax.jvp(kinematics, (qpos,), (qpos_rate(idx, qpos, nu),))
+    J_frames, A_G, W_p_frames, W_R_frames = kin
+    dJ_frames, dA_G = dkin[0], dkin[1]
+    R = dk.xmat[idx.base_body]
 
     dk = mjx.crb(m, dk)
     dk = mjx.com_vel(m, dk)
@@ -182,75 +219,20 @@ def terms(m: mjx.Model, d: mjx.Data, idx: RobotIndex) -> DynamicsTerms:
         nu=nu,
         s=qpos[idx.qpos_joints],
         s_dot=nu[6:],
-        W_p_B=W_p_B,
+        W_p_B=dk.xpos[idx.base_body],
         W_R_B=R,
         M=M,
         h=rows_to_mixed(dk.qfrc_bias),
         tau_passive=rows_to_mixed(dk.qfrc_passive),
-        J_feet=J_feet,
-        Jdot_nu_feet=Jdot_nu_feet,
-        W_p_feet=W_p_feet,
-        W_R_feet=W_R_feet.reshape(-1, 3, 3),
-        W_p_CoM=W_p_CoM,
+        W_p_frames=W_p_frames,
+        W_R_frames=W_R_frames,
+        J_frames=J_frames,
+        Jdot_nu_frames=dJ_frames @ nu,
+        W_p_CoM=dk.subtree_com[idx.base_body],
         W_v_CoM=L_G[:3] / idx.mass,
         J_CoM=A_G[:3] / idx.mass,
+        Jdot_nu_CoM=dA_G[:3] @ nu / idx.mass,
         A_G=A_G,
         L_G=L_G,
+        xpos=dk.xpos,
     )
-
-
-@pytree_dataclass
-class FrameTerms:
-    """Kinematics of the k task frames and of the CoM at one state (mixed representation).
-
-    Attributes:
-      W_p:          (k, 3)      frame points (body origin + offset in body axes)
-      W_R:          (k, 3, 3)   frame orientations (the body's)
-      J:            (k, 6, nv)  Jacobians [linear of the point; angular]
-      Jdot_nu:      (k, 6)      their Jdot nu
-      Jdot_nu_CoM:  (3,)        Jdot nu of the CoM Jacobian
-    """
-
-    W_p: Array
-    W_R: Array
-    J: Array
-    Jdot_nu: Array
-    Jdot_nu_CoM: Array
-
-
-def _frame_kinematics(m, d, idx: RobotIndex, qpos: Array, bodies: np.ndarray, offsets: np.ndarray):
-    _, A_G, _, dk = _kinematics(m, d, idx, qpos)
-    R_B = dk.xmat[idx.base_body]
-    c = dk.subtree_com[idx.base_body]
-    cdof_ang, cdof_lin = dk.cdof[:, :3], dk.cdof[:, 3:]
-    masks = jnp.asarray(idx.body_ancestor_dofs[bodies], dtype=dk.cdof.dtype)  # (k, nv)
-    W_R = dk.xmat[bodies]
-    W_p = dk.xpos[bodies] + jnp.einsum("kij,kj->ki", W_R, jnp.asarray(offsets, W_R.dtype))
-    jacp = (cdof_lin[None] + jnp.cross(cdof_ang[None], (W_p - c)[:, None])) * masks[..., None]
-    jacr = cdof_ang[None] * masks[..., None]
-    J = _to_mixed_cols(idx, jnp.concatenate([jacp, jacr], axis=2).transpose(0, 2, 1), R_B)
-    return W_p, W_R, J, A_G[:3] / idx.mass
-
-
-def frame_terms(m: mjx.Model, d: mjx.Data, idx: RobotIndex, bodies, offsets) -> FrameTerms:
-    """Task-frame kinematics at the state (``d.qpos``, ``d.qvel``).
-
-    Args:
-      m, d, idx: as :func:`terms`.
-      bodies: (k,) body ids (static numpy); offsets: (k, 3) points in the body frames (numpy).
-
-    Returns:
-      :class:`FrameTerms` (k may be 0: CoM terms only).
-    """
-    bodies = np.asarray(bodies, dtype=int).reshape(-1)
-    offsets = np.asarray(offsets, dtype=float).reshape(-1, 3)
-    qpos = d.qpos
-    nu = mixed_velocity(idx, qpos, d.qvel)
-
-    def velocities(q: Array):
-        _, _, J, J_CoM = _frame_kinematics(m, d, idx, q, bodies, offsets)
-        return J @ nu, J_CoM @ nu
-
-    W_p, W_R, J, _ = _frame_kinematics(m, d, idx, qpos, bodies, offsets)
-    _, (Jdot_nu, Jdot_nu_CoM) = jax.jvp(velocities, (qpos,), (qpos_rate(idx, qpos, nu),))
-    return FrameTerms(W_p=W_p, W_R=W_R, J=J, Jdot_nu=Jdot_nu, Jdot_nu_CoM=Jdot_nu_CoM)

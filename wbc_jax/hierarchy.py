@@ -48,7 +48,8 @@ from wbc_jax.dynamics import DynamicsTerms
 from wbc_jax.torques import TorqueTerms
 from wbc_jax.types import Array, pytree_dataclass
 
-# {float64, float32}. Damping relative to the mean eigenvalue of A_i A_i^T.
+# Defaults by precision {float64: 8 bytes, float32: 4}; ``ControllerConfig`` may override them.
+# Damping relative to the mean eigenvalue of A_i A_i^T.
 SOLUTION_DAMPING = {8: 1e-6, 4: 1e-3}  # singular directions get bounded torques
 # Projectors work on unit-norm rows (see null_space_step): directions below sqrt(reg) count as singular.
 PROJECTOR_REG = {8: 1e-12, 4: 1e-5}
@@ -98,11 +99,11 @@ def solve(
     projector_reg: float | None = None,
     compensate_passive: bool = True,
 ) -> HierarchySolution:
-    """Joint torques for contact wrenches f (12,) with the motion-task levels in priority order.
+    """Joint torques for contact wrenches f (D,) with the motion-task levels in priority order.
 
     Args:
       t: dynamics terms. tt: torque terms at the same state (:func:`wbc_jax.torques.torque_terms`).
-      f: (12,) feet wrenches chosen by the force task.
+      f: (D,) contact wrenches chosen by the force task.
       levels: motion tasks in priority order (highest first), each a :class:`TaskLevel`; the
         postural task of ``tt`` is the implicit last level.
       solution_damping: damping of each level's pseudo-inverse, relative to the level's scale

@@ -28,6 +28,14 @@ ICUB_JOINTS = (
 )  # fmt: skip
 FEET = ("l_sole", "r_sole")
 
+# Named points that are not bodies of the 23-dof model: the URDF's hand frames sit on bodies merged
+# into the forearms (the wrist joints are not controlled). Offsets: sum of the fixed origins of
+# r/l_wrist_prosup, _wrist_pitch and _wrist_yaw in icub-models iCubGazeboV2_5 model.urdf (joints at 0).
+NAMED_POINTS = {
+    "r_hand": ("r_elbow_1", (-0.141328, 0.003007, 0.022344)),
+    "l_hand": ("l_elbow_1", (0.141258, 0.014507, 0.022631)),
+}
+
 
 def _check_name(kind: str, name: str, valid: list[str]) -> None:
     if name not in valid:
@@ -36,6 +44,12 @@ def _check_name(kind: str, name: str, valid: list[str]) -> None:
 
 def _names(m: mujoco.MjModel, obj: mujoco.mjtObj, count: int) -> list[str]:
     return [mujoco.mj_id2name(m, obj, i) or "" for i in range(count)]
+
+
+def _quat_to_mat(quat: np.ndarray) -> np.ndarray:
+    R = np.zeros(9)
+    mujoco.mju_quat2Mat(R, np.asarray(quat, dtype=float))
+    return R.reshape(3, 3)
 
 
 def icub_mesh_dir() -> pathlib.Path:
@@ -91,6 +105,8 @@ class RobotIndex:
       dof_perm: MuJoCo dof index of each entry of the controller's ``nu`` (6+n,).
       base_body: body id of the floating base.
       foot_sites / foot_bodies: site ids of the soles and their bodies (2,).
+      foot_points / foot_rotations: the sole sites' origins (2, 3) and axes (2, 3, 3) in their
+        bodies' frames.
       foot_geoms: contact geom ids per foot (2, k).
       mass: total mass (kg).
       body_ancestor_dofs: bool (nbody, nv) in MuJoCo dof order, True where dof moves body.
@@ -106,6 +122,8 @@ class RobotIndex:
     base_body: int
     foot_sites: np.ndarray
     foot_bodies: np.ndarray
+    foot_points: np.ndarray
+    foot_rotations: np.ndarray
     foot_geoms: np.ndarray
     site_names: tuple[str, ...]
     body_names: tuple[str, ...]
@@ -185,6 +203,8 @@ def build_index(m: mujoco.MjModel, robot: str = "icub", joints=ICUB_JOINTS) -> R
         base_body=base_body,
         foot_sites=foot_sites,
         foot_bodies=foot_bodies,
+        foot_points=m.site_pos[foot_sites].copy(),
+        foot_rotations=np.stack([_quat_to_mat(m.site_quat[s]) for s in foot_sites]),
         foot_geoms=foot_geoms,
         site_names=site_names,
         body_names=tuple(_names(m, mujoco.mjtObj.mjOBJ_BODY, m.nbody)),

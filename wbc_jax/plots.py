@@ -9,6 +9,8 @@ import pathlib
 import numpy as np
 from matplotlib.figure import Figure
 
+from wbc_jax import io
+
 
 def com_tracking(traj: dict, path: pathlib.Path, title: str = "") -> None:
     """CoM vs reference, per axis, and the tracking error."""
@@ -26,45 +28,28 @@ def com_tracking(traj: dict, path: pathlib.Path, title: str = "") -> None:
     axes[3].set_xlabel("time [s]")
     fig.suptitle(title or "CoM tracking")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    io.atomic_save_figure(path, fig)
 
 
-def contact_forces(traj: dict, path: pathlib.Path, title: str = "") -> None:
-    """Commanded vs measured (MuJoCo) contact forces of each foot."""
+def contact_forces(traj: dict, names: list[str], dims: list[int], path: pathlib.Path, title: str = "") -> None:
+    """Commanded vs measured (simulator) force of each contact, world axes (one row per contact)."""
     t = traj["t"]
-    fig = Figure(figsize=(10, 7))
-    axes = fig.subplots(3, 2, sharex=True)
-    for foot, name in enumerate(("left", "right")):
-        for k, comp in enumerate(("f_x", "f_y", "f_z")):
-            ax = axes[k, foot]
-            ax.plot(t, traj["f_cmd"][:, 6 * foot + k], "k--", lw=1, label="commanded")
-            ax.plot(t, traj["f_meas"][:, 6 * foot + k], lw=1, label="MuJoCo")
-            ax.set_ylabel(f"{name} {comp} [N]")
-        axes[2, foot].set_xlabel("time [s]")
-    axes[0, 0].legend(loc="upper right")
+    fig = Figure(figsize=(10, 2.3 * len(names) + 1))
+    axes = np.atleast_2d(fig.subplots(len(names), 3, sharex=True))
+    start = 0
+    for k, (name, dim) in enumerate(zip(names, dims, strict=True)):
+        for c, comp in enumerate(("f_x", "f_y", "f_z")):
+            ax = axes[k, c]
+            ax.plot(t, traj["f_cmd"][:, start + c], "k--", lw=1, label="commanded")
+            ax.plot(t, traj["f_meas"][:, start + c], lw=1, label="simulator")
+            ax.set_ylabel(f"{name} {comp} [N]", fontsize=8)
+        start += dim
+    for c in range(3):
+        axes[-1, c].set_xlabel("time [s]")
+    axes[0, 0].legend(loc="upper right", fontsize=7)
     fig.suptitle(title or "contact forces")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-
-
-def contact_normal_forces(traj: dict, names: list[str], dims: list[int], path: pathlib.Path,
-                          title: str = "") -> None:
-    """Commanded vs measured (MuJoCo) normal force of each contact of a general contact set."""
-    t = traj["t"]
-    fig = Figure(figsize=(8, 2.2 * len(names) + 1))
-    axes = np.atleast_1d(fig.subplots(len(names), 1, sharex=True))
-    start = 0
-    for k, (ax, name, dim) in enumerate(zip(axes, names, dims)):
-        n = traj["contact_normal"][:, k]
-        ax.plot(t, np.einsum("ti,ti->t", traj["f_cmd"][:, start : start + 3], n), "k--", lw=1, label="commanded")
-        ax.plot(t, np.einsum("ti,ti->t", traj["f_meas"][:, start : start + 3], n), lw=1, label="MuJoCo")
-        ax.set_ylabel(f"{name} f_n [N]")
-        start += dim
-    axes[0].legend(loc="upper right")
-    axes[-1].set_xlabel("time [s]")
-    fig.suptitle(title or "contact normal forces")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    io.atomic_save_figure(path, fig)
 
 
 def joint_torques(traj: dict, joints: list[str], path: pathlib.Path, title: str = "") -> None:
@@ -82,4 +67,4 @@ def joint_torques(traj: dict, joints: list[str], path: pathlib.Path, title: str 
     axes[-1].set_xlabel("time [s]")
     fig.suptitle(title or "joint torques")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    io.atomic_save_figure(path, fig)

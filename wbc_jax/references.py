@@ -13,20 +13,22 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.controller import Reference
-from wbc_jax.types import Array
+from wbc_jax.constants import min_jerk
+from wbc_jax.types import Array, pytree_dataclass
 
 TASKS = ("stand", "sinusoid", "one-foot")
 
 
-def min_jerk(u: Array) -> tuple[Array, Array, Array]:
-    """mj(u), mj'(u), mj''(u) for u clipped to [0, 1]."""
-    inside = (u > 0) & (u < 1)
-    u = jnp.clip(u, 0.0, 1.0)
-    p = u**3 * (10 - 15 * u + 6 * u**2)
-    v = jnp.where(inside, 30 * u**2 * (1 - u) ** 2, 0.0)
-    a = jnp.where(inside, 60 * u * (1 - u) * (1 - 2 * u), 0.0)
-    return p, v, a
+@pytree_dataclass
+class Reference:
+    """References at one tick: com_pos/com_vel/com_acc (3,), s_des (n,), activation (2,) of the
+    feet (the task's contact schedule: left, right)."""
+
+    com_pos: Array
+    com_vel: Array
+    com_acc: Array
+    s_des: Array
+    activation: Array
 
 
 def segments(t: Array, x0: Array, starts, durations, deltas) -> tuple[Array, Array, Array]:
@@ -37,7 +39,7 @@ def segments(t: Array, x0: Array, starts, durations, deltas) -> tuple[Array, Arr
     if len(starts) == 0:
         zero = jnp.zeros_like(x0)
         return x0, zero, zero
-    p, v, a = min_jerk((t - starts) / durations)
+    p, v, a = min_jerk(jnp.asarray((t - starts) / durations, x0.dtype))
     pos = x0 + jnp.einsum("k,kd->d", p, deltas)
     vel = jnp.einsum("k,kd->d", v / durations, deltas)
     acc = jnp.einsum("k,kd->d", a / durations**2, deltas)

@@ -1,31 +1,37 @@
-"""[closed loop] MJX physics at 1 kHz, the controller at 100 Hz, zero-order hold, one ``lax.scan``.
+"""[closed loop] The controller at 100 Hz on a physics backend at 1 kHz, zero-order hold.
 
-``rollout`` is a pure function of (model, initial data, gains, pushes): jit it, vmap it over
-gains, pushes, initial states or model parameters (explicit ``in_axes``), differentiate it.
-This is the only module that writes ``ctrl`` and ``xfrc_applied`` and steps the physics.
-Diverged environments (NaN) are frozen at their last finite state and flagged; a fall is
+A tick is two pure JAX functions around the physics:
+
+    control(gains, state, qpos, qvel, k) -> (state, ctrl, record)     # controller + metrics
+    <physics: n_sub steps with ctrl held and the push applied>        # physics.py
+    measure(record, contact slots) -> record                           # measured wrenches
+
+With an MJX backend (``jax``, ``warp``) the whole horizon is one ``lax.scan`` of ticks: jit it,
+vmap it over scenarios, differentiate it (``jax``). With C MuJoCo (``mujoco``) the ticks run in a
+Python loop: the jitted, vmapped ``control`` and the threaded C physics alternate
+(:meth:`ClosedLoop.run_host`). Both paths compute the controller and the metrics with the same
+code. A diverged environment (NaN) is frozen at its last finite state and flagged; a fall is
 flagged and the simulation goes on, so one bad environment never poisons a batch.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
+import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
-from mujoco.mjx._src import support
 
-from wbc_jax import contacts as contacts_lib
-from wbc_jax import controller as ctrl_lib
-from wbc_jax import dynamics
-from wbc_jax import tasks as tasks_lib
-from wbc_jax.model import Robot, RobotIndex
+from wbc_jax import constants, dynamics, forces, physics
+from wbc_jax.controller import Controller, ControllerState
+from wbc_jax.gains import Gains
+from wbc_jax.math import safe_norm
+from wbc_jax.model import Robot
 from wbc_jax.references import Schedule
 from wbc_jax.types import Array, pytree_dataclass
-
-RECOVERY_THRESHOLD = 0.01  # m: "recovered" = CoM back within 1 cm of its reference
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,35 +39,33 @@ class SimConfig:
     """Static rollout settings.
 
     Attributes:
-      control_dt: controller period (s); physics dt comes from the model (1 ms).
+      control_dt: controller period (s); the physics step comes from the model (1 ms).
       duration: simulated time (s).
-      solver_iterations / ls_iterations: MJX contact solver settings (None: the model's).
       push_body: body the pushes act on (at its CoM, world-axes force).
       record: keep per-tick trajectories (False in large sweeps: metrics only).
-      fall_com_height: a fall is CoM height below this fraction of the initial one.
-      loss_trace: per tick, emit a small :class:`LossTrace` (for smooth, differentiable losses;
-        gain tuning) instead of a Trajectory; exclusive with ``record``.
-      checkpoint: wrap the tick in ``jax.checkpoint`` (reverse mode: the residuals of one tick
-        are recomputed instead of stored for the whole horizon; same values).
+      loss_trace: per tick, emit a small :class:`LossTrace` (smooth, differentiable losses; gain
+        tuning) instead of a Trajectory; exclusive with ``record``.
+      checkpoint: wrap the tick in ``jax.checkpoint`` (reverse mode: the residuals of one tick are
+        recomputed instead of stored for the whole horizon; same values).
+      physics: the physics backend and its solver settings.
+      perturb_plant: the plant's friction and masses differ per environment (sweeps); False: the
+        nominal model is simulated.
     """
 
-    control_dt: float = 0.01
+    control_dt: float = constants.CONTROL_DT
     duration: float = 10.0
-    solver_iterations: int | None = None
-    ls_iterations: int | None = None
     push_body: str = "chest"
     record: bool = True
-    fall_com_height: float = 0.7
     loss_trace: bool = False
     checkpoint: bool = False
+    physics: physics.PhysicsConfig = physics.PhysicsConfig()
+    perturb_plant: bool = False
 
     def __post_init__(self):
-        if not (self.control_dt > 0 and self.duration > 0):
-            raise ValueError(f"control_dt and duration must be positive: {self}")
-        for name in ("solver_iterations", "ls_iterations"):
+        for name in ("control_dt", "duration"):
             value = getattr(self, name)
-            if value is not None and not (isinstance(value, int) and value >= 1):
-                raise ValueError(f"{name} must be a positive integer or None, got {value!r}")
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive finite number of seconds, got {value!r}")
         if self.loss_trace and self.record:
             raise ValueError("loss_trace and record are exclusive (set record=False)")
 
@@ -82,10 +86,25 @@ def no_push(dtype=jnp.float32) -> Push:
     return Push(force=jnp.zeros((1, 3), dtype), onset=jnp.zeros(1, dtype), duration=jnp.zeros(1, dtype))
 
 
-def push_force(push: Push, t: Array) -> Array:
-    """Total push force (3,) at time t."""
+def push_force(push: Push, t) -> Array:
+    """Total push force (3,) at time t (numpy or JAX arrays alike)."""
     on = (t >= push.onset) & (t < push.onset + push.duration)
-    return jnp.sum(push.force * on[:, None], axis=0)
+    return (push.force * on[..., None]).sum(-2)
+
+
+@pytree_dataclass
+class Scenario:
+    """What an environment of a batch varies (a leading batch axis in a sweep).
+
+    push: :class:`Push`; gains: :class:`wbc_jax.gains.Gains`; joint_offset (n,) rad added to the
+    initial posture; friction () floor friction of the plant; mass_scale () of the plant's masses.
+    """
+
+    push: Push
+    gains: Gains
+    joint_offset: Array
+    friction: Array
+    mass_scale: Array
 
 
 @pytree_dataclass
@@ -97,25 +116,38 @@ class Metrics:
     max_abs_torque: Array
     max_violation: Array
     max_slip: Array
+    max_tilt: Array  # rad, of a fully active contact's normal from where it was set down
     qp_infeasible_ticks: Array
     fell: Array
     nan: Array
     last_time_off: Array  # last time the CoM error exceeded RECOVERY_THRESHOLD
     min_com_height: Array
+    end_com_speed: Array  # at the last tick
+    end_support_margin: Array  # CoM xy inside the feet's support polygon (m, < 0: outside)
     ticks: Array
 
 
 @pytree_dataclass
-class Trajectory:
-    """Per-tick record (time-major), when ``SimConfig.record``.
+class LoopState:
+    """Carry of the closed loop besides the physics: controller state, metrics, where each fully
+    active contact was set down (K, 3) and its normal then (K, 3), the initial CoM height."""
 
-    t (T,), qpos (T, nq), com (T, 3), com_ref (T, 3), tau (T, n), f_cmd (T, 12),
-    f_meas (T, 12), Ldot_star (T, 6), Ldot_meas (T, 6), activation (T, 2), feet_pos (T, 2, 3),
-    (with a general contact set of K contacts: f_cmd, f_meas (T, D), activation (T, K), feet_pos
-    (T, K, 3) = the contact points),
-    qp_infeasible (T,), qp_violation (T,), push (T, 3), s (T, n), s_des (T, n),
-    task_err (T, m): the motion tasks' errors stacked in stack order (m = 0 without tasks),
-    contact_normal (T, K, 3): each contact's normal (world; the feet: the soles' z axes).
+    controller: ControllerState
+    metrics: Metrics
+    anchors: Array
+    anchor_normals: Array
+    com0_height: Array
+
+
+@pytree_dataclass
+class Trajectory:
+    """Per-tick record (time-major), when ``SimConfig.record``; K contacts, D wrench rows.
+
+    t (T,), qpos (T, nq), com (T, 3), com_ref (T, 3), tau (T, n), f_cmd (T, D), f_meas (T, D),
+    Ldot_star (T, 6), Ldot_meas (T, 6), activation (T, K), contact_pos (T, K, 3),
+    contact_normal (T, K, 3), qp_infeasible (T,), qp_violation (T,), push (T, 3), s (T, n),
+    s_des (T, n), task_err (T, m): the motion tasks' errors in stack order (m = 0 without tasks).
+    ``f_meas`` is what the simulator applied during the tick's last physics step.
     """
 
     t: Array
@@ -128,14 +160,14 @@ class Trajectory:
     Ldot_star: Array
     Ldot_meas: Array
     activation: Array
-    feet_pos: Array
+    contact_pos: Array
+    contact_normal: Array
     qp_infeasible: Array
     qp_violation: Array
     push: Array
     s: Array
     s_des: Array
     task_err: Array
-    contact_normal: Array
 
 
 @pytree_dataclass
@@ -143,8 +175,8 @@ class LossTrace:
     """Per-tick quantities for smooth losses (time-major under scan), when ``SimConfig.loss_trace``.
 
     com (T, 3), com_ref (T, 3), com_vel (T, 3): CoM, its reference, its velocity (world);
-    tau (T, n): applied torques; support_xy (T, F, 2): xy of the F foot contact geoms (world);
-    com_height0 (T,): the initial CoM height (constant, for height losses).
+    tau (T, n): applied torques; support_xy (T, F, 2): xy of the F support corners (the CoP
+    rectangles' corners of the soles, world); com_height0 (T,): the initial CoM height.
     """
 
     com: Array
@@ -155,251 +187,355 @@ class LossTrace:
     com_height0: Array
 
 
-def _contact_forces(m: mjx.Model, d: mjx.Data):
-    """MJX's contact slots and the force (ncon, 3, world axes) on geom2 of each; zero where apart."""
-    contact = d._impl.contact
-    # efc addresses are static (numpy) in MJX: loop over the (few) contact slots.
-    forces = jnp.stack(
-        [support.contact_force(m, d, i, to_world_frame=True)[:3] for i in range(contact.dist.shape[0])]
-    )
-    return contact, jnp.where((contact.dist <= 0)[:, None], forces, 0.0)
+def support_corners(controller: Controller, contact_pos: Array, contact_R: Array) -> Array:
+    """(4 x feet, 3) corners of the soles' CoP rectangles, world axes."""
+    cset = controller.contact_set
+    corners = []
+    for k in cset.feet:
+        (x0, x1), (y0, y1) = cset.contacts[k].params.foot_size
+        local = jnp.asarray([[x, y, 0.0] for x in (x0, x1) for y in (y0, y1)], contact_pos.dtype)
+        corners.append(contact_pos[k] + local @ contact_R[k].T)
+    return jnp.concatenate(corners)
 
 
-def measured_feet_wrenches(m: mjx.Model, d: mjx.Data, idx: RobotIndex, W_p_feet: Array) -> Array:
-    """Contact wrenches (12,) that MuJoCo applies on [left; right] foot, world axes, at the sole
-    origins (sum over the contact points of each foot)."""
-    contact, forces = _contact_forces(m, d)
-    geom_foot = np.full(m.ngeom, -1)
-    for k in range(2):
-        geom_foot[idx.foot_geoms[k]] = k
-    foot = jnp.asarray(geom_foot)[contact.geom[:, 1]]
-    wrenches = []
-    for k in range(2):
-        sel = (foot == k)[:, None]
-        F = jnp.where(sel, forces, 0.0)
-        moment = jnp.cross(contact.pos - W_p_feet[k], F)
-        wrenches.append(jnp.concatenate([F.sum(0), moment.sum(0)]))
-    return jnp.concatenate(wrenches)
+def polygon_margin(points: Array, p: Array) -> Array:
+    """Signed distance () of p (2,) inside the convex hull of points (N, 2): the smallest distance
+    to a hull edge, negative outside. Hull edges: the ordered pairs with every point on their left."""
+    a = points[:, None, :]
+    b = points[None, :, :]
+    e = b - a  # (N, N, 2)
+    length = jnp.sqrt(jnp.sum(e * e, -1) + 1e-30)
+    normal = jnp.stack([-e[..., 1], e[..., 0]], -1) / length[..., None]  # left normal
+    side = jnp.einsum("ijk,lk->ijl", normal, points) - jnp.einsum("ijk,ijk->ij", normal, a)[..., None]
+    is_edge = (length > 1e-9) & jnp.all(side >= -1e-9, axis=-1)
+    dist = jnp.einsum("ijk,k->ij", normal, p) - jnp.einsum("ijk,ijk->ij", normal, a)
+    return jnp.min(jnp.where(is_edge, dist, jnp.inf))
 
 
-def measured_contact_wrenches(m: mjx.Model, d: mjx.Data, cset, W_p: Array) -> Array:
-    """Contact wrenches (D,) that MuJoCo applies on each contact of a general set (world axes, at
-    the contact points; a point contact: the force only), summed over its collision geoms."""
-    contact, forces = _contact_forces(m, d)
-    owner = np.full(m.ngeom, -1)
-    for k, c in enumerate(cset.contacts):
-        owner[list(c.geoms)] = k
-    # contact_force is the force on geom2; the collision pipeline may order a pair either way
-    # (a sphere on a box comes out as (sphere, box)), so find the robot's side of each contact.
-    owner = jnp.asarray(owner)
-    first, second = owner[contact.geom[:, 0]], owner[contact.geom[:, 1]]
-    who = jnp.maximum(first, second)
-    forces = jnp.where((second >= 0)[:, None], forces, -forces)
-    out = []
-    for k, c in enumerate(cset.contacts):
-        F = jnp.where((who == k)[:, None], forces, 0.0)
-        wrench = jnp.concatenate([F.sum(0), jnp.cross(contact.pos - W_p[k], F).sum(0)])
-        out.append(wrench[: c.dim])
-    return jnp.concatenate(out)
+class ClosedLoop:
+    """The closed loop of one environment, built by :func:`make_closed_loop`.
 
-
-def initial_data(robot: Robot, qpos: np.ndarray | None = None, dtype=None) -> mjx.Data:
-    """MJX data at the home keyframe (or ``qpos``), zero velocity."""
-    qpos = robot.home_qpos() if qpos is None else np.asarray(qpos)
-    if qpos.shape != (robot.index.nq,):
-        raise ValueError(f"qpos must have shape ({robot.index.nq},), got {qpos.shape}")
-    d = mjx.make_data(robot.mj_model)
-    return d.replace(qpos=jnp.asarray(qpos, d.qpos.dtype if dtype is None else dtype))
-
-
-def configure_model(mx: mjx.Model, cfg: SimConfig) -> mjx.Model:
-    """Apply the solver overrides of ``cfg`` to the MJX model."""
-    opt = mx.opt
-    if cfg.solver_iterations is not None:
-        opt = opt.replace(iterations=int(cfg.solver_iterations))
-    if cfg.ls_iterations is not None:
-        opt = opt.replace(ls_iterations=int(cfg.ls_iterations))
-    return mx.replace(opt=opt)
-
-
-class Rollout:
-    """Closed-loop rollout of one environment, built by :func:`make_rollout`.
-
-    ``rollout(mx, d0, gains, consts, push) -> (Metrics, Trajectory | None)`` runs the whole
-    horizon in one ``lax.scan``: jit it, vmap it (e.g. ``in_axes=(None, None, 0, None, 0)``
-    for batches of gains and pushes), differentiate it. ``init`` + ``chunk`` run the same
-    ticks in fixed-size pieces (one compilation) so that long runs can show progress.
-    Static structure (schedule, settings, indices) is closed over.
+    Static structure (robot, schedule, controller, settings) is closed over; every method is pure
+    in its array arguments.
     """
 
-    def __init__(self, robot: Robot, schedule: Schedule, config, cfg: SimConfig, stack=None, contact_set=None):
+    def __init__(self, robot: Robot, schedule: Schedule, controller: Controller, cfg: SimConfig):
         idx = robot.index
-        self.contact_set = contact_set
-        self.stack = stack if stack is not None and stack.tasks else None
+        self.robot, self.idx, self.schedule, self.controller, self.cfg = robot, idx, schedule, controller, cfg
         self.physics_dt = float(robot.mj_model.opt.timestep)
-        n_sub = int(round(cfg.control_dt / self.physics_dt))
-        if n_sub < 1 or abs(n_sub * self.physics_dt - cfg.control_dt) > 1e-9:
-            raise ValueError(
-                f"control_dt {cfg.control_dt} must be a multiple of the physics timestep "
-                f"{self.physics_dt}"
-            )
-        self.n_sub = n_sub
+        self.n_sub = physics.steps_per_tick(cfg.control_dt, self.physics_dt)
         self.n_ticks = int(round(cfg.duration / cfg.control_dt))
+        if self.n_ticks < 1:
+            raise ValueError(f"duration {cfg.duration} s is shorter than one control tick ({cfg.control_dt} s)")
         self.push_body = idx.body_id(cfg.push_body)
         # Bodies that must stay off the floor: all but the feet and the ankle links above them.
-        feet_and_ankles = set(idx.foot_bodies.tolist()) | set(
-            robot.mj_model.body_parentid[idx.foot_bodies].tolist()
-        )
-        self.non_foot_bodies = np.array(
-            [b for b in range(1, robot.mj_model.nbody) if b not in feet_and_ankles]
-        )
-        self.idx, self.schedule, self.config, self.cfg = idx, schedule, config, cfg
+        feet_and_ankles = set(idx.foot_bodies.tolist()) | set(robot.mj_model.body_parentid[idx.foot_bodies].tolist())
+        self.non_foot_bodies = np.array([b for b in range(1, robot.mj_model.nbody) if b not in feet_and_ankles])
+        # The controller's own model: MJX's JAX implementation, whatever steps the plant.
+        self.mx = mjx.put_model(robot.mj_model)
+        self._d_template = mjx.make_data(robot.mj_model)
+        # Gradients (a LossTrace) need MJX's JAX implementation.
+        self.backend = physics.resolve_backend(cfg.physics.backend, differentiable=cfg.loss_trace)
+        if cfg.record and self.backend == "warp":
+            raise ValueError(
+                "the 'warp' physics backend records no measured contact wrenches; record a run with "
+                "--backend jax or mujoco (warp serves batched sweeps)"
+            )
 
-    def init(self, mx, d0):
-        """Initial carry (data, controller state, metrics, foot anchors, initial CoM height)."""
-        mx = configure_model(mx, self.cfg)
-        t0 = dynamics.terms(mx, d0, self.idx)
-        zero = jnp.zeros((), d0.qpos.dtype)
-        anchors = t0.W_p_feet
-        if self.contact_set is not None:
-            ones = jnp.ones(2, d0.qpos.dtype)
-            anchors = contacts_lib.contact_terms(mx, d0, self.idx, self.contact_set, zero, ones).W_p
-        metrics0 = Metrics(
+    @property
+    def contact_set(self):
+        return self.controller.contact_set
+
+    # -- the controller side ------------------------------------------------------------------
+
+    def terms(self, qpos: Array, qvel: Array) -> dynamics.DynamicsTerms:
+        d = self._d_template.replace(qpos=qpos, qvel=jnp.asarray(qvel, qpos.dtype))
+        return dynamics.terms(self.mx, d, self.idx, self.controller.frames)
+
+    def init(self, qpos0: Array) -> LoopState:
+        """Loop state at the initial posture ``qpos0`` (nq,), zero velocity; it is also the
+        controller's postural reference."""
+        dtype = qpos0.dtype
+        t0 = self.terms(qpos0, jnp.zeros(self.idx.nv, dtype))
+        cset = self.contact_set
+        R_bc = jnp.asarray(np.array([c.R_body_contact for c in cset.contacts]).reshape(-1, 3, 3), dtype)
+        K = len(cset.contacts)
+        normals = jnp.einsum("kij,kj->ki", t0.W_R_frames[:K], R_bc[:, :, 2])
+        zero = jnp.zeros((), dtype)
+        metrics = Metrics(
             com_sq_err_sum=zero, com_max_err=zero, max_abs_torque=zero, max_violation=zero,
-            max_slip=zero, qp_infeasible_ticks=jnp.zeros((), jnp.int32),
+            max_slip=zero, max_tilt=zero, qp_infeasible_ticks=jnp.zeros((), jnp.int32),
             fell=jnp.zeros((), bool), nan=jnp.zeros((), bool), last_time_off=zero,
-            min_com_height=t0.W_p_CoM[2], ticks=jnp.zeros((), jnp.int32),
+            min_com_height=t0.W_p_CoM[2], end_com_speed=zero, end_support_margin=zero,
+            ticks=jnp.zeros((), jnp.int32),
         )  # fmt: skip
-        return (d0, ctrl_lib.init_state(d0.qpos.dtype), metrics0, anchors, t0.W_p_CoM[2])
+        return LoopState(
+            controller=self.controller.init(t0), metrics=metrics, anchors=t0.W_p_frames[:K],
+            anchor_normals=normals, com0_height=t0.W_p_CoM[2],
+        )  # fmt: skip
 
-    def _tick(self, mx, gains, consts, push, carry, k, mx_plant=None):
-        idx, cfg, config = self.idx, self.cfg, self.config
-        d, cstate, met, anchors, com0_height = carry
-        dtype = d.qpos.dtype
+    def control(self, gains: Gains, state: LoopState, qpos: Array, qvel: Array, k: Array,
+                physics_ok: Array, push: Push):  # fmt: skip
+        """One control tick at the state (qpos, qvel) of tick ``k``.
+
+        ``physics_ok``: () False when the last physics steps diverged (the state was frozen).
+        Returns ``(state, ctrl (nu,), record)``; record is a :class:`Trajectory` (``f_meas`` and
+        ``Ldot_meas`` still zero), a :class:`LossTrace` or None, by the settings."""
+        cfg, idx = self.cfg, self.idx
+        dtype = qpos.dtype
         t_now = k * cfg.control_dt
-        terms = dynamics.terms(mx, d, idx)
+        terms = self.terms(qpos, qvel)
         ref = self.schedule.at(t_now, dtype)
-        levels, task_err = (), jnp.zeros(0, dtype)
-        if self.stack is not None:
-            frames = dynamics.frame_terms(mx, d, idx, self.stack.bodies, self.stack.offsets)
-            levels = tasks_lib.levels(self.stack, frames, terms, t_now)
-            task_err = jnp.concatenate(list(tasks_lib.task_errors(self.stack, frames, terms, t_now).values()))
-        cset, cterms = self.contact_set, None
-        if cset is not None:
-            cterms = contacts_lib.contact_terms(mx, d, idx, cset, t_now, jnp.clip(ref.activation, 0.0, 1.0))
-        out, cstate_new = ctrl_lib.step(
-            gains, consts, cstate, terms, ref, config=config, mass=idx.mass, dt=cfg.control_dt,
-            levels=levels, contact_set=cset, contacts=cterms,
-        )
-        ctrl = jnp.zeros(mx.nu, dtype).at[idx.actuators].set(out.tau)
+        out, cstate = self.controller.step(gains, state.controller, terms, ref, t_now)
+        ctrl = jnp.zeros(self.robot.mj_model.nu, dtype).at[idx.actuators].set(out.tau)
+        metrics, anchors, normals = self._metrics(state, terms, ref, out, t_now, physics_ok)
+        state = LoopState(controller=cstate, metrics=metrics, anchors=anchors, anchor_normals=normals,
+                          com0_height=state.com0_height)  # fmt: skip
+        record = None
+        if cfg.record:
+            record = Trajectory(
+                t=t_now, qpos=qpos, com=terms.W_p_CoM, com_ref=ref.com_pos, tau=out.tau, f_cmd=out.f,
+                f_meas=jnp.zeros_like(out.f), Ldot_star=out.Ldot_star, Ldot_meas=jnp.zeros(6, dtype),
+                activation=out.activation, contact_pos=out.contact_pos,
+                contact_normal=out.contact_R[:, :, 2], qp_infeasible=out.qp_infeasible,
+                qp_violation=out.qp_violation, push=push_force(push, t_now), s=terms.s, s_des=ref.s_des,
+                task_err=out.task_err,
+            )  # fmt: skip
+        elif cfg.loss_trace:
+            record = LossTrace(
+                com=terms.W_p_CoM, com_ref=ref.com_pos, com_vel=terms.W_v_CoM, tau=out.tau,
+                support_xy=support_corners(self.controller, out.contact_pos, out.contact_R)[:, :2],
+                com_height0=state.com0_height,
+            )  # fmt: skip
+        return state, ctrl, record
 
-        def substep(dd, j):
-            t = t_now + j * self.physics_dt
-            xfrc = jnp.zeros((mx.nbody, 6), dtype).at[self.push_body, :3].set(push_force(push, t))
-            plant = mx if mx_plant is None else mx_plant
-            return mjx.step(plant, dd.replace(ctrl=ctrl, xfrc_applied=xfrc)), None
-
-        d_new, _ = jax.lax.scan(substep, d, jnp.arange(self.n_sub))
-        finite = jnp.all(jnp.isfinite(d_new.qpos)) & jnp.all(jnp.isfinite(d_new.qvel))
-        d_new = jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), d_new, d)
-
-        # Metrics, measured at the tick (the state this tick's torques were computed from).
+    def _metrics(self, state: LoopState, terms, ref, out, t_now, physics_ok):
+        # Evaluation only: no gradient flows through the metrics (tuning uses a LossTrace).
+        terms, ref, out = jax.lax.stop_gradient((terms, ref, out))
+        met = state.metrics
         com_err = jnp.linalg.norm(terms.W_p_CoM - ref.com_pos)
-        activation, contact_pos = ref.activation, terms.W_p_feet
-        if cset is not None:
-            activation, contact_pos = cterms.activation, cterms.W_p
-        fully_active = activation >= 1.0
-        anchors = jnp.where(fully_active[:, None], anchors, contact_pos)
-        # Slip: displacement of each fully active contact (tangential to its surface).
-        dp = contact_pos - anchors
-        if cset is not None:
-            dp = dp - jnp.einsum("ki,ki->k", dp, cterms.W_R[:, :, 2])[:, None] * cterms.W_R[:, :, 2]
-        slip_k = jnp.linalg.norm(dp[:, :2] if cset is None else dp, axis=1)
-        slip = jnp.max(jnp.where(fully_active, slip_k, 0.0))
-        # d_new.xpos: kinematics of the last substep (d0 from make_data has none yet).
-        body_low = jnp.min(d_new.xpos[self.non_foot_bodies, 2]) < 0.05
-        fell = met.fell | (terms.W_p_CoM[2] < cfg.fall_com_height * com0_height) | body_low
-        met = Metrics(
+        normal = out.contact_R[:, :, 2]
+        fully_active = out.activation >= 1.0
+        anchors = jnp.where(fully_active[:, None], state.anchors, out.contact_pos)
+        anchor_normals = jnp.where(fully_active[:, None], state.anchor_normals, normal)
+        # Slip: displacement of each fully active contact, tangential to its surface.
+        dp = out.contact_pos - anchors
+        dp = dp - jnp.einsum("ki,ki->k", dp, normal)[:, None] * normal
+        slip = jnp.max(jnp.where(fully_active, safe_norm(dp), 0.0))
+        tilt_k = jnp.arctan2(safe_norm(jnp.cross(normal, anchor_normals)), jnp.einsum("ki,ki->k", normal, anchor_normals))
+        tilt = jnp.max(jnp.where(fully_active, tilt_k, 0.0))
+        body_low = jnp.min(terms.xpos[self.non_foot_bodies, 2]) < constants.BODY_FLOOR_HEIGHT
+        fell = met.fell | (terms.W_p_CoM[2] < constants.FALL_COM_HEIGHT * state.com0_height) | body_low
+        corners = support_corners(self.controller, out.contact_pos, out.contact_R)
+        margin = polygon_margin(corners[:, :2], terms.W_p_CoM[:2])
+        finite = jnp.all(jnp.isfinite(out.tau)) & physics_ok
+        metrics = Metrics(
             com_sq_err_sum=met.com_sq_err_sum + com_err**2,
             com_max_err=jnp.maximum(met.com_max_err, com_err),
             max_abs_torque=jnp.maximum(met.max_abs_torque, jnp.max(jnp.abs(out.tau))),
             max_violation=jnp.maximum(met.max_violation, out.qp_violation),
             max_slip=jnp.maximum(met.max_slip, slip),
+            max_tilt=jnp.maximum(met.max_tilt, tilt),
             qp_infeasible_ticks=met.qp_infeasible_ticks + out.qp_infeasible.astype(jnp.int32),
             fell=fell,
-            nan=met.nan | ~finite | ~jnp.all(jnp.isfinite(out.tau)),
-            last_time_off=jnp.where(com_err > RECOVERY_THRESHOLD, t_now, met.last_time_off),
+            nan=met.nan | ~finite,
+            last_time_off=jnp.where(com_err > constants.RECOVERY_THRESHOLD, t_now, met.last_time_off),
             min_com_height=jnp.minimum(met.min_com_height, terms.W_p_CoM[2]),
+            end_com_speed=jnp.linalg.norm(terms.W_v_CoM),
+            end_support_margin=margin,
             ticks=met.ticks + 1,
         )
-        record = None
-        if cfg.record:
-            # Contact forces that the solver applied during this tick's last physics step.
-            if cset is None:
-                f_meas = measured_feet_wrenches(mx, d_new, idx, terms.W_p_feet)
-                A = ctrl_lib.momentum.wrench_map(terms.W_p_feet, terms.W_p_CoM)
-            else:
-                f_meas = measured_contact_wrenches(mx, d_new, cset, cterms.W_p)
-                A = contacts_lib.wrench_map(cset, cterms.W_p, terms.W_p_CoM)
-            record = Trajectory(
-                t=t_now, qpos=d.qpos, com=terms.W_p_CoM, com_ref=ref.com_pos, tau=out.tau,
-                f_cmd=out.f, f_meas=f_meas, Ldot_star=out.Ldot_star,
-                Ldot_meas=A @ f_meas + ctrl_lib.momentum.gravity_wrench(idx.mass, dtype),
-                activation=activation, feet_pos=contact_pos,
-                qp_infeasible=out.qp_infeasible, qp_violation=out.qp_violation,
-                push=push_force(push, t_now), s=terms.s, s_des=ref.s_des, task_err=task_err,
-                contact_normal=(terms.W_R_feet if cset is None else cterms.W_R)[:, :, 2],
-            )  # fmt: skip
-        elif cfg.loss_trace:
-            record = LossTrace(
-                com=terms.W_p_CoM, com_ref=ref.com_pos, com_vel=terms.W_v_CoM, tau=out.tau,
-                support_xy=d_new.geom_xpos[np.asarray(idx.foot_geoms).ravel(), :2],
-                com_height0=com0_height,
-            )  # fmt: skip
-        return (d_new, cstate_new, met, anchors, com0_height), record
+        return metrics, anchors, anchor_normals
 
-    def chunk(self, mx, gains, consts, push, carry, k0, n_ticks: int, mx_plant=None):
-        """Run ``n_ticks`` (static) ticks from tick ``k0`` (traced): (carry, Trajectory | None).
+    def xfrc(self, push: Push, k, xp=jnp):
+        """(n_sub, nbody, 6) body wrenches of the physics steps of tick k (the push at its body)."""
+        t = k * self.cfg.control_dt + self.physics_dt * xp.arange(self.n_sub)
+        force = jax.vmap(lambda s: push_force(push, s))(t) if xp is jnp else np.stack([push_force(push, s) for s in t])
+        out = xp.zeros((self.n_sub, self.robot.mj_model.nbody, 6), force.dtype)
+        if xp is jnp:
+            return out.at[:, self.push_body, :3].set(force)
+        out[:, self.push_body, :3] = force
+        return out
 
-        ``mx`` is the controller's model; ``mx_plant`` (default: the same) is simulated, so a
-        sweep can perturb the plant (mass, friction) while the controller keeps the nominal one.
-        """
-        mx = configure_model(mx, self.cfg)
-        plant = None if mx_plant is None else configure_model(mx_plant, self.cfg)
-        body = lambda c, k: self._tick(mx, gains, consts, push, c, k, plant)  # noqa: E731
+    def measure(self, record, contact_pos, contact_force, contact_geom):
+        """Fill the measured wrenches of a Trajectory record from the contact slots after the
+        tick's physics (:func:`wbc_jax.physics.contacts`)."""
+        cset = self.contact_set
+        dtype = record.f_cmd.dtype
+        f_meas = forces.measured_wrenches(
+            cset, contact_pos.astype(dtype), contact_force.astype(dtype), contact_geom,
+            self.robot.mj_model.ngeom, record.contact_pos,
+        )  # fmt: skip
+        A = forces.wrench_map(cset, record.contact_pos, record.com)
+        return record.replace(f_meas=f_meas, Ldot_meas=A @ f_meas + forces.gravity_wrench(self.idx.mass, dtype))
+
+    # -- MJX backends: the whole loop in XLA --------------------------------------------------
+
+    def initial_qpos(self, qpos0: Array, joint_offset: Array) -> Array:
+        return qpos0.at[self.idx.qpos_joints].add(joint_offset.astype(qpos0.dtype))
+
+    def start(self, qpos: Array):
+        """Initial carry (physics data, loop state, physics_ok) of an MJX backend at ``qpos``."""
+        d = physics.device_data(self.robot.mj_model, self.backend, self.cfg.physics, qpos, qpos.dtype)
+        return d, self.init(qpos), jnp.ones((), bool)
+
+    def chunk(self, plant: mjx.Model, gains: Gains, push: Push, carry, k0, n_ticks: int):
+        """Run ``n_ticks`` (static) ticks from tick ``k0`` (traced) on an MJX backend:
+        (carry, records with a leading time axis or None)."""
+        def tick(carry, k):
+            d, state, ok = carry
+            state, ctrl, record = self.control(gains, state, d.qpos, d.qvel, k, ok, push)
+            xfrc = self.xfrc(push, k).astype(d.qpos.dtype)
+            d_new, _ = jax.lax.scan(lambda dd, x: (physics.step(plant, dd, ctrl, x), None), d, xfrc)
+            finite = jnp.all(jnp.isfinite(d_new.qpos)) & jnp.all(jnp.isfinite(d_new.qvel))
+            d_new = jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), d_new, d)
+            if self.cfg.record:
+                record = self.measure(record, *physics.contacts(plant, d_new))
+            return (d_new, state, finite), record
+
         if self.cfg.checkpoint:
-            body = jax.checkpoint(body)
-        return jax.lax.scan(body, carry, k0 + jnp.arange(n_ticks))
+            tick = jax.checkpoint(tick)
+        return jax.lax.scan(tick, carry, k0 + jnp.arange(n_ticks))
 
-    def __call__(self, mx, d0, gains, consts, push, mx_plant=None):
-        carry0 = self.init(mx, d0)
-        carry, traj = self.chunk(mx, gains, consts, push, carry0, 0, self.n_ticks, mx_plant)
-        return carry[2], traj
+    def rollout(self, plant: mjx.Model, qpos0: Array, gains: Gains, push: Push, controller_overrides=None):
+        """The whole horizon on an MJX backend: (Metrics, records or None). ``plant``: the MJX model
+        simulated (:func:`wbc_jax.physics.plant_model` of the nominal one for a perturbed plant).
+        ``controller_overrides``: fields of the controller state to replace (regularisation as
+        differentiable arrays, gain tuning's gradient check)."""
+        d, state, ok = self.start(qpos0)
+        if controller_overrides:
+            state = state.replace(controller=state.controller.replace(**controller_overrides))
+        carry = (d, state, ok)
+        (d, state, ok), records = self.chunk(plant, gains, push, carry, 0, self.n_ticks)
+        return _final_metrics(state, ok), records
 
 
-def make_rollout(robot: Robot, schedule: Schedule, config, cfg: SimConfig, stack=None, contact_set=None) -> Rollout:
-    """Build the closed-loop :class:`Rollout` of one environment (see its docstring).
+    # -- C MuJoCo: ticks in a Python loop -----------------------------------------------------
 
-    ``stack``: an optional resolved :class:`wbc_jax.tasks.TaskStack` of motion tasks between the
-    force task and the postural task. ``contact_set``: an optional
-    :class:`wbc_jax.contacts.ContactSet` (with ``robot`` its scene, :func:`wbc_jax.contacts.build_scene`)
-    instead of the two feet."""
-    return Rollout(robot, schedule, config, cfg, stack, contact_set)
+    def run_host(self, scen: Scenario, qpos0: np.ndarray, dtype, *, on_tick=None, threads: int | None = None):
+        """Every tick of a batch of B environments on C MuJoCo (``mujoco`` backend).
+
+        Args:
+          scen: Scenario with a leading batch axis B (numpy or JAX arrays).
+          qpos0: (nq,) nominal initial posture (each env adds its joint offset).
+          dtype: the controller's float dtype.
+          on_tick: called with the number of ticks done (progress bars).
+          threads: C MuJoCo worker threads (None: all cores).
+
+        Returns:
+          (Metrics with a batch axis, records with axes (B, T, ...) or None, seconds compiling).
+        """
+        scen = jax.tree_util.tree_map(np.asarray, scen)
+        B = int(scen.friction.shape[0])
+        base = physics.solver_mj_model(self.robot.mj_model, self.cfg.physics)
+        if self.cfg.perturb_plant:
+            models = [physics.plant_mj_model(base, float(f), float(s)) for f, s in zip(scen.friction, scen.mass_scale, strict=True)]
+        else:
+            models = base
+        qpos = np.asarray(qpos0, float)[None].repeat(B, 0)
+        qpos[:, self.idx.qpos_joints] += scen.joint_offset
+        cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
+        gains = jax.tree_util.tree_map(cast, scen.gains)
+        push = jax.tree_util.tree_map(cast, scen.push)
+        fns, compile_s = self._host_programs(gains, cast(qpos), push)
+        state = fns["init"](cast(qpos))
+        host = physics.HostBatch(models, qpos, threads)
+        ok = np.ones(B, bool)
+        records = []
+        n_con = physics.max_contacts(self.robot.mj_model)
+        try:
+            for k in range(self.n_ticks):
+                q, v = host.state()
+                state, ctrl, record = fns["control"](gains, state, cast(q), cast(v), np.int32(k), ok, push)
+                host.step(np.asarray(ctrl, float), self._host_xfrc(scen.push, k))
+                ok = ~host.diverged
+                if self.cfg.record:
+                    records.append(fns["measure"](record, *host.contacts(n_con)))
+                if on_tick is not None:
+                    on_tick(k + 1)
+        finally:
+            host.close()
+        metrics = state.metrics.replace(nan=state.metrics.nan | jnp.asarray(host.diverged))
+        if not records:
+            return metrics, None, compile_s
+        stacked = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs], axis=1), *records)
+        return metrics, stacked, compile_s
+
+    def _host_xfrc(self, push, k: int) -> np.ndarray:
+        """(B, n_sub, nbody, 6) body wrenches of tick k for a batch of pushes (numpy)."""
+        t = k * self.cfg.control_dt + self.physics_dt * np.arange(self.n_sub)  # (S,)
+        on = (t[None, :, None] >= push.onset[:, None, :]) & (t[None, :, None] < (push.onset + push.duration)[:, None, :])
+        force = np.einsum("bsp,bpi->bsi", on.astype(float), push.force)  # (B, S, 3)
+        out = np.zeros((force.shape[0], self.n_sub, self.robot.mj_model.nbody, 6))
+        out[:, :, self.push_body, :3] = force
+        return out
+
+    def _host_programs(self, gains, qpos, push):
+        """The compiled, vmapped init, control and measure of the host loop for this batch shape
+        (compiled once per loop and shape): (programs, seconds spent compiling now)."""
+        cache = self.__dict__.setdefault("_host_cache", {})
+        key = (qpos.shape, str(qpos.dtype))
+        if key in cache:
+            return cache[key], 0.0
+        t0 = time.perf_counter()
+        B = qpos.shape[0]
+        init = jax.jit(jax.vmap(self.init))
+        state = jax.eval_shape(init, qpos)
+        control = jax.jit(jax.vmap(self.control, in_axes=(0, 0, 0, 0, None, 0, 0)))
+        ok = np.ones(B, bool)
+        programs = {"init": init.lower(qpos).compile(),
+                    "control": control.lower(gains, state, qpos, qpos[:, : self.idx.nv], np.int32(0), ok, push).compile()}
+        if self.cfg.record:
+            _, _, record = jax.eval_shape(control, gains, state, qpos, qpos[:, : self.idx.nv], np.int32(0), ok, push)
+            n_con = physics.max_contacts(self.robot.mj_model)
+            programs["measure"] = jax.jit(jax.vmap(self.measure)).lower(
+                record, np.zeros((B, n_con, 3)), np.zeros((B, n_con, 3)), np.zeros((B, n_con, 2), np.int64)
+            ).compile()
+        cache[key] = programs
+        return programs, time.perf_counter() - t0
+
+def _final_metrics(state: LoopState, ok) -> Metrics:
+    return state.metrics.replace(nan=state.metrics.nan | ~ok)
+
+
+def make_closed_loop(robot: Robot, schedule: Schedule, controller: Controller, cfg: SimConfig) -> ClosedLoop:
+    """Build the :class:`ClosedLoop` of one environment (see its docstring)."""
+    return ClosedLoop(robot, schedule, controller, cfg)
 
 
 def summarize(metrics: Metrics, push_end: float = 0.0) -> dict:
-    """Host-side summary of (unbatched) metrics as plain floats."""
+    """Host-side summary of metrics under :data:`wbc_jax.constants.METRIC_NAMES`: plain numbers
+    for one environment, numpy columns for a batch. ``survived`` is the strict criterion of
+    :data:`wbc_jax.constants.SURVIVAL_CRITERION`; ``upright`` the lax one (no fall, no NaN)."""
     m = jax.tree_util.tree_map(np.asarray, metrics)
-    ticks = max(int(m.ticks), 1)
-    return {
-        "fell": bool(m.fell),
-        "nan": bool(m.nan),
-        "com_rmse_m": float(np.sqrt(m.com_sq_err_sum / ticks)),
-        "com_max_err_m": float(m.com_max_err),
-        "max_constraint_violation": float(m.max_violation),
-        "max_foot_slip_m": float(m.max_slip),
-        "max_abs_torque_nm": float(m.max_abs_torque),
-        "qp_infeasible_ticks": int(m.qp_infeasible_ticks),
-        "time_to_recover_s": float(max(0.0, float(m.last_time_off) - push_end)),
-        "min_com_height_m": float(m.min_com_height),
+    ticks = np.maximum(m.ticks, 1)
+    upright = ~m.fell & ~m.nan
+    tilt_deg = np.rad2deg(m.max_tilt)
+    survived = (
+        upright
+        & (m.max_slip <= constants.SURVIVAL_MAX_SLIP_M)
+        & (tilt_deg <= constants.SURVIVAL_MAX_TILT_DEG)
+        & (m.end_com_speed <= constants.SURVIVAL_END_COM_SPEED)
+        & (m.end_support_margin >= 0)
+    )
+    cols = {
+        "survived": survived,
+        "upright": upright,
+        "fell": m.fell,
+        "nan": m.nan,
+        "com_rmse_m": np.sqrt(m.com_sq_err_sum / ticks),
+        "com_max_err_m": m.com_max_err,
+        "max_constraint_violation": m.max_violation,
+        "max_foot_slip_m": m.max_slip,
+        "max_foot_tilt_deg": tilt_deg,
+        "max_abs_torque_nm": m.max_abs_torque,
+        "qp_infeasible_ticks": m.qp_infeasible_ticks,
+        "time_to_recover_s": np.where(upright, np.maximum(m.last_time_off - push_end, 0.0), np.nan),
+        "min_com_height_m": m.min_com_height,
+        "end_com_speed_mps": m.end_com_speed,
+        "end_com_support_margin_m": m.end_support_margin,
     }
+    assert tuple(cols) == constants.METRIC_NAMES
+    if np.ndim(m.ticks) == 0:
+        return {k: (v.item() if isinstance(v, np.ndarray) else v) for k, v in cols.items()}
+    return cols

@@ -1,91 +1,135 @@
-"""[experiments] Batched push-recovery sweeps: scenarios -> vmapped, sharded rollouts -> table.
+"""[experiments] Batched push-recovery sweeps: scenarios -> batched closed loops -> table.
 
 A scenario per environment: one push on a body (azimuth, elevation, magnitude, duration, onset),
-a gain set, initial joint noise, floor friction and a mass scale of the plant. The batch is a
-pytree with a leading axis; it is split into chunks (each written atomically to a Parquet part,
-so a run larger than memory resumes where it stopped) and each chunk is sharded over a
-``jax.sharding.Mesh`` of all local devices along the batch axis (one CPU, one GPU or many;
-multi-host: call ``jax.distributed.initialize()`` first and the same code shards over the global
-mesh).
+a gain set, initial joint noise, floor friction and a mass scale of the plant. The batch is
+split into chunks of one compiled shape, each written atomically to a Parquet part listed in the
+run's manifest, so a run larger than memory resumes where it stopped; each chunk runs on the
+setup's physics backend (MJX: sharded over a ``jax.sharding.Mesh`` of all devices along the batch
+axis; multi-host: call ``jax.distributed.initialize()`` first and the same code shards over the
+global mesh. C MuJoCo: the jitted controller and threaded C physics).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import math
 import pathlib
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from wbc_jax import balance, io
-from wbc_jax import controller as ctrl_lib
+from wbc_jax import constants, io, physics, runs, scenario
 from wbc_jax import model as model_lib
 from wbc_jax import rollout as rollout_lib
-from wbc_jax.types import Array, pytree_dataclass
-
+from wbc_jax.controller import FORCE_MODES, ControllerConfig
+from wbc_jax.gains import Gains, default_gains, gains_from_dict, gains_to_dict, load_gains, validate_gains
+from wbc_jax.rollout import Push, Scenario
+from wbc_jax.torques import POSTURAL_VARIANTS
+from wbc_jax.types import option
 
 SWEEP_TASKS = ("stand", "one-foot")
 # The one-foot task (references.make_schedule) balances on the left foot from 7 to 9 s.
 ONE_FOOT_WINDOW = (7.0, 9.0)
 SUPPORTS = ("two-feet", "left-foot")
+MAX_ENVS = 50_000_000  # a grid larger than this is a typo (its scenarios alone fill the memory)
+
+
+def _grid(values) -> tuple[float, ...]:
+    """``--magnitudes LO HI N``: N evenly spaced values (N a whole number >= 1)."""
+    lo, hi, n = (float(v) for v in values)
+    if not (math.isfinite(lo) and math.isfinite(hi) and math.isfinite(n)):
+        raise ValueError(f"--magnitudes LO HI N needs finite numbers, got {list(values)}")
+    if n != int(n) or n < 1:
+        raise ValueError(f"--magnitudes LO HI N: N must be a whole number >= 1, got {n:g}")
+    return tuple(float(x) for x in np.linspace(lo, hi, int(n)))
+
+
+def _show_grid(values) -> tuple:
+    values = np.asarray(values, float)
+    return (values[0], values[-1], len(values))
+
+
+def _azimuths(count) -> tuple[float, ...]:
+    """``--directions N``: N azimuths evenly spread over 360 deg from 0 (forward)."""
+    n = float(count)
+    if n != int(n) or n < 1:
+        raise ValueError(f"--directions must be a whole number >= 1, got {count}")
+    return tuple(float(x) for x in np.arange(int(n)) * 360.0 / int(n))
 
 
 @dataclasses.dataclass(frozen=True)
 class SweepConfig:
-    """What a sweep covers (all sizes small by default: a laptop CPU in a few minutes).
+    """What a sweep covers; the defaults are the README's main job (a laptop CPU in a minute).
+    The CLI flags of ``wbc-jax push-sweep`` are generated from these fields."""
 
-    Attributes:
-      magnitudes: push forces (N). directions: azimuths (deg, 0 = +x forward, 90 = +y left).
-      elevation: push elevation (deg). push_duration / push_onset: s. body: pushed body.
-      gain_sets: number of gain sets (the first is the default; others scale it, seeded).
-      gain_scale_range: log-uniform range of the per-group scale of the extra gain sets.
-      joint_noise: std (rad) of the initial joint offsets. friction: floor friction range.
-      mass_scale: range of the plant's mass scaling. horizon: s. task: balance task.
-      forces / postural: controller variants. seed: RNG seed. chunk_size: envs per chunk.
-      tasks_file: motion-task stack (JSON/YAML, as ``wbc-jax balance --tasks``); None: none.
-    """
+    magnitudes: tuple[float, ...] = option(
+        (20.0, 60.0, 100.0), "push force grid [N]: LO HI N", nargs=3, metavar=("LO", "HI", "N"),
+        parse=_grid, show=_show_grid,
+    )  # fmt: skip
+    directions: tuple[float, ...] = option(
+        (0.0, 90.0, 180.0, 270.0), "number of push azimuths over 360 deg (0 = forward, 90 = left)",
+        metavar="N", parse=_azimuths, show=len,
+    )  # fmt: skip
+    elevation: float = option(0.0, "push elevation [deg]")
+    push_duration: float = option(0.1, "push length [s]")
+    push_onset: float = option(0.5, "push start [s]")
+    body: str = option("chest", "pushed body")
+    gains: str | None = option(None, "gains JSON file (the first gain set)", metavar="FILE")
+    gain_sets: int = option(1, "gain sets: the first, then seeded log-uniform scalings of it")
+    gain_scale_range: tuple[float, float] = option((0.5, 2.0), "range of those scalings", nargs=2)
+    joint_noise: float = option(0.0, "initial joint noise std [rad]")
+    friction: tuple[float, float] = option((1.0, 1.0), "floor friction range", nargs=2, metavar=("LO", "HI"))
+    mass_scale: tuple[float, float] = option((1.0, 1.0), "plant mass scale range", nargs=2, metavar=("LO", "HI"))
+    horizon: float = option(1.5, "seconds per rollout")
+    task: str = option(
+        "stand", "two feet (stand) or pushed in the single-support phase of the one-foot task "
+        "(7-9 s: e.g. --push-onset 7.5 --horizon 9)", choices=SWEEP_TASKS,
+    )  # fmt: skip
+    forces: str = option("qp", "force distribution", choices=FORCE_MODES)
+    postural: str = option("stable", "postural task variant", choices=POSTURAL_VARIANTS)
+    solver_iterations: int | None = option(None, "contact solver Newton iterations (default: the model's, 4)")
+    seed: int = option(0, "seed of the random perturbations")
+    tasks: str | None = option(None, "task/contact file (JSON/YAML), as balance --tasks", metavar="FILE")
+    chunk_size: int = option(12, "environments per compiled batch")
+    backend: str = option("auto", "physics engine (auto: C MuJoCo on a CPU, MJX-Warp/JAX on a GPU)",
+                          choices=physics.BACKENDS)  # fmt: skip
+    out: str = option("runs/push_sweep", "output folder (a sweep resumes there)")
 
-    magnitudes: tuple[float, ...] = (20.0, 40.0, 60.0, 80.0, 100.0, 120.0)
-    directions: tuple[float, ...] = (0.0, 45.0, 90.0, 135.0, 180.0, 225.0, 270.0, 315.0)
-    elevation: float = 0.0
-    push_duration: float = 0.1
-    push_onset: float = 0.5
-    body: str = "chest"
-    gain_sets: int = 1
-    gain_scale_range: tuple[float, float] = (0.5, 2.0)
-    joint_noise: float = 0.0
-    friction: tuple[float, float] = (1.0, 1.0)
-    mass_scale: tuple[float, float] = (1.0, 1.0)
-    horizon: float = 2.0
-    task: str = "stand"
-    forces: str = "qp"
-    postural: str = "stable"
-    seed: int = 0
-    chunk_size: int = 64
-    solver_iterations: int | None = None
-    tasks_file: str | None = None
-
-    def __post_init__(self):
-        if not self.magnitudes or not self.directions or self.gain_sets < 1:
-            raise ValueError("the grid is empty: give at least one magnitude, direction, gain set")
+    def check(self) -> None:
+        """Every check that needs no model or compilation (run first, before any file is written)."""
+        if not self.magnitudes or not self.directions:
+            raise ValueError("the grid is empty: give at least one magnitude and one direction")
         if any(not math.isfinite(m) or m < 0 for m in self.magnitudes):
-            raise ValueError(f"push magnitudes must be finite and >= 0, got {self.magnitudes}")
-        for name in ("push_duration", "push_onset", "horizon", "joint_noise"):
+            raise ValueError(f"--magnitudes: push forces must be finite and >= 0 N, got {list(self.magnitudes)}")
+        if any(not math.isfinite(d) for d in self.directions):
+            raise ValueError(f"--directions: azimuths must be finite, got {list(self.directions)}")
+        for name in ("elevation", "push_duration", "push_onset", "horizon", "joint_noise"):
             value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} must be finite and >= 0, got {value}")
+            if not (isinstance(value, (int, float)) and math.isfinite(value)):
+                raise ValueError(f"--{name.replace('_', '-')} must be a finite number, got {value!r}")
+            if name != "elevation" and value < 0:
+                raise ValueError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
         if self.horizon <= self.push_onset + self.push_duration:
-            raise ValueError("horizon must end after the push")
-        if self.chunk_size < 1:
-            raise ValueError(f"chunk_size must be >= 1, got {self.chunk_size}")
-        if self.tasks_file is not None and not pathlib.Path(self.tasks_file).exists():
-            raise FileNotFoundError(f"task file {self.tasks_file} does not exist")
+            raise ValueError(
+                f"--horizon {self.horizon} s must end after the push ({self.push_onset} + {self.push_duration} s)"
+            )
+        for name in ("gain_sets", "chunk_size"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"--{name.replace('_', '-')} must be a whole number >= 1, got {value!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"--seed must be a whole number >= 0, got {self.seed!r}")
+        if self.size > MAX_ENVS:
+            raise ValueError(f"the grid has {self.size:,} environments, more than {MAX_ENVS:,}; use a coarser grid")
+        for name, path in (("tasks", self.tasks), ("gains", self.gains)):
+            if path is not None:
+                p = pathlib.Path(path)
+                if not p.exists():
+                    raise FileNotFoundError(f"--{name} file {p} does not exist")
+                if not p.is_file():
+                    raise ValueError(f"--{name} {p} is not a file (a directory?)")
         if self.task not in SWEEP_TASKS:
             raise ValueError(f"unknown sweep task {self.task!r}; valid: {list(SWEEP_TASKS)}")
         if self.task == "one-foot":
@@ -96,75 +140,52 @@ class SweepConfig:
                     f"one-foot task: push onset {self.push_onset} s + duration "
                     f"{self.push_duration} s is outside it (e.g. --push-onset 7.5 --horizon 9)"
                 )
-        lo, hi = self.friction
-        if not 0 < lo <= hi:
-            raise ValueError(f"friction range must be positive and ordered, got {self.friction}")
-        lo, hi = self.mass_scale
-        if not 0 < lo <= hi:
-            raise ValueError(f"mass_scale range must be positive and ordered, got {self.mass_scale}")
+        for name in ("friction", "mass_scale", "gain_scale_range"):
+            lo, hi = getattr(self, name)
+            if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
+                raise ValueError(f"--{name.replace('_', '-')} range must be positive and ordered, got {(lo, hi)}")
+        ControllerConfig(forces=self.forces, postural=self.postural)
+        physics.PhysicsConfig(backend=self.backend, solver_iterations=self.solver_iterations)
 
     @property
     def size(self) -> int:
         return len(self.magnitudes) * len(self.directions) * self.gain_sets
 
-    def key(self) -> str:
-        """Hash of the sweep definition (resuming is refused if it changed), task file included."""
-        definition = dataclasses.asdict(self)
-        if self.tasks_file is not None:
-            definition["tasks_file"] = pathlib.Path(self.tasks_file).read_text()
-        return hashlib.sha256(json.dumps(definition, sort_keys=True).encode()).hexdigest()[:16]
+    @property
+    def perturbs_plant(self) -> bool:
+        return self.friction != (1.0, 1.0) or self.mass_scale != (1.0, 1.0)
 
 
-@pytree_dataclass
-class Scenario:
-    """One environment's scenario (a leading batch axis in a sweep).
-
-    push: :class:`rollout.Push` with one push; gains: :class:`controller.Gains`;
-    joint_offset (n,) rad; friction (); mass_scale ().
-    """
-
-    push: rollout_lib.Push
-    gains: ctrl_lib.Gains
-    joint_offset: Array
-    friction: Array
-    mass_scale: Array
+def default_config() -> SweepConfig:
+    return SweepConfig()
 
 
-def gain_sets(base: ctrl_lib.Gains, count: int, scale_range, rng: np.random.Generator) -> list:
+def gain_sets(base: Gains, count: int, scale_range, rng: np.random.Generator) -> list:
     """``count`` gain sets: the base one, then per-group log-uniform scalings of it."""
     sets = [base]
     lo, hi = np.log(scale_range[0]), np.log(scale_range[1])
     for _ in range(count - 1):
-        scaled = {
-            name: np.asarray(getattr(base, name)) * np.exp(rng.uniform(lo, hi))
-            for name in ctrl_lib.GAIN_FIELDS
-        }
-        sets.append(ctrl_lib.Gains(**scaled))
+        scaled = {name: np.asarray(getattr(base, name)) * np.exp(rng.uniform(lo, hi)) for name in constants.GAIN_FIELDS}
+        sets.append(Gains(**scaled))
     return sets
 
 
-def build_scenarios(cfg: SweepConfig, base_gains: ctrl_lib.Gains, n: int, dtype=np.float32):
+def build_scenarios(cfg: SweepConfig, base_gains: Gains, n: int, dtype=np.float32):
     """The full grid magnitude x direction x gain set, with seeded random perturbations.
 
     Returns (Scenario with a leading axis of size cfg.size, dict of numpy columns)."""
     rng = np.random.default_rng(cfg.seed)
     sets = gain_sets(base_gains, cfg.gain_sets, cfg.gain_scale_range, rng)
     mag, azi, gset = np.meshgrid(
-        np.asarray(cfg.magnitudes, float), np.asarray(cfg.directions, float),
-        np.arange(cfg.gain_sets), indexing="ij",
-    )  # fmt: skip
+        np.asarray(cfg.magnitudes, float), np.asarray(cfg.directions, float), np.arange(cfg.gain_sets), indexing="ij"
+    )
     mag, azi, gset = mag.ravel(), azi.ravel(), gset.ravel()
     B = mag.size
     el = np.deg2rad(cfg.elevation)
     direction = np.stack(
-        [np.cos(np.deg2rad(azi)) * np.cos(el), np.sin(np.deg2rad(azi)) * np.cos(el),
-         np.full(B, np.sin(el))], axis=1,
-    )  # fmt: skip
-    force = mag[:, None] * direction
-    stacked = {
-        name: np.stack([np.asarray(sets[g].__getattribute__(name)) for g in gset])
-        for name in ctrl_lib.GAIN_FIELDS
-    }
+        [np.cos(np.deg2rad(azi)) * np.cos(el), np.sin(np.deg2rad(azi)) * np.cos(el), np.full(B, np.sin(el))], axis=1
+    )
+    stacked = {name: np.stack([np.asarray(getattr(sets[g], name)) for g in gset]) for name in constants.GAIN_FIELDS}
     columns = {
         "magnitude_n": mag,
         "azimuth_deg": azi,
@@ -176,12 +197,12 @@ def build_scenarios(cfg: SweepConfig, base_gains: ctrl_lib.Gains, n: int, dtype=
     }
     joint_offset = rng.normal(scale=cfg.joint_noise, size=(B, n)) if cfg.joint_noise else np.zeros((B, n))
     scen = Scenario(
-        push=rollout_lib.Push(
-            force=force[:, None, :].astype(dtype),
+        push=Push(
+            force=(mag[:, None] * direction)[:, None, :].astype(dtype),
             onset=np.full((B, 1), cfg.push_onset, dtype),
             duration=np.full((B, 1), cfg.push_duration, dtype),
         ),
-        gains=ctrl_lib.Gains(**{k: v.astype(dtype) for k, v in stacked.items()}),
+        gains=Gains(**{k: v.astype(dtype) for k, v in stacked.items()}),
         joint_offset=joint_offset.astype(dtype),
         friction=columns["friction"].astype(dtype),
         mass_scale=columns["mass_scale"].astype(dtype),
@@ -189,155 +210,101 @@ def build_scenarios(cfg: SweepConfig, base_gains: ctrl_lib.Gains, n: int, dtype=
     return scen, columns
 
 
-FLOOR_GEOM = 0  # the floor is the model's first geom (assets/build_icub_mjcf.py; tested)
-
-
-def plant_model(mx, friction: Array, mass_scale: Array):
-    """The simulated plant of one environment: floor friction (sliding) and scaled masses. Pairs
-    with scene objects (a table) keep their own friction."""
-    floor = (np.asarray(mx.pair_geom1) == FLOOR_GEOM) | (np.asarray(mx.pair_geom2) == FLOOR_GEOM)
-    pair_friction = mx.pair_friction.at[floor, :2].set(friction)
-    return mx.replace(
-        pair_friction=pair_friction,
-        body_mass=mx.body_mass * mass_scale,
-        body_inertia=mx.body_inertia * mass_scale,
-    )
-
-
-def make_batched_runner(robot: model_lib.Robot, cfg: SweepConfig):
-    """jit(vmap(env)) of the closed loop over a Scenario batch -> (Metrics, final CoM error).
-
-    With a ``tasks_file`` that lists contacts, the robot is that file's scene (same robot name)."""
-    stack = contact_set = qpos = None
-    if cfg.tasks_file is not None:
-        robot, stack, contact_set, qpos = balance.load_scenario(robot.index.robot, cfg.tasks_file)
-    rollout, d0, _, consts, _ = balance.setup(
-        robot, cfg.task, duration=cfg.horizon, forces=cfg.forces, postural=cfg.postural,
-        sim=dict(record=False, push_body=cfg.body, solver_iterations=cfg.solver_iterations),
-        stack=stack, contact_set=contact_set, qpos=qpos,
+def make_setup(cfg: SweepConfig, base_gains: Gains | None = None, *, robot_name: str = "icub",
+               loss_trace: bool = False, checkpoint: bool = False) -> scenario.Setup:  # fmt: skip
+    """The closed loop of a sweep's environments (tuning uses it with a LossTrace)."""
+    scene = scenario.load_scene(robot_name, cfg.tasks)
+    sim = rollout_lib.SimConfig(
+        record=False, loss_trace=loss_trace, checkpoint=checkpoint, push_body=cfg.body,
+        perturb_plant=cfg.perturbs_plant,
+        physics=physics.PhysicsConfig(backend="jax" if loss_trace else cfg.backend, solver_iterations=cfg.solver_iterations),
     )  # fmt: skip
-    mx = robot.mjx_model
-    idx = robot.index
-
-    def env(scen: Scenario):
-        qpos = d0.qpos.at[idx.qpos_joints].add(scen.joint_offset)
-        d = d0.replace(qpos=qpos)
-        plant = plant_model(mx, scen.friction, scen.mass_scale)
-        metrics, _ = rollout(mx, d, scen.gains, consts, scen.push, mx_plant=plant)
-        return metrics
-
-    return jax.jit(jax.vmap(env)), rollout
+    return scenario.setup(
+        cfg.task, duration=cfg.horizon, controller=ControllerConfig(forces=cfg.forces, postural=cfg.postural),
+        sim=sim, gains=base_gains, scene=scene,
+    )  # fmt: skip
 
 
-_COMPILED: dict = {}  # (sweep key, robot, batch shape, devices) -> (compiled runner, rollout)
+def base_gains(cfg: SweepConfig, n: int, dtype) -> Gains:
+    gains = load_gains(cfg.gains, n, dtype) if cfg.gains else default_gains(n, dtype)
+    validate_gains(gains, n)
+    return gains
 
 
-def run_batch(robot: model_lib.Robot, cfg: SweepConfig, scen: Scenario):
-    """Closed loop over a Scenario batch, sharded over all devices, compiled once per shape.
-
-    Returns (Metrics with a batch axis, rollout, seconds spent compiling (0 if cached))."""
-    mesh = device_mesh()
-    size = int(np.asarray(scen.friction).shape[0])
-    sharded, _ = _shard(scen, mesh, size)
-    key = (cfg.key(), robot.index.robot, sharded.friction.shape, mesh.devices.size)
-    compile_s = 0.0
-    if key not in _COMPILED:  # ahead-of-time, so that compilation is timed apart
-        runner, rollout = make_batched_runner(robot, cfg)
-        t0 = time.perf_counter()
-        _COMPILED[key] = (runner.lower(sharded).compile(), rollout)
-        compile_s = time.perf_counter() - t0
-    compiled, rollout = _COMPILED[key]
-    metrics = compiled(sharded)
-    metrics = jax.tree_util.tree_map(lambda x: np.asarray(x)[:size], metrics)
-    return metrics, rollout, compile_s
+def fingerprint(cfg: SweepConfig) -> dict:
+    return runs.fingerprint({**dataclasses.asdict(cfg), "dtype": str(scenario.float_dtype())}, [cfg.gains, cfg.tasks])
 
 
-def device_mesh() -> Mesh:
-    """1-D mesh over all (local, or global after jax.distributed) devices, axis 'batch'."""
-    return Mesh(np.asarray(jax.devices()), ("batch",))
+def _part_name(c: int) -> str:
+    return f"part-{c:05d}.parquet"
 
 
-def _shard(tree, mesh: Mesh, size: int):
-    """Pad the batch to a multiple of the device count and shard it along 'batch'."""
-    n_dev = mesh.devices.size
-    pad = (-size) % n_dev
-    if pad:
-        tree = jax.tree_util.tree_map(lambda x: np.concatenate([x, np.repeat(x[-1:], pad, 0)]), tree)
-    sharding = NamedSharding(mesh, PartitionSpec("batch"))
-    return jax.device_put(tree, sharding), pad
+def _read_part(path: pathlib.Path, lo: int, hi: int):
+    """A part file if it holds exactly envs lo..hi-1, else None (missing, unreadable or wrong)."""
+    import pandas as pd
+
+    if not path.exists():
+        return None
+    try:
+        table = pd.read_parquet(path)
+    except Exception:  # noqa: BLE001 - any unreadable file is recomputed
+        return None
+    if "env" not in table or not np.array_equal(table["env"].to_numpy(), np.arange(lo, hi)):
+        return None
+    return table
 
 
-def metrics_columns(metrics, push_end: float) -> dict:
-    m = jax.tree_util.tree_map(np.asarray, metrics)
-    ticks = np.maximum(m.ticks, 1)
-    survived = ~m.fell & ~m.nan
-    return {
-        "survived": survived,
-        "fell": m.fell,
-        "nan": m.nan,
-        "com_rmse_m": np.sqrt(m.com_sq_err_sum / ticks),
-        "com_max_dev_m": m.com_max_err,
-        "time_to_recover_s": np.where(survived, np.maximum(m.last_time_off - push_end, 0.0), np.nan),
-        "peak_torque_nm": m.max_abs_torque,
-        "max_qp_violation": m.max_violation,
-        "max_foot_slip_m": m.max_slip,
-        "qp_infeasible_ticks": m.qp_infeasible_ticks,
-        "min_com_height_m": m.min_com_height,
-    }
+def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_name: str = "icub", **overrides) -> dict:
+    """Run (or resume) a sweep into ``cfg.out``: parts/*.parquet, results.parquet, summary.json, plots.
 
-
-def run_sweep(cfg: SweepConfig, out: str | pathlib.Path, *, gains_file: str | None = None,
-              progress: bool = True, robot_name: str = "icub") -> dict:  # fmt: skip
-    """Run (or resume) a sweep into ``out``: parts/*.parquet, results.parquet, summary.json, plots."""
+    ``overrides``: fields of :class:`SweepConfig`. A resumed run must have the same fingerprint
+    (config, input file contents, model, version); each part file is checked against the env
+    range it must hold and recomputed if it does not."""
     import pandas as pd
     from tqdm.auto import tqdm
 
-    out = pathlib.Path(out)
+    cfg = dataclasses.replace(default_config() if cfg is None else cfg, **overrides)
+    cfg.check()
+    runs.check_output_dir(cfg.out, "sweep")
+    out = pathlib.Path(cfg.out)
+    dtype = scenario.float_dtype()
     robot = model_lib.load_robot(robot_name)
-    dtype = np.dtype(jnp.zeros(()).dtype)  # float32 unless x64 is enabled
-    base = ctrl_lib.load_gains(gains_file, robot.index.n) if gains_file else ctrl_lib.default_gains(robot.index.n)
-    ctrl_lib.validate_gains(base, robot.index.n)
-    robot.index.body_id(cfg.body)  # unknown body: error listing the valid names, before compiling
+    base = base_gains(cfg, robot.index.n, dtype)
+    robot.index.body_id(cfg.body)
+    st = make_setup(cfg, base, robot_name=robot_name)
     scen, columns = build_scenarios(cfg, base, robot.index.n, dtype)
-    manifest = out / "manifest.json"
-    key = cfg.key()
-    if manifest.exists() and json.loads(manifest.read_text()).get("key") != key:
-        raise ValueError(f"{out} holds a different sweep (config changed); use another --out")
-    io.atomic_write_json(manifest, {"key": key, "config": dataclasses.asdict(cfg)})
+    runs.claim_output_dir(out, "sweep", fingerprint(cfg), resume=True)
 
     push_end = cfg.push_onset + cfg.push_duration
     n_chunks = math.ceil(cfg.size / cfg.chunk_size)
     parts = out / "parts"
     compile_s = run_s = 0.0
     done_envs = 0
-    rollout = None
-    with tqdm(total=cfg.size, unit="env", disable=not progress) as bar:
+    tables = []
+    with tqdm(total=cfg.size, unit="env", disable=not progress, desc=f"sweep ({st.backend})") as bar:
         for c in range(n_chunks):
-            part = parts / f"part-{c:05d}.parquet"
             lo, hi = c * cfg.chunk_size, min((c + 1) * cfg.chunk_size, cfg.size)
-            if part.exists():  # resumed: this chunk is on disk
-                bar.update(hi - lo)
-                continue
-            chunk = jax.tree_util.tree_map(lambda x: np.asarray(x)[lo:hi], scen)
-            t0 = time.perf_counter()
-            metrics, rollout, compiling = run_batch(robot, cfg, chunk)
-            compile_s += compiling
-            run_s += time.perf_counter() - t0 - compiling
-            done_envs += hi - lo
-            cols = metrics_columns(metrics, push_end)
-            table = pd.DataFrame({"env": np.arange(lo, hi), **{k: v[lo:hi] for k, v in columns.items()}, **cols})
-            buf = __import__("io").BytesIO()
-            table.to_parquet(buf, index=False)
-            io.atomic_write_bytes(part, buf.getvalue())
+            part = parts / _part_name(c)
+            table = _read_part(part, lo, hi)
+            if table is None:
+                chunk = jax.tree_util.tree_map(lambda x: np.asarray(x)[lo:hi], scen)
+                result = scenario.run(st, chunk, batch_size=cfg.chunk_size)
+                compile_s += result.compile_s
+                run_s += result.run_s
+                done_envs += hi - lo
+                cols = rollout_lib.summarize(result.metrics, push_end)
+                table = pd.DataFrame({"env": np.arange(lo, hi), **{k: v[lo:hi] for k, v in columns.items()}, **cols})
+                io.atomic_write_parquet(part, table)
+            tables.append(table)
             bar.update(hi - lo)
-    table = pd.concat([pd.read_parquet(p) for p in sorted(parts.glob("part-*.parquet"))], ignore_index=True)
-    buf = __import__("io").BytesIO()
-    table.to_parquet(buf, index=False)
-    io.atomic_write_bytes(out / "results.parquet", buf.getvalue())
-    steps_per_env = int(round(cfg.horizon / 0.01)) * 10 if rollout is None else rollout.n_ticks * rollout.n_sub
-    summary = summarize_table(table, cfg, robot)
+    table = pd.concat(tables, ignore_index=True)
+    io.atomic_write_parquet(out / "results.parquet", table)
+    steps_per_env = st.loop.n_ticks * st.loop.n_sub
+    summary = summarize_table(table, cfg, st.robot)
     summary.update({
         "config": dataclasses.asdict(cfg),
+        "backend": st.backend,
+        "survival_criterion": constants.SURVIVAL_CRITERION,
         "device": [str(d) for d in jax.devices()],
         "n_devices": len(jax.devices()),
         "versions": {"jax": jax.__version__, "mujoco": __import__("mujoco").__version__,
@@ -345,12 +312,12 @@ def run_sweep(cfg: SweepConfig, out: str | pathlib.Path, *, gains_file: str | No
         "compile_s": round(compile_s, 2),
         "run_s": round(run_s, 2),
         "physics_steps_per_s": (done_envs * steps_per_env / run_s) if run_s > 0 else None,
-        "gains": ctrl_lib.gains_to_dict(base),
+        "gains": gains_to_dict(base),
     })  # fmt: skip
     io.atomic_write_json(out / "summary.json", summary)
     from wbc_jax import sweep_plots
 
-    sweep_plots.survival_map(table, out / "survival.png")
+    sweep_plots.survival_map(table, out / "survival.png", summary["envelope"])
     sweep_plots.envelope(table, summary["envelope"], out / "envelope.png")
     return summary
 
@@ -376,46 +343,116 @@ def lip_bound(robot: model_lib.Robot, directions_deg, support: str = "two-feet")
     com = d.subtree_com[robot.index.base_body].copy()
     if support == "left-foot":  # references.make_schedule("one-foot"): CoM y over the left sole
         com[1] = d.site_xpos[robot.index.foot_sites[0], 1]
-    omega = math.sqrt(9.81 / com[2])
+    omega = math.sqrt(constants.GRAVITY / com[2])
     out = {}
     for az in directions_deg:
         u = np.array([math.cos(math.radians(az)), math.sin(math.radians(az))])
         # Distance along u from the CoM to the hull boundary: min over facets a.x + b <= 0.
-        dist = min(
-            (-(eq[:2] @ com[:2] + eq[2]) / (eq[:2] @ u)) for eq in hull.equations if eq[:2] @ u > 1e-12
-        )
+        dist = min((-(eq[:2] @ com[:2] + eq[2]) / (eq[:2] @ u)) for eq in hull.equations if eq[:2] @ u > 1e-12)
         out[float(az)] = {"edge_distance_m": dist, "velocity_bound_mps": omega * dist,
                           "impulse_bound_ns": robot.index.mass * omega * dist}  # fmt: skip
     return out
 
 
+def envelope_of(group, survived: str = "survived") -> tuple[float, float, int]:
+    """(largest survived impulse, largest impulse below the first failure, survival islands above
+    it) of one direction's rows."""
+    alive = group[group[survived]]
+    best = float(alive["impulse_ns"].max()) if len(alive) else 0.0
+    by_mag = group.groupby("magnitude_n")[survived].mean().sort_index()
+    failed = by_mag[by_mag < 1.0]
+    islands = int((by_mag[by_mag.index > failed.index.min()] > 0).sum()) if len(failed) else 0
+    # Islands: outcomes near the fall boundary that flip with float32/float64 or the solver's
+    # iterations (experiments/island_check.py); the monotone envelope excludes them.
+    below = group[group["magnitude_n"] < failed.index.min()] if len(failed) else group
+    monotone = float(below["impulse_ns"].max()) if len(below) else 0.0
+    return best, monotone, islands
+
+
 def summarize_table(table, cfg: SweepConfig, robot: model_lib.Robot) -> dict:
-    """Survival rate, envelope (largest survived impulse per direction) and its bound."""
+    """Survival rate (strict, and the lax ``upright`` count), envelope (largest survived impulse
+    per direction) and its feet-in-place LIP bound."""
     support = "left-foot" if cfg.task == "one-foot" else "two-feet"
     bound = lip_bound(robot, sorted(set(table["azimuth_deg"])), support)
     envelope = {}
     default = table[table["gain_set"] == 0]
     for az, group in default.groupby("azimuth_deg"):
-        alive = group[group["survived"]]
-        best = float(alive["impulse_ns"].max()) if len(alive) else 0.0
+        best, monotone, islands = envelope_of(group)
+        best_upright, _, _ = envelope_of(group, "upright")
         b = bound[float(az)]["impulse_bound_ns"]
-        # Monotone-ish: survivals above the first failure (islands) are counted.
-        by_mag = group.groupby("magnitude_n")["survived"].mean().sort_index()
-        failed = by_mag[by_mag < 1.0]
-        islands = int((by_mag[by_mag.index > failed.index.min()] > 0).sum()) if len(failed) else 0
-        # Largest impulse below the first failure: islands (outcomes near the fall boundary that
-        # flip with float32/float64 or the solver's iterations; experiments/island_check.py) excluded.
-        below = group[group["magnitude_n"] < failed.index.min()] if len(failed) else group
-        monotone = float(below["impulse_ns"].max()) if len(below) else 0.0
         envelope[float(az)] = {"largest_survived_impulse_ns": best, "bound_impulse_ns": b,
                                "fraction_of_bound": best / b, "survival_islands": islands,
-                               "monotone_impulse_ns": monotone,
-                               "fraction_of_bound_monotone": monotone / b}  # fmt: skip
+                               "monotone_impulse_ns": monotone, "fraction_of_bound_monotone": monotone / b,
+                               "largest_upright_impulse_ns": best_upright}  # fmt: skip
     return {
         "support": support,
         "n_envs": int(len(table)),
         "survival_rate": float(table["survived"].mean()),
+        "upright_rate": float(table["upright"].mean()),
         "nan_envs": int(table["nan"].sum()),
         "qp_infeasible_envs": int((table["qp_infeasible_ticks"] > 0).sum()),
         "envelope": envelope,
     }
+
+
+# ---------------------------------------------------------------------------------------------
+# Replays of one environment
+
+
+def load_sweep(run_dir) -> tuple[SweepConfig, dict]:
+    """The config and summary of a finished sweep in ``run_dir`` (clear errors when not)."""
+    run_dir = pathlib.Path(run_dir)
+    if not run_dir.exists():
+        raise FileNotFoundError(f"{run_dir} does not exist")
+    if not run_dir.is_dir():
+        raise ValueError(f"{run_dir} is a file; give the folder of a push sweep")
+    path = run_dir / "summary.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{path} is missing: the sweep has not finished; rerun it with the same --out")
+    try:
+        summary = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ValueError(f"{path} is not valid JSON ({err})") from None
+    values = {k: tuple(v) if isinstance(v, list) else v for k, v in summary.get("config", {}).items()}
+    known = {f.name for f in dataclasses.fields(SweepConfig)}
+    return SweepConfig(**{k: v for k, v in values.items() if k in known}), summary
+
+
+def replay_env(run_dir, env: int, *, robot_name: str = "icub", backend: str | None = None):
+    """Re-simulate env ``env`` of a finished push sweep, recording its trajectory.
+
+    The scenario is rebuilt deterministically from the stored config, seed and base gains
+    (:func:`build_scenarios`): same push, gain set, joint offset, friction and mass scale, on the
+    sweep's backend (or ``backend``). Run in the dtype the sweep ran in, the replay equals the
+    sweep's metrics (tests/test_viz.py).
+
+    Returns:
+      (setup, trajectory dict of numpy (T, ...), replay metrics dict, the sweep's row dict).
+    """
+    import pandas as pd
+
+    cfg, summary = load_sweep(run_dir)
+    results = pathlib.Path(run_dir) / "results.parquet"
+    if not results.exists():
+        raise FileNotFoundError(f"{results} is missing: the sweep has not finished; rerun it with the same --out")
+    table = pd.read_parquet(results)
+    if not (isinstance(env, int) and 0 <= env < len(table)):
+        raise ValueError(f"env {env} is out of range: this sweep has envs 0..{len(table) - 1}")
+    cfg = dataclasses.replace(cfg, backend=backend or summary.get("backend", cfg.backend))
+    dtype = scenario.float_dtype()
+    robot = model_lib.load_robot(robot_name)
+    base = gains_from_dict(summary["gains"], robot.index.n, dtype)
+    scen, columns = build_scenarios(cfg, base, robot.index.n, dtype)
+    row = table[table["env"] == env].iloc[0].to_dict()
+    for key in ("magnitude_n", "azimuth_deg", "gain_set"):
+        if not np.isclose(columns[key][env], row[key]):
+            raise ValueError(f"the rebuilt scenario of env {env} differs from the sweep's ({key}); "
+                             "the sweep was written by another version")  # fmt: skip
+    st = make_setup(cfg, base, robot_name=robot_name)
+    st = dataclasses.replace(st, loop=rollout_lib.make_closed_loop(
+        st.robot, st.loop.schedule, st.loop.controller, dataclasses.replace(st.loop.cfg, record=True)))  # fmt: skip
+    one = jax.tree_util.tree_map(lambda x: np.asarray(x)[env : env + 1], scen)
+    result = scenario.run(st, one)
+    traj = {name: np.asarray(v)[0] for name, v in dataclasses.asdict(result.records).items()}
+    metrics = rollout_lib.summarize(jax.tree_util.tree_map(lambda x: x[0], result.metrics), cfg.push_onset + cfg.push_duration)
+    return st, traj, metrics, row

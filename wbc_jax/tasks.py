@@ -24,25 +24,16 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from wbc_jax import references
-from wbc_jax.dynamics import DynamicsTerms, FrameTerms
+from wbc_jax.constants import min_jerk
+from wbc_jax.dynamics import DynamicsTerms, Frames
 from wbc_jax.hierarchy import TaskLevel
-from wbc_jax.model import Robot
+from wbc_jax.model import NAMED_POINTS, Robot
 from wbc_jax.types import Array
 
 TASK_KINDS = ("position", "orientation", "com", "base_orientation", "joints", "postural")
 REFERENCE_KINDS = ("constant", "circle")
 TASK_DIMENSIONS = {"position": 3, "orientation": 3, "com": 3, "base_orientation": 3}
 AXES = {"x": 0, "y": 1, "z": 2}
-
-# Named points that are not bodies of the 23-dof model: the URDF's hand frames sit on bodies merged
-# into the forearms (the wrist joints are not controlled). Offsets: sum of the fixed origins of
-# r/l_wrist_prosup, _wrist_pitch and _wrist_yaw in icub-models iCubGazeboV2_5 model.urdf (joints at 0).
-NAMED_POINTS = {
-    "r_hand": ("r_elbow_1", (-0.141328, 0.003007, 0.022344)),
-    "l_hand": ("l_elbow_1", (0.141258, 0.014507, 0.022631)),
-}
-
 
 @dataclasses.dataclass(frozen=True)
 class TaskReference:
@@ -118,8 +109,8 @@ class ResolvedTask:
 @dataclasses.dataclass(frozen=True)
 class TaskStack:
     """A resolved stack: motion tasks (postural excluded: it is the implicit last level) and the
-    task frames as (body id, offset) pairs. ``bodies``/``offsets`` feed
-    :func:`wbc_jax.dynamics.frame_terms`."""
+    task frames as (body id, offset) pairs. :attr:`frames` are appended to the contact frames
+    of the dynamics terms (:func:`wbc_jax.dynamics.terms`)."""
 
     tasks: tuple[ResolvedTask, ...] = ()
     bodies: tuple[int, ...] = ()
@@ -128,6 +119,10 @@ class TaskStack:
     @property
     def n_levels(self) -> int:
         return len({task.level for task in self.tasks})
+
+    @property
+    def frames(self) -> Frames:
+        return Frames(tuple(self.bodies), tuple(self.offsets))
 
 
 def task_dimension(task: MotionTask) -> int:
@@ -319,7 +314,7 @@ def _signed_axis(name: str, dtype) -> Array:
 def _circle(ref: TaskReference, p0: Array, t: Array) -> Array:
     e1, e2 = (_signed_axis(a, p0.dtype) for a in ref.plane)
     w = 2 * math.pi * ref.frequency
-    radius = ref.radius * (references.min_jerk(t / ref.ramp)[0] if ref.ramp > 0 else 1.0)
+    radius = ref.radius * (min_jerk(t / ref.ramp)[0] if ref.ramp > 0 else 1.0)
     return p0 + radius * ((jnp.cos(w * t) - 1) * e1 + jnp.sin(w * t) * e2)
 
 
@@ -340,14 +335,16 @@ def _vee_error(R: Array, R_des: Array) -> Array:
     return 0.5 * jnp.array([E[2, 1] - E[1, 2], E[0, 2] - E[2, 0], E[1, 0] - E[0, 1]])
 
 
-def task_rows(task: ResolvedTask, frames: FrameTerms, t: DynamicsTerms, time: Array):
-    """(J (m, nv), Jdot_nu (m,), nu_dot_star (m,), error (m,)) of one task at one state."""
+def task_rows(task: ResolvedTask, t: DynamicsTerms, time: Array, frame0: int):
+    """(J (m, nv), Jdot_nu (m,), nu_dot_star (m,), error (m,)) of one task at one state; the
+    stack's frames start at frame ``frame0`` of the dynamics terms (after the contacts')."""
     dtype = t.M.dtype
     nv = t.M.shape[0]
     kp, kd = jnp.asarray(task.kp, dtype), jnp.asarray(task.kd, dtype)
+    k = frame0 + task.frame
     if task.kind in ("orientation", "base_orientation"):
         if task.kind == "orientation":
-            J, Jdot_nu, R = frames.J[task.frame, 3:], frames.Jdot_nu[task.frame, 3:], frames.W_R[task.frame]
+            J, Jdot_nu, R = t.J_frames[k, 3:], t.Jdot_nu_frames[k, 3:], t.W_R_frames[k]
         else:
             J = jnp.zeros((3, nv), dtype).at[:, 3:6].set(jnp.eye(3, dtype=dtype))
             Jdot_nu, R = jnp.zeros(3, dtype), t.W_R_B
@@ -358,24 +355,24 @@ def task_rows(task: ResolvedTask, frames: FrameTerms, t: DynamicsTerms, time: Ar
         J = jnp.zeros((len(dofs), nv), dtype).at[np.arange(len(dofs)), 6 + dofs].set(1.0)
         Jdot_nu, p = jnp.zeros(len(dofs), dtype), t.s[dofs]
     elif task.kind == "position":
-        J, Jdot_nu, p = frames.J[task.frame, :3], frames.Jdot_nu[task.frame, :3], frames.W_p[task.frame]
+        J, Jdot_nu, p = t.J_frames[k, :3], t.Jdot_nu_frames[k, :3], t.W_p_frames[k]
     else:  # com
-        J, Jdot_nu, p = t.J_CoM, frames.Jdot_nu_CoM, t.W_p_CoM
+        J, Jdot_nu, p = t.J_CoM, t.Jdot_nu_CoM, t.W_p_CoM
     p_des, v_des, a_des = reference_at(task, time, dtype)
     err = p - p_des
     return J, Jdot_nu, a_des + kd * (v_des - J @ t.nu) - kp * err, err
 
 
-def levels(stack: TaskStack, frames: FrameTerms, t: DynamicsTerms, time: Array) -> tuple[TaskLevel, ...]:
+def levels(stack: TaskStack, t: DynamicsTerms, time: Array, frame0: int) -> tuple[TaskLevel, ...]:
     """The stack's priority levels at one state (highest first), for :func:`wbc_jax.hierarchy.solve`.
 
     Args:
-      stack: resolved stack. frames: :func:`wbc_jax.dynamics.frame_terms` of ``stack.bodies``/
-        ``stack.offsets``. t: dynamics terms. time: () the reference time (s).
+      stack: resolved stack. t: dynamics terms whose frames from ``frame0`` on are
+        ``stack.frames``. time: () the reference time (s).
     """
     out = []
     for level in range(stack.n_levels):
-        rows = [(task, task_rows(task, frames, t, time)) for task in stack.tasks if task.level == level]
+        rows = [(task, task_rows(task, t, time, frame0)) for task in stack.tasks if task.level == level]
         scale = [math.sqrt(task.weight) for task, _ in rows]
         out.append(
             TaskLevel(
@@ -387,9 +384,9 @@ def levels(stack: TaskStack, frames: FrameTerms, t: DynamicsTerms, time: Array) 
     return tuple(out)
 
 
-def task_errors(stack: TaskStack, frames: FrameTerms, t: DynamicsTerms, time: Array) -> dict[str, Array]:
+def task_errors(stack: TaskStack, t: DynamicsTerms, time: Array, frame0: int) -> dict[str, Array]:
     """Per-task tracking error (position: p - p_d in m; orientation: vee error) at one state."""
-    return {task.name: task_rows(task, frames, t, time)[3] for task in stack.tasks}
+    return {task.name: task_rows(task, t, time, frame0)[3] for task in stack.tasks}
 
 
 SPEC_KEYS = ("tasks", "contacts", "scene", "initial_posture_deg")

@@ -2,17 +2,17 @@
 
 Substituting nu_dot from M nu_dot + h - J_c^T f = B tau into J_c nu_dot + Jdot_c nu = 0:
 
-    Lambda tau = J_c M^-1 (h - J_c^T f) - Jdot_c nu,          Lambda = J_c M^-1 B   (12, n)
+    Lambda tau = J_c M^-1 (h - J_c^T f) - Jdot_c nu,          Lambda = J_c M^-1 B   (D, n)
     tau = Lambda^+ (J_c M^-1 (h - J_c^T f) - Jdot_c nu) + N_Lambda tau_0,   N_Lambda = I - Lambda^+ Lambda
     tau_0 = h_s - M_sb M_b^-1 h_b - (J_s^T - M_sb M_b^-1 J_b^T) f + u_0         (postural task)
 
-which is affine in the feet wrenches: tau = Sigma f + tau_model (controller-spec 1.5), with
+which is affine in the contact wrenches f (D,): tau = Sigma f + tau_model (controller-spec 1.5), with
 
-    Sigma     = -(Lambda^+ J_c M^-1 J_c^T + N_Lambda (J_s^T - M_sb M_b^-1 J_b^T))   (n, 12)
+    Sigma     = -(Lambda^+ J_c M^-1 J_c^T + N_Lambda (J_s^T - M_sb M_b^-1 J_b^T))   (n, D)
     tau_model = Lambda^+ (J_c M^-1 h - Jdot_c nu) + N_Lambda (h_s - M_sb M_b^-1 h_b + u_0)
 
 Lambda^+ is the damped pseudo-inverse Lambda^T (Lambda Lambda^T + lambda I)^-1 (WBC
-``Reg.pinvDamp`` = 1 in simulation). Rows of J_c are scaled by each foot's contact activation
+``Reg.pinvDamp`` = 1 in simulation). Rows of J_c are scaled by each contact's activation
 (codyco ``torqueBalancing``), so contacts appear and vanish continuously.
 
 Postural u_0, two variants:
@@ -31,28 +31,24 @@ from wbc_jax.math import damped_pinv, pinv_abs_tol
 from wbc_jax.types import Array, pytree_dataclass
 
 POSTURAL_VARIANTS = ("stable", "seed")
-# Hold P = pinv(N_Lambda Mbar) N_Lambda Mbar constant in derivatives (see postural_torque); the
-# previous default, kept for comparison (experiments/grad_check_sources.py).
-FREEZE_POSTURAL_PROJECTOR = False
 
 
 @pytree_dataclass
 class TorqueTerms:
-    """Terms of the affine torque law tau = Sigma f + tau_model (n joints, 12 = two wrenches).
+    """Terms of the affine torque law tau = Sigma f + tau_model (n joints, D = contact wrench rows).
 
     Attributes:
-      J_c:        (12, nv) contact Jacobians, rows scaled by the activations (a general contact
-                  set: D rows instead of 12, everywhere below)
-      Jdot_nu_c:  (12,)    their Jdot nu
-      Lambda:     (12, n)  J_c M^-1 B
-      Lambda_pinv:(n, 12)  damped pseudo-inverse
+      J_c:        (D, nv)  contact Jacobians, rows scaled by the activations
+      Jdot_nu_c:  (D,)     their Jdot nu
+      Lambda:     (D, n)   J_c M^-1 B
+      Lambda_pinv:(n, D)   damped pseudo-inverse
       N_Lambda:   (n, n)   I - Lambda^+ Lambda
       Mbar:       (n, n)   joint-space inertia with the base eliminated
-      Sigma:      (n, 12)  d tau / d f
+      Sigma:      (n, D)   d tau / d f
       tau_model:  (n,)     torques for f = 0 (postural task included)
       u0:         (n,)     postural term
-      Sigma_c, tau_c: (n, 12), (n,)  contact part Lambda^+ (J_c M^-1 (h - J_c^T f) - Jdot_c nu)
-      Sigma_0, tau_0: (n, 12), (n,)  postural tau_0 = Sigma_0 f + tau_0 (before N_Lambda), so
+      Sigma_c, tau_c: (n, D), (n,)  contact part Lambda^+ (J_c M^-1 (h - J_c^T f) - Jdot_c nu)
+      Sigma_0, tau_0: (n, D), (n,)  postural tau_0 = Sigma_0 f + tau_0 (before N_Lambda), so
         Sigma = Sigma_c + N_Lambda Sigma_0 and tau_model = tau_c + N_Lambda tau_0; the motion-task
         hierarchy (:mod:`wbc_jax.hierarchy`) replaces tau_0 by its prioritised solution.
     """
@@ -72,13 +68,6 @@ class TorqueTerms:
     tau_0: Array
 
 
-def contact_jacobians(t: DynamicsTerms, activation: Array) -> tuple[Array, Array]:
-    """Stacked contact Jacobian (12, nv) and Jdot nu (12,), each foot scaled by activation (2,)."""
-    J_c = (t.J_feet * activation[:, None, None]).reshape(12, -1)
-    Jdot_nu_c = (t.Jdot_nu_feet * activation[:, None]).reshape(12)
-    return J_c, Jdot_nu_c
-
-
 def postural_torque(
     variant: str,
     *,
@@ -90,29 +79,31 @@ def postural_torque(
     Mbar: Array,
     pinv_tol: float = 1e-5,
     kp_reg: float = 0.1,
+    freeze_projector: bool = False,
 ) -> Array:
     """u_0 (n,) of the postural task (module docstring). kp, kd, s_err, s_dot: (n,).
 
     For ``stable``, diag(k) pinv(X) X v is evaluated as diag(k) P v with P = pinv(X) X the
     projector on the row space of X = N_Lambda Mbar (absolute tolerance, as MATLAB's pinv).
     P is differentiated through its SVD (X's singular values are distinct in practice; the
-    derivative is undefined only where two coincide). Holding it constant
-    (``FREEZE_POSTURAL_PROJECTOR``) made reverse-mode gradients differ from central differences by
-    up to 9 % (experiments/grad_check_sources.py); differentiated, they agree to 1e-6.
+    derivative is undefined only where two coincide). Holding it constant (``freeze_projector``,
+    kept for comparison) made reverse-mode gradients differ from central differences by up to 9 %
+    (experiments/grad_check_sources.py); differentiated, they agree to 1e-6.
     """
     if variant == "seed":
         return -kp * s_err - kd * s_dot
     if variant == "stable":
         X = N_Lambda @ Mbar
         P = pinv_abs_tol(X, pinv_tol) @ X
-        P = jax.lax.stop_gradient(P) if FREEZE_POSTURAL_PROJECTOR else P
+        P = jax.lax.stop_gradient(P) if freeze_projector else P
         return -kp * (P @ s_err) - kp_reg * (X @ s_err) - kd * (P @ s_dot)
     raise ValueError(f"unknown postural variant {variant!r}; valid: {list(POSTURAL_VARIANTS)}")
 
 
 def torque_terms(
     t: DynamicsTerms,
-    activation: Array,
+    J_c: Array,
+    Jdot_nu_c: Array,
     *,
     postural: str,
     kp_postural: Array,
@@ -122,13 +113,14 @@ def torque_terms(
     pinv_tol: float = 1e-5,
     kp_postural_reg: float = 0.1,
     compensate_passive: bool = True,
-    contact: tuple[Array, Array] | None = None,
+    freeze_projector: bool = False,
 ) -> TorqueTerms:
     """Build the affine torque law at one state.
 
     Args:
       t: dynamics terms (mixed representation).
-      activation: (2,) contact activations of [left, right] in [0, 1].
+      J_c: (D, nv) contact Jacobians, rows scaled by the contacts' activations
+        (:func:`wbc_jax.contacts.row_activation`); Jdot_nu_c: (D,) their Jdot nu, scaled alike.
       postural: ``"stable"`` or ``"seed"``.
       kp_postural, kd_postural: (n,) postural gains.
       s_des: (n,) postural reference.
@@ -136,8 +128,7 @@ def torque_terms(
       pinv_tol: absolute singular-value tolerance of pinv(N_Lambda Mbar).
       kp_postural_reg: the 0.1 I added to K_P (WBC ``Reg.KP_postural``).
       compensate_passive: include the model's joint damping in the bias h.
-      contact: a general contact set instead of the two feet: (J_c (D, nv), Jdot_nu_c (D,)), rows
-        already scaled by the activations (:mod:`wbc_jax.contacts`); ``activation`` is then unused.
+      freeze_projector: hold the postural projector constant in derivatives (:func:`postural_torque`).
 
     Returns:
       :class:`TorqueTerms`.
@@ -145,8 +136,7 @@ def torque_terms(
     n = t.s.shape[0]
     M = t.M
     h = t.h - t.tau_passive if compensate_passive else t.h
-    J_c, Jdot_nu_c = contact_jacobians(t, activation) if contact is None else contact
-    Minv_JcT = jnp.linalg.solve(M, J_c.T)  # (nv, 12)
+    Minv_JcT = jnp.linalg.solve(M, J_c.T)  # (nv, D)
     Minv_h = jnp.linalg.solve(M, h)
     Jc_Minv = Minv_JcT.T  # M symmetric
     Lambda = Jc_Minv[:, 6:]
@@ -167,6 +157,7 @@ def torque_terms(
         Mbar=Mbar,
         pinv_tol=pinv_tol,
         kp_reg=kp_postural_reg,
+        freeze_projector=freeze_projector,
     )
     Sigma_c = -Lambda_pinv @ (J_c @ Minv_JcT)
     tau_c = Lambda_pinv @ (J_c @ Minv_h - Jdot_nu_c)

@@ -16,9 +16,9 @@ MJX's Newton loop is a ``lax.while_loop`` (not reverse-differentiable) unless it
 Measured here: with iterations = 1 the closed loop is chaotic (float64, 0.35 s after a 50 N push:
 the loss went 50.2 -> 1.2 when kp_com changed by 1e-6 relative; contact chatter, saturated
 torques), while with 4 iterations it is smooth (0.04611 -> 0.04611). So, while the tuning
-program is traced, :func:`fixed_iteration_solver` swaps that one ``while_loop`` for MJX's own
-scan-based ``_while_loop_scan`` with the same iteration bound: identical values (the scan does
-no-ops once the loop condition is false), reverse-differentiable.
+program is traced, :func:`wbc_jax.physics.fixed_iteration_solver` swaps that one ``while_loop``
+for MJX's own scan-based ``_while_loop_scan`` with the same iteration bound: identical values
+(the scan does no-ops once the loop condition is false), reverse-differentiable.
 
 The loss is smooth in the gains wherever the contact set does not switch: a running mean of the
 CoM tracking error, the torque effort and two fall surrogates (capture point outside the
@@ -43,50 +43,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax import balance, io
-from wbc_jax import controller as ctrl_lib
+from wbc_jax import io, physics, runs, scenario, sweep
 from wbc_jax import model as model_lib
 from wbc_jax import rollout as rollout_lib
-from wbc_jax import sweep
-from wbc_jax.types import Array, pytree_dataclass
+from wbc_jax.constants import GAIN_FIELDS, GRAVITY
+from wbc_jax.gains import Gains, default_gains, gains_to_dict
+from wbc_jax.types import Array, option, pytree_dataclass
 
 # Tuned gain groups; ki_com stays at its WBC value (0: no CoM integral) and is not tuned.
 TUNED_FIELDS = ("kp_com", "kd_com", "kp_ang", "ki_ang", "kp_postural", "kd_postural")
-GRAVITY = 9.81
-
-
-# ---------------------------------------------------------------------------------------------
-# Reverse-differentiable MJX solver loop
-
-
-@contextlib.contextmanager
-def fixed_iteration_solver(max_iter: int):
-    """While tracing inside this context, MJX's constraint-solver ``lax.while_loop`` runs as a
-    fixed-length ``lax.scan`` of ``max_iter`` guarded iterations (MJX's ``_while_loop_scan``,
-    which it already uses for its line search): same values, reverse mode works. Only the
-    ``jax`` name seen by ``mujoco.mjx._src.solver`` is replaced, and restored on exit."""
-    from mujoco.mjx._src import solver
-
-    class _Lax:
-        def __getattr__(self, name):
-            return getattr(jax.lax, name)
-
-        @staticmethod
-        def while_loop(cond, body, init):
-            return solver._while_loop_scan(cond, body, init, max_iter)
-
-    class _Jax:
-        lax = _Lax()
-
-        def __getattr__(self, name):
-            return getattr(jax, name)
-
-    original = solver.jax
-    solver.jax = _Jax()
-    try:
-        yield
-    finally:
-        solver.jax = original
 
 
 # ---------------------------------------------------------------------------------------------
@@ -101,7 +66,7 @@ class GainBounds:
     hi: dict
 
 
-def default_bounds(base: ctrl_lib.Gains, factor: float = 4.0) -> GainBounds:
+def default_bounds(base: Gains, factor: float = 4.0) -> GainBounds:
     """Bounds [base / factor, base * factor] for each tuned gain (per axis / per joint)."""
     if not factor > 1.0:
         raise ValueError(f"bound factor must be > 1, got {factor}")
@@ -113,22 +78,22 @@ def default_bounds(base: ctrl_lib.Gains, factor: float = 4.0) -> GainBounds:
     return GainBounds(lo=lo, hi=hi)
 
 
-def params_to_gains(params: dict, bounds: GainBounds, base: ctrl_lib.Gains) -> ctrl_lib.Gains:
+def params_to_gains(params: dict, bounds: GainBounds, base: Gains) -> Gains:
     """Unconstrained params {field: (k,)} -> Gains, each tuned entry in (lo, hi).
 
     gain = exp(log lo + sigmoid(p) (log hi - log lo)): positive, bounded, log-scaled (a gain
     doubles as easily as it halves); with symmetric bounds p = 0 is the geometric mid-point."""
     out = {}
-    for k in ctrl_lib.GAIN_FIELDS:
+    for k in GAIN_FIELDS:
         if k in TUNED_FIELDS:
             llo, lhi = jnp.log(bounds.lo[k]), jnp.log(bounds.hi[k])
             out[k] = jnp.exp(llo + jax.nn.sigmoid(params[k]) * (lhi - llo))
         else:
             out[k] = jnp.asarray(getattr(base, k))
-    return ctrl_lib.Gains(**out)
+    return Gains(**out)
 
 
-def gains_to_params(gains: ctrl_lib.Gains, bounds: GainBounds) -> dict:
+def gains_to_params(gains: Gains, bounds: GainBounds) -> dict:
     """Inverse of :func:`params_to_gains` (gains clipped strictly inside the bounds)."""
     out = {}
     for k in TUNED_FIELDS:
@@ -200,7 +165,8 @@ def loss_terms(trace: rollout_lib.LossTrace, lc: LossConfig) -> dict:
 
 @dataclasses.dataclass(frozen=True)
 class TuneConfig:
-    """A tuning run (defaults: a few minutes on a 2-core CPU).
+    """A tuning run (defaults: a few minutes on a 2-core CPU); the CLI flags of ``wbc-jax tune``
+    are generated from these fields.
 
     Attributes:
       steps: optimiser steps. batch: scenarios per step. horizon: s per rollout.
@@ -212,40 +178,56 @@ class TuneConfig:
       solver_iterations / eval_solver_iterations: MJX contact solver iterations in training /
         held-out evaluation (None: the model's 4, as in push sweeps; see the module docstring).
       eval_magnitudes x eval_directions, eval_seed: the held-out set (disjoint from training).
-      eval_horizon: s per held-out rollout.
+      eval_horizon: s per held-out rollout. baseline: run the random-search baseline.
     """
 
-    steps: int = 12
-    batch: int = 4
-    horizon: float = 1.0
-    seed: int = 0
-    lr: float = 0.1
-    clip_norm: float = 1.0
-    bound_factor: float = 4.0
-    train_magnitudes: tuple[float, ...] = (50.0, 70.0, 90.0)
-    train_directions: tuple[float, ...] = (0.0, 45.0, 90.0, 135.0, 180.0, 225.0, 270.0, 315.0)
-    push_onset: float = 0.2
-    push_duration: float = 0.1
-    joint_noise: float = 0.01
-    solver_iterations: int | None = None
-    eval_solver_iterations: int | None = None
-    eval_magnitudes: tuple[float, ...] = (55.0, 65.0, 80.0, 95.0)
-    eval_directions: tuple[float, ...] = (22.5, 112.5, 202.5, 292.5)
-    eval_seed: int = 1000
-    eval_horizon: float = 1.5
+    out: str = option("runs/tune", "output folder (resumes a run there)")
+    steps: int = option(12, "optimiser steps")
+    batch: int = option(4, "push scenarios per step")
+    horizon: float = option(1.0, "seconds per training rollout")
+    seed: int = option(0, "training scenarios seed")
+    lr: float = option(0.1, "adam learning rate")
+    clip_norm: float = option(1.0, "global-norm gradient clipping")
+    bound_factor: float = option(4.0, "gains stay within [default / f, default * f]")
+    train_magnitudes: tuple[float, ...] = option((50.0, 70.0, 90.0), "training push forces [N]", nargs="+")
+    train_directions: tuple[float, ...] = option(
+        (0.0, 45.0, 90.0, 135.0, 180.0, 225.0, 270.0, 315.0), "training push azimuths [deg]", nargs="+"
+    )
+    push_onset: float = option(0.2, "push start [s]")
+    push_duration: float = option(0.1, "push length [s]")
+    joint_noise: float = option(0.01, "initial joint noise std [rad]")
+    solver_iterations: int | None = option(None, "contact solver iterations in training (default: the model's)")
+    eval_solver_iterations: int | None = option(None, "contact solver iterations in evaluation")
+    eval_magnitudes: tuple[float, ...] = option((55.0, 65.0, 80.0, 95.0), "held-out push forces [N]", nargs="+")
+    eval_directions: tuple[float, ...] = option((22.5, 112.5, 202.5, 292.5), "held-out push azimuths [deg]", nargs="+")
+    eval_seed: int = option(1000, "held-out scenarios seed")
+    eval_horizon: float = option(1.5, "seconds per held-out rollout")
+    baseline: bool = option(True, "run the random-search baseline")
 
     def __post_init__(self):
+        self.check()
+
+    def check(self) -> None:
         for name in ("steps", "batch"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("horizon", "lr", "clip_norm", "eval_horizon"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"--{name} must be a whole number >= 1, got {value!r}")
+        for name in ("horizon", "lr", "clip_norm", "eval_horizon", "push_duration"):
             v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be positive and finite, got {v}")
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"--{name.replace('_', '-')} must be positive and finite, got {v!r}")
+        if not (math.isfinite(self.push_onset) and self.push_onset >= 0):
+            raise ValueError(f"--push-onset must be >= 0, got {self.push_onset}")
+        if not self.bound_factor > 1.0:
+            raise ValueError(f"--bound-factor must be > 1, got {self.bound_factor}")
         if self.horizon <= self.push_onset + self.push_duration:
-            raise ValueError("horizon must end after the push")
+            raise ValueError(f"--horizon {self.horizon} s must end after the push "
+                             f"({self.push_onset} + {self.push_duration} s)")  # fmt: skip
+        if self.eval_horizon <= self.push_onset + self.push_duration:
+            raise ValueError(f"--eval-horizon {self.eval_horizon} s must end after the push")
         if self.batch > len(self.train_magnitudes) * len(self.train_directions):
-            raise ValueError("batch is larger than the training pool (magnitudes x directions)")
+            raise ValueError(f"--batch {self.batch} is larger than the training pool "
+                             f"({len(self.train_magnitudes)} magnitudes x {len(self.train_directions)} directions)")  # fmt: skip
         train = {(m, d) for m in self.train_magnitudes for d in self.train_directions}
         held = {(m, d) for m in self.eval_magnitudes for d in self.eval_directions}
         if train & held:
@@ -260,46 +242,47 @@ class TuneConfig:
             joint_noise=self.joint_noise, seed=self.eval_seed if held_out else self.seed,
             horizon=self.eval_horizon if held_out else self.horizon,
             solver_iterations=self.eval_solver_iterations if held_out else self.solver_iterations,
+            backend="jax", out=None,
         )  # fmt: skip
 
 
-def make_batched_loss(robot: model_lib.Robot, scfg: sweep.SweepConfig, lc: LossConfig,
-                      *, checkpoint: bool = True):  # fmt: skip
+def default_config() -> TuneConfig:
+    return TuneConfig()
+
+
+def make_batched_loss(robot_name: str, scfg: sweep.SweepConfig, lc: LossConfig, *, checkpoint: bool = True):
     """Differentiable batched objective (unjitted; the caller jits / differentiates).
 
     Returns ``fn(gains, scen, regularisation=None) -> (loss (), terms {name: (B,)}, Metrics with
-    a (B,) axis)``: the rollout (as in ``sweep.make_batched_runner``: joint offsets, per-env plant)
+    a (B,) axis)``: the closed loop of the sweep's environments (joint offsets, per-env plant)
     vmapped over the Scenario batch (its ``gains`` field is ignored; ``gains`` is shared), with a
-    LossTrace. ``regularisation``: optional ``{"pinv_damping": (), "kp_postural_reg": ()}``
-    overriding the controller's Reg.pinvDamp and Reg.KP_postural (differentiable)."""
-    rollout, d0, _, consts, _ = balance.setup(
-        robot, scfg.task, duration=scfg.horizon, forces=scfg.forces, postural=scfg.postural,
-        sim=dict(record=False, loss_trace=True, checkpoint=checkpoint, push_body=scfg.body,
-                 solver_iterations=scfg.solver_iterations),
-    )  # fmt: skip
-    mx, idx = robot.mjx_model, robot.index
-    dtype = d0.qpos.dtype
-    iterations = scfg.solver_iterations or int(robot.mj_model.opt.iterations)
+    LossTrace, on MJX's JAX implementation. ``regularisation``: optional ``{"pinv_damping": (),
+    "kp_postural_reg": ()}`` overriding the controller's Reg.pinvDamp and Reg.KP_postural
+    (differentiable)."""
+    st = sweep.make_setup(scfg, robot_name=robot_name, loss_trace=True, checkpoint=checkpoint)
+    loop = st.loop
+    dtype = st.dtype
+    qpos0 = jnp.asarray(st.qpos0, dtype)
+    nominal = physics.device_model(st.robot.mj_model, "jax", loop.cfg.physics)
+    iterations = scfg.solver_iterations or int(st.robot.mj_model.opt.iterations)
 
-    def env(gains, consts_run, scen):
-        qpos = d0.qpos.at[idx.qpos_joints].add(scen.joint_offset.astype(dtype))
-        plant = sweep.plant_model(mx, scen.friction, scen.mass_scale)
-        metrics, trace = rollout(mx, d0.replace(qpos=qpos), gains, consts_run, scen.push, mx_plant=plant)
+    def env(gains, regularisation, scen):
+        plant = physics.plant_model(nominal, scen.friction, scen.mass_scale) if loop.cfg.perturb_plant else nominal
+        metrics, trace = loop.rollout(plant, loop.initial_qpos(qpos0, scen.joint_offset), gains, scen.push,
+                                      controller_overrides=regularisation)  # fmt: skip
         return loss_terms(trace, lc), metrics
 
     def fn(gains, scen, regularisation=None):
         gains = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), gains)
-        consts_run = consts
-        if regularisation is not None:
-            consts_run = consts.replace(**{k: jnp.asarray(v, dtype) for k, v in regularisation.items()})
-        with fixed_iteration_solver(iterations):
-            terms, metrics = jax.vmap(env, in_axes=(None, None, 0))(gains, consts_run, scen)
+        reg = None if regularisation is None else {k: jnp.asarray(v, dtype) for k, v in regularisation.items()}
+        with physics.fixed_iteration_solver(iterations):
+            terms, metrics = jax.vmap(env, in_axes=(None, None, 0))(gains, reg, scen)
         return jnp.mean(terms["total"]), terms, metrics
 
     return fn
 
 
-def select(scen: sweep.Scenario, rows: np.ndarray) -> sweep.Scenario:
+def select(scen: rollout_lib.Scenario, rows: np.ndarray) -> rollout_lib.Scenario:
     """Rows of a Scenario batch (numpy indexing)."""
     return jax.tree_util.tree_map(lambda x: np.asarray(x)[rows], scen)
 
@@ -325,7 +308,7 @@ def skipped_count(opt_state) -> int:
     return int(opt_state.total_notfinite)
 
 
-def make_train_step(loss_fn, bounds: GainBounds, base: ctrl_lib.Gains, optimizer):
+def make_train_step(loss_fn, bounds: GainBounds, base: Gains, optimizer):
     """One optimiser step, jitted: (params, opt_state, scen) -> (params, opt_state, loss,
     terms {name: ()}, grad_norm, finite)."""
     import optax
@@ -405,9 +388,9 @@ def train(robot: model_lib.Robot, tc: TuneConfig, lc: LossConfig, out, *, progre
     from tqdm.auto import tqdm
 
     out = pathlib.Path(out)
-    base = ctrl_lib.default_gains(robot.index.n)
+    base = default_gains(robot.index.n)
     bounds = default_bounds(base, tc.bound_factor)
-    pool, _ = sweep.build_scenarios(tc.sweep_config(), base, robot.index.n)
+    pool, _ = sweep.build_scenarios(tc.sweep_config(), base, robot.index.n, scenario.float_dtype())
     batches = minibatches(tc, int(np.asarray(pool.friction).shape[0]))
     optimizer = make_optimizer(tc.lr, tc.clip_norm)
     params = gains_to_params(base, bounds)
@@ -420,7 +403,7 @@ def train(robot: model_lib.Robot, tc: TuneConfig, lc: LossConfig, out, *, progre
         with open(hist_path) as fh:
             rows = list(csv.DictReader(fh))[:start]
     if step_fn is None:
-        step_fn = make_train_step(make_batched_loss(robot, tc.sweep_config(), lc), bounds, base, optimizer)
+        step_fn = make_train_step(make_batched_loss(robot.index.robot, tc.sweep_config(), lc), bounds, base, optimizer)
     compile_s, memory = 0.0, {}
     if start < tc.steps and hasattr(step_fn, "lower"):  # ahead-of-time: compile timed apart
         t0 = time.perf_counter()
@@ -448,7 +431,7 @@ def train(robot: model_lib.Robot, tc: TuneConfig, lc: LossConfig, out, *, progre
             bar.set_postfix(loss=f"{float(loss):.4g}", skipped=skipped_count(opt_state))
             bar.update(1)
     tuned = params_to_gains(state[0], bounds, base)
-    io.atomic_write_json(out / "tuned_gains.json", ctrl_lib.gains_to_dict(tuned))
+    io.atomic_write_json(out / "tuned_gains.json", gains_to_dict(tuned))
     return tuned, rows, {"compile_s": round(compile_s, 2), **memory}
 
 
@@ -464,11 +447,11 @@ def random_search(robot, tc: TuneConfig, lc: LossConfig, *, sigma: float = 0.5, 
     Returns (best Gains, list of (candidate, loss, best_so_far))."""
     from tqdm.auto import tqdm
 
-    base = ctrl_lib.default_gains(robot.index.n)
+    base = default_gains(robot.index.n)
     bounds = default_bounds(base, tc.bound_factor)
-    pool, _ = sweep.build_scenarios(tc.sweep_config(), base, robot.index.n)
+    pool, _ = sweep.build_scenarios(tc.sweep_config(), base, robot.index.n, scenario.float_dtype())
     scen = select(pool, minibatches(tc, int(np.asarray(pool.friction).shape[0]))[0])
-    loss_fn = make_batched_loss(robot, tc.sweep_config(), lc, checkpoint=False)
+    loss_fn = make_batched_loss(robot.index.robot, tc.sweep_config(), lc, checkpoint=False)
     f = jax.jit(lambda p, s: loss_fn(params_to_gains(p, bounds, base), s)[0])
     rng = np.random.default_rng(tc.seed + 2)
     best = gains_to_params(base, bounds)
@@ -486,21 +469,21 @@ def evaluate(robot, tc: TuneConfig, lc: LossConfig, gain_sets: dict) -> dict:
     """Held-out evaluation of named gain sets on ``tc.sweep_config(held_out=True)``.
 
     The closed loop of a push sweep (model's solver, joint offsets, per-env plant), with the
-    smooth objective computed alongside; survival and envelope from ``sweep.metrics_columns`` +
+    smooth objective computed alongside; survival and envelope from ``rollout.summarize`` +
     ``sweep.summarize_table``. Returns {name: {objective, survival_rate, envelope, com_rmse_m,
     effort_rms_nm, peak_torque_nm, ...}}."""
     import pandas as pd
 
     scfg = tc.sweep_config(held_out=True)
-    base = ctrl_lib.default_gains(robot.index.n)
-    scen, cols = sweep.build_scenarios(scfg, base, robot.index.n)
-    f = jax.jit(make_batched_loss(robot, scfg, lc, checkpoint=False))
+    base = default_gains(robot.index.n)
+    scen, cols = sweep.build_scenarios(scfg, base, robot.index.n, scenario.float_dtype())
+    f = jax.jit(make_batched_loss(robot.index.robot, scfg, lc, checkpoint=False))
     push_end = scfg.push_onset + scfg.push_duration
     results = {}
     for name, gains in gain_sets.items():
         t0 = time.perf_counter()
         loss, terms, metrics = f(gains, scen)
-        mcols = sweep.metrics_columns(metrics, push_end)
+        mcols = rollout_lib.summarize(metrics, push_end)
         table = pd.DataFrame({**cols, **mcols})
         summary = sweep.summarize_table(table, scfg, robot)
         results[name] = {
@@ -515,7 +498,8 @@ def evaluate(robot, tc: TuneConfig, lc: LossConfig, gain_sets: dict) -> dict:
                 [e["largest_survived_impulse_ns"] for e in summary["envelope"].values()])),
             "com_rmse_m": float(np.mean(mcols["com_rmse_m"])),
             "effort_rms_nm": float(np.mean(np.sqrt(np.asarray(terms["effort"])) * lc.torque_scale)),
-            "peak_torque_nm": float(np.mean(mcols["peak_torque_nm"])),
+            "max_abs_torque_nm": float(np.mean(mcols["max_abs_torque_nm"])),
+            "upright_rate": summary["upright_rate"],
             "wall_s": round(time.perf_counter() - t0, 2),
         }  # fmt: skip
     return results
@@ -544,23 +528,29 @@ def loss_plot(rows: list, rs_log: list, batch: int, path) -> None:
     io.atomic_write_bytes(pathlib.Path(path), buf.getvalue())
 
 
-def run(tc: TuneConfig, out, *, lc: LossConfig | None = None, baseline: bool = True,
-        progress: bool = True, robot_name: str = "icub") -> dict:  # fmt: skip
+def run(cfg: TuneConfig | None = None, *, lc: LossConfig | None = None, progress: bool = True,
+        robot_name: str = "icub", **overrides) -> dict:  # fmt: skip
     """The ``tune`` job: train, gradient-free baseline, held-out evaluation; writes
-    tuned_gains.json, history.csv, loss.png, eval.json into ``out``. Returns eval.json's dict."""
+    tuned_gains.json, history.csv, loss.png, eval.json into ``cfg.out``. Returns eval.json's dict.
+    ``overrides``: fields of :class:`TuneConfig`."""
+    tc = dataclasses.replace(default_config() if cfg is None else cfg, **overrides)
+    baseline = tc.baseline
+    out = pathlib.Path(tc.out)
     lc = LossConfig() if lc is None else lc
-    out = pathlib.Path(out)
+    runs.check_output_dir(out, "tune")
     robot = model_lib.load_robot(robot_name)
+    runs.claim_output_dir(out, "tune", runs.fingerprint({"tune": dataclasses.asdict(tc), "loss": dataclasses.asdict(lc),
+                                                         "dtype": str(scenario.float_dtype())}), resume=True)
     t0 = time.perf_counter()
     tuned, rows, compile_info = train(robot, tc, lc, out, progress=progress)
     train_s = time.perf_counter() - t0
-    sets = {"default": ctrl_lib.default_gains(robot.index.n), "gradient": tuned}
+    sets = {"default": default_gains(robot.index.n), "gradient": tuned}
     rs_log = []
     if baseline:
         t0 = time.perf_counter()
         sets["random_search"], rs_log = random_search(robot, tc, lc, progress=progress)
         rs_s = time.perf_counter() - t0
-        io.atomic_write_json(out / "random_search_gains.json", ctrl_lib.gains_to_dict(sets["random_search"]))
+        io.atomic_write_json(out / "random_search_gains.json", gains_to_dict(sets["random_search"]))
     loss_plot(rows, rs_log, tc.batch, out / "loss.png")
     t0 = time.perf_counter()
     results = evaluate(robot, tc, lc, sets)
@@ -587,3 +577,9 @@ def run(tc: TuneConfig, out, *, lc: LossConfig | None = None, baseline: bool = T
     }  # fmt: skip
     io.atomic_write_json(out / "eval.json", report)
     return report
+
+
+def report_line(report: dict) -> dict:
+    """The one-line JSON summary of a tuning report (the CLI prints it)."""
+    keys = ("objective", "survival_rate", "com_rmse_m", "effort_rms_nm")
+    return {name: {k: r[k] for k in keys} for name, r in report["held_out"].items()}

@@ -9,19 +9,21 @@ A recording holds, on the ``sim_time`` timeline (seconds, one row per controller
     world/floor                     static Boxes3D
     world/com, world/com_ref        Points3D (now) ; world/com/trail, world/com_ref/trail LineStrips3D
     world/support_polygon           LineStrips3D: convex hull of the sole spheres touching the floor
-    world/contacts/f_meas, f_cmd    Arrows3D: force part of each sole wrench, at the sole origins
+    world/contacts/f_meas, f_cmd    Arrows3D: force part of each contact's wrench, at the contact
+    world/contacts/normals          Arrows3D: each contact's normal (its frame's z axis)
+    world/scene/<object>            static Boxes3D: the scene's objects (a table, a wall)
     world/push                      Arrows3D on the pushed body (its tip at the body's CoM)
     plots/com_error_mm, plots/Ldot_star, plots/Ldot_meas, plots/tau,
-    plots/f_cmd, plots/f_meas       Scalars
+    plots/f_cmd, plots/f_meas, plots/activation       Scalars
 
 Runs on disk (``wbc-jax view``): a ``balance`` run (``trajectory.npz``) is logged as is; env I of
 a push sweep (``results.parquet`` + ``summary.json``) is first re-simulated with trajectory
-recording from its stored scenario (:func:`replay_sweep_env`).
+recording from its stored scenario (:func:`wbc_jax.sweep.replay_env`). Any contact set is shown:
+the feet, hands on a table, a hand on a wall.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import json
 import pathlib
@@ -35,10 +37,14 @@ TIMELINE = "sim_time"
 FORCE_SCALE = 1.0 / 500.0  # m per N for the arrows: the ~160 N per sole of standing -> 0.32 m
 TRAIL_S = 1.0  # s of CoM history drawn behind the CoM
 CONTACT_TOL = 2e-3  # m: a sole sphere whose bottom is this close to the floor counts as touching
-WRENCH_NAMES = [f"{foot} {c}" for foot in "LR" for c in ("fx", "fy", "fz", "tx", "ty", "tz")]
 AXES6 = ["fx", "fy", "fz", "tx", "ty", "tz"]
 TRAJ_FIELDS = ("t", "qpos", "com", "com_ref", "tau", "f_cmd", "f_meas", "Ldot_star", "Ldot_meas",
-               "feet_pos", "push")  # fmt: skip
+               "contact_pos", "contact_normal", "activation", "push")  # fmt: skip
+
+
+def wrench_names(names: list[str], dims: list[int]) -> list[str]:
+    """Series names of the stacked contact wrenches (surface: 6 entries, point: 3)."""
+    return [f"{name} {a}" for name, dim in zip(names, dims, strict=True) for a in AXES6[:dim]]
 
 
 @functools.lru_cache(maxsize=2)
@@ -121,12 +127,9 @@ def _check_traj(traj: dict) -> int:
     bad = [f for f in TRAJ_FIELDS if len(traj[f]) != T]
     if T == 0 or bad:
         raise ValueError(f"trajectory fields {bad} do not have the length of t ({T})")
-    if np.shape(traj["f_cmd"])[1:] != (12,):
-        raise ValueError(
-            f"this run has a general contact set ({np.shape(traj['f_cmd'])[1]} wrench entries, "
-            f"{np.shape(traj['feet_pos'])[1]} contacts); the rerun view shows two-feet runs only (not done yet); "
-            "its plots (contact_forces.png) and metrics.json show the contacts"
-        )
+    K = np.shape(traj["contact_pos"])[1]
+    if np.shape(traj["activation"])[1:] != (K,) or np.shape(traj["contact_normal"])[1:] != (K, 3):
+        raise ValueError(f"trajectory contact fields disagree on the number of contacts ({K})")
     return T
 
 
@@ -160,16 +163,19 @@ def log_robot_meshes(rec, m: mujoco.MjModel) -> list[str]:
 
 
 def log_trajectory(rec, traj: dict, *, robot: str = "icub", push_body: str = "chest",
-                   joints: list[str] | None = None) -> None:  # fmt: skip
+                   joints: list[str] | None = None, contacts: list[str] | None = None,
+                   dims: list[int] | None = None, boxes: dict | None = None) -> None:  # fmt: skip
     """Log a recorded rollout to a rerun recording stream.
 
     Args:
       rec: ``rr.RecordingStream``.
       traj: numpy fields of :class:`rollout.Trajectory` (time-major, length T): t (T,),
-        qpos (T, nq), com/com_ref (T, 3), tau (T, n), f_cmd/f_meas (T, 12), Ldot_star/Ldot_meas
-        (T, 6), feet_pos (T, 2, 3), push (T, 3).
+        qpos (T, nq), com/com_ref (T, 3), tau (T, n), f_cmd/f_meas (T, D), Ldot_star/Ldot_meas
+        (T, 6), contact_pos/contact_normal (T, K, 3), activation (T, K), push (T, 3).
       robot: robot name (visual model). push_body: body the push acts on (arrow tip at its CoM).
       joints: joint names (n,) for the torque series (default: indices).
+      contacts, dims: contact names and wrench sizes (K,) (default: the two soles).
+      boxes: scene objects {name: (center (3,), half sizes (3,), rotation (3, 3))}.
     """
     import rerun as rr
 
@@ -186,14 +192,23 @@ def log_trajectory(rec, traj: dict, *, robot: str = "icub", push_body: str = "ch
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     rec.log("world/floor", rr.Boxes3D(centers=[[0, 0, -0.005]], half_sizes=[[1.0, 1.0, 0.005]],
                                       colors=[[90, 90, 90, 255]], fill_mode="solid"), static=True)  # fmt: skip
+    K = np.shape(traj["contact_pos"])[1]
+    contacts = list(contacts) if contacts is not None else (["left", "right"] if K == 2 else [f"c{k}" for k in range(K)])
+    dims = list(dims) if dims is not None else [6] * K
+    for name, (center, half, R) in (boxes or {}).items():
+        quat = np.zeros(4)
+        mujoco.mju_mat2Quat(quat, np.asarray(R, float).ravel())
+        rec.log(f"world/scene/{name}", rr.Boxes3D(centers=[center], half_sizes=[half], quaternions=[_xyzw(quat)],
+                                                  colors=[[150, 115, 75, 255]], fill_mode="solid"), static=True)  # fmt: skip
     n = np.asarray(traj["tau"]).shape[1]
     series = {
         "plots/com_error_mm": ["|CoM - CoM_ref|"],
         "plots/Ldot_star": [f"L̇* {a}" for a in AXES6],
         "plots/Ldot_meas": [f"L̇ meas {a}" for a in AXES6],
         "plots/tau": list(joints) if joints is not None else [f"tau_{j}" for j in range(n)],
-        "plots/f_cmd": [f"cmd {w}" for w in WRENCH_NAMES],
-        "plots/f_meas": [f"meas {w}" for w in WRENCH_NAMES],
+        "plots/f_cmd": [f"cmd {w}" for w in wrench_names(contacts, dims)],
+        "plots/f_meas": [f"meas {w}" for w in wrench_names(contacts, dims)],
+        "plots/activation": [f"activation {c}" for c in contacts],
     }
     for path, names in series.items():
         rec.log(path, rr.SeriesLines(names=names), static=True)
@@ -206,7 +221,7 @@ def log_trajectory(rec, traj: dict, *, robot: str = "icub", push_body: str = "ch
     values = {
         "plots/com_error_mm": com_err[:, None], "plots/Ldot_star": traj["Ldot_star"],
         "plots/Ldot_meas": traj["Ldot_meas"], "plots/tau": traj["tau"],
-        "plots/f_cmd": traj["f_cmd"], "plots/f_meas": traj["f_meas"],
+        "plots/f_cmd": traj["f_cmd"], "plots/f_meas": traj["f_meas"], "plots/activation": traj["activation"],
     }  # fmt: skip
     for path, v in values.items():
         v = np.asarray(v, float).reshape(T, -1)
@@ -218,7 +233,10 @@ def log_trajectory(rec, traj: dict, *, robot: str = "icub", push_body: str = "ch
     trail = max(1, int(round(TRAIL_S / (t[1] - t[0])))) if T > 1 else 1
     push_id = bodies.index(push_body)
     com, com_ref = np.asarray(traj["com"]), np.asarray(traj["com_ref"])
-    feet = np.asarray(traj["feet_pos"]).reshape(T, 2, 3)
+    points = np.asarray(traj["contact_pos"]).reshape(T, K, 3)
+    normals = np.asarray(traj["contact_normal"]).reshape(T, K, 3)
+    starts = np.concatenate([[0], np.cumsum(dims)[:-1]])
+    force_cols = np.concatenate([np.arange(s0, s0 + 3) for s0 in starts])
     for k in range(T):
         rec.set_time(TIMELINE, duration=float(t[k]))
         lo = max(0, k - trail)
@@ -230,9 +248,14 @@ def log_trajectory(rec, traj: dict, *, robot: str = "icub", push_body: str = "ch
         strip = np.column_stack([poly, np.full(len(poly), 1e-3)]) if len(poly) else np.zeros((0, 3))
         rec.log("world/support_polygon", rr.LineStrips3D([strip], radii=0.003, colors=[[250, 200, 0]]))
         for name, color in (("f_meas", [60, 120, 250]), ("f_cmd", [250, 250, 250])):
-            f = np.asarray(traj[name][k]).reshape(2, 6)[:, :3] * FORCE_SCALE
-            rec.log(f"world/contacts/{name}", rr.Arrows3D(vectors=f, origins=feet[k], colors=[color] * 2,
-                                                          radii=0.006, labels=["L", "R"]))  # fmt: skip
+            f = np.asarray(traj[name][k])[force_cols].reshape(K, 3) * FORCE_SCALE
+            rec.log(f"world/contacts/{name}", rr.Arrows3D(vectors=f, origins=points[k], colors=[color] * K,
+                                                          radii=0.006, labels=contacts))  # fmt: skip
+        act = np.asarray(traj["activation"][k])
+        shade = (np.clip(act, 0, 1)[:, None] * np.array([40, 200, 80]) + (1 - np.clip(act, 0, 1))[:, None]
+                 * np.array([200, 60, 40])).astype(np.uint8)  # fmt: skip
+        rec.log("world/contacts/normals", rr.Arrows3D(vectors=0.08 * normals[k], origins=points[k], colors=shade,
+                                                      radii=0.003, labels=[f"{c} a={a:.2f}" for c, a in zip(contacts, act)]))  # fmt: skip
         p = np.asarray(traj["push"][k], float)
         if np.any(p != 0):
             v = p * FORCE_SCALE
@@ -243,20 +266,16 @@ def log_trajectory(rec, traj: dict, *, robot: str = "icub", push_body: str = "ch
             rec.log("world/push", rr.Arrows3D(vectors=np.zeros((0, 3))))
 
 
-def _load_json(path: pathlib.Path) -> dict:
-    if not path.exists():
-        raise FileNotFoundError(f"{path} is missing")
-    return json.loads(path.read_text())
-
-
 def run_kind(run_dir: str | pathlib.Path) -> str:
     """``"balance"`` (trajectory.npz) or ``"sweep"`` (results.parquet + summary.json)."""
     run_dir = pathlib.Path(run_dir)
-    if not run_dir.is_dir():
+    if not run_dir.exists():
         raise FileNotFoundError(f"run directory {run_dir} does not exist")
+    if not run_dir.is_dir():
+        raise ValueError(f"{run_dir} is a file; give the output folder of a balance run or a push sweep")
     if (run_dir / "trajectory.npz").exists():
         return "balance"
-    if (run_dir / "results.parquet").exists() or (run_dir / "manifest.json").exists():
+    if (run_dir / "results.parquet").exists() or (run_dir / "summary.json").exists():
         return "sweep"
     raise FileNotFoundError(
         f"{run_dir} is neither a balance run (no trajectory.npz) nor a finished push sweep "
@@ -264,102 +283,56 @@ def run_kind(run_dir: str | pathlib.Path) -> str:
     )
 
 
-def sweep_config(summary: dict):
-    """The :class:`sweep.SweepConfig` stored in a sweep's summary.json (lists back to tuples)."""
-    from wbc_jax import sweep
+def scene_boxes(robot: model_lib.Robot) -> dict:
+    """The scene objects of a model (box geoms of the world body but the floor):
+    {name: (center, half sizes, rotation)}."""
+    m = robot.mj_model
+    d = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, d)
+    out = {}
+    for g in range(m.ngeom):
+        if m.geom_bodyid[g] == 0 and m.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX:
+            name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g) or f"box_{g}"
+            out[name] = (d.geom_xpos[g].copy(), m.geom_size[g].copy(), d.geom_xmat[g].reshape(3, 3).copy())
+    return out
 
-    values = {k: tuple(v) if isinstance(v, list) else v for k, v in summary["config"].items()}
-    known = {f.name for f in dataclasses.fields(sweep.SweepConfig)}
-    return sweep.SweepConfig(**{k: v for k, v in values.items() if k in known})
 
-
-_REPLAY: dict = {}  # (sweep key, robot, dtype) -> (jitted recording rollout, d0, consts)
-
-
-def replay_sweep_env(run_dir: str | pathlib.Path, env: int, *, robot_name: str = "icub"):
-    """Re-simulate env ``env`` of a finished push sweep, recording its trajectory.
-
-    The scenario is rebuilt deterministically from the stored config, seed and base gains
-    (:func:`sweep.build_scenarios`): same push, gain set, joint offset, friction and mass scale
-    (plant = :func:`sweep.plant_model`, controller on the nominal model), as in
-    :func:`sweep.make_batched_runner`. Run in the dtype the sweep ran in (float32 from the CLI,
-    float64 with x64 on): the replay then equals the sweep's metrics.
-
-    Returns:
-      (traj dict of numpy (T, ...), replay metrics columns dict, the sweep's table row dict).
-
-    Raises:
-      FileNotFoundError: missing files. ValueError: env out of range, or the rebuilt scenario
-        does not match the stored row (the sweep was written by other code).
-    """
-    import jax
-    import jax.numpy as jnp
-    import pandas as pd
-
-    from wbc_jax import balance, sweep
-    from wbc_jax import controller as ctrl_lib
-
-    run_dir = pathlib.Path(run_dir)
-    results = run_dir / "results.parquet"
-    if not results.exists():
-        raise FileNotFoundError(f"{results} is missing: the sweep has not finished; rerun it with the same --out")
-    summary = _load_json(run_dir / "summary.json")
-    table = pd.read_parquet(results)
-    if not 0 <= env < len(table):
-        raise ValueError(f"env {env} is out of range: this sweep has envs 0..{len(table) - 1}")
-    cfg = sweep_config(summary)
-    robot = model_lib.load_robot(robot_name)
-    stack = contact_set = qpos = None
-    if cfg.tasks_file is not None:  # the sweep's motion tasks, contacts and scene
-        robot, stack, contact_set, qpos = balance.load_scenario(robot_name, cfg.tasks_file)
-    n = robot.index.n
-    dtype = np.dtype(jnp.zeros(()).dtype)
-    base = ctrl_lib.gains_from_dict(summary["gains"], n, dtype)
-    scen, columns = sweep.build_scenarios(cfg, base, n, dtype)
-    row = table[table["env"] == env].iloc[0].to_dict()
-    for name, col in columns.items():
-        if not np.isclose(float(col[env]), float(row[name]), rtol=1e-6, atol=1e-9):
-            raise ValueError(f"scenario column {name!r} of env {env}: rebuilt {col[env]}, stored {row[name]}")
-    one = jax.tree_util.tree_map(lambda x: jnp.asarray(np.asarray(x)[env]), scen)
-
-    key = (cfg.key(), robot_name, str(dtype))
-    if key not in _REPLAY:  # one compilation per sweep definition (replays of other envs reuse it)
-        rollout, d0, _, consts, _ = balance.setup(
-            robot, cfg.task, duration=cfg.horizon, forces=cfg.forces, postural=cfg.postural,
-            sim=dict(record=True, push_body=cfg.body, solver_iterations=cfg.solver_iterations),
-            stack=stack, contact_set=contact_set, qpos=qpos,
-        )  # fmt: skip
-        _REPLAY[key] = (jax.jit(rollout), d0, consts)
-    run, d0, consts = _REPLAY[key]
-    mx = robot.mjx_model
-    d = d0.replace(qpos=d0.qpos.at[robot.index.qpos_joints].add(one.joint_offset))
-    plant = sweep.plant_model(mx, one.friction, one.mass_scale)
-    metrics, traj = run(mx, d, one.gains, consts, one.push, plant)
-    traj = {k: np.asarray(getattr(traj, k)) for k in traj.__dataclass_fields__}
-    cols = sweep.metrics_columns(metrics, cfg.push_onset + cfg.push_duration)
-    return traj, {k: np.asarray(v).item() for k, v in cols.items()}, row
+def _read_npz(path: pathlib.Path) -> dict:
+    try:
+        with np.load(path) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError) as err:  # truncated or not an npz
+        raise ValueError(f"{path} is unreadable ({err}); rerun the balance job") from None
 
 
 def load_run(run_dir: str | pathlib.Path, env: int | None = None) -> tuple[dict, dict]:
     """The trajectory of a run dir and how to draw it.
 
     Returns:
-      (traj dict, info {"kind", "push_body", "joints", "name"}).
+      (traj dict, info {"kind", "push_body", "joints", "name", "contacts", "dims", "boxes"}).
 
     Raises:
       FileNotFoundError / ValueError: unknown dir, missing files, env given for a balance run or
         missing / out of range for a sweep.
     """
+    from wbc_jax import scenario, sweep
+
     run_dir = pathlib.Path(run_dir)
     kind = run_kind(run_dir)
-    joints = list(model_lib.ICUB_JOINTS)
     if kind == "balance":
         if env is not None:
             raise ValueError(f"{run_dir} is a balance run (one trajectory): --env applies to sweeps only")
-        with np.load(run_dir / "trajectory.npz") as z:
-            traj = {k: z[k] for k in z.files}
-        joints = [str(j) for j in traj.pop("joints", joints)]
-        return traj, {"kind": kind, "push_body": "chest", "joints": joints, "name": "rollout"}
+        traj = _read_npz(run_dir / "trajectory.npz")
+        joints = [str(j) for j in traj.pop("joints", model_lib.ICUB_JOINTS)]
+        names = [str(c) for c in traj.pop("contact_names", ["left", "right"])]
+        dims = [int(d) for d in traj.pop("contact_dims", [6] * len(names))]
+        boxes = {}
+        metrics = run_dir / "metrics.json"
+        tasks = json.loads(metrics.read_text()).get("config", {}).get("tasks") if metrics.exists() else None
+        if tasks:
+            boxes = scene_boxes(scenario.load_scene("icub", tasks).robot)
+        return traj, {"kind": kind, "push_body": "chest", "joints": joints, "name": "rollout",
+                      "contacts": names, "dims": dims, "boxes": boxes}  # fmt: skip
     if env is None:
         import pandas as pd
 
@@ -368,16 +341,21 @@ def load_run(run_dir: str | pathlib.Path, env: int | None = None) -> tuple[dict,
             raise FileNotFoundError(f"{results} is missing: the sweep has not finished")
         size = len(pd.read_parquet(results))
         raise ValueError(f"{run_dir} is a push sweep of {size} envs: choose one with --env I, I in 0..{size - 1}")
-    traj, _, _ = replay_sweep_env(run_dir, env)
-    body = sweep_config(_load_json(run_dir / "summary.json")).body
-    return traj, {"kind": kind, "push_body": body, "joints": joints, "name": f"env_{env}"}
+    st, traj, _, _ = sweep.replay_env(run_dir, env)
+    cset = st.loop.contact_set
+    return traj, {"kind": kind, "push_body": st.loop.cfg.push_body, "joints": list(st.robot.index.joints),
+                  "name": f"env_{env}", "contacts": list(cset.names), "dims": [c.dim for c in cset.contacts],
+                  "boxes": scene_boxes(st.robot)}  # fmt: skip
 
 
 def view(run_dir: str | pathlib.Path, env: int | None = None, *, out: str | pathlib.Path | None = None,
          spawn: bool = False) -> pathlib.Path | None:  # fmt: skip
     """Log a run (or sweep env) to rerun: write ``out`` (default RUN_DIR/rollout.rrd or
     RUN_DIR/env_I.rrd) or, with ``spawn``, open a viewer. Returns the .rrd path (None if spawned)."""
-    import rerun as rr
+    try:
+        import rerun as rr
+    except ImportError:
+        raise ImportError('wbc-jax view needs rerun-sdk: pip install -e ".[viz]"') from None
 
     run_dir = pathlib.Path(run_dir)
     traj, info = load_run(run_dir, env)
@@ -388,9 +366,12 @@ def view(run_dir: str | pathlib.Path, env: int | None = None, *, out: str | path
         path = None
     else:
         path = pathlib.Path(out) if out is not None else run_dir / f"{info['name']}.rrd"
+        if path.exists() and path.is_dir():
+            raise ValueError(f"--out {path} is a folder; give a .rrd file name")
         path.parent.mkdir(parents=True, exist_ok=True)
         rec.save(str(path))
-    log_trajectory(rec, traj, push_body=info["push_body"], joints=info["joints"])
+    log_trajectory(rec, traj, push_body=info["push_body"], joints=info["joints"], contacts=info["contacts"],
+                   dims=info["dims"], boxes=info["boxes"])  # fmt: skip
     rec.flush()
     if path is not None:
         rec.disconnect()

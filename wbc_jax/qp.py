@@ -1,26 +1,15 @@
-"""Contact-wrench quadratic programs of the WBC balancing controller, in JAX.
+"""[contact forces] A small dense QP solver in JAX: ``min 1/2 x'Hx + g'x  s.t.  Cx <= b``.
 
-Each control tick of the iCub balancing controller (robotology
-whole-body-controllers, controller-spec §1.7) solves one tiny dense QP for the
-feet wrenches. This module provides
-
-* :class:`ContactParams` and :func:`foot_constraints` /
-  :func:`world_constraints`: the rigid-contact constraint set ``C f <= b`` of
-  ``wbc.computeRigidContactConstraints`` (linearised friction cone, torsional
-  friction, unilaterality, centre of pressure in the sole rectangle);
-* :func:`solve_qp`: a generic dense QP solver ``min 1/2 x'Hx + g'x  s.t.
-  Cx <= b`` that runs under ``jit``/``vmap``/``lax.scan`` and is differentiable
-  in reverse *and* forward mode;
-* :func:`two_feet_wrenches` and :func:`one_foot_wrench`: the two contact-force
-  QPs of the controller.
-
-Wrenches are ``[force; moment]``, applied at the sole origin. ``f_L``/``f_R``
-and the arguments of the QP wrappers are in world axes.
+Each control tick of the iCub balancing controller (robotology whole-body-controllers,
+controller-spec 1.7) solves tiny dense QPs for the contact wrenches (:mod:`wbc_jax.forces`
+builds them). :func:`solve_qp` runs under ``jit``/``vmap``/``lax.scan`` and is differentiable
+in reverse *and* forward mode.
 
 Algorithm of :func:`solve_qp` and why
 -------------------------------------
-A primal-dual interior-point method (Mehrotra predictor-corrector) run for a
-*fixed* number of Newton steps in ``lax.scan``:
+A primal-dual interior-point method (Mehrotra predictor-corrector) run for at
+most ``iterations`` Newton steps in a ``lax.while_loop`` that stops once the
+iterate has converged (under ``vmap``: once every problem of the batch has):
 
 * The problems are tiny and dense (n <= 12, m <= 38); an interior point method
   reaches ~1e-10 (float64) in 10-20 steps whatever the active set, so one
@@ -36,8 +25,9 @@ A primal-dual interior-point method (Mehrotra predictor-corrector) run for a
   float32 rounding of C' diag(z/s) C near the solution: measured 1e-3 errors
   and 30-90 % convergence in float32, against 1e-5 and 100 % here.
 * Once a problem has converged its iterate is frozen (``jnp.where``), so
-  surplus iterations of the batch cannot degrade it; a step that would produce
-  non-finite numbers is rejected likewise.
+  surplus iterations of a batch cannot degrade it; a step that would produce
+  non-finite numbers is rejected likewise. The loop is never differentiated
+  (below), so a ``while_loop`` serves reverse mode as well as a ``scan``.
 * The final iterate is strictly interior (slacks ``s > 0`` and multipliers
   ``lam > 0``), so the linearised KKT system used for the derivative is
   nonsingular even at weakly active constraints, and its solution is smooth
@@ -64,10 +54,8 @@ max|f - f*| / max|f*| for the feet wrenches:
   constraint violation <= 2e-5 N on forces of ~300 N; 9 steps on average, at
   most 22.
 
-Default: ``DEFAULT_ITERATIONS = 25`` Newton steps for either precision.
-Cost: a vmapped batch of 4096 two-feet QPs takes 4.7 ms (float32) / 7.3 ms
-(float64) on one H100 (jax 0.11), about 1.2 s (either dtype) on 2 idle CPU
-cores.
+Default: at most ``DEFAULT_ITERATIONS = 25`` Newton steps for either precision
+(BENCHMARKS.md has the cost).
 
 Failure handling: if the iterate did not converge *and* the returned point
 violates the constraints by more than ``fallback_tol`` (relative, after
@@ -82,187 +70,21 @@ that a broken upstream computation is not hidden behind a plausible force.
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax import lax
 
 Array = jax.Array
 
+
 DEFAULT_ITERATIONS = 25
-"""Default number of interior-point (Newton) steps: the contact problems
-converge in 8-19 (float64, tol 1e-11) or 7-22 (float32, tol 2e-6); a converged
-iterate is frozen, so surplus steps only cost time."""
+"""Default (maximum) number of interior-point (Newton) steps: the contact problems
+converge in 8-19 (float64, tol 1e-11) or 7-22 (float32, tol 2e-6); the loop stops once
+the iterate has converged."""
 
-_NULL_DIM = 6  # dim range(N_A): 12 foot-wrench components minus 6 momentum rows
 _STEP_TO_BOUNDARY = 0.99  # fraction of the max step keeping s, lam > 0
-
-
-# --------------------------------------------------------------------------------------
-# Parameters and constraints
-# --------------------------------------------------------------------------------------
-
-
-@dataclasses.dataclass(frozen=True)
-class ContactParams:
-    """Static parameters of the rigid-contact constraints of one foot.
-
-    Registered as a pytree without leaves, so it can be passed to ``jax.jit``
-    functions as a normal argument (its values are part of the treedef, i.e.
-    static: a change recompiles).
-
-    Attributes:
-        mu: static friction coefficient (tangential force <= mu f_z).
-        n_points: points per quadrant of the linearised friction cone; the cone
-            is a polygon with 4 (n_points - 1) edges.
-        mu_t: torsional friction coefficient (|tau_z| <= mu_t f_z).
-        fz_min: minimal normal force [N].
-        foot_size: ((x_min, x_max), (y_min, y_max)) of the centre-of-pressure
-            rectangle in the sole frame [m].
-    """
-
-    mu: float = 1.0 / 3.0
-    n_points: int = 4
-    mu_t: float = 1.0 / 75.0
-    fz_min: float = 10.0
-    foot_size: tuple[tuple[float, float], tuple[float, float]] = (
-        (-0.07, 0.12),
-        (-0.045, 0.045),
-    )
-
-    def __post_init__(self) -> None:
-        for name in ("mu", "mu_t", "fz_min"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ValueError(
-                    f"ContactParams.{name} must be a real number, got {value!r}"
-                )
-            if not math.isfinite(value) or value <= 0.0:
-                raise ValueError(
-                    f"ContactParams.{name} must be positive and finite, got {value!r}"
-                )
-            object.__setattr__(self, name, float(value))
-        n = self.n_points
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2:
-            raise ValueError(
-                f"ContactParams.n_points must be an integer >= 2, got {n!r}"
-            )
-        object.__setattr__(self, "n_points", int(n))
-        try:
-            (x_min, x_max), (y_min, y_max) = (
-                (float(a), float(b)) for a, b in self.foot_size
-            )
-        except (TypeError, ValueError) as err:
-            raise ValueError(
-                "ContactParams.foot_size must be ((x_min, x_max), (y_min, y_max)), "
-                f"got {self.foot_size!r}"
-            ) from err
-        if not all(math.isfinite(v) for v in (x_min, x_max, y_min, y_max)):
-            raise ValueError(
-                f"ContactParams.foot_size must be finite, got {self.foot_size!r}"
-            )
-        if not x_min < x_max:
-            raise ValueError(
-                f"ContactParams.foot_size needs x_min < x_max, got {self.foot_size!r}"
-            )
-        if not y_min < y_max:
-            raise ValueError(
-                f"ContactParams.foot_size needs y_min < y_max, got {self.foot_size!r}"
-            )
-        # A CoP rectangle that excludes the sole origin is legal (the rows stay
-        # meaningful), so only the ordering is checked.
-        object.__setattr__(self, "foot_size", ((x_min, x_max), (y_min, y_max)))
-
-
-jax.tree_util.register_dataclass(
-    ContactParams,
-    data_fields=[],
-    meta_fields=["mu", "n_points", "mu_t", "fz_min", "foot_size"],
-)
-
-
-def foot_constraints(params: ContactParams) -> tuple[np.ndarray, np.ndarray]:
-    """Rigid-contact constraints ``C_foot f <= b_foot`` of a wrench in the SOLE frame.
-
-    Same constraint set as WBC ``wbc.computeRigidContactConstraints(mu,
-    numberOfPoints, mu_t, footSize, fZmin)`` and the same row order:
-
-    * rows 0..E-1 (E = 4 (n_points - 1), 12 by default): linearised friction
-      cone. Vertices ``(cos t_i, sin t_i)``, ``t_i = i d``, ``d = (pi/2) /
-      (n_points - 1)``, i.e. a regular E-gon *inscribed* in the circle of
-      radius ``mu f_z``. Each edge is ``n_e . (f_x, f_y) <= mu cos(d/2) f_z``
-      with ``n_e`` the unit outward normal (the direction of the edge
-      midpoint) and ``cos(d/2)`` the apothem. WBC writes the same half-planes
-      as ``y - k x - q`` with the slope/offset of the edge line: its rows are
-      ours times ``1/|n_e,y|`` (same set); unit normals are better scaled.
-    * E, E+1: torsion ``tau_z - mu_t f_z <= 0``, ``-tau_z - mu_t f_z <= 0``.
-    * E+2: unilateral ``-f_z <= -fz_min``.
-    * E+3..E+6: CoP ``x_min f_z + tau_y <= 0``, ``-x_max f_z - tau_y <= 0``,
-      ``y_min f_z - tau_x <= 0``, ``-y_max f_z + tau_x <= 0``, i.e.
-      ``x_min <= -tau_y/f_z <= x_max`` and ``y_min <= tau_x/f_z <= y_max``.
-
-    Args:
-        params: the contact parameters.
-
-    Returns:
-        ``(C_foot, b_foot)``: float64 numpy arrays of shapes (E+7, 6) and
-        (E+7,), (19, 6) and (19,) by default, acting on
-        ``f = [f_x, f_y, f_z, tau_x, tau_y, tau_z]``.
-    """
-    n_edges = 4 * (params.n_points - 1)  # = 4 (n_points - 2) + 4 as in WBC
-    step = 0.5 * np.pi / (params.n_points - 1)
-    mid = step * (np.arange(n_edges) + 0.5)  # edge midpoints' angles
-    apothem = np.cos(0.5 * step)
-    cone = np.zeros((n_edges, 6))
-    cone[:, 0] = np.cos(mid)
-    cone[:, 1] = np.sin(mid)
-    cone[:, 2] = -params.mu * apothem
-    (x_min, x_max), (y_min, y_max) = params.foot_size
-    #                  f_x  f_y  f_z            tau_x tau_y tau_z
-    other = np.array(
-        [
-            [0.0, 0.0, -params.mu_t, 0.0, 0.0, 1.0],
-            [0.0, 0.0, -params.mu_t, 0.0, 0.0, -1.0],
-            [0.0, 0.0, -1.0, 0.0, 0.0, 0.0],
-            [0.0, 0.0, x_min, 0.0, 1.0, 0.0],
-            [0.0, 0.0, -x_max, 0.0, -1.0, 0.0],
-            [0.0, 0.0, y_min, -1.0, 0.0, 0.0],
-            [0.0, 0.0, -y_max, 1.0, 0.0, 0.0],
-        ]
-    )
-    C_foot = np.concatenate([cone, other], axis=0)
-    b_foot = np.zeros(n_edges + 7)
-    b_foot[n_edges + 2] = -params.fz_min
-    return C_foot, b_foot
-
-
-def world_constraints(
-    C_foot: np.ndarray | Array, b_foot: np.ndarray | Array, W_R_sole: Array
-) -> tuple[Array, Array]:
-    """Foot constraints for a wrench expressed in world axes.
-
-    A world-axes wrench ``f`` (still applied at the sole origin) is
-    ``blkdiag(W_R_sole', W_R_sole') f`` in the sole frame, hence
-    ``C = C_foot blkdiag(W_R_sole', W_R_sole')``.
-
-    Args:
-        C_foot: (m, 6) sole-frame constraint matrix of :func:`foot_constraints`.
-        b_foot: (m,) sole-frame bounds.
-        W_R_sole: (3, 3) rotation from the sole frame to the world frame.
-
-    Returns:
-        ``(C, b)`` of shapes (m, 6) and (m,), in the dtype of ``W_R_sole``.
-    """
-    dtype = _float_dtype(W_R_sole)
-    R = jnp.asarray(W_R_sole, dtype)
-    C_foot = jnp.asarray(C_foot, dtype)
-    # C_foot[:, :3] R' acts on the world force, C_foot[:, 3:] R' on the moment.
-    C = jnp.concatenate([C_foot[:, :3] @ R.T, C_foot[:, 3:] @ R.T], axis=1)
-    return C, jnp.asarray(b_foot, dtype)
-
 
 # --------------------------------------------------------------------------------------
 # Generic dense QP
@@ -607,8 +429,8 @@ def _interior_point(
         )
         return r_d, r_p, jnp.maximum(jnp.maximum(res_d, res_p), res_c)
 
-    def step(carry, _):
-        x, s, z, done, count = carry
+    def step(carry):
+        x, s, z, done, count, k = carry
         r_d, r_p, res = residuals(x, s, z)
         done = done | (res <= tol)
         mu = (s @ z) / m
@@ -633,10 +455,13 @@ def _interior_point(
         x = jnp.where(take, x_n, x)
         s = jnp.where(take, s_n, s)
         z = jnp.where(take, z_n, z)
-        return (x, s, z, done, count + take.astype(jnp.int32)), None
+        return x, s, z, done, count + take.astype(jnp.int32), k + 1
 
-    init = (x0, s0, z0, jnp.array(False), jnp.array(0, jnp.int32))
-    (x, s, z, _, count), _ = lax.scan(step, init, None, length=iterations)
+    def running(carry):
+        return ~carry[3] & (carry[5] < iterations)
+
+    init = (x0, s0, z0, jnp.array(False), jnp.array(0, jnp.int32), jnp.array(0, jnp.int32))
+    x, s, z, _, count, _ = lax.while_loop(running, step, init)
     _, _, res = residuals(x, s, z)
     finite = (
         jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(z)) & jnp.all(jnp.isfinite(s))
@@ -702,140 +527,3 @@ def _implicit_solution_jvp(primals, tangents):
     return x, sol[:n]
 
 
-# --------------------------------------------------------------------------------------
-# The two contact-force QPs of the WBC controller
-# --------------------------------------------------------------------------------------
-
-
-def _block_diag2(A: Array, B: Array) -> Array:
-    """``blkdiag(A, B)`` for two 2-D arrays."""
-    top = jnp.concatenate([A, jnp.zeros((A.shape[0], B.shape[1]), A.dtype)], axis=1)
-    bottom = jnp.concatenate([jnp.zeros((B.shape[0], A.shape[1]), B.dtype), B], axis=1)
-    return jnp.concatenate([top, bottom], axis=0)
-
-
-def range_basis(N_A: Array, dim: int = _NULL_DIM) -> Array:
-    """(12, dim) basis Z of range(N_A), differentiable through N_A.
-
-    ``Q`` = the top-``dim`` left singular vectors of ``stop_gradient(N_A)`` (an
-    orthonormal basis of the range), then ``Z = N_A Q``. For a projector
-    ``N_A Q = Q``, so Z is orthonormal at the evaluation point, while its
-    derivative ``dN_A Q`` carries the rotation of the range. Differentiating an
-    SVD/eigh basis directly would divide by the gaps between the repeated
-    eigenvalues 1 of the projector (NaN); ``Z`` itself is never differentiated
-    as a basis because the QP's solution ``Z y`` does not depend on the choice
-    of basis of the same range.
-
-    Args:
-        N_A: (k, k) projector (symmetric or oblique) of rank ``dim``.
-        dim: rank of N_A.
-
-    Returns:
-        (k, dim) array Z with ``range(Z) = range(N_A)``.
-    """
-    U, _, _ = jnp.linalg.svd(lax.stop_gradient(N_A), full_matrices=False)
-    return N_A @ U[:, :dim]
-
-
-def two_feet_wrenches(
-    Sigma: Array,
-    tau_model: Array,
-    f1: Array,
-    N_A: Array,
-    W_R_left: Array,
-    W_R_right: Array,
-    params: ContactParams,
-    *,
-    iterations: int = DEFAULT_ITERATIONS,
-    hessian_reg: float = 1e-7,
-    tol: float | None = None,
-) -> tuple[Array, QPInfo]:
-    """Feet wrenches of the two-feet balancing QP (controller-spec §1.7).
-
-    WBC writes the QP in f0 in R^12::
-
-        minimise_f0  1/2 |tau_model + Sigma (f1 + N_A f0)|^2 (+ eps/2 |f0|^2)
-        subject to   C_2 (f1 + N_A f0) <= b_2
-        H = (Sigma N_A)'(Sigma N_A) + eps I,   g = (Sigma N_A)'(tau_model + Sigma f1)
-
-    whose Hessian is singular but for eps (N_A has rank 6). Here f0 = Z y with
-    Z a 12 x 6 basis of range(N_A) (:func:`range_basis`), which gives the same
-    f = f1 + N_A f0 with a well-conditioned 6 x 6 QP::
-
-        minimise_y   1/2 y' (Sigma Z)'(Sigma Z) y + (eps/2) |y|^2
-                       + y' (Sigma Z)'(tau_model + Sigma f1)
-        subject to   (C_2 Z) y <= b_2 - C_2 f1
-        C_2 = blkdiag(C_left, C_right) (world-axes foot constraints), (38, 12)
-
-    Args:
-        Sigma: (n, 12) map from the feet wrenches to the joint torques.
-        tau_model: (n,) joint torques without the contact wrenches.
-        f1: (12,) particular wrench solution (realises the momentum rate).
-        N_A: (12, 12) rank-6 projector onto the null space of the momentum map.
-        W_R_left: (3, 3) world rotation of the left sole.
-        W_R_right: (3, 3) world rotation of the right sole.
-        params: contact parameters (the same for both feet).
-        iterations: interior-point Newton steps.
-        hessian_reg: eps above, absolute (WBC's value).
-        tol: relative KKT tolerance, see :func:`solve_qp`.
-
-    Returns:
-        ``(f, info)``: f (12,) = ``[f_L (force, moment); f_R]`` in world axes at
-        the sole origins, ``f = f1 + N_A f0``; on infeasibility f is the
-        unconstrained minimiser over ``f1 + range(N_A)`` and ``info.infeasible``
-        is set.
-    """
-    dtype = _float_dtype(Sigma, tau_model, f1, N_A, W_R_left, W_R_right)
-    Sigma, tau_model, f1, N_A, W_R_left, W_R_right = (
-        jnp.asarray(a, dtype) for a in (Sigma, tau_model, f1, N_A, W_R_left, W_R_right)
-    )
-    C_foot, b_foot = foot_constraints(params)
-    C_L, b_L = world_constraints(C_foot, b_foot, W_R_left)
-    C_R, b_R = world_constraints(C_foot, b_foot, W_R_right)
-    C2 = _block_diag2(C_L, C_R)
-    b2 = jnp.concatenate([b_L, b_R])
-
-    Z = range_basis(N_A)
-    SZ = Sigma @ Z
-    H = SZ.T @ SZ + hessian_reg * jnp.eye(_NULL_DIM, dtype=dtype)
-    g = SZ.T @ (tau_model + Sigma @ f1)
-    y, info = solve_qp(H, g, C2 @ Z, b2 - C2 @ f1, iterations=iterations, tol=tol)
-    return f1 + Z @ y, info
-
-
-def one_foot_wrench(
-    A_k: Array,
-    wrench_des: Array,
-    W_R_sole: Array,
-    params: ContactParams,
-    *,
-    iterations: int = DEFAULT_ITERATIONS,
-    hessian_reg: float = 1e-7,
-    tol: float | None = None,
-) -> tuple[Array, QPInfo]:
-    """Wrench of the single foot in contact (controller-spec §1.7)::
-
-        minimise_f   1/2 |A_k f - wrench_des|^2 + (eps/2) |f|^2
-        subject to   C_k f <= b_k   (world-axes constraints of that foot)
-        H = A_k'A_k + eps I,   g = -A_k' wrench_des
-
-    Args:
-        A_k: (6, 6) map from the foot wrench to the centroidal wrench.
-        wrench_des: (6,) desired centroidal wrench.
-        W_R_sole: (3, 3) world rotation of the sole in contact.
-        params: contact parameters.
-        iterations: interior-point Newton steps.
-        hessian_reg: eps above, absolute (WBC's value).
-        tol: relative KKT tolerance, see :func:`solve_qp`.
-
-    Returns:
-        ``(f_k, info)``: f_k (6,) world-axes wrench at the sole origin.
-    """
-    dtype = _float_dtype(A_k, wrench_des, W_R_sole)
-    A_k, wrench_des, W_R_sole = (
-        jnp.asarray(a, dtype) for a in (A_k, wrench_des, W_R_sole)
-    )
-    C, b = world_constraints(*foot_constraints(params), W_R_sole)
-    H = A_k.T @ A_k + hessian_reg * jnp.eye(6, dtype=dtype)
-    g = -A_k.T @ wrench_des
-    return solve_qp(H, g, C, b, iterations=iterations, tol=tol)

@@ -1,0 +1,107 @@
+"""Numbers and names shared by the package and the NumPy CPU baseline (``benchmarks/``).
+
+This module imports neither JAX nor MuJoCo: the baseline's worker processes load it alone.
+Sources of the numbers: shared/reference/controller-spec.md (WBC iCubGazeboV2_5 gains) and
+docs/ in this repository.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+GRAVITY = 9.81  # m/s^2, as in the papers and MuJoCo's default
+
+# ---------------------------------------------------------------------------------------------
+# Controller gains (WBC iCubGazeboV2_5, state 1 "two feet balancing", gainsAndReferences.m)
+
+GAIN_FIELDS = ("kp_com", "kd_com", "ki_com", "kp_ang", "ki_ang", "kp_postural", "kd_postural")
+# ki_com may be 0 in a gains file (the WBC law has no CoM integral); the others must be > 0.
+NON_NEGATIVE_GAINS = ("ki_com",)
+WBC_KP_COM = (50.0, 50.0, 10.0)
+WBC_KP_ANG = 1.0  # = 2 sqrt(K_I,w)
+WBC_KI_ANG = 0.25
+WBC_KP_POSTURAL = (
+    [10, 30, 20] + [10, 10, 10, 8] * 2 + [30, 30, 20, 20, 100, 100] + [30, 50, 30, 60, 100, 100]
+)
+# Gains files are checked against these ranges (a gain outside is a typo, not a setting).
+GAIN_RANGES = {
+    "kp_com": (0.0, 1e4),
+    "kd_com": (0.0, 1e3),
+    "ki_com": (0.0, 1e4),
+    "kp_ang": (0.0, 1e3),
+    "ki_ang": (0.0, 1e3),
+    "kp_postural": (0.0, 1e4),
+    "kd_postural": (0.0, 1e3),
+}
+
+
+def default_gain_values(n: int = 23) -> dict[str, np.ndarray]:
+    """WBC gains as float64 arrays: K_P,CoM = [50, 50, 10], K_D,CoM = 2 sqrt(K_P) / 20,
+    K_I,CoM = 0, K_P,w = 1, K_I,w = 0.25, postural k_p per joint, k_d = 2 sqrt(k_p) / 20."""
+    if n != len(WBC_KP_POSTURAL):
+        raise ValueError(f"default gains are for the 23-joint iCub, got n={n}")
+    kp_com = np.array(WBC_KP_COM)
+    kp_post = np.array(WBC_KP_POSTURAL, dtype=float)
+    return {
+        "kp_com": kp_com,
+        "kd_com": 2 * np.sqrt(kp_com) / 20,
+        "ki_com": np.zeros(3),
+        "kp_ang": np.full(3, WBC_KP_ANG),
+        "ki_ang": np.full(3, WBC_KI_ANG),
+        "kp_postural": kp_post,
+        "kd_postural": 2 * np.sqrt(kp_post) / 20,
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# Closed loop and metrics
+
+CONTROL_DT = 0.01  # s: the controller at 100 Hz (physics at the model's 1 kHz)
+RECOVERY_THRESHOLD = 0.01  # m: "recovered" = CoM back within 1 cm of its reference
+FALL_COM_HEIGHT = 0.7  # a fall: CoM below this fraction of its initial height
+BODY_FLOOR_HEIGHT = 0.05  # m: a fall: a body other than the feet/ankles this close to the floor
+
+# Survival that means balance (issue 20, step 0): the feet stay in place, the robot stays up
+# and ends balanced. ``survived`` in every summary uses these thresholds; ``upright`` keeps
+# the lax count (no fall, no NaN) for comparison.
+SURVIVAL_MAX_SLIP_M = 0.02
+SURVIVAL_MAX_TILT_DEG = 5.0
+SURVIVAL_END_COM_SPEED = 0.05  # m/s: CoM speed at the end
+SURVIVAL_CRITERION = {
+    "max_foot_slip_m": SURVIVAL_MAX_SLIP_M,
+    "max_foot_tilt_deg": SURVIVAL_MAX_TILT_DEG,
+    "end_com_speed_mps": SURVIVAL_END_COM_SPEED,
+    "end_com_over_support": True,
+    "no_fall": f"CoM above {FALL_COM_HEIGHT} x its initial height, no body but the feet below "
+    f"{BODY_FLOOR_HEIGHT} m",
+}
+
+# One set of metric names, for a balance run (scalars) and a sweep (one column per name).
+METRIC_NAMES = (
+    "survived",
+    "upright",
+    "fell",
+    "nan",
+    "com_rmse_m",
+    "com_max_err_m",
+    "max_constraint_violation",
+    "max_foot_slip_m",
+    "max_foot_tilt_deg",
+    "max_abs_torque_nm",
+    "qp_infeasible_ticks",
+    "time_to_recover_s",
+    "min_com_height_m",
+    "end_com_speed_mps",
+    "end_com_support_margin_m",
+)
+
+
+def min_jerk(u):
+    """Minimum-jerk ramp mj(u) = 10u^3 - 15u^4 + 6u^5 and its first two derivatives, for u
+    clipped to [0, 1] (numpy or JAX arrays alike: arithmetic only). mj' and mj'' vanish at both
+    ends, so clipping alone gives the constant continuations."""
+    u = u.clip(0.0, 1.0) if hasattr(u, "clip") else min(max(u, 0.0), 1.0)
+    p = u**3 * (10 - 15 * u + 6 * u**2)
+    v = 30 * u**2 * (1 - u) ** 2
+    a = 60 * u * (1 - u) * (1 - 2 * u)
+    return p, v, a

@@ -1,0 +1,377 @@
+"""[contact forces] The momentum rate distributed over the contact set: constraints, wrench map, QPs.
+
+The momentum task asks for ``L_dot* - f_grav = A f`` with ``f`` (D,) the stacked contact wrenches
+(world axes, at the contact points). The WBC balancing controller (controller-spec 1.6-1.8,
+seed paper) picks, among the wrenches that realise it, those that minimise the joint torques,
+inside each contact's rigid-contact constraints::
+
+    minimise_f  |tau_model + Sigma f|^2 + w_n |S_n f - F_n|^2
+    subject to  A f = L_dot* - f_grav        (f = f1 + Z y,  Z a basis of null(A), as in WBC)
+                C f <= b                     (friction cone, torsion, CoP, f_n >= fz_min)
+
+(``w_n |S_n f - F_n|^2``: desired normal forces, a hand pressing a table, Nori et al. 2015). When
+a push asks for a momentum rate that no feasible wrench realises, the equality becomes the
+leading cost term instead (the soft momentum QP): ``min |A f - w|^2 + c (the cost above)``,
+always feasible. ``analytic`` is the seed paper's C++: the same least-squares torque
+minimisation without inequality constraints.
+
+Contact switching (the one-foot blend of codyco ``torqueBalancing``, for any contact set): with
+activations a_k, the engaged contacts (a_k > 0) and the fully active ones (a_k = 1) each get the
+formulation above, restricted to them, and ``f = w f_engaged + (1 - w) f_active`` with
+``w = min a_k`` over the engaged contacts, so the wrenches stay continuous while a contact is
+loaded or unloaded. With the two feet and one of them ramping this is WBC's blend of the two-feet
+QP and the one-foot QP.
+
+Every function takes a :class:`wbc_jax.contacts.ContactSet` (static) and arrays of one state;
+the constraint rows of a contact are named by :func:`constraint_rows`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from wbc_jax import qp
+from wbc_jax.constants import GRAVITY
+from wbc_jax.contacts import ContactParams, ContactSet
+from wbc_jax.math import skew
+from wbc_jax.types import Array
+
+FORCE_MODES = ("qp", "analytic")
+
+# ---------------------------------------------------------------------------------------------
+# Constraints of one contact
+
+
+@dataclasses.dataclass(frozen=True)
+class ConstraintRows:
+    """Row ranges of one contact's constraints ``C f <= b`` (contact frame).
+
+    cone: linearised friction cone; torsion: |tau_z| <= mu_t f_z (surface only); unilateral: the
+    row ``-f_z <= -fz_min``; cop: the CoP rectangle (surface only). ``count``: rows in all."""
+
+    cone: slice
+    torsion: slice
+    unilateral: int
+    cop: slice
+    count: int
+
+
+def constraint_rows(params: ContactParams, contact_type: str = "surface") -> ConstraintRows:
+    """The named rows of :func:`contact_constraints` for these parameters and contact type."""
+    edges = 4 * (params.n_points - 1)
+    if contact_type == "point":
+        return ConstraintRows(slice(0, edges), slice(edges, edges), edges, slice(edges + 1, edges + 1), edges + 1)
+    return ConstraintRows(slice(0, edges), slice(edges, edges + 2), edges + 2, slice(edges + 3, edges + 7), edges + 7)
+
+
+def contact_constraints(params: ContactParams, contact_type: str = "surface") -> tuple[np.ndarray, np.ndarray]:
+    """Rigid-contact constraints ``C f <= b`` of one contact's wrench in its CONTACT frame.
+
+    Same constraint set as WBC ``wbc.computeRigidContactConstraints(mu, numberOfPoints, mu_t,
+    footSize, fZmin)`` and the same row order (:func:`constraint_rows`):
+
+    * cone (E = 4 (n_points - 1) rows, 12 by default): a regular E-gon *inscribed* in the circle
+      of radius ``mu f_z``, vertices at ``t_i = i d``, ``d = (pi/2) / (n_points - 1)``. Each edge
+      is ``n_e . (f_x, f_y) <= mu cos(d/2) f_z`` with ``n_e`` the unit outward normal and
+      ``cos(d/2)`` the apothem. WBC writes the same half-planes as ``y - k x - q`` with the
+      slope/offset of the edge line: its rows are ours times ``1/|n_e,y|`` (same set).
+    * torsion: ``tau_z - mu_t f_z <= 0``, ``-tau_z - mu_t f_z <= 0``.
+    * unilateral: ``-f_z <= -fz_min``.
+    * cop: ``x_min f_z + tau_y <= 0``, ``-x_max f_z - tau_y <= 0``, ``y_min f_z - tau_x <= 0``,
+      ``-y_max f_z + tau_x <= 0``, i.e. ``x_min <= -tau_y/f_z <= x_max`` and
+      ``y_min <= tau_x/f_z <= y_max``.
+
+    A ``point`` contact (a 3-D force) keeps the cone and the unilateral row.
+
+    Returns:
+      ``(C, b)``: float64 numpy arrays, (E+7, 6) and (E+7,) for a surface contact
+      (``f = [f_x, f_y, f_z, tau_x, tau_y, tau_z]``), (E+1, 3) and (E+1,) for a point contact.
+    """
+    n_edges = 4 * (params.n_points - 1)
+    step = 0.5 * np.pi / (params.n_points - 1)
+    mid = step * (np.arange(n_edges) + 0.5)  # edge midpoints' angles
+    apothem = np.cos(0.5 * step)
+    cone = np.zeros((n_edges, 6))
+    cone[:, 0] = np.cos(mid)
+    cone[:, 1] = np.sin(mid)
+    cone[:, 2] = -params.mu * apothem
+    (x_min, x_max), (y_min, y_max) = params.foot_size
+    #                  f_x  f_y  f_z            tau_x tau_y tau_z
+    torsion = np.array([[0.0, 0.0, -params.mu_t, 0.0, 0.0, 1.0], [0.0, 0.0, -params.mu_t, 0.0, 0.0, -1.0]])
+    unilateral = np.array([[0.0, 0.0, -1.0, 0.0, 0.0, 0.0]])
+    cop = np.array(
+        [
+            [0.0, 0.0, x_min, 0.0, 1.0, 0.0],
+            [0.0, 0.0, -x_max, 0.0, -1.0, 0.0],
+            [0.0, 0.0, y_min, -1.0, 0.0, 0.0],
+            [0.0, 0.0, -y_max, 1.0, 0.0, 0.0],
+        ]
+    )
+    rows = constraint_rows(params, contact_type)
+    if contact_type == "point":
+        C = np.concatenate([cone, unilateral])[:, :3]
+    else:
+        C = np.concatenate([cone, torsion, unilateral, cop])
+    b = np.zeros(rows.count)
+    b[rows.unilateral] = -params.fz_min
+    return C, b
+
+
+def world_constraints(C_local: np.ndarray | Array, b: np.ndarray | Array, W_R: Array) -> tuple[Array, Array]:
+    """Constraints of a world-axes wrench (force, moment: each rotated by ``W_R'``) from those in the
+    contact frame. C_local: (m, 6) or (m, 3); W_R: (3, 3) contact frame -> world."""
+    R = jnp.asarray(W_R)
+    C_local = jnp.asarray(C_local, R.dtype)
+    blocks = [C_local[:, k : k + 3] @ R.T for k in range(0, C_local.shape[1], 3)]
+    return jnp.concatenate(blocks, axis=1), jnp.asarray(b, R.dtype)
+
+
+def constraints(cset: ContactSet, W_R: Array, fz_min_scale: Array) -> tuple[Array, Array]:
+    """Block-diagonal ``C`` (M, D), ``b`` (M,) of all contacts, world axes.
+
+    Args:
+      cset: the contact set. W_R: (K, 3, 3) contact frames.
+      fz_min_scale: (K,) multiplies each contact's minimum normal force (the activation when the
+        violation of a contact being released is measured; 1 in the QPs).
+    """
+    dtype = W_R.dtype
+    blocks, bs = [], []
+    for k, c in enumerate(cset.contacts):
+        C_local, b_local = contact_constraints(c.params, c.type)
+        unilateral = constraint_rows(c.params, c.type).unilateral
+        C_w, b_w = world_constraints(C_local, b_local, W_R[k])
+        blocks.append(C_w)
+        bs.append(b_w.at[unilateral].multiply(fz_min_scale[k]))
+    rows = sum(b.shape[0] for b in blocks)
+    C = jnp.zeros((rows, cset.dim), dtype)
+    r = 0
+    for blk, sl in zip(blocks, cset.slices(), strict=True):
+        C = C.at[r : r + blk.shape[0], sl].set(blk)
+        r += blk.shape[0]
+    return C, jnp.concatenate(bs)
+
+
+def constraint_contact(cset: ContactSet) -> np.ndarray:
+    """(M,) the contact of each row of :func:`constraints`."""
+    return np.concatenate([np.full(constraint_rows(c.params, c.type).count, k) for k, c in enumerate(cset.contacts)])
+
+
+def wrench_map(cset: ContactSet, W_p: Array, W_p_CoM: Array) -> Array:
+    """A (6, D): contact wrenches (world axes, at the contact points W_p (K, 3)) -> rate of the
+    centroidal momentum about the CoM: ``A_k = [I3 0; S(p_k - x_CoM) I3]`` (a point contact: the
+    first three columns)."""
+    dtype = W_p.dtype
+    blocks = []
+    for k, c in enumerate(cset.contacts):
+        force = jnp.concatenate([jnp.eye(3, dtype=dtype), skew(W_p[k] - W_p_CoM)])
+        if c.dim == 6:
+            moment = jnp.concatenate([jnp.zeros((3, 3), dtype), jnp.eye(3, dtype=dtype)])
+            blocks.append(jnp.concatenate([force, moment], axis=1))
+        else:
+            blocks.append(force)
+    return jnp.concatenate(blocks, axis=1)
+
+
+def gravity_wrench(mass: float, dtype=jnp.float32) -> Array:
+    """f_grav (6,): the weight as a centroidal wrench."""
+    return jnp.array([0.0, 0.0, -mass * GRAVITY, 0.0, 0.0, 0.0], dtype=dtype)
+
+
+def normal_force_rows(cset: ContactSet, W_R: Array) -> tuple[Array, Array]:
+    """S (k, D), F (k,): ``S f`` = the normal forces of the k contacts that have a desired one F."""
+    dtype = W_R.dtype
+    rows, targets = [], []
+    for k, (c, sl) in enumerate(zip(cset.contacts, cset.slices(), strict=True)):
+        if math.isnan(c.normal_force):
+            continue
+        rows.append(jnp.zeros(cset.dim, dtype).at[sl.start : sl.start + 3].set(W_R[k][:, 2]))
+        targets.append(jnp.asarray(c.normal_force, dtype))
+    if not rows:
+        return jnp.zeros((0, cset.dim), dtype), jnp.zeros(0, dtype)
+    return jnp.stack(rows), jnp.stack(targets)
+
+
+def normal_forces(cset: ContactSet, f: Array, W_R: Array) -> Array:
+    """(K,) the normal force of each contact's wrench in f (D,)."""
+    return jnp.stack([W_R[k][:, 2] @ f[sl.start : sl.start + 3] for k, sl in enumerate(cset.slices())])
+
+
+def violation(cset: ContactSet, f: Array, W_R: Array, activation: Array) -> Array:
+    """Max over the active contacts of ``max(C_k f_k - b_k, 0) / max(f_n,k, fz_min,k)``
+    (dimensionless: relative to each contact's own normal force). The minimum normal force is
+    scaled by the activation (a contact being released may go down to zero)."""
+    C, b = constraints(cset, W_R, activation)
+    excess = jnp.maximum(C @ f - b, 0.0)
+    owner = constraint_contact(cset)
+    fn = normal_forces(cset, f, W_R)
+    fz_min = jnp.asarray([c.params.fz_min for c in cset.contacts], f.dtype)
+    per_contact = jnp.stack([jnp.max(excess[owner == k]) for k in range(len(cset.contacts))])
+    rel = per_contact / jnp.maximum(fn, fz_min)
+    return jnp.max(jnp.where(activation > 0, rel, 0.0))
+
+
+def measured_wrenches(cset: ContactSet, contact_pos: Array, contact_force: Array, contact_geom: Array,
+                      ngeom: int, W_p: Array) -> Array:  # fmt: skip
+    """The contact wrenches (D,) that the simulator applies on each contact (world axes, at the
+    contact points W_p (K, 3); a point contact: the force only), summed over its collision geoms.
+
+    Args:
+      contact_pos: (C, 3) contact points; contact_force: (C, 3) world-axes force on geom 2 of each
+        pair (zero for slots that do not touch); contact_geom: (C, 2) geom ids; ngeom: geom count.
+    """
+    owner = np.full(ngeom, -1)
+    for k, c in enumerate(cset.contacts):
+        owner[list(c.geoms)] = k
+    # The force is on geom 2; the collision pipeline may order a pair either way (a sphere on a
+    # box comes out as (sphere, box)), so find the robot's side of each contact.
+    owner = jnp.asarray(owner)
+    first, second = owner[contact_geom[:, 0]], owner[contact_geom[:, 1]]
+    who = jnp.maximum(first, second)
+    forces = jnp.where((second >= 0)[:, None], contact_force, -contact_force)
+    out = []
+    for k, c in enumerate(cset.contacts):
+        F = jnp.where((who == k)[:, None], forces, 0.0)
+        wrench = jnp.concatenate([F.sum(0), jnp.cross(contact_pos - W_p[k], F).sum(0)])
+        out.append(wrench[: c.dim])
+    return jnp.concatenate(out)
+
+
+# ---------------------------------------------------------------------------------------------
+# Formulations
+
+
+def range_basis(N: Array, dim: int) -> Array:
+    """(k, dim) basis Z of range(N), differentiable through N.
+
+    ``Q`` = the top-``dim`` left singular vectors of ``stop_gradient(N)``, then ``Z = N Q``. For
+    a projector ``N Q = Q``, so Z is orthonormal at the evaluation point, while its derivative
+    ``dN Q`` carries the rotation of the range. Differentiating an SVD basis directly would
+    divide by the gaps between the repeated eigenvalues 1 of the projector (NaN); the QP's
+    solution ``Z y`` does not depend on the basis of the same range. Where ``rank(N) < dim`` the
+    surplus columns are zero (up to rounding).
+    """
+    U, _, _ = jnp.linalg.svd(lax.stop_gradient(N), full_matrices=False)
+    return N @ U[:, :dim]
+
+
+@dataclasses.dataclass(frozen=True)
+class ForceSettings:
+    """What the formulations need from the controller's configuration (hashable)."""
+
+    mode: str = "qp"
+    hessian_reg: float = 1e-7
+    qp_iterations: int = qp.DEFAULT_ITERATIONS
+    torque_weight_soft: float = 1e-4  # |tau|^2 against |A f - w|^2 (N^2 vs (N m)^2), soft QP
+    normal_force_weight: float = 1e3  # desired normal forces, per N^2 against (N m)^2
+
+
+def _restricted(cset: ContactSet, A: Array, mask: Array, wrench_des: Array):
+    """f1, Z of the momentum equality restricted to the contacts with ``mask`` (K,) = 1: the other
+    contacts' wrenches are zero. Z (D, D - 6) spans null(A) over the kept coordinates; its surplus
+    columns (fewer kept coordinates) are zero and flagged in ``spare`` (D - 6,)."""
+    D = cset.dim
+    dtype = A.dtype
+    keep = _row_mask(cset, mask)
+    A_m = A * keep[None, :]
+    A_pinv = jnp.linalg.solve(A_m @ A_m.T, A_m).T  # A_m has full row rank 6 (a sole is kept)
+    f1 = A_pinv @ wrench_des
+    N = keep[:, None] * (jnp.eye(D, dtype=dtype) - A_pinv @ A_m) * keep[None, :]
+    Z = range_basis(N, D - 6)
+    spare = lax.stop_gradient(jnp.sum(Z * Z, axis=0)) < 0.5
+    return f1, Z, spare, keep
+
+
+def _row_mask(cset: ContactSet, mask: Array) -> Array:
+    return jnp.concatenate([jnp.full(c.dim, mask[k]) for k, c in enumerate(cset.contacts)])
+
+
+def wbc_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: Array,
+           settings: ForceSettings) -> tuple[Array, Array]:  # fmt: skip
+    """The WBC QP (module docstring) over the contacts with ``mask`` = 1, the others' wrenches 0;
+    the soft momentum QP where the equality is infeasible.
+
+    Args:
+      mask: (K,) 1 for the contacts that may carry a wrench. A: (6, D) wrench map.
+      wrench_des: (6,) L_dot* - f_grav. tt: :class:`wbc_jax.torques.TorqueTerms` (Sigma (n, D),
+        tau_model (n,)). W_R: (K, 3, 3) contact frames.
+
+    Returns:
+      ``(f (D,), infeasible ())``: infeasible when the soft QP failed too.
+    """
+    dtype = A.dtype
+    D = cset.dim
+    f1, Z, spare, keep = _restricted(cset, A, mask, wrench_des)
+    C, b = constraints(cset, W_R, jnp.ones(len(cset.contacts), dtype))
+    row_kept = mask[jnp.asarray(constraint_contact(cset))] > 0
+    S_n, F_n = normal_force_rows(cset, W_R)
+    S_n = S_n * keep[None, :]
+    w_n = settings.normal_force_weight
+    SZ, NZ = tt.Sigma @ Z, S_n @ Z
+    H = SZ.T @ SZ + w_n * NZ.T @ NZ + jnp.diag(settings.hessian_reg + spare.astype(dtype))
+    g = SZ.T @ (tt.tau_model + tt.Sigma @ f1) + w_n * NZ.T @ (S_n @ f1 - F_n)
+    # Rows of dropped contacts: 0 <= 1, trivially met (their wrench is zero).
+    y, info = qp.solve_qp(H, g, C @ Z, jnp.where(row_kept, b - C @ f1, 1.0), iterations=settings.qp_iterations)
+
+    def soft():
+        # min |A f - w|^2 + c (|tau_model + Sigma f|^2 + w_n |S_n f - F_n|^2), f = keep * x.
+        c = settings.torque_weight_soft
+        Ak, Sk, Nk = A * keep[None, :], tt.Sigma * keep[None, :], S_n
+        H_s = Ak.T @ Ak + c * (Sk.T @ Sk + w_n * Nk.T @ Nk) + jnp.diag(settings.hessian_reg + 1.0 - keep)
+        g_s = -Ak.T @ wrench_des + c * (Sk.T @ tt.tau_model - w_n * Nk.T @ F_n)
+        x, info_s = qp.solve_qp(H_s, g_s, C * keep[None, :], jnp.where(row_kept, b, 1.0),
+                                iterations=settings.qp_iterations)  # fmt: skip
+        return keep * x, info_s.infeasible
+
+    def equality():
+        return f1 + Z @ y, jnp.zeros((), bool)
+
+    f, soft_failed = lax.cond(info.infeasible, soft, equality)
+    return f.astype(dtype).reshape(D), info.infeasible & soft_failed
+
+
+def analytic(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, settings: ForceSettings) -> Array:
+    """The seed paper's C++ distribution over the contacts with ``mask`` = 1: least torque norm
+    among the wrenches that realise the momentum rate, no inequality constraints (one foot:
+    ``f = A_k^-1 wrench_des``). Returns f (D,)."""
+    dtype = A.dtype
+    f1, Z, spare, _ = _restricted(cset, A, mask, wrench_des)
+    SZ = tt.Sigma @ Z
+    y = -jnp.linalg.solve(
+        SZ.T @ SZ + jnp.diag(settings.hessian_reg + spare.astype(dtype)),
+        SZ.T @ (tt.tau_model + tt.Sigma @ f1),
+    )
+    return f1 + Z @ y
+
+
+def distribute(cset: ContactSet, activation: Array, A: Array, wrench_des: Array, tt, W_R: Array,
+               settings: ForceSettings) -> tuple[Array, Array]:  # fmt: skip
+    """Contact wrenches f (D,) for the momentum rate ``wrench_des`` (6,) = L_dot* - f_grav, with the
+    blend of the module docstring over the activations (K,).
+
+    Returns ``(f (D,), infeasible ())``: infeasible when a formulation in use had no feasible
+    solution (its soft QP failed too); always False for ``analytic``.
+    """
+    act = jnp.clip(activation, 0.0, 1.0)
+    engaged = (act > 0).astype(A.dtype)
+    active = (act >= 1).astype(A.dtype)
+    w = jnp.min(jnp.where(act > 0, act, 1.0))
+
+    def formulation(mask):
+        if settings.mode == "analytic":
+            return analytic(cset, mask, A, wrench_des, tt, settings), jnp.zeros((), bool)
+        return wbc_qp(cset, mask, A, wrench_des, tt, W_R, settings)
+
+    f_engaged, infeasible_engaged = formulation(engaged)
+    # The fully active contacts' formulation only while a contact ramps (w < 1); with the
+    # schedule's activations shared by a batch this stays a branch under vmap.
+    f_active, infeasible_active = lax.cond(
+        w < 1, lambda: formulation(active), lambda: (jnp.zeros_like(f_engaged), jnp.zeros((), bool))
+    )
+    f = w * f_engaged + (1.0 - w) * f_active
+    return f, (w > 0) & infeasible_engaged | (w < 1) & infeasible_active

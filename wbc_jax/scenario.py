@@ -1,0 +1,285 @@
+"""[experiments] The scenario layer shared by every job (balance, sweep, tune, view, notebooks).
+
+    load_scene(robot, tasks file) -> Scene        robot model, motion tasks, contact set, posture
+    setup(task, ..., scene)       -> Setup        checked inputs, controller, schedule, closed loop
+    run(setup, scenarios)         -> Run          metrics (and records), on the chosen backend
+
+Every check that needs no compilation happens in :func:`setup`, before anything is compiled.
+:func:`run` dispatches on the physics backend (:mod:`wbc_jax.physics`): MJX backends run the
+closed loop in XLA (jit + vmap, sharded over a device mesh along the batch axis), C MuJoCo runs
+the jitted controller and the threaded C physics tick by tick. Compiled programs are cached per
+setup and batch shape; the last, smaller chunk of a batch is padded to the same shape.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import pathlib
+import time
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from wbc_jax import contacts as contacts_lib
+from wbc_jax import model as model_lib
+from wbc_jax import physics, references
+from wbc_jax import rollout as rollout_lib
+from wbc_jax import tasks as tasks_lib
+from wbc_jax.controller import ControllerConfig, make_controller
+from wbc_jax.gains import Gains, default_gains, validate_gains
+from wbc_jax.rollout import Push, Scenario, SimConfig
+
+
+def enable_compilation_cache(path: str | os.PathLike | None = None) -> pathlib.Path:
+    """Turn on JAX's persistent compilation cache (``$WBC_JAX_CACHE`` or the user's cache
+    directory), so a second run of a job reuses the compiled programs of the first."""
+    if path is None:
+        path = os.environ.get("WBC_JAX_CACHE") or pathlib.Path(
+            os.environ.get("XDG_CACHE_HOME", pathlib.Path.home() / ".cache")
+        ) / "wbc_jax" / "xla"
+    path = pathlib.Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Scene:
+    """The robot and what a task/contact file adds: motion tasks (unresolved), the contact set
+    (the two soles by default), the initial posture (nq,)."""
+
+    robot: model_lib.Robot
+    tasks: list | None
+    contact_set: contacts_lib.ContactSet
+    qpos: np.ndarray
+    tasks_file: str | None = None
+
+
+def load_scene(robot_name: str = "icub", tasks_file=None) -> Scene:
+    """Robot, motion tasks, contact set and initial posture of a specification file (None: the
+    plain robot on both feet at the home posture). With ``contacts`` in the file the robot is the
+    scene of :func:`wbc_jax.contacts.build_scene` (objects, collision spheres, pairs)."""
+    robot = model_lib.load_robot(robot_name)
+    if not tasks_file:
+        return Scene(robot, None, contacts_lib.feet_contact_set(robot), robot.home_qpos())
+    spec = tasks_lib.load_spec_file(tasks_file)
+    qpos = tasks_lib.initial_qpos(robot, spec["initial_posture_deg"])
+    contact_set = contacts_lib.feet_contact_set(robot)
+    if spec["contacts"] is not None:
+        robot, contact_set = contacts_lib.build_scene(robot_name, spec["contacts"], spec["scene"], qpos)
+    elif spec["scene"]:
+        raise ValueError(f"{tasks_file}: scene objects need a 'contacts' list (what touches them)")
+    return Scene(robot, spec["tasks"], contact_set, qpos, str(tasks_file))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Setup:
+    """Everything a run needs, checked: the robot, the closed loop, the nominal gains, the initial
+    posture (nq,) and the float dtype of the controller."""
+
+    scene: Scene
+    loop: rollout_lib.ClosedLoop
+    gains: Gains
+    qpos0: np.ndarray
+    dtype: np.dtype
+    task: str
+
+    @property
+    def robot(self) -> model_lib.Robot:
+        return self.scene.robot
+
+    @property
+    def backend(self) -> str:
+        return self.loop.backend
+
+
+def float_dtype() -> np.dtype:
+    """float32, or float64 when JAX's x64 mode is on."""
+    return np.dtype(jnp.zeros(()).dtype)
+
+
+def setup(
+    task: str = "stand",
+    *,
+    duration: float | None = None,
+    controller: ControllerConfig | None = None,
+    sim: SimConfig | None = None,
+    gains: Gains | None = None,
+    scene: Scene | None = None,
+    robot_name: str = "icub",
+    tasks_file=None,
+) -> Setup:
+    """Validate everything (before any compilation) and build the closed loop of a run.
+
+    Args:
+      task: ``stand``, ``sinusoid`` or ``one-foot`` (:func:`wbc_jax.references.make_schedule`).
+      duration: seconds (None: the task's default); overrides ``sim.duration``.
+      controller: controller settings. sim: rollout settings (duration set from the task).
+      gains: nominal gains (None: the WBC defaults). scene: a loaded :class:`Scene` (None: from
+        ``robot_name`` and ``tasks_file``).
+    """
+    if task not in references.TASKS:
+        raise ValueError(f"unknown task {task!r}; valid tasks: {list(references.TASKS)}")
+    if duration is not None and not (isinstance(duration, (int, float)) and math.isfinite(duration) and duration > 0):
+        raise ValueError(f"duration must be a positive finite number of seconds, got {duration!r}")
+    scene = load_scene(robot_name, tasks_file) if scene is None else scene
+    robot = scene.robot
+    config = ControllerConfig() if controller is None else controller
+    sim = SimConfig() if sim is None else sim
+    dtype = float_dtype()
+    gains = default_gains(robot.index.n, dtype) if gains is None else gains
+    validate_gains(gains, robot.index.n)
+    robot.index.body_id(sim.push_body)  # unknown body: the valid names, before compiling
+    stack = None if scene.tasks is None else tasks_lib.resolve(robot, scene.tasks, scene.qpos)
+    # References from the initial posture (C MuJoCo: no compilation).
+    m = robot.mj_model
+    d = mujoco.MjData(m)
+    d.qpos[:] = scene.qpos
+    mujoco.mj_forward(m, d)
+    schedule = references.make_schedule(
+        task, com0=d.subtree_com[robot.index.base_body].copy(), s0=scene.qpos[robot.index.qpos_joints],
+        left_sole=d.site_xpos[robot.index.foot_sites[0]].copy(), joints=robot.index.joints, duration=duration,
+    )  # fmt: skip
+    sim = dataclasses.replace(sim, duration=schedule.duration)
+    ctrl = make_controller(robot, config, contact_set=scene.contact_set, stack=stack, control_dt=sim.control_dt)
+    loop = rollout_lib.make_closed_loop(robot, schedule, ctrl, sim)
+    return Setup(scene=scene, loop=loop, gains=gains, qpos0=np.asarray(scene.qpos, float), dtype=dtype, task=task)
+
+
+def make_push(force, onset: float, duration: float, dtype=np.float32) -> Push:
+    """One push of ``force`` (3,) N from ``onset`` for ``duration`` s; checked."""
+    force = np.asarray(force, float).reshape(-1)
+    if force.shape != (3,) or not np.all(np.isfinite(force)):
+        raise ValueError(f"push force must be 3 finite numbers (N), got {force.tolist()}")
+    for name, value in (("push onset", onset), ("push duration", duration)):
+        if not (math.isfinite(value) and value >= 0):
+            raise ValueError(f"{name} must be a finite number of seconds >= 0, got {value}")
+    return Push(force=force[None].astype(dtype), onset=np.array([onset], dtype), duration=np.array([duration], dtype))
+
+
+def single(setup_: Setup, push: Push | None = None, gains: Gains | None = None) -> Scenario:
+    """A batch of one nominal scenario (no joint offset, nominal plant)."""
+    dtype = setup_.dtype
+    push = rollout_lib.no_push(dtype) if push is None else push
+    gains = setup_.gains if gains is None else gains
+    one = Scenario(
+        push=push, gains=gains, joint_offset=np.zeros(setup_.robot.index.n, dtype),
+        friction=np.asarray(1.0, dtype), mass_scale=np.asarray(1.0, dtype),
+    )  # fmt: skip
+    return jax.tree_util.tree_map(lambda x: np.asarray(x, dtype)[None] if np.asarray(x).dtype.kind == "f" else np.asarray(x)[None], one)
+
+
+def device_mesh() -> Mesh:
+    """1-D mesh over all (local, or global after jax.distributed) devices, axis 'batch'."""
+    return Mesh(np.asarray(jax.devices()), ("batch",))
+
+
+def pad_batch(tree, size: int):
+    """Pad a batch (leading axis) to ``size`` with copies of its last entry."""
+    n = int(jax.tree_util.tree_leaves(tree)[0].shape[0])
+    if n == size:
+        return tree
+    return jax.tree_util.tree_map(lambda x: np.concatenate([np.asarray(x), np.repeat(np.asarray(x)[-1:], size - n, 0)]), tree)
+
+
+@dataclasses.dataclass
+class Run:
+    """Result of :func:`run`: metrics (batch axis), records (B, T, ...) or None, seconds spent."""
+
+    metrics: rollout_lib.Metrics
+    records: object
+    compile_s: float
+    run_s: float
+
+
+def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
+        on_tick: Callable[[int], None] | None = None) -> Run:  # fmt: skip
+    """Run the closed loop over a Scenario batch (leading axis B) on the setup's backend.
+
+    ``batch_size``: the compiled batch shape (B is padded up to it; None: B). ``on_tick``: called
+    with the ticks done (C MuJoCo and chunked MJX runs), for progress bars."""
+    loop = setup_.loop
+    B = int(np.asarray(scen.friction).shape[0])
+    size = B if batch_size is None else max(batch_size, B)
+    padded = pad_batch(jax.tree_util.tree_map(np.asarray, scen), size)
+    if loop.backend == "mujoco":
+        t0 = time.perf_counter()
+        metrics, records, compile_s = loop.run_host(padded, setup_.qpos0, setup_.dtype, on_tick=on_tick)
+        out = Run(metrics, records, compile_s, time.perf_counter() - t0 - compile_s)
+    else:
+        out = _run_mjx(setup_, padded, size, on_tick)
+    out.metrics = jax.tree_util.tree_map(lambda x: np.asarray(x)[:B], out.metrics)
+    if out.records is not None:
+        out.records = jax.tree_util.tree_map(lambda x: np.asarray(x)[:B], out.records)
+    return out
+
+
+
+
+def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
+    loop, dtype = setup_.loop, setup_.dtype
+    mesh = device_mesh()
+    n_dev = mesh.devices.size
+    padded = pad_batch(scen, size + (-size) % n_dev)
+    sharding = NamedSharding(mesh, PartitionSpec("batch"))
+    scen_dev = jax.device_put(jax.tree_util.tree_map(lambda x: np.asarray(x, dtype) if np.asarray(x).dtype.kind == "f" else x, padded), sharding)
+    qpos0 = jnp.asarray(setup_.qpos0, dtype)
+    nominal = physics.device_model(setup_.robot.mj_model, loop.backend, loop.cfg.physics)
+    perturb = loop.cfg.perturb_plant
+
+    def plant(s):
+        return physics.plant_model(nominal, s.friction, s.mass_scale) if perturb else nominal
+
+    def start(s):
+        return loop.start(loop.initial_qpos(qpos0, s.joint_offset))
+
+    chunk = _tick_chunk(loop.n_ticks) if loop.cfg.record else loop.n_ticks
+
+    def advance(s, carry, k0):
+        return loop.chunk(plant(s), s.gains, s.push, carry, k0, chunk)
+
+    # Compiled once per closed loop and batch shape (kept on the loop).
+    cache = loop.__dict__.setdefault("_mjx_cache", {})
+    key = (padded.friction.shape, str(dtype), n_dev, chunk)
+    compile_s = 0.0
+    if key not in cache:
+        t0 = time.perf_counter()
+        start_fn = jax.jit(jax.vmap(start)).lower(scen_dev).compile()
+        carry_shape = jax.eval_shape(jax.vmap(start), scen_dev)
+        advance_fn = jax.jit(jax.vmap(advance, in_axes=(0, 0, None))).lower(scen_dev, carry_shape, jnp.int32(0)).compile()
+        cache[key] = (start_fn, advance_fn)
+        compile_s = time.perf_counter() - t0
+    start_fn, advance_fn = cache[key]
+    t0 = time.perf_counter()
+    carry = start_fn(scen_dev)
+    pieces = []
+    for k0 in range(0, loop.n_ticks, chunk):
+        carry, records = advance_fn(scen_dev, carry, jnp.int32(k0))
+        if records is not None:
+            pieces.append(jax.tree_util.tree_map(np.asarray, records))
+        else:
+            jax.block_until_ready(carry[1].metrics)
+        if on_tick is not None:
+            on_tick(min(k0 + chunk, loop.n_ticks))
+    metrics = rollout_lib._final_metrics(carry[1], carry[2])
+    metrics = jax.tree_util.tree_map(np.asarray, metrics)
+    run_s = time.perf_counter() - t0
+    records = None
+    if pieces:
+        records = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=1), *pieces)
+    return Run(metrics, records, compile_s, run_s)
+
+
+def _tick_chunk(n_ticks: int, target: int = 100) -> int:
+    """The largest divisor of n_ticks up to ``target`` (whole horizon if that is tiny): chunks of
+    one shape, compiled once."""
+    best = max(d for d in range(1, min(target, n_ticks) + 1) if n_ticks % d == 0)
+    return best if best >= 10 else n_ticks
