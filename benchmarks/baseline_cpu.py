@@ -1,56 +1,67 @@
 """[CPU baseline] C MuJoCo stepping + the balancing controller in NumPy, one process per core.
 
-This is the baseline a user would write without JAX/MJX, for the benchmark: the controller of
-:mod:`wbc_jax.controller` reproduced equation for equation in NumPy (batched over the
-environments of a worker with stacked ``np.linalg`` calls), the dynamics terms read from C
-MuJoCo, the contact-wrench QPs solved with ``quadprog`` (Goldfarb-Idnani, C), physics with
-``mujoco.mj_step`` at 1 kHz, the controller at 100 Hz with zero-order hold, pushes through
-``xfrc_applied`` on the CoM of the push body: the closed loop of :class:`wbc_jax.rollout.Rollout`.
+This is the baseline a user would write without JAX/MJX, used only by the benchmark
+(``benchmarks/benchmark.py``): the controller of :mod:`wbc_jax.controller` on the default contact
+set (the two soles) reproduced equation for equation in NumPy (batched over the environments of a
+worker with stacked ``np.linalg`` calls), the dynamics terms read from C MuJoCo, the contact-wrench
+QPs solved with ``quadprog`` (Goldfarb-Idnani, C), physics with ``mujoco.mj_step`` at 1 kHz, the
+controller at 100 Hz with zero-order hold, pushes through ``xfrc_applied`` on the CoM of the push
+body, and the metrics of :class:`wbc_jax.rollout.ClosedLoop`.
 
 Dynamics terms from C MuJoCo (mixed representation, controller joint order, as
-:func:`wbc_jax.dynamics.terms`; ``T = blkdiag(I3, W_R_B, I_n)``):
+:func:`wbc_jax.dynamics.terms` with the two sole frames; ``T = blkdiag(I3, W_R_B, I_n)``):
 
 * ``M = T^-T M_mj T^-1`` with ``M_mj`` from ``mj_fullM``; ``h = T^-T qfrc_bias``,
   ``tau_passive = T^-T qfrc_passive``;
-* sole Jacobians ``J = J_mj T^-1`` from ``mj_jacSite``; ``Jdot nu = Jdot_mj qvel`` from
-  ``mj_jacDot`` (exact: d/dt(T^-1) nu = 0, see :mod:`wbc_jax.dynamics`);
+* sole Jacobians ``J = J_mj T^-1`` from ``mj_jacSite`` (``J_frames``); ``Jdot nu = Jdot_mj qvel``
+  from ``mj_jacDot`` (exact: d/dt(T^-1) nu = 0, see :mod:`wbc_jax.dynamics`); the sole frames
+  ``site_xmat`` (= ``W_R_frames[k] @ foot_rotations[k]``, the contact frames of the feet);
 * CoM, CoM velocity and the centroidal angular momentum from ``subtree_com``,
   ``mj_subtreeVel`` -> ``subtree_linvel``/``subtree_angmom`` of the base body;
-* J_G,ang (Nava 2016) at the postural reference: computed once, from C MuJoCo Jacobians
-  (:func:`centroidal_jacobian_ref`), or taken from ``constants_at_reference``
-  (:func:`spec_from_setup`).
+* J_G,ang (Nava 2016) at the postural reference: from C MuJoCo Jacobians
+  (:func:`centroidal_jacobian_ref`), or taken from the JAX controller state
+  (``controller.init``, :func:`spec_from_setup`).
 
 The loop uses the split step of C MuJoCo: ``mj_step1`` (position- and velocity-dependent
 computations at the current state, which the controller reads) -> controller -> ``ctrl`` ->
 ``mj_step2``; with the Euler integrator this is exactly ``mj_step``, so the controller costs no
 extra ``mj_forward``. The other 9 physics steps of a tick are plain ``mj_step``.
 
-QPs: the formulations of :func:`wbc_jax.contact_qp.two_feet_wrenches`,
-:func:`~wbc_jax.contact_qp.one_foot_wrench` and, when the two-feet QP is infeasible, the soft
-two-feet momentum QP of :mod:`wbc_jax.controller` (same H, g, C, b; for the two-feet QP the
-orthonormal basis Z of range(N_A) comes from a QR factorisation instead of an SVD, which changes
-y = Z' (f - f1) by a rotation but not f). quadprog solves ``min 1/2 x'Gx - a'x, C'x >= b``, so
-it is called with ``(H, -g, -C', -b)``; when it reports infeasibility the result is
-``-(H + ridge I)^-1 g`` and the tick is flagged, as in the JAX code. A QP whose blending weight
-is exactly 0 (one foot or two feet), or the soft QP while the two-feet QP is feasible, is not
-solved: the JAX code computes it and then discards it (multiplied by 0 / ``where``), so the
-outputs are the same. The postural projector pinv(X, tol) X = V diag(sigma > tol) V' is built
-from ``eigh(X'X)`` instead of the SVD of X (same V and sigma^2, cheaper).
+Force distribution (:func:`wbc_jax.forces.distribute` for the two feet): with activations a_k,
+the engaged feet (a_k > 0) and the fully active ones (a_k = 1) each get the formulation, restricted
+to them, and ``f = w f_engaged + (1 - w) f_active`` with ``w = min a_k`` over the engaged feet.
+The formulation (:func:`wbc_jax.forces.wbc_qp`): the momentum-equality QP ``min |tau_model +
+Sigma f|^2 s.t. A f = L_dot* - f_grav, C f <= b`` in ``f = f1 + Z y``; where it is infeasible, the
+soft momentum QP ``min |A f - w|^2 + c |tau_model + Sigma f|^2 + eps |f|^2 s.t. C f <= b``. For
+two feet the orthonormal basis Z of null(A) comes from a QR factorisation instead of an SVD
+(changes y by a rotation, not f); for one foot null(A) is empty: ``f1 = A_k^-1 w`` is the equality
+QP's only point, kept if it meets the foot's constraints (to the JAX solver's relative tolerance),
+else the soft QP. quadprog solves ``min 1/2 x'Gx - a'x, C'x >= b``, so it is called with
+``(H, -g, -C', -b)``; when it reports infeasibility the result is ``-(H + ridge I)^-1 g`` and the
+tick is flagged, as in the JAX code. Formulations the JAX code skips by ``lax.cond`` (the active
+feet's one while no foot ramps, the soft QP while the equality is feasible) are skipped here too.
+The postural projector pinv(X, tol) X = V diag(sigma > tol) V' is built from ``eigh(X'X)``
+instead of the SVD of X (same V and sigma^2, cheaper).
 
 Workers: ``run_parallel`` starts ``n_workers`` processes with the ``spawn`` context; each runs
 *this file* through ``runpy.run_path`` (not ``import wbc_jax...``, whose package ``__init__``
-imports JAX/MJX, ~3 s and ~200 MB per worker), so a worker imports only numpy, mujoco and
-quadprog. (As always with ``spawn``, the parent's ``__main__`` script is re-imported in the
-children: keep heavy imports of a driver script under ``if __name__ == "__main__"``.)
-The parent builds a picklable, JAX-free job (model, indices, references at the ticks,
-constants) with :func:`make_spec` (the library's schedule/config classes, no JAX evaluation) or
-:func:`spec_from_setup` (from the pieces of ``balance.setup``).
+imports JAX/MJX, ~3 s and ~200 MB per worker), so a worker imports only numpy, mujoco, quadprog
+and ``wbc_jax/constants.py`` (loaded by file path, below). (As always with ``spawn``, the parent's
+``__main__`` script is re-imported in the children: keep heavy imports of a driver script under
+``if __name__ == "__main__"`` or inside functions.) The parent builds a picklable, JAX-free job
+(model, indices, references at the ticks, constants) with :func:`spec_from_setup` (from a
+:class:`wbc_jax.scenario.Setup`) or :func:`make_spec` (the same, from a task name).
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import importlib.util
+import math
 import os
+import pathlib
+import sys
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -59,11 +70,37 @@ import mujoco
 import numpy as np
 import quadprog
 
-GRAVITY = 9.81  # m/s^2, as wbc_jax.momentum
-GAIN_FIELDS = ("kp_com", "kd_com", "ki_com", "kp_ang", "ki_ang", "kp_postural", "kd_postural")
+
+def _load_constants():
+    """``wbc_jax/constants.py``, loaded by file path.
+
+    The numbers and names shared with the package live there (gravity, gain names and
+    defaults, the minimum-jerk ramp, thresholds, metric names). It is loaded from its file, not
+    imported as ``wbc_jax.constants``: importing that name runs ``wbc_jax/__init__.py``, which
+    imports ``mujoco.mjx`` and so JAX (~3 s and ~200 MB in every worker process, and the
+    baseline is meant to be JAX-free). constants.py itself imports only numpy."""
+    name = "_wbc_jax_constants_by_path"  # its own name: no clash with a normal import
+    module = sys.modules.get(name)
+    if module is None:
+        path = pathlib.Path(__file__).resolve().parent.parent / "wbc_jax" / "constants.py"
+        spec = importlib.util.spec_from_file_location(name, path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return module
+
+
+constants = _load_constants()
+GRAVITY = constants.GRAVITY
+GAIN_FIELDS = constants.GAIN_FIELDS
+RECOVERY_THRESHOLD = constants.RECOVERY_THRESHOLD
+METRIC_NAMES = constants.METRIC_NAMES
+min_jerk = constants.min_jerk
+# Copies of names of modules that import JAX (wbc_jax.forces / wbc_jax.torques); checked
+# against them in tests/test_baseline_cpu.py.
 FORCE_MODES = ("qp", "analytic")
 POSTURAL_VARIANTS = ("stable", "seed")
-RECOVERY_THRESHOLD = 0.01  # m, as wbc_jax.rollout
+QP_FALLBACK_TOL = 1e-6  # wbc_jax.qp.default_tolerances(float64)[1]
 _NULL_DIM = 6
 _WORKER_RUN_NAME = "__wbc_baseline_cpu_worker__"
 _THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
@@ -79,15 +116,18 @@ class BaselineSpec:
     """Static description of one closed-loop task (same for every environment of a batch).
 
     Attributes:
-      mj_model: C MuJoCo model (solver overrides of the rollout's SimConfig applied).
+      mj_model: C MuJoCo model (solver overrides of the setup's PhysicsConfig applied, no
+        auto-reset, as :func:`wbc_jax.physics.solver_mj_model`).
       nq, nv, n: sizes; qpos_joints, dof_joints, actuators (n,), dof_perm (nv,): as RobotIndex.
       base_body: floating-base body; foot_sites, foot_bodies (2,); mass (kg).
       push_body: body the pushes act on; non_foot_bodies: bodies that must stay off the floor.
-      forces, postural, pinv_damping, pinv_tol, kp_postural_reg, hessian_reg, torque_limit:
-        as ControllerConfig; torque_weight_soft: controller.TORQUE_WEIGHT_SOFT (the soft
-        two-feet QP). C_foot (m, 6), b_foot (m,), fz_min: contact constraints.
+      forces, postural, pinv_damping, pinv_tol, kp_postural_reg, hessian_reg, torque_limit,
+        torque_weight_soft, compensate_passive: as ControllerConfig.
+      C_foot (m, 6), b_foot (m,): contact constraints of a sole in its frame
+        (:func:`wbc_jax.forces.contact_constraints`); fz_row: the row of ``-f_z <= -fz_min``;
+        fz_min (N); foot_size ((x_min, x_max), (y_min, y_max)): the CoP rectangle (m).
       centroidal_jacobian_ref: (2, 3, n) J_G,ang at the reference (left, right stance).
-      control_dt, physics_dt, n_sub, n_ticks, fall_com_height: as the Rollout/SimConfig.
+      control_dt, physics_dt, n_sub, n_ticks: as the ClosedLoop / SimConfig.
       qpos0: (nq,) initial configuration (zero velocity).
       ref_*: references at the ticks t_k = k control_dt: com_pos/com_vel/com_acc (T, 3),
         s_des (T, n), activation (T, 2).
@@ -115,15 +155,17 @@ class BaselineSpec:
     hessian_reg: float
     torque_limit: float
     torque_weight_soft: float
+    compensate_passive: bool
     C_foot: np.ndarray
     b_foot: np.ndarray
+    fz_row: int
     fz_min: float
+    foot_size: tuple
     centroidal_jacobian_ref: np.ndarray
     control_dt: float
     physics_dt: float
     n_sub: int
     n_ticks: int
-    fall_com_height: float
     qpos0: np.ndarray
     ref_com_pos: np.ndarray
     ref_com_vel: np.ndarray
@@ -137,6 +179,18 @@ class BaselineSpec:
         if self.postural not in POSTURAL_VARIANTS:
             raise ValueError(
                 f"unknown postural variant {self.postural!r}; valid: {list(POSTURAL_VARIANTS)}"
+            )
+        act = np.clip(np.asarray(self.ref_activation, float), 0.0, 1.0)
+        engaged, active = act > 0, act >= 1
+        ramping = np.any(engaged & ~active, axis=1)
+        bad = ~np.any(engaged, axis=1) | (ramping & ~np.any(active, axis=1))
+        if np.any(bad):
+            # forces.distribute has no formulation for these (its restricted momentum equality
+            # has no contact to act on): the baseline does not simulate them.
+            k = int(np.flatnonzero(bad)[0])
+            raise ValueError(
+                f"foot activations {act[k].tolist()} at tick {k}: the force distribution needs a "
+                "foot in contact, and a fully active one while the other ramps"
             )
 
     def reference(self, k: int) -> dict:
@@ -152,18 +206,9 @@ class BaselineSpec:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
 
 
-def _min_jerk(u: np.ndarray):
-    """mj(u), mj'(u), mj''(u) for u clipped to [0, 1] (numpy copy of references.min_jerk)."""
-    inside = (u > 0) & (u < 1)
-    u = np.clip(u, 0.0, 1.0)
-    p = u**3 * (10 - 15 * u + 6 * u**2)
-    v = np.where(inside, 30 * u**2 * (1 - u) ** 2, 0.0)
-    a = np.where(inside, 60 * u * (1 - u) * (1 - 2 * u), 0.0)
-    return p, v, a
-
-
 def _segments(t: np.ndarray, x0: np.ndarray, starts, durations, deltas):
-    """Sum of minimum-jerk segments at the times t (T,): pos, vel, acc, each (T, d)."""
+    """Sum of minimum-jerk segments at the times t (T,): pos, vel, acc, each (T, d)
+    (references.segments for many times at once)."""
     starts, durations = np.asarray(starts, float), np.asarray(durations, float)
     x0 = np.asarray(x0, float)
     T = t.shape[0]
@@ -171,7 +216,7 @@ def _segments(t: np.ndarray, x0: np.ndarray, starts, durations, deltas):
         zero = np.zeros((T,) + x0.shape)
         return np.broadcast_to(x0, (T,) + x0.shape).copy(), zero, zero.copy()
     deltas = np.asarray(deltas, float)
-    p, v, a = _min_jerk((t[:, None] - starts) / durations)
+    p, v, a = min_jerk((t[:, None] - starts) / durations)
     return x0 + p @ deltas, (v / durations) @ deltas, (a / durations**2) @ deltas
 
 
@@ -198,102 +243,139 @@ def schedule_table(schedule, times: np.ndarray) -> dict:
     return {"com_pos": com, "com_vel": com_v, "com_acc": com_a, "s_des": s_des, "activation": act}
 
 
-def spec_from_setup(robot, rollout, consts, schedule=None, qpos0=None) -> BaselineSpec:
-    """Build the spec from the pieces of :func:`wbc_jax.balance.setup` (same task, same settings).
+def solver_model(m: mujoco.MjModel, iterations: int | None = None,
+                 ls_iterations: int | None = None) -> mujoco.MjModel:  # fmt: skip
+    """A copy of the C model with the solver overrides, never resetting a diverged state on its
+    own (as :func:`wbc_jax.physics.solver_mj_model`; the loop restores and flags it)."""
+    m = copy.copy(m)
+    if iterations is not None:
+        m.opt.iterations = int(iterations)
+    if ls_iterations is not None:
+        m.opt.ls_iterations = int(ls_iterations)
+    m.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_AUTORESET
+    return m
+
+
+def _check_feet_only(st) -> None:
+    """The baseline implements the controller on the default contact set (the two soles) without
+    motion tasks, on the nominal plant: refuse anything else, naming what differs."""
+    from wbc_jax import contacts as contacts_lib
+
+    loop, idx = st.loop, st.robot.index
+    ctrl = loop.controller
+    if ctrl.stack is not None:
+        raise ValueError("the CPU baseline has no motion tasks (hierarchy); use a setup without --tasks")
+    if loop.cfg.perturb_plant:
+        raise ValueError("the CPU baseline simulates the nominal plant (perturb_plant=False)")
+    cset = ctrl.contact_set
+    problems = []
+    if len(cset.contacts) != 2:
+        problems.append(f"{len(cset.contacts)} contacts")
+    for k, c in enumerate(cset.contacts[:2]):
+        if c.type != "surface" or c.foot != k or c.body != int(idx.foot_bodies[k]):
+            problems.append(f"contact {k} ({c.name}) is not the {('left', 'right')[k]} sole")
+        elif not (np.allclose(c.point, idx.foot_points[k]) and
+                  np.allclose(np.reshape(c.R_body_contact, (3, 3)), idx.foot_rotations[k])):  # fmt: skip
+            problems.append(f"contact {c.name} is not at the sole site")
+        if not math.isnan(c.normal_force):
+            problems.append(f"contact {c.name} has a desired normal force")
+        if c.activation != contacts_lib.ContactActivation():
+            problems.append(f"contact {c.name} has its own activation schedule")
+    if len(cset.contacts) == 2 and cset.contacts[0].params != cset.contacts[1].params:
+        problems.append("the soles have different contact parameters")
+    if problems:
+        raise ValueError("the CPU baseline implements the two-feet contact set only: " + "; ".join(problems))
+
+
+def spec_from_setup(st, controller_state=None) -> BaselineSpec:
+    """Build the spec of a :class:`wbc_jax.scenario.Setup` (same task, settings and references).
 
     Args:
-      robot: :class:`wbc_jax.model.Robot`. rollout: the :class:`wbc_jax.rollout.Rollout`.
-      consts: :class:`wbc_jax.controller.ControllerConstants` (J_G,ang at the reference).
-      schedule: defaults to ``rollout.schedule``. qpos0: initial qpos (default: home keyframe).
+      st: the setup (``scenario.setup``): ``st.loop.schedule``, ``st.loop.controller.config``,
+        ``st.loop.cfg`` (control period, duration, push body, solver settings), ``st.robot``,
+        ``st.qpos0``. Its physics backend does not matter (the baseline runs C MuJoCo).
+      controller_state: the JAX controller state (``st.loop.controller.init(terms at qpos0)``),
+        for J_G,ang at the reference; None: computed with C MuJoCo (:func:`centroidal_jacobian_ref`,
+        equal to ~1e-12, tests/test_baseline_cpu.py), so that building a spec evaluates no JAX.
     """
-    from wbc_jax import contact_qp
-    from wbc_jax import controller as ctrl_lib
+    from wbc_jax import forces as forces_lib
 
-    schedule = rollout.schedule if schedule is None else schedule
-    idx, config, cfg = robot.index, rollout.config, rollout.cfg
-    m = robot.mj_model
-    if cfg.solver_iterations is not None or cfg.ls_iterations is not None:
-        import copy
-
-        m = copy.copy(m)
-        if cfg.solver_iterations is not None:
-            m.opt.iterations = int(cfg.solver_iterations)
-        if cfg.ls_iterations is not None:
-            m.opt.ls_iterations = int(cfg.ls_iterations)
+    _check_feet_only(st)
+    loop, robot = st.loop, st.robot
+    idx, config, cfg = robot.index, loop.controller.config, loop.cfg
+    m = solver_model(robot.mj_model, cfg.physics.solver_iterations, cfg.physics.ls_iterations)
     integrators = mujoco.mjtIntegrator
     if m.opt.integrator not in (
         integrators.mjINT_EULER, integrators.mjINT_IMPLICIT, integrators.mjINT_IMPLICITFAST
     ):
         # mj_step1 + mj_step2 equals mj_step for these only (RK4 would fall back to Euler).
         raise ValueError("the CPU baseline needs the Euler or an implicit integrator (mj_step1/2)")
-    C_foot, b_foot = contact_qp.foot_constraints(config.contact)
-    times = np.arange(rollout.n_ticks) * cfg.control_dt
-    ref = schedule_table(schedule, times)
-    qpos0 = robot.home_qpos() if qpos0 is None else np.asarray(qpos0, float)
+    params = loop.controller.contact_set.contacts[0].params
+    C_foot, b_foot = forces_lib.contact_constraints(params, "surface")
+    times = np.arange(loop.n_ticks) * cfg.control_dt
+    ref = schedule_table(loop.schedule, times)
+    qpos0 = np.asarray(st.qpos0, float)
+    if controller_state is None:
+        d = mujoco.MjData(robot.mj_model)
+        d.qpos[:] = qpos0
+        mujoco.mj_forward(robot.mj_model, d)
+        J_G = centroidal_jacobian_ref(robot.mj_model, d, idx.dof_perm, idx.foot_sites, idx.base_body,
+                                      config.base_vel_damping)  # fmt: skip
+    else:
+        J_G = np.asarray(controller_state.centroidal_jacobian_ref, float)
     return BaselineSpec(
         mj_model=m, nq=idx.nq, nv=idx.nv, n=idx.n,
         qpos_joints=np.asarray(idx.qpos_joints), dof_joints=np.asarray(idx.dof_joints),
         actuators=np.asarray(idx.actuators), dof_perm=np.asarray(idx.dof_perm),
         base_body=int(idx.base_body), foot_sites=np.asarray(idx.foot_sites),
         foot_bodies=np.asarray(idx.foot_bodies), mass=float(idx.mass),
-        push_body=int(rollout.push_body), non_foot_bodies=np.asarray(rollout.non_foot_bodies),
+        push_body=int(loop.push_body), non_foot_bodies=np.asarray(loop.non_foot_bodies),
         forces=config.forces, postural=config.postural, pinv_damping=float(config.pinv_damping),
         pinv_tol=float(config.pinv_tol), kp_postural_reg=float(config.kp_postural_reg),
         hessian_reg=float(config.hessian_reg), torque_limit=float(config.torque_limit),
-        torque_weight_soft=float(ctrl_lib.TORQUE_WEIGHT_SOFT),
-        C_foot=C_foot, b_foot=b_foot, fz_min=float(config.contact.fz_min),
-        centroidal_jacobian_ref=np.asarray(consts.centroidal_jacobian_ref, float),
-        control_dt=float(cfg.control_dt), physics_dt=float(rollout.physics_dt),
-        n_sub=int(rollout.n_sub), n_ticks=int(rollout.n_ticks),
-        fall_com_height=float(cfg.fall_com_height), qpos0=np.asarray(qpos0, float),
+        torque_weight_soft=float(config.torque_weight_soft),
+        compensate_passive=bool(config.compensate_passive),
+        C_foot=C_foot, b_foot=b_foot, fz_row=int(forces_lib.constraint_rows(params, "surface").unilateral),
+        fz_min=float(params.fz_min), foot_size=params.foot_size,
+        centroidal_jacobian_ref=J_G,
+        control_dt=float(cfg.control_dt), physics_dt=float(loop.physics_dt),
+        n_sub=int(loop.n_sub), n_ticks=int(loop.n_ticks), qpos0=qpos0,
         ref_com_pos=ref["com_pos"], ref_com_vel=ref["com_vel"], ref_com_acc=ref["com_acc"],
         ref_s_des=ref["s_des"], ref_activation=ref["activation"],
     )  # fmt: skip
 
 
 def make_spec(
-    robot=None,
     task: str = "stand",
     *,
     duration: float | None = None,
     forces: str = "qp",
     postural: str = "stable",
-    sim: dict | None = None,
+    solver_iterations: int | None = None,
+    ls_iterations: int | None = None,
     controller: dict | None = None,
-    qpos0: np.ndarray | None = None,
+    push_body: str = "chest",
+    robot_name: str = "icub",
 ):
-    """Build the spec of a task as :func:`wbc_jax.balance.setup` does, without evaluating JAX.
+    """The spec of a task on the two feet, built as :func:`wbc_jax.scenario.setup` builds the
+    closed loop (same schedule, settings and indices), without evaluating JAX: J_G,ang comes
+    from C MuJoCo (:func:`spec_from_setup` without a controller state).
 
-    balance.setup evaluates ``dynamics.terms`` eagerly at the initial state (over a minute on a
-    busy 2-core CPU); here the initial CoM, posture and sole come from C MuJoCo and J_G,ang
-    from :func:`centroidal_jacobian_ref` (equal to ``constants_at_reference`` to ~1e-12,
-    tests/test_baseline_cpu.py). The schedule, settings and indices are the library's own
-    (references.make_schedule, ControllerConfig, SimConfig, Rollout).
+    ``controller``: further :class:`wbc_jax.controller.ControllerConfig` fields.
+    Returns ``(spec, gains)``: gains = the WBC default gains as a dict of float64 numpy arrays."""
+    from wbc_jax import physics, rollout, scenario
+    from wbc_jax.controller import ControllerConfig
 
-    Returns ``(spec, gains)``: gains = the default gains as a dict of float64 numpy arrays."""
-    from wbc_jax import controller as ctrl_lib
-    from wbc_jax import model, references
-    from wbc_jax import rollout as rollout_lib
-
-    robot = model.load_robot("icub") if robot is None else robot
-    idx = robot.index
-    ccfg = ctrl_lib.ControllerConfig(forces=forces, postural=postural, **(controller or {}))
-    qpos0 = robot.home_qpos() if qpos0 is None else np.asarray(qpos0, float)
-    m = robot.mj_model
-    d = mujoco.MjData(m)
-    d.qpos[:] = qpos0
-    mujoco.mj_forward(m, d)
-    schedule = references.make_schedule(
-        task, com0=d.subtree_com[idx.base_body].copy(), s0=qpos0[idx.qpos_joints],
-        left_sole=d.site_xpos[idx.foot_sites[0]].copy(), joints=idx.joints, duration=duration,
+    sim = rollout.SimConfig(
+        record=False, push_body=push_body,
+        # No compilation either way; 'mujoco' is valid on every machine.
+        physics=physics.PhysicsConfig(backend="mujoco", solver_iterations=solver_iterations,
+                                      ls_iterations=ls_iterations),
     )  # fmt: skip
-    cfg = rollout_lib.SimConfig(duration=schedule.duration, **(sim or {}))
-    rollout = rollout_lib.make_rollout(robot, schedule, ccfg, cfg)
-    J_G = centroidal_jacobian_ref(m, d, idx.dof_perm, idx.foot_sites, idx.base_body,
-                                  ccfg.base_vel_damping)  # fmt: skip
-    consts = ctrl_lib.ControllerConstants(centroidal_jacobian_ref=J_G)
-    spec = spec_from_setup(robot, rollout, consts, schedule, qpos0)
-    return spec, {k: v[0] for k, v in gains_to_numpy(None, 1, idx.n).items()}
+    config = ControllerConfig(forces=forces, postural=postural, **(controller or {}))
+    st = scenario.setup(task, duration=duration, controller=config, sim=sim, robot_name=robot_name)
+    spec = spec_from_setup(st)
+    return spec, constants.default_gain_values(spec.n)
 
 
 def centroidal_jacobian_ref(
@@ -335,19 +417,10 @@ def centroidal_jacobian_ref(
 
 
 def gains_to_numpy(gains, n_envs: int, n: int) -> dict:
-    """Gains (controller.Gains, a dict, or None: WBC defaults) -> dict of (n_envs, dim) float64."""
+    """Gains (wbc_jax.gains.Gains, a dict, or None: the WBC defaults of
+    ``constants.default_gain_values``) -> dict of (n_envs, dim) float64 arrays."""
     if gains is None:
-        kp_com = np.array([50.0, 50.0, 10.0])
-        from_wbc = (
-            [10, 30, 20] + [10, 10, 10, 8] * 2 + [30, 30, 20, 20, 100, 100]
-            + [30, 50, 30, 60, 100, 100]
-        )  # fmt: skip  # controller.WBC_KP_POSTURAL
-        kp_post = np.array(from_wbc, float)
-        gains = {
-            "kp_com": kp_com, "kd_com": 2 * np.sqrt(kp_com) / 20, "ki_com": np.zeros(3),
-            "kp_ang": np.ones(3), "ki_ang": np.full(3, 0.25), "kp_postural": kp_post,
-            "kd_postural": 2 * np.sqrt(kp_post) / 20,
-        }  # fmt: skip
+        gains = constants.default_gain_values(n)
     out = {}
     for name in GAIN_FIELDS:
         value = gains[name] if isinstance(gains, dict) else getattr(gains, name)
@@ -395,6 +468,7 @@ def _push_force(push: dict, t) -> np.ndarray:
     return np.sum(push["force"] * on[..., None], axis=-2)
 
 
+
 # --------------------------------------------------------------------------------------
 # The controller in NumPy
 # --------------------------------------------------------------------------------------
@@ -403,11 +477,13 @@ def _push_force(push: dict, t) -> np.ndarray:
 @dataclasses.dataclass
 class Terms:
     """Batched dynamics terms (B environments), mixed representation, controller joint order;
-    the same quantities as :class:`wbc_jax.dynamics.DynamicsTerms` (those the controller uses).
+    the quantities of :class:`wbc_jax.dynamics.DynamicsTerms` (sole frames) that the controller
+    and the metrics use.
 
     nu (B, nv), s/s_dot (B, n), W_R_B (B, 3, 3), M (B, nv, nv), h/tau_passive (B, nv),
-    J_feet (B, 2, 6, nv), Jdot_nu_feet (B, 2, 6), W_p_feet (B, 2, 3), W_R_feet (B, 2, 3, 3),
-    W_p_CoM/W_v_CoM/L_ang (B, 3).
+    J_feet (B, 2, 6, nv) (= ``J_frames``), Jdot_nu_feet (B, 2, 6) (= ``Jdot_nu_frames``),
+    W_p_feet (B, 2, 3) (= ``W_p_frames``), W_R_feet (B, 2, 3, 3): the SOLE frames, i.e. the feet's
+    contact frames (= ``W_R_frames[k] @ foot_rotations[k]``), W_p_CoM/W_v_CoM/L_ang (B, 3).
     """
 
     nu: np.ndarray
@@ -459,7 +535,7 @@ def _world_constraints(C_foot: np.ndarray, R: np.ndarray) -> np.ndarray:
 
 def solve_qp(H: np.ndarray, g: np.ndarray, C: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
     """``min 1/2 x'Hx + g'x  s.t.  C x <= b`` with quadprog; on failure ``-(H + ridge I)^-1 g``
-    (ridge = n eps max|diag H|, as contact_qp) and ``infeasible = True``.
+    (ridge = n eps max|diag H|, as wbc_jax.qp) and ``infeasible = True``.
 
     Returns ``(x, infeasible)``."""
     H = 0.5 * (H + H.T)
@@ -482,7 +558,8 @@ def solve_qp(H: np.ndarray, g: np.ndarray, C: np.ndarray, b: np.ndarray) -> tupl
 
 
 class NumpyController:
-    """The controller tick of :func:`wbc_jax.controller.step` in NumPy, batched over environments.
+    """The controller tick of :func:`wbc_jax.controller.make_controller` (``step``) on the two
+    feet, in NumPy, batched over environments.
 
     Usage per tick: the MjData must hold the position- and velocity-dependent quantities of
     their current state (``mj_forward``, or ``mj_step1`` in a loop), then
@@ -494,7 +571,7 @@ class NumpyController:
         self.m = spec.mj_model
         s = spec
         self.f_grav = np.array([0.0, 0.0, -s.mass * GRAVITY, 0.0, 0.0, 0.0])
-        self._fz_row = len(s.b_foot) - 5  # the unilateral row (contact_qp.foot_constraints)
+        self._eye6 = np.eye(6)
         self._eye12 = np.eye(12)
         self._eye_n = np.eye(s.n)
         self._buffers = None
@@ -606,9 +683,9 @@ class NumpyController:
         Ldot_star = np.concatenate([sp.mass * acc, Ldot_ang], 1)
         wrench_des = Ldot_star - self.f_grav
 
-        # Torque law (torques.torque_terms), compensate_passive=True.
+        # Torque law (torques.torque_terms), contact rows scaled by the activations.
         M = t.M
-        h = t.h - t.tau_passive
+        h = t.h - t.tau_passive if sp.compensate_passive else t.h
         J_c = (t.J_feet * act[None, :, None, None]).reshape(B, 12, -1)
         Jdot_nu_c = (t.Jdot_nu_feet * act[None, :, None]).reshape(B, 12)
         sol = _solve(M, np.concatenate([_T(J_c), h[:, :, None]], 2))
@@ -644,59 +721,19 @@ class NumpyController:
             N_Lambda, h[:, 6:] - mv(M_sb, Mb_inv_hb) + u0
         )
 
-        # Force distribution: A = [A_L, A_R], f1 = A^+ wrench_des, N_A = I - A^+ A.
+        # Force task (forces.distribute): the engaged feet's formulation blended with the fully
+        # active feet's while a foot ramps, f = w f_engaged + (1 - w) f_active.
         A = self.wrench_map(t.W_p_feet, t.W_p_CoM)
-        A_pinv = _T(_solve(A @ _T(A), A))
-        f1 = mv(A_pinv, wrench_des)
-        N_A = self._eye12 - A_pinv @ A
-        A_stance = A[:, :, 6 * stance : 6 * stance + 6]
         C_feet = _world_constraints(sp.C_foot, t.W_R_feet)  # (B, 2, m, 6)
-        w_two = float(np.min(act))
-        eps = sp.hessian_reg
-        infeasible = np.zeros(B, bool)
-        f_two = np.zeros((B, 12))
-        f_one = np.zeros((B, 6))
-        if w_two > 0:
-            Z = self.null_basis(t.W_p_feet)
-            SZ = Sigma @ Z
-            H = _T(SZ) @ SZ + eps * np.eye(_NULL_DIM)
-            gq = mv(_T(SZ), tau_model + mv(Sigma, f1))
-            if sp.forces == "qp":
-                m_ = len(sp.b_foot)
-                C2 = np.zeros((B, 2 * m_, 12))
-                C2[:, :m_, :6], C2[:, m_:, 6:] = C_feet[:, 0], C_feet[:, 1]
-                b2 = np.concatenate([sp.b_foot, sp.b_foot])
-                Cq = C2 @ Z
-                bq = b2 - mv(C2, f1)
-                y = np.empty((B, _NULL_DIM))
-                bad_two = np.zeros(B, bool)
-                for i in range(B):
-                    y[i], bad_two[i] = solve_qp(H[i], gq[i], Cq[i], bq[i])
-                f_two = f1 + mv(Z, y)
-                # WBC's QP infeasible (A f = L_dot* - f_grav not realisable): the soft two-feet
-                # momentum QP of controller._two_feet_momentum_qp, over f (12,).
-                for i in np.flatnonzero(bad_two):
-                    c = sp.torque_weight_soft
-                    Hs = A[i].T @ A[i] + c * Sigma[i].T @ Sigma[i] + eps * self._eye12
-                    gs = -A[i].T @ wrench_des[i] + c * Sigma[i].T @ tau_model[i]
-                    f_two[i], bad_two[i] = solve_qp(Hs, gs, C2[i], b2)
-                infeasible |= bad_two
-            else:
-                y = -_solve(H, gq[:, :, None])[:, :, 0]
-                f_two = f1 + mv(Z, y)
-        if w_two < 1:
-            if sp.forces == "qp":
-                H1 = _T(A_stance) @ A_stance + eps * np.eye(6)
-                g1 = -mv(_T(A_stance), wrench_des)
-                C1 = C_feet[:, stance]
-                for i in range(B):
-                    f_one[i], bad = solve_qp(H1[i], g1[i], C1[i], sp.b_foot)
-                    infeasible[i] |= bad
-            else:
-                f_one = _solve(A_stance, wrench_des[:, :, None])[:, :, 0]
-        f_one_padded = np.zeros((B, 12))
-        f_one_padded[:, 6 * stance : 6 * stance + 6] = f_one
-        f = w_two * f_two + (1.0 - w_two) * f_one_padded
+        engaged, active = act > 0, act >= 1
+        w = float(np.min(act[engaged])) if np.any(engaged) else 1.0
+        args = (A, wrench_des, Sigma, tau_model, C_feet, t.W_p_feet)
+        f, bad = self.formulation(engaged, *args)
+        infeasible = bad.copy()
+        if w < 1:  # lax.cond in forces.distribute: only while a foot ramps
+            f_active, bad_active = self.formulation(active, *args)
+            f = w * f + (1.0 - w) * f_active
+            infeasible |= bad_active
 
         tau_unsat = tau_model + mv(Sigma, f)
         tau = np.clip(tau_unsat, -sp.torque_limit, sp.torque_limit)
@@ -707,11 +744,87 @@ class NumpyController:
         }  # fmt: skip
         return out, new_state
 
+    def formulation(self, mask, A, wrench_des, Sigma, tau_model, C_feet, W_p_feet):
+        """The wrenches (B, 12) of the feet with ``mask`` (2,) True, the other's zero
+        (forces.wbc_qp, or forces.analytic), and the infeasibility flags (B,)."""
+        B = A.shape[0]
+        feet = np.flatnonzero(mask).tolist()
+        if len(feet) == 2:
+            return self._two_feet(A, wrench_des, Sigma, tau_model, C_feet, W_p_feet)
+        if len(feet) == 0:  # excluded by BaselineSpec (forces.distribute has no formulation)
+            return np.full((B, 12), np.nan), np.ones(B, bool)
+        k = feet[0]
+        return self._one_foot(k, A, wrench_des, Sigma, tau_model, C_feet)
+
+    def _two_feet(self, A, wrench_des, Sigma, tau_model, C_feet, W_p_feet):
+        """The momentum-equality QP on both feet in f = f1 + Z y, f1 = A^+ w; where it is
+        infeasible, the soft momentum QP over f (12,)."""
+        sp = self.spec
+        B = A.shape[0]
+        mv = _mv
+        eps = sp.hessian_reg
+        A_pinv = _T(_solve(A @ _T(A), A))
+        f1 = mv(A_pinv, wrench_des)
+        Z = self.null_basis(W_p_feet)
+        SZ = Sigma @ Z
+        H = _T(SZ) @ SZ + eps * np.eye(_NULL_DIM)
+        gq = mv(_T(SZ), tau_model + mv(Sigma, f1))
+        infeasible = np.zeros(B, bool)
+        if sp.forces == "analytic":
+            y = -_solve(H, gq[:, :, None])[:, :, 0]
+            return f1 + mv(Z, y), infeasible
+        m_ = len(sp.b_foot)
+        C2 = np.zeros((B, 2 * m_, 12))
+        C2[:, :m_, :6], C2[:, m_:, 6:] = C_feet[:, 0], C_feet[:, 1]
+        b2 = np.concatenate([sp.b_foot, sp.b_foot])
+        Cq = C2 @ Z
+        bq = b2 - mv(C2, f1)
+        y = np.empty((B, _NULL_DIM))
+        bad = np.zeros(B, bool)
+        for i in range(B):
+            y[i], bad[i] = solve_qp(H[i], gq[i], Cq[i], bq[i])
+        f = f1 + mv(Z, y)
+        # The equality is infeasible (A f = L_dot* - f_grav not realisable): the soft momentum QP.
+        for i in np.flatnonzero(bad):
+            c = sp.torque_weight_soft
+            Hs = A[i].T @ A[i] + c * Sigma[i].T @ Sigma[i] + eps * self._eye12
+            gs = -A[i].T @ wrench_des[i] + c * Sigma[i].T @ tau_model[i]
+            f[i], infeasible[i] = solve_qp(Hs, gs, C2[i], b2)
+        return f, infeasible
+
+    def _one_foot(self, k, A, wrench_des, Sigma, tau_model, C_feet):
+        """Foot k alone: null(A_k) is empty, so the momentum-equality QP's only point is
+        f1 = A_k^-1 w, kept where it meets the foot's constraints C_k f1 <= b (the JAX solver's
+        test: a violation above QP_FALLBACK_TOL relative to the data); else the soft momentum QP
+        over the foot's wrench (6,)."""
+        sp = self.spec
+        B = A.shape[0]
+        cols = slice(6 * k, 6 * k + 6)
+        A_k = A[:, :, cols]
+        f = np.zeros((B, 12))
+        infeasible = np.zeros(B, bool)
+        f1 = _solve(A_k, wrench_des[:, :, None])[:, :, 0]
+        f[:, cols] = f1
+        if sp.forces == "analytic":
+            return f, infeasible
+        C_k = C_feet[:, k]
+        slack = sp.b_foot - _mv(C_k, f1)  # (B, m)
+        # Scaled as wbc_jax.qp: the other foot's rows (0 <= 1) put 1 in the data scale.
+        scale = np.maximum(np.max(np.abs(slack), axis=1), 1.0)
+        bad = np.max(-slack, axis=1) > QP_FALLBACK_TOL * scale
+        eps, c = sp.hessian_reg, sp.torque_weight_soft
+        for i in np.flatnonzero(bad):
+            S_k = Sigma[i][:, cols]
+            Hs = A_k[i].T @ A_k[i] + c * S_k.T @ S_k + eps * self._eye6
+            gs = -A_k[i].T @ wrench_des[i] + c * S_k.T @ tau_model[i]
+            f[i, cols], infeasible[i] = solve_qp(Hs, gs, C_k[i], sp.b_foot)
+        return f, infeasible
+
     @staticmethod
     def null_basis(W_p_feet: np.ndarray) -> np.ndarray:
         """Orthonormal basis Z (B, 12, 6) of null(A) = range(N_A).
 
-        contact_qp.range_basis takes the top singular vectors of N_A; the QPs' solution
+        forces.range_basis takes the top singular vectors of N_A; the QPs' solution
         f = f1 + Z y does not depend on which orthonormal basis is used (the regulariser
         |y|^2 = |Z y|^2 too), so Z comes from the QR factorisation of the closed-form basis
         [I 0; 0 I; -I 0; -S(p_L - p_R) -I] (A f = 0 <=> F_R = -F_L,
@@ -728,7 +841,7 @@ class NumpyController:
 
     @staticmethod
     def wrench_map(W_p_feet: np.ndarray, W_p_CoM: np.ndarray) -> np.ndarray:
-        """A (B, 6, 12) of momentum.wrench_map for W_p_feet (B, 2, 3), W_p_CoM (B, 3)."""
+        """A (B, 6, 12) of forces.wrench_map for W_p_feet (B, 2, 3), W_p_CoM (B, 3)."""
         B = W_p_feet.shape[0]
         A = np.zeros((B, 6, 2, 6))
         i6 = np.arange(6)
@@ -737,13 +850,13 @@ class NumpyController:
         return A.reshape(B, 6, 12)
 
     def constraint_violation(self, f, W_R_feet, act, C_feet=None) -> np.ndarray:
-        """controller.constraint_violation, batched: (B,). f (B, 12), W_R_feet (B, 2, 3, 3),
-        act (2,); C_feet (B, 2, m, 6): the world-axes constraints, if already computed."""
+        """forces.violation, batched: (B,). f (B, 12), W_R_feet (B, 2, 3, 3), act (2,);
+        C_feet (B, 2, m, 6): the world-axes constraints, if already computed."""
         sp = self.spec
         if C_feet is None:
             C_feet = _world_constraints(sp.C_foot, W_R_feet)
         b = np.stack([sp.b_foot, sp.b_foot])
-        b[:, self._fz_row] *= act
+        b[:, sp.fz_row] *= act
         f_k = f.reshape(-1, 2, 6)
         fz = np.maximum(np.sum(W_R_feet[..., :, 2] * f_k[..., :3], axis=-1), sp.fz_min)
         v = np.max(np.maximum(_mv(C_feet, f_k) - b, 0.0), axis=-1) / fz  # (B, 2)
@@ -766,6 +879,29 @@ def _batch_size(gains, push) -> int:
     return sizes[0] if sizes else 1
 
 
+def support_corners(spec: BaselineSpec, W_p_feet: np.ndarray, W_R_feet: np.ndarray) -> np.ndarray:
+    """(B, 8, 3) corners of the soles' CoP rectangles, world axes (rollout.support_corners)."""
+    (x0, x1), (y0, y1) = spec.foot_size
+    local = np.array([[x, y, 0.0] for x in (x0, x1) for y in (y0, y1)])  # (4, 3)
+    corners = W_p_feet[:, :, None, :] + np.einsum("cj,bkij->bkci", local, W_R_feet)
+    return corners.reshape(W_p_feet.shape[0], -1, 3)
+
+
+def polygon_margin(points: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(B,) signed distance of p (B, 2) inside the convex hull of points (B, N, 2): the smallest
+    distance to a hull edge, negative outside (rollout.polygon_margin: hull edges = the ordered
+    pairs with every point on their left)."""
+    a = points[:, :, None, :]
+    e = points[:, None, :, :] - a  # (B, N, N, 2)
+    length = np.sqrt(np.sum(e * e, -1) + 1e-30)
+    normal = np.stack([-e[..., 1], e[..., 0]], -1) / length[..., None]  # left normal
+    offset = np.sum(normal * a, -1)  # (B, N, N)
+    side = np.einsum("bijk,blk->bijl", normal, points) - offset[..., None]
+    is_edge = (length > 1e-9) & np.all(side >= -1e-9, axis=-1)
+    dist = np.einsum("bijk,bk->bij", normal, p) - offset
+    return np.min(np.where(is_edge, dist, np.inf), axis=(1, 2))
+
+
 def simulate(
     spec: BaselineSpec,
     gains=None,
@@ -776,11 +912,11 @@ def simulate(
     timing: bool = False,
     n_ticks: int | None = None,
 ) -> dict:
-    """Closed-loop simulation of a batch of environments with C MuJoCo (as rollout.Rollout).
+    """Closed-loop simulation of a batch of environments with C MuJoCo (as rollout.ClosedLoop).
 
     Args:
-      spec: the task (:func:`make_spec` / :func:`spec_from_setup`).
-      gains: per-environment gains, (B, dim) or (dim,) arrays (dict or controller.Gains);
+      spec: the task (:func:`spec_from_setup` / :func:`make_spec`).
+      gains: per-environment gains, (B, dim) or (dim,) arrays (dict or wbc_jax.gains.Gains);
         None: the WBC defaults.
       push: pushes on ``spec.push_body``: force (B, P, 3) or (P, 3), onset/duration (B, P)
         or (P,) (dict or rollout.Push); None: no push.
@@ -791,10 +927,11 @@ def simulate(
 
     Returns:
       dict with ``t`` (T,), ``com_ref`` (T, 3), ``metrics`` (dict of (B,) arrays, the fields of
-      rollout.Metrics), with ``record``: ``com`` (B, T, 3), ``tau`` (B, T, n), ``f_cmd``
-      (B, T, 12), ``qp_infeasible`` (B, T); with ``timing``: ``timing`` (dict: wall and CPU
-      seconds of the loop, seconds in physics (mj_step1/mj_step2/mj_step) and in the controller
-      (terms + tick), microseconds per mj_step and per environment-tick; perf_counter).
+      rollout.Metrics; :func:`summarize` names them as ``constants.METRIC_NAMES``), with
+      ``record``: ``com`` (B, T, 3), ``tau`` (B, T, n), ``f_cmd`` (B, T, 12), ``qp_infeasible``
+      (B, T); with ``timing``: ``timing`` (dict: wall and CPU seconds of the loop, seconds in
+      physics (mj_step1/mj_step2/mj_step) and in the controller (terms + tick), microseconds per
+      mj_step and per environment-tick; perf_counter).
     """
     sp = spec
     B = int(_batch_size(gains, push) if n_envs is None else n_envs)
@@ -810,18 +947,20 @@ def simulate(
     state = ctrl.init_state(B)
     acts, pb = sp.actuators, sp.push_body
 
-    # Metrics as rollout.Rollout.init / _tick.
+    # Metrics as rollout.ClosedLoop.init / _metrics.
     for d in datas:
         mujoco.mj_forward(m, d)
     t0 = ctrl.terms(datas)
     anchors = t0.W_p_feet.copy()
+    anchor_normals = t0.W_R_feet[..., :, 2].copy()  # (B, 2, 3)
     com0_height = t0.W_p_CoM[:, 2].copy()
     met = {
         "com_sq_err_sum": np.zeros(B), "com_max_err": np.zeros(B), "max_abs_torque": np.zeros(B),
-        "max_violation": np.zeros(B), "max_slip": np.zeros(B),
+        "max_violation": np.zeros(B), "max_slip": np.zeros(B), "max_tilt": np.zeros(B),
         "qp_infeasible_ticks": np.zeros(B, np.int64), "fell": np.zeros(B, bool),
         "nan": np.zeros(B, bool), "last_time_off": np.zeros(B),
-        "min_com_height": com0_height.copy(), "ticks": np.zeros(B, np.int64),
+        "min_com_height": com0_height.copy(), "end_com_speed": np.zeros(B),
+        "end_support_margin": np.zeros(B), "ticks": np.zeros(B, np.int64),
     }  # fmt: skip
     rec = None
     if record:
@@ -833,6 +972,7 @@ def simulate(
     loop_start, cpu_start = clock(), time.process_time()
     F_cur = np.zeros((B, 3))  # xfrc_applied[push_body, :3] of each MjData
     sub_times = np.arange(sp.n_sub) * sp.physics_dt
+    nfb = sp.non_foot_bodies
     for k in range(T):
         t_now = k * sp.control_dt
         for i, d in enumerate(datas):
@@ -847,6 +987,8 @@ def simulate(
         out, state = ctrl.step(terms, g, ref, state)
         tau = out["tau"]
         c2 = clock()
+        body_low = np.array([d.xpos[nfb, 2].min() for d in datas]) < constants.BODY_FLOOR_HEIGHT
+        c2b = clock()
         for j in range(sp.n_sub):
             for i in np.flatnonzero(np.any(F_all[j] != F_cur, axis=1)).tolist():
                 datas[i].xfrc_applied[pb, :3] = F_cur[i] = F_all[j, i]
@@ -858,12 +1000,12 @@ def simulate(
                 for d in datas:
                     mujoco.mj_step(m, d)
         c3 = clock()
-        t_phys += (c1 - c0) + (c3 - c2)
+        t_phys += (c1 - c0) + (c3 - c2b)
         t_ctrl += c2 - c1
 
-        # Divergence: freeze at the last finite state, as the rollout. C MuJoCo resets a state
-        # with NaN/huge qpos, qvel or qacc to qpos0 itself (mj_check*, with a warning), which
-        # shows as a clock that did not advance by n_sub steps: treated the same way.
+        # Divergence: freeze at the last finite state, as the closed loop (the model does not
+        # reset a diverged state itself: mjDSBL_AUTORESET; a clock that did not advance by
+        # n_sub steps is treated the same way, for models without that flag).
         finite = np.ones(B, bool)
         for i, d in enumerate(datas):
             qpos, qvel, warm, time_ = saved[i]
@@ -872,25 +1014,33 @@ def simulate(
                 d.qpos[:], d.qvel[:], d.qacc_warmstart[:], d.time = qpos, qvel, warm, time_
                 finite[i] = False
 
-        # Metrics (rollout.Rollout._tick), at the tick's state.
+        # Metrics (rollout.ClosedLoop._metrics), at the tick's state.
         com = terms.W_p_CoM
         com_err = np.linalg.norm(com - ref["com_pos"], axis=1)
-        fully_active = ref["activation"] >= 1.0
-        anchors = np.where(fully_active[None, :, None], anchors, terms.W_p_feet)
-        slip_k = np.linalg.norm((terms.W_p_feet - anchors)[:, :, :2], axis=2)
-        slip = np.max(np.where(fully_active[None], slip_k, 0.0), axis=1)
-        nfb = sp.non_foot_bodies
-        body_low = np.array([d.xpos[nfb, 2].min() for d in datas]) < 0.05
-        met["fell"] |= (com[:, 2] < sp.fall_com_height * com0_height) | body_low
+        pos, normal = terms.W_p_feet, terms.W_R_feet[..., :, 2]  # (B, 2, 3)
+        fully_active = np.clip(ref["activation"], 0.0, 1.0) >= 1.0  # (2,)
+        anchors = np.where(fully_active[None, :, None], anchors, pos)
+        anchor_normals = np.where(fully_active[None, :, None], anchor_normals, normal)
+        dp = pos - anchors  # slip: tangential to the contact surface
+        dp = dp - np.sum(dp * normal, -1, keepdims=True) * normal
+        slip = np.max(np.where(fully_active[None], np.linalg.norm(dp, axis=-1), 0.0), axis=1)
+        cos = np.sum(normal * anchor_normals, -1)
+        sin = np.linalg.norm(np.cross(normal, anchor_normals), axis=-1)
+        tilt = np.max(np.where(fully_active[None], np.arctan2(sin, cos), 0.0), axis=1)
+        corners = support_corners(sp, pos, terms.W_R_feet)
+        met["fell"] |= (com[:, 2] < constants.FALL_COM_HEIGHT * com0_height) | body_low
         met["com_sq_err_sum"] += com_err**2
         met["com_max_err"] = np.maximum(met["com_max_err"], com_err)
         met["max_abs_torque"] = np.maximum(met["max_abs_torque"], np.max(np.abs(tau), axis=1))
         met["max_violation"] = np.maximum(met["max_violation"], out["qp_violation"])
         met["max_slip"] = np.maximum(met["max_slip"], slip)
+        met["max_tilt"] = np.maximum(met["max_tilt"], tilt)
         met["qp_infeasible_ticks"] += out["qp_infeasible"]
         met["nan"] |= ~finite | ~np.all(np.isfinite(tau), axis=1)
         met["last_time_off"] = np.where(com_err > RECOVERY_THRESHOLD, t_now, met["last_time_off"])
         met["min_com_height"] = np.minimum(met["min_com_height"], com[:, 2])
+        met["end_com_speed"] = np.linalg.norm(terms.W_v_CoM, axis=1)
+        met["end_support_margin"] = polygon_margin(corners[:, :, :2], com[:, :2])
         met["ticks"] += 1
         if record:
             rec["com"][:, k] = com
@@ -923,25 +1073,48 @@ def simulate(
     return result
 
 
+def summary_columns(metrics: dict, push_end: float = 0.0) -> dict:
+    """The metrics of :func:`simulate` under ``constants.METRIC_NAMES`` (numpy columns, (B,)),
+    computed as :func:`wbc_jax.rollout.summarize`: ``survived`` is the strict criterion of
+    ``constants.SURVIVAL_CRITERION``, ``upright`` the lax one (no fall, no NaN)."""
+    m = {k: np.asarray(v) for k, v in metrics.items()}
+    ticks = np.maximum(m["ticks"], 1)
+    upright = ~m["fell"] & ~m["nan"]
+    tilt_deg = np.rad2deg(m["max_tilt"])
+    survived = (
+        upright
+        & (m["max_slip"] <= constants.SURVIVAL_MAX_SLIP_M)
+        & (tilt_deg <= constants.SURVIVAL_MAX_TILT_DEG)
+        & (m["end_com_speed"] <= constants.SURVIVAL_END_COM_SPEED)
+        & (m["end_support_margin"] >= 0)
+    )
+    cols = {
+        "survived": survived,
+        "upright": upright,
+        "fell": m["fell"],
+        "nan": m["nan"],
+        "com_rmse_m": np.sqrt(m["com_sq_err_sum"] / ticks),
+        "com_max_err_m": m["com_max_err"],
+        "max_constraint_violation": m["max_violation"],
+        "max_foot_slip_m": m["max_slip"],
+        "max_foot_tilt_deg": tilt_deg,
+        "max_abs_torque_nm": m["max_abs_torque"],
+        "qp_infeasible_ticks": m["qp_infeasible_ticks"],
+        "time_to_recover_s": np.where(upright, np.maximum(m["last_time_off"] - push_end, 0.0), np.nan),
+        "min_com_height_m": m["min_com_height"],
+        "end_com_speed_mps": m["end_com_speed"],
+        "end_com_support_margin_m": m["end_support_margin"],
+    }
+    assert tuple(cols) == METRIC_NAMES
+    return cols
+
+
 def summarize(metrics: dict, push_end: float = 0.0) -> list[dict]:
-    """Per-environment summaries with the fields of :func:`wbc_jax.rollout.summarize`."""
-    B = len(metrics["ticks"])
-    out = []
-    for i in range(B):
-        ticks = max(int(metrics["ticks"][i]), 1)
-        out.append({
-            "fell": bool(metrics["fell"][i]),
-            "nan": bool(metrics["nan"][i]),
-            "com_rmse_m": float(np.sqrt(metrics["com_sq_err_sum"][i] / ticks)),
-            "com_max_err_m": float(metrics["com_max_err"][i]),
-            "max_constraint_violation": float(metrics["max_violation"][i]),
-            "max_foot_slip_m": float(metrics["max_slip"][i]),
-            "max_abs_torque_nm": float(metrics["max_abs_torque"][i]),
-            "qp_infeasible_ticks": int(metrics["qp_infeasible_ticks"][i]),
-            "time_to_recover_s": float(max(0.0, float(metrics["last_time_off"][i]) - push_end)),
-            "min_com_height_m": float(metrics["min_com_height"][i]),
-        })  # fmt: skip
-    return out
+    """Per-environment summaries (plain numbers) under ``constants.METRIC_NAMES``, as
+    :func:`wbc_jax.rollout.summarize` gives for one environment."""
+    cols = summary_columns(metrics, push_end)
+    B = len(cols["fell"])
+    return [{k: v[i].item() for k, v in cols.items()} for i in range(B)]
 
 
 # --------------------------------------------------------------------------------------
@@ -1041,7 +1214,7 @@ def run_parallel(
 
     t_launch_wall = time.monotonic()
     if spec is None:
-        spec, _ = make_spec(task=task, duration=duration, forces=forces, postural=postural)
+        spec, _ = make_spec(task, duration=duration, forces=forces, postural=postural)
     n_workers = int(n_workers or os.cpu_count() or 1)
     if n_envs < 1 or n_workers < 1:
         raise ValueError(f"n_envs and n_workers must be >= 1, got {n_envs}, {n_workers}")
@@ -1137,7 +1310,7 @@ def benchmark(
     solver_iterations: int | None = None,
     timeout: float = 1800.0,
 ) -> dict:
-    """The CPU baseline on the scenario of experiments/benchmark.py (JSON-ready dict).
+    """The CPU baseline on the scenario of benchmarks/benchmark.py (JSON-ready dict).
 
     Stand task over ``horizon`` s, default gains, one ``magnitude`` N horizontal push on the
     chest per environment, azimuths spread evenly over 360 deg (sweep.build_scenarios with one
@@ -1145,23 +1318,21 @@ def benchmark(
     one per core)."""
     import platform
 
-    sim = {"record": False}
-    if solver_iterations is not None:
-        sim["solver_iterations"] = int(solver_iterations)
-    spec, gains = make_spec(task="stand", duration=horizon, sim=sim)
+    spec, gains = make_spec("stand", duration=horizon, solver_iterations=solver_iterations)
     azimuth = np.deg2rad(np.linspace(0.0, 360.0, n_envs, endpoint=False))
     force = magnitude * np.stack([np.cos(azimuth), np.sin(azimuth), np.zeros(n_envs)], 1)
     push = {"force": force[:, None, :], "onset": np.full((n_envs, 1), push_onset),
             "duration": np.full((n_envs, 1), push_duration)}  # fmt: skip
     r = run_parallel(n_envs, n_workers, spec=spec, gains=gains, push=push, timeout=timeout)
-    met = r["metrics"]
+    cols = summary_columns(r["metrics"], push_onset + push_duration)
     t0 = r["timing"]
     return {
         "baseline": "C MuJoCo mj_step + NumPy controller (quadprog), one process per worker",
-        "cpu": platform.processor() or platform.machine(),
+        "cpu": cpu_name(),
         "cpu_count": os.cpu_count(),
         "mujoco": mujoco.__version__,
         "numpy": np.__version__,
+        "python": platform.python_version(),
         "batch": n_envs,
         "n_workers": r["n_workers"],
         "envs_per_worker": [w["n_envs"] for w in r["workers"]],
@@ -1170,16 +1341,34 @@ def benchmark(
         "run_s": round(r["wall_s"], 4),
         "total_s_with_startup": round(r["total_wall_s"], 3),
         "physics_steps_per_s": r["steps_per_s"],
-        "control_ticks_per_s": r["steps_per_s"] / spec.n_sub,
         "physics_steps_per_s_per_worker": r["steps_per_s_per_worker"],
+        "control_ticks_per_s": r["steps_per_s"] / spec.n_sub,
         "worker0_controller_us_per_env_tick": t0["controller_us_per_env_tick"],
         "worker0_mj_step_us": t0["physics_us_per_mj_step"],
         "worker0_controller_share": t0["controller_s"] / t0["loop_s"],
         "worker_startup_s": [w["startup_s"] for w in r["workers"]],
         "workers_imported_jax": [w["jax_imported"] for w in r["workers"]],
-        "survival": float(np.mean(~met["fell"] & ~met["nan"])),
-        "com_max_dev_m_median": float(np.median(met["com_max_err"])),
+        # Names of constants.METRIC_NAMES: the rates of its booleans, medians of the others.
+        "survived_rate": float(np.mean(cols["survived"])),
+        "upright_rate": float(np.mean(cols["upright"])),
+        "com_max_err_m_median": float(np.median(cols["com_max_err_m"])),
+        "max_abs_torque_nm_median": float(np.median(cols["max_abs_torque_nm"])),
+        "qp_infeasible_ticks_total": int(np.sum(cols["qp_infeasible_ticks"])),
     }
+
+
+def cpu_name() -> str:
+    """The host CPU's model name (Linux /proc/cpuinfo; else platform)."""
+    import platform
+
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 if __name__ == _WORKER_RUN_NAME:  # a worker process of run_parallel (runpy.run_path)

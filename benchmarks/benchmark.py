@@ -1,14 +1,24 @@
-"""Closed-loop throughput of wbc_jax (MJX + controller) vs the CPU baseline, in one run.
+"""Closed-loop throughput of wbc_jax vs the C MuJoCo + NumPy baseline, side by side in one run.
 
-    python experiments/benchmark.py --out runs/bench [--batches 1 256 1024 4096 16384]
-        [--horizon 1.0] [--iterations 4 2 1] [--cpu-baseline-envs 64]
+    python benchmarks/benchmark.py --out runs/bench [--batches 1 1024 16384] [--horizon 1.0]
+        [--backends jax warp mujoco] [--iterations 4 2 1] [--cpu-baseline-envs 64]
+        [--cpu-workers 16] [--json docs/benchmarks.json]
 
-For each batch size: compile time, closed-loop physics steps/s and control ticks/s
-(controller included, 1 kHz physics, 100 Hz control), peak device memory per environment, and
-the share of time spent in the controller (closed loop vs the same physics with the torques
-held fixed). For each solver iteration count: the standing/push balance figures at a small
-batch, to see which settings keep them. Then the CPU baseline (C MuJoCo + the NumPy controller,
-one worker per core) on the same task. Writes bench.json into --out.
+For each physics backend (``jax``: MJX's JAX implementation, ``warp``: MJX-Warp on a CUDA GPU,
+``mujoco``: C MuJoCo on the host with the jitted JAX controller), solver iteration count and batch
+size: compile time, closed-loop physics steps/s and control ticks/s (``scenario.run`` on a batch of
+40 N pushes spread over 360 deg; 1 kHz physics, 100 Hz control), the same physics with the torques
+held fixed (physics only), the controller's share of the time (1 - closed loop / physics only),
+peak device memory. Then the CPU baseline (benchmarks/baseline_cpu.py: C MuJoCo + the controller in
+NumPy, one worker process per core) on the same task, and the ratio of each closed loop to it
+(for ``mujoco`` also steps/s per core on both sides). The trajectory check: the MJX closed loop and
+the baseline on one 1 s stand with a 40 N lateral chest push, CoM difference.
+
+Writes bench.json (everything) into --out and prints it; ``--json FILE`` also appends/updates one
+row per measured setting (backend, iterations, batch, device) in FILE (docs/benchmarks.json).
+
+Heavy imports (JAX, wbc_jax) stay inside functions: run_parallel's worker processes (``spawn``)
+re-import this script, and stay JAX-free that way.
 """
 
 from __future__ import annotations
@@ -17,196 +27,388 @@ import argparse
 import json
 import os
 import pathlib
+import shlex
 import sys
 import time
+import traceback
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+HERE = pathlib.Path(__file__).resolve().parent
+for _path in (str(ROOT), str(HERE)):  # wbc_jax; baseline_cpu next to this script
+    if _path not in sys.path:
+        sys.path.insert(0, _path)
 
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-from mujoco import mjx  # noqa: E402
+BACKENDS = ("jax", "warp", "mujoco")
+PUSH_MAGNITUDE = 40.0  # N, horizontal, azimuths spread over 360 deg
+JSON_KEYS = ("device", "date", "backend", "solver_iterations", "batch", "closed_loop_steps_per_s",
+             "physics_only_steps_per_s", "cpu_baseline_steps_per_s", "cpu_baseline_workers", "ratio",
+             "n_devices", "command", "sweep_name", "sweep_run_s", "sweep_envs")  # fmt: skip
+JSON_ROW_KEY = ("device", "backend", "solver_iterations", "batch", "n_devices", "sweep_name")
 
-from wbc_jax import io, sweep  # noqa: E402
-from wbc_jax import model as model_lib  # noqa: E402
+
+# ---------------------------------------------------------------------------------------------
+# Closed loop and physics only
 
 
-def scenario_batch(batch: int, horizon: float, seed: int = 0, onset: float = 0.2, duration: float = 0.1):
-    """Lateral/sagittal pushes of moderate size (all survivable), batch of `batch`."""
+def make_setup(backend: str, horizon: float, iterations: int | None, *, record: bool = False):
+    """The stand task's closed loop on ``backend`` (default gains, the two feet)."""
+    from wbc_jax import physics, rollout, scenario
+
+    sim = rollout.SimConfig(
+        record=record, physics=physics.PhysicsConfig(backend=backend, solver_iterations=iterations)
+    )
+    return scenario.setup("stand", duration=horizon, sim=sim)
+
+
+def push_batch(st, batch: int, onset: float, duration: float):
+    """A Scenario batch: one PUSH_MAGNITUDE N horizontal push per environment, azimuths evenly
+    over 360 deg (sweep.build_scenarios), nominal plant, default gains."""
+    import numpy as np
+
+    from wbc_jax import sweep
+
     cfg = sweep.SweepConfig(
-        magnitudes=(40.0,), directions=tuple(np.linspace(0, 360, max(batch, 1), endpoint=False)),
-        horizon=horizon, push_onset=onset, push_duration=duration, chunk_size=batch, seed=seed,
+        magnitudes=(PUSH_MAGNITUDE,), directions=tuple(float(a) for a in np.linspace(0, 360, batch, endpoint=False)),
+        horizon=st.loop.cfg.duration, push_onset=onset, push_duration=duration, chunk_size=batch,
     )  # fmt: skip
-    return cfg
+    scen, _ = sweep.build_scenarios(cfg, st.gains, st.robot.index.n, st.dtype)
+    return scen
 
 
-def peak_memory() -> float | None:
+def peak_memory() -> int | None:
+    import jax
+
     stats = jax.devices()[0].memory_stats() or {}
     return stats.get("peak_bytes_in_use")
 
 
-def time_closed_loop(robot, batch: int, horizon: float, iterations: int | None, **push):
-    cfg = scenario_batch(batch, horizon, **push)
-    cfg = sweep.SweepConfig(**{**cfg.__dict__, "solver_iterations": iterations})
-    scen, _ = sweep.build_scenarios(cfg, __import__("wbc_jax.controller").controller.default_gains(), robot.index.n)
-    runner, rollout = sweep.make_batched_runner(robot, cfg)
-    mesh = sweep.device_mesh()
-    sharded, _ = sweep._shard(scen, mesh, cfg.size)
-    t0 = time.perf_counter()
-    compiled = runner.lower(sharded).compile()
-    compile_s = time.perf_counter() - t0
-    jax.block_until_ready(compiled(sharded))  # warm
-    t0 = time.perf_counter()
-    metrics = compiled(sharded)
-    jax.block_until_ready(metrics)
-    run_s = time.perf_counter() - t0
-    steps = cfg.size * rollout.n_ticks * rollout.n_sub
-    survived = float(np.mean(~np.asarray(metrics.fell) & ~np.asarray(metrics.nan)))
+def time_closed_loop(st, scen, push_end: float, repeats: int = 1) -> dict:
+    """Compile + first run, then ``repeats`` timed runs of the same batch (scenario.run,
+    compiled programs cached on the setup); the fastest counts."""
+    import numpy as np
+
+    from wbc_jax import rollout, scenario
+
+    first = scenario.run(st, scen)
+    timed = [scenario.run(st, scen) for _ in range(repeats)]
+    run_s = min(r.run_s for r in timed)
+    B = int(np.asarray(scen.friction).shape[0])
+    steps = B * st.loop.n_ticks * st.loop.n_sub
+    cols = rollout.summarize(timed[-1].metrics, push_end)
     return {
-        "batch": cfg.size, "solver_iterations": iterations, "compile_s": round(compile_s, 2),
-        "run_s": round(run_s, 4), "physics_steps_per_s": steps / run_s,
-        "control_ticks_per_s": cfg.size * rollout.n_ticks / run_s,
-        "survival": survived,
-        "com_max_dev_m_median": float(np.median(np.asarray(metrics.com_max_err))),
-    }, (rollout, scen)
+        "compile_s": round(first.compile_s, 2),
+        "first_run_s": round(first.run_s, 4),
+        "run_s": round(run_s, 4),
+        "closed_loop_steps_per_s": steps / run_s,
+        "control_ticks_per_s": B * st.loop.n_ticks / run_s,
+        # Names of constants.METRIC_NAMES: the rates of its booleans, medians of the others.
+        "survived_rate": float(np.mean(cols["survived"])),
+        "upright_rate": float(np.mean(cols["upright"])),
+        "com_max_err_m_median": float(np.median(cols["com_max_err_m"])),
+        "qp_infeasible_ticks_total": int(np.sum(cols["qp_infeasible_ticks"])),
+    }
 
 
-def time_physics_only(robot, batch: int, horizon: float, iterations: int | None):
-    """Same physics, torques held at gravity compensation: the controller's share."""
-    mx = robot.mjx_model
-    if iterations is not None:
-        mx = mx.replace(opt=mx.opt.replace(iterations=iterations))
-    idx = robot.index
-    d0 = mjx.make_data(robot.mj_model).replace(qpos=jnp.asarray(robot.home_qpos(), jnp.zeros(()).dtype))
-    n_steps = int(round(horizon / robot.mj_model.opt.timestep))
+def hold_torques(st):
+    """(nu,) torques to hold in the physics-only run: the controller's first tick at the initial
+    posture (NumPy baseline, C MuJoCo: no compilation), so that the robot stands as in the loop."""
+    import mujoco
+    import numpy as np
 
-    def env(offset):
-        d = d0.replace(qpos=d0.qpos.at[2].add(offset))
-        tau = jnp.zeros(idx.nu)
+    import baseline_cpu
 
-        def step(d, _):
-            return mjx.step(mx, d.replace(ctrl=tau)), None
+    spec = baseline_cpu.spec_from_setup(st)
+    ctrl = baseline_cpu.NumpyController(spec)
+    d = mujoco.MjData(spec.mj_model)
+    d.qpos[:] = spec.qpos0
+    mujoco.mj_forward(spec.mj_model, d)
+    out, _ = ctrl([d], baseline_cpu.gains_to_numpy(st.gains, 1, spec.n), spec.reference(0), ctrl.init_state(1))
+    tau = np.zeros(spec.mj_model.nu)
+    tau[spec.actuators] = out["tau"][0]
+    return tau
 
-        return jax.lax.scan(step, d, None, length=n_steps)[0].qpos
 
-    fn = jax.jit(jax.vmap(env))
-    x = jnp.zeros(batch)
-    jax.block_until_ready(fn(x))
+def time_physics_only(st, batch: int, tau, repeats: int = 1) -> dict:
+    """The closed loop's physics alone: ``batch`` environments from the initial posture, the
+    torques ``tau`` held, no push, the same number of steps (MJX: one jitted, vmapped scan of
+    physics.step on device_model/device_data; C MuJoCo: physics.HostBatch, as the host loop);
+    the fastest of ``repeats`` timed runs counts."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from wbc_jax import physics
+
+    loop, robot = st.loop, st.robot
+    cfg = loop.cfg.physics
+    steps = loop.n_ticks * loop.n_sub
+    qpos = np.repeat(np.asarray(st.qpos0, float)[None], batch, 0)
+    if loop.backend == "mujoco":
+        model = physics.solver_mj_model(robot.mj_model, cfg)
+        ctrl = np.repeat(np.asarray(tau, float)[None], batch, 0)
+        xfrc = np.zeros((batch, loop.n_sub, robot.mj_model.nbody, 6))
+        times = []
+        for _ in range(repeats):
+            host = physics.HostBatch(model, qpos)
+            try:
+                t0 = time.perf_counter()
+                for _ in range(loop.n_ticks):
+                    host.step(ctrl, xfrc)
+                times.append(time.perf_counter() - t0)
+            finally:
+                host.close()
+        return {"physics_only_steps_per_s": batch * steps / min(times), "physics_only_compile_s": 0.0,
+                "physics_only_threads": host.threads}  # fmt: skip
+    dtype = st.dtype
+    m = physics.device_model(robot.mj_model, loop.backend, cfg)
+    ctrl = jnp.asarray(tau, dtype)
+    xfrc = jnp.zeros((robot.mj_model.nbody, 6), dtype)
+
+    def env(q):
+        d = physics.device_data(robot.mj_model, loop.backend, cfg, q, dtype)
+        d, _ = jax.lax.scan(lambda dd, _: (physics.step(m, dd, ctrl, xfrc), None), d, None, length=steps)
+        return d.qpos
+
+    q = jnp.asarray(qpos, dtype)
     t0 = time.perf_counter()
-    jax.block_until_ready(fn(x))
-    run_s = time.perf_counter() - t0
-    return batch * n_steps / run_s
+    fn = jax.jit(jax.vmap(env)).lower(q).compile()
+    compile_s = time.perf_counter() - t0
+    jax.block_until_ready(fn(q))  # warm
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(q))
+        times.append(time.perf_counter() - t0)
+    return {"physics_only_steps_per_s": batch * steps / min(times), "physics_only_compile_s": round(compile_s, 2)}
 
 
-def equivalence_check(robot, horizon: float = 1.0, iterations: int | None = None) -> dict:
-    """Same scenario, both simulators: the MJX closed loop (this device, its dtype) and the C
-    MuJoCo + NumPy baseline (float64), stand task with a 40 N lateral chest push at 0.3 s for
-    0.1 s. The issue's bar: CoM within 1 mm over 1 s."""
-    from wbc_jax import balance, baseline_cpu
-    from wbc_jax import rollout as rollout_lib
+# ---------------------------------------------------------------------------------------------
+# Trajectory equivalence
 
-    sim = {} if iterations is None else {"solver_iterations": int(iterations)}
-    rollout, d0, gains, consts, _ = balance.setup(robot, "stand", duration=horizon, sim=sim)
-    dtype = d0.qpos.dtype
-    push = rollout_lib.Push(force=jnp.array([[0.0, 40.0, 0.0]], dtype),
-                            onset=jnp.array([0.3], dtype), duration=jnp.array([0.1], dtype))  # fmt: skip
-    _, traj = jax.jit(rollout)(robot.mjx_model, d0, gains, consts, push)
-    spec, np_gains = baseline_cpu.make_spec(robot, "stand", duration=horizon, sim=sim)
-    base = baseline_cpu.simulate(spec, np_gains, jax.tree_util.tree_map(np.asarray, push))
-    com_mjx, com_cpu = np.asarray(traj.com, float), base["com"][0]
+
+def equivalence_check(horizon: float = 1.0, iterations: int | None = None) -> dict:
+    """Same scenario, both simulators: the MJX closed loop (JAX physics, this device, its dtype)
+    and the C MuJoCo + NumPy baseline (float64), stand task with a 40 N lateral chest push at
+    0.3 s for 0.1 s. The bar: CoM within 1 mm over 1 s."""
+    import numpy as np
+
+    import baseline_cpu
+    from wbc_jax import scenario
+
+    st = make_setup("jax", horizon, iterations, record=True)
+    push = scenario.make_push([0.0, 40.0, 0.0], 0.3, 0.1, st.dtype)
+    run = scenario.run(st, scenario.single(st, push))
+    spec = baseline_cpu.spec_from_setup(st)
+    base = baseline_cpu.simulate(spec, st.gains, push)
+    com_mjx, com_cpu = np.asarray(run.records.com[0], float), base["com"][0]
     diff = np.linalg.norm(com_mjx - com_cpu, axis=1)
     return {
-        "horizon_s": horizon, "mjx_dtype": str(dtype), "solver_iterations": iterations,
+        "horizon_s": horizon, "mjx_backend": "jax", "mjx_dtype": str(st.dtype),
+        "solver_iterations": int(spec.mj_model.opt.iterations),
         "com_max_diff_m": float(diff.max()),
         "com_excursion_m": float(np.abs(com_cpu - com_cpu[0]).max()),
         "same_within_1mm": bool(diff.max() < 1e-3),
     }  # fmt: skip
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--out", default=str(ROOT / "runs" / "bench"))
+# ---------------------------------------------------------------------------------------------
+# Output
+
+
+def device_description(backend: str) -> str:
+    """What ran the closed loop: the accelerator's kind, or the host CPU's model (C MuJoCo: the
+    host CPU, with the accelerator that ran the controller if any)."""
+    import jax
+
+    import baseline_cpu
+
+    dev = jax.devices()[0]
+    cpu = f"{baseline_cpu.cpu_name()} ({os.cpu_count()} cores)"
+    accel = None if dev.platform == "cpu" else dev.device_kind
+    if backend == "mujoco":
+        return cpu if accel is None else f"{cpu} + {accel}"
+    return accel or cpu
+
+
+def json_rows(result: dict) -> list[dict]:
+    """One row (JSON_KEYS) per measured closed-loop setting of a result; the sweep fields are
+    null here (sweeps add their own rows)."""
+    rows = []
+    for row in result["runs"]:
+        if "closed_loop_steps_per_s" not in row:
+            continue  # a batch that failed (out of memory)
+        entry = {k: row.get(k) for k in JSON_KEYS}
+        entry.update(date=result["date"], command=result["command"], sweep_name=None, sweep_run_s=None,
+                     sweep_envs=None)  # fmt: skip
+        rows.append(entry)
+    return rows
+
+
+def update_json_rows(path: pathlib.Path, rows: list[dict]) -> list[dict]:
+    """Append the rows to the JSON list in ``path``, replacing those of the same setting
+    (JSON_ROW_KEY); written atomically."""
+    from wbc_jax import io
+
+    existing = []
+    if path.exists():
+        existing = json.loads(path.read_text() or "[]")
+        if not isinstance(existing, list):
+            raise ValueError(f"{path} must hold a JSON list of rows")
+    for row in rows:
+        key = tuple(row.get(k) for k in JSON_ROW_KEY)
+        same = [i for i, r in enumerate(existing) if tuple(r.get(k) for k in JSON_ROW_KEY) == key]
+        if same:  # updated in place; any duplicates of it dropped
+            existing[same[0]] = row
+            existing = [r for i, r in enumerate(existing) if i not in same[1:]]
+        else:
+            existing.append(row)
+    io.atomic_write_json(path, existing)
+    return existing
+
+
+def parse_args(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", default=str(ROOT / "runs" / "bench"), help="folder of bench.json")
+    parser.add_argument("--json", default=None, metavar="FILE",
+                        help="also append/update one row per setting in FILE (e.g. docs/benchmarks.json)")
+    parser.add_argument("--backends", nargs="+", choices=BACKENDS, default=None,
+                        help="closed-loop physics backends (default: warp on a CUDA GPU with warp-lang, else jax)")
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 64])
-    parser.add_argument("--horizon", type=float, default=1.0)
-    parser.add_argument("--iterations", type=int, nargs="+", default=[4])
+    parser.add_argument("--horizon", type=float, default=1.0, help="simulated seconds per run")
+    parser.add_argument("--iterations", type=int, nargs="+", default=[None],
+                        help="contact solver Newton iterations (default: the model's)")
     parser.add_argument("--cpu-baseline-envs", type=int, default=0,
                         help="environments per CPU worker (0: no CPU baseline)")
     parser.add_argument("--cpu-workers", type=int, nargs="+", default=[os.cpu_count()],
                         help="worker counts to time (scaling over cores); the largest is the baseline")
-    parser.add_argument("--push-onset", type=float, default=0.2, help="s (GPU side)")
-    parser.add_argument("--push-duration", type=float, default=0.1, help="s (GPU side)")
+    parser.add_argument("--push-onset", type=float, default=0.2, help="s")
+    parser.add_argument("--push-duration", type=float, default=0.1, help="s")
+    parser.add_argument("--repeats", type=int, default=1,
+                        help="timed runs per measurement after the first (compiling) one; the fastest counts")
     parser.add_argument("--skip-physics-only", action="store_true")
     parser.add_argument("--skip-equivalence", action="store_true",
                         help="skip the MJX vs C MuJoCo trajectory check")
     parser.add_argument("--find-largest", type=int, default=0, metavar="K",
                         help="after --batches, up to K doublings of the largest, until one fails")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    if args.repeats < 1:
+        parser.error("--repeats must be >= 1")
+    for name in ("batches", "cpu_workers"):
+        if any(v < 1 for v in getattr(args, name)):
+            parser.error(f"--{name.replace('_', '-')} must be >= 1")
+    if args.cpu_baseline_envs < 0 or not args.horizon > 0:
+        parser.error("--cpu-baseline-envs must be >= 0 and --horizon > 0")
+    if any(it is not None and it < 1 for it in args.iterations):
+        parser.error("--iterations must be >= 1")
+    return args
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    command = "python " + shlex.join(sys.argv if argv is None else [sys.argv[0], *argv])
+
+    import jax
+
+    import baseline_cpu
+    from wbc_jax import io, physics
+
+    backends = args.backends or ["warp" if physics.has_cuda() and physics.has_warp() else "jax"]
+    for b in backends:
+        physics.resolve_backend(b)  # a clear error (no GPU, no warp-lang) before any work
     out = pathlib.Path(args.out)
-    robot = model_lib.load_robot("icub")
-    result = {"device": str(jax.devices()[0]), "n_devices": len(jax.devices()),
-              "jax": jax.__version__, "date": time.strftime("%Y-%m-%d"), "runs": []}  # fmt: skip
+    push_end = args.push_onset + args.push_duration
+    result = {
+        "command": command, "date": time.strftime("%Y-%m-%d"), "jax": jax.__version__,
+        "jax_devices": [str(d) for d in jax.devices()], "n_devices": len(jax.devices()),
+        "host_cpu": baseline_cpu.cpu_name(), "cpu_count": os.cpu_count(),
+        "push": {"magnitude_n": PUSH_MAGNITUDE, "onset_s": args.push_onset, "duration_s": args.push_duration,
+                 "within_horizon": args.push_onset < args.horizon},
+        "runs": [],
+    }  # fmt: skip
+    if args.push_onset >= args.horizon:
+        print(f"note: the push (onset {args.push_onset} s) starts after the horizon ({args.horizon} s): "
+              "the closed loops run without it", file=sys.stderr)  # fmt: skip
+
+    def save():
+        io.atomic_write_json(out / "bench.json", result)
+
+    def emit(row):
+        print(json.dumps(row), flush=True)
+
     if not args.skip_equivalence:
         for it in args.iterations:
-            eq = equivalence_check(robot, 1.0, it)
-            print(json.dumps(eq), flush=True)
+            eq = equivalence_check(1.0, it)
+            emit(eq)
             result.setdefault("equivalence", []).append(eq)
-            io.atomic_write_json(out / "bench.json", result)
-    for it in args.iterations:
-        batches = list(args.batches)
-        if args.find_largest:  # doublings past the last requested size, until one fails
-            batches += [max(args.batches) * 2**k for k in range(1, args.find_largest + 1)]
-        for batch in batches:
-            try:
-                row, _ = time_closed_loop(robot, batch, args.horizon, it, onset=args.push_onset,
-                                          duration=args.push_duration)  # fmt: skip
-                row["peak_memory_bytes"] = peak_memory()
-                row["memory_per_env_bytes"] = (row["peak_memory_bytes"] / batch) if row["peak_memory_bytes"] else None
-                if not args.skip_physics_only:
-                    phys = time_physics_only(robot, batch, args.horizon, it)
-                    row["physics_only_steps_per_s"] = phys
-                    row["controller_share"] = 1.0 - row["physics_steps_per_s"] / phys
-            except Exception as err:  # out of memory: report the size that failed
-                row = {"batch": batch, "solver_iterations": it, "error": repr(err)[:400]}
-            print(json.dumps(row), flush=True)
-            result["runs"].append(row)
-            io.atomic_write_json(out / "bench.json", result)
-            if "error" in row and batch > max(args.batches):
-                break  # the largest batch that fits is the one before
-    if args.cpu_baseline_envs:
-        from wbc_jax import baseline_cpu
+            save()
 
-        # The baseline runs the same solver settings as the GPU side: once per iteration count
-        # (the worker scaling only for the first), the ratio per iteration count.
+    for backend in backends:
+        for it in args.iterations:
+            batches = list(args.batches)
+            if args.find_largest:  # doublings past the last requested size, until one fails
+                batches += [max(args.batches) * 2**k for k in range(1, args.find_largest + 1)]
+            st = make_setup(backend, args.horizon, it)
+            iterations = int(physics.solver_mj_model(st.robot.mj_model, st.loop.cfg.physics).opt.iterations)
+            tau = None if args.skip_physics_only else hold_torques(st)
+            for batch in batches:
+                row = {"backend": backend, "device": device_description(backend), "batch": batch,
+                       "solver_iterations": iterations, "horizon_s": args.horizon,
+                       "n_devices": 1 if backend == "mujoco" else len(jax.devices())}  # fmt: skip
+                try:
+                    row.update(time_closed_loop(st, push_batch(st, batch, args.push_onset, args.push_duration),
+                                                push_end, args.repeats))  # fmt: skip
+                    row["peak_memory_bytes"] = peak_memory()
+                    row["memory_per_env_bytes"] = row["peak_memory_bytes"] / batch if row["peak_memory_bytes"] else None
+                    if backend == "mujoco":  # C threads and XLA's controller share the host's cores
+                        row["cpu_cores"] = os.cpu_count()
+                        row["closed_loop_steps_per_s_per_core"] = row["closed_loop_steps_per_s"] / os.cpu_count()
+                    if tau is not None:
+                        row.update(time_physics_only(st, batch, tau, args.repeats))
+                        row["controller_share"] = 1.0 - row["closed_loop_steps_per_s"] / row["physics_only_steps_per_s"]
+                except Exception as err:  # out of memory: report the size that failed
+                    traceback.print_exc()
+                    row["error"] = repr(err)[:400]
+                emit(row)
+                result["runs"].append(row)
+                save()
+                if "error" in row and batch > max(args.batches):
+                    break  # the largest batch that fits is the one before
+
+    if args.cpu_baseline_envs:
+        # The baseline runs the same solver settings as the closed loops: once per iteration
+        # count (the worker scaling only for the first).
         for k, it in enumerate(args.iterations):
-            scaling = []
-            for workers in sorted(set(args.cpu_workers)) if k == 0 else [max(args.cpu_workers)]:
+            workers_list = sorted(set(args.cpu_workers)) if k == 0 else [max(args.cpu_workers)]
+            for workers in workers_list:
                 base = baseline_cpu.benchmark(
                     n_envs=args.cpu_baseline_envs * workers, n_workers=workers, horizon=args.horizon,
-                    solver_iterations=it,
-                )
-                base["solver_iterations"] = it
-                scaling.append(base)
-                print(json.dumps(base), flush=True)
-            if k == 0:
-                result["cpu_scaling"] = scaling
-                result["cpu_baseline"] = base  # the largest worker count
-            result.setdefault("cpu_baseline_by_iterations", {})[str(it)] = base
-            io.atomic_write_json(out / "bench.json", result)
-            ok = [r for r in result["runs"] if "physics_steps_per_s" in r and r["solver_iterations"] == it]
-            if ok:
-                best = max(ok, key=lambda r: r["physics_steps_per_s"])
-                ratio = {
-                    "solver_iterations": it, "gpu_batch": best["batch"],
-                    "gpu_steps_per_s": best["physics_steps_per_s"], "cpu_workers": base["n_workers"],
-                    "cpu_steps_per_s": base["physics_steps_per_s"],
-                    "ratio": best["physics_steps_per_s"] / base["physics_steps_per_s"],
-                }  # fmt: skip
-                if k == 0:
-                    result["ratio_gpu_to_cpu"] = ratio
-                result.setdefault("ratio_by_iterations", {})[str(it)] = ratio
-                print(json.dumps(ratio), flush=True)
-                io.atomic_write_json(out / "bench.json", result)
+                    push_onset=args.push_onset, push_duration=args.push_duration, solver_iterations=it,
+                )  # fmt: skip
+                base["steps_per_s_per_core"] = base["physics_steps_per_s"] / base["n_workers"]
+                emit(base)
+                result.setdefault("cpu_baseline", []).append(base)
+            save()
+            ref = base  # the largest worker count
+            for row in result["runs"]:
+                if row.get("solver_iterations") == ref["solver_iterations"] and "closed_loop_steps_per_s" in row:
+                    row["cpu_baseline_steps_per_s"] = ref["physics_steps_per_s"]
+                    row["cpu_baseline_workers"] = ref["n_workers"]
+                    row["cpu_baseline_steps_per_s_per_core"] = ref["steps_per_s_per_core"]
+                    row["ratio"] = row["closed_loop_steps_per_s"] / ref["physics_steps_per_s"]
+                    if "closed_loop_steps_per_s_per_core" in row:
+                        row["ratio_per_core"] = row["closed_loop_steps_per_s_per_core"] / ref["steps_per_s_per_core"]
+                    emit({k: row[k] for k in ("backend", "batch", "solver_iterations", "closed_loop_steps_per_s",
+                                              "cpu_baseline_steps_per_s", "cpu_baseline_workers", "ratio")
+                          if k in row})  # fmt: skip
+            save()
+
+    if args.json:
+        rows = json_rows(result)
+        update_json_rows(pathlib.Path(args.json), rows)
+        result["json_rows"] = rows
+    save()
+    print(json.dumps(result, indent=1, default=str), flush=True)
+    return result
 
 
 if __name__ == "__main__":

@@ -24,14 +24,14 @@ sys.path.insert(0, str(ROOT))
 from wbc_jax import balance, io  # noqa: E402
 
 # 4 N s lateral: inside the measured survival envelope at 90 deg (~6 N s, docs/sweep_h100).
-PUSH = {"force": [0.0, 40.0, 0.0], "onset": 1.0, "duration": 0.1}  # chest, world +y (left)
+PUSH = {"push_force": (0.0, 40.0, 0.0), "push_onset": 1.0, "push_duration": 0.1}  # chest, world +y (left)
 
 SCENARIOS = {
     "stand": dict(task="stand", duration=10.0),
     "sinusoid": dict(task="sinusoid", duration=20.0),
     "one-foot": dict(task="one-foot", duration=16.0),
-    "push-qp": dict(task="stand", duration=4.0, forces="qp", push=PUSH),
-    "push-analytic": dict(task="stand", duration=4.0, forces="analytic", push=PUSH),
+    "push-qp": dict(task="stand", duration=4.0, forces="qp", **PUSH),
+    "push-analytic": dict(task="stand", duration=4.0, forces="analytic", **PUSH),
     "sinusoid-60-stable": dict(task="sinusoid", duration=60.0, postural="stable"),
     "sinusoid-60-seed": dict(task="sinusoid", duration=60.0, postural="seed"),
 }
@@ -74,6 +74,7 @@ def main() -> None:
     parser.add_argument("--only", nargs="*", default=list(SCENARIOS), choices=list(SCENARIOS))
     parser.add_argument("--out", default=str(ROOT / "runs" / "acceptance"))
     parser.add_argument("--summary", default=str(ROOT / "docs" / "balance_acceptance.json"))
+    parser.add_argument("--backend", default="auto", help="physics backend (wbc_jax.physics.BACKENDS)")
     parser.add_argument("--solver-iterations", type=int, default=None,
                         help="MJX Newton iterations (default: the model's 4); results keyed NAME-itN")
     args = parser.parse_args()
@@ -82,7 +83,8 @@ def main() -> None:
     it = args.solver_iterations
     for name in args.only:
         key = name if it is None else f"{name}-it{it}"
-        result = balance.run(out=out / key, progress=False, solver_iterations=it, **SCENARIOS[name])
+        result = balance.run(out=str(out / key), progress=False, solver_iterations=it, backend=args.backend,
+                             **SCENARIOS[name])  # fmt: skip
         print(key, json.dumps(result), flush=True)
         # Merge (re-read: other processes may have written other scenarios meanwhile).
         current = json.loads(summary_path.read_text()) if summary_path.exists() else {}

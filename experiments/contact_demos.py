@@ -41,7 +41,7 @@ def main(argv=None) -> dict:
     args = p.parse_args(argv)
     out = pathlib.Path(args.out)
 
-    run = balance.run("stand", duration=args.duration, tasks_file=str(HAND), out=out / "hand_on_table")
+    run = balance.run(task="stand", duration=args.duration, tasks=str(HAND), out=str(out / "hand_on_table"))
     print(json.dumps(run["contacts"]), flush=True)
 
     lo, hi, n = args.magnitudes
@@ -52,8 +52,8 @@ def main(argv=None) -> dict:
     )  # fmt: skip
     sweeps = {}
     for name, spec in (("hand", HAND), ("feet", FEET)):
-        cfg = sweep.SweepConfig(**grid, tasks_file=str(spec))
-        sweeps[name] = sweep.run_sweep(cfg, out / f"sweep_{name}")
+        cfg = sweep.SweepConfig(**grid, tasks=str(spec), out=str(out / f"sweep_{name}"))
+        sweeps[name] = sweep.run_sweep(cfg)
     envelope = {}
     for az in sweeps["feet"]["envelope"]:
         feet = sweeps["feet"]["envelope"][az]["monotone_impulse_ns"]
@@ -73,7 +73,7 @@ def main(argv=None) -> dict:
     import pandas as pd
 
     table = pd.read_parquet(out / "sweep_hand" / "results.parquet")
-    result["max_qp_violation_hand_sweep"] = float(table["max_qp_violation"].max())
+    result["max_qp_violation_hand_sweep"] = float(table["max_constraint_violation"].max())
     io.atomic_write_json(out / "demos.json", result)
     print(json.dumps(result, indent=1))
     return result

@@ -24,8 +24,8 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from wbc_jax import controller as C  # noqa: E402
 from wbc_jax import io, model, sweep, tune  # noqa: E402
+from wbc_jax.gains import default_gains  # noqa: E402
 
 
 FD_STEPS = (1e-3, 1e-4, 1e-5)  # central-difference steps in the (log-scale) parameters
@@ -42,8 +42,8 @@ def main() -> None:
     rng = np.random.default_rng(7)
     scfg = sweep.SweepConfig(magnitudes=(60.0,), directions=(0.0,), push_onset=0.02, push_duration=0.05,
                              horizon=0.1, joint_noise=0.02, friction=(0.6, 1.2), mass_scale=(0.9, 1.1),
-                             gain_sets=n, seed=3)  # fmt: skip
-    base = C.default_gains(robot.index.n, jnp.float64)
+                             gain_sets=n, seed=3, backend="jax")  # fmt: skip
+    base = default_gains(robot.index.n, jnp.float64)
     bounds = tune.default_bounds(base)
     scen, _ = sweep.build_scenarios(scfg, base, robot.index.n, np.float64)
     # Random push magnitudes (0-150 N) and azimuths; random gains inside the bounds.
@@ -53,8 +53,8 @@ def main() -> None:
     params = {k: jnp.asarray(rng.normal(scale=0.7, size=(n,) + v.shape))
               for k, v in tune.gains_to_params(base, bounds).items()}  # fmt: skip
     params["regularisation"] = jnp.asarray(rng.normal(scale=0.3, size=(n, 2)))
-    reg_default = jnp.asarray([1.0, 0.1])  # Reg.pinvDamp, Reg.KP_postural (controller-spec 3)
-    loss_fn = tune.make_batched_loss(robot, scfg, tune.LossConfig(), checkpoint=True)
+    reg_default = jnp.asarray([1.0, 0.1])  # Reg.pinvDamp, Reg.KP_postural (ControllerConfig's)
+    loss_fn = tune.make_batched_loss(robot.index.robot, scfg, tune.LossConfig(), checkpoint=True)
 
     def one(p, s):
         gains = tune.params_to_gains({k: v for k, v in p.items() if k != "regularisation"}, bounds, base)

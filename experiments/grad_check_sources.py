@@ -24,8 +24,9 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from wbc_jax import controller as C  # noqa: E402
-from wbc_jax import io, model, sweep, torques, tune  # noqa: E402
+from wbc_jax import io, model, sweep, tune  # noqa: E402
+from wbc_jax.controller import ControllerConfig  # noqa: E402
+from wbc_jax.gains import default_gains  # noqa: E402
 
 
 def main() -> None:
@@ -36,15 +37,14 @@ def main() -> None:
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
     n, j = args.n, args.scenario
-    if args.variant == "frozen-projector":
-        torques.FREEZE_POSTURAL_PROJECTOR = True
+    controller = ControllerConfig(freeze_postural_projector=args.variant == "frozen-projector")
     robot = model.load_robot("icub")
     rng = np.random.default_rng(7)  # the draws of grad_check.py, in its order
     scfg = sweep.SweepConfig(magnitudes=(60.0,), directions=(0.0,), push_onset=0.02, push_duration=0.05,
                              horizon=0.1, joint_noise=0.02, friction=(0.6, 1.2), mass_scale=(0.9, 1.1),
-                             gain_sets=n, seed=3,
+                             gain_sets=n, seed=3, backend="jax",
                              forces="analytic" if args.variant == "analytic" else "qp")  # fmt: skip
-    base = C.default_gains(robot.index.n, jnp.float64)
+    base = default_gains(robot.index.n, jnp.float64)
     bounds = tune.default_bounds(base)
     scen, _ = sweep.build_scenarios(scfg, base, robot.index.n, np.float64)
     az, mag = rng.uniform(0, 2 * np.pi, n), rng.uniform(0, 150, n)
@@ -54,7 +54,7 @@ def main() -> None:
               for k, v in tune.gains_to_params(base, bounds).items()}  # fmt: skip
     params["regularisation"] = jnp.asarray(rng.normal(scale=0.3, size=(n, 2)))
     reg_default = jnp.asarray([1.0, 0.1])
-    loss_fn = tune.make_batched_loss(robot, scfg, tune.LossConfig(), checkpoint=True)
+    loss_fn = tune.make_batched_loss(robot.index.robot, scfg, tune.LossConfig(), checkpoint=True, controller=controller)
 
     def one(p, s):
         gains = tune.params_to_gains({k: v for k, v in p.items() if k != "regularisation"}, bounds, base)

@@ -65,8 +65,8 @@ def main() -> None:
     out = pathlib.Path(args.out)
     for name in args.runs:
         task_file = RUNS[name]
-        result = balance.run("stand", duration=args.duration, out=out / name, progress=not args.quiet,
-                             tasks_file=None if task_file is None else str(task_file))  # fmt: skip
+        result = balance.run(task="stand", duration=args.duration, out=str(out / name), progress=not args.quiet,
+                             tasks=None if task_file is None else str(task_file))  # fmt: skip
         print(name, json.dumps(result), flush=True)
     summary = summarize(out, args.duration)
     io.atomic_write_json(out / "demos.json", summary)

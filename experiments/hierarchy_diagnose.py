@@ -17,6 +17,7 @@ import pathlib
 import jax
 
 from wbc_jax import balance, hierarchy, io
+from wbc_jax.controller import ControllerConfig
 
 HERE = pathlib.Path(__file__).resolve().parent
 
@@ -32,18 +33,16 @@ def main() -> None:
     p.add_argument("--out", default="runs/hierarchy_diagnose")
     args = p.parse_args()
     size = 8 if jax.config.jax_enable_x64 else 4
-    defaults = (hierarchy.PROJECTOR_REG[size], hierarchy.SOLUTION_DAMPING[size])
     rows = []
     for tasks, dt, it, reg, damp in itertools.product(args.tasks, args.control_dt, args.solver_iterations,
                                                       args.projector_reg, args.damping):  # fmt: skip
-        hierarchy.PROJECTOR_REG[size] = defaults[0] if reg is None else reg
-        hierarchy.SOLUTION_DAMPING[size] = defaults[1] if damp is None else damp
-        r = balance.run("stand", duration=args.duration, out=None, progress=False, plots_on=False,
-                        tasks_file=None if tasks == "none" else tasks, control_dt=dt,
-                        solver_iterations=it)  # fmt: skip
+        controller = ControllerConfig(projector_reg=reg, solution_damping=damp)
+        r = balance.run(task="stand", duration=args.duration, out=None, progress=False, plots=False,
+                        tasks=None if tasks == "none" else tasks, control_dt=dt, solver_iterations=it,
+                        controller=controller)  # fmt: skip
         row = {"dtype": f"float{8 * size}", "tasks": pathlib.Path(tasks).stem, "control_dt": dt,
-               "solver_iterations": it, "projector_reg": hierarchy.PROJECTOR_REG[size],
-               "damping": hierarchy.SOLUTION_DAMPING[size], "fell": r["fell"] or r["nan"],
+               "solver_iterations": it, "projector_reg": hierarchy.PROJECTOR_REG[size] if reg is None else reg,
+               "damping": hierarchy.SOLUTION_DAMPING[size] if damp is None else damp, "fell": r["fell"] or r["nan"],
                "com_rmse_m": r["com_rmse_m"], "max_foot_slip_m": r["max_foot_slip_m"],
                "force_rel_err_median": r["force_rel_err_median"],
                "tasks_rmse": {k: v["rmse"] for k, v in r.get("tasks", {}).items()},

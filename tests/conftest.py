@@ -7,6 +7,13 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
+# One on-disk compilation cache for the session's workers and subprocesses: modules that build the
+# same program (a closed loop of the same shape) compile it once. Keyed by the program's hash.
+_CACHE = os.environ.setdefault("WBC_JAX_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "wbc_jax", "test-xla"))
+os.makedirs(_CACHE, exist_ok=True)
+jax.config.update("jax_compilation_cache_dir", _CACHE)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402

@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from wbc_jax import balance, contacts, dynamics, sweep, tasks, torques
+from wbc_jax import balance, contacts, dynamics, forces, physics, scenario, tasks, torques
 from wbc_jax import controller as C
-from wbc_jax.rollout import initial_data
+from wbc_jax.gains import default_gains
+from wbc_jax.references import Reference
 
 HAND_FILE = "experiments/tasks/hand_on_table.yaml"
 FEET = [
@@ -26,7 +27,13 @@ TABLE = {"name": "table", "size": [0.15, 0.3, 0.02], "under": "left_hand", "shif
 
 @pytest.fixture(scope="module")
 def hand_scene():
-    return balance.load_scenario("icub", HAND_FILE)
+    scene = scenario.load_scene("icub", HAND_FILE)
+    return scene.robot, scene.tasks, scene.contact_set, scene.qpos
+
+
+def _data(robot, qpos, qvel=None):
+    d = mjx.make_data(robot.mj_model).replace(qpos=jnp.asarray(qpos, jnp.float64))
+    return d if qvel is None else d.replace(qvel=jnp.asarray(qvel, jnp.float64))
 
 
 def _forward(robot, qpos):
@@ -40,7 +47,7 @@ def test_scene_geometry(hand_scene):
     """The table's top is at the hand's point; the hand sphere and the soles touch at distance 0."""
     robot, _, cset, qpos = hand_scene
     m = robot.mj_model
-    assert m.geom(sweep.FLOOR_GEOM).name == "floor"
+    assert m.geom(physics.FLOOR_GEOM).name == "floor"
     d = _forward(robot, qpos)
     dist = {}
     for k in range(m.npair):
@@ -65,13 +72,16 @@ def test_contact_terms_stack_the_feet_terms(hand_scene):
     robot, _, cset, qpos = hand_scene
     rng = np.random.default_rng(3)
     qvel = rng.normal(scale=0.3, size=robot.mj_model.nv)
-    dx = mjx.make_data(robot.mj_model).replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel))
-    t = dynamics.terms(robot.mjx_model, dx, robot.index)
-    ct = contacts.contact_terms(robot.mjx_model, dx, robot.index, cset, 1.0, jnp.ones(2))
+    dx = _data(robot, qpos, qvel)
+    t = dynamics.terms(robot.mjx_model, dx, robot.index)  # the default frames: the two soles
+    ct = contacts.contact_terms(cset, dynamics.terms(robot.mjx_model, dx, robot.index, cset.frames), 1.0, jnp.ones(2))
     assert ct.J.shape == (15, robot.index.nv) and ct.Jdot_nu.shape == (15,)
-    np.testing.assert_allclose(ct.J[:12], t.J_feet.reshape(12, -1), atol=1e-12)
-    np.testing.assert_allclose(ct.Jdot_nu[:12], t.Jdot_nu_feet.reshape(12), atol=1e-10)
-    np.testing.assert_allclose(ct.W_R[:2], t.W_R_feet, atol=1e-12)
+    np.testing.assert_allclose(ct.J[:12], t.J_frames.reshape(12, -1), atol=1e-12)
+    np.testing.assert_allclose(ct.Jdot_nu[:12], t.Jdot_nu_frames.reshape(12), atol=1e-10)
+    sole_R = np.einsum("kij,kjl->kil", t.W_R_frames, robot.index.foot_rotations)
+    np.testing.assert_allclose(ct.W_R[:2], sole_R, atol=1e-12)
+    d0 = _forward(robot, qpos)
+    np.testing.assert_allclose(sole_R, d0.site_xmat[robot.index.foot_sites].reshape(2, 3, 3), atol=1e-12)
     np.testing.assert_allclose(ct.W_R[2][:, 2], [0, 0, 1], atol=1e-12)
     d = _forward(robot, qpos)
     hand = cset.contacts[2]
@@ -88,18 +98,17 @@ def test_contact_terms_stack_the_feet_terms(hand_scene):
 def distribution(hand_scene):
     """Terms and the force distribution at the home state (float64)."""
     robot, _, cset, qpos = hand_scene
-    dx = initial_data(robot, qpos, jnp.float64)
-    t = dynamics.terms(robot.mjx_model, dx, robot.index)
-    ct = contacts.contact_terms(robot.mjx_model, dx, robot.index, cset, 2.0, jnp.ones(2))
-    g = C.default_gains(robot.index.n, jnp.float64)
+    t = dynamics.terms(robot.mjx_model, _data(robot, qpos), robot.index, cset.frames)
+    ct = contacts.contact_terms(cset, t, 2.0, jnp.ones(2))
+    g = default_gains(robot.index.n, jnp.float64)
     cfg = C.ControllerConfig()
     rows = contacts.row_activation(cset, ct.activation)
-    tt = torques.torque_terms(t, None, postural="stable", kp_postural=g.kp_postural, kd_postural=g.kd_postural,
-                              s_des=t.s, contact=(ct.J * rows[:, None], ct.Jdot_nu * rows))  # fmt: skip
-    A = contacts.wrench_map(cset, ct.W_p, t.W_p_CoM)
+    tt = torques.torque_terms(t, ct.J * rows[:, None], ct.Jdot_nu * rows, postural="stable",
+                              kp_postural=g.kp_postural, kd_postural=g.kd_postural, s_des=t.s)  # fmt: skip
+    A = forces.wrench_map(cset, ct.W_p, t.W_p_CoM)
     # A desired wrench that needs the contacts: the weight and a forward/sideways force.
     wrench = jnp.array([8.0, -3.0, 9.81 * robot.index.mass, 0.5, -1.0, 0.2])
-    f, infeasible = C.contact_set_wrenches(A, wrench, tt, cset, ct, cfg)
+    f, infeasible = forces.wbc_qp(cset, jnp.ones(3), A, wrench, tt, ct.W_R, cfg.force_settings)
     return {"robot": robot, "cset": cset, "t": t, "ct": ct, "tt": tt, "A": A, "wrench": wrench, "f": f,
             "infeasible": infeasible, "cfg": cfg, "g": g}  # fmt: skip
 
@@ -111,41 +120,44 @@ def test_force_distribution_meets_its_constraints(distribution):
     assert not bool(s["infeasible"])
     np.testing.assert_allclose(s["A"] @ f, s["wrench"], rtol=1e-8, atol=1e-8)
     assert abs(float(f[12:15] @ ct.W_R[2][:, 2]) - 5.0) < 0.05
-    Cm, b = contacts.constraints(cset, ct.W_R, ct.activation)
+    Cm, b = forces.constraints(cset, ct.W_R, ct.activation)
     assert Cm.shape == (19 + 19 + 13, 15)
     assert float(jnp.max(Cm @ f - b)) < 1e-7
-    assert float(contacts.violation(cset, f, ct.W_R, ct.activation)) < 1e-8
+    assert float(forces.violation(cset, f, ct.W_R, ct.activation)) < 1e-8
     # A wrench the contacts cannot produce (pulling the robot down through the floor) is infeasible
     # for the equality; the soft QP still returns a constrained answer.
-    f_bad, inf_bad = C.contact_set_wrenches(s["A"], -s["wrench"], s["tt"], cset, ct, s["cfg"])
+    f_bad, inf_bad = forces.wbc_qp(cset, jnp.ones(3), s["A"], -s["wrench"], s["tt"], ct.W_R, s["cfg"].force_settings)
     assert not bool(inf_bad) and np.all(np.isfinite(f_bad))
     assert float(jnp.max(Cm @ f_bad - b)) < 1e-6
 
 
-def test_feet_only_set_equals_the_two_feet_qp(robot):
-    """The general path with the two feet is the WBC two-feet QP (controller.step's)."""
+def test_feet_from_a_spec_file_are_the_default_contact_set(robot):
+    """The two feet listed in a contact file resolve to the default contact set (same frames, sole
+    axes, geoms), and the controller gives the same wrenches and torques with either."""
     cset = contacts.build_scene("icub", FEET, [])[1]
-    dx = initial_data(robot, None, jnp.float64)
+    default = contacts.feet_contact_set(robot)
+    for a, b in zip(cset.contacts, default.contacts, strict=True):
+        assert (a.body, a.foot, a.geoms, a.type) == (b.body, b.foot, b.geoms, b.type)
+        np.testing.assert_allclose(a.point, b.point, atol=1e-12)
+        np.testing.assert_allclose(a.R_body_contact, b.R_body_contact, atol=1e-9)
     qvel = np.random.default_rng(5).normal(scale=0.2, size=robot.mj_model.nv)
-    dx = dx.replace(qvel=jnp.asarray(qvel))
-    t = dynamics.terms(robot.mjx_model, dx, robot.index)
-    ct = contacts.contact_terms(robot.mjx_model, dx, robot.index, cset, 1.0, jnp.ones(2))
-    g = C.default_gains(robot.index.n, jnp.float64)
-    cfg = C.ControllerConfig()
-    consts = C.constants_at_reference(t, cfg)
-    ref = C.Reference(com_pos=t.W_p_CoM + jnp.array([0.01, -0.005, 0.0]), com_vel=jnp.zeros(3),
-                      com_acc=jnp.zeros(3), s_des=t.s, activation=jnp.ones(2))  # fmt: skip
-    kw = dict(config=cfg, mass=robot.index.mass, dt=0.01)
-    two, _ = C.step(g, consts, C.init_state(jnp.float64), t, ref, **kw)
-    gen, _ = C.step(g, consts, C.init_state(jnp.float64), t, ref, contact_set=cset, contacts=ct, **kw)
-    np.testing.assert_allclose(gen.f, two.f, rtol=1e-6, atol=1e-6)
-    np.testing.assert_allclose(gen.tau, two.tau, rtol=1e-6, atol=1e-6)
+    t = dynamics.terms(robot.mjx_model, _data(robot, robot.home_qpos(), qvel), robot.index)
+    g = default_gains(robot.index.n, jnp.float64)
+    ref = Reference(com_pos=t.W_p_CoM + jnp.array([0.01, -0.005, 0.0]), com_vel=jnp.zeros(3),
+                    com_acc=jnp.zeros(3), s_des=t.s, activation=jnp.ones(2))  # fmt: skip
+    outs = []
+    for cs in (cset, default):
+        ctrl = C.make_controller(robot, contact_set=cs)
+        outs.append(ctrl.step(g, ctrl.init(t), t, ref, 0.0)[0])
+    np.testing.assert_allclose(outs[0].f, outs[1].f, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(outs[0].tau, outs[1].tau, rtol=1e-6, atol=1e-6)
+    assert float(outs[0].qp_violation) < 1e-8
 
 
 def test_hand_on_table_closed_loop():
     """1.5 s on the CPU (float64, as the test session): no fall, the measured (MuJoCo) hand force within 1 N of
     the desired 5 N, the QP constraints hold, nothing slips."""
-    r = balance.run("stand", duration=1.5, tasks_file=HAND_FILE, progress=False, plots_on=False)
+    r = balance.run(task="stand", duration=1.5, tasks=HAND_FILE, progress=False, out=None)
     hand = r["contacts"]["left_hand"]
     assert not r["fell"] and not r["nan"] and r["qp_infeasible_ticks"] == 0
     assert hand["normal_force_err_max_n"] < 1.0
@@ -157,17 +169,19 @@ def test_hand_on_table_closed_loop():
 
 def test_plant_friction_keeps_the_table(hand_scene):
     robot = hand_scene[0]
-    mx = sweep.plant_model(robot.mjx_model, jnp.asarray(0.4), jnp.asarray(1.0))
+    mx = physics.plant_model(robot.mjx_model, jnp.asarray(0.4), jnp.asarray(1.0))
     m = robot.mj_model
+    m_c = physics.plant_mj_model(m, 0.4, 1.0)
     for k in range(m.npair):
-        expected = 0.4 if m.pair_geom1[k] == sweep.FLOOR_GEOM else 0.8  # the table's friction
+        expected = 0.4 if m.pair_geom1[k] == physics.FLOOR_GEOM else 0.8  # the table's friction
         assert math.isclose(float(mx.pair_friction[k, 0]), expected, rel_tol=1e-6)
+        assert math.isclose(float(m_c.pair_friction[k, 0]), expected, rel_tol=1e-6)
 
 
 def test_activation_ramps():
     c = contacts.ResolvedContact(
         name="h", type="point", body=1, point=(0, 0, 0), R_body_contact=tuple(np.eye(3).ravel()),
-        params=C.contact_qp.ContactParams(), normal_force=math.nan,
+        params=contacts.ContactParams(), normal_force=math.nan,
         activation=contacts.ContactActivation(start=1.0, stop=3.0, ramp=0.5), foot=-1, geoms=(),
     )  # fmt: skip
     a = [float(contacts.activation_at(c, t, jnp.ones(2), jnp.float64)) for t in (0.9, 1.25, 1.5, 2.9, 3.25, 3.6)]
@@ -180,16 +194,17 @@ def test_activation_ramps():
         ([{**FEET[0], "normal": None}, FEET[1]], [], "no normal direction"),
         ([{"name": "left_foot", "frame": "l_sole"}], [], "no normal direction"),
         ([{**FEET[0], "normal": [0, 0, 0]}], [], "non-zero"),
-        ([{**FEET[0], "frame": "l_palm"}], [], "unknown frame 'l_palm'; valid frames"),
+        ([{**FEET[0], "frame": "l_palm"}, FEET[1]], [], "unknown frame 'l_palm'; valid frames"),
         ([FEET[0], FEET[0]], [], "duplicate contact names"),
         ([FEET[0], {**HAND, "touches": "wall"}], [TABLE], "touches unknown object 'wall'; valid"),
         ([FEET[0], {**HAND, "cop": [[-0.01, 0.01], [-0.01, 0.01]]}], [TABLE], "point contact has no CoP"),
-        ([FEET[0], {**HAND, "touches": None}], [], "has no collision geoms"),
+        ([*FEET, {**HAND, "touches": None}], [], "has no collision geoms"),
+        ([FEET[0], {**FEET[1], "offset": [0.01, 0.0, 0.0]}], [], "both soles"),
         ([FEET[0], {**HAND, "type": "line"}], [TABLE], "unknown type 'line'"),
         ([FEET[0], {**HAND, "normal_force": 0.5}], [TABLE], "normal_force must be"),
         ([FEET[0], {**HAND, "mu": -1}], [TABLE], "mu must be positive"),
         ([FEET[0], {**HAND, "activation": {True: 0.0}}], [TABLE], "activation must map"),
-        ([FEET[0], {**HAND, "normal": [1, 0, 0]}], [TABLE], "'under' needs a contact with normal \\+z"),
+        ([*FEET, {**HAND, "normal": [1, 0, 0]}], [TABLE], "'under' needs a contact with normal \\+z"),
         ([FEET[0], HAND], [{**TABLE, "under": "right_hand"}], "under unknown contact"),
         ([FEET[0], HAND], [{**TABLE, "pos": [0, 0, 0]}], "exactly one of 'pos' or 'under'"),
         ([FEET[0], HAND], [{**TABLE, "size": [0.1, 0.1]}], "size must be 3"),
@@ -208,9 +223,6 @@ def test_bad_spec_files(tmp_path, robot):
         tasks.load_spec_file(bad)
     bad.write_text("scene: [{name: t, pos: [0, 0, 0]}]\ntasks: [{name: posture, kind: postural}]\n")
     with pytest.raises(ValueError, match="scene objects need a 'contacts' list"):
-        balance.load_scenario("icub", bad)
+        scenario.load_scene("icub", bad)
     with pytest.raises(ValueError, match="unknown joint 'l_wrist'"):
         tasks.initial_qpos(robot, {"l_wrist": 10.0})
-    with pytest.raises(ValueError, match="forces='qp'"):
-        robot_s, _, cset, qpos = balance.load_scenario("icub", HAND_FILE)
-        balance.setup(robot_s, "stand", duration=1.0, forces="analytic", contact_set=cset, qpos=qpos)

@@ -7,8 +7,10 @@ import pytest
 from conftest import random_state
 from mujoco import mjx
 
+from wbc_jax import contacts, dynamics, forces, torques
 from wbc_jax import controller as C
-from wbc_jax import dynamics, momentum, torques
+from wbc_jax import gains as G
+from wbc_jax.references import Reference
 
 
 @pytest.fixture(scope="module")
@@ -19,9 +21,10 @@ def state_terms(robot):
 
 
 def _torque_terms(t, damping, postural="stable"):
-    gains = C.default_gains(23, jnp.float64)
+    gains = G.default_gains(23, jnp.float64)
+    J_c, Jdot_nu_c = t.J_frames.reshape(12, -1), t.Jdot_nu_frames.reshape(12)  # both soles, active
     return torques.torque_terms(
-        t, jnp.ones(2), postural=postural, kp_postural=gains.kp_postural,
+        t, J_c, Jdot_nu_c, postural=postural, kp_postural=gains.kp_postural,
         kd_postural=gains.kd_postural, s_des=t.s + 0.05, pinv_damping=damping,
     )  # fmt: skip
 
@@ -69,15 +72,13 @@ def standing_terms(robot):
 
 
 def _step(robot, t, forces):
-    gains = C.default_gains(23, jnp.float64)
-    config = C.ControllerConfig(forces=forces)
-    consts = C.constants_at_reference(t, config)
-    ref = C.Reference(
+    gains = G.default_gains(23, jnp.float64)
+    ctrl = C.make_controller(robot, C.ControllerConfig(forces=forces))
+    ref = Reference(
         com_pos=t.W_p_CoM + jnp.array([0.0, 0.01, 0.0]), com_vel=jnp.zeros(3),
         com_acc=jnp.zeros(3), s_des=t.s, activation=jnp.ones(2),
     )  # fmt: skip
-    out, _ = C.step(gains, consts, C.init_state(jnp.float64), t, ref,
-                    config=config, mass=robot.index.mass, dt=0.01)  # fmt: skip
+    out, _ = ctrl.step(gains, ctrl.init(t), t, ref, 0.0)
     return gains, ref, out
 
 
@@ -111,10 +112,10 @@ def test_unrealisable_momentum_rate_keeps_the_contact_constraints(robot, state_t
     assert float(out_qp.qp_violation) < 1e-3 or bool(out_qp.qp_infeasible)
 
 
-def test_wrench_map_matches_moment_arithmetic():
+def test_wrench_map_matches_moment_arithmetic(robot):
     rng = np.random.default_rng(2)
     p, c, f = rng.normal(size=(2, 3)), rng.normal(size=3), rng.normal(size=12)
-    A = np.asarray(momentum.wrench_map(jnp.asarray(p), jnp.asarray(c)))
+    A = np.asarray(forces.wrench_map(contacts.feet_contact_set(robot), jnp.asarray(p), jnp.asarray(c)))
     net_force = f[:3] + f[6:9]
     net_moment = f[3:6] + f[9:] + np.cross(p[0] - c, f[:3]) + np.cross(p[1] - c, f[6:9])
     np.testing.assert_allclose(A @ f, np.concatenate([net_force, net_moment]), rtol=1e-12)
@@ -123,12 +124,12 @@ def test_wrench_map_matches_moment_arithmetic():
 @pytest.mark.parametrize(
     "field,value,match",
     [("kp_com", [1.0, np.nan, 1.0], "NaN"), ("kd_com", [1.0, -1.0, 1.0], "negative"),
-     ("kp_postural", [1.0] * 5, "23 entries")],
+     ("kp_postural", [1.0] * 5, "23 entries"), ("kp_com", [1e30, 1.0, 1.0], r"above its range \[0, 10000\]")],
 )  # fmt: skip
 def test_bad_gains_rejected(field, value, match):
-    gains = C.default_gains().replace(**{field: jnp.asarray(value)})
+    gains = G.default_gains().replace(**{field: jnp.asarray(value)})
     with pytest.raises(ValueError, match=match):
-        C.validate_gains(gains, 23)
+        G.validate_gains(gains, 23)
 
 
 def test_bad_modes_and_gain_files(tmp_path):
@@ -137,10 +138,12 @@ def test_bad_modes_and_gain_files(tmp_path):
     with pytest.raises(ValueError, match=r"unknown postural variant 'x'.*stable"):
         C.ControllerConfig(postural="x")
     with pytest.raises(ValueError, match=r"unknown keys \['kp_foo'\], missing keys \['kp_com'\]"):
-        d = C.gains_to_dict(C.default_gains())
+        d = G.gains_to_dict(G.default_gains())
         d["kp_foo"] = d.pop("kp_com")
-        C.gains_from_dict(d)
+        G.gains_from_dict(d)
     with pytest.raises(FileNotFoundError, match="does not exist"):
-        C.load_gains(tmp_path / "nope.json")
-    round_trip = C.gains_from_dict(C.gains_to_dict(C.default_gains()))
-    np.testing.assert_allclose(round_trip.kp_postural, C.default_gains().kp_postural)
+        G.load_gains(tmp_path / "nope.json")
+    with pytest.raises(ValueError, match="is not a file"):
+        G.load_gains(tmp_path)
+    round_trip = G.gains_from_dict(G.gains_to_dict(G.default_gains()))
+    np.testing.assert_allclose(round_trip.kp_postural, G.default_gains().kp_postural)

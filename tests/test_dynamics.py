@@ -79,20 +79,20 @@ def test_sole_jacobians_and_jdot_nu_match_finite_differences(robot, mx, terms_fn
         v_fd = (pp - pm) / (2 * eps)
         dR = Rp @ Rm.T  # rotation over 2 eps, world axes
         w_fd = np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]]) / (4 * eps)
-        twist = np.asarray(t.J_feet[foot] @ t.nu)
+        twist = np.asarray(t.J_frames[foot] @ t.nu)
         assert_close(twist[:3], v_fd, f"sole {foot} linear velocity", 1e-6, 1e-7)
         assert_close(twist[3:], w_fd, f"sole {foot} angular velocity", 1e-6, 1e-7)
     # Jdot nu = d/dt (J(q) nu) along the motion with nu fixed: central difference of J nu.
     nu = np.asarray(t.nu)
     eps = 1e-5
     qp, qm = _integrate(robot, qpos, qvel, eps), _integrate(robot, qpos, qvel, -eps)
-    Jp = terms_fn(mx, mjx_data(robot, qp, qvel)).J_feet
-    Jm = terms_fn(mx, mjx_data(robot, qm, qvel)).J_feet
+    Jp = terms_fn(mx, mjx_data(robot, qp, qvel)).J_frames
+    Jm = terms_fn(mx, mjx_data(robot, qm, qvel)).J_frames
     # qvel (MuJoCo) is constant along this path; nu = T(q) qvel is not, so hold nu fixed.
     fd = (np.asarray(Jp) @ nu - np.asarray(Jm) @ nu) / (2 * eps)
-    err = np.abs(np.asarray(t.Jdot_nu_feet) - fd).max() / np.abs(fd).max()
+    err = np.abs(np.asarray(t.Jdot_nu_frames) - fd).max() / np.abs(fd).max()
     print(f"seed {seed}: sole twist vs FD of the pose ok; Jdot nu relative error {err:.2e} vs FD")
-    assert_close(t.Jdot_nu_feet, fd, "Jdot nu", 1e-6, 1e-6)
+    assert_close(t.Jdot_nu_frames, fd, "Jdot nu", 1e-6, 1e-6)
 
 
 def _pinocchio_model(robot):
@@ -183,10 +183,10 @@ def test_equation_of_motion_holds_with_mujoco_contact_forces(robot, mx, terms_fn
         geom = int(contact.geom[i, 1])
         foot = [k for k in range(2) if geom in idx.foot_geoms[k]][0]
         f_local = np.asarray(support.contact_force(mx, d, i, to_world_frame=True))[:3]
-        p = np.asarray(contact.pos[i]) - np.asarray(t.W_p_feet[foot])
+        p = np.asarray(contact.pos[i]) - np.asarray(t.W_p_frames[foot])
         wrench[foot] += np.concatenate([f_local, np.cross(p, f_local)])
     lhs = np.asarray(t.M) @ nu_dot + np.asarray(t.h)
-    lhs -= sum(np.asarray(t.J_feet[k]).T @ wrench[k] for k in range(2))
+    lhs -= sum(np.asarray(t.J_frames[k]).T @ wrench[k] for k in range(2))
     rhs = np.concatenate([np.zeros(6), tau]) + np.asarray(t.tau_passive)
     residual = np.abs(lhs - rhs).max() / np.abs(np.asarray(t.h)).max()
     print(f"equation (1) residual, relative to |h|: {residual:.2e}")
@@ -204,14 +204,14 @@ def test_batched_and_differentiable(robot, mx):
     batched = jax.jit(
         jax.vmap(lambda q, v: dynamics.terms(mx, d0.replace(qpos=q, qvel=v), idx))
     )(qpos, qvel)
-    assert batched.M.shape == (64, 29, 29) and batched.J_feet.shape == (64, 2, 6, 29)
+    assert batched.M.shape == (64, 29, 29) and batched.J_frames.shape == (64, 2, 6, 29)
     single = dynamics.terms(mx, d0.replace(qpos=qpos[5], qvel=qvel[5]), idx)
     assert_close(batched.A_G[5], single.A_G, "vmap vs single", 1e-10, 1e-12)
 
     def scalar(s):
         q = qpos[0].at[idx.qpos_joints].set(s)
         t = dynamics.terms(mx, d0.replace(qpos=q, qvel=qvel[0]), idx)
-        return jnp.sum(t.M**2) + jnp.sum(t.h**2) + jnp.sum(t.J_feet**2) + jnp.sum(t.Jdot_nu_feet)
+        return jnp.sum(t.M**2) + jnp.sum(t.h**2) + jnp.sum(t.J_frames**2) + jnp.sum(t.Jdot_nu_frames)
 
     g = jax.jit(jax.grad(scalar))(qpos[0][idx.qpos_joints])
     assert g.shape == (idx.n,) and bool(jnp.all(jnp.isfinite(g)))

@@ -10,11 +10,14 @@ import pytest
 import scipy.linalg
 from mujoco import mjx
 
-from wbc_jax import controller as C
+from wbc_jax.gains import default_gains
 from wbc_jax import dynamics, hierarchy, tasks, torques
 from wbc_jax.hierarchy import TaskLevel
 
 from conftest import c_data
+
+
+FRAME0 = 2  # the stack's frames follow the two soles'
 
 
 @pytest.fixture(scope="module")
@@ -31,21 +34,21 @@ def state(robot):
         tasks.MotionTask("chest", "orientation", frame="chest", kp=20.0),
         tasks.MotionTask("posture", "postural"),
     ], qpos=robot.home_qpos())  # fmt: skip
-    t = jax.jit(dynamics.terms, static_argnums=2)(robot.mjx_model, dx, robot.index)
-    frames = jax.jit(lambda m, d: dynamics.frame_terms(m, d, robot.index, stack.bodies, stack.offsets))(
-        robot.mjx_model, dx
-    )
-    g = C.default_gains(robot.index.n, jnp.float64)
-    tt = torques.torque_terms(t, jnp.ones(2), postural="stable", kp_postural=g.kp_postural,
+    # The soles' frames first (the contacts), then the stack's.
+    frames = dynamics.sole_frames(robot.index) + stack.frames
+    t = jax.jit(lambda m, d: dynamics.terms(m, d, robot.index, frames))(robot.mjx_model, dx)
+    g = default_gains(robot.index.n, jnp.float64)
+    tt = torques.torque_terms(t, t.J_frames[:2].reshape(12, -1), t.Jdot_nu_frames[:2].reshape(12),
+                              postural="stable", kp_postural=g.kp_postural,
                               kd_postural=g.kd_postural, s_des=jnp.asarray(t.s) * 0.9)  # fmt: skip
     # Feet wrenches: the weight split between the feet plus a random part.
     f = np.tile([0, 0, 9.81 * robot.index.mass / 2, 0, 0, 0], 2) + rng.normal(scale=5.0, size=12)
-    return {"qpos": qpos, "qvel": qvel, "t": t, "frames": frames, "tt": tt, "f": jnp.asarray(f),
+    return {"qpos": qpos, "qvel": qvel, "t": t, "tt": tt, "f": jnp.asarray(f),
             "stack": stack, "rng": rng}  # fmt: skip
 
 
 def _levels(state, time=0.3):
-    return tasks.levels(state["stack"], state["frames"], state["t"], jnp.asarray(time))
+    return tasks.levels(state["stack"], state["t"], jnp.asarray(time), FRAME0)
 
 
 def test_frame_jacobians_match_c_mujoco(robot, state):
@@ -53,18 +56,18 @@ def test_frame_jacobians_match_c_mujoco(robot, state):
     m = robot.mj_model
     d = c_data(robot, state["qpos"], state["qvel"])
     mujoco.mj_comVel(m, d)
-    stack, frames = state["stack"], state["frames"]
+    stack, t = state["stack"], state["t"]
     nu = np.asarray(state["t"].nu)
     for k, (body, offset) in enumerate(zip(stack.bodies, stack.offsets, strict=True)):
         point = d.xpos[body] + d.xmat[body].reshape(3, 3) @ np.asarray(offset)
-        np.testing.assert_allclose(frames.W_p[k], point, atol=1e-12)
+        np.testing.assert_allclose(t.W_p_frames[FRAME0 + k], point, atol=1e-12)
         jacp, jacr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
         mujoco.mj_jac(m, d, jacp, jacr, point, body)
         # Same point velocity whatever the velocity coordinates: J_mixed nu = J_mj qvel.
-        np.testing.assert_allclose(frames.J[k] @ nu, np.concatenate([jacp, jacr]) @ state["qvel"], atol=1e-10)
+        np.testing.assert_allclose(t.J_frames[FRAME0 + k] @ nu, np.concatenate([jacp, jacr]) @ state["qvel"], atol=1e-10)
         jdp, jdr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
         mujoco.mj_jacDot(m, d, jdp, jdr, point, body)
-        np.testing.assert_allclose(frames.Jdot_nu[k], np.concatenate([jdp, jdr]) @ state["qvel"], atol=1e-8)
+        np.testing.assert_allclose(t.Jdot_nu_frames[FRAME0 + k], np.concatenate([jdp, jdr]) @ state["qvel"], atol=1e-8)
 
 
 def test_no_motion_task_is_the_two_level_law(state):
@@ -167,7 +170,7 @@ def test_equal_priority_weights(robot, state):
             tasks.MotionTask("posture", "postural", priority=1),
         ])  # fmt: skip
         assert stack.n_levels == 1
-        L = tasks.levels(stack, state["frames"], t, jnp.asarray(0.0))  # r_hand is frame 0 in both
+        L = tasks.levels(stack, t, jnp.asarray(0.0), FRAME0)  # r_hand is the stack's frame 0 in both
         sol = hierarchy.solve(t, tt, f, L)
         star_a = L[0].nu_dot_star[:3] / np.sqrt(w)
         errors.append(float(jnp.linalg.norm(sol.task_acc[0][:3] / np.sqrt(w) - star_a)))

@@ -1,4 +1,4 @@
-"""Every notebook under notebooks/ runs top to bottom, and is committed without outputs."""
+"""Every notebook under notebooks/ runs top to bottom within its time budget, and is committed without outputs."""
 
 import os
 import pathlib
@@ -10,13 +10,24 @@ nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 
 NOTEBOOKS = sorted((pathlib.Path(__file__).resolve().parent.parent / "notebooks").glob("*.ipynb"))
-CELL_TIMEOUT_S = 600  # one cell (a JIT compilation plus a short run) on a 2-core CPU
-NOTEBOOK_TIMEOUT_S = 900  # the whole notebook: fail instead of hanging
+# Issue target: a notebook runs in 90 s on a 2-core CPU (C MuJoCo forward runs, tiny sizes); the budget leaves room
+# for a machine busy with other tests. A notebook over it fails: it got slower, or too big for a laptop.
+NOTEBOOK_TIMEOUT_S = 150
+# Notebook 04 compiles a reverse-mode program through the whole closed loop (MJX physics + controller): about 4 min on
+# a 2-core CPU at any size (measured 240 s: ~75 s tracing, ~165 s XLA), the rest of the notebook ~35 s.
+BUDGETS_S = {"04_gain_tuning.ipynb": 600}
+MARGIN_S = 30  # past the budget, pytest-timeout stops a hung run (the assertion below reports a slow one)
+
+
+def _budget(path: pathlib.Path) -> int:
+    return BUDGETS_S.get(path.name, NOTEBOOK_TIMEOUT_S)
 
 
 def test_there_are_notebooks():
     names = {p.name for p in NOTEBOOKS}
-    assert {"01_dynamics.ipynb", "02_balancing.ipynb", "03_push_recovery.ipynb"} <= names, names
+    expected = {"01_dynamics.ipynb", "02_balancing.ipynb", "03_push_recovery.ipynb", "04_gain_tuning.ipynb"}
+    assert expected <= names, names
+    assert set(BUDGETS_S) <= names, f"budgets for notebooks that do not exist: {set(BUDGETS_S) - names}"
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
@@ -27,23 +38,27 @@ def test_committed_without_outputs(path):
     assert not dirty, f"{path.name}: cells {dirty} have outputs; clear them before committing"
 
 
-@pytest.mark.timeout(NOTEBOOK_TIMEOUT_S)
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+@pytest.mark.parametrize(
+    "path", [pytest.param(p, id=p.stem, marks=pytest.mark.timeout(_budget(p) + MARGIN_S)) for p in NOTEBOOKS]
+)
 def test_notebook_runs(path, tmp_path, monkeypatch):
     nb = nbformat.read(path, as_version=4)
+    budget = _budget(path)
     # The kernel inherits this environment: CPU, and temporary outputs under tmp_path.
     monkeypatch.setenv("JAX_PLATFORMS", "cpu")
     monkeypatch.setenv("TMPDIR", str(tmp_path))
     monkeypatch.setenv("MPLBACKEND", "module://matplotlib_inline.backend_inline")
     client = nbclient.NotebookClient(
-        nb, timeout=CELL_TIMEOUT_S, kernel_name="python3",
+        nb, timeout=budget, kernel_name="python3",  # per cell; the whole notebook is checked below
         resources={"metadata": {"path": str(path.parent)}},  # cwd: relative paths as in Jupyter
     )  # fmt: skip
     start = time.perf_counter()
     client.execute()  # raises CellExecutionError, naming the cell, on any error
-    print(f"{path.name}: {time.perf_counter() - start:.0f} s")
+    elapsed = time.perf_counter() - start
+    print(f"{path.name}: {elapsed:.0f} s (budget {budget} s)")
     errors = [o for c in nb.cells if c.cell_type == "code" for o in c.outputs if o.output_type == "error"]
     assert not errors
     images = sum("image/png" in o.get("data", {}) for c in nb.cells if c.cell_type == "code" for o in c.outputs)
     assert images >= 1, f"{path.name} shows no plot"
     assert os.listdir(tmp_path) or path.name != "03_push_recovery.ipynb"  # the sweep wrote to TMPDIR
+    assert elapsed <= budget, f"{path.name} ran {elapsed:.0f} s, over its budget of {budget} s"

@@ -9,31 +9,32 @@ import textwrap
 import numpy as np
 import pytest
 
-from wbc_jax import controller as C
 from wbc_jax import sweep
+from wbc_jax.gains import default_gains
 
 
 def test_bad_sweep_input_is_rejected_before_compiling(robot, tmp_path):
     with pytest.raises(ValueError, match="empty"):
-        sweep.SweepConfig(magnitudes=())
-    with pytest.raises(ValueError, match="magnitudes must be finite and >= 0"):
-        sweep.SweepConfig(magnitudes=(-5.0,))
-    with pytest.raises(ValueError, match="push_duration"):
-        sweep.SweepConfig(push_duration=-0.1)
+        sweep.SweepConfig(magnitudes=()).check()
+    with pytest.raises(ValueError, match="push forces must be finite and >= 0"):
+        sweep.SweepConfig(magnitudes=(-5.0,)).check()
+    with pytest.raises(ValueError, match="push-duration"):
+        sweep.SweepConfig(push_duration=-0.1).check()
     with pytest.raises(ValueError, match=r"unknown body 'nose'.*chest"):
-        sweep.run_sweep(sweep.SweepConfig(body="nose"), tmp_path, progress=False)
+        sweep.run_sweep(sweep.SweepConfig(body="nose", out=str(tmp_path / "s")), progress=False)
+    assert not (tmp_path / "s").exists()  # nothing written
 
 
 def test_scenario_grid(robot):
     cfg = sweep.SweepConfig(magnitudes=(10.0, 20.0), directions=(0.0, 90.0), gain_sets=3, seed=4)
-    scen, cols = sweep.build_scenarios(cfg, C.default_gains(), 23)
+    scen, cols = sweep.build_scenarios(cfg, default_gains(), 23)
     assert scen.push.force.shape == (12, 1, 3) and scen.gains.kp_postural.shape == (12, 23)
     np.testing.assert_allclose(np.linalg.norm(scen.push.force[:, 0], axis=1), cols["magnitude_n"], rtol=1e-6)
     left = (cols["azimuth_deg"] == 90.0) & (cols["magnitude_n"] == 20.0)
     np.testing.assert_allclose(scen.push.force[left, 0], [[0, 20, 0]] * 3, atol=1e-5)
     # gain set 0 is the default; the others are seeded rescalings of it.
     assert np.allclose(scen.gains.kp_com[cols["gain_set"] == 0], [50, 50, 10])
-    again, _ = sweep.build_scenarios(cfg, C.default_gains(), 23)
+    again, _ = sweep.build_scenarios(cfg, default_gains(), 23)
     np.testing.assert_array_equal(again.gains.kp_com, scen.gains.kp_com)
 
 
@@ -49,48 +50,58 @@ SHARDED = textwrap.dedent(
     """
     import json, pathlib, sys
     import jax, numpy as np
-    assert len(jax.devices()) == 2, jax.devices()
-    from wbc_jax import sweep, controller as C, model
+    from wbc_jax import scenario, sweep
+    from wbc_jax.gains import default_gains
+    backend = sys.argv[3]
+    if backend == "jax":
+        assert len(jax.devices()) == 2, jax.devices()
     out = pathlib.Path(sys.argv[1])
     cfg = sweep.SweepConfig(magnitudes=(20.0, 400.0), directions=(90.0,), horizon=0.8,
-                            push_onset=0.1, push_duration=0.1, chunk_size=2)
-    s = sweep.run_sweep(cfg, out, progress=False)
+                            push_onset=0.1, push_duration=0.1, chunk_size=2, backend=backend, out=str(out))
+    s = sweep.run_sweep(cfg, progress=False)
     if sys.argv[2] != "nan":
         print(json.dumps({"summary": {k: s[k] for k in ("n_envs", "n_devices")}}))
         raise SystemExit(0)
-    # NaN isolation: same compiled runner, one environment starts from NaN joints.
-    robot = model.load_robot("icub")
-    scen, _ = sweep.build_scenarios(cfg, C.default_gains(), 23)
+    # NaN isolation: the same setup and batch shape, one environment starts from NaN joints.
+    st = sweep.make_setup(cfg, default_gains(23, scenario.float_dtype()))
+    scen, _ = sweep.build_scenarios(cfg, default_gains(), 23, scenario.float_dtype())
     scen = jax.tree_util.tree_map(lambda x: np.asarray(x)[:2], scen)
     scen = scen.replace(joint_offset=scen.joint_offset.copy())
     scen.joint_offset[1] = np.nan
-    m, _, compile_s = sweep.run_batch(robot, cfg, scen)
-    print(json.dumps({"summary": {k: s[k] for k in ("n_envs", "survival_rate", "nan_envs", "n_devices")},
+    run = scenario.run(st, scen, batch_size=2)
+    again = scenario.run(st, scen, batch_size=2)
+    m = run.metrics
+    print(json.dumps({"summary": {k: s[k] for k in ("n_envs", "upright_rate", "nan_envs", "n_devices", "backend")},
                       "nan": np.asarray(m.nan).tolist(), "fell": np.asarray(m.fell).tolist(),
-                      "com_max": np.asarray(m.com_max_err).tolist(), "recompiled": compile_s > 0}))
+                      "com_max": np.asarray(m.com_max_err).tolist(), "recompiled": again.compile_s > 0}))
     """
 )
 
 
-def test_sharded_sweep_on_two_host_devices_isolates_nan_and_resumes(tmp_path):
+@pytest.mark.parametrize("backend", ["jax", "mujoco"])
+def test_sweep_isolates_nan_and_resumes(tmp_path, backend):
+    """MJX sharded over two host devices, and C MuJoCo: one env from NaN joints is flagged, the
+    other is not; a finished sweep resumes from its parts; a changed input is refused."""
     env = {**os.environ, "JAX_PLATFORMS": "cpu",
            "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}  # fmt: skip
+    out = tmp_path / "sweep"
     run = lambda mode: subprocess.run(  # noqa: E731
-        [sys.executable, "-c", SHARDED, str(tmp_path), mode], capture_output=True, text=True,
+        [sys.executable, "-c", SHARDED, str(out), mode, backend], capture_output=True, text=True,
         timeout=1500, env=env,
     )  # fmt: skip
     proc = run("nan")
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = json.loads(proc.stdout.strip().splitlines()[-1])
     assert res["summary"]["n_devices"] == 2 and res["summary"]["n_envs"] == 2
+    assert res["summary"]["backend"] == backend
     # 20 N survives; 400 N for 0.1 s (40 N s, over twice the LIP bound) does not.
-    table = __import__("pandas").read_parquet(tmp_path / "results.parquet")
-    assert table.sort_values("magnitude_n")["survived"].tolist() == [True, False]
+    table = __import__("pandas").read_parquet(out / "results.parquet")
+    assert table.sort_values("magnitude_n")["upright"].tolist() == [True, False]
     assert res["nan"] == [False, True], "the NaN environment is flagged, the other is not"
     assert not res["fell"][0] and res["com_max"][0] < 0.05 and not res["recompiled"]
-    assert (tmp_path / "survival.png").exists() and (tmp_path / "envelope.png").exists()
+    assert (out / "survival.png").exists() and (out / "envelope.png").exists()
     # Resume: a complete sweep is read back from its parts without recomputing.
-    before = (tmp_path / "parts" / "part-00000.parquet").stat().st_mtime
+    before = (out / "parts" / "part-00000.parquet").stat().st_mtime
     proc = run("resume")
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert (tmp_path / "parts" / "part-00000.parquet").stat().st_mtime == before
+    assert (out / "parts" / "part-00000.parquet").stat().st_mtime == before

@@ -13,9 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from wbc_jax import cli
-from wbc_jax import controller as C
-from wbc_jax import tune
+from wbc_jax import cli, tune
+from wbc_jax import gains as C
+from wbc_jax.constants import GAIN_FIELDS
 
 # One subprocess (float64, XLA backend optimisation lowered: compile ~3.5 min instead of ~5)
 # holds the one gradient program: experiments/grad_check.py, per-scenario gradients over N random
@@ -136,7 +136,7 @@ def test_training_loop_guard_resume_and_gains_file(robot, tmp_path):
     resumed, rows, _ = tune.train(robot, tc, lc, tmp_path / "b", progress=False,
                                   step_fn=_fake_step(opt, bounds, base, target))  # fmt: skip
     assert [int(r["step"]) for r in rows] == list(range(6))
-    for k in C.GAIN_FIELDS:
+    for k in GAIN_FIELDS:
         np.testing.assert_allclose(getattr(resumed, k), getattr(full, k), rtol=1e-6)
     with pytest.raises(ValueError, match="another tuning config"):
         tune.train(robot, tune.TuneConfig(steps=7, batch=2), lc, tmp_path / "b", progress=False,

@@ -3,6 +3,7 @@
 Two compilations in all (the vmapped sweep and the recording replay, shared by every test)."""
 
 import collections
+import dataclasses
 import json
 
 import mujoco
@@ -21,19 +22,19 @@ CFG = sweep.SweepConfig(
     push_duration=0.1, joint_noise=0.01, friction=(0.5, 1.0), mass_scale=(0.9, 1.1), chunk_size=2,
     seed=3,
 )  # fmt: skip
-COMPARED = ("com_max_dev_m", "com_rmse_m", "peak_torque_nm", "min_com_height_m", "max_foot_slip_m")
+COMPARED = ("com_max_err_m", "com_rmse_m", "max_abs_torque_nm", "min_com_height_m", "max_foot_slip_m")
 
 
 @pytest.fixture(scope="module")
 def sweep_dir(tmp_path_factory, robot):
-    out = tmp_path_factory.mktemp("sweep")
-    sweep.run_sweep(CFG, out, progress=False)
+    out = tmp_path_factory.mktemp("sweep") / "run"
+    sweep.run_sweep(dataclasses.replace(CFG, out=str(out)), progress=False)
     return out
 
 
 @pytest.fixture(scope="module")
 def replays(sweep_dir):
-    return [viz.replay_sweep_env(sweep_dir, env) for env in range(CFG.size)]
+    return [sweep.replay_env(sweep_dir, env)[1:] for env in range(CFG.size)]
 
 
 def read_rrd(path):
@@ -74,7 +75,7 @@ def test_replay_equals_the_sweep_metrics(replays):
         assert np.all(traj["push"][~on] == 0)
     # The two scenarios differ measurably, so matching the wrong row would fail.
     (_, m0, _), (_, m1, _) = replays
-    assert abs(m0["com_max_dev_m"] - m1["com_max_dev_m"]) > 1e-5
+    assert abs(m0["com_max_err_m"] - m1["com_max_err_m"]) > 1e-5
 
 
 def test_rrd_of_a_sweep_env(sweep_dir, replays, robot):
@@ -88,8 +89,8 @@ def test_rrd_of_a_sweep_env(sweep_dir, replays, robot):
     expected = {f"/world/robot/{b}" for b in bodies} | {
         f"/{p}" for p in ("world/com", "world/com_ref", "world/com/trail", "world/com_ref/trail",
                           "world/support_polygon", "world/contacts/f_meas", "world/contacts/f_cmd",
-                          "world/push", "plots/com_error_mm", "plots/Ldot_star", "plots/Ldot_meas",
-                          "plots/tau", "plots/f_cmd", "plots/f_meas")
+                          "world/contacts/normals", "world/push", "plots/com_error_mm", "plots/Ldot_star",
+                          "plots/Ldot_meas", "plots/tau", "plots/f_cmd", "plots/f_meas", "plots/activation")
     }  # fmt: skip
     assert expected <= set(times), sorted(expected - set(times))
     want = {int(round(t * 1e9)) for t in traj["t"]}
@@ -130,8 +131,10 @@ def test_rrd_of_a_balance_run_dir(replays, robot, tmp_path):
 
 
 def test_view_errors_name_the_problem(sweep_dir, tmp_path, capsys):
+    (tmp_path / "file.txt").write_text("x")
     cases = [
         (["view", str(tmp_path / "nope")], "does not exist"),
+        (["view", str(tmp_path / "file.txt")], "is a file"),
         (["view", str(tmp_path)], "neither a balance run"),
         (["view", str(sweep_dir)], r"push sweep of 2 envs: choose one with --env I, I in 0..1"),
         (["view", str(sweep_dir), "--env", "2"], r"env 2 is out of range: this sweep has envs 0..1"),
@@ -146,8 +149,10 @@ def test_view_errors_name_the_problem(sweep_dir, tmp_path, capsys):
     assert "--env applies to sweeps only" in capsys.readouterr().err
     assert cli.main(["view", str(tmp_path)]) == 2
     assert "trajectory lacks fields" in capsys.readouterr().err
-    summary = json.loads((sweep_dir / "summary.json").read_text())
-    assert viz.sweep_config(summary) == CFG
+    (tmp_path / "trajectory.npz").write_bytes(b"PK\x03\x04 truncated")
+    assert cli.main(["view", str(tmp_path)]) == 2
+    assert "trajectory.npz is unreadable" in capsys.readouterr().err
+    assert sweep.load_sweep(sweep_dir)[0] == dataclasses.replace(CFG, out=str(sweep_dir))
 
 
 def test_support_polygon_at_home_is_the_hull_of_both_soles(robot):

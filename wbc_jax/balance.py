@@ -48,10 +48,18 @@ class BalanceConfig:
         """Every check that needs no model or compilation."""
         if self.duration is not None and not (math.isfinite(self.duration) and self.duration > 0):
             raise ValueError(f"--duration must be a positive finite number of seconds, got {self.duration}")
+        for name in ("push_onset", "push_duration"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"--{name.replace('_', '-')} must be a finite number of seconds >= 0, got {value}")
         if self.push_force is not None:
             scenario.make_push(self.push_force, self.push_onset, self.push_duration)
         if not (math.isfinite(self.control_dt) and self.control_dt > 0):
             raise ValueError(f"--control-dt must be a positive number of seconds, got {self.control_dt}")
+        physics.PhysicsConfig(backend=self.backend, solver_iterations=self.solver_iterations)
+        ControllerConfig(forces=self.forces, postural=self.postural)
+        for name, path in (("gains", self.gains), ("tasks", self.tasks)):
+            runs.check_input_file(path, name)
         runs.check_output_dir(self.out, "balance")
 
 
@@ -59,8 +67,9 @@ def default_config() -> BalanceConfig:
     return BalanceConfig()
 
 
-def make_setup(cfg: BalanceConfig, robot_name: str = "icub") -> scenario.Setup:
-    """Scene, controller and closed loop of a balance run (checked, nothing compiled)."""
+def make_setup(cfg: BalanceConfig, robot_name: str = "icub", controller: ControllerConfig | None = None) -> scenario.Setup:
+    """Scene, controller and closed loop of a balance run (checked, nothing compiled).
+    ``controller``: further controller settings (forces and postural come from ``cfg``)."""
     scene = scenario.load_scene(robot_name, cfg.tasks)
     dtype = scenario.float_dtype()
     gains = load_gains(cfg.gains, scene.robot.index.n, dtype) if cfg.gains else None
@@ -69,14 +78,17 @@ def make_setup(cfg: BalanceConfig, robot_name: str = "icub") -> scenario.Setup:
         physics=physics.PhysicsConfig(backend=cfg.backend, solver_iterations=cfg.solver_iterations),
     )  # fmt: skip
     return scenario.setup(
-        cfg.task, duration=cfg.duration, controller=ControllerConfig(forces=cfg.forces, postural=cfg.postural),
+        cfg.task, duration=cfg.duration,
+        controller=dataclasses.replace(controller or ControllerConfig(), forces=cfg.forces, postural=cfg.postural),
         sim=sim, gains=gains, scene=scene,
     )  # fmt: skip
 
 
-def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: str = "icub", **overrides) -> dict:
+def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: str = "icub",
+        controller: ControllerConfig | None = None, **overrides) -> dict:  # fmt: skip
     """Run the balance job; write metrics.json, trajectory.npz and PNG plots into ``cfg.out``
-    (None: nothing written). ``overrides``: fields of :class:`BalanceConfig`.
+    (None: nothing written). ``overrides``: fields of :class:`BalanceConfig`; ``controller``:
+    further controller settings (hierarchy damping, ...).
 
     Returns:
       the metrics dict (also printed by the CLI as one JSON line).
@@ -85,7 +97,7 @@ def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: 
 
     cfg = dataclasses.replace(default_config() if cfg is None else cfg, **overrides)
     cfg.check()
-    st = make_setup(cfg, robot_name)
+    st = make_setup(cfg, robot_name, controller)
     out = None if cfg.out is None else pathlib.Path(cfg.out)
     if out is not None:
         runs.claim_output_dir(out, "balance", runs.fingerprint(dataclasses.asdict(cfg), [cfg.gains, cfg.tasks]))
@@ -117,7 +129,8 @@ def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: 
     result = _jsonable(result)
     if out is not None:
         io.atomic_write_json(out / "metrics.json", {**result, "gains": gains_to_dict(st.gains),
-                                                   "config": dataclasses.asdict(cfg)})  # fmt: skip
+                                                   "config": dataclasses.asdict(cfg),
+                                                   "controller": dataclasses.asdict(st.loop.controller.config)})  # fmt: skip
         io.atomic_save_npz(out / "trajectory.npz", joints=np.array(st.robot.index.joints),
                            contact_names=np.array(loop.contact_set.names),
                            contact_dims=np.array([c.dim for c in loop.contact_set.contacts]), **traj)  # fmt: skip

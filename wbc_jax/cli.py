@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 import types
 import typing
@@ -21,6 +22,13 @@ def _field_type(owner: type, field: dataclasses.Field) -> type:
         inner = [a for a in typing.get_args(hint) if a is not Ellipsis]
         return inner[0] if inner else float
     return hint
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line error (the problem and where help is) instead of the usage block."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def _show(value) -> str:
@@ -140,8 +148,8 @@ def _tune(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     from wbc_jax import balance, sweep, tune
 
-    parser = argparse.ArgumentParser(prog="wbc-jax", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser = _Parser(prog="wbc-jax", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     info = sub.add_parser("info", help="print the robot model summary as JSON")
     info.add_argument("--robot", default="icub")
     info.set_defaults(func=_info)
@@ -171,6 +179,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # Before JAX starts: XLA:CPU logs an error line for each program read back from the persistent
+    # compilation cache (its tuning flags "prefer-no-gather/scatter" are not host CPU features), which
+    # would bury the commands' output; the programs run correctly.
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)

@@ -28,8 +28,8 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
 
+from wbc_jax._mjx import mjx
 from wbc_jax import constants
 from wbc_jax import model as model_lib
 from wbc_jax.dynamics import DynamicsTerms, Frames
@@ -346,13 +346,6 @@ def check_spec(contacts, objects) -> tuple[tuple[Contact, ...], tuple[SceneObjec
             raise ValueError(f"{owner}: activation needs finite start, ramp >= 0 and stop > start + ramp, got {a}")
         if c.touches is not None and c.touches not in object_names + ["floor"]:
             raise ValueError(f"{owner}: touches unknown object {c.touches!r}; valid: {object_names + ['floor']}")
-    soles = {c.frame for c in contacts if c.frame in FEET_FRAMES and not np.any(np.asarray(c.offset, float))}
-    missing = sorted(set(FEET_FRAMES) - soles)
-    if missing:
-        raise ValueError(
-            f"the contact set must hold both soles (frames {sorted(FEET_FRAMES)}, no offset): missing "
-            f"{missing}; contacts given: {[c.name for c in contacts]}"
-        )
     contact_names = [c.name for c in contacts]
     for o in objects:
         owner = f"scene object {o.name!r}"
@@ -444,6 +437,13 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
         W_p = d.xpos[body] + R_body @ point
         frames[c.name] = (body, point, R_body.T @ W_R_c, W_p, W_R_c)
 
+    soles = {c.frame for c in contacts if c.frame in FEET_FRAMES and not np.any(np.asarray(c.offset, float))}
+    missing = sorted(set(FEET_FRAMES) - soles)
+    if missing:
+        raise ValueError(
+            f"the contact set must hold both soles (frames {sorted(FEET_FRAMES)}, no offset): missing "
+            f"{missing}; contacts given: {[c.name for c in contacts]}"
+        )
     spec = mujoco.MjSpec.from_file(str(model_lib.ROBOTS[robot]))
     for geom in list(spec.geoms):  # physics model: no meshes (as load_mj_model)
         if geom.type == mujoco.mjtGeom.mjGEOM_MESH:

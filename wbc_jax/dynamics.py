@@ -22,8 +22,8 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
-from mujoco import mjx
 
+from wbc_jax._mjx import mjx
 from wbc_jax.math import quat_mul, quat_to_mat, skew
 from wbc_jax.model import RobotIndex
 from wbc_jax.types import Array, pytree_dataclass

@@ -284,32 +284,46 @@ def _restricted(cset: ContactSet, A: Array, mask: Array, wrench_des: Array):
     N = keep[:, None] * (jnp.eye(D, dtype=dtype) - A_pinv @ A_m) * keep[None, :]
     Z = range_basis(N, D - 6)
     spare = lax.stop_gradient(jnp.sum(Z * Z, axis=0)) < 0.5
-    return f1, Z, spare, keep
+    # Surplus columns are rounding noise: zero them, or the QP solver's unit-row scaling would
+    # blow the noise up into a direction the wrenches could move along.
+    return f1, jnp.where(spare[None, :], 0.0, Z), spare, keep
 
 
 def _row_mask(cset: ContactSet, mask: Array) -> Array:
     return jnp.concatenate([jnp.full(c.dim, mask[k]) for k, c in enumerate(cset.contacts)])
 
 
-def wbc_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: Array,
-           settings: ForceSettings) -> tuple[Array, Array]:  # fmt: skip
-    """The WBC QP (module docstring) over the contacts with ``mask`` = 1, the others' wrenches 0;
-    the soft momentum QP where the equality is infeasible.
+def momentum_equality_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: Array,
+                         settings: ForceSettings) -> tuple[Array, qp.QPInfo]:  # fmt: skip
+    """The WBC QP (module docstring) over the contacts with ``mask`` = 1, the others' wrenches 0::
+
+        min |tau_model + Sigma f|^2 + w_n |S_n f - F_n|^2   s.t.  A f = wrench_des,  C f <= b
+
+    solved in y with f = f1 + Z y (f1 = A^+ wrench_des, Z a basis of null(A) over the kept
+    contacts), as WBC's f0 formulation but well conditioned.
 
     Args:
       mask: (K,) 1 for the contacts that may carry a wrench. A: (6, D) wrench map.
-      wrench_des: (6,) L_dot* - f_grav. tt: :class:`wbc_jax.torques.TorqueTerms` (Sigma (n, D),
-        tau_model (n,)). W_R: (K, 3, 3) contact frames.
+      wrench_des: (6,) L_dot* - f_grav. tt: anything with ``Sigma`` (n, D) and ``tau_model`` (n,)
+        (:class:`wbc_jax.torques.TorqueTerms`). W_R: (K, 3, 3) contact frames.
 
     Returns:
-      ``(f (D,), infeasible ())``: infeasible when the soft QP failed too.
+      ``(f (D,), info)``; where infeasible, f = f1 + Z y with y the unconstrained minimiser (the
+      solver's fallback) and ``info.infeasible`` set.
     """
     dtype = A.dtype
-    D = cset.dim
     f1, Z, spare, keep = _restricted(cset, A, mask, wrench_des)
     C, b = constraints(cset, W_R, jnp.ones(len(cset.contacts), dtype))
     row_kept = mask[jnp.asarray(constraint_contact(cset))] > 0
     S_n, F_n = normal_force_rows(cset, W_R)
+    if Z.shape[1] == 0:  # a single surface contact: the equality fixes the wrench
+        rows = jnp.linalg.norm(C, axis=1)
+        excess = jnp.where(row_kept, (C @ f1 - b) / rows, 0.0)
+        violation = jnp.max(excess)
+        infeasible = violation > qp.default_tolerances(dtype)[1] * (1.0 + jnp.max(jnp.abs(f1)))
+        zero = jnp.zeros((), dtype)
+        return f1, qp.QPInfo(converged=~infeasible, infeasible=infeasible, max_violation=jnp.maximum(violation, 0.0),
+                             kkt_residual=zero, iterations=jnp.zeros((), jnp.int32))  # fmt: skip
     S_n = S_n * keep[None, :]
     w_n = settings.normal_force_weight
     SZ, NZ = tt.Sigma @ Z, S_n @ Z
@@ -317,22 +331,44 @@ def wbc_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: 
     g = SZ.T @ (tt.tau_model + tt.Sigma @ f1) + w_n * NZ.T @ (S_n @ f1 - F_n)
     # Rows of dropped contacts: 0 <= 1, trivially met (their wrench is zero).
     y, info = qp.solve_qp(H, g, C @ Z, jnp.where(row_kept, b - C @ f1, 1.0), iterations=settings.qp_iterations)
+    return f1 + Z @ y, info
+
+
+def soft_momentum_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: Array,
+                     settings: ForceSettings) -> tuple[Array, qp.QPInfo]:  # fmt: skip
+    """The soft momentum QP over the contacts with ``mask`` = 1 (always feasible)::
+
+        min |A f - wrench_des|^2 + c (|tau_model + Sigma f|^2 + w_n |S_n f - F_n|^2) + eps |f|^2
+        s.t. C f <= b,   the other contacts' wrenches 0
+
+    (c = ``settings.torque_weight_soft``). Arguments as :func:`momentum_equality_qp`."""
+    dtype = A.dtype
+    keep = _row_mask(cset, mask)
+    C, b = constraints(cset, W_R, jnp.ones(len(cset.contacts), dtype))
+    row_kept = mask[jnp.asarray(constraint_contact(cset))] > 0
+    S_n, F_n = normal_force_rows(cset, W_R)
+    c, w_n = settings.torque_weight_soft, settings.normal_force_weight
+    Ak, Sk, Nk = A * keep[None, :], tt.Sigma * keep[None, :], S_n * keep[None, :]
+    H = Ak.T @ Ak + c * (Sk.T @ Sk + w_n * Nk.T @ Nk) + jnp.diag(settings.hessian_reg + 1.0 - keep)
+    g = -Ak.T @ wrench_des + c * (Sk.T @ tt.tau_model - w_n * Nk.T @ F_n)
+    x, info = qp.solve_qp(H, g, C * keep[None, :], jnp.where(row_kept, b, 1.0), iterations=settings.qp_iterations)
+    return keep * x, info
+
+
+def wbc_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: Array,
+           settings: ForceSettings) -> tuple[Array, Array]:  # fmt: skip
+    """:func:`momentum_equality_qp`, or :func:`soft_momentum_qp` where the equality is infeasible
+    (a push asks for a momentum rate that no feasible wrench realises).
+
+    Returns ``(f (D,), infeasible ())``: infeasible when the soft QP failed too."""
+    f, info = momentum_equality_qp(cset, mask, A, wrench_des, tt, W_R, settings)
 
     def soft():
-        # min |A f - w|^2 + c (|tau_model + Sigma f|^2 + w_n |S_n f - F_n|^2), f = keep * x.
-        c = settings.torque_weight_soft
-        Ak, Sk, Nk = A * keep[None, :], tt.Sigma * keep[None, :], S_n
-        H_s = Ak.T @ Ak + c * (Sk.T @ Sk + w_n * Nk.T @ Nk) + jnp.diag(settings.hessian_reg + 1.0 - keep)
-        g_s = -Ak.T @ wrench_des + c * (Sk.T @ tt.tau_model - w_n * Nk.T @ F_n)
-        x, info_s = qp.solve_qp(H_s, g_s, C * keep[None, :], jnp.where(row_kept, b, 1.0),
-                                iterations=settings.qp_iterations)  # fmt: skip
-        return keep * x, info_s.infeasible
+        f_soft, info_soft = soft_momentum_qp(cset, mask, A, wrench_des, tt, W_R, settings)
+        return f_soft, info_soft.infeasible
 
-    def equality():
-        return f1 + Z @ y, jnp.zeros((), bool)
-
-    f, soft_failed = lax.cond(info.infeasible, soft, equality)
-    return f.astype(dtype).reshape(D), info.infeasible & soft_failed
+    f, soft_failed = lax.cond(info.infeasible, soft, lambda: (f, jnp.zeros((), bool)))
+    return f, info.infeasible & soft_failed
 
 
 def analytic(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, settings: ForceSettings) -> Array:
@@ -341,6 +377,8 @@ def analytic(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, set
     ``f = A_k^-1 wrench_des``). Returns f (D,)."""
     dtype = A.dtype
     f1, Z, spare, _ = _restricted(cset, A, mask, wrench_des)
+    if Z.shape[1] == 0:
+        return f1
     SZ = tt.Sigma @ Z
     y = -jnp.linalg.solve(
         SZ.T @ SZ + jnp.diag(settings.hessian_reg + spare.astype(dtype)),
@@ -358,8 +396,11 @@ def distribute(cset: ContactSet, activation: Array, A: Array, wrench_des: Array,
     solution (its soft QP failed too); always False for ``analytic``.
     """
     act = jnp.clip(activation, 0.0, 1.0)
-    engaged = (act > 0).astype(A.dtype)
-    active = (act >= 1).astype(A.dtype)
+    # Sets that cannot be empty (their wrench map must have rank 6): with no contact engaged the
+    # wrenches are zero below; with none fully active, the most active ones stand in.
+    any_engaged = jnp.any(act > 0)
+    engaged = jnp.where(any_engaged, act > 0, True).astype(A.dtype)
+    active = jnp.where(jnp.any(act >= 1), act >= 1, act >= jnp.max(act)).astype(A.dtype)
     w = jnp.min(jnp.where(act > 0, act, 1.0))
 
     def formulation(mask):
@@ -373,5 +414,5 @@ def distribute(cset: ContactSet, activation: Array, A: Array, wrench_des: Array,
     f_active, infeasible_active = lax.cond(
         w < 1, lambda: formulation(active), lambda: (jnp.zeros_like(f_engaged), jnp.zeros((), bool))
     )
-    f = w * f_engaged + (1.0 - w) * f_active
-    return f, (w > 0) & infeasible_engaged | (w < 1) & infeasible_active
+    f = jnp.where(any_engaged, w * f_engaged + (1.0 - w) * f_active, 0.0)
+    return f, any_engaged & ((w > 0) & infeasible_engaged | (w < 1) & infeasible_active)

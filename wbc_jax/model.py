@@ -12,7 +12,8 @@ import pathlib
 
 import mujoco
 import numpy as np
-from mujoco import mjx
+
+from wbc_jax._mjx import mjx
 
 ASSETS = pathlib.Path(__file__).resolve().parent.parent / "assets"
 ROBOTS = {"icub": ASSETS / "icub" / "icub_23dof.xml"}
@@ -39,7 +40,8 @@ NAMED_POINTS = {
 
 def _check_name(kind: str, name: str, valid: list[str]) -> None:
     if name not in valid:
-        raise ValueError(f"unknown {kind} {name!r}; valid {kind}s: {sorted(valid)}")
+        plural = "bodies" if kind == "body" else f"{kind}s"
+        raise ValueError(f"unknown {kind} {name!r}; valid {plural}: {sorted(valid)}")
 
 
 def _names(m: mujoco.MjModel, obj: mujoco.mjtObj, count: int) -> list[str]:

@@ -31,8 +31,8 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
 
+from wbc_jax._mjx import mjx
 from wbc_jax.types import Array
 
 BACKENDS = ("auto", "jax", "warp", "mujoco")
@@ -267,6 +267,9 @@ class HostBatch:
             for i in envs:
                 m, d = self.models[i], self.data[i]
                 if self.diverged[i]:
+                    continue
+                if not (np.all(np.isfinite(ctrl[i])) and np.all(np.isfinite(d.qpos)) and np.all(np.isfinite(d.qvel))):
+                    self.diverged[i] = True  # flagged before C MuJoCo warns about it
                     continue
                 saved = (d.time, d.qpos.copy(), d.qvel.copy(), d.qacc_warmstart.copy())
                 d.ctrl[:] = ctrl[i]

@@ -23,8 +23,8 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from mujoco import mjx
 
+from wbc_jax._mjx import mjx
 from wbc_jax import constants, dynamics, forces, physics
 from wbc_jax.controller import Controller, ControllerState
 from wbc_jax.gains import Gains
@@ -72,24 +72,32 @@ class SimConfig:
 
 @pytree_dataclass
 class Push:
-    """External pushes (P of them), world-axes forces at the CoM of ``SimConfig.push_body``.
+    """External pushes (P of them), world-axes forces at the CoM of a body.
 
-    Attributes: force (P, 3) N; onset (P,) s; duration (P,) s.
+    Attributes: force (P, 3) N; onset (P,) s; duration (P,) s; body (P,) int32 body ids
+    (-1: ``SimConfig.push_body``).
     """
 
     force: Array
     onset: Array
     duration: Array
+    body: Array
 
 
 def no_push(dtype=jnp.float32) -> Push:
-    return Push(force=jnp.zeros((1, 3), dtype), onset=jnp.zeros(1, dtype), duration=jnp.zeros(1, dtype))
+    return Push(force=jnp.zeros((1, 3), dtype), onset=jnp.zeros(1, dtype), duration=jnp.zeros(1, dtype),
+                body=jnp.full(1, -1, jnp.int32))  # fmt: skip
+
+
+def push_forces(push: Push, t):
+    """Each push's force (..., P, 3) at time t (numpy or JAX arrays alike)."""
+    on = (t >= push.onset) & (t < push.onset + push.duration)
+    return push.force * on[..., None]
 
 
 def push_force(push: Push, t) -> Array:
     """Total push force (3,) at time t (numpy or JAX arrays alike)."""
-    on = (t >= push.onset) & (t < push.onset + push.duration)
-    return (push.force * on[..., None]).sum(-2)
+    return push_forces(push, t).sum(-2)
 
 
 @pytree_dataclass
@@ -347,15 +355,21 @@ class ClosedLoop:
         )
         return metrics, anchors, anchor_normals
 
-    def xfrc(self, push: Push, k, xp=jnp):
-        """(n_sub, nbody, 6) body wrenches of the physics steps of tick k (the push at its body)."""
-        t = k * self.cfg.control_dt + self.physics_dt * xp.arange(self.n_sub)
-        force = jax.vmap(lambda s: push_force(push, s))(t) if xp is jnp else np.stack([push_force(push, s) for s in t])
-        out = xp.zeros((self.n_sub, self.robot.mj_model.nbody, 6), force.dtype)
-        if xp is jnp:
-            return out.at[:, self.push_body, :3].set(force)
-        out[:, self.push_body, :3] = force
-        return out
+    def step_push_forces(self, push: Push, k):
+        """(n_sub, P, 3) each push's force during the physics steps of tick k: the one place push
+        timing is computed (the host loop scatters these, so every backend pushes alike)."""
+        t = k * self.cfg.control_dt + self.physics_dt * jnp.arange(self.n_sub)
+        return jax.vmap(lambda s: push_forces(push, s))(t)
+
+    def push_bodies(self, push: Push):
+        """(P,) the body id of each push."""
+        return jnp.where(push.body >= 0, push.body, self.push_body)
+
+    def xfrc(self, push: Push, k):
+        """(n_sub, nbody, 6) body wrenches of the physics steps of tick k (each push at its body)."""
+        force = self.step_push_forces(push, k)
+        out = jnp.zeros((self.n_sub, self.robot.mj_model.nbody, 6), force.dtype)
+        return out.at[:, self.push_bodies(push), :3].add(force)
 
     def measure(self, record, contact_pos, contact_force, contact_geom):
         """Fill the measured wrenches of a Trajectory record from the contact slots after the
@@ -434,7 +448,7 @@ class ClosedLoop:
             models = base
         qpos = np.asarray(qpos0, float)[None].repeat(B, 0)
         qpos[:, self.idx.qpos_joints] += scen.joint_offset
-        cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
+        cast = lambda x: jnp.asarray(x, dtype if np.asarray(x).dtype.kind == "f" else None)  # noqa: E731
         gains = jax.tree_util.tree_map(cast, scen.gains)
         push = jax.tree_util.tree_map(cast, scen.push)
         fns, compile_s = self._host_programs(gains, cast(qpos), push)
@@ -446,8 +460,8 @@ class ClosedLoop:
         try:
             for k in range(self.n_ticks):
                 q, v = host.state()
-                state, ctrl, record = fns["control"](gains, state, cast(q), cast(v), np.int32(k), ok, push)
-                host.step(np.asarray(ctrl, float), self._host_xfrc(scen.push, k))
+                state, ctrl, record, forces, bodies = fns["control"](gains, state, cast(q), cast(v), np.int32(k), ok, push)
+                host.step(np.asarray(ctrl, float), self._host_xfrc(forces, bodies))
                 ok = ~host.diverged
                 if self.cfg.record:
                     records.append(fns["measure"](record, *host.contacts(n_con)))
@@ -461,14 +475,21 @@ class ClosedLoop:
         stacked = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs], axis=1), *records)
         return metrics, stacked, compile_s
 
-    def _host_xfrc(self, push, k: int) -> np.ndarray:
-        """(B, n_sub, nbody, 6) body wrenches of tick k for a batch of pushes (numpy)."""
-        t = k * self.cfg.control_dt + self.physics_dt * np.arange(self.n_sub)  # (S,)
-        on = (t[None, :, None] >= push.onset[:, None, :]) & (t[None, :, None] < (push.onset + push.duration)[:, None, :])
-        force = np.einsum("bsp,bpi->bsi", on.astype(float), push.force)  # (B, S, 3)
-        out = np.zeros((force.shape[0], self.n_sub, self.robot.mj_model.nbody, 6))
-        out[:, :, self.push_body, :3] = force
+    def _host_xfrc(self, force: np.ndarray, body: np.ndarray) -> np.ndarray:
+        """(B, n_sub, nbody, 6) body wrenches from the pushes' forces (B, n_sub, P, 3) on bodies
+        (B, P), as :meth:`step_push_forces` / :meth:`push_bodies` computed them in the control step."""
+        force, body = np.asarray(force, float), np.asarray(body)
+        B, S, P = force.shape[:3]
+        out = np.zeros((B, S, self.robot.mj_model.nbody, 6))
+        b_idx = np.broadcast_to(np.arange(B)[:, None, None], (B, S, P))
+        s_idx = np.broadcast_to(np.arange(S)[None, :, None], (B, S, P))
+        np.add.at(out, (b_idx, s_idx, np.broadcast_to(body[:, None, :], (B, S, P)), slice(0, 3)), force)
         return out
+
+    def control_host(self, gains, state, qpos, qvel, k, physics_ok, push):
+        """:meth:`control` plus the pushes' forces of the tick's physics steps (host loop)."""
+        state, ctrl, record = self.control(gains, state, qpos, qvel, k, physics_ok, push)
+        return state, ctrl, record, self.step_push_forces(push, k).astype(ctrl.dtype), self.push_bodies(push)
 
     def _host_programs(self, gains, qpos, push):
         """The compiled, vmapped init, control and measure of the host loop for this batch shape
@@ -481,12 +502,12 @@ class ClosedLoop:
         B = qpos.shape[0]
         init = jax.jit(jax.vmap(self.init))
         state = jax.eval_shape(init, qpos)
-        control = jax.jit(jax.vmap(self.control, in_axes=(0, 0, 0, 0, None, 0, 0)))
+        control = jax.jit(jax.vmap(self.control_host, in_axes=(0, 0, 0, 0, None, 0, 0)))
         ok = np.ones(B, bool)
         programs = {"init": init.lower(qpos).compile(),
                     "control": control.lower(gains, state, qpos, qpos[:, : self.idx.nv], np.int32(0), ok, push).compile()}
         if self.cfg.record:
-            _, _, record = jax.eval_shape(control, gains, state, qpos, qpos[:, : self.idx.nv], np.int32(0), ok, push)
+            record = jax.eval_shape(control, gains, state, qpos, qpos[:, : self.idx.nv], np.int32(0), ok, push)[2]
             n_con = physics.max_contacts(self.robot.mj_model)
             programs["measure"] = jax.jit(jax.vmap(self.measure)).lower(
                 record, np.zeros((B, n_con, 3)), np.zeros((B, n_con, 3)), np.zeros((B, n_con, 2), np.int64)

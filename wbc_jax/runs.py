@@ -48,6 +48,17 @@ def fingerprint(config: dict, files=(), robot: str = "icub") -> dict:
     }
 
 
+def check_input_file(path, flag: str) -> None:
+    """An input file named on the command line exists and is a file."""
+    if path is None:
+        return
+    path = pathlib.Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"--{flag} file {path} does not exist")
+    if not path.is_file():
+        raise ValueError(f"--{flag} {path} is not a file (a directory?)")
+
+
 def check_output_dir(path, kind: str) -> pathlib.Path:
     """Fail early if ``path`` cannot hold a ``kind`` run: it is a file, it holds a run of another
     kind (or files of something else), or it cannot be written."""

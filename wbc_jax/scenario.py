@@ -154,15 +154,17 @@ def setup(
     return Setup(scene=scene, loop=loop, gains=gains, qpos0=np.asarray(scene.qpos, float), dtype=dtype, task=task)
 
 
-def make_push(force, onset: float, duration: float, dtype=np.float32) -> Push:
-    """One push of ``force`` (3,) N from ``onset`` for ``duration`` s; checked."""
+def make_push(force, onset: float, duration: float, dtype=np.float32, body: int = -1) -> Push:
+    """One push of ``force`` (3,) N from ``onset`` for ``duration`` s on body id ``body`` (-1: the
+    setup's push body); checked."""
     force = np.asarray(force, float).reshape(-1)
     if force.shape != (3,) or not np.all(np.isfinite(force)):
         raise ValueError(f"push force must be 3 finite numbers (N), got {force.tolist()}")
     for name, value in (("push onset", onset), ("push duration", duration)):
         if not (math.isfinite(value) and value >= 0):
             raise ValueError(f"{name} must be a finite number of seconds >= 0, got {value}")
-    return Push(force=force[None].astype(dtype), onset=np.array([onset], dtype), duration=np.array([duration], dtype))
+    return Push(force=force[None].astype(dtype), onset=np.array([onset], dtype), duration=np.array([duration], dtype),
+                body=np.array([body], np.int32))  # fmt: skip
 
 
 def single(setup_: Setup, push: Push | None = None, gains: Gains | None = None) -> Scenario:
@@ -252,9 +254,14 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
     compile_s = 0.0
     if key not in cache:
         t0 = time.perf_counter()
-        start_fn = jax.jit(jax.vmap(start)).lower(scen_dev).compile()
+        # Every leaf of the scenarios, the carry and the records is split along the batch axis.
+        replicated = NamedSharding(mesh, PartitionSpec())
+        start_fn = jax.jit(jax.vmap(start), in_shardings=sharding, out_shardings=sharding).lower(scen_dev).compile()
         carry_shape = jax.eval_shape(jax.vmap(start), scen_dev)
-        advance_fn = jax.jit(jax.vmap(advance, in_axes=(0, 0, None))).lower(scen_dev, carry_shape, jnp.int32(0)).compile()
+        advance_fn = jax.jit(
+            jax.vmap(advance, in_axes=(0, 0, None)), in_shardings=(sharding, sharding, replicated),
+            out_shardings=sharding,
+        ).lower(scen_dev, carry_shape, jnp.int32(0)).compile()  # fmt: skip
         cache[key] = (start_fn, advance_fn)
         compile_s = time.perf_counter() - t0
     start_fn, advance_fn = cache[key]

@@ -33,7 +33,7 @@ SWEEP_TASKS = ("stand", "one-foot")
 # The one-foot task (references.make_schedule) balances on the left foot from 7 to 9 s.
 ONE_FOOT_WINDOW = (7.0, 9.0)
 SUPPORTS = ("two-feet", "left-foot")
-MAX_ENVS = 50_000_000  # a grid larger than this is a typo (its scenarios alone fill the memory)
+MAX_ENVS = 10_000_000  # a grid larger than this is a typo (its scenarios alone take ~3 GB of memory)
 
 
 def _grid(values) -> tuple[float, ...]:
@@ -122,14 +122,11 @@ class SweepConfig:
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"--seed must be a whole number >= 0, got {self.seed!r}")
         if self.size > MAX_ENVS:
-            raise ValueError(f"the grid has {self.size:,} environments, more than {MAX_ENVS:,}; use a coarser grid")
+            gb = self.size * 300 / 1e9  # bytes of scenario data per environment, roughly
+            raise ValueError(f"the grid has {self.size:,} environments (about {gb:,.0f} GB of scenarios), more than "
+                             f"{MAX_ENVS:,}; use a coarser grid")  # fmt: skip
         for name, path in (("tasks", self.tasks), ("gains", self.gains)):
-            if path is not None:
-                p = pathlib.Path(path)
-                if not p.exists():
-                    raise FileNotFoundError(f"--{name} file {p} does not exist")
-                if not p.is_file():
-                    raise ValueError(f"--{name} {p} is not a file (a directory?)")
+            runs.check_input_file(path, name)
         if self.task not in SWEEP_TASKS:
             raise ValueError(f"unknown sweep task {self.task!r}; valid: {list(SWEEP_TASKS)}")
         if self.task == "one-foot":
@@ -201,6 +198,7 @@ def build_scenarios(cfg: SweepConfig, base_gains: Gains, n: int, dtype=np.float3
             force=(mag[:, None] * direction)[:, None, :].astype(dtype),
             onset=np.full((B, 1), cfg.push_onset, dtype),
             duration=np.full((B, 1), cfg.push_duration, dtype),
+            body=np.full((B, 1), -1, np.int32),  # the setup's push body, cfg.body
         ),
         gains=Gains(**{k: v.astype(dtype) for k, v in stacked.items()}),
         joint_offset=joint_offset.astype(dtype),
@@ -211,16 +209,19 @@ def build_scenarios(cfg: SweepConfig, base_gains: Gains, n: int, dtype=np.float3
 
 
 def make_setup(cfg: SweepConfig, base_gains: Gains | None = None, *, robot_name: str = "icub",
-               loss_trace: bool = False, checkpoint: bool = False) -> scenario.Setup:  # fmt: skip
-    """The closed loop of a sweep's environments (tuning uses it with a LossTrace)."""
+               loss_trace: bool = False, checkpoint: bool = False, record: bool = False,
+               controller: ControllerConfig | None = None) -> scenario.Setup:  # fmt: skip
+    """The closed loop of a sweep's environments (tuning uses it with a LossTrace, replays with
+    ``record``). ``controller``: further controller settings (forces, postural from ``cfg``)."""
     scene = scenario.load_scene(robot_name, cfg.tasks)
     sim = rollout_lib.SimConfig(
-        record=False, loss_trace=loss_trace, checkpoint=checkpoint, push_body=cfg.body,
+        record=record, loss_trace=loss_trace, checkpoint=checkpoint, push_body=cfg.body,
         perturb_plant=cfg.perturbs_plant,
         physics=physics.PhysicsConfig(backend="jax" if loss_trace else cfg.backend, solver_iterations=cfg.solver_iterations),
     )  # fmt: skip
     return scenario.setup(
-        cfg.task, duration=cfg.horizon, controller=ControllerConfig(forces=cfg.forces, postural=cfg.postural),
+        cfg.task, duration=cfg.horizon,
+        controller=dataclasses.replace(controller or ControllerConfig(), forces=cfg.forces, postural=cfg.postural),
         sim=sim, gains=base_gains, scene=scene,
     )  # fmt: skip
 
@@ -448,9 +449,7 @@ def replay_env(run_dir, env: int, *, robot_name: str = "icub", backend: str | No
         if not np.isclose(columns[key][env], row[key]):
             raise ValueError(f"the rebuilt scenario of env {env} differs from the sweep's ({key}); "
                              "the sweep was written by another version")  # fmt: skip
-    st = make_setup(cfg, base, robot_name=robot_name)
-    st = dataclasses.replace(st, loop=rollout_lib.make_closed_loop(
-        st.robot, st.loop.schedule, st.loop.controller, dataclasses.replace(st.loop.cfg, record=True)))  # fmt: skip
+    st = make_setup(cfg, base, robot_name=robot_name, record=True)
     one = jax.tree_util.tree_map(lambda x: np.asarray(x)[env : env + 1], scen)
     result = scenario.run(st, one)
     traj = {name: np.asarray(v)[0] for name, v in dataclasses.asdict(result.records).items()}

@@ -129,6 +129,51 @@ def task_dimension(task: MotionTask) -> int:
     return len(task.joints) if task.kind == "joints" else TASK_DIMENSIONS.get(task.kind, 0)
 
 
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool)
+
+
+def _numbers(x) -> bool:
+    return _is_number(x) or (isinstance(x, (tuple, list)) and len(x) > 0 and all(_is_number(v) for v in x))
+
+
+def check_types(task: MotionTask) -> None:
+    """Each field of a task (and of its reference) has the type it must have: a clear error
+    naming the task, the field, the value and what was expected."""
+    owner = f"task {task.name!r}"
+    expected = {
+        "name": (lambda v: isinstance(v, str) and v, "a non-empty string"),
+        "kind": (lambda v: isinstance(v, str), f"one of {list(TASK_KINDS)}"),
+        "frame": (lambda v: v is None or isinstance(v, str), "a body, site or named point"),
+        "offset": (lambda v: isinstance(v, (tuple, list)) and len(v) == 3 and all(_is_number(x) for x in v), "3 numbers"),
+        "joints": (lambda v: isinstance(v, (tuple, list)) and all(isinstance(j, str) for j in v), "joint names, or 'all'"),
+        "kp": (_numbers, "a number or a list of numbers"),
+        "kd": (lambda v: v is None or _numbers(v), "a number, a list of numbers or null"),
+        "priority": (lambda v: v is None or (isinstance(v, (int, np.integer)) and not isinstance(v, bool)), "a whole number"),
+        "weight": (_is_number, "a positive number"),
+    }  # fmt: skip
+    for name, (ok, what) in expected.items():
+        value = getattr(task, name)
+        if not ok(value):
+            raise ValueError(f"{owner}: {name} must be {what}, got {value!r}")
+    ref = task.reference
+    if not isinstance(ref, TaskReference):
+        raise ValueError(f"{owner}: reference must be a mapping of {[f.name for f in dataclasses.fields(TaskReference)]}")
+    ref_expected = {
+        "kind": (lambda v: isinstance(v, str), f"one of {list(REFERENCE_KINDS)}"),
+        "target": (lambda v: v is None or _numbers(v), "a list of numbers or null"),
+        "radius": (_is_number, "a number (m)"),
+        "frequency": (_is_number, "a number (Hz)"),
+        "ramp": (_is_number, "a number (s)"),
+        "plane": (lambda v: isinstance(v, (tuple, list)) and len(v) == 2 and all(isinstance(a, str) for a in v),
+                  "two axis names, e.g. [y, z]"),
+    }  # fmt: skip
+    for name, (ok, what) in ref_expected.items():
+        value = getattr(ref, name)
+        if not ok(value):
+            raise ValueError(f"{owner}: reference {name} must be {what}, got {value!r}")
+
+
 def _per_row(name: str, value, rows: int) -> tuple[float, ...]:
     arr = np.atleast_1d(np.asarray(value, dtype=float))
     if arr.shape not in ((1,), (rows,)):
@@ -176,10 +221,15 @@ def resolve(robot: Robot, stack, qpos: np.ndarray | None = None) -> TaskStack:
         duplicate names, no postural task at the bottom, bad gains or weights).
     """
     tasks = [task_from_dict(t) if isinstance(t, dict) else t for t in stack]
+    for t in tasks:
+        if not isinstance(t, MotionTask):
+            raise ValueError(f"a task must be a mapping or a MotionTask, got {t!r}")
     # A bare string is one name ("all"), not a sequence of one-letter joint names.
     tasks = [dataclasses.replace(t, joints=(t.joints,)) if isinstance(t.joints, str) else t for t in tasks]
     # joints: ["all"] is every controlled joint, in the robot's order.
     tasks = [dataclasses.replace(t, joints=tuple(robot.index.joints)) if t.joints == ("all",) else t for t in tasks]
+    for t in tasks:
+        check_types(t)
     if not tasks or tasks[-1].kind != "postural":
         raise ValueError(
             "the task stack must end with the postural task (kind 'postural', the lowest priority); "
@@ -290,14 +340,16 @@ def _resolve_target(robot: Robot, task: MotionTask, qpos, frame) -> tuple[float,
 def task_from_dict(values: dict) -> MotionTask:
     """A :class:`MotionTask` from a JSON/YAML mapping (``reference`` as a nested mapping)."""
     fields = {f.name for f in dataclasses.fields(MotionTask)}
-    unknown = sorted(set(values) - fields)
+    if not isinstance(values, dict):
+        raise ValueError(f"a task must be a mapping, got {values!r}")
+    unknown = sorted(map(str, set(values) - fields))
     if unknown or "name" not in values or "kind" not in values:
         raise ValueError(f"task {values.get('name')!r}: unknown keys {unknown} (valid: {sorted(fields)}); "
                          "'name' and 'kind' are required")  # fmt: skip
     values = dict(values)
     ref = values.pop("reference", {}) or {}
     ref_fields = {f.name for f in dataclasses.fields(TaskReference)}
-    if not isinstance(ref, dict) or set(ref) - ref_fields:
+    if not isinstance(ref, dict) or set(ref) - set(map(str, ref_fields)) or not all(isinstance(k, str) for k in ref):
         raise ValueError(f"task {values['name']!r}: reference keys must be among {sorted(ref_fields)}")
     ref = {k: tuple(v) if isinstance(v, list) else v for k, v in ref.items()}
     values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
@@ -463,7 +515,11 @@ def initial_qpos(robot: Robot, posture_deg: dict) -> np.ndarray:
     for name, deg in posture_deg.items():
         if name not in robot.index.joints:
             raise ValueError(f"initial_posture_deg: unknown joint {name!r}; valid joints: {list(robot.index.joints)}")
-        if not isinstance(deg, (int, float)) or not math.isfinite(deg):
+        if isinstance(deg, bool) or not isinstance(deg, (int, float)) or not math.isfinite(deg):
             raise ValueError(f"initial_posture_deg: {name} must be a finite number of degrees, got {deg!r}")
-        qpos[robot.index.qpos_joints[robot.index.joints.index(name)]] = math.radians(deg)
+        k = robot.index.joints.index(name)
+        lo, hi = np.degrees(robot.mj_model.jnt_range[robot.mj_model.dof_jntid[robot.index.dof_joints[k]]])
+        if not lo - 1e-9 <= deg <= hi + 1e-9:
+            raise ValueError(f"initial_posture_deg: {name} = {deg} deg is outside its joint range [{lo:.1f}, {hi:.1f}] deg")
+        qpos[robot.index.qpos_joints[k]] = math.radians(deg)
     return qpos

@@ -250,7 +250,8 @@ def default_config() -> TuneConfig:
     return TuneConfig()
 
 
-def make_batched_loss(robot_name: str, scfg: sweep.SweepConfig, lc: LossConfig, *, checkpoint: bool = True):
+def make_batched_loss(robot_name: str, scfg: sweep.SweepConfig, lc: LossConfig, *, checkpoint: bool = True,
+                      controller=None):  # fmt: skip
     """Differentiable batched objective (unjitted; the caller jits / differentiates).
 
     Returns ``fn(gains, scen, regularisation=None) -> (loss (), terms {name: (B,)}, Metrics with
@@ -258,8 +259,8 @@ def make_batched_loss(robot_name: str, scfg: sweep.SweepConfig, lc: LossConfig, 
     vmapped over the Scenario batch (its ``gains`` field is ignored; ``gains`` is shared), with a
     LossTrace, on MJX's JAX implementation. ``regularisation``: optional ``{"pinv_damping": (),
     "kp_postural_reg": ()}`` overriding the controller's Reg.pinvDamp and Reg.KP_postural
-    (differentiable)."""
-    st = sweep.make_setup(scfg, robot_name=robot_name, loss_trace=True, checkpoint=checkpoint)
+    (differentiable). ``controller``: further controller settings (a ControllerConfig)."""
+    st = sweep.make_setup(scfg, robot_name=robot_name, loss_trace=True, checkpoint=checkpoint, controller=controller)
     loop = st.loop
     dtype = st.dtype
     qpos0 = jnp.asarray(st.qpos0, dtype)
@@ -364,13 +365,22 @@ def _save_checkpoint(path: pathlib.Path, state, step: int, key: str) -> None:
 
 
 def _load_checkpoint(path: pathlib.Path, like, key: str):
-    z = np.load(path)
-    if str(z["key"]) != key:
+    import zipfile
+
+    try:
+        with np.load(path) as z:
+            stored = {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+        raise ValueError(f"{path} is unreadable ({err}); remove it to restart the tuning run") from None
+    if "key" not in stored or str(stored["key"]) != key:
         raise ValueError(f"{path} belongs to another tuning config; use another --out")
     treedef = jax.tree_util.tree_structure(like)
     like_leaves = jax.tree_util.tree_leaves(like)
-    leaves = [jnp.asarray(z[f"leaf_{i:04d}"], dtype=jnp.asarray(x).dtype) for i, x in enumerate(like_leaves)]
-    return jax.tree_util.tree_unflatten(treedef, leaves), int(z["step"])
+    try:
+        leaves = [jnp.asarray(stored[f"leaf_{i:04d}"], dtype=jnp.asarray(x).dtype) for i, x in enumerate(like_leaves)]
+    except KeyError as err:
+        raise ValueError(f"{path} lacks {err}; remove it to restart the tuning run") from None
+    return jax.tree_util.tree_unflatten(treedef, leaves), int(stored["step"])
 
 
 def config_key(tc: TuneConfig, lc: LossConfig) -> str:

@@ -27,6 +27,7 @@ from __future__ import annotations
 import functools
 import json
 import pathlib
+import zipfile
 
 import mujoco
 import numpy as np
@@ -301,7 +302,7 @@ def _read_npz(path: pathlib.Path) -> dict:
     try:
         with np.load(path) as z:
             return {k: z[k] for k in z.files}
-    except (OSError, ValueError, EOFError) as err:  # truncated or not an npz
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:  # truncated or not an npz
         raise ValueError(f"{path} is unreadable ({err}); rerun the balance job") from None
 
 

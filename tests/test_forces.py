@@ -1,4 +1,4 @@
-"""Tests of wbc_jax.contact_qp: contact constraints, the QP solver, the WBC QPs.
+"""Tests of wbc_jax.qp and wbc_jax.forces: the QP solver, contact constraints, the WBC QPs.
 
 The reference solver is quadprog (Goldfarb-Idnani dual active set, float64):
 an exact active-set solution independent of the interior-point code.
@@ -15,7 +15,9 @@ import numpy as np
 import pytest
 import quadprog
 
-from wbc_jax import contact_qp as cq
+import types
+
+from wbc_jax import contacts, forces, qp
 
 jax.config.update("jax_enable_x64", True)
 
@@ -127,7 +129,7 @@ def feasibility_margin(C, b):
 
 def two_feet_f0_problem(p, params, hessian_reg=1e-7):
     """WBC's original f0 formulation (n = 12, m = 38) of the two-feet QP."""
-    C_foot, b_foot = cq.foot_constraints(params)
+    C_foot, b_foot = forces.contact_constraints(params)
     C_L = C_foot @ np.kron(np.eye(2), p["W_R_left"].T)
     C_R = C_foot @ np.kron(np.eye(2), p["W_R_right"].T)
     C2 = np.block([[C_L, np.zeros_like(C_R)], [np.zeros_like(C_L), C_R]])
@@ -150,7 +152,7 @@ def random_one_foot(rng, horizontal=0.6, torque=15.0, com=0.05):
     return centroidal_map(p_sole, p_c), w_des, random_sole_rotation(rng)
 
 
-TWO_FEET_KEYS = ("Sigma", "tau_model", "f1", "N_A", "W_R_left", "W_R_right")
+TWO_FEET_KEYS = ("Sigma", "tau_model", "A", "w_des", "W_R_left", "W_R_right")
 
 
 def stack_dicts(dicts, keys):
@@ -161,27 +163,45 @@ def stack_dicts(dicts, keys):
 # Shared jitted functions (compiled once per shape/dtype for the whole module)
 # --------------------------------------------------------------------------------------
 
-PARAMS = cq.ContactParams()
+PARAMS = contacts.ContactParams()
+SETTINGS = forces.ForceSettings()
+
+
+def contact_set(count: int) -> contacts.ContactSet:
+    """``count`` sole-like surface contacts (the default parameters; kinematics unused here)."""
+    return contacts.ContactSet(tuple(
+        contacts.ResolvedContact(
+            name=f"c{k}", type="surface", body=0, point=(0.0, 0.0, 0.0), R_body_contact=tuple(np.eye(3).ravel()),
+            params=PARAMS, normal_force=math.nan, activation=contacts.ContactActivation(), foot=k, geoms=(),
+        )  # fmt: skip
+        for k in range(count)
+    ))
+
+
+FEET, ONE_FOOT = contact_set(2), contact_set(1)
+
+
+def two_feet_wrenches(Sigma, tau_model, A, w_des, W_R_left, W_R_right):
+    """The two-feet WBC QP (equality form) of forces.momentum_equality_qp."""
+    tt = types.SimpleNamespace(Sigma=Sigma, tau_model=tau_model)
+    return forces.momentum_equality_qp(
+        FEET, jnp.ones(2, A.dtype), A, w_des, tt, jnp.stack([W_R_left, W_R_right]), SETTINGS
+    )
 
 
 @pytest.fixture(scope="module")
 def solve_batch():
-    return jit(jax.vmap(lambda H, g, C, b: cq.solve_qp(H, g, C, b)))
+    return jit(jax.vmap(lambda H, g, C, b: qp.solve_qp(H, g, C, b)))
 
 
 @pytest.fixture(scope="module")
 def solve_one():
-    return jit(lambda H, g, C, b: cq.solve_qp(H, g, C, b))
+    return jit(lambda H, g, C, b: qp.solve_qp(H, g, C, b))
 
 
 @pytest.fixture(scope="module")
 def two_feet_batch():
-    def f(Sigma, tau_model, f1, N_A, W_R_left, W_R_right):
-        return cq.two_feet_wrenches(
-            Sigma, tau_model, f1, N_A, W_R_left, W_R_right, PARAMS
-        )
-
-    return jit(jax.vmap(f))
+    return jit(jax.vmap(two_feet_wrenches))
 
 
 @pytest.fixture(scope="module")
@@ -244,18 +264,18 @@ def two_feet_problems():
 )
 def test_params_validation(kwargs, field):
     with pytest.raises(ValueError, match=field):
-        cq.ContactParams(**kwargs)
+        contacts.ContactParams(**kwargs)
 
 
 def test_params_defaults_and_static_pytree():
-    p = cq.ContactParams()
+    p = contacts.ContactParams()
     assert (p.mu, p.n_points, p.mu_t, p.fz_min) == (1 / 3, 4, 1 / 75, 10.0)
     assert p.foot_size == ((-0.07, 0.12), (-0.045, 0.045))
     assert jax.tree_util.tree_leaves(p) == []
     # Static: usable as an ordinary jit argument, its values are the treedef.
     out = jit(lambda q, x: x * q.fz_min)(p, 2.0)
     assert float(out) == 20.0
-    assert hash(p) == hash(cq.ContactParams())
+    assert hash(p) == hash(contacts.ContactParams())
 
 
 def wbc_cone_rows(mu, n_points):
@@ -274,8 +294,8 @@ def wbc_cone_rows(mu, n_points):
 
 
 def test_foot_constraints_friction_cone_polygon():
-    params = cq.ContactParams()
-    C, b = cq.foot_constraints(params)
+    params = contacts.ContactParams()
+    C, b = forces.contact_constraints(params)
     assert C.shape == (19, 6) and b.shape == (19,)
     cone = C[:12]
     fz = 200.0
@@ -307,7 +327,7 @@ def test_foot_constraints_friction_cone_polygon():
 
 def test_foot_constraints_edge_count_other_n_points():
     for n_points, edges in ((2, 4), (3, 8), (5, 16)):
-        C, b = cq.foot_constraints(cq.ContactParams(n_points=n_points))
+        C, b = forces.contact_constraints(contacts.ContactParams(n_points=n_points))
         assert C.shape == (edges + 7, 6) and b.shape == (edges + 7,)
 
 
@@ -320,7 +340,7 @@ def wrench_with_cop(fz, cop_x, cop_y, tau_z=0.0):
     "cop", [(0.12, 0.0), (-0.07, 0.0), (0.0, 0.045), (0.0, -0.045)]
 )
 def test_foot_constraints_cop_rectangle(cop):
-    C, b = cq.foot_constraints(cq.ContactParams())
+    C, b = forces.contact_constraints(contacts.ContactParams())
     fz, d = 150.0, 1e-4
     inside = np.array(cop) - d * np.sign(cop)
     outside = np.array(cop) + d * np.sign(cop)
@@ -331,8 +351,8 @@ def test_foot_constraints_cop_rectangle(cop):
 
 
 def test_foot_constraints_torsion_and_unilateral():
-    params = cq.ContactParams()
-    C, b = cq.foot_constraints(params)
+    params = contacts.ContactParams()
+    C, b = forces.contact_constraints(params)
     fz = 100.0
     limit = params.mu_t * fz
     for sign, row in ((1.0, 12), (-1.0, 13)):
@@ -348,16 +368,16 @@ def test_foot_constraints_torsion_and_unilateral():
 
 def test_world_constraints_rotate_the_wrench():
     rng = np.random.default_rng(3)
-    C_foot, b_foot = cq.foot_constraints(cq.ContactParams())
+    C_foot, b_foot = forces.contact_constraints(contacts.ContactParams())
     R = random_sole_rotation(rng, tilt=0.5, yaw=3.0)
-    C, b = cq.world_constraints(C_foot, b_foot, jnp.asarray(R))
+    C, b = forces.world_constraints(C_foot, b_foot, jnp.asarray(R))
     assert C.shape == (19, 6) and C.dtype == jnp.float64
     for _ in range(20):
         f_sole = rng.normal(size=6) * [30, 30, 100, 5, 5, 1] + [0, 0, 150, 0, 0, 0]
         f_world = np.concatenate([R @ f_sole[:3], R @ f_sole[3:]])
         np.testing.assert_allclose(np.asarray(C) @ f_world, C_foot @ f_sole, atol=1e-10)
     np.testing.assert_array_equal(np.asarray(b), b_foot)
-    C32, _ = cq.world_constraints(C_foot, b_foot, jnp.asarray(R, jnp.float32))
+    C32, _ = forces.world_constraints(C_foot, b_foot, jnp.asarray(R, jnp.float32))
     assert C32.dtype == jnp.float32
 
 
@@ -385,7 +405,7 @@ def test_solve_qp_matches_quadprog_float64(random_qps, solve_batch, size):
     )
     assert np.max(np.abs(obj - obj_ref) / (1.0 + np.abs(obj_ref))) < 1e-8
     assert np.max(info.max_violation) < 1e-9
-    assert np.max(info.iterations) < cq.DEFAULT_ITERATIONS
+    assert np.max(info.iterations) < qp.DEFAULT_ITERATIONS
 
 
 @pytest.mark.parametrize("size", [(6, 19), (6, 38)])
@@ -446,7 +466,7 @@ def test_solve_qp_vmap_equals_loop_and_jit_cache(solve_batch, solve_one):
 
     def traced(H, g, C, b):
         traces.append(1)
-        return cq.solve_qp(H, g, C, b)
+        return qp.solve_qp(H, g, C, b)
 
     batched = jit(jax.vmap(traced))
     x, info = batched(H, g, C, b)
@@ -461,9 +481,9 @@ def test_solve_qp_vmap_equals_loop_and_jit_cache(solve_batch, solve_one):
 
 def test_solve_qp_validates_shapes():
     with pytest.raises(ValueError, match="shapes"):
-        cq.solve_qp(jnp.eye(3), jnp.zeros(3), jnp.zeros((4, 2)), jnp.zeros(4))
+        qp.solve_qp(jnp.eye(3), jnp.zeros(3), jnp.zeros((4, 2)), jnp.zeros(4))
     with pytest.raises(ValueError, match="m >= 1"):
-        cq.solve_qp(jnp.eye(3), jnp.zeros(3), jnp.zeros((0, 3)), jnp.zeros(0))
+        qp.solve_qp(jnp.eye(3), jnp.zeros(3), jnp.zeros((0, 3)), jnp.zeros(0))
 
 
 # --------------------------------------------------------------------------------------
@@ -486,7 +506,7 @@ def _probe_one(H, g, C, b, w, T):
     args = (H, g, C, b)
 
     def x_of(*a):
-        return cq.solve_qp(*a)[0]
+        return qp.solve_qp(*a)[0]
 
     def f(*a):
         return loss(x_of(*a), w)
@@ -621,7 +641,7 @@ def test_solve_qp_jacobians_forward_equals_reverse(random_qps):
     H, g, C, b = (jnp.asarray(s[k][i]) for k in "HgCb")
 
     def x_of(g, b):
-        return cq.solve_qp(H, g, C, b)[0]
+        return qp.solve_qp(H, g, C, b)[0]
 
     jf, jr = jit(
         lambda g, b: (
@@ -646,7 +666,7 @@ def test_solve_qp_inside_scan_and_grad():
 
     def rollout(theta):
         def step(x, _):
-            x_new, _ = cq.solve_qp(H, g + theta * x, C, b)
+            x_new, _ = qp.solve_qp(H, g + theta * x, C, b)
             return 0.5 * x_new, None
 
         x, _ = jax.lax.scan(step, jnp.zeros(6), None, length=4)
@@ -669,7 +689,7 @@ def test_solve_qp_inside_scan_and_grad():
 
 
 def world_constraint_matrix(R):
-    C_foot, b_foot = cq.foot_constraints(PARAMS)
+    C_foot, b_foot = forces.contact_constraints(PARAMS)
     return C_foot @ np.kron(np.eye(2), R.T), b_foot
 
 
@@ -739,6 +759,7 @@ def test_two_feet_infeasible_total_wrench_falls_back(two_feet_problems, two_feet
     p = probs[0]
     # Ask the feet to pull the robot down: impossible with f_z >= fz_min.
     w_pull = np.array([0.0, 0.0, -100.0, 0.0, 0.0, 0.0])
+    p["w_des"] = w_pull
     p["f1"] = np.linalg.pinv(p["A"]) @ w_pull
     batch = stack_dicts(probs, TWO_FEET_KEYS)
     f, info = two_feet_batch(*(jnp.asarray(batch[k]) for k in TWO_FEET_KEYS))
@@ -763,12 +784,7 @@ def test_two_feet_gradients(two_feet_problems):
         # N_A and f1 from a perturbed momentum map A + theta E (a projector
         # family), so the derivative w.r.t. N_A is exercised consistently.
         A = jnp.asarray(p["A"]) + theta * E
-        pinvA = jnp.linalg.pinv(A)
-        f1 = pinvA @ w_des
-        N_A = jnp.eye(12) - pinvA @ A
-        f, _ = cq.two_feet_wrenches(
-            Sigma, tau_model, f1, N_A, W_R_left, p["W_R_right"], PARAMS
-        )
+        f, _ = two_feet_wrenches(Sigma, tau_model, A, w_des, W_R_left, jnp.asarray(p["W_R_right"]))
         return jnp.dot(w, f)
 
     args = (p["Sigma"], p["tau_model"], p["w_des"], 0.0, p["W_R_left"])
@@ -809,30 +825,46 @@ def test_two_feet_gradients(two_feet_problems):
 
 
 def test_one_foot_wrench():
+    """One foot: the equality QP returns A_k^-1 w where that wrench meets the constraints; the soft
+    momentum QP (the fallback) matches quadprog on its objective, with constraints active."""
     rng = np.random.default_rng(21)
     # Mostly demanding wrenches (constraints active), some easy (achievable).
     probs = [random_one_foot(rng) for _ in range(18)]
     probs += [random_one_foot(rng, 0.05, 0.5, 0.01) for _ in range(6)]
     A, w, R = (np.stack(a) for a in zip(*probs))
-    one_foot = jit(jax.vmap(lambda A, w, R: cq.one_foot_wrench(A, w, R, PARAMS)))
-    f, info = one_foot(A, w, R)
+    Sigma = rng.normal(size=(len(probs), N_JOINTS, 6)) * 0.2
+    tau = rng.normal(size=(len(probs), N_JOINTS)) * 10.0
+
+    def solve(A, w, R, Sigma, tau):
+        tt = types.SimpleNamespace(Sigma=Sigma, tau_model=tau)
+        one = jnp.ones(1, A.dtype)
+        exact, info_eq = forces.momentum_equality_qp(ONE_FOOT, one, A, w, tt, R[None], SETTINGS)
+        soft, info = forces.soft_momentum_qp(ONE_FOOT, one, A, w, tt, R[None], SETTINGS)
+        return exact, info_eq.infeasible, soft, info
+
+    one_foot = jit(jax.vmap(solve))
+    exact_f, eq_infeasible, f, info = one_foot(A, w, R, Sigma, tau)
     f = np.asarray(f)
     assert np.all(info.converged) and np.max(info.max_violation) < 1e-6
     n_active = n_exact = 0
-    for (A_k, w_k, R_k), f_k in zip(probs, f):
+    c = SETTINGS.torque_weight_soft
+    for k, ((A_k, w_k, R_k), f_k) in enumerate(zip(probs, f)):
         C, b = world_constraint_matrix(R_k)
-        H = A_k.T @ A_k + 1e-7 * np.eye(6)
-        x_ref, _ = ref_qp(H, -A_k.T @ w_k, C, b)
+        H = A_k.T @ A_k + c * Sigma[k].T @ Sigma[k] + 1e-7 * np.eye(6)
+        x_ref, _ = ref_qp(H, -A_k.T @ w_k + c * Sigma[k].T @ tau[k], C, b)
         assert np.max(C @ f_k - b) < 1e-6
         np.testing.assert_allclose(f_k, x_ref, atol=1e-7 * np.abs(x_ref).max())
         n_active += int(np.max(C @ f_k - b) > -1e-6)
         exact = np.linalg.solve(A_k, w_k)
-        if np.all(C @ exact <= b):  # achievable: the QP returns it
+        if np.all(C @ exact <= b):  # achievable: the equality QP returns it
             n_exact += 1
-            np.testing.assert_allclose(f_k, exact, atol=1e-6 * np.abs(exact).max())
+            assert not eq_infeasible[k]
+            np.testing.assert_allclose(exact_f[k], exact, atol=1e-6 * np.abs(exact).max())
+        else:
+            assert eq_infeasible[k]
     assert n_active >= 12 and n_exact >= 3
-    f32, info32 = one_foot(*(jnp.asarray(a, jnp.float32) for a in (A, w, R)))
-    assert f32.dtype == jnp.float32 and not np.any(info32.infeasible)
+    f32 = one_foot(*(jnp.asarray(a, jnp.float32) for a in (A, w, R, Sigma, tau)))[2]
+    assert f32.dtype == jnp.float32
     rel = np.max(np.abs(np.asarray(f32, np.float64) - f)) / np.max(np.abs(f))
     assert rel < 1e-4
-    # (Derivatives of the wrappers: test_two_feet_gradients.)
+    # (Derivatives of the formulations: test_two_feet_gradients.)

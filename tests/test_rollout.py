@@ -1,0 +1,88 @@
+"""The closed loop: the C MuJoCo backend against the MJX closed loop (float64, the benchmark
+scenario), the pushes, the metrics' geometry, one set of metric names."""
+
+import jax
+import numpy as np
+import pytest
+from scipy.spatial import ConvexHull
+
+from wbc_jax import constants, physics, rollout, scenario
+
+PUSH = ([0.0, 40.0, 0.0], 0.3, 0.1)  # the benchmark scenario: stand, 40 N lateral chest push, 1 s
+
+
+def _run(backend: str):
+    st = scenario.setup("stand", duration=1.0, sim=rollout.SimConfig(physics=physics.PhysicsConfig(backend=backend)))
+    return st, scenario.run(st, scenario.single(st, scenario.make_push(*PUSH, st.dtype)))
+
+
+@pytest.fixture(scope="module")
+def runs():
+    return {backend: _run(backend) for backend in ("jax", "mujoco")}
+
+
+def test_c_mujoco_backend_equals_the_mjx_closed_loop(runs):
+    """Same controller code, two physics engines: the CoM stays within 1e-6 m over 1 s (float64)."""
+    (_, mjx_run), (st, c_run) = runs["jax"], runs["mujoco"]
+    com_mjx, com_c = mjx_run.records.com[0], c_run.records.com[0]
+    assert com_mjx.shape == com_c.shape == (100, 3)
+    assert np.abs(com_mjx - com_c).max() < 1e-6
+    # The push moved the robot (the check is not of a robot standing still).
+    assert np.linalg.norm(com_c - com_c[0], axis=1).max() > 0.01
+    # The measured wrenches (each engine's own contact read) agree too.
+    np.testing.assert_allclose(mjx_run.records.f_meas[0], c_run.records.f_meas[0], atol=1e-3)
+    m_mjx = rollout.summarize(jax.tree_util.tree_map(lambda x: x[0], mjx_run.metrics))
+    m_c = rollout.summarize(jax.tree_util.tree_map(lambda x: x[0], c_run.metrics))
+    assert set(m_c) == set(constants.METRIC_NAMES)
+    for name in ("com_rmse_m", "com_max_err_m", "max_abs_torque_nm", "max_foot_slip_m", "min_com_height_m"):
+        assert m_c[name] == pytest.approx(m_mjx[name], rel=1e-5, abs=1e-9), name
+    assert m_c["upright"] and not m_c["nan"]
+
+
+def test_recorded_push_and_host_wrenches(runs):
+    st, run = runs["mujoco"]
+    traj = run.records
+    on = (traj.t[0] >= PUSH[1]) & (traj.t[0] < PUSH[1] + PUSH[2])
+    assert on.sum() in (10, 11)
+    np.testing.assert_allclose(traj.push[0][on], [PUSH[0]] * on.sum(), atol=1e-9)
+    # The host scatters the tick's push forces onto their bodies as the traced physics does:
+    # two pushes (one on the default body, one on the pelvis) over the push's first tick.
+    two = jax.tree_util.tree_map(lambda a, b: np.concatenate([a, b]), scenario.make_push(*PUSH),
+                                 scenario.make_push([5.0, 0.0, 0.0], 0.3, 0.05, body=st.robot.index.body_id("root_link")))  # fmt: skip
+    for k in (29, 30, 34, 35, 39, 40):
+        traced = np.asarray(st.loop.xfrc(two, k))
+        forces = np.asarray(st.loop.step_push_forces(two, k))[None]
+        host = st.loop._host_xfrc(forces, np.asarray(st.loop.push_bodies(two))[None])[0]
+        np.testing.assert_allclose(host, traced, atol=1e-9)
+    assert np.abs(np.asarray(st.loop.xfrc(two, 32))).sum() > 0
+
+
+def test_polygon_margin_is_the_distance_to_the_hull():
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-1, 1, size=(8, 2))
+    hull = ConvexHull(pts)
+    for p in rng.uniform(-1.5, 1.5, size=(20, 2)):
+        inside = np.all(hull.equations[:, :2] @ p + hull.equations[:, 2] <= 0)
+        margin = float(rollout.polygon_margin(jax.numpy.asarray(pts), jax.numpy.asarray(p)))
+        if inside:  # the distance to the nearest edge line
+            assert margin == pytest.approx(-np.max(hull.equations[:, :2] @ p + hull.equations[:, 2]), abs=1e-9)
+        else:
+            assert margin < 0
+
+
+def test_bad_settings_are_named():
+    with pytest.raises(ValueError, match="duration must be a positive finite"):
+        rollout.SimConfig(duration=float("inf"))
+    with pytest.raises(ValueError, match="control_dt must be a positive"):
+        rollout.SimConfig(control_dt=0.0)
+    with pytest.raises(ValueError, match="unknown physics backend 'gpu'"):
+        physics.PhysicsConfig(backend="gpu")
+    with pytest.raises(ValueError, match="shorter than one control tick"):
+        scenario.setup("stand", duration=0.001)
+    with pytest.raises(ValueError, match="multiple of the physics timestep"):
+        scenario.setup("stand", duration=1.0, sim=rollout.SimConfig(control_dt=0.0105))
+    if not physics.has_cuda():
+        with pytest.raises(ValueError, match="needs a CUDA GPU"):
+            physics.resolve_backend("warp")
+    with pytest.raises(ValueError, match="gradients need the 'jax' physics backend"):
+        physics.resolve_backend("mujoco", differentiable=True)
