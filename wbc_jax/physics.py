@@ -47,14 +47,11 @@ class PhysicsConfig:
     Attributes:
       backend: one of :data:`BACKENDS`.
       solver_iterations / ls_iterations: Newton / line-search iterations (None: the model's).
-      contacts_per_env: Warp contact buffer per environment (the feet's 8 spheres need 8; a
-        scene's objects add theirs). A run that overflows it is flagged per environment.
     """
 
     backend: str = "auto"
     solver_iterations: int | None = None
     ls_iterations: int | None = None
-    contacts_per_env: int = 16
 
     def __post_init__(self):
         if self.backend not in BACKENDS:
@@ -63,8 +60,6 @@ class PhysicsConfig:
             value = getattr(self, name)
             if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
                 raise ValueError(f"{name} must be a positive integer or None, got {value!r}")
-        if not (isinstance(self.contacts_per_env, int) and self.contacts_per_env >= 1):
-            raise ValueError(f"contacts_per_env must be a positive integer, got {self.contacts_per_env!r}")
 
 
 def has_cuda() -> bool:
@@ -73,6 +68,12 @@ def has_cuda() -> bool:
 
 def has_warp() -> bool:
     return importlib.util.find_spec("warp") is not None
+
+
+def warp_on_cpu() -> bool:
+    """``WBC_JAX_WARP_ON_CPU=1``: let ``--backend warp`` run on the CPU (Warp's CPU kernels; for
+    testing the Warp path without a GPU)."""
+    return os.environ.get("WBC_JAX_WARP_ON_CPU") == "1"
 
 
 def resolve_backend(name: str, *, differentiable: bool = False) -> str:
@@ -88,7 +89,7 @@ def resolve_backend(name: str, *, differentiable: bool = False) -> str:
             return "warp" if has_warp() else "jax"
         return "jax" if jax.default_backend() != "cpu" else "mujoco"
     if name == "warp":
-        missing = [what for what, ok in (("a CUDA GPU", has_cuda()), ("warp-lang", has_warp())) if not ok]
+        missing = [what for what, ok in (("a CUDA GPU", has_cuda() or warp_on_cpu()), ("warp-lang", has_warp())) if not ok]
         if missing:
             raise ValueError(
                 f"the 'warp' physics backend needs {' and '.join(missing)} (devices here: "
@@ -156,10 +157,24 @@ def device_model(robot_mj: mujoco.MjModel, backend: str, cfg: PhysicsConfig) -> 
     return solver_model(mjx.put_model(robot_mj), cfg)
 
 
-def device_data(robot_mj: mujoco.MjModel, backend: str, cfg: PhysicsConfig, qpos, dtype=None) -> mjx.Data:
-    """MJX data at ``qpos`` with zero velocity, for one environment of an MJX backend."""
+def constraint_rows_bound(m: mujoco.MjModel) -> int:
+    """Most constraint rows one environment can have: 2 (condim - 1) per contact pair (pyramidal
+    cones, one contact per sphere pair), the limited joints, the dofs with friction loss and the
+    equality constraints (6 rows at most each)."""
+    rows = int(np.sum(2 * (np.maximum(m.pair_dim, 1) - 1))) if m.npair else 0
+    return rows + int(np.sum(m.jnt_limited)) + int(np.sum(m.dof_frictionloss > 0)) + 6 * int(m.neq)
+
+
+def device_data(robot_mj: mujoco.MjModel, backend: str, cfg: PhysicsConfig, qpos, dtype=None,
+                batch: int = 1) -> mjx.Data:  # fmt: skip
+    """MJX data at ``qpos`` with zero velocity, for one environment of an MJX backend.
+
+    Warp keeps the contacts of all ``batch`` environments in one buffer: it is sized for every
+    contact pair of every environment (each pair of spheres and planes/boxes makes one contact at
+    most), and the constraint rows per environment likewise, so neither can overflow."""
     if backend == "warp":
-        d = mjx.make_data(robot_mj, impl="warp", naconmax=cfg.contacts_per_env, njmax=3 * 4 * cfg.contacts_per_env)
+        d = mjx.make_data(robot_mj, impl="warp", naconmax=batch * max_contacts(robot_mj),
+                          njmax=constraint_rows_bound(robot_mj))  # fmt: skip
     else:
         d = mjx.make_data(robot_mj)
     return d.replace(qpos=jnp.asarray(qpos, d.qpos.dtype if dtype is None else dtype))

@@ -388,9 +388,10 @@ class ClosedLoop:
     def initial_qpos(self, qpos0: Array, joint_offset: Array) -> Array:
         return qpos0.at[self.idx.qpos_joints].add(joint_offset.astype(qpos0.dtype))
 
-    def start(self, qpos: Array):
-        """Initial carry (physics data, loop state, physics_ok) of an MJX backend at ``qpos``."""
-        d = physics.device_data(self.robot.mj_model, self.backend, self.cfg.physics, qpos, qpos.dtype)
+    def start(self, qpos: Array, batch: int = 1):
+        """Initial carry (physics data, loop state, physics_ok) of an MJX backend at ``qpos``;
+        ``batch``: the number of environments run together (Warp's contact buffer)."""
+        d = physics.device_data(self.robot.mj_model, self.backend, self.cfg.physics, qpos, qpos.dtype, batch)
         return d, self.init(qpos), jnp.ones((), bool)
 
     def chunk(self, plant: mjx.Model, gains: Gains, push: Push, carry, k0, n_ticks: int):
@@ -402,7 +403,7 @@ class ClosedLoop:
             xfrc = self.xfrc(push, k).astype(d.qpos.dtype)
             d_new, _ = jax.lax.scan(lambda dd, x: (physics.step(plant, dd, ctrl, x), None), d, xfrc)
             finite = jnp.all(jnp.isfinite(d_new.qpos)) & jnp.all(jnp.isfinite(d_new.qvel))
-            d_new = jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), d_new, d)
+            d_new = d_new.where(~finite, d)  # a diverged env keeps its last finite state
             if self.cfg.record:
                 record = self.measure(record, *physics.contacts(plant, d_new))
             return (d_new, state, finite), record
@@ -411,12 +412,13 @@ class ClosedLoop:
             tick = jax.checkpoint(tick)
         return jax.lax.scan(tick, carry, k0 + jnp.arange(n_ticks))
 
-    def rollout(self, plant: mjx.Model, qpos0: Array, gains: Gains, push: Push, controller_overrides=None):
+    def rollout(self, plant: mjx.Model, qpos0: Array, gains: Gains, push: Push, controller_overrides=None,
+                batch: int = 1):  # fmt: skip
         """The whole horizon on an MJX backend: (Metrics, records or None). ``plant``: the MJX model
         simulated (:func:`wbc_jax.physics.plant_model` of the nominal one for a perturbed plant).
         ``controller_overrides``: fields of the controller state to replace (regularisation as
         differentiable arrays, gain tuning's gradient check)."""
-        d, state, ok = self.start(qpos0)
+        d, state, ok = self.start(qpos0, batch)
         if controller_overrides:
             state = state.replace(controller=state.controller.replace(**controller_overrides))
         carry = (d, state, ok)

@@ -227,12 +227,18 @@ def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
 
 
 def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
+    """MJX backends: jit(vmap(closed loop)) over the batch, sharded along it. A run without
+    records is one program (Warp's data never leaves it: its contact buffer is shared by the
+    batch); a recorded run (``jax`` only) goes in chunks of ticks, for progress."""
     loop, dtype = setup_.loop, setup_.dtype
     mesh = device_mesh()
     n_dev = mesh.devices.size
     padded = pad_batch(scen, size + (-size) % n_dev)
+    batch = int(padded.friction.shape[0])
     sharding = NamedSharding(mesh, PartitionSpec("batch"))
-    scen_dev = jax.device_put(jax.tree_util.tree_map(lambda x: np.asarray(x, dtype) if np.asarray(x).dtype.kind == "f" else x, padded), sharding)
+    replicated = NamedSharding(mesh, PartitionSpec())
+    floats = lambda x: np.asarray(x, dtype) if np.asarray(x).dtype.kind == "f" else x  # noqa: E731
+    scen_dev = jax.device_put(jax.tree_util.tree_map(floats, padded), sharding)
     qpos0 = jnp.asarray(setup_.qpos0, dtype)
     nominal = physics.device_model(setup_.robot.mj_model, loop.backend, loop.cfg.physics)
     perturb = loop.cfg.perturb_plant
@@ -240,22 +246,33 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
     def plant(s):
         return physics.plant_model(nominal, s.friction, s.mass_scale) if perturb else nominal
 
+    cache = loop.__dict__.setdefault("_mjx_cache", {})  # compiled once per loop and batch shape
+    key = (batch, str(dtype), n_dev, loop.cfg.record)
+    compile_s = 0.0
+    t0 = time.perf_counter()
+    if not loop.cfg.record:
+        if key not in cache:
+            def whole(s):
+                return loop.rollout(plant(s), loop.initial_qpos(qpos0, s.joint_offset), s.gains, s.push,
+                                    batch=batch // n_dev)[0]  # fmt: skip
+
+            cache[key] = jax.jit(jax.vmap(whole), in_shardings=sharding, out_shardings=sharding).lower(scen_dev).compile()
+            compile_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        metrics = jax.tree_util.tree_map(np.asarray, cache[key](scen_dev))
+        if on_tick is not None:
+            on_tick(loop.n_ticks)
+        return Run(metrics, None, compile_s, time.perf_counter() - t0)
+
+    chunk = _tick_chunk(loop.n_ticks)
+
     def start(s):
         return loop.start(loop.initial_qpos(qpos0, s.joint_offset))
-
-    chunk = _tick_chunk(loop.n_ticks) if loop.cfg.record else loop.n_ticks
 
     def advance(s, carry, k0):
         return loop.chunk(plant(s), s.gains, s.push, carry, k0, chunk)
 
-    # Compiled once per closed loop and batch shape (kept on the loop).
-    cache = loop.__dict__.setdefault("_mjx_cache", {})
-    key = (padded.friction.shape, str(dtype), n_dev, chunk)
-    compile_s = 0.0
     if key not in cache:
-        t0 = time.perf_counter()
-        # Every leaf of the scenarios, the carry and the records is split along the batch axis.
-        replicated = NamedSharding(mesh, PartitionSpec())
         start_fn = jax.jit(jax.vmap(start), in_shardings=sharding, out_shardings=sharding).lower(scen_dev).compile()
         carry_shape = jax.eval_shape(jax.vmap(start), scen_dev)
         advance_fn = jax.jit(
@@ -270,19 +287,12 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
     pieces = []
     for k0 in range(0, loop.n_ticks, chunk):
         carry, records = advance_fn(scen_dev, carry, jnp.int32(k0))
-        if records is not None:
-            pieces.append(jax.tree_util.tree_map(np.asarray, records))
-        else:
-            jax.block_until_ready(carry[1].metrics)
+        pieces.append(jax.tree_util.tree_map(np.asarray, records))
         if on_tick is not None:
             on_tick(min(k0 + chunk, loop.n_ticks))
-    metrics = rollout_lib._final_metrics(carry[1], carry[2])
-    metrics = jax.tree_util.tree_map(np.asarray, metrics)
-    run_s = time.perf_counter() - t0
-    records = None
-    if pieces:
-        records = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=1), *pieces)
-    return Run(metrics, records, compile_s, run_s)
+    metrics = jax.tree_util.tree_map(np.asarray, rollout_lib._final_metrics(carry[1], carry[2]))
+    records = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=1), *pieces)
+    return Run(metrics, records, compile_s, time.perf_counter() - t0)
 
 
 def _tick_chunk(n_ticks: int, target: int = 100) -> int:
