@@ -124,6 +124,21 @@ def _push_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def _envelope(args: argparse.Namespace) -> int:
+    from wbc_jax import envelope, scenario, sweep
+
+    cfg = config_from_args(args, sweep.default_config())
+    cfg = dataclasses.replace(cfg, out=args.out if "out" in vars(args) else "runs/envelope")
+    cfg.check()
+    scenario.enable_compilation_cache()
+    found = envelope.search(cfg, impulse_max=args.impulse_max, resolution=args.resolution, progress=not args.quiet)
+    line = {"rollouts": found["rollouts"], "rounds": found["rounds"], "backend": found["backend"],
+            "run_s": found["run_s"], "compile_s": found["compile_s"],
+            "impulse_ns": {str(a): e["impulse_ns"] for a, e in found["envelope"][0].items()}}  # fmt: skip
+    print(json.dumps(line, separators=(",", ":")))
+    return 0
+
+
 def _view(args: argparse.Namespace) -> int:
     from wbc_jax import viz
 
@@ -163,6 +178,13 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_arguments(sw, sweep.default_config())
     sw.add_argument("--quiet", action="store_true", help="no progress bar")
     sw.set_defaults(func=_push_sweep)
+
+    ev = sub.add_parser("envelope", help="recovery envelope by batched bisection (the sweep's flags, no grid)")
+    add_config_arguments(ev, sweep.default_config(), skip=("magnitudes",))
+    ev.add_argument("--impulse-max", type=float, default=40.0, help="upper end of the search [N s] (default: 40)")
+    ev.add_argument("--resolution", type=float, default=0.25, help="bracket width to reach [N s] (default: 0.25)")
+    ev.add_argument("--quiet", action="store_true", help="no progress bar")
+    ev.set_defaults(func=_envelope)
 
     vw = sub.add_parser("view", help="log a run (or one env of a push sweep) to rerun: .rrd or viewer")
     vw.add_argument("run_dir", help="output folder of a balance run or a push sweep")

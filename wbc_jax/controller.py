@@ -52,6 +52,8 @@ class ControllerConfig:
       solution_damping, projector_reg: of the motion-task hierarchy (None: by precision,
         :data:`wbc_jax.hierarchy.SOLUTION_DAMPING` / :data:`wbc_jax.hierarchy.PROJECTOR_REG`).
       compensate_passive: include the model's joint damping in the bias h.
+      contact_detection: the measured contact forces gate the contacts' activations (a contact
+        the simulator does not see ramps out; a re-touch ramps back in).
     """
 
     forces: str = "qp"
@@ -69,6 +71,7 @@ class ControllerConfig:
     solution_damping: float | None = None
     projector_reg: float | None = None
     compensate_passive: bool = True
+    contact_detection: bool = False
 
     def __post_init__(self):
         if self.forces not in FORCE_MODES:
@@ -153,7 +156,9 @@ class Controller(NamedTuple):
       frames: the points whose kinematics ``step`` reads from the dynamics terms (contacts first,
         then the motion tasks'): pass them to :func:`wbc_jax.dynamics.terms`.
       init: ``init(t_ref) -> ControllerState``, at the postural reference (the initial state).
-      step: ``step(gains, state, t, ref, time) -> (ControlOutput, ControllerState)``.
+      step: ``step(gains, state, t, ref, time, measured=None) -> (ControlOutput, ControllerState)``;
+        ``measured``: (K,) the normal force the simulator applied at each contact in the last physics
+        step (contact detection), None: not measured.
       config, contact_set, stack: what it was built from.
     """
 
@@ -202,7 +207,7 @@ def make_controller(
             kp_postural_reg=jnp.asarray(config.kp_postural_reg, dtype),
         )
 
-    def step(gains: Gains, state: ControllerState, t: DynamicsTerms, ref: Reference, time: Array):
+    def step(gains: Gains, state: ControllerState, t: DynamicsTerms, ref: Reference, time: Array, measured=None):
         dtype = t.M.dtype
         f_grav = forces.gravity_wrench(mass, dtype)
         cterms = contacts_lib.contact_terms(cset, t, time, jnp.clip(ref.activation, 0.0, 1.0))

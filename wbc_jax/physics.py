@@ -153,7 +153,14 @@ def plant_mj_model(m: mujoco.MjModel, friction: float, mass_scale: float) -> muj
 def device_model(robot_mj: mujoco.MjModel, backend: str, cfg: PhysicsConfig) -> mjx.Model:
     """The MJX model of a plant for an MJX backend, with the solver overrides."""
     if backend == "warp":
-        return solver_model(mjx.put_model(robot_mj, impl="warp"), cfg)
+        from mujoco.mjx.third_party.mujoco_warp._src.types import OverflowType
+
+        mx = solver_model(mjx.put_model(robot_mj, impl="warp"), cfg)
+        # Buffer overflows are reported (they would drop contacts or constraints); reaching the
+        # solver's iteration cap is normal for fallen robots (as in C MuJoCo) and is not.
+        quiet = ~(OverflowType.ITERATIONS | OverflowType.LS_ITERATIONS)
+        impl = mx.opt._impl.replace(warn_overflow=int(mx.opt._impl.warn_overflow) & int(quiet))
+        return mx.replace(opt=mx.opt.replace(_impl=impl))
     return solver_model(mjx.put_model(robot_mj), cfg)
 
 

@@ -138,13 +138,18 @@ class Metrics:
 @pytree_dataclass
 class LoopState:
     """Carry of the closed loop besides the physics: controller state, metrics, where each fully
-    active contact was set down (K, 3) and its normal then (K, 3), the initial CoM height."""
+    active contact was set down (K, 3) and its normal then (K, 3), the initial CoM height, and
+    the normal force (K,) the simulator applied at each contact in the last physics step (+inf
+    before the first step: every contact counts as touching) along the tick's contact normals
+    (K, 3), for contact detection."""
 
     controller: ControllerState
     metrics: Metrics
     anchors: Array
     anchor_normals: Array
     com0_height: Array
+    contact_normals: Array
+    measured_normal: Array
 
 
 @pytree_dataclass
@@ -279,7 +284,8 @@ class ClosedLoop:
         )  # fmt: skip
         return LoopState(
             controller=self.controller.init(t0), metrics=metrics, anchors=t0.W_p_frames[:K],
-            anchor_normals=normals, com0_height=t0.W_p_CoM[2],
+            anchor_normals=normals, com0_height=t0.W_p_CoM[2], contact_normals=normals,
+            measured_normal=jnp.full(K, jnp.inf, dtype),
         )  # fmt: skip
 
     def control(self, gains: Gains, state: LoopState, qpos: Array, qvel: Array, k: Array,
@@ -294,11 +300,11 @@ class ClosedLoop:
         t_now = k * cfg.control_dt
         terms = self.terms(qpos, qvel)
         ref = self.schedule.at(t_now, dtype)
-        out, cstate = self.controller.step(gains, state.controller, terms, ref, t_now)
+        out, cstate = self.controller.step(gains, state.controller, terms, ref, t_now, state.measured_normal)
         ctrl = jnp.zeros(self.robot.mj_model.nu, dtype).at[idx.actuators].set(out.tau)
         metrics, anchors, normals = self._metrics(state, terms, ref, out, t_now, physics_ok)
-        state = LoopState(controller=cstate, metrics=metrics, anchors=anchors, anchor_normals=normals,
-                          com0_height=state.com0_height)  # fmt: skip
+        state = state.replace(controller=cstate, metrics=metrics, anchors=anchors, anchor_normals=normals,
+                              contact_normals=out.contact_R[:, :, 2])  # fmt: skip
         record = None
         if cfg.record:
             record = Trajectory(
@@ -371,6 +377,24 @@ class ClosedLoop:
         out = jnp.zeros((self.n_sub, self.robot.mj_model.nbody, 6), force.dtype)
         return out.at[:, self.push_bodies(push), :3].add(force)
 
+    @property
+    def observes_contacts(self) -> bool:
+        """The controller reads the measured contact forces (contact detection)."""
+        return self.controller.config.contact_detection
+
+    def observe(self, state: LoopState, contact_pos, contact_force, contact_geom) -> LoopState:
+        """Store the normal force (K,) the simulator applied at each contact (from the contact
+        slots after the tick's physics, along the contact normals of the tick) for the next
+        tick's contact detection."""
+        cset = self.contact_set
+        dtype = state.measured_normal.dtype
+        K = len(cset.contacts)
+        f = forces.measured_wrenches(cset, contact_pos.astype(dtype), contact_force.astype(dtype), contact_geom,
+                                     self.robot.mj_model.ngeom, jnp.zeros((K, 3), dtype))  # fmt: skip
+        n = state.contact_normals
+        normal = jnp.stack([n[k] @ f[sl.start : sl.start + 3] for k, sl in enumerate(cset.slices())])
+        return state.replace(measured_normal=normal)
+
     def measure(self, record, contact_pos, contact_force, contact_geom):
         """Fill the measured wrenches of a Trajectory record from the contact slots after the
         tick's physics (:func:`wbc_jax.physics.contacts`)."""
@@ -404,8 +428,12 @@ class ClosedLoop:
             d_new, _ = jax.lax.scan(lambda dd, x: (physics.step(plant, dd, ctrl, x), None), d, xfrc)
             finite = jnp.all(jnp.isfinite(d_new.qpos)) & jnp.all(jnp.isfinite(d_new.qvel))
             d_new = d_new.where(~finite, d)  # a diverged env keeps its last finite state
-            if self.cfg.record:
-                record = self.measure(record, *physics.contacts(plant, d_new))
+            if self.cfg.record or self.observes_contacts:
+                slots = physics.contacts(plant, d_new)
+                if self.cfg.record:
+                    record = self.measure(record, *slots)
+                if self.observes_contacts:
+                    state = self.observe(state, *slots)
             return (d_new, state, finite), record
 
         if self.cfg.checkpoint:
@@ -465,8 +493,12 @@ class ClosedLoop:
                 state, ctrl, record, forces, bodies = fns["control"](gains, state, cast(q), cast(v), np.int32(k), ok, push)
                 host.step(np.asarray(ctrl, float), self._host_xfrc(forces, bodies))
                 ok = ~host.diverged
-                if self.cfg.record:
-                    records.append(fns["measure"](record, *host.contacts(n_con)))
+                if self.cfg.record or self.observes_contacts:
+                    slots = host.contacts(n_con)
+                    if self.cfg.record:
+                        records.append(fns["measure"](record, *slots))
+                    if self.observes_contacts:
+                        state = fns["observe"](state, *slots)
                 if on_tick is not None:
                     on_tick(k + 1)
         finally:
@@ -508,12 +540,13 @@ class ClosedLoop:
         ok = np.ones(B, bool)
         programs = {"init": init.lower(qpos).compile(),
                     "control": control.lower(gains, state, qpos, qpos[:, : self.idx.nv], np.int32(0), ok, push).compile()}
+        n_con = physics.max_contacts(self.robot.mj_model)
+        slots = (np.zeros((B, n_con, 3)), np.zeros((B, n_con, 3)), np.zeros((B, n_con, 2), np.int64))
         if self.cfg.record:
             record = jax.eval_shape(control, gains, state, qpos, qpos[:, : self.idx.nv], np.int32(0), ok, push)[2]
-            n_con = physics.max_contacts(self.robot.mj_model)
-            programs["measure"] = jax.jit(jax.vmap(self.measure)).lower(
-                record, np.zeros((B, n_con, 3)), np.zeros((B, n_con, 3)), np.zeros((B, n_con, 2), np.int64)
-            ).compile()
+            programs["measure"] = jax.jit(jax.vmap(self.measure)).lower(record, *slots).compile()
+        if self.observes_contacts:
+            programs["observe"] = jax.jit(jax.vmap(self.observe)).lower(state, *slots).compile()
         cache[key] = programs
         return programs, time.perf_counter() - t0
 

@@ -167,16 +167,12 @@ def gain_sets(base: Gains, count: int, scale_range, rng: np.random.Generator) ->
     return sets
 
 
-def build_scenarios(cfg: SweepConfig, base_gains: Gains, n: int, dtype=np.float32):
-    """The full grid magnitude x direction x gain set, with seeded random perturbations.
-
-    Returns (Scenario with a leading axis of size cfg.size, dict of numpy columns)."""
-    rng = np.random.default_rng(cfg.seed)
-    sets = gain_sets(base_gains, cfg.gain_sets, cfg.gain_scale_range, rng)
-    mag, azi, gset = np.meshgrid(
-        np.asarray(cfg.magnitudes, float), np.asarray(cfg.directions, float), np.arange(cfg.gain_sets), indexing="ij"
-    )
-    mag, azi, gset = mag.ravel(), azi.ravel(), gset.ravel()
+def scenarios_at(cfg: SweepConfig, sets: list, mag, azi, gset, friction, mass_scale, joint_offset,
+                 dtype=np.float32) -> tuple[Scenario, dict]:  # fmt: skip
+    """Scenarios (leading axis B) of pushes of magnitude ``mag`` (B,) N at azimuth ``azi`` (B,) deg
+    (the config's elevation, duration, onset, body) with gain set ``gset`` (B,) of ``sets``, and the
+    plant and initial-posture perturbations given. Returns (Scenario, dict of numpy columns)."""
+    mag, azi, gset = np.asarray(mag, float), np.asarray(azi, float), np.asarray(gset, int)
     B = mag.size
     el = np.deg2rad(cfg.elevation)
     direction = np.stack(
@@ -189,10 +185,9 @@ def build_scenarios(cfg: SweepConfig, base_gains: Gains, n: int, dtype=np.float3
         "elevation_deg": np.full(B, cfg.elevation),
         "impulse_ns": mag * cfg.push_duration,
         "gain_set": gset,
-        "friction": rng.uniform(*cfg.friction, B),
-        "mass_scale": rng.uniform(*cfg.mass_scale, B),
+        "friction": np.asarray(friction, float),
+        "mass_scale": np.asarray(mass_scale, float),
     }
-    joint_offset = rng.normal(scale=cfg.joint_noise, size=(B, n)) if cfg.joint_noise else np.zeros((B, n))
     scen = Scenario(
         push=Push(
             force=(mag[:, None] * direction)[:, None, :].astype(dtype),
@@ -201,11 +196,26 @@ def build_scenarios(cfg: SweepConfig, base_gains: Gains, n: int, dtype=np.float3
             body=np.full((B, 1), -1, np.int32),  # the setup's push body, cfg.body
         ),
         gains=Gains(**{k: v.astype(dtype) for k, v in stacked.items()}),
-        joint_offset=joint_offset.astype(dtype),
+        joint_offset=np.asarray(joint_offset).astype(dtype),
         friction=columns["friction"].astype(dtype),
         mass_scale=columns["mass_scale"].astype(dtype),
     )
     return scen, columns
+
+
+def build_scenarios(cfg: SweepConfig, base_gains: Gains, n: int, dtype=np.float32):
+    """The full grid magnitude x direction x gain set, with seeded random perturbations.
+
+    Returns (Scenario with a leading axis of size cfg.size, dict of numpy columns)."""
+    rng = np.random.default_rng(cfg.seed)
+    sets = gain_sets(base_gains, cfg.gain_sets, cfg.gain_scale_range, rng)
+    mag, azi, gset = np.meshgrid(
+        np.asarray(cfg.magnitudes, float), np.asarray(cfg.directions, float), np.arange(cfg.gain_sets), indexing="ij"
+    )
+    B = mag.size
+    friction, mass_scale = rng.uniform(*cfg.friction, B), rng.uniform(*cfg.mass_scale, B)
+    joint_offset = rng.normal(scale=cfg.joint_noise, size=(B, n)) if cfg.joint_noise else np.zeros((B, n))
+    return scenarios_at(cfg, sets, mag.ravel(), azi.ravel(), gset.ravel(), friction, mass_scale, joint_offset, dtype)
 
 
 def make_setup(cfg: SweepConfig, base_gains: Gains | None = None, *, robot_name: str = "icub",
