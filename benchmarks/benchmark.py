@@ -165,7 +165,7 @@ def time_physics_only(st, batch: int, tau, repeats: int = 1) -> dict:
     xfrc = jnp.zeros((robot.mj_model.nbody, 6), dtype)
 
     def env(q):
-        d = physics.device_data(robot.mj_model, loop.backend, cfg, q, dtype)
+        d = physics.device_data(robot.mj_model, loop.backend, cfg, q, dtype, batch=batch)
         d, _ = jax.lax.scan(lambda dd, _: (physics.step(m, dd, ctrl, xfrc), None), d, None, length=steps)
         return d.qpos
 

@@ -1,70 +1,58 @@
 #!/usr/bin/env bash
-# One call on the GPU machine (see README): install the carried wheels without touching the
-# machine's jax, then run the jobs named as arguments. After each job the results so far are
-# packed into $OUT/results.tar.gz and the log is in $OUT/log.txt, so a call that runs past its
-# time limit still returns what finished.
+# One call on a GPU machine (README "On a GPU machine"): install the carried wheels next to the
+# machine's own jax (never replacing it), then run the jobs named as arguments. Results go to
+# $OUT (one folder per job, log.txt), so a call that runs past its limit still returns what finished.
+#
+#   bash experiments/gpu_run.sh setup check bench sweep agree envelope soak
+#
+# Carried folders (git-ignored): .wheels/ (mujoco, mujoco-mjx, trimesh, quadprog, evosax, dotmap),
+# and warp-lang 1.18.0 (the extra of mujoco-mjx, 149 MB as a wheel) as an xz tar of the wheel's
+# contents (without its CPU compiler and examples) split over .wa/ .wb/ .wc/ (one per call, under
+# the 64 MiB a call carries), collected in ~/wp while the machine is held.
 set -uo pipefail
-exec > >(tee -a $OUT/log.txt) 2>&1
-python3 -m pip install -q --no-deps .wheels/*.whl 2>&1 | grep -v WARNING
-export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 XLA_FLAGS=--xla_gpu_triton_gemm_any=true
-nvidia-smi -L
-python3 -c "import jax; print(jax.__version__, jax.devices())"
-R=/tmp/results; mkdir -p $R
-pack() { tar -czf $OUT/results.tar.gz -C $R . ; }
-sweep() {  # name, extra args
+OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
+exec > >(tee -a "$OUT/log.txt") 2>&1
+SITE=/tmp/site; mkdir -p "$SITE" ~/wp
+export PYTHONPATH=$SITE:$PWD PYTHONUNBUFFERED=1 TF_CPP_MIN_LOG_LEVEL=3 WBC_JAX_CACHE=/tmp/xla-cache
+for d in .wa .wb .wc; do [ -d $d ] && cp $d/* ~/wp/; done
+if [ -d .wheels ] && [ ! -d $SITE/mujoco ]; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target $SITE .wheels/*.whl 2>&1 | grep -v WARNING
+fi
+if [ ! -d $SITE/warp ] && [ $(ls ~/wp/wpart_0* 2>/dev/null | wc -l) -eq 4 ]; then
+  cat ~/wp/wpart_0* | xz -d | tar xf - -C $SITE && echo "warp-lang unpacked"
+fi
+run() {  # name, command...: time a job, keep its output
   local name=$1; shift
-  SECONDS=0
-  python3 -m wbc_jax.cli push-sweep --out /tmp/sweeps/$name --quiet "$@" | tee $R/$name.json
-  echo "job $name: ${SECONDS}s"
-  mkdir -p $R/$name && cp /tmp/sweeps/$name/{summary.json,survival.png,envelope.png,results.parquet} $R/$name/
-  pack
+  mkdir -p "$OUT/$name"; SECONDS=0
+  "$@" 2>&1 | tail -c 20000 > "$OUT/$name/stdout.txt"; local rc=${PIPESTATUS[0]}
+  echo "job $name: rc=$rc ${SECONDS}s"; tail -n 3 "$OUT/$name/stdout.txt"
 }
+SW="python3 -m wbc_jax.cli push-sweep --quiet --horizon 3 --push-onset 0.5 --push-duration 0.1 --magnitudes 10 400 64 --directions 32"
 for job in "$@"; do
   case "$job" in
-    sweep)  # the acceptance sweep: 64 magnitudes x 32 directions x 8 gain sets, 3 s
-      sweep main --magnitudes 10 400 64 --directions 32 --gain-sets 8 --horizon 3 --chunk-size 16384 ;;
-    variants)  # same 32 x 16 grid (512 envs, one chunk) for each controller variant
-      for v in "qp stable" "analytic stable" "qp seed"; do
-        set -- $v
-        sweep "grid-$1-$2" --magnitudes 10 320 32 --directions 16 --horizon 3 --chunk-size 512 \
-          --forces $1 --postural $2
-      done ;;
-    islands)  # are the survival islands of the acceptance sweep numerical artefacts? The default-gain
-              # grid (64 magnitudes x 32 directions) with the sweep's settings, with 8 solver
-              # iterations, and in float64
-      sweep islands-it4 --magnitudes 10 400 64 --directions 32 --horizon 3 --chunk-size 2048
-      sweep islands-it8 --magnitudes 10 400 64 --directions 32 --horizon 3 --chunk-size 2048 --solver-iterations 8
-      export JAX_ENABLE_X64=1
-      sweep islands-f64 --magnitudes 10 400 64 --directions 32 --horizon 3 --chunk-size 2048
-      unset JAX_ENABLE_X64 ;;
-    one-foot)  # the same grid, pushed while balancing on the left foot (one-foot task, 7-9 s)
-      sweep grid-one-foot --task one-foot --push-onset 7.5 --horizon 9 \
-        --magnitudes 10 320 32 --directions 16 --chunk-size 512 ;;
-    bench)  # trajectory check, GPU closed loop over batch sizes, then the CPU baseline on 1,
-            # 4 and all 16 cores (scaling)
-      python3 experiments/benchmark.py --out $R/bench --batches 1 1024 16384 65536 --horizon 0.5 \
-        --iterations 4 --cpu-baseline-envs 64 --cpu-workers 1 4 16; pack ;;
-    bench-large)  # the largest batch that fits: 262,144 and 1,048,576 environments, then doublings
-                  # until one fails (0.05 s horizon: memory, not the horizon, decides what fits)
-      python3 experiments/benchmark.py --out $R/bench_large --batches 262144 1048576 --horizon 0.05 \
-        --push-onset 0.0 --push-duration 0.02 --iterations 4 --find-largest 1 --skip-physics-only --skip-equivalence; pack ;;
-    bench-iters)  # fewer Newton iterations at batch 65,536, each against the CPU baseline with the
-                  # same iteration count on all 16 cores (balance figures: experiments/solver_iterations.py)
-      python3 experiments/benchmark.py --out $R/bench_iters --batches 65536 --horizon 0.5 \
-        --iterations 2 1 --skip-physics-only --skip-equivalence --cpu-baseline-envs 64 --cpu-workers 16; pack ;;
-    balance-iters)  # the controller issue's balance figures with 2 and 1 Newton iterations (one env each)
-      for it in 2 1; do
-        python3 experiments/balance_acceptance.py --only stand sinusoid push-qp --solver-iterations $it \
-          --out /tmp/acceptance --summary $R/balance_iterations.json; pack
-      done ;;
-    multi-gpu)  # the same closed loop on one GPU, then sharded over all local GPUs (a Mesh over the
-                # batch axis, wbc_jax.sweep.device_mesh), in one call: the scaling over GPUs
-      for devs in 0 all; do
-        if [ $devs = all ]; then unset CUDA_VISIBLE_DEVICES; else export CUDA_VISIBLE_DEVICES=$devs; fi
-        python3 experiments/benchmark.py --out $R/mgpu_$devs --batches 131072 --horizon 0.35 \
-          --iterations 4 --skip-physics-only --skip-equivalence; pack
-      done
-      unset CUDA_VISIBLE_DEVICES ;;
+    setup)  # what is there
+      nvidia-smi -L; python3 -c "import jax, mujoco; print(jax.__version__, mujoco.__version__, jax.devices())"
+      python3 -c "import warp; print('warp', warp.__version__)" 2>&1 | tail -1 ;;
+    check)  # same trajectory on warp, jax (GPU, float32) and C MuJoCo (host, float32)
+      run check python3 experiments/backend_check.py --backends warp jax mujoco --out "$OUT/check" ;;
+    bench)  # closed loop and physics only, warp and jax, against C MuJoCo + NumPy on all 16 cores
+      run bench python3 benchmarks/benchmark.py --out "$OUT/bench" --json "$OUT/bench/benchmarks.json" \
+        --backends warp jax --batches 16384 65536 --horizon 0.5 --cpu-baseline-envs 64 --cpu-workers 16 \
+        --repeats 2 --skip-equivalence ;;
+    sweep)  # the 64 x 32 x 8 sweep of docs/sweep_h100 on warp, twice in one process (first-run costs)
+      run sweep python3 experiments/sweep_timing.py --out "$OUT/sweep" --repeats 2 -- \
+        --magnitudes 10 400 64 --directions 32 --gain-sets 8 --horizon 3 --chunk-size 16384 --backend warp ;;
+    agree)  # default-gain grid (2,048 envs) on warp and on jax: outcomes outside the transition band
+      run agree_warp $SW --chunk-size 2048 --backend warp --out /tmp/sw/agree_warp
+      run agree_jax $SW --chunk-size 2048 --backend jax --out /tmp/sw/agree_jax
+      run agree python3 experiments/island_check.py /tmp/sw/agree_jax /tmp/sw/agree_warp --out "$OUT/agree/islands.json"
+      for s in agree_warp agree_jax; do cp /tmp/sw/$s/summary.json "$OUT/agree/$s.summary.json"; done
+      cp /tmp/sw/agree_warp/survival.png /tmp/sw/agree_warp/envelope.png "$OUT/agree/" ;;
+    envelope)  # bisection envelope (32 directions, 8 rounds) against the warp grid of 'agree'
+      run envelope python3 experiments/envelope_check.py --grid /tmp/sw/agree_warp --out "$OUT/envelope" -- \
+        --directions 32 --horizon 3 --backend warp ;;
+    soak)  # hostile scenarios on warp
+      run soak python3 experiments/soak.py --envs ${SOAK_ENVS:-1000000} --chunk 65536 --horizon ${SOAK_HORIZON:-0.5} \
+        --backend warp --out "$OUT/soak" ;;
   esac
 done
-pack

@@ -43,6 +43,9 @@ from wbc_jax.math import skew
 from wbc_jax.types import Array
 
 FORCE_MODES = ("qp", "analytic")
+# Accepted violation of each contact's constraints, relative to its normal force, by precision
+# {float64: 8 bytes, float32: 4}: the interior-point solution meets them ~1e3 times better.
+VIOLATION_TOL = {8: 1e-9, 4: 1e-4}
 
 # ---------------------------------------------------------------------------------------------
 # Constraints of one contact
@@ -202,18 +205,34 @@ def normal_forces(cset: ContactSet, f: Array, W_R: Array) -> Array:
     return jnp.stack([W_R[k][:, 2] @ f[sl.start : sl.start + 3] for k, sl in enumerate(cset.slices())])
 
 
-def violation(cset: ContactSet, f: Array, W_R: Array, activation: Array) -> Array:
-    """Max over the active contacts of ``max(C_k f_k - b_k, 0) / max(f_n,k, fz_min,k)``
-    (dimensionless: relative to each contact's own normal force). The minimum normal force is
-    scaled by the activation (a contact being released may go down to zero)."""
+def contact_violation(cset: ContactSet, f: Array, W_R: Array, activation: Array) -> Array:
+    """(K,) each contact's ``max(C_k f_k - b_k, 0) / max(f_n,k, fz_min,k)``: its constraint
+    violation relative to its own normal force (dimensionless). The minimum normal force is scaled
+    by the activation (a contact being released may go down to zero)."""
     C, b = constraints(cset, W_R, activation)
     excess = jnp.maximum(C @ f - b, 0.0)
     owner = constraint_contact(cset)
     fn = normal_forces(cset, f, W_R)
     fz_min = jnp.asarray([c.params.fz_min for c in cset.contacts], f.dtype)
     per_contact = jnp.stack([jnp.max(excess[owner == k]) for k in range(len(cset.contacts))])
-    rel = per_contact / jnp.maximum(fn, fz_min)
-    return jnp.max(jnp.where(activation > 0, rel, 0.0))
+    return per_contact / jnp.maximum(fn, fz_min)
+
+
+def violation(cset: ContactSet, f: Array, W_R: Array, activation: Array) -> Array:
+    """Max of :func:`contact_violation` over the active contacts (activation (K,) > 0)."""
+    return jnp.max(jnp.where(activation > 0, contact_violation(cset, f, W_R, activation), 0.0))
+
+
+def row_weights(cset: ContactSet) -> np.ndarray | None:
+    """(M,) weights of the constraint rows in the QP solver's scaled problem
+    (:func:`wbc_jax.qp.solve_qp`'s ``row_weight``): ``max_j fz_min_j / fz_min_k`` for the rows of
+    contact k, so each contact's constraints are met to the same tolerance relative to its own
+    smallest normal force (a hand's 1 N next to the feet's 10 N). None when every contact has the
+    same fz_min (the two feet: the solver's unit rows, unchanged)."""
+    fz_min = np.array([c.params.fz_min for c in cset.contacts])
+    if np.all(fz_min == fz_min[0]):
+        return None
+    return (fz_min.max() / fz_min)[constraint_contact(cset)]
 
 
 def measured_wrenches(cset: ContactSet, contact_pos: Array, contact_force: Array, contact_geom: Array,
@@ -269,6 +288,12 @@ class ForceSettings:
     qp_iterations: int = qp.DEFAULT_ITERATIONS
     torque_weight_soft: float = 1e-4  # |tau|^2 against |A f - w|^2 (N^2 vs (N m)^2), soft QP
     normal_force_weight: float = 1e3  # desired normal forces, per N^2 against (N m)^2
+    violation_tol: float | None = None  # accepted contact_violation of a QP's wrenches (None: by dtype)
+
+    def tolerance(self, dtype) -> float:
+        """The largest :func:`contact_violation` a formulation's wrenches may have (else the next
+        formulation is used): ``violation_tol`` or :data:`VIOLATION_TOL` of the precision."""
+        return VIOLATION_TOL[jnp.dtype(dtype).itemsize] if self.violation_tol is None else self.violation_tol
 
 
 def _restricted(cset: ContactSet, A: Array, mask: Array, wrench_des: Array):
@@ -330,7 +355,8 @@ def momentum_equality_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Ar
     H = SZ.T @ SZ + w_n * NZ.T @ NZ + jnp.diag(settings.hessian_reg + spare.astype(dtype))
     g = SZ.T @ (tt.tau_model + tt.Sigma @ f1) + w_n * NZ.T @ (S_n @ f1 - F_n)
     # Rows of dropped contacts: 0 <= 1, trivially met (their wrench is zero).
-    y, info = qp.solve_qp(H, g, C @ Z, jnp.where(row_kept, b - C @ f1, 1.0), iterations=settings.qp_iterations)
+    y, info = qp.solve_qp(H, g, C @ Z, jnp.where(row_kept, b - C @ f1, 1.0), iterations=settings.qp_iterations,
+                          row_weight=row_weights(cset))  # fmt: skip
     return f1 + Z @ y, info
 
 
@@ -351,7 +377,8 @@ def soft_momentum_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array,
     Ak, Sk, Nk = A * keep[None, :], tt.Sigma * keep[None, :], S_n * keep[None, :]
     H = Ak.T @ Ak + c * (Sk.T @ Sk + w_n * Nk.T @ Nk) + jnp.diag(settings.hessian_reg + 1.0 - keep)
     g = -Ak.T @ wrench_des + c * (Sk.T @ tt.tau_model - w_n * Nk.T @ F_n)
-    x, info = qp.solve_qp(H, g, C * keep[None, :], jnp.where(row_kept, b, 1.0), iterations=settings.qp_iterations)
+    x, info = qp.solve_qp(H, g, C * keep[None, :], jnp.where(row_kept, b, 1.0), iterations=settings.qp_iterations,
+                          row_weight=row_weights(cset))  # fmt: skip
     return keep * x, info
 
 
@@ -360,15 +387,27 @@ def wbc_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: 
     """:func:`momentum_equality_qp`, or :func:`soft_momentum_qp` where the equality is infeasible
     (a push asks for a momentum rate that no feasible wrench realises).
 
-    Returns ``(f (D,), infeasible ())``: infeasible when the soft QP failed too."""
+    The equality QP's wrenches are used only if every kept contact's own constraints hold within
+    ``settings.tolerance`` relative to its normal force (:func:`contact_violation`): a solver that
+    stops short of an infeasible problem can return a point whose violation is small next to the
+    feet's forces but not next to a hand's (the 0.34 of a hand's normal force under pushes).
+
+    Returns ``(f (D,), infeasible ())``: infeasible when the soft QP failed too (flagged, or its
+    wrenches violate a contact's constraints beyond the tolerance)."""
+    tol = settings.tolerance(A.dtype)
+
+    def exceeds(f):
+        return jnp.max(jnp.where(mask > 0, contact_violation(cset, f, W_R, mask), 0.0)) > tol
+
     f, info = momentum_equality_qp(cset, mask, A, wrench_des, tt, W_R, settings)
 
     def soft():
         f_soft, info_soft = soft_momentum_qp(cset, mask, A, wrench_des, tt, W_R, settings)
-        return f_soft, info_soft.infeasible
+        return f_soft, info_soft.infeasible | exceeds(f_soft)
 
-    f, soft_failed = lax.cond(info.infeasible, soft, lambda: (f, jnp.zeros((), bool)))
-    return f, info.infeasible & soft_failed
+    use_soft = info.infeasible | exceeds(f)
+    f, soft_failed = lax.cond(use_soft, soft, lambda: (f, jnp.zeros((), bool)))
+    return f, use_soft & soft_failed
 
 
 def analytic(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, settings: ForceSettings) -> Array:

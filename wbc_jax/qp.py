@@ -148,6 +148,7 @@ def solve_qp(
     iterations: int = DEFAULT_ITERATIONS,
     tol: float | None = None,
     fallback_tol: float | None = None,
+    row_weight: Any = None,
 ) -> tuple[Array, QPInfo]:
     """Solve a small dense convex QP with inequality constraints.
 
@@ -171,6 +172,11 @@ def solve_qp(
             :func:`default_tolerances`.
         fallback_tol: relative violation above which a non-converged result
             falls back to ``-H^{-1} g`` (static); default likewise.
+        row_weight: (m,) positive weights of the rows in the scaled problem, or None
+            (all 1). Row i is scaled to norm ``row_weight[i]`` instead of 1, so its
+            residual and violation count ``row_weight[i]`` times more in the
+            tolerances: rows whose natural scale is smaller than the problem's (a
+            hand's 1 N next to feet of 300 N) are met as tightly, relative to it.
 
     Returns:
         ``(x, info)``: x (n,) in the promoted float dtype of the inputs, and a
@@ -196,7 +202,10 @@ def solve_qp(
     # the derivative w.r.t. H that of the symmetric problem.
     H = 0.5 * (H + H.T)
     Hp, gp, Cp, bp = (lax.stop_gradient(a) for a in (H, g, C, b))
-    ipm = _interior_point(Hp, gp, Cp, bp, int(iterations), tol)
+    weight = None if row_weight is None else lax.stop_gradient(jnp.asarray(row_weight, dtype))
+    if weight is not None and weight.shape != b.shape:
+        raise ValueError(f"solve_qp: row_weight must have shape {b.shape}, got {weight.shape}")
+    ipm = _interior_point(Hp, gp, Cp, bp, int(iterations), tol, weight)
 
     finite_input = jnp.all(
         jnp.array([jnp.all(jnp.isfinite(a)) for a in (Hp, gp, Cp, bp)])
@@ -345,12 +354,12 @@ def _newton_solver(
 
 
 def _interior_point(
-    H: Array, g: Array, C: Array, b: Array, iterations: int, tol: float
+    H: Array, g: Array, C: Array, b: Array, iterations: int, tol: float, weight: Array | None = None
 ) -> _IPMResult:
     """Mehrotra predictor-corrector interior point for ``min 1/2 x'Hx + g'x, Cx <= b``.
 
-    Works on a scaled copy of the problem (unit constraint rows, unit max|H|,
-    O(1) data), in the slack form::
+    Works on a scaled copy of the problem (constraint rows of norm ``weight``,
+    default 1, unit max|H|, O(1) data), in the slack form::
 
         minimise 1/2 x'Hx + g'x   s.t.  C x + s = b,  s >= 0,   multipliers z >= 0
         KKT:  r_d = H x + g + C'z = 0,  r_p = C x + s - b = 0,  s_i z_i = 0
@@ -367,6 +376,7 @@ def _interior_point(
         b: (m,) bounds.
         iterations: number of Newton steps.
         tol: relative KKT tolerance at which the iterate freezes.
+        weight: (m,) row weights (:func:`solve_qp`'s ``row_weight``) or None.
 
     Returns:
         The raw result, unscaled back to the original units.
@@ -381,6 +391,8 @@ def _interior_point(
     # N m, torques of 1e2 vs Hessians of 1e4).
     row = jnp.linalg.norm(C, axis=1)
     row = jnp.where(row > 0, row, 1.0)
+    if weight is not None:  # row i scaled to norm weight_i
+        row = row / weight
     Cs = C / row[:, None]
     h = jnp.max(jnp.abs(H))
     h = jnp.where(h > 0, h, 1.0)

@@ -17,11 +17,14 @@ flagged and the simulation goes on, so one bad environment never poisons a batch
 from __future__ import annotations
 
 import dataclasses
+import functools
+import hashlib
 import math
 import time
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 
 from wbc_jax._mjx import mjx
@@ -32,6 +35,11 @@ from wbc_jax.math import safe_norm
 from wbc_jax.model import Robot
 from wbc_jax.references import Schedule
 from wbc_jax.types import Array, pytree_dataclass
+
+
+# Compiled programs of closed loops, by ClosedLoop.structure_key and batch shape (loops built alike,
+# e.g. by repeated runs of a job in one process, share them).
+PROGRAMS: dict = {}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -160,7 +168,8 @@ class Trajectory:
     Ldot_star (T, 6), Ldot_meas (T, 6), activation (T, K), contact_pos (T, K, 3),
     contact_normal (T, K, 3), qp_infeasible (T,), qp_violation (T,), push (T, 3), s (T, n),
     s_des (T, n), task_err (T, m): the motion tasks' errors in stack order (m = 0 without tasks).
-    ``f_meas`` is what the simulator applied during the tick's last physics step.
+    ``f_meas`` is what the simulator applied during the tick's last physics step (NaN on the
+    'warp' backend, which does not expose it per environment).
     """
 
     t: Array
@@ -249,15 +258,27 @@ class ClosedLoop:
         self._d_template = mjx.make_data(robot.mj_model)
         # Gradients (a LossTrace) need MJX's JAX implementation.
         self.backend = physics.resolve_backend(cfg.physics.backend, differentiable=cfg.loss_trace)
-        if cfg.record and self.backend == "warp":
+        if self.backend == "warp" and controller.config.contact_detection:
             raise ValueError(
-                "the 'warp' physics backend records no measured contact wrenches; record a run with "
-                "--backend jax or mujoco (warp serves batched sweeps)"
+                "contact detection reads the simulator's contact forces, which the 'warp' backend does not "
+                "expose per environment; use --backend jax or mujoco"
             )
 
     @property
     def contact_set(self):
         return self.controller.contact_set
+
+    @functools.cached_property
+    def structure_key(self) -> str:
+        """A hash of everything that shapes this loop's compiled programs (the model, schedule,
+        controller, contact set, motion tasks and settings): loops built alike share programs."""
+        buf = np.zeros(mujoco.mj_sizeModel(self.robot.mj_model), np.uint8)
+        mujoco.mj_saveModel(self.robot.mj_model, None, buf)
+        sched = {k: np.asarray(v).tolist() if isinstance(v, np.ndarray) else repr(v)
+                 for k, v in vars(self.schedule).items()}  # fmt: skip
+        parts = (buf.tobytes(), repr(sched), repr(self.controller.config), repr(self.contact_set),
+                 repr(self.controller.stack), repr(self.cfg))  # fmt: skip
+        return hashlib.sha256(b"".join(p if isinstance(p, bytes) else p.encode() for p in parts)).hexdigest()
 
     # -- the controller side ------------------------------------------------------------------
 
@@ -428,7 +449,10 @@ class ClosedLoop:
             d_new, _ = jax.lax.scan(lambda dd, x: (physics.step(plant, dd, ctrl, x), None), d, xfrc)
             finite = jnp.all(jnp.isfinite(d_new.qpos)) & jnp.all(jnp.isfinite(d_new.qvel))
             d_new = d_new.where(~finite, d)  # a diverged env keeps its last finite state
-            if self.cfg.record or self.observes_contacts:
+            if self.cfg.record and self.backend == "warp":  # no per-environment contact forces there
+                nan = jnp.full_like(record.f_meas, jnp.nan)
+                record = record.replace(f_meas=nan, Ldot_meas=jnp.full_like(record.Ldot_meas, jnp.nan))
+            elif self.cfg.record or self.observes_contacts:
                 slots = physics.contacts(plant, d_new)
                 if self.cfg.record:
                     record = self.measure(record, *slots)
@@ -528,8 +552,8 @@ class ClosedLoop:
     def _host_programs(self, gains, qpos, push):
         """The compiled, vmapped init, control and measure of the host loop for this batch shape
         (compiled once per loop and shape): (programs, seconds spent compiling now)."""
-        cache = self.__dict__.setdefault("_host_cache", {})
-        key = (qpos.shape, str(qpos.dtype))
+        cache = PROGRAMS
+        key = ("host", self.structure_key, qpos.shape, str(qpos.dtype))
         if key in cache:
             return cache[key], 0.0
         t0 = time.perf_counter()

@@ -246,23 +246,25 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
     def plant(s):
         return physics.plant_model(nominal, s.friction, s.mass_scale) if perturb else nominal
 
-    cache = loop.__dict__.setdefault("_mjx_cache", {})  # compiled once per loop and batch shape
-    key = (batch, str(dtype), n_dev, loop.cfg.record)
+    cache = rollout_lib.PROGRAMS  # compiled once per loop structure and batch shape
+    key = ("mjx", loop.structure_key, batch, str(dtype), n_dev, loop.cfg.record)
     compile_s = 0.0
     t0 = time.perf_counter()
-    if not loop.cfg.record:
+    # Warp's data may not cross a vmap boundary (its contact buffer is shared by the batch): one
+    # program for the whole horizon, recorded or not.
+    if not loop.cfg.record or loop.backend == "warp":
         if key not in cache:
             def whole(s):
                 return loop.rollout(plant(s), loop.initial_qpos(qpos0, s.joint_offset), s.gains, s.push,
-                                    batch=batch // n_dev)[0]  # fmt: skip
+                                    batch=batch // n_dev)  # fmt: skip
 
             cache[key] = jax.jit(jax.vmap(whole), in_shardings=sharding, out_shardings=sharding).lower(scen_dev).compile()
             compile_s = time.perf_counter() - t0
         t0 = time.perf_counter()
-        metrics = jax.tree_util.tree_map(np.asarray, cache[key](scen_dev))
+        metrics, records = jax.tree_util.tree_map(np.asarray, cache[key](scen_dev))
         if on_tick is not None:
             on_tick(loop.n_ticks)
-        return Run(metrics, None, compile_s, time.perf_counter() - t0)
+        return Run(metrics, records, compile_s, time.perf_counter() - t0)
 
     chunk = _tick_chunk(loop.n_ticks)
 

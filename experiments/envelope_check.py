@@ -1,0 +1,57 @@
+"""The bisection envelope against a grid sweep's (issue: GPU throughput, adaptive envelope mode).
+
+    python experiments/envelope_check.py --grid SWEEP_DIR --out runs/envelope_check -- [sweep flags]
+
+Runs ``wbc_jax.envelope.search`` (gain set 0 unless --gain-sets is given) over [0, the grid's
+largest impulse] to 0.25 N s and compares each direction with the grid's monotone envelope: the
+largest difference, the grid step, and the rollouts of each. Writes envelope_check.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import pathlib
+import sys
+
+import numpy as np
+import pandas as pd
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from wbc_jax import cli, envelope, io, scenario, sweep  # noqa: E402
+
+
+def main(argv=None) -> dict:
+    argv = sys.argv[1:] if argv is None else argv
+    split = argv.index("--") if "--" in argv else len(argv)
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--grid", required=True, help="a finished push sweep of the same settings")
+    p.add_argument("--resolution", type=float, default=0.25)
+    p.add_argument("--out", default="runs/envelope_check")
+    args = p.parse_args(argv[:split])
+    parsed = cli.build_parser().parse_args(["push-sweep", *argv[split + 1 :]])
+    cfg = dataclasses.replace(cli.config_from_args(parsed, sweep.default_config()), out=None)
+    grid_cfg, grid_summary = sweep.load_sweep(args.grid)
+    table = pd.read_parquet(pathlib.Path(args.grid) / "results.parquet")
+    grid_rollouts = int((table["gain_set"] == 0).sum())
+    impulses = np.sort(table["impulse_ns"].unique())
+    step = float(np.median(np.diff(impulses)))
+    scenario.enable_compilation_cache()
+    found = envelope.search(cfg, impulse_max=float(impulses.max()), resolution=args.resolution, progress=False)
+    comparison = envelope.compare_with_grid(found, grid_summary, step)
+    result = {**comparison, "bisection_rollouts": found["rollouts"], "grid_rollouts": grid_rollouts,
+              "rollout_ratio": grid_rollouts / found["rollouts"], "rounds": found["rounds"],
+              "run_s": found["run_s"], "compile_s": found["compile_s"], "backend": found["backend"],
+              "command": "python experiments/envelope_check.py " + " ".join(argv)}  # fmt: skip
+    out = pathlib.Path(args.out)
+    io.atomic_write_json(out / "envelope_check.json", result)
+    io.atomic_write_json(out / "bisection.json", found)
+    print(json.dumps({k: v for k, v in result.items() if k != "directions"}), flush=True)
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,443 @@
+"""[experiments] The gain-tuning problem shared by gradient tuning and its baselines.
+
+    TuneConfig --sample_pushes--> Scenario batch (B,) --objective--> loss (), terms (B,), Metrics (B,)
+
+* the push distribution (:func:`sample_pushes`): azimuth uniform over 360 deg, impulse a
+  uniform multiple (``magnitude_range``) of the default gains' envelope in that direction, pushed
+  body among ``train_bodies``, duration uniform in ``duration_range``, floor friction, plant mass
+  scale and initial joint noise; batch k of a stream is drawn from ``default_rng([seed, stream,
+  k])``, so a resumed run draws the same pushes;
+* the objectives on MJX's JAX implementation (:func:`make_batched_loss`: one gain set over B
+  pushes, differentiable; :func:`make_population_loss`: P gain sets over the same b pushes,
+  forward, vmapped over the population), with the loss of :mod:`wbc_jax.tuning_loss`;
+* checkpoint and history files (atomic, keyed to the config).
+
+Shapes: ``B`` pushes, ``P`` candidates, ``n = 23`` joints, T ticks.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import hashlib
+import io as _io
+import json
+import math
+import pathlib
+import zipfile
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wbc_jax import constants, io, physics, scenario, sweep
+from wbc_jax import model as model_lib
+from wbc_jax import rollout as rollout_lib
+from wbc_jax import tuning_loss, tuning_params
+from wbc_jax.controller import ControllerConfig
+from wbc_jax.gains import Gains, default_gains, load_gains
+from wbc_jax.rollout import Push, Scenario
+from wbc_jax.types import option
+
+CHECKPOINTS = ("tick", "none")
+ENVELOPE_FILE = pathlib.Path(__file__).resolve().parent.parent / "docs" / "tuning" / "default_envelope.json"
+
+
+@dataclasses.dataclass(frozen=True)
+class TuneConfig:
+    """A tuning run (defaults: minutes on a 2-core CPU; the GPU sizes come as flags, e.g.
+    ``--batch 1024``). The CLI flags of ``wbc-jax tune`` are generated from these fields."""
+
+    out: str = option("runs/tune", "output folder (resumes a run there)")
+    steps: int = option(8, "gradient steps")
+    batch: int = option(4, "pushes per gradient step (sampled afresh each step)")
+    horizon: float = option(2.0, "seconds per training rollout")
+    seed: int = option(0, "seed of the sampled pushes, the searches and the held-out pushes")
+    lr: float = option(0.05, "adam learning rate (on the unconstrained parameters)")
+    clip_norm: float = option(1.0, "global-norm gradient clipping")
+    bound_factor: float = option(10.0, "gains (and regularisation) stay within [default / f, default * f]")
+    zeta_range: tuple[float, float] = option((0.02, 2.0), "damping ratios of the CoM, angular-momentum and "
+                                             "postural error dynamics stay in this range", nargs=2)  # fmt: skip
+    tune_regularisation: bool = option(False, "also tune Reg.pinvDamp and Reg.KP_postural (not storable in a "
+                                       "gains file; the evaluation then compiles per gain set)")  # fmt: skip
+    init_gains: str | None = option(None, "start from this gains file (inside the bounds; default: WBC's)",
+                                    metavar="FILE")  # fmt: skip
+    magnitude_range: tuple[float, float] = option((0.6, 1.4), "push impulses as multiples of the default gains' "
+                                                  "envelope in the push's direction", nargs=2)  # fmt: skip
+    train_bodies: tuple[str, ...] = option(("chest", "root_link"), "pushed bodies", nargs="+")
+    duration_range: tuple[float, float] = option((0.05, 0.3), "push durations [s]", nargs=2)
+    push_onset: float = option(0.2, "push start [s]")
+    friction_range: tuple[float, float] = option((0.6, 1.2), "floor friction", nargs=2)
+    mass_range: tuple[float, float] = option((0.9, 1.1), "plant mass scale", nargs=2)
+    joint_noise: float = option(0.01, "initial joint noise std [rad]")
+    envelope: str | None = option(None, "the default gains' envelope per direction, JSON (default: "
+                                  "docs/tuning/default_envelope.json of this checkout if there, else "
+                                  "--envelope-fraction x the LIP bound)", metavar="FILE")  # fmt: skip
+    envelope_fraction: float = option(0.5, "without --envelope: the default envelope as this fraction of the LIP bound")
+    solver_iterations: int | None = option(None, "contact-solver Newton iterations in training (default: the model's)")
+    ls_iterations: int | None = option(None, "contact-solver line-search iterations in training (default: the model's)")
+    checkpoint: str = option("tick", "rematerialisation in the backward pass", choices=CHECKPOINTS)
+    population: int = option(8, "CMA-ES / random-search candidates per generation")
+    es_batch: int = option(0, "pushes per candidate (0: batch // (population + 1), at least 1)")
+    es_sigma: float = option(0.5, "CMA-ES initial step / random-search spread (unconstrained units)")
+    baselines: tuple[str, ...] = option(("cmaes", "random"), "gradient-free baselines at equal simulated steps",
+                                        nargs="*")  # fmt: skip
+    eval_pushes: int = option(16, "held-out pushes (the training distribution, another seed)")
+    eval_horizon: float = option(3.0, "seconds per held-out rollout")
+
+    def __post_init__(self):
+        self.check()
+
+    def check(self) -> None:
+        """Every check that needs no model or compilation."""
+        for name in ("steps", "batch", "population", "eval_pushes"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"--{name.replace('_', '-')} must be a whole number >= 1, got {v!r}")
+        if isinstance(self.es_batch, bool) or not isinstance(self.es_batch, int) or self.es_batch < 0:
+            raise ValueError(f"--es-batch must be a whole number >= 0, got {self.es_batch!r}")
+        for name in ("horizon", "lr", "clip_norm", "eval_horizon", "es_sigma", "envelope_fraction"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"--{name.replace('_', '-')} must be positive and finite, got {v!r}")
+        if not (math.isfinite(self.bound_factor) and self.bound_factor > 1.0):
+            raise ValueError(f"--bound-factor must be > 1, got {self.bound_factor}")
+        for name in ("zeta_range", "magnitude_range", "duration_range", "friction_range", "mass_range"):
+            lo, hi = getattr(self, name)
+            if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
+                raise ValueError(f"--{name.replace('_', '-')} must be positive and ordered, got {(lo, hi)}")
+        if not (math.isfinite(self.push_onset) and self.push_onset >= 0):
+            raise ValueError(f"--push-onset must be >= 0, got {self.push_onset}")
+        if not (math.isfinite(self.joint_noise) and self.joint_noise >= 0):
+            raise ValueError(f"--joint-noise must be >= 0, got {self.joint_noise}")
+        push_end = self.push_onset + self.duration_range[1]
+        for name in ("horizon", "eval_horizon"):
+            if getattr(self, name) <= push_end:
+                raise ValueError(f"--{name.replace('_', '-')} {getattr(self, name)} s is shorter than the pushes "
+                                 f"(onset {self.push_onset} + up to {self.duration_range[1]} s)")  # fmt: skip
+        if not self.train_bodies:
+            raise ValueError("--train-bodies: give at least one body")
+        if self.checkpoint not in CHECKPOINTS:
+            raise ValueError(f"--checkpoint must be one of {list(CHECKPOINTS)}, got {self.checkpoint!r}")
+        unknown = sorted(set(self.baselines) - {"cmaes", "random"})
+        if unknown:
+            raise ValueError(f"--baselines: unknown {unknown}; valid: cmaes, random")
+        physics.PhysicsConfig(backend="jax", solver_iterations=self.solver_iterations, ls_iterations=self.ls_iterations)
+        for name, path in (("init-gains", self.init_gains), ("envelope", self.envelope)):
+            if path is not None:
+                p = pathlib.Path(path)
+                if not p.is_file():
+                    raise ValueError(f"--{name} {path} is not a file")
+
+    @property
+    def candidate_batch(self) -> int:
+        """Pushes per candidate of the gradient-free searches."""
+        return self.es_batch or max(1, self.batch // (self.population + 1))
+
+
+def default_config() -> TuneConfig:
+    return TuneConfig()
+
+
+# Fields that do not change what the gradient training computes.
+NOT_TRAINING = ("out", "population", "es_batch", "es_sigma", "baselines", "eval_pushes", "eval_horizon")
+
+
+def config_key(*configs, exclude=()) -> str:
+    """A short hash of dataclass configs, less the ``exclude`` fields (checkpoints belong to one)."""
+    blob = json.dumps([{k: v for k, v in dataclasses.asdict(c).items() if k not in exclude} for c in configs],
+                      sort_keys=True)  # fmt: skip
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+# ---------------------------------------------------------------------------------------------
+# The push distribution
+
+
+def load_envelope(path) -> tuple[np.ndarray, np.ndarray]:
+    """(azimuths (K,) deg, impulses (K,) N s) of an envelope file: {"azimuth_deg": [...],
+    "impulse_ns": [...]}, or the summary.json of ``wbc-jax envelope`` (gain set 0)."""
+    try:
+        data = json.loads(pathlib.Path(path).read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ValueError(f"envelope file {path} is unreadable: {err}") from None
+    if "envelope" in data and "azimuth_deg" not in data:
+        env = data["envelope"].get("0", data["envelope"].get(0, {}))
+        az = np.array([float(a) for a in env], float)
+        imp = np.array([e["impulse_ns"] for e in env.values()], float)
+    else:
+        az, imp = np.asarray(data.get("azimuth_deg", []), float), np.asarray(data.get("impulse_ns", []), float)
+    if az.size == 0 or az.shape != imp.shape or not np.all(np.isfinite(imp)) or np.any(imp <= 0):
+        raise ValueError(f"envelope file {path}: needs matching azimuth_deg and positive impulse_ns lists")
+    order = np.argsort(az % 360.0)
+    return az[order] % 360.0, imp[order]
+
+
+def envelope_table(tc: TuneConfig, robot: model_lib.Robot) -> tuple[np.ndarray, np.ndarray]:
+    """The default envelope per direction that push impulses are scaled by: ``tc.envelope``, the
+    stored :data:`ENVELOPE_FILE`, or ``envelope_fraction`` x the feet-in-place LIP bound over 32
+    directions."""
+    if tc.envelope is not None:
+        return load_envelope(tc.envelope)
+    if ENVELOPE_FILE.is_file():
+        return load_envelope(ENVELOPE_FILE)
+    az = np.arange(32) * 360.0 / 32
+    bound = sweep.lip_bound(robot, az)
+    return az, tc.envelope_fraction * np.array([bound[float(a)]["impulse_bound_ns"] for a in az])
+
+
+def interp_periodic(az_table: np.ndarray, values: np.ndarray, az) -> np.ndarray:
+    """Linear interpolation over azimuth (deg, period 360) of a table (K,)."""
+    xp = np.concatenate([az_table - 360.0, az_table, az_table + 360.0])
+    return np.interp(np.asarray(az, float) % 360.0, xp, np.tile(values, 3))
+
+
+def batch_rng(seed: int, stream: int, k: int) -> np.random.Generator:
+    """The generator of batch ``k`` of a stream (0: training, 1: CMA-ES, 2: random search, 3:
+    held-out, 4: prediction check): reproducible and independent of what ran before."""
+    return np.random.default_rng([int(seed), int(stream), int(k)])
+
+
+def sample_pushes(tc: TuneConfig, robot: model_lib.Robot, table, rng: np.random.Generator, size: int,
+                  dtype=np.float32) -> tuple[Scenario, dict]:  # fmt: skip
+    """``size`` pushes of the training distribution (module docstring): (Scenario with a leading
+    axis of ``size`` (its gains are the WBC defaults, unused by the objectives), numpy columns)."""
+    n = robot.index.n
+    az = rng.uniform(0.0, 360.0, size)
+    impulse = rng.uniform(*tc.magnitude_range, size) * interp_periodic(*table, az)
+    body = np.array([robot.index.body_id(b) for b in tc.train_bodies])[rng.integers(0, len(tc.train_bodies), size)]
+    duration = rng.uniform(*tc.duration_range, size)
+    friction, mass = rng.uniform(*tc.friction_range, size), rng.uniform(*tc.mass_range, size)
+    offsets = rng.normal(scale=tc.joint_noise, size=(size, n)) if tc.joint_noise else np.zeros((size, n))
+    return pushes_at(robot, az, impulse, body, duration, tc.push_onset, friction, mass, offsets, dtype)
+
+
+def pushes_at(robot, az, impulse, body, duration, onset, friction, mass, offsets, dtype=np.float32):
+    """Scenarios (B,) of horizontal pushes: azimuth (B,) deg, impulse (B,) N s, body ids (B,),
+    duration (B,) s, onset () s, plant friction and mass scale (B,), joint offsets (B, n)."""
+    az, impulse, duration = (np.asarray(x, float) for x in (az, impulse, duration))
+    B = az.size
+    u = np.stack([np.cos(np.deg2rad(az)), np.sin(np.deg2rad(az)), np.zeros(B)], 1)
+    base = default_gains(robot.index.n)
+    scen = Scenario(
+        push=Push(force=((impulse / duration)[:, None] * u)[:, None, :].astype(dtype),
+                  onset=np.full((B, 1), onset, dtype), duration=duration[:, None].astype(dtype),
+                  body=np.asarray(body, np.int32).reshape(B, 1)),
+        gains=jax.tree_util.tree_map(lambda x: np.broadcast_to(np.asarray(x, dtype), (B,) + np.shape(x)), base),
+        joint_offset=np.asarray(offsets, dtype), friction=np.asarray(friction, dtype),
+        mass_scale=np.asarray(mass, dtype),
+    )  # fmt: skip
+    cols = {"azimuth_deg": az, "impulse_ns": impulse, "magnitude_n": impulse / duration, "duration_s": duration,
+            "body": np.asarray(body), "friction": np.asarray(friction, float), "mass_scale": np.asarray(mass, float)}
+    return scen, cols
+
+
+# ---------------------------------------------------------------------------------------------
+# The problem: closed loop with a tuning trace, bounds, objectives
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Problem:
+    """What the objectives close over: configs, robot, the tuning loop, the start and bounds of the
+    search, the default envelope table, the physics steps of one rollout."""
+
+    tc: TuneConfig
+    lc: tuning_loss.LossConfig
+    setup: scenario.Setup
+    loop: tuning_loss.TuningLoop
+    base: Gains
+    reg0: np.ndarray
+    init: Gains
+    bounds: tuning_params.Bounds
+    table: tuple
+    iterations: int
+
+    @property
+    def robot(self) -> model_lib.Robot:
+        return self.setup.robot
+
+    @property
+    def steps_per_rollout(self) -> int:
+        """Physics steps of one rollout (the unit of the simulation budget)."""
+        return self.loop.n_ticks * self.loop.n_sub
+
+    def init_params(self) -> dict:
+        """The unconstrained start of the search {group: (k,)}."""
+        return tuning_params.controls_to_params(self.init, self.reg0, self.bounds,
+                                                regularisation=self.tc.tune_regularisation)  # fmt: skip
+
+    @property
+    def key(self) -> str:
+        """Checkpoints belong to this: the configs and the envelope table the pushes scale with."""
+        table = hashlib.sha256(np.asarray(self.table, float).tobytes()).hexdigest()[:8]
+        return f"{config_key(self.tc, self.lc, exclude=NOT_TRAINING)}-{table}"
+
+    def regularisation(self, reg) -> np.ndarray:
+        """(2,) Reg.pinvDamp, Reg.KP_postural of a controls dict (None: the controller's)."""
+        if reg is None:
+            return np.asarray(self.reg0, float)
+        return np.array([float(reg[k]) for k in tuning_params.REGULARISATION])
+
+    def controls(self, params: dict):
+        """(Gains, regularisation dict) of unconstrained params."""
+        return tuning_params.params_to_controls(params, self.bounds, self.base)
+
+
+def make_problem(tc: TuneConfig, lc: tuning_loss.LossConfig | None = None, *, robot_name: str = "icub",
+                 horizon: float | None = None, checkpoint: bool | None = None) -> Problem:  # fmt: skip
+    """Check the inputs (gains file inside the bounds, bodies) and build the tuning closed loop
+    (stand task, perturbed plant, MJX JAX physics, a :class:`~wbc_jax.tuning_loss.TuneTrace` per
+    tick). ``horizon``: seconds (default ``tc.horizon``); ``checkpoint``: per-tick
+    rematerialisation (default ``tc.checkpoint == "tick"``)."""
+    lc = tuning_loss.LossConfig() if lc is None else lc
+    dtype = scenario.float_dtype()
+    robot = model_lib.load_robot(robot_name)
+    for b in tc.train_bodies:
+        robot.index.body_id(b)
+    base = default_gains(robot.index.n, dtype)
+    reg0 = tuning_params.default_regularisation()
+    bounds = tuning_params.default_bounds(base, tc.bound_factor, tc.zeta_range, reg0)
+    init = base
+    if tc.init_gains is not None:
+        init = load_gains(tc.init_gains, robot.index.n, dtype)
+        tuning_params.check_in_bounds(init, reg0, bounds, source=f"--init-gains {tc.init_gains}")
+    table = envelope_table(tc, robot)
+    sim = rollout_lib.SimConfig(
+        record=False, loss_trace=True, checkpoint=(tc.checkpoint == "tick") if checkpoint is None else checkpoint,
+        push_body=tc.train_bodies[0], perturb_plant=True,
+        physics=physics.PhysicsConfig(backend="jax", solver_iterations=tc.solver_iterations,
+                                      ls_iterations=tc.ls_iterations),
+    )  # fmt: skip
+    st = scenario.setup("stand", duration=tc.horizon if horizon is None else horizon, controller=ControllerConfig(),
+                        sim=sim, gains=base)  # fmt: skip
+    iterations = tc.solver_iterations or int(robot.mj_model.opt.iterations)
+    return Problem(tc=tc, lc=lc, setup=st, loop=tuning_loss.tuning_loop(st.loop), base=base, reg0=reg0, init=init,
+                   bounds=bounds, table=table, iterations=iterations)  # fmt: skip
+
+
+def _rollout_fn(problem: Problem, n_ticks: int | None):
+    """env(gains, reg, scen) -> (loss terms {name: ()}, Metrics) of one push."""
+    loop, st = problem.loop, problem.setup
+    qpos0 = jnp.asarray(st.qpos0, st.dtype)
+    nominal = physics.device_model(st.robot.mj_model, "jax", loop.cfg.physics)
+
+    def env(gains, reg, scen):
+        plant = physics.plant_model(nominal, scen.friction, scen.mass_scale)
+        metrics, trace = loop.rollout(plant, loop.initial_qpos(qpos0, scen.joint_offset), gains, scen.push,
+                                      controller_overrides=reg)  # fmt: skip
+        return tuning_loss.loss_terms(trace, problem.lc, n_ticks, loop.cfg.control_dt), metrics
+
+    return env
+
+
+def _cast(dtype, tree):
+    return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), tree)
+
+
+def make_batched_loss(problem: Problem, *, n_ticks: int | None = None, fixed_solver: bool = True):
+    """Batched objective of one gain set (unjitted; jit / differentiate it):
+    ``fn(gains, reg, scen) -> (objective (), terms {name: (B,)}, Metrics (B,))``; ``reg``:
+    {"pinv_damping": (), "kp_postural_reg": ()} or None (the controller's). ``fixed_solver``: MJX's
+    solver loop as a fixed-length scan (reverse mode; same values). ``n_ticks``: the loss on the
+    first ticks only (prediction checks)."""
+    env = _rollout_fn(problem, n_ticks)
+    dtype = problem.setup.dtype
+
+    def fn(gains, reg, scen):
+        gains, reg = _cast(dtype, gains), None if reg is None else _cast(dtype, reg)
+        if fixed_solver:
+            with physics.fixed_iteration_solver(problem.iterations):
+                terms, metrics = jax.vmap(env, in_axes=(None, None, 0))(gains, reg, scen)
+        else:
+            terms, metrics = jax.vmap(env, in_axes=(None, None, 0))(gains, reg, scen)
+        return tuning_loss.batch_objective(terms["total"], problem.lc), terms, metrics
+
+    return fn
+
+
+def make_population_loss(problem: Problem):
+    """Forward objective of P gain sets on the same b pushes, vmapped over the population:
+    ``fn(params {group: (P, k)}, scen (b,)) -> (objective (P,), terms {name: (P, b)}, Metrics (P, b))``."""
+    env = _rollout_fn(problem, None)
+    dtype = problem.setup.dtype
+
+    def one(params, scen):
+        gains, reg = problem.controls(params)
+        reg = None if reg is None else _cast(dtype, reg)
+        terms, metrics = jax.vmap(env, in_axes=(None, None, 0))(_cast(dtype, gains), reg, scen)
+        return tuning_loss.batch_objective(terms["total"], problem.lc), terms, metrics
+
+    return jax.vmap(one, in_axes=(0, None))
+
+
+def shard_batch(tree):
+    """Put a batch (leading axis) on the devices: sharded along the batch over all devices when
+    it divides evenly, else on the default device."""
+    mesh = scenario.device_mesh()
+    B = int(jax.tree_util.tree_leaves(tree)[0].shape[0])
+    if mesh.devices.size > 1 and B % mesh.devices.size == 0:
+        sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+        return jax.device_put(tree, sharding)
+    return jax.device_put(tree)
+
+
+def survival_stats(metrics) -> dict:
+    """Strict survival and the lax upright rate of a batch's Metrics (host side)."""
+    cols = rollout_lib.summarize(jax.tree_util.tree_map(lambda x: np.asarray(x).reshape(-1), metrics))
+    return {"survival_rate": float(np.mean(cols["survived"])), "upright_rate": float(np.mean(cols["upright"])),
+            "qp_infeasible_rate": float(np.mean(np.asarray(cols["qp_infeasible_ticks"]) > 0))}  # fmt: skip
+
+
+# ---------------------------------------------------------------------------------------------
+# Checkpoints and history files
+
+
+def save_checkpoint(path: pathlib.Path, state, step: int, key: str, **extra) -> None:
+    """state (a pytree) + step + config key (+ extra arrays), atomically."""
+    leaves = jax.tree_util.tree_leaves(state)
+    io.atomic_save_npz(path, step=np.asarray(step), key=np.asarray(key),
+                       **{f"leaf_{i:04d}": np.asarray(x) for i, x in enumerate(leaves)},
+                       **{f"extra_{k}": np.asarray(v) for k, v in extra.items()})  # fmt: skip
+
+
+def load_checkpoint(path: pathlib.Path, like, key: str):
+    """(state shaped like ``like``, step, extra {name: array}) of a checkpoint of config ``key``."""
+    try:
+        with np.load(path) as z:
+            stored = {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+        raise ValueError(f"{path} is unreadable ({err}); remove it to restart") from None
+    if "key" not in stored or str(stored["key"]) != key:
+        raise ValueError(f"{path} belongs to another tuning config; use another --out")
+    treedef = jax.tree_util.tree_structure(like)
+    like_leaves = jax.tree_util.tree_leaves(like)
+    try:
+        leaves = [jnp.asarray(stored[f"leaf_{i:04d}"], dtype=jnp.asarray(x).dtype) for i, x in enumerate(like_leaves)]
+    except KeyError as err:
+        raise ValueError(f"{path} lacks {err}; remove it to restart") from None
+    extra = {k[len("extra_"):]: v for k, v in stored.items() if k.startswith("extra_")}
+    return jax.tree_util.tree_unflatten(treedef, leaves), int(stored["step"]), extra
+
+
+def write_csv(path: pathlib.Path, rows: list, columns) -> None:
+    buf = _io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(columns))
+    w.writeheader()
+    w.writerows(rows)
+    io.atomic_write_bytes(path, buf.getvalue().encode())
+
+
+def read_csv(path: pathlib.Path) -> list:
+    with open(path) as fh:
+        return list(csv.DictReader(fh))
+
+
+def rss_mb() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+
+
+def constants_used() -> dict:
+    """The survival thresholds (for reports)."""
+    return dict(constants.SURVIVAL_CRITERION)
