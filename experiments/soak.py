@@ -85,7 +85,7 @@ def main(argv=None) -> dict:
     st = scenario.setup("stand", duration=args.horizon, sim=sim)
     rng = np.random.default_rng(args.seed)
     totals = {"envs": 0, "hangs": 0, "nan_leaks": 0, "diverged_flagged": 0, "fell": 0, "upright": 0,
-              "compile_s": 0.0, "run_s": 0.0, "max_chunk_s": 0.0}  # fmt: skip
+              "compile_s": 0.0, "run_s": 0.0, "max_chunk_s": 0.0, "leaks_by_column": {}}  # fmt: skip
 
     def alarm(signum, frame):
         raise Hang
@@ -107,9 +107,13 @@ def main(argv=None) -> dict:
             signal.alarm(0)
         cols = rollout.summarize(run.metrics, 0.0)
         flagged = np.asarray(cols["nan"], bool)
-        leaks = 0
+        leaks, by_column = 0, {}
         for name in FINITE:
-            leaks += int(np.sum(~np.isfinite(np.asarray(cols[name], float)) & ~flagged))
+            bad = int(np.sum(~np.isfinite(np.asarray(cols[name], float)) & ~flagged))
+            if bad:
+                by_column[name] = bad
+                totals["leaks_by_column"][name] = totals["leaks_by_column"].get(name, 0) + bad
+            leaks += bad
         totals["envs"] += n
         totals["nan_leaks"] += leaks
         totals["diverged_flagged"] += int(flagged.sum())
@@ -118,8 +122,8 @@ def main(argv=None) -> dict:
         totals["compile_s"] += run.compile_s
         totals["run_s"] += run.run_s
         totals["max_chunk_s"] = max(totals["max_chunk_s"], time.perf_counter() - t0)
-        print(json.dumps({"chunk": c, "envs": n, "nan_leaks": leaks, "flagged": int(flagged.sum()),
-                          "run_s": round(run.run_s, 2)}), flush=True)  # fmt: skip
+        print(json.dumps({"chunk": c, "envs": n, "nan_leaks": leaks, "by_column": by_column,
+                          "flagged": int(flagged.sum()), "run_s": round(run.run_s, 2)}), flush=True)  # fmt: skip
     rates = {k: totals[k] / max(totals["envs"], 1) for k in ("fell", "upright", "diverged_flagged")}
     aggregate_ok = all(math.isfinite(v) for v in rates.values())
     import jax
@@ -128,6 +132,7 @@ def main(argv=None) -> dict:
         "soak_envs": totals["envs"], "soak_hangs": totals["hangs"],
         "soak_nan_leaks": totals["nan_leaks"] + (0 if aggregate_ok else 1),
         "soak_diverged_flagged": totals["diverged_flagged"], "soak_rates": rates,
+        "soak_nan_leaks_by_column": totals["leaks_by_column"],
         "soak_horizon_s": args.horizon, "soak_backend": st.backend,
         "soak_compile_s": round(totals["compile_s"], 1), "soak_run_s": round(totals["run_s"], 1),
         "soak_physics_steps_per_s": totals["envs"] * st.loop.n_ticks * st.loop.n_sub / max(totals["run_s"], 1e-9),

@@ -70,6 +70,24 @@ def test_polygon_margin_is_the_distance_to_the_hull():
             assert margin < 0
 
 
+def test_polygon_margin_in_float32_on_tilted_soles():
+    """Sole corners in float32 (rounding puts collinear corners a hair apart): the margin is finite
+    and equals the float64 one."""
+    rng = np.random.default_rng(1)
+    x0, x1, y0, y1 = -0.07, 0.12, -0.045, 0.045
+    for _ in range(50):
+        pts = []
+        for foot in (-1, 1):
+            c, s = np.cos(rng.uniform(-0.3, 0.3)), np.sin(rng.uniform(-0.3, 0.3))
+            local = np.array([[x, y] for x in (x0, x1) for y in (y0, y1)]) @ np.array([[c, s], [-s, c]])
+            pts.append(local * rng.uniform(0.95, 1.0) + np.array([0.01, foot * 0.07]) + rng.normal(scale=2e-3, size=2))
+        pts = np.concatenate(pts) * 10 ** rng.uniform(-0.2, 0.4)
+        p = rng.normal(scale=0.05, size=2)
+        m32 = float(rollout.polygon_margin(jax.numpy.asarray(pts, np.float32), jax.numpy.asarray(p, np.float32)))
+        m64 = float(rollout.polygon_margin(jax.numpy.asarray(pts, np.float64), jax.numpy.asarray(p, np.float64)))
+        assert np.isfinite(m32) and abs(m32 - m64) < 1e-5, (m32, m64)
+
+
 def test_bad_settings_are_named():
     with pytest.raises(ValueError, match="duration must be a positive finite"):
         rollout.SimConfig(duration=float("inf"))

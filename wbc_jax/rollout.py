@@ -220,18 +220,22 @@ def support_corners(controller: Controller, contact_pos: Array, contact_R: Array
     return jnp.concatenate(corners)
 
 
-def polygon_margin(points: Array, p: Array) -> Array:
+def polygon_margin(points: Array, p: Array, tol: float = 1e-6) -> Array:
     """Signed distance () of p (2,) inside the convex hull of points (N, 2): the smallest distance
-    to a hull edge, negative outside. Hull edges: the ordered pairs with every point on their left."""
+    to a hull edge, negative outside. Hull edges: the ordered pairs with every point on their left
+    (to ``tol`` m: rounding puts the two other corners of a sole's edge a hair to either side in
+    float32). A degenerate hull (no edge found) gives minus the distance to the nearest point."""
     a = points[:, None, :]
     b = points[None, :, :]
     e = b - a  # (N, N, 2)
     length = jnp.sqrt(jnp.sum(e * e, -1) + 1e-30)
     normal = jnp.stack([-e[..., 1], e[..., 0]], -1) / length[..., None]  # left normal
     side = jnp.einsum("ijk,lk->ijl", normal, points) - jnp.einsum("ijk,ijk->ij", normal, a)[..., None]
-    is_edge = (length > 1e-9) & jnp.all(side >= -1e-9, axis=-1)
+    is_edge = (length > 1e-6) & jnp.all(side >= -tol, axis=-1)
     dist = jnp.einsum("ijk,k->ij", normal, p) - jnp.einsum("ijk,ijk->ij", normal, a)
-    return jnp.min(jnp.where(is_edge, dist, jnp.inf))
+    margin = jnp.min(jnp.where(is_edge, dist, jnp.inf))
+    nearest = jnp.min(jnp.linalg.norm(points - p, axis=-1))
+    return jnp.where(jnp.any(is_edge), margin, -nearest)
 
 
 class ClosedLoop:

@@ -213,6 +213,8 @@ def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
     size = B if batch_size is None else max(batch_size, B)
     padded = pad_batch(jax.tree_util.tree_map(np.asarray, scen), size)
     if loop.backend == "mujoco":
+        if jax.process_count() > 1:
+            raise ValueError("a run over several processes (jax.distributed) needs an MJX backend: --backend jax or warp")
         t0 = time.perf_counter()
         metrics, records, compile_s = loop.run_host(padded, setup_.qpos0, setup_.dtype, on_tick=on_tick)
         out = Run(metrics, records, compile_s, time.perf_counter() - t0 - compile_s)
@@ -237,8 +239,13 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
     batch = int(padded.friction.shape[0])
     sharding = NamedSharding(mesh, PartitionSpec("batch"))
     replicated = NamedSharding(mesh, PartitionSpec())
-    floats = lambda x: np.asarray(x, dtype) if np.asarray(x).dtype.kind == "f" else x  # noqa: E731
-    scen_dev = jax.device_put(jax.tree_util.tree_map(floats, padded), sharding)
+    floats = lambda x: np.asarray(x, dtype) if np.asarray(x).dtype.kind == "f" else np.asarray(x)  # noqa: E731
+    # Global arrays from the full batch every process holds (one process, or several after
+    # jax.distributed.initialize(): each fills the shards of its own devices).
+    scen_dev = jax.tree_util.tree_map(
+        lambda x: jax.make_array_from_callback(x.shape, sharding, lambda i, x=x: x[i]),
+        jax.tree_util.tree_map(floats, padded),
+    )
     qpos0 = jnp.asarray(setup_.qpos0, dtype)
     nominal = physics.device_model(setup_.robot.mj_model, loop.backend, loop.cfg.physics)
     perturb = loop.cfg.perturb_plant
@@ -261,7 +268,7 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
             cache[key] = jax.jit(jax.vmap(whole), in_shardings=sharding, out_shardings=sharding).lower(scen_dev).compile()
             compile_s = time.perf_counter() - t0
         t0 = time.perf_counter()
-        metrics, records = jax.tree_util.tree_map(np.asarray, cache[key](scen_dev))
+        metrics, records = jax.tree_util.tree_map(_to_host, cache[key](scen_dev))
         if on_tick is not None:
             on_tick(loop.n_ticks)
         return Run(metrics, records, compile_s, time.perf_counter() - t0)
@@ -289,12 +296,21 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
     pieces = []
     for k0 in range(0, loop.n_ticks, chunk):
         carry, records = advance_fn(scen_dev, carry, jnp.int32(k0))
-        pieces.append(jax.tree_util.tree_map(np.asarray, records))
+        pieces.append(jax.tree_util.tree_map(_to_host, records))
         if on_tick is not None:
             on_tick(min(k0 + chunk, loop.n_ticks))
-    metrics = jax.tree_util.tree_map(np.asarray, rollout_lib._final_metrics(carry[1], carry[2]))
+    metrics = jax.tree_util.tree_map(_to_host, rollout_lib._final_metrics(carry[1], carry[2]))
     records = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=1), *pieces)
     return Run(metrics, records, compile_s, time.perf_counter() - t0)
+
+
+def _to_host(x) -> np.ndarray:
+    """A (possibly multi-process) global array as one numpy array on every process."""
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+    return np.asarray(x)
 
 
 def _tick_chunk(n_ticks: int, target: int = 100) -> int:

@@ -20,7 +20,7 @@ import time
 import jax
 import numpy as np
 
-from wbc_jax import constants, io, physics, runs, scenario
+from wbc_jax import constants, io, physics, runs, scenario, sweep_plots
 from wbc_jax import model as model_lib
 from wbc_jax import rollout as rollout_lib
 from wbc_jax.controller import FORCE_MODES, ControllerConfig
@@ -284,7 +284,11 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
     robot.index.body_id(cfg.body)
     st = make_setup(cfg, base, robot_name=robot_name)
     scen, columns = build_scenarios(cfg, base, robot.index.n, dtype)
-    runs.claim_output_dir(out, "sweep", fingerprint(cfg), resume=True)
+    # With several processes (jax.distributed), each computes every chunk with its devices' share
+    # and gathers the results; the first process writes them.
+    writer = jax.process_index() == 0
+    if writer:
+        runs.claim_output_dir(out, "sweep", fingerprint(cfg), resume=True)
 
     push_end = cfg.push_onset + cfg.push_duration
     n_chunks = math.ceil(cfg.size / cfg.chunk_size)
@@ -305,11 +309,13 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
                 done_envs += hi - lo
                 cols = rollout_lib.summarize(result.metrics, push_end)
                 table = pd.DataFrame({"env": np.arange(lo, hi), **{k: v[lo:hi] for k, v in columns.items()}, **cols})
-                io.atomic_write_parquet(part, table)
+                if writer:
+                    io.atomic_write_parquet(part, table)
             tables.append(table)
             bar.update(hi - lo)
     table = pd.concat(tables, ignore_index=True)
-    io.atomic_write_parquet(out / "results.parquet", table)
+    if writer:
+        io.atomic_write_parquet(out / "results.parquet", table)
     steps_per_env = st.loop.n_ticks * st.loop.n_sub
     summary = summarize_table(table, cfg, st.robot)
     summary.update({
@@ -325,11 +331,10 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
         "physics_steps_per_s": (done_envs * steps_per_env / run_s) if run_s > 0 else None,
         "gains": gains_to_dict(base),
     })  # fmt: skip
-    io.atomic_write_json(out / "summary.json", summary)
-    from wbc_jax import sweep_plots
-
-    sweep_plots.survival_map(table, out / "survival.png", summary["envelope"])
-    sweep_plots.envelope(table, summary["envelope"], out / "envelope.png")
+    if writer:
+        io.atomic_write_json(out / "summary.json", summary)
+        sweep_plots.survival_map(table, out / "survival.png", summary["envelope"])
+        sweep_plots.envelope(table, summary["envelope"], out / "envelope.png")
     return summary
 
 
