@@ -88,6 +88,15 @@ def test_polygon_margin_in_float32_on_tilted_soles():
         assert np.isfinite(m32) and abs(m32 - m64) < 1e-5, (m32, m64)
 
 
+def test_blown_up_states_count_as_diverged():
+    """Finite but unphysical speeds are a divergence (flagged and frozen), like NaN."""
+    q, v = np.zeros(30), np.zeros(29)
+    assert physics.state_ok(q, v) and bool(physics.state_ok(jax.numpy.asarray(q), jax.numpy.asarray(v)))
+    for bad_v in (np.full(29, 2e4), np.where(np.arange(29) == 3, np.inf, 0.0)):
+        assert not physics.state_ok(q, bad_v) and not bool(physics.state_ok(jax.numpy.asarray(q), jax.numpy.asarray(bad_v)))
+    assert not physics.state_ok(np.full(30, np.nan), v)
+
+
 def test_bad_settings_are_named():
     with pytest.raises(ValueError, match="duration must be a positive finite"):
         rollout.SimConfig(duration=float("inf"))

@@ -60,6 +60,9 @@ CONTROL_DT = 0.01  # s: the controller at 100 Hz (physics at the model's 1 kHz)
 RECOVERY_THRESHOLD = 0.01  # m: "recovered" = CoM back within 1 cm of its reference
 FALL_COM_HEIGHT = 0.7  # a fall: CoM below this fraction of its initial height
 BODY_FLOOR_HEIGHT = 0.05  # m: a fall: a body other than the feet/ankles this close to the floor
+# A state with a speed above this (m/s or rad/s) has diverged even if finite: blown-up physics is
+# flagged and frozen like NaN instead of feeding overflowing numbers into the metrics.
+DIVERGED_SPEED = 1e4
 
 # Survival that means balance (issue 20, step 0): the feet stay in place, the robot stays up
 # and ends balanced. ``survived`` in every summary uses these thresholds; ``upright`` keeps

@@ -33,6 +33,7 @@ import mujoco
 import numpy as np
 
 from wbc_jax._mjx import mjx
+from wbc_jax.constants import DIVERGED_SPEED
 from wbc_jax.types import Array
 
 BACKENDS = ("auto", "jax", "warp", "mujoco")
@@ -119,6 +120,13 @@ def solver_mj_model(m: mujoco.MjModel, cfg: PhysicsConfig) -> mujoco.MjModel:
         m.opt.ls_iterations = int(cfg.ls_iterations)
     m.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_AUTORESET
     return m
+
+
+def state_ok(qpos, qvel):
+    """() True while the state is finite and its speeds physical (below
+    :data:`wbc_jax.constants.DIVERGED_SPEED`); numpy or JAX arrays alike."""
+    xp = jnp if isinstance(qpos, jax.Array) else np
+    return xp.all(xp.isfinite(qpos)) & xp.all(xp.isfinite(qvel)) & (xp.max(xp.abs(qvel)) < DIVERGED_SPEED)
 
 
 def floor_pairs(pair_geom1: np.ndarray, pair_geom2: np.ndarray) -> np.ndarray:
@@ -290,7 +298,7 @@ class HostBatch:
                 m, d = self.models[i], self.data[i]
                 if self.diverged[i]:
                     continue
-                if not (np.all(np.isfinite(ctrl[i])) and np.all(np.isfinite(d.qpos)) and np.all(np.isfinite(d.qvel))):
+                if not (np.all(np.isfinite(ctrl[i])) and state_ok(d.qpos, d.qvel)):
                     self.diverged[i] = True  # flagged before C MuJoCo warns about it
                     continue
                 saved = (d.time, d.qpos.copy(), d.qvel.copy(), d.qacc_warmstart.copy())
@@ -303,7 +311,7 @@ class HostBatch:
                     d.xfrc_applied[:] = xfrc[i, j]
                     mujoco.mj_step(m, d, nstep=k - j)
                     j = k
-                if not (np.all(np.isfinite(d.qpos)) and np.all(np.isfinite(d.qvel))):
+                if not state_ok(d.qpos, d.qvel):
                     d.time, d.qpos[:], d.qvel[:], d.qacc_warmstart[:] = saved
                     mujoco.mj_forward(m, d)
                     self.diverged[i] = True

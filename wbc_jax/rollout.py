@@ -451,8 +451,8 @@ class ClosedLoop:
             state, ctrl, record = self.control(gains, state, d.qpos, d.qvel, k, ok, push)
             xfrc = self.xfrc(push, k).astype(d.qpos.dtype)
             d_new, _ = jax.lax.scan(lambda dd, x: (physics.step(plant, dd, ctrl, x), None), d, xfrc)
-            finite = jnp.all(jnp.isfinite(d_new.qpos)) & jnp.all(jnp.isfinite(d_new.qvel))
-            d_new = d_new.where(~finite, d)  # a diverged env keeps its last finite state
+            finite = physics.state_ok(d_new.qpos, d_new.qvel)
+            d_new = d_new.where(~finite, d)  # a diverged env keeps its last sound state
             if self.cfg.record and self.backend == "warp":  # no per-environment contact forces there
                 nan = jnp.full_like(record.f_meas, jnp.nan)
                 record = record.replace(f_meas=nan, Ldot_meas=jnp.full_like(record.Ldot_meas, jnp.nan))
