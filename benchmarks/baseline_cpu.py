@@ -927,7 +927,7 @@ def simulate(
 
     Returns:
       dict with ``t`` (T,), ``com_ref`` (T, 3), ``metrics`` (dict of (B,) arrays, the fields of
-      rollout.Metrics; :func:`summarize` names them as ``constants.METRIC_NAMES``), with
+      wbc_jax.metrics.Metrics; :func:`summarize` names them as ``constants.METRIC_NAMES``), with
       ``record``: ``com`` (B, T, 3), ``tau`` (B, T, n), ``f_cmd`` (B, T, 12), ``qp_infeasible``
       (B, T); with ``timing``: ``timing`` (dict: wall and CPU seconds of the loop, seconds in
       physics (mj_step1/mj_step2/mj_step) and in the controller (terms + tick), microseconds per
@@ -1075,7 +1075,7 @@ def simulate(
 
 def summary_columns(metrics: dict, push_end: float = 0.0) -> dict:
     """The metrics of :func:`simulate` under ``constants.METRIC_NAMES`` (numpy columns, (B,)),
-    computed as :func:`wbc_jax.rollout.summarize`: ``survived`` is the strict criterion of
+    computed as :func:`wbc_jax.metrics.summarize`: ``survived`` is the strict criterion of
     ``constants.SURVIVAL_CRITERION``, ``upright`` the lax one (no fall, no NaN)."""
     m = {k: np.asarray(v) for k, v in metrics.items()}
     ticks = np.maximum(m["ticks"], 1)
@@ -1111,7 +1111,7 @@ def summary_columns(metrics: dict, push_end: float = 0.0) -> dict:
 
 def summarize(metrics: dict, push_end: float = 0.0) -> list[dict]:
     """Per-environment summaries (plain numbers) under ``constants.METRIC_NAMES``, as
-    :func:`wbc_jax.rollout.summarize` gives for one environment."""
+    :func:`wbc_jax.metrics.summarize` gives for one environment."""
     cols = summary_columns(metrics, push_end)
     B = len(cols["fell"])
     return [{k: v[i].item() for k, v in cols.items()} for i in range(B)]

@@ -87,14 +87,15 @@ def time_closed_loop(st, scen, push_end: float, repeats: int = 1) -> dict:
     compiled programs cached on the setup); the fastest counts."""
     import numpy as np
 
-    from wbc_jax import rollout, scenario
+    from wbc_jax import metrics as metrics_lib
+    from wbc_jax import scenario
 
     first = scenario.run(st, scen)
     timed = [scenario.run(st, scen) for _ in range(repeats)]
     run_s = min(r.run_s for r in timed)
     B = int(np.asarray(scen.friction).shape[0])
     steps = B * st.loop.n_ticks * st.loop.n_sub
-    cols = rollout.summarize(timed[-1].metrics, push_end)
+    cols = metrics_lib.summarize(timed[-1].metrics, push_end)
     return {
         "compile_s": round(first.compile_s, 2),
         "first_run_s": round(first.run_s, 4),

@@ -22,6 +22,7 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from wbc_jax import metrics as metrics_lib  # noqa: E402
 from wbc_jax import io, physics, rollout, scenario  # noqa: E402
 
 PUSH = ([0.0, 40.0, 0.0], 0.3, 0.1)
@@ -39,7 +40,7 @@ def main(argv=None) -> dict:
         st = scenario.setup("stand", duration=1.0, sim=rollout.SimConfig(physics=physics.PhysicsConfig(backend=b)))
         run = scenario.run(st, scenario.single(st, scenario.make_push(*PUSH, st.dtype)))
         com[b] = np.asarray(run.records.com[0], float)
-        m = rollout.summarize(jax.tree_util.tree_map(lambda x: x[0], run.metrics), PUSH[1] + PUSH[2])
+        m = metrics_lib.summarize(jax.tree_util.tree_map(lambda x: x[0], run.metrics), PUSH[1] + PUSH[2])
         summary[b] = {"compile_s": round(run.compile_s, 2), "com_max_err_m": m["com_max_err_m"],
                       "max_foot_slip_m": m["max_foot_slip_m"], "upright": bool(m["upright"]),
                       "com_excursion_m": float(np.linalg.norm(com[b] - com[b][0], axis=1).max())}  # fmt: skip

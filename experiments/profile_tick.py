@@ -27,7 +27,6 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from wbc_jax import contacts, forces, io, physics, rollout, scenario, torques  # noqa: E402
-from wbc_jax.references import Reference  # noqa: E402
 
 
 def timed(fn, *args, repeats: int) -> float:

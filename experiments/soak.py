@@ -27,6 +27,7 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from wbc_jax import metrics as metrics_lib  # noqa: E402
 from wbc_jax import constants, io, physics, rollout, scenario  # noqa: E402
 from wbc_jax.gains import Gains  # noqa: E402
 
@@ -105,7 +106,7 @@ def main(argv=None) -> dict:
             continue
         finally:
             signal.alarm(0)
-        cols = rollout.summarize(run.metrics, 0.0)
+        cols = metrics_lib.summarize(run.metrics, 0.0)
         flagged = np.asarray(cols["nan"], bool)
         leaks, by_column = 0, {}
         for name in FINITE:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import ConvexHull
 
+from wbc_jax import metrics as metrics_lib
 from wbc_jax import constants, physics, rollout, scenario
 
 PUSH = ([0.0, 40.0, 0.0], 0.3, 0.1)  # the benchmark scenario: stand, 40 N lateral chest push, 1 s
@@ -31,8 +32,8 @@ def test_c_mujoco_backend_equals_the_mjx_closed_loop(runs):
     assert np.linalg.norm(com_c - com_c[0], axis=1).max() > 0.01
     # The measured wrenches (each engine's own contact read) agree too.
     np.testing.assert_allclose(mjx_run.records.f_meas[0], c_run.records.f_meas[0], atol=1e-3)
-    m_mjx = rollout.summarize(jax.tree_util.tree_map(lambda x: x[0], mjx_run.metrics))
-    m_c = rollout.summarize(jax.tree_util.tree_map(lambda x: x[0], c_run.metrics))
+    m_mjx = metrics_lib.summarize(jax.tree_util.tree_map(lambda x: x[0], mjx_run.metrics))
+    m_c = metrics_lib.summarize(jax.tree_util.tree_map(lambda x: x[0], c_run.metrics))
     assert set(m_c) == set(constants.METRIC_NAMES)
     for name in ("com_rmse_m", "com_max_err_m", "max_abs_torque_nm", "max_foot_slip_m", "min_com_height_m"):
         assert m_c[name] == pytest.approx(m_mjx[name], rel=1e-5, abs=1e-9), name
@@ -63,7 +64,7 @@ def test_polygon_margin_is_the_distance_to_the_hull():
     hull = ConvexHull(pts)
     for p in rng.uniform(-1.5, 1.5, size=(20, 2)):
         inside = np.all(hull.equations[:, :2] @ p + hull.equations[:, 2] <= 0)
-        margin = float(rollout.polygon_margin(jax.numpy.asarray(pts), jax.numpy.asarray(p)))
+        margin = float(metrics_lib.polygon_margin(jax.numpy.asarray(pts), jax.numpy.asarray(p)))
         if inside:  # the distance to the nearest edge line
             assert margin == pytest.approx(-np.max(hull.equations[:, :2] @ p + hull.equations[:, 2]), abs=1e-9)
         else:
@@ -83,8 +84,8 @@ def test_polygon_margin_in_float32_on_tilted_soles():
             pts.append(local * rng.uniform(0.95, 1.0) + np.array([0.01, foot * 0.07]) + rng.normal(scale=2e-3, size=2))
         pts = np.concatenate(pts) * 10 ** rng.uniform(-0.2, 0.4)
         p = rng.normal(scale=0.05, size=2)
-        m32 = float(rollout.polygon_margin(jax.numpy.asarray(pts, np.float32), jax.numpy.asarray(p, np.float32)))
-        m64 = float(rollout.polygon_margin(jax.numpy.asarray(pts, np.float64), jax.numpy.asarray(p, np.float64)))
+        m32 = float(metrics_lib.polygon_margin(jax.numpy.asarray(pts, np.float32), jax.numpy.asarray(p, np.float32)))
+        m64 = float(metrics_lib.polygon_margin(jax.numpy.asarray(pts, np.float64), jax.numpy.asarray(p, np.float64)))
         assert np.isfinite(m32) and abs(m32 - m64) < 1e-5, (m32, m64)
 
 

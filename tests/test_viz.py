@@ -4,7 +4,6 @@ Two compilations in all (the vmapped sweep and the recording replay, shared by e
 
 import collections
 import dataclasses
-import json
 
 import mujoco
 import numpy as np

@@ -12,6 +12,7 @@ import time
 import jax
 import numpy as np
 
+from wbc_jax import metrics as metrics_lib
 from wbc_jax import io, physics, plots, references, runs, scenario
 from wbc_jax import rollout as rollout_lib
 from wbc_jax.controller import FORCE_MODES, ControllerConfig
@@ -115,7 +116,7 @@ def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: 
     result = {"task": cfg.task, "forces": cfg.forces, "postural": cfg.postural, "duration_s": loop.cfg.duration,
               "solver_iterations": int(cfg.solver_iterations or st.robot.mj_model.opt.iterations),
               "control_dt_s": loop.cfg.control_dt, "backend": st.backend}  # fmt: skip
-    result.update(rollout_lib.summarize(metrics, push_end))
+    result.update(metrics_lib.summarize(metrics, push_end))
     result.update(force_task_error(traj))
     if loop.controller.stack is not None:
         result["tasks"] = task_tracking(loop.controller.stack, traj)

@@ -16,8 +16,8 @@ import pathlib
 
 import numpy as np
 
+from wbc_jax import metrics as metrics_lib
 from wbc_jax import io, model, runs, scenario, sweep
-from wbc_jax import rollout as rollout_lib
 from wbc_jax.gains import gains_to_dict
 
 
@@ -59,7 +59,7 @@ def search(cfg: sweep.SweepConfig, *, impulse_max: float, resolution: float = 0.
         result = scenario.run(st, scen, batch_size=K)
         compile_s += result.compile_s
         run_s += result.run_s
-        survived = np.asarray(rollout_lib.summarize(result.metrics, push_end)["survived"])
+        survived = np.asarray(metrics_lib.summarize(result.metrics, push_end)["survived"])
         lo, hi = np.where(survived, mid, lo), np.where(survived, hi, mid)
     support = "left-foot" if cfg.task == "one-foot" else "two-feet"
     bound = sweep.lip_bound(st.robot, sorted(set(azi.tolist())), support)

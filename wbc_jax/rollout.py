@@ -29,9 +29,9 @@ import numpy as np
 
 from wbc_jax._mjx import mjx
 from wbc_jax import constants, dynamics, forces, physics
+from wbc_jax import metrics as metrics_lib
 from wbc_jax.controller import Controller, ControllerState
 from wbc_jax.gains import Gains
-from wbc_jax.math import safe_norm
 from wbc_jax.model import Robot
 from wbc_jax.references import Schedule
 from wbc_jax.types import Array, pytree_dataclass
@@ -124,26 +124,6 @@ class Scenario:
 
 
 @pytree_dataclass
-class Metrics:
-    """Per-environment running metrics (scalars; a batch axis under vmap)."""
-
-    com_sq_err_sum: Array
-    com_max_err: Array
-    max_abs_torque: Array
-    max_violation: Array
-    max_slip: Array
-    max_tilt: Array  # rad, of a fully active contact's normal from where it was set down
-    qp_infeasible_ticks: Array
-    fell: Array
-    nan: Array
-    last_time_off: Array  # last time the CoM error exceeded RECOVERY_THRESHOLD
-    min_com_height: Array
-    end_com_speed: Array  # at the last tick
-    end_support_margin: Array  # CoM xy inside the feet's support polygon (m, < 0: outside)
-    ticks: Array
-
-
-@pytree_dataclass
 class LoopState:
     """Carry of the closed loop besides the physics: controller state, metrics, where each fully
     active contact was set down (K, 3) and its normal then (K, 3), the initial CoM height, and
@@ -152,7 +132,7 @@ class LoopState:
     (K, 3), for contact detection."""
 
     controller: ControllerState
-    metrics: Metrics
+    metrics: metrics_lib.Metrics
     anchors: Array
     anchor_normals: Array
     com0_height: Array
@@ -207,35 +187,6 @@ class LossTrace:
     tau: Array
     support_xy: Array
     com_height0: Array
-
-
-def support_corners(controller: Controller, contact_pos: Array, contact_R: Array) -> Array:
-    """(4 x feet, 3) corners of the soles' CoP rectangles, world axes."""
-    cset = controller.contact_set
-    corners = []
-    for k in cset.feet:
-        (x0, x1), (y0, y1) = cset.contacts[k].params.foot_size
-        local = jnp.asarray([[x, y, 0.0] for x in (x0, x1) for y in (y0, y1)], contact_pos.dtype)
-        corners.append(contact_pos[k] + local @ contact_R[k].T)
-    return jnp.concatenate(corners)
-
-
-def polygon_margin(points: Array, p: Array, tol: float = 1e-6) -> Array:
-    """Signed distance () of p (2,) inside the convex hull of points (N, 2): the smallest distance
-    to a hull edge, negative outside. Hull edges: the ordered pairs with every point on their left
-    (to ``tol`` m: rounding puts the two other corners of a sole's edge a hair to either side in
-    float32). A degenerate hull (no edge found) gives minus the distance to the nearest point."""
-    a = points[:, None, :]
-    b = points[None, :, :]
-    e = b - a  # (N, N, 2)
-    length = jnp.sqrt(jnp.sum(e * e, -1) + 1e-30)
-    normal = jnp.stack([-e[..., 1], e[..., 0]], -1) / length[..., None]  # left normal
-    side = jnp.einsum("ijk,lk->ijl", normal, points) - jnp.einsum("ijk,ijk->ij", normal, a)[..., None]
-    is_edge = (length > 1e-6) & jnp.all(side >= -tol, axis=-1)
-    dist = jnp.einsum("ijk,k->ij", normal, p) - jnp.einsum("ijk,ijk->ij", normal, a)
-    margin = jnp.min(jnp.where(is_edge, dist, jnp.inf))
-    nearest = jnp.min(jnp.linalg.norm(points - p, axis=-1))
-    return jnp.where(jnp.any(is_edge), margin, -nearest)
 
 
 class ClosedLoop:
@@ -299,14 +250,7 @@ class ClosedLoop:
         R_bc = jnp.asarray(np.array([c.R_body_contact for c in cset.contacts]).reshape(-1, 3, 3), dtype)
         K = len(cset.contacts)
         normals = jnp.einsum("kij,kj->ki", t0.W_R_frames[:K], R_bc[:, :, 2])
-        zero = jnp.zeros((), dtype)
-        metrics = Metrics(
-            com_sq_err_sum=zero, com_max_err=zero, max_abs_torque=zero, max_violation=zero,
-            max_slip=zero, max_tilt=zero, qp_infeasible_ticks=jnp.zeros((), jnp.int32),
-            fell=jnp.zeros((), bool), nan=jnp.zeros((), bool), last_time_off=zero,
-            min_com_height=t0.W_p_CoM[2], end_com_speed=zero, end_support_margin=zero,
-            ticks=jnp.zeros((), jnp.int32),
-        )  # fmt: skip
+        metrics = metrics_lib.initial(t0.W_p_CoM[2], dtype)
         return LoopState(
             controller=self.controller.init(t0), metrics=metrics, anchors=t0.W_p_frames[:K],
             anchor_normals=normals, com0_height=t0.W_p_CoM[2], contact_normals=normals,
@@ -343,48 +287,28 @@ class ClosedLoop:
         elif cfg.loss_trace:
             record = LossTrace(
                 com=terms.W_p_CoM, com_ref=ref.com_pos, com_vel=terms.W_v_CoM, tau=out.tau,
-                support_xy=support_corners(self.controller, out.contact_pos, out.contact_R)[:, :2],
+                support_xy=metrics_lib.support_corners(self.contact_set, out.contact_pos, out.contact_R)[:, :2],
                 com_height0=state.com0_height,
             )  # fmt: skip
         return state, ctrl, record
 
     def _metrics(self, state: LoopState, terms, ref, out, t_now, physics_ok):
-        # Evaluation only: no gradient flows through the metrics (tuning uses a LossTrace).
+        """The running metrics after this tick, and the contacts' anchors (where and at what normal
+        each fully active contact was set down). Evaluation only: no gradient flows through."""
         terms, ref, out = jax.lax.stop_gradient((terms, ref, out))
-        met = state.metrics
-        com_err = jnp.linalg.norm(terms.W_p_CoM - ref.com_pos)
         normal = out.contact_R[:, :, 2]
         fully_active = out.activation >= 1.0
         anchors = jnp.where(fully_active[:, None], state.anchors, out.contact_pos)
         anchor_normals = jnp.where(fully_active[:, None], state.anchor_normals, normal)
-        # Slip: displacement of each fully active contact, tangential to its surface.
-        dp = out.contact_pos - anchors
-        dp = dp - jnp.einsum("ki,ki->k", dp, normal)[:, None] * normal
-        slip = jnp.max(jnp.where(fully_active, safe_norm(dp), 0.0))
-        tilt_k = jnp.arctan2(safe_norm(jnp.cross(normal, anchor_normals)), jnp.einsum("ki,ki->k", normal, anchor_normals))
-        tilt = jnp.max(jnp.where(fully_active, tilt_k, 0.0))
-        body_low = jnp.min(terms.xpos[self.non_foot_bodies, 2]) < constants.BODY_FLOOR_HEIGHT
-        fell = met.fell | (terms.W_p_CoM[2] < constants.FALL_COM_HEIGHT * state.com0_height) | body_low
-        corners = support_corners(self.controller, out.contact_pos, out.contact_R)
-        margin = polygon_margin(corners[:, :2], terms.W_p_CoM[:2])
-        finite = jnp.all(jnp.isfinite(out.tau)) & physics_ok
-        metrics = Metrics(
-            com_sq_err_sum=met.com_sq_err_sum + com_err**2,
-            com_max_err=jnp.maximum(met.com_max_err, com_err),
-            max_abs_torque=jnp.maximum(met.max_abs_torque, jnp.max(jnp.abs(out.tau))),
-            max_violation=jnp.maximum(met.max_violation, out.qp_violation),
-            max_slip=jnp.maximum(met.max_slip, slip),
-            max_tilt=jnp.maximum(met.max_tilt, tilt),
-            qp_infeasible_ticks=met.qp_infeasible_ticks + out.qp_infeasible.astype(jnp.int32),
-            fell=fell,
-            nan=met.nan | ~finite,
-            last_time_off=jnp.where(com_err > constants.RECOVERY_THRESHOLD, t_now, met.last_time_off),
-            min_com_height=jnp.minimum(met.min_com_height, terms.W_p_CoM[2]),
-            end_com_speed=jnp.linalg.norm(terms.W_v_CoM),
-            end_support_margin=margin,
-            ticks=met.ticks + 1,
-        )
-        return metrics, anchors, anchor_normals
+        corners = metrics_lib.support_corners(self.contact_set, out.contact_pos, out.contact_R)
+        new = metrics_lib.update(
+            state.metrics, com=terms.W_p_CoM, com_ref=ref.com_pos, com_vel=terms.W_v_CoM, tau=out.tau,
+            violation=out.qp_violation, infeasible=out.qp_infeasible, contact_pos=out.contact_pos,
+            normals=normal, anchors=anchors, anchor_normals=anchor_normals, fully_active=fully_active,
+            body_heights=terms.xpos[self.non_foot_bodies, 2], support=corners[:, :2],
+            com0_height=state.com0_height, t_now=t_now, physics_ok=physics_ok,
+        )  # fmt: skip
+        return new, anchors, anchor_normals
 
     def step_push_forces(self, push: Push, k):
         """(n_sub, P, 3) each push's force during the physics steps of tick k: the one place push
@@ -479,7 +403,7 @@ class ClosedLoop:
             state = state.replace(controller=state.controller.replace(**controller_overrides))
         carry = (d, state, ok)
         (d, state, ok), records = self.chunk(plant, gains, push, carry, 0, self.n_ticks)
-        return _final_metrics(state, ok), records
+        return metrics_lib.final(state.metrics, ok), records
 
 
     # -- C MuJoCo: ticks in a Python loop -----------------------------------------------------
@@ -578,48 +502,6 @@ class ClosedLoop:
         cache[key] = programs
         return programs, time.perf_counter() - t0
 
-def _final_metrics(state: LoopState, ok) -> Metrics:
-    return state.metrics.replace(nan=state.metrics.nan | ~ok)
-
-
 def make_closed_loop(robot: Robot, schedule: Schedule, controller: Controller, cfg: SimConfig) -> ClosedLoop:
     """Build the :class:`ClosedLoop` of one environment (see its docstring)."""
     return ClosedLoop(robot, schedule, controller, cfg)
-
-
-def summarize(metrics: Metrics, push_end: float = 0.0) -> dict:
-    """Host-side summary of metrics under :data:`wbc_jax.constants.METRIC_NAMES`: plain numbers
-    for one environment, numpy columns for a batch. ``survived`` is the strict criterion of
-    :data:`wbc_jax.constants.SURVIVAL_CRITERION`; ``upright`` the lax one (no fall, no NaN)."""
-    m = jax.tree_util.tree_map(np.asarray, metrics)
-    ticks = np.maximum(m.ticks, 1)
-    upright = ~m.fell & ~m.nan
-    tilt_deg = np.rad2deg(m.max_tilt)
-    survived = (
-        upright
-        & (m.max_slip <= constants.SURVIVAL_MAX_SLIP_M)
-        & (tilt_deg <= constants.SURVIVAL_MAX_TILT_DEG)
-        & (m.end_com_speed <= constants.SURVIVAL_END_COM_SPEED)
-        & (m.end_support_margin >= 0)
-    )
-    cols = {
-        "survived": survived,
-        "upright": upright,
-        "fell": m.fell,
-        "nan": m.nan,
-        "com_rmse_m": np.sqrt(m.com_sq_err_sum / ticks),
-        "com_max_err_m": m.com_max_err,
-        "max_constraint_violation": m.max_violation,
-        "max_foot_slip_m": m.max_slip,
-        "max_foot_tilt_deg": tilt_deg,
-        "max_abs_torque_nm": m.max_abs_torque,
-        "qp_infeasible_ticks": m.qp_infeasible_ticks,
-        "time_to_recover_s": np.where(upright, np.maximum(m.last_time_off - push_end, 0.0), np.nan),
-        "min_com_height_m": m.min_com_height,
-        "end_com_speed_mps": m.end_com_speed,
-        "end_com_support_margin_m": m.end_support_margin,
-    }
-    assert tuple(cols) == constants.METRIC_NAMES
-    if np.ndim(m.ticks) == 0:
-        return {k: (v.item() if isinstance(v, np.ndarray) else v) for k, v in cols.items()}
-    return cols

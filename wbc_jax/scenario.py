@@ -26,6 +26,7 @@ import mujoco
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from wbc_jax import metrics as metrics_lib
 from wbc_jax import contacts as contacts_lib
 from wbc_jax import model as model_lib
 from wbc_jax import physics, references
@@ -196,7 +197,7 @@ def pad_batch(tree, size: int):
 class Run:
     """Result of :func:`run`: metrics (batch axis), records (B, T, ...) or None, seconds spent."""
 
-    metrics: rollout_lib.Metrics
+    metrics: metrics_lib.Metrics
     records: object
     compile_s: float
     run_s: float
@@ -299,7 +300,7 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
         pieces.append(jax.tree_util.tree_map(_to_host, records))
         if on_tick is not None:
             on_tick(min(k0 + chunk, loop.n_ticks))
-    metrics = jax.tree_util.tree_map(_to_host, rollout_lib._final_metrics(carry[1], carry[2]))
+    metrics = jax.tree_util.tree_map(_to_host, metrics_lib.final(carry[1].metrics, carry[2]))
     records = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=1), *pieces)
     return Run(metrics, records, compile_s, time.perf_counter() - t0)
 

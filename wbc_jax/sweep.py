@@ -15,11 +15,11 @@ import dataclasses
 import json
 import math
 import pathlib
-import time
 
 import jax
 import numpy as np
 
+from wbc_jax import metrics as metrics_lib
 from wbc_jax import constants, io, physics, runs, scenario, sweep_plots
 from wbc_jax import model as model_lib
 from wbc_jax import rollout as rollout_lib
@@ -307,7 +307,7 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
                 compile_s += result.compile_s
                 run_s += result.run_s
                 done_envs += hi - lo
-                cols = rollout_lib.summarize(result.metrics, push_end)
+                cols = metrics_lib.summarize(result.metrics, push_end)
                 table = pd.DataFrame({"env": np.arange(lo, hi), **{k: v[lo:hi] for k, v in columns.items()}, **cols})
                 if writer:
                     io.atomic_write_parquet(part, table)
@@ -468,5 +468,5 @@ def replay_env(run_dir, env: int, *, robot_name: str = "icub", backend: str | No
     one = jax.tree_util.tree_map(lambda x: np.asarray(x)[env : env + 1], scen)
     result = scenario.run(st, one)
     traj = {name: np.asarray(v)[0] for name, v in dataclasses.asdict(result.records).items()}
-    metrics = rollout_lib.summarize(jax.tree_util.tree_map(lambda x: x[0], result.metrics), cfg.push_onset + cfg.push_duration)
+    metrics = metrics_lib.summarize(jax.tree_util.tree_map(lambda x: x[0], result.metrics), cfg.push_onset + cfg.push_duration)
     return st, traj, metrics, row
