@@ -22,8 +22,8 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from wbc_jax import metrics as metrics_lib  # noqa: E402
 from wbc_jax import io, physics, rollout, scenario  # noqa: E402
+from wbc_jax import metrics as metrics_lib  # noqa: E402
 
 PUSH = ([0.0, 40.0, 0.0], 0.3, 0.1)
 
@@ -44,7 +44,9 @@ def main(argv=None) -> dict:
         summary[b] = {"compile_s": round(run.compile_s, 2), "com_max_err_m": m["com_max_err_m"],
                       "max_foot_slip_m": m["max_foot_slip_m"], "upright": bool(m["upright"]),
                       "com_excursion_m": float(np.linalg.norm(com[b] - com[b][0], axis=1).max())}  # fmt: skip
-    pairs = {f"{a}-{b}": float(np.linalg.norm(com[a] - com[b], axis=1).max()) for a, b in itertools.combinations(backends, 2)}
+    pairs = {
+        f"{a}-{b}": float(np.linalg.norm(com[a] - com[b], axis=1).max()) for a, b in itertools.combinations(backends, 2)
+    }
     result = {"max_com_difference_m": pairs, "backends": summary, "dtype": str(scenario.float_dtype()),
               "device": str(jax.devices()[0]), "scenario": "stand, 40 N lateral chest push 0.3-0.4 s, 1 s",
               "command": "python experiments/backend_check.py " + " ".join(sys.argv[1:] if argv is None else argv)}  # fmt: skip

@@ -75,8 +75,12 @@ def main() -> None:
     parser.add_argument("--out", default=str(ROOT / "runs" / "acceptance"))
     parser.add_argument("--summary", default=str(ROOT / "docs" / "balance_acceptance.json"))
     parser.add_argument("--backend", default="auto", help="physics backend (wbc_jax.physics.BACKENDS)")
-    parser.add_argument("--solver-iterations", type=int, default=None,
-                        help="MJX Newton iterations (default: the model's 4); results keyed NAME-itN")
+    parser.add_argument(
+        "--solver-iterations",
+        type=int,
+        default=None,
+        help="MJX Newton iterations (default: the model's 4); results keyed NAME-itN",
+    )
     args = parser.parse_args()
     out = pathlib.Path(args.out)
     summary_path = pathlib.Path(args.summary)

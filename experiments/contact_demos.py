@@ -62,9 +62,20 @@ def main(argv=None) -> dict:
                         "gain": hand / feet if feet > 0 else None}  # fmt: skip
     result = {
         "command": "python experiments/contact_demos.py " + " ".join(sys.argv[1:] if argv is None else argv),
-        "hand_on_table": {k: run[k] for k in ("fell", "com_rmse_m", "max_constraint_violation",
-                                               "qp_infeasible_ticks", "max_foot_slip_m", "force_rel_err_median",
-                                               "contacts", "duration_s", "device")},  # fmt: skip
+        "hand_on_table": {
+            k: run[k]
+            for k in (
+                "fell",
+                "com_rmse_m",
+                "max_constraint_violation",
+                "qp_infeasible_ticks",
+                "max_foot_slip_m",
+                "force_rel_err_median",
+                "contacts",
+                "duration_s",
+                "device",
+            )
+        },  # fmt: skip
         "push_envelope": envelope,
         "survival_rate": {k: v["survival_rate"] for k, v in sweeps.items()},
         "max_qp_violation_hand_sweep": None,

@@ -30,7 +30,9 @@ def main() -> None:
     tables = {}
     for path in args.sweeps:
         t = pd.read_parquet(pathlib.Path(path) / "results.parquet")
-        tables[pathlib.Path(path).name] = t[t.gain_set == 0].sort_values(["azimuth_deg", "magnitude_n"]).reset_index(drop=True)
+        tables[pathlib.Path(path).name] = (
+            t[t.gain_set == 0].sort_values(["azimuth_deg", "magnitude_n"]).reset_index(drop=True)
+        )
     mags = np.sort(next(iter(tables.values())).magnitude_n.unique())
     step = float(mags[1] - mags[0])
     per_sweep, bands = {}, {}

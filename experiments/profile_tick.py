@@ -48,7 +48,9 @@ def main(argv=None) -> dict:
     p.add_argument("--trace", default=None)
     args = p.parse_args(argv)
     scenario.enable_compilation_cache()
-    st = scenario.setup("stand", duration=1.0, sim=rollout.SimConfig(physics=physics.PhysicsConfig(backend=args.backend)))
+    st = scenario.setup(
+        "stand", duration=1.0, sim=rollout.SimConfig(physics=physics.PhysicsConfig(backend=args.backend))
+    )
     loop, ctrl, dtype, B = st.loop, st.loop.controller, st.dtype, args.batch
     rng = np.random.default_rng(0)
     qpos = np.repeat(st.qpos0[None], B, 0)
@@ -90,7 +92,9 @@ def main(argv=None) -> dict:
     us = lambda s: round(1e6 * s / B, 3)  # noqa: E731
     result["us_per_env"]["dynamics_terms"] = us(timed(vt, qpos, qvel, repeats=args.repeats))
     result["us_per_env"]["torque_law"] = us(timed(vtt, t_batch, repeats=args.repeats))
-    result["us_per_env"]["force_distribution"] = us(timed(jax.jit(jax.vmap(stage_forces)), t_batch, tt_batch, repeats=args.repeats))
+    result["us_per_env"]["force_distribution"] = us(
+        timed(jax.jit(jax.vmap(stage_forces)), t_batch, tt_batch, repeats=args.repeats)
+    )
     vw = jax.jit(jax.vmap(whole_tick))
     result["us_per_env"]["whole_tick"] = us(timed(vw, qpos, qvel, repeats=args.repeats))
     # One physics step of the same batch, for scale (a tick holds 10).
@@ -102,7 +106,9 @@ def main(argv=None) -> dict:
         d = physics.device_data(st.robot.mj_model, loop.backend, loop.cfg.physics, q, dtype, batch=B)
         return jax.lax.scan(lambda dd, _: (physics.step(m, dd, tau, xfrc), None), d, None, length=10)[0].qpos
 
-    result["us_per_env"][f"physics_10_steps_{loop.backend}"] = us(timed(jax.jit(jax.vmap(ten_steps)), qpos, repeats=args.repeats))
+    result["us_per_env"][f"physics_10_steps_{loop.backend}"] = us(
+        timed(jax.jit(jax.vmap(ten_steps)), qpos, repeats=args.repeats)
+    )
     if args.trace:
         with jax.profiler.trace(args.trace):
             jax.block_until_ready(vw(qpos, qvel))

@@ -27,8 +27,8 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from wbc_jax import metrics as metrics_lib  # noqa: E402
 from wbc_jax import constants, io, physics, rollout, scenario  # noqa: E402
+from wbc_jax import metrics as metrics_lib  # noqa: E402
 from wbc_jax.gains import Gains  # noqa: E402
 
 

@@ -4,7 +4,7 @@ import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
-import jax  # noqa: E402
+import jax
 
 jax.config.update("jax_enable_x64", True)
 # One on-disk compilation cache for the session's workers and subprocesses: modules that build the
@@ -81,9 +81,7 @@ def random_state(robot: model.Robot, seed: int, joint_scale: float = 0.3):
 
 
 def assert_close(actual, expected, name: str, rtol: float, atol: float = 0.0):
-    np.testing.assert_allclose(
-        np.asarray(actual), np.asarray(expected), rtol=rtol, atol=atol, err_msg=name
-    )
+    np.testing.assert_allclose(np.asarray(actual), np.asarray(expected), rtol=rtol, atol=atol, err_msg=name)
 
 
 def c_data(robot, qpos, qvel) -> mujoco.MjData:

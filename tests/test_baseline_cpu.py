@@ -16,6 +16,7 @@ from conftest import c_data, random_state
 from mujoco import mjx
 
 from wbc_jax import constants, dynamics, forces, physics, qp, references, scenario, torques
+from wbc_jax import metrics as metrics_lib
 from wbc_jax import rollout as rollout_lib
 from wbc_jax.controller import ControllerConfig, make_controller
 
@@ -191,7 +192,7 @@ def test_schedule_table_matches_schedule(robot, stand, terms_fn):
     times = np.array([0.0, 1.7, 4.5, 6.0, 8.0, 10.2, 12.0, 14.0, 15.99])
     for s in (sched, sine, st.loop.schedule):
         table = bc.schedule_table(s, times)
-        refs = jax.jit(jax.vmap(lambda t: s.at(t, jnp.float64)))(jnp.asarray(times))
+        refs = jax.jit(jax.vmap(lambda t, s=s: s.at(t, jnp.float64)))(jnp.asarray(times))
         for k in table:
             np.testing.assert_allclose(table[k], getattr(refs, k), rtol=1e-12, atol=1e-14,
                                        err_msg=f"{s.name} {k}")  # fmt: skip
@@ -237,7 +238,7 @@ def test_closed_loop_matches_mjx_rollout(stand):
     np.testing.assert_allclose(res["tau"][0], np.asarray(run.records.tau[0]), rtol=0, atol=1e-5)
     push_end = PUSH["onset"] + PUSH["duration"]
     ours = bc.summarize(res["metrics"], push_end)[0]
-    theirs = rollout_lib.summarize(jax.tree_util.tree_map(lambda x: x[0], run.metrics), push_end)
+    theirs = metrics_lib.summarize(jax.tree_util.tree_map(lambda x: x[0], run.metrics), push_end)
     assert tuple(ours) == tuple(theirs) == constants.METRIC_NAMES
     assert ours["fell"] == theirs["fell"] is False and ours["nan"] == theirs["nan"] is False
     for key in ("survived", "upright", "qp_infeasible_ticks"):

@@ -78,15 +78,34 @@ def _cases(tmp):
         (["balance", "--gains", str(tmp / "missing.json")], r"does not exist"),
         (["balance", "--gains", huge_gains], r"kp_com has entries above its range \[0, 10000\]"),
         (["balance", "--duration", "0.001"], r"shorter than one control tick"),
-        (["balance", "--backend", "warp"] if not any(d.platform == "gpu" for d in jax.devices()) else
-         ["balance", "--backend", "nope"], r"needs a CUDA GPU|invalid choice"),  # fmt: skip
+        (
+            ["balance", "--backend", "warp"]
+            if not any(d.platform == "gpu" for d in jax.devices())
+            else ["balance", "--backend", "nope"],
+            r"needs a CUDA GPU|invalid choice",
+        ),  # fmt: skip
         (["balance", "--tasks", _write(tmp / "w.yaml", task % "weight: heavy")], r"weight must be a positive number"),
-        (["balance", "--tasks", _write(tmp / "j.yaml", task.replace("kind: position, frame: r_hand", "kind: joints")
-                                       % "joints: 5")], r"joints must be joint names"),  # fmt: skip
+        (
+            [
+                "balance",
+                "--tasks",
+                _write(tmp / "j.yaml", task.replace("kind: position, frame: r_hand", "kind: joints") % "joints: 5"),
+            ],
+            r"joints must be joint names",
+        ),  # fmt: skip
         (["balance", "--tasks", _write(tmp / "p.yaml", task % "priority: high")], r"priority must be a whole number"),
-        (["balance", "--tasks", _write(tmp / "q.yaml", "contacts: [{name: l, frame: l_sole, normal: [0, 0, 1]}, "
-                                       "{name: r, frame: r_sole, normal: [0, 0, 1]}]\ninitial_posture_deg: {l_knee: 200}\n")],
-         r"l_knee = 200 deg is outside its joint range"),  # fmt: skip
+        (
+            [
+                "balance",
+                "--tasks",
+                _write(
+                    tmp / "q.yaml",
+                    "contacts: [{name: l, frame: l_sole, normal: [0, 0, 1]}, "
+                    "{name: r, frame: r_sole, normal: [0, 0, 1]}]\ninitial_posture_deg: {l_knee: 200}\n",
+                ),
+            ],
+            r"l_knee = 200 deg is outside its joint range",
+        ),  # fmt: skip
         (["push-sweep", "--magnitudes", "20", "40", "2.9"], r"N must be a whole number >= 1, got 2.9"),
         (["push-sweep", "--magnitudes", "20", "40", "nan"], r"--magnitudes LO HI N needs finite numbers"),
         (["push-sweep", "--magnitudes", "0", "100", "100000", "--directions", "1000"], r"more than 10,000,000"),

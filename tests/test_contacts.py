@@ -4,6 +4,7 @@ two-feet QP, a short closed loop with the measured hand force, and clear errors 
 
 import math
 
+import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
@@ -204,7 +205,7 @@ def test_activation_ramps():
         ([FEET[0], {**HAND, "normal_force": 0.5}], [TABLE], "normal_force must be"),
         ([FEET[0], {**HAND, "mu": -1}], [TABLE], "mu must be positive"),
         ([FEET[0], {**HAND, "activation": {True: 0.0}}], [TABLE], "activation must map"),
-        ([*FEET, {**HAND, "normal": [1, 0, 0]}], [TABLE], "'under' needs a contact with normal \\+z"),
+        ([*FEET, {**HAND, "normal": [1, 1, 0]}], [TABLE], "'under' needs a contact with normal \\+z or horizontal"),
         ([FEET[0], HAND], [{**TABLE, "under": "right_hand"}], "under unknown contact"),
         ([FEET[0], HAND], [{**TABLE, "pos": [0, 0, 0]}], "exactly one of 'pos' or 'under'"),
         ([FEET[0], HAND], [{**TABLE, "size": [0.1, 0.1]}], "size must be 3"),
@@ -226,3 +227,57 @@ def test_bad_spec_files(tmp_path, robot):
         scenario.load_scene("icub", bad)
     with pytest.raises(ValueError, match="unknown joint 'l_wrist'"):
         tasks.initial_qpos(robot, {"l_wrist": 10.0})
+
+
+def test_touching_contacts_must_touch(hand_scene):
+    """A contact's point must be on the surface it touches, its normal leaving that surface."""
+    table_pos = hand_scene[0].mj_model.geom("table").pos.copy()
+    placed = {k: v for k, v in TABLE.items() if k not in ("under", "shift")}
+    with pytest.raises(ValueError, match="cm away from the surface of 'table'"):
+        contacts.build_scene("icub", [*FEET, HAND], [{**placed, "pos": (table_pos - [0, 0, 0.05]).tolist()}])
+    with pytest.raises(ValueError, match="points into 'table'"):
+        contacts.build_scene("icub", [*FEET, {**HAND, "normal": [0, 0, -1]}], [{**placed, "pos": table_pos.tolist()}])
+
+
+def test_wall_is_placed_at_the_hand():
+    """'under' with a horizontal normal: the wall's face the normal leaves goes through the hand's point."""
+    scene = scenario.load_scene("icub", "experiments/tasks/hand_on_wall.yaml")
+    m = scene.robot.mj_model
+    d = _forward(scene.robot, scene.qpos)
+    hand = next(c for c in scene.contact_set.contacts if c.name == "left_hand")
+    p_hand = d.xpos[hand.body] + d.xmat[hand.body].reshape(3, 3) @ np.asarray(hand.point)
+    wall = m.geom("wall")
+    assert abs((wall.pos[0] - wall.size[0]) - p_hand[0]) < 1e-9  # the face x = hand x; the wall in front
+    assert abs(wall.pos[2] - p_hand[2]) < 1e-9 and abs(wall.pos[1] - 0.05 - p_hand[1]) < 1e-9
+    assert hand.detect
+
+
+def test_contact_detection_gates_the_hand(hand_scene):
+    """Contact detection (Contact.detect): while MuJoCo measures no hand force the hand's activation
+    ramps out within detection_ramp_out (its wrench goes to 0, the feet take the whole wrench); once
+    the force is seen again it ramps back in over detection_ramp_in."""
+    robot, _, cset, qpos = hand_scene
+    ctrl = C.make_controller(robot, contact_set=cset)
+    assert ctrl.config.contact_detection
+    t = dynamics.terms(robot.mjx_model, _data(robot, qpos), robot.index, cset.frames)
+    g = default_gains(robot.index.n, jnp.float64)
+    ref = Reference(com_pos=t.W_p_CoM, com_vel=jnp.zeros(3), com_acc=jnp.zeros(3), s_des=t.s,
+                    activation=jnp.ones(2))  # fmt: skip
+    step = jax.jit(ctrl.step)
+    seen, unseen = jnp.array([300.0, 300.0, 5.0]), jnp.array([300.0, 300.0, 0.0])
+    state = ctrl.init(t)
+    out, state = step(g, state, t, ref, 1.0, seen)
+    hand_force = lambda o: float(o.f[14])  # noqa: E731  (the table's normal is +z)
+    assert abs(hand_force(out) - 5.0) < 0.5
+    ticks_out = math.ceil(ctrl.config.detection_ramp_out / 0.01 - 1e-9)
+    for _ in range(ticks_out):
+        out, state = step(g, state, t, ref, 1.0, unseen)
+    assert float(state.contact_gate[2]) == 0.0 and hand_force(out) < 1e-6
+    assert np.all(np.asarray(state.contact_gate[:2]) == 1.0)  # the soles are never gated
+    ticks_in = round(ctrl.config.detection_ramp_in / 0.01)
+    forces_in = []
+    for _ in range(ticks_in):
+        out, state = step(g, state, t, ref, 1.0, seen)
+        forces_in.append(hand_force(out))
+    assert 0.0 < forces_in[ticks_in // 2 - 1] < 5.0  # part way up the ramp
+    assert abs(forces_in[-1] - 5.0) < 0.5 and float(state.contact_gate[2]) == pytest.approx(1.0)

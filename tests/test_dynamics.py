@@ -201,9 +201,7 @@ def test_batched_and_differentiable(robot, mx):
     qpos = jnp.asarray(np.stack([s[0] for s in states]))
     qvel = jnp.asarray(np.stack([s[1] for s in states]))
     d0 = mjx.make_data(robot.mj_model)
-    batched = jax.jit(
-        jax.vmap(lambda q, v: dynamics.terms(mx, d0.replace(qpos=q, qvel=v), idx))
-    )(qpos, qvel)
+    batched = jax.jit(jax.vmap(lambda q, v: dynamics.terms(mx, d0.replace(qpos=q, qvel=v), idx)))(qpos, qvel)
     assert batched.M.shape == (64, 29, 29) and batched.J_frames.shape == (64, 2, 6, 29)
     single = dynamics.terms(mx, d0.replace(qpos=qpos[5], qvel=qvel[5]), idx)
     assert_close(batched.A_G[5], single.A_G, "vmap vs single", 1e-10, 1e-12)

@@ -8,14 +8,13 @@ from __future__ import annotations
 
 import functools
 import math
+import types
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 import quadprog
-
-import types
 
 from wbc_jax import contacts, forces, qp
 
@@ -169,13 +168,23 @@ SETTINGS = forces.ForceSettings()
 
 def contact_set(count: int) -> contacts.ContactSet:
     """``count`` sole-like surface contacts (the default parameters; kinematics unused here)."""
-    return contacts.ContactSet(tuple(
-        contacts.ResolvedContact(
-            name=f"c{k}", type="surface", body=0, point=(0.0, 0.0, 0.0), R_body_contact=tuple(np.eye(3).ravel()),
-            params=PARAMS, normal_force=math.nan, activation=contacts.ContactActivation(), foot=k, geoms=(),
-        )  # fmt: skip
-        for k in range(count)
-    ))
+    return contacts.ContactSet(
+        tuple(
+            contacts.ResolvedContact(
+                name=f"c{k}",
+                type="surface",
+                body=0,
+                point=(0.0, 0.0, 0.0),
+                R_body_contact=tuple(np.eye(3).ravel()),
+                params=PARAMS,
+                normal_force=math.nan,
+                activation=contacts.ContactActivation(),
+                foot=k,
+                geoms=(),
+            )  # fmt: skip
+            for k in range(count)
+        )
+    )
 
 
 FEET, ONE_FOOT = contact_set(2), contact_set(1)
@@ -336,9 +345,7 @@ def wrench_with_cop(fz, cop_x, cop_y, tau_z=0.0):
     return np.array([0.0, 0.0, fz, cop_y * fz, -cop_x * fz, tau_z])
 
 
-@pytest.mark.parametrize(
-    "cop", [(0.12, 0.0), (-0.07, 0.0), (0.0, 0.045), (0.0, -0.045)]
-)
+@pytest.mark.parametrize("cop", [(0.12, 0.0), (-0.07, 0.0), (0.0, 0.045), (0.0, -0.045)])
 def test_foot_constraints_cop_rectangle(cop):
     C, b = forces.contact_constraints(contacts.ContactParams())
     fz, d = 150.0, 1e-4
@@ -361,9 +368,7 @@ def test_foot_constraints_torsion_and_unilateral():
         assert np.all(C @ ok <= b)
         assert np.flatnonzero(C @ bad > b).tolist() == [row]
     assert np.all(C @ wrench_with_cop(params.fz_min + 1e-3, 0, 0) <= b)
-    assert np.flatnonzero(
-        C @ wrench_with_cop(params.fz_min - 1e-3, 0, 0) > b
-    ).tolist() == [14]
+    assert np.flatnonzero(C @ wrench_with_cop(params.fz_min - 1e-3, 0, 0) > b).tolist() == [14]
 
 
 def test_world_constraints_rotate_the_wrench():
@@ -391,18 +396,14 @@ def test_solve_qp_matches_quadprog_float64(random_qps, solve_batch, size):
     s = random_qps[size]
     x, info = solve_batch(*(jnp.asarray(s[k]) for k in "HgCb"))
     x = np.asarray(x)
-    n_active = np.sum(
-        s["C"] @ s["x"][..., None] >= s["b"][..., None] - 1e-9, axis=(1, 2)
-    )
+    n_active = np.sum(s["C"] @ s["x"][..., None] >= s["b"][..., None] - 1e-9, axis=(1, 2))
     assert np.mean(n_active >= 2) > 0.8  # the generator gives active constraints
     assert np.all(info.converged) and not np.any(info.infeasible)
     scale = 1.0 + np.max(np.abs(s["x"]), axis=1)
     err = np.max(np.abs(x - s["x"]), axis=1) / scale
     assert np.max(err) < 1e-8
     obj = np.array([objective(H, g, xi) for H, g, xi in zip(s["H"], s["g"], x)])
-    obj_ref = np.array(
-        [objective(H, g, xi) for H, g, xi in zip(s["H"], s["g"], s["x"])]
-    )
+    obj_ref = np.array([objective(H, g, xi) for H, g, xi in zip(s["H"], s["g"], s["x"])])
     assert np.max(np.abs(obj - obj_ref) / (1.0 + np.abs(obj_ref))) < 1e-8
     assert np.max(info.max_violation) < 1e-9
     assert np.max(info.iterations) < qp.DEFAULT_ITERATIONS
@@ -443,9 +444,7 @@ def test_solve_qp_infeasible_falls_back(solve_one, dtype):
     assert bool(info.infeasible) and not bool(info.converged)
     assert np.all(np.isfinite(np.asarray(x)))
     rtol = 1e-9 if dtype == jnp.float64 else 1e-4
-    np.testing.assert_allclose(
-        np.asarray(x), -np.linalg.solve(H, g), rtol=rtol, atol=rtol
-    )
+    np.testing.assert_allclose(np.asarray(x), -np.linalg.solve(H, g), rtol=rtol, atol=rtol)
     assert float(info.max_violation) >= 1.0 - 1e-6
 
 
@@ -551,11 +550,7 @@ def strictly_complementary(s, margin=1e-3):
     for i, (C, b, x, lam) in enumerate(zip(s["C"], s["b"], s["x"], s["lam"])):
         slack = b - C @ x
         active = lam > margin * (1.0 + np.max(lam))
-        if (
-            np.any(active)
-            and np.all(slack[~active] > margin)
-            and np.all(slack[active] < 1e-9)
-        ):
+        if np.any(active) and np.all(slack[~active] > margin) and np.all(slack[active] < 1e-9):
             keep.append(i)
     return keep
 
@@ -628,9 +623,7 @@ def test_solve_qp_gradients_degenerate_and_fallback(probed_6x19):
     # Fallback: d loss / d g = (w + x)' d(-H^-1 g)/dg = -(w + x)' H^-1.
     x_inf = -np.linalg.solve(H, g)
     np.testing.assert_allclose(x[-1], x_inf, rtol=1e-12, atol=1e-14)
-    np.testing.assert_allclose(
-        fwd[-1, :6], -(w[-1] + x_inf) @ np.linalg.inv(H), rtol=1e-9
-    )
+    np.testing.assert_allclose(fwd[-1, :6], -(w[-1] + x_inf) @ np.linalg.inv(H), rtol=1e-9)
     np.testing.assert_allclose(fwd[-1], fd[-1], rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(rev[-1], fwd[-1], rtol=1e-9, atol=1e-12)
 
@@ -718,9 +711,7 @@ def test_two_feet_wrenches_float64(two_feet_problems, two_feet_batch):
         # Same optimum as quadprog on WBC's f0 formulation.
         np.testing.assert_allclose(fi, p["f_ref"], rtol=0, atol=1e-6 * np.abs(fi).max())
         assert torque_norm(p, fi) == pytest.approx(torque_norm(p, p["f_ref"]), rel=1e-9)
-        f1_ok = (
-            max(np.max(C_L @ p["f1"][:6] - b_L), np.max(C_R @ p["f1"][6:] - b_R)) <= 0
-        )
+        f1_ok = max(np.max(C_L @ p["f1"][:6] - b_L), np.max(C_R @ p["f1"][6:] - b_R)) <= 0
         if f1_ok:
             n_f1_feasible += 1
             assert torque_norm(p, fi) <= torque_norm(p, p["f1"]) + 1e-9
@@ -731,9 +722,7 @@ def test_two_feet_wrenches_float64(two_feet_problems, two_feet_batch):
 
 def test_two_feet_wrenches_float32(two_feet_problems, two_feet_batch):
     batch = stack_dicts(two_feet_problems, TWO_FEET_KEYS)
-    f, info = two_feet_batch(
-        *(jnp.asarray(batch[k], jnp.float32) for k in TWO_FEET_KEYS)
-    )
+    f, info = two_feet_batch(*(jnp.asarray(batch[k], jnp.float32) for k in TWO_FEET_KEYS))
     assert f.dtype == jnp.float32 and not np.any(info.infeasible)
     f_ref = np.stack([p["f_ref"] for p in two_feet_problems])
     err = np.max(np.abs(np.asarray(f, np.float64) - f_ref), axis=1)
@@ -806,9 +795,7 @@ def test_two_feet_gradients(two_feet_problems):
     @jit
     def all_modes(args, T):
         T2 = tuple(jnp.concatenate([d, -d]) for d in T)
-        shifted = jax.vmap(
-            lambda *t: pipeline(*(a + eps * d for a, d in zip(args, t)))
-        )(*T2)
+        shifted = jax.vmap(lambda *t: pipeline(*(a + eps * d for a, d in zip(args, t))))(*T2)
         fd = (shifted[:5] - shifted[5:]) / (2 * eps)
         fwd = jax.vmap(lambda *t: jax.jvp(pipeline, args, t)[1])(*T)
         grads = jax.grad(pipeline, argnums=(0, 1, 2, 3, 4))(*args)
@@ -868,3 +855,31 @@ def test_one_foot_wrench():
     rel = np.max(np.abs(np.asarray(f32, np.float64) - f)) / np.max(np.abs(f))
     assert rel < 1e-4
     # (Derivatives of the formulations: test_two_feet_gradients.)
+
+
+def test_polish_recovers_the_exact_minimiser_from_a_biased_iterate():
+    """The polishing step (qp._polish) takes an interior-point-like iterate (slacks and multipliers
+    biased by ~1e-4, as a loose stopping tolerance leaves them) to quadprog's minimiser to rounding.
+    From a wrong active-set guess (an inactive row taken as active) it either corrects the guess
+    within its passes or reports failure (the interior-point iterate is then kept): it never
+    returns a wrong point as polished."""
+    rng = np.random.default_rng(21)
+    corrected = 0
+    for _ in range(6):
+        H, g, C, b = random_qp(rng, 6, 19)
+        x_ref, lam = ref_qp(H, g, C, b)
+        s = np.maximum(b - C @ x_ref, 0.0) + 1e-4
+        z = lam + 1e-4
+        assert np.sum(lam > 1e-9) >= 1  # some rows are active
+        atol = 1e-9 * (1 + np.abs(x_ref).max())
+        x, ok = qp._polish(*(jnp.asarray(a) for a in (H, g, C, b, s, z)), 6, 1e-10)
+        assert bool(ok)
+        np.testing.assert_allclose(np.asarray(x), x_ref, rtol=0, atol=atol)
+        wrong = np.argmax(np.where(lam > 1e-9, -np.inf, -(b - C @ x_ref)))  # the nearest inactive row
+        z_bad, s_bad = z.copy(), s.copy()
+        z_bad[wrong], s_bad[wrong] = 1.0, 1e-6
+        x2, ok2 = qp._polish(*(jnp.asarray(a) for a in (H, g, C, b, s_bad, z_bad)), 6, 1e-10)
+        if bool(ok2):
+            np.testing.assert_allclose(np.asarray(x2), x_ref, rtol=0, atol=atol)
+            corrected += 1
+    assert corrected >= 2

@@ -2,20 +2,19 @@
 hierarchical least-squares reference, the dynamics, and clear errors for bad stacks (float64)."""
 
 import dataclasses
+
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
 import scipy.linalg
+from conftest import c_data
 from mujoco import mjx
 
-from wbc_jax.gains import default_gains
 from wbc_jax import dynamics, hierarchy, tasks, torques
+from wbc_jax.gains import default_gains
 from wbc_jax.hierarchy import TaskLevel
-
-from conftest import c_data
-
 
 FRAME0 = 2  # the stack's frames follow the two soles'
 
@@ -64,7 +63,9 @@ def test_frame_jacobians_match_c_mujoco(robot, state):
         jacp, jacr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
         mujoco.mj_jac(m, d, jacp, jacr, point, body)
         # Same point velocity whatever the velocity coordinates: J_mixed nu = J_mj qvel.
-        np.testing.assert_allclose(t.J_frames[FRAME0 + k] @ nu, np.concatenate([jacp, jacr]) @ state["qvel"], atol=1e-10)
+        np.testing.assert_allclose(
+            t.J_frames[FRAME0 + k] @ nu, np.concatenate([jacp, jacr]) @ state["qvel"], atol=1e-10
+        )
         jdp, jdr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
         mujoco.mj_jacDot(m, d, jdp, jdr, point, body)
         np.testing.assert_allclose(t.Jdot_nu_frames[FRAME0 + k], np.concatenate([jdp, jdr]) @ state["qvel"], atol=1e-8)
@@ -150,11 +151,11 @@ def _reference_hls(t, tt, f, levels):
 def test_matches_an_independent_hierarchical_least_squares(state):
     t, tt, f = state["t"], state["tt"], state["f"]
     L = _levels(state)
-    sol = hierarchy.solve(t, tt, f, L, solution_damping=1e-14, projector_reg=1e-15)
+    sol = hierarchy.solve(t, tt, f, L, solution_damping=1e-14, projector_reg=1e-15, effort_damping=0.0)
     ref = _reference_hls(t, tt, f, L)
     np.testing.assert_allclose(sol.tau, ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
     # ... and with the postural task alone (two-level problem of the seed paper).
-    np.testing.assert_allclose(hierarchy.solve(t, tt, f, ()).tau, _reference_hls(t, tt, f, ()),
+    np.testing.assert_allclose(hierarchy.solve(t, tt, f, (), effort_damping=0.0).tau, _reference_hls(t, tt, f, ()),
                                rtol=1e-8, atol=1e-8 * np.abs(ref).max())  # fmt: skip
 
 
@@ -268,5 +269,26 @@ def test_joints_all_is_every_joint_at_home(robot):
     bare = tasks.resolve(robot, [tasks.MotionTask("all_joints", "joints", joints="all", kp=100.0),
                                  tasks.MotionTask("posture", "postural")])  # fmt: skip
     assert bare.tasks[0].dofs == task.dofs == tuple(range(23))
-    one = tasks.resolve(robot, [tasks.MotionTask("elbow", "joints", joints="r_elbow"), tasks.MotionTask("p", "postural")])
+    one = tasks.resolve(
+        robot, [tasks.MotionTask("elbow", "joints", joints="r_elbow"), tasks.MotionTask("p", "postural")]
+    )
     assert one.tasks[0].dofs == (robot.index.joints.index("r_elbow"),)
+
+
+def test_effort_bounded_gain_is_the_stated_filter():
+    """hierarchy._effort_gain: with G_hat = L M L^T (M's eigenvalues rho^2 in [0, 1]) and G_0 = L L^T,
+    G_hat W = L phi(M) L^-1 with phi(rho^2) = rho^4 / (rho^4 + mu (1 - rho^2)^2) (module docstring);
+    mu = 0 is the plain pseudo-inverse of the projected task (phi = 1 where rho > 0)."""
+    rng = np.random.default_rng(3)
+    m = 4
+    L = np.tril(rng.normal(size=(m, m))) + 3 * np.eye(m)
+    Q, _ = np.linalg.qr(rng.normal(size=(m, m)))
+    rho2 = np.array([1.0, 0.81, 0.49, 0.16])
+    M = Q @ np.diag(rho2) @ Q.T
+    G_0, G_hat = L @ L.T, L @ M @ L.T
+    for mu, phi in ((1.0, np.array([1.0, 0.95, 0.48, 0.035])), (0.0, np.ones(m))):
+        W = np.asarray(hierarchy._effort_gain(jnp.asarray(G_hat), jnp.asarray(G_0), mu, 1e-14))
+        expected = L @ Q @ np.diag(rho2**2 / (rho2**2 + mu * (1 - rho2) ** 2)) @ Q.T @ np.linalg.inv(L)
+        np.testing.assert_allclose(G_hat @ W, expected, atol=1e-9)
+        # the docstring's figures: 100 % at rho = 1, 95 % at 0.9, 48 % at 0.7, 3.5 % at 0.4
+        np.testing.assert_allclose(rho2**2 / (rho2**2 + mu * (1 - rho2) ** 2), phi, atol=3e-3)

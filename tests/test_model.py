@@ -22,8 +22,9 @@ def test_summary_matches_the_urdf(robot):
 
 
 def test_urdf_mass_is_preserved(robot):
-    import icub_models
     import xml.etree.ElementTree as ET
+
+    import icub_models
 
     urdf = ET.parse(str(icub_models.get_model_file("iCubGazeboV2_5")))
     total = sum(float(e.get("value")) for e in urdf.iter("mass"))

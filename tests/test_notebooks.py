@@ -13,9 +13,10 @@ NOTEBOOKS = sorted((pathlib.Path(__file__).resolve().parent.parent / "notebooks"
 # Issue target: a notebook runs in 90 s on a 2-core CPU (C MuJoCo forward runs, tiny sizes); the budget leaves room
 # for a machine busy with other tests. A notebook over it fails: it got slower, or too big for a laptop.
 NOTEBOOK_TIMEOUT_S = 150
-# Notebook 04 compiles a reverse-mode program through the whole closed loop (MJX physics + controller): about 4 min on
-# a 2-core CPU at any size (measured 240 s: ~75 s tracing, ~165 s XLA), the rest of the notebook ~35 s.
-BUDGETS_S = {"04_gain_tuning.ipynb": 600}
+# Notebook 04 compiles a reverse-mode program through the whole closed loop (MJX physics + controller) and two
+# forward ones (CMA-ES's population, the held-out pushes): 335 s alone on the 2-core CPU, at any size; in the suite it
+# compiles beside test_tune's gradient program (conftest), so its budget leaves room for that.
+BUDGETS_S = {"04_gain_tuning.ipynb": 900}
 MARGIN_S = 30  # past the budget, pytest-timeout stops a hung run (the assertion below reports a slow one)
 
 

@@ -1,6 +1,8 @@
-"""Gain tuning: the closed loop's gradient against finite differences (float64), no NaN over
-random scenarios, the bounded parameterisation, the NaN guard, checkpoint/resume, gains files
-(bad input; tuned gains loading back into balance and push-sweep)."""
+"""Gain tuning: the closed loop's gradient of the tuning loss against finite differences (float64),
+no NaN over random scenarios, the bounded stable parameterisation, the loss and its rank
+statistics, the NaN guard, checkpoint/resume of training and of the baselines, equal budgets,
+held-out summaries, bad input, gains files (bad input; tuned gains loading back into balance and
+push-sweep)."""
 
 import json
 import os
@@ -13,21 +15,25 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from wbc_jax import cli, tune
+from wbc_jax import baselines, cli, constants, tune, tuning_eval, tuning_loss, tuning_params
 from wbc_jax import gains as C
+from wbc_jax import metrics as metrics_lib
+from wbc_jax import rollout as rollout_lib
+from wbc_jax import tuning_problem as tp
 from wbc_jax.constants import GAIN_FIELDS
 
-# One subprocess (float64, XLA backend optimisation lowered: compile ~3.5 min instead of ~5)
-# holds the one gradient program: experiments/grad_check.py, per-scenario gradients over N random
-# push scenarios at a 0.1 s horizon, and central differences of the loss on one of them.
-GRAD_CHECK = pathlib.Path(__file__).resolve().parent.parent / "experiments" / "grad_check.py"
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+# One subprocess (float64, XLA backend optimisation lowered) holds the one gradient program:
+# experiments/grad_check.py, per-scenario gradients over N random push scenarios at a 0.1 s
+# horizon, and central differences of the loss on the first of them.
+GRAD_CHECK = ROOT / "experiments" / "grad_check.py"
+TINY = dict(horizon=0.1, push_onset=0.0, duration_range=(0.02, 0.05), eval_horizon=0.1)
 
 
 @pytest.fixture(scope="module")
 def grad_check():
-    root = str(GRAD_CHECK.parent.parent)  # the package from this checkout, however it is installed
     env = {**os.environ, "JAX_PLATFORMS": "cpu",
-           "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]),
+           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
            "XLA_FLAGS": "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"}  # fmt: skip
     proc = subprocess.run([sys.executable, str(GRAD_CHECK), "24"], capture_output=True, text=True,
                           timeout=1500, env=env)  # fmt: skip
@@ -35,7 +41,7 @@ def grad_check():
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-@pytest.mark.parametrize("group", (*tune.TUNED_FIELDS, "regularisation"))
+@pytest.mark.parametrize("group", tuning_params.PARAM_GROUPS)
 def test_closed_loop_gradient_matches_central_differences(grad_check, group):
     """On the first scenarios: where central differences at steps 1e-4 and 1e-5 agree (the loss is
     smooth at that scale), the reverse-mode gradient matches them within 5 %."""
@@ -52,52 +58,171 @@ def test_no_nan_gradients_over_random_scenarios(grad_check):
     assert np.all(np.isfinite(loss)) and np.ptp(loss) > 0  # the scenarios differ
 
 
-def test_bounded_parameters_round_trip_and_stay_in_bounds():
+# ---------------------------------------------------------------------------------------------
+# Parameters: bounds, stability
+
+
+def test_parameters_round_trip_stay_in_bounds_and_keep_nava_conditions():
     base = C.default_gains()
-    bounds = tune.default_bounds(base, 4.0)
-    p = tune.gains_to_params(base, bounds)
-    for k in tune.TUNED_FIELDS:
-        np.testing.assert_allclose(p[k], 0.0, atol=1e-5)  # default = geometric mid-point
-    g = tune.params_to_gains({k: v + 1e3 * np.sign(np.arange(v.size) % 2 - 0.5) for k, v in p.items()},
-                             bounds, base)  # fmt: skip
-    for k in tune.TUNED_FIELDS:
-        v = np.asarray(getattr(g, k))
-        assert np.all(v > 0) and np.all(v <= np.asarray(bounds.hi[k]) * (1 + 1e-5))
-        assert np.all(v >= np.asarray(bounds.lo[k]) * (1 - 1e-5))
-        np.testing.assert_allclose(v[1::2], np.asarray(bounds.hi[k])[1::2], rtol=1e-5)
+    reg0 = tuning_params.default_regularisation()
+    bounds = tuning_params.default_bounds(base, 10.0, (0.02, 2.0), reg0)
+    p = tuning_params.controls_to_params(base, reg0, bounds)
+    assert set(p) == set(tuning_params.PARAM_GROUPS)
+    gains, reg = tuning_params.params_to_controls(p, bounds, base)
+    for k in GAIN_FIELDS:
+        np.testing.assert_allclose(getattr(gains, k), getattr(base, k), rtol=1e-4, atol=1e-7)
+    np.testing.assert_allclose([reg["pinv_damping"], reg["kp_postural_reg"]], reg0, rtol=1e-4)
+    # Extreme parameters: every value inside its bounds, every gain positive, ratios bounded.
+    rng = np.random.default_rng(0)
+    for scale in (1e3, 3.0):
+        q = {k: v + scale * rng.standard_normal(v.shape) for k, v in p.items()}
+        g, r = tuning_params.params_to_controls(q, bounds, base)
+        regv = np.array([r["pinv_damping"], r["kp_postural_reg"]])
+        tuning_params.check_in_bounds(g, regv, bounds)
+        nava = tuning_params.nava_conditions(g, regv)
+        assert nava["holds"] and nava["min_gain"] > 0
+        assert 0.02 * (1 - 1e-4) <= min(nava["zeta_com"]) and max(nava["zeta_com"]) <= 2.0 * (1 + 1e-4)
     np.testing.assert_array_equal(g.ki_com, base.ki_com)  # not tuned
-    shifted = base.replace(kp_com=base.kp_com * 2.0)
-    back = tune.params_to_gains(tune.gains_to_params(shifted, bounds), bounds, base)
-    np.testing.assert_allclose(back.kp_com, shifted.kp_com, rtol=1e-4)
+    # Without the regularisation group: the controller's own.
+    p2 = tuning_params.controls_to_params(base, reg0, bounds, regularisation=False)
+    assert "regularisation" not in p2 and tuning_params.params_to_controls(p2, bounds, base)[1] is None
 
 
-def test_optimizer_skips_and_counts_nonfinite_gradients():
-    opt = tune.make_optimizer(0.1, 1.0)
-    params = {"a": jnp.ones(3)}
-    state = opt.init(params)
-    for bad in (np.nan, np.inf):
-        updates, state = opt.update({"a": jnp.array([1.0, bad, 1.0])}, state, params)
-        np.testing.assert_array_equal(updates["a"], 0.0)  # nothing applied
-    assert tune.skipped_count(state) == 2
-    updates, state = opt.update({"a": jnp.array([10.0, 0.0, 0.0])}, state, params)
-    assert float(updates["a"][0]) == pytest.approx(-0.1, rel=1e-3)  # adam's first step: -lr sign(g)
-    assert tune.skipped_count(state) == 2
+def test_hand_set_critical_gains_are_inside_the_bounds_and_stable():
+    crit = C.load_gains(ROOT / "experiments" / "gains" / "com_critical_100.json")
+    reg0 = tuning_params.default_regularisation()
+    bounds = tuning_params.default_bounds(C.default_gains(), 10.0, (0.02, 2.0), reg0)
+    tuning_params.check_in_bounds(crit, reg0, bounds)
+    nava = tuning_params.nava_conditions(crit, reg0)
+    assert nava["holds"]
+    np.testing.assert_allclose(nava["zeta_com"], 1.0, rtol=1e-6)  # critically damped CoM
+
+
+def test_out_of_bound_init_gains_are_a_clear_error_before_compiling(tmp_path):
+    good = C.gains_to_dict(C.default_gains())
+    cases = [({**good, "kp_com": [5000.0, 50.0, 10.0]}, r"kp_com is outside its bounds at entries \[0\]"),
+             ({**good, "kd_com": [1e-6, 0.7, 0.3]}, r"zeta_com is outside its bounds at entries \[0\]"),
+             ({**good, "kp_postural": [float("nan")] * 23}, r"NaN or infinite"),
+             ({**good, "ki_ang": [-1.0, 0.25, 0.25]}, r"negative entries")]  # fmt: skip
+    for values, message in cases:
+        path = tmp_path / "g.json"
+        path.write_text(json.dumps(values))
+        with pytest.raises(ValueError, match=message):
+            tp.make_problem(tp.TuneConfig(init_gains=str(path), **TINY))
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"batch": 0}, r"--batch must be a whole number >= 1"),
+    ({"population": 0}, r"--population must be a whole number >= 1"),
+    ({"steps": 0}, r"--steps must be a whole number >= 1"),
+    ({"horizon": 0.3}, r"--horizon 0.3 s must end after the push"),
+    ({"eval_horizon": 0.4}, r"--eval-horizon 0.4 s must end after the push"),
+    ({"magnitude_range": (0.0, 1.4)}, r"--magnitude-range must be positive"),
+    ({"zeta_range": (2.0, 0.5)}, r"--zeta-range must be positive and ordered"),
+    ({"baselines": ("pso",)}, r"--baselines: unknown"),
+    ({"envelope": "/nonexistent.json"}, r"--envelope /nonexistent.json is not a file"),
+])  # fmt: skip
+def test_bad_tune_config_is_a_clear_error(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        tp.TuneConfig(**kwargs)
+
+
+# ---------------------------------------------------------------------------------------------
+# The loss and its rank statistics (synthetic traces: no compilation of the closed loop)
+
+
+def _trace(T=60, shift=0.0, tilt=0.0, slip=0.0, speed=0.0):
+    """A synthetic TuneTrace: a standing robot whose CoM moves by ``shift`` m along x at ``speed``."""
+    corners = np.array([[x, y] for y0 in (0.07, -0.07) for x in (-0.05, 0.1) for y in (y0 - 0.03, y0 + 0.03)])
+    t = np.linspace(0, 1, T)[:, None]
+    com = np.concatenate([shift * t, np.zeros((T, 1)), np.full((T, 1), 0.5)], 1)
+    vel = np.concatenate([np.full((T, 1), speed), np.zeros((T, 2))], 1)
+    sup = np.repeat(corners[None], T, 0) + slip * t[:, :, None] * np.array([1.0, 0.0])
+    n = np.array([np.sin(tilt), 0.0, np.cos(tilt)])
+    normals = np.repeat(np.stack([[0, 0, 1.0], n])[None], T, 0)
+    normals[0] = [[0, 0, 1.0], [0, 0, 1.0]]
+    base = rollout_lib.LossTrace(
+        com=jnp.asarray(com),
+        com_ref=jnp.asarray(com * [0, 1, 1]),
+        com_vel=jnp.asarray(vel),
+        tau=jnp.zeros((T, 23)),
+        support_xy=jnp.asarray(sup),
+        com_height0=jnp.full(T, 0.5),
+    )
+    return tuning_loss.TuneTrace(base=base, foot_normal=jnp.asarray(normals), qp_infeasible=jnp.zeros(T, bool))
+
+
+def test_loss_terms_grow_with_each_failure_mode():
+    lc = tuning_loss.LossConfig()
+    still = tuning_loss.loss_terms(_trace(), lc)
+    assert float(still["total"]) < 1e-3
+    assert float(tuning_loss.loss_terms(_trace(shift=0.3), lc)["capture"]) > 1.0  # CoM beyond the toes
+    tilt = float(tuning_loss.loss_terms(_trace(tilt=np.deg2rad(5.0)), lc)["tilt"])
+    assert 0.9 < tilt < 1.0  # (1 - cos 5 deg) / (1 - cos 5 deg) on the ticks after the first
+    assert float(tuning_loss.loss_terms(_trace(slip=0.04), lc)["slip"]) > 0.5  # 4 cm by the end
+    assert float(tuning_loss.loss_terms(_trace(speed=0.1), lc)["settle"]) == pytest.approx(4.0, rel=1e-5)
+    # A prefix is the loss of the shorter rollout; the objective is log1p of the totals.
+    short = tuning_loss.loss_terms(_trace(shift=0.3), lc, n_ticks=10)
+    assert float(short["capture"]) < float(tuning_loss.loss_terms(_trace(shift=0.3), lc)["capture"])
+    assert float(tuning_loss.batch_objective(jnp.array([0.0, np.e - 1]), lc)) == pytest.approx(0.5)
+
+
+def test_rank_statistics():
+    loss = np.array([0.1, 0.2, 0.3, 5.0, 7.0, 9.0])
+    survived = np.array([1, 1, 1, 0, 0, 0], bool)
+    assert tuning_loss.spearman(loss, survived) == pytest.approx(-np.sqrt(27 / 35 * 35 / 27), abs=0.2)
+    assert tuning_loss.auc(loss, survived) == 1.0
+    assert tuning_loss.auc(loss[::-1], survived) == 0.0
+    assert np.isnan(tuning_loss.auc(loss, np.ones(6, bool)))
+    assert tuning_loss.spearman([1, 2, 3], [3, 2, 1]) == pytest.approx(-1.0)
+
+
+def test_push_distribution_is_reproducible_and_in_range(robot):
+    tc = tp.TuneConfig(**TINY)
+    table = tp.envelope_table(tc, robot)
+    a, ca = tp.sample_pushes(tc, robot, table, tp.batch_rng(0, 0, 3), 64)
+    b, _ = tp.sample_pushes(tc, robot, table, tp.batch_rng(0, 0, 3), 64)
+    c, _ = tp.sample_pushes(tc, robot, table, tp.batch_rng(0, 0, 4), 64)
+    np.testing.assert_array_equal(a.push.force, b.push.force)
+    assert not np.array_equal(a.push.force, c.push.force)
+    rel = ca["impulse_ns"] / tp.interp_periodic(*table, ca["azimuth_deg"])
+    assert rel.min() >= 0.6 - 1e-9 and rel.max() <= 1.4 + 1e-9
+    assert set(ca["body"]) <= {robot.index.body_id(n) for n in tc.train_bodies}
+    assert np.all((a.friction >= 0.6) & (a.friction <= 1.2)) and np.all(np.abs(a.mass_scale - 1) <= 0.1 + 1e-6)
+
+
+# ---------------------------------------------------------------------------------------------
+# Training and baselines with stand-in steps (no compilation): guard, resume, budgets
+
+
+def _metrics(B):
+    z = np.zeros(B)
+    return metrics_lib.Metrics(com_sq_err_sum=z, com_max_err=z, max_abs_torque=z, max_violation=z, max_slip=z,
+                               max_tilt=z, qp_infeasible_ticks=z.astype(int), fell=z.astype(bool),
+                               nan=z.astype(bool), last_time_off=z, min_com_height=z + 0.5, end_com_speed=z,
+                               end_support_margin=z + 0.01, ticks=z.astype(int) + 1)  # fmt: skip
 
 
 class _Interrupt(Exception):
     pass
 
 
-def _fake_step(optimizer, bounds, base, target, stop_at=None, nan_at=()):
+def _target_loss(problem, target):
+    def loss(p):
+        g, _ = problem.controls(p)
+        return sum(jnp.sum((jnp.log(getattr(g, k)) - jnp.log(getattr(target, k))) ** 2) for k in
+                   ("kp_com", "kd_com", "kp_postural"))  # fmt: skip
+
+    return loss
+
+
+def _fake_step(problem, optimizer, target, stop_at=None, nan_at=()):
     """A train step on a known quadratic (log-gain distance to ``target``), the real optimiser;
     a NaN gradient at the steps in ``nan_at``; raises at ``stop_at`` (a killed run)."""
     import optax
 
     calls = {"k": 0}
-
-    def loss(p):
-        g = tune.params_to_gains(p, bounds, base)
-        return sum(jnp.sum((jnp.log(getattr(g, k)) - jnp.log(getattr(target, k))) ** 2) for k in tune.TUNED_FIELDS)
+    loss = _target_loss(problem, target)
 
     def step(params, opt_state, scen):
         k = calls["k"]
@@ -108,45 +233,135 @@ def _fake_step(optimizer, bounds, base, target, stop_at=None, nan_at=()):
         if k in nan_at:
             grad = jax.tree_util.tree_map(lambda x: x * jnp.nan, grad)
         updates, opt_state = optimizer.update(grad, opt_state, params)
-        terms = {n: value for n in ("com", "effort", "capture", "height")}
+        terms = {n: value for n in tuning_loss.TERMS}
         finite = all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree_util.tree_leaves(grad))
-        return optax.apply_updates(params, updates), opt_state, value, terms, optax.global_norm(grad), finite
+        B = int(np.asarray(scen.friction).shape[0])
+        return (
+            optax.apply_updates(params, updates),
+            opt_state,
+            value,
+            terms,
+            _metrics(B),
+            optax.global_norm(grad),
+            finite,
+        )
 
     return step
 
 
-def test_training_loop_guard_resume_and_gains_file(robot, tmp_path):
-    tc = tune.TuneConfig(steps=6, batch=2, lr=0.2, clip_norm=10.0)
-    lc = tune.LossConfig()
-    base = C.default_gains(robot.index.n)
-    bounds = tune.default_bounds(base, tc.bound_factor)
-    target = base.replace(kp_com=base.kp_com * 2.0, kd_postural=base.kd_postural * 0.5)
+@pytest.fixture(scope="module")
+def small_problem():
+    return tp.make_problem(tp.TuneConfig(steps=6, batch=2, lr=0.2, clip_norm=10.0, population=3, es_batch=1,
+                                         **TINY))  # fmt: skip
+
+
+def test_training_loop_guard_resume_and_gains_file(small_problem, tmp_path):
+    problem = small_problem
+    tc = problem.tc
+    base = problem.base
+    target = base.replace(kp_com=base.kp_com * 2.0, kd_com=base.kd_com * 3.0, kp_postural=base.kp_postural * 0.5)
     opt = tune.make_optimizer(tc.lr, tc.clip_norm)
-    # Uninterrupted run.
-    full, rows_full, _ = tune.train(robot, tc, lc, tmp_path / "a", progress=False,
-                                    step_fn=_fake_step(opt, bounds, base, target, nan_at=(2,)))  # fmt: skip
+    full, _, rows_full, _ = tune.train(problem, tmp_path / "a", progress=False,
+                                       step_fn=_fake_step(problem, opt, target, nan_at=(2,)))  # fmt: skip
     losses = [float(r["loss"]) for r in rows_full]
     assert losses[-1] < 0.5 * losses[0]  # it optimises
     assert [r["finite"] for r in rows_full] == [True, True, False, True, True, True]
     assert rows_full[-1]["skipped_total"] == 1
+    per_step = tc.batch * problem.steps_per_rollout
+    assert [r["sim_steps"] for r in rows_full] == [per_step * (k + 1) for k in range(6)]
+    assert problem.steps_per_rollout == 100  # 0.1 s at 1 kHz
     # Killed at step 4, then resumed: same result, history without duplicates.
     with pytest.raises(_Interrupt):
-        tune.train(robot, tc, lc, tmp_path / "b", progress=False,
-                   step_fn=_fake_step(opt, bounds, base, target, stop_at=4, nan_at=(2,)))  # fmt: skip
-    resumed, rows, _ = tune.train(robot, tc, lc, tmp_path / "b", progress=False,
-                                  step_fn=_fake_step(opt, bounds, base, target))  # fmt: skip
+        tune.train(
+            problem, tmp_path / "b", progress=False, step_fn=_fake_step(problem, opt, target, stop_at=4, nan_at=(2,))
+        )
+    resumed, _, rows, _ = tune.train(problem, tmp_path / "b", progress=False, step_fn=_fake_step(problem, opt, target))
     assert [int(r["step"]) for r in rows] == list(range(6))
     for k in GAIN_FIELDS:
         np.testing.assert_allclose(getattr(resumed, k), getattr(full, k), rtol=1e-6)
+    other = tp.make_problem(tp.TuneConfig(steps=7, batch=2, lr=0.2, clip_norm=10.0, **TINY))
     with pytest.raises(ValueError, match="another tuning config"):
-        tune.train(robot, tune.TuneConfig(steps=7, batch=2), lc, tmp_path / "b", progress=False,
-                   step_fn=_fake_step(opt, bounds, base, target))  # fmt: skip
+        tune.train(other, tmp_path / "b", progress=False, step_fn=_fake_step(other, opt, target))
     # tuned_gains.json has gains_to_dict's format and loads back.
     saved = json.loads((tmp_path / "a" / "tuned_gains.json").read_text())
     assert saved == C.gains_to_dict(full)
     loaded = C.load_gains(tmp_path / "a" / "tuned_gains.json")
     np.testing.assert_allclose(loaded.kp_com, full.kp_com, rtol=1e-6)
-    assert (tmp_path / "a" / "history.csv").read_text().splitlines()[0].startswith("step,loss,com")
+    assert (tmp_path / "a" / "history.csv").read_text().splitlines()[0].startswith("step,loss,capture")
+
+
+def _fake_population(problem, target):
+    loss = jax.vmap(_target_loss(problem, target))
+
+    def evaluate(params, scen):
+        P, b = jax.tree_util.tree_leaves(params)[0].shape[0], int(np.asarray(scen.friction).shape[0])
+        return loss(params), {}, jax.tree_util.tree_map(lambda x: np.broadcast_to(x, (P, b)), _metrics(b))
+
+    return evaluate
+
+
+@pytest.fixture(scope="module")
+def search_problem():
+    return tp.make_problem(tp.TuneConfig(batch=2, population=16, es_batch=1, es_sigma=0.2, **TINY))
+
+
+@pytest.mark.parametrize("kind", baselines.KINDS)
+def test_baselines_spend_the_budget_resume_and_improve(search_problem, tmp_path, kind):
+    problem = search_problem
+    base = problem.base
+    target = base.replace(kp_com=base.kp_com * 2.0, kd_com=base.kd_com * 3.0)
+    per_gen = (problem.tc.population + 1) * problem.tc.candidate_batch * problem.steps_per_rollout
+    budget = {"sim_steps": 10 * per_gen, "wall_s": 0.0}
+    ev = _fake_population(problem, target)
+    res = baselines.search(problem, kind, tmp_path / "a", budget=budget, progress=False, evaluate_fn=ev)
+    assert res["equal_steps"]["sim_steps"] == budget["sim_steps"] and len(res["history"]) == 10
+    losses = [float(r["loss"]) for r in res["history"]]
+    assert losses[-1] < losses[0]
+    # Killed after 4 generations, then resumed: the same solution.
+    baselines.search(problem, kind, tmp_path / "b", budget=budget, progress=False, evaluate_fn=ev, max_generations=4)
+    again = baselines.search(problem, kind, tmp_path / "b", budget=budget, progress=False, evaluate_fn=ev)
+    assert [int(r["generation"]) for r in again["history"]] == list(range(10))
+    for k in GAIN_FIELDS:
+        np.testing.assert_allclose(getattr(again["equal_steps"]["controls"][0], k),
+                                   getattr(res["equal_steps"]["controls"][0], k), rtol=1e-5)  # fmt: skip
+    assert baselines.budget_generations(problem, budget["sim_steps"]) == 10
+
+
+# ---------------------------------------------------------------------------------------------
+# Held-out summaries (tables made here: no simulation)
+
+
+def test_heldout_json_and_targets(tmp_path):
+    def entry(frac, surv):
+        env = {
+            str(a): {"impulse_ns": f * 20, "fraction": f, "bound_impulse_ns": 20.0} for a, f in zip((0.0, 90.0), frac)
+        }
+        grid = {"envelope_fraction_median": float(np.median(frac)), "envelope_fraction_min": min(frac),
+                "survival_rate": surv, "upright_rate": surv, "peak_torque_nm_median": 30.0, "envelope": env,
+                "envelope_fraction_monotone_median": 0.5, "envelope_fraction_monotone_min": 0.4}  # fmt: skip
+        return {"grid": grid, "variations": {"l_hand": grid}, "sinusoid_com_rmse_m": 1e-3}
+
+    results = {
+        "default": entry([0.5, 0.6], 0.2),
+        "gradient": entry([0.85, 0.7], 0.35),
+        "critical": entry([0.6, 0.6], 0.3),
+    }
+    rep = tuning_eval.write_heldout(tmp_path / "heldout.json", results, {"gradient": {"sim_steps": 5, "wall_s": 2.0}})
+    saved = json.loads((tmp_path / "heldout.json").read_text())
+    for name in results:
+        assert {"envelope_fraction_median", "envelope_fraction_min", "survival_rate", "sinusoid_com_rmse_m",
+                "sim_steps", "wall_s", "device"} <= set(saved[name])  # fmt: skip
+    assert saved["survival_criterion"] == json.loads(json.dumps(constants.SURVIVAL_CRITERION))
+    t = rep["targets"]
+    assert t["median_fraction_ge_0.8"] is False and t["min_fraction_ge_0.6"] and t["no_direction_below_default"]
+    assert t["survival_ge_1.5x_default"] and t["survival_above_best_hand_set"] and t["sinusoid_rmse_le_1.5mm"]
+    tuning_eval.envelope_polar(rep, tmp_path / "envelope.png")
+    tuning_eval.learning_curves({"gradient": [{"loss": 1.0, "sim_steps": 10, "wall_s": 1.0}]}, tmp_path / "l.png")
+    assert (tmp_path / "envelope.png").stat().st_size > 0 and (tmp_path / "l.png").stat().st_size > 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Gains files
 
 
 def test_bad_gains_files_name_the_problem(tmp_path):
@@ -170,9 +385,10 @@ def test_bad_gains_files_name_the_problem(tmp_path):
 def test_tuned_gains_file_runs_in_balance_and_push_sweep(tmp_path, capsys):
     """A tuned file (gains_to_dict of bounded gains) through both CLI paths."""
     base = C.default_gains()
-    bounds = tune.default_bounds(base)
-    gains = tune.params_to_gains({k: v + 0.3 for k, v in tune.gains_to_params(base, bounds).items()},
-                                 bounds, base)  # fmt: skip
+    reg0 = tuning_params.default_regularisation()
+    bounds = tuning_params.default_bounds(base, 10.0, (0.02, 2.0), reg0)
+    p = tuning_params.controls_to_params(base, reg0, bounds, regularisation=False)
+    gains = tuning_params.params_to_gains({k: v + 0.3 for k, v in p.items()}, bounds, base)
     path = tmp_path / "tuned_gains.json"
     path.write_text(json.dumps(C.gains_to_dict(gains)))
     rc = cli.main(["balance", "--gains", str(path), "--duration", "0.05", "--out", str(tmp_path / "bal"),

@@ -79,7 +79,6 @@ def test_replay_equals_the_sweep_metrics(replays):
 
 def test_rrd_of_a_sweep_env(sweep_dir, replays, robot):
     traj = replays[1][0]
-    T = len(traj["t"])
     assert cli.main(["view", str(sweep_dir), "--env", "1"]) == 0
     path = sweep_dir / "env_1.rrd"
     times, static, batches = read_rrd(path)

@@ -12,8 +12,8 @@ import time
 import jax
 import numpy as np
 
-from wbc_jax import metrics as metrics_lib
 from wbc_jax import io, physics, plots, references, runs, scenario
+from wbc_jax import metrics as metrics_lib
 from wbc_jax import rollout as rollout_lib
 from wbc_jax.controller import FORCE_MODES, ControllerConfig
 from wbc_jax.gains import gains_to_dict, load_gains
@@ -68,7 +68,9 @@ def default_config() -> BalanceConfig:
     return BalanceConfig()
 
 
-def make_setup(cfg: BalanceConfig, robot_name: str = "icub", controller: ControllerConfig | None = None) -> scenario.Setup:
+def make_setup(
+    cfg: BalanceConfig, robot_name: str = "icub", controller: ControllerConfig | None = None
+) -> scenario.Setup:
     """Scene, controller and closed loop of a balance run (checked, nothing compiled).
     ``controller``: further controller settings (forces and postural come from ``cfg``)."""
     scene = scenario.load_scene(robot_name, cfg.tasks)

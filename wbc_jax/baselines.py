@@ -13,7 +13,8 @@ sets (:func:`wbc_jax.tuning_problem.make_population_loss`, forward only):
   incumbent; the best of them replaces it when it beats the incumbent on the same pushes.
 
 A generation costs (P + 1) b rollouts of the horizon's physics steps. The run goes on until both
-budgets of the gradient run (simulated steps, wall time including compilation) are spent; the
+budgets of the gradient run (simulated steps, and, with ``wall_budget``, wall time including
+compilation) are spent; the
 current solution after each generation is kept, so that the gain sets at equal simulated steps
 and at equal wall time are both read from one run. Resumable (checkpoint.npz, history.csv).
 """
@@ -125,7 +126,8 @@ def search(problem: tp.Problem, kind: str, out, *, budget: dict, progress: bool 
     strategy = (_CMAES if kind == "cmaes" else _RandomSearch)(p0, tc.population, tc.es_sigma)
     key0 = jax.random.key(tc.seed * 1000 + STREAMS[kind])
     state = strategy.init(key0)
-    key = f"{problem.key}-{kind}-{tp.config_key(tc, exclude=('out', 'steps', 'baselines', 'eval_pushes', 'eval_horizon'))}"
+    not_search = ("out", "steps", "baselines", "wall_budget", "eval_pushes", "eval_horizon")
+    key = f"{problem.key}-{kind}-{tp.config_key(tc, exclude=not_search)}"
     ckpt, hist_path = out / "checkpoint.npz", out / "history.csv"
     start, rows, snapshots, compile_s = 0, [], np.zeros((0, p0.size)), None
     if ckpt.exists():
@@ -142,18 +144,18 @@ def search(problem: tp.Problem, kind: str, out, *, budget: dict, progress: bool 
                                    problem.setup.dtype)  # fmt: skip
         return scen
 
-    pop_like = jax.vmap(unravel)(jnp.zeros((tc.population + 1, p0.size), p0.dtype))
-    if hasattr(evaluate, "lower"):  # ahead of time: the compile timed apart
-        t0 = time.perf_counter()
-        evaluate = evaluate.lower(pop_like, batch(start)).compile()
-        compile_s = time.perf_counter() - t0 if compile_s is None else compile_s  # the first counts
-    compile_s = compile_s or 0.0
-    wall = float(rows[-1]["wall_s"]) if rows else compile_s
-
     def done(g):
-        spent = g * per_gen >= budget["sim_steps"] and (not rows or float(rows[-1]["wall_s"]) >= budget["wall_s"])
+        wall_spent = not tc.wall_budget or not rows or float(rows[-1]["wall_s"]) >= budget["wall_s"]
+        spent = g * per_gen >= budget["sim_steps"] and wall_spent
         return spent or (max_generations is not None and g >= max_generations)
 
+    if not done(start) and hasattr(evaluate, "lower"):  # ahead of time: the compile timed apart
+        pop_like = jax.vmap(unravel)(jnp.zeros((tc.population + 1, p0.size), p0.dtype))
+        t0 = time.perf_counter()
+        evaluate = evaluate.lower(pop_like, batch(start)).compile()
+        compile_s = time.perf_counter() - t0 if compile_s is None else compile_s  # the first one counts
+    compile_s = compile_s or 0.0
+    wall = float(rows[-1]["wall_s"]) if rows else compile_s
     g = start
     with tqdm(total=max_generations or budget_generations(problem, budget["sim_steps"]), initial=start,
               unit="gen", disable=not progress, desc=kind) as bar:  # fmt: skip
@@ -185,13 +187,29 @@ def search(problem: tp.Problem, kind: str, out, *, budget: dict, progress: bool 
             bar.set_postfix(loss=f"{float(obj[0]):.4g}")
             bar.update(1)
 
+    return result(problem, kind, out, budget)
+
+
+def result(problem: tp.Problem, kind: str, out, budget: dict) -> dict:
+    """The outcome of a (finished or stopped) search in ``out``, read back without compiling:
+    {"history", "equal_steps", "equal_wall", "compile_s", "sim_steps_per_generation"} (see
+    :func:`search`)."""
+    out = pathlib.Path(out)
+    p0, unravel = ravel_pytree(problem.init_params())
+    with np.load(out / "checkpoint.npz") as z:
+        snapshots, compile_s = z["extra_snapshots"], float(z["extra_compile_s"])
+    rows = tp.read_csv(out / "history.csv")[: len(snapshots)]
+    if not rows:
+        raise ValueError(f"{out}: the {kind} search has no finished generation yet")
+
     def pick(column: str, target: float) -> dict:
         values = [float(r[column]) for r in rows]
         i = next((j for j, v in enumerate(values) if v >= target), len(rows) - 1)
         gains, reg = problem.controls(unravel(jnp.asarray(snapshots[i], p0.dtype)))
         return {"generation": i, "sim_steps": int(rows[i]["sim_steps"]), "wall_s": float(rows[i]["wall_s"]),
-                "controls": (gains, problem.regularisation(reg))}  # fmt: skip
+                "reached": bool(values[i] >= target), "controls": (gains, problem.regularisation(reg))}  # fmt: skip
 
+    tc = problem.tc
     return {"history": rows, "equal_steps": pick("sim_steps", budget["sim_steps"]),
             "equal_wall": pick("wall_s", budget["wall_s"]), "compile_s": round(compile_s, 2),
-            "sim_steps_per_generation": per_gen}  # fmt: skip
+            "sim_steps_per_generation": (tc.population + 1) * tc.candidate_batch * problem.steps_per_rollout}  # fmt: skip

@@ -1,8 +1,8 @@
 """Numbers and names shared by the package and the NumPy CPU baseline (``benchmarks/``).
 
 This module imports neither JAX nor MuJoCo: the baseline's worker processes load it alone.
-Sources of the numbers: shared/reference/controller-spec.md (WBC iCubGazeboV2_5 gains) and
-docs/ in this repository.
+Sources of the numbers: the WBC iCubGazeboV2_5 configuration (robotology whole-body-controllers,
+gainsAndReferences.m) and the measurements in docs/ of this repository.
 """
 
 from __future__ import annotations
@@ -20,9 +20,7 @@ NON_NEGATIVE_GAINS = ("ki_com",)
 WBC_KP_COM = (50.0, 50.0, 10.0)
 WBC_KP_ANG = 1.0  # = 2 sqrt(K_I,w)
 WBC_KI_ANG = 0.25
-WBC_KP_POSTURAL = (
-    [10, 30, 20] + [10, 10, 10, 8] * 2 + [30, 30, 20, 20, 100, 100] + [30, 50, 30, 60, 100, 100]
-)
+WBC_KP_POSTURAL = [10, 30, 20] + [10, 10, 10, 8] * 2 + [30, 30, 20, 20, 100, 100] + [30, 50, 30, 60, 100, 100]
 # Gains files are checked against these ranges (a gain outside is a typo, not a setting).
 GAIN_RANGES = {
     "kp_com": (0.0, 1e4),
@@ -75,8 +73,7 @@ SURVIVAL_CRITERION = {
     "max_foot_tilt_deg": SURVIVAL_MAX_TILT_DEG,
     "end_com_speed_mps": SURVIVAL_END_COM_SPEED,
     "end_com_over_support": True,
-    "no_fall": f"CoM above {FALL_COM_HEIGHT} x its initial height, no body but the feet below "
-    f"{BODY_FLOOR_HEIGHT} m",
+    "no_fall": f"CoM above {FALL_COM_HEIGHT} x its initial height, no body but the feet below {BODY_FLOOR_HEIGHT} m",
 }
 
 # One set of metric names, for a balance run (scalars) and a sweep (one column per name).

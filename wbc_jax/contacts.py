@@ -29,9 +29,9 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from wbc_jax._mjx import mjx
 from wbc_jax import constants
 from wbc_jax import model as model_lib
+from wbc_jax._mjx import mjx
 from wbc_jax.dynamics import DynamicsTerms, Frames
 from wbc_jax.types import Array, pytree_dataclass
 
@@ -41,6 +41,7 @@ DIMENSION = {"surface": 6, "point": 3}
 SPHERE_RADIUS = 0.005  # m, as the feet's corner spheres (assets/build_icub_mjcf.py)
 CONTACT_SOLREF = (0.004, 1.0)  # as the feet
 FEET_FRAMES = {"l_sole": 0, "r_sole": 1}
+REACH_TOL = 0.005  # m: a contact's point must be this close to the surface it touches (initial posture)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,41 +75,24 @@ class ContactParams:
         for name in ("mu", "mu_t", "fz_min"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ValueError(
-                    f"ContactParams.{name} must be a real number, got {value!r}"
-                )
+                raise ValueError(f"ContactParams.{name} must be a real number, got {value!r}")
             if not math.isfinite(value) or value <= 0.0:
-                raise ValueError(
-                    f"ContactParams.{name} must be positive and finite, got {value!r}"
-                )
+                raise ValueError(f"ContactParams.{name} must be positive and finite, got {value!r}")
             object.__setattr__(self, name, float(value))
         n = self.n_points
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2:
-            raise ValueError(
-                f"ContactParams.n_points must be an integer >= 2, got {n!r}"
-            )
+            raise ValueError(f"ContactParams.n_points must be an integer >= 2, got {n!r}")
         object.__setattr__(self, "n_points", int(n))
         try:
-            (x_min, x_max), (y_min, y_max) = (
-                (float(a), float(b)) for a, b in self.foot_size
-            )
+            (x_min, x_max), (y_min, y_max) = ((float(a), float(b)) for a, b in self.foot_size)
         except (TypeError, ValueError) as err:
             raise ValueError(
-                "ContactParams.foot_size must be ((x_min, x_max), (y_min, y_max)), "
-                f"got {self.foot_size!r}"
+                f"ContactParams.foot_size must be ((x_min, x_max), (y_min, y_max)), got {self.foot_size!r}"
             ) from err
         if not all(math.isfinite(v) for v in (x_min, x_max, y_min, y_max)):
-            raise ValueError(
-                f"ContactParams.foot_size must be finite, got {self.foot_size!r}"
-            )
-        if not x_min < x_max:
-            raise ValueError(
-                f"ContactParams.foot_size needs x_min < x_max, got {self.foot_size!r}"
-            )
-        if not y_min < y_max:
-            raise ValueError(
-                f"ContactParams.foot_size needs y_min < y_max, got {self.foot_size!r}"
-            )
+            raise ValueError(f"ContactParams.foot_size must be finite, got {self.foot_size!r}")
+        if not (x_min < x_max and y_min < y_max):
+            raise ValueError(f"ContactParams.foot_size needs x_min < x_max and y_min < y_max, got {self.foot_size!r}")
         # A CoP rectangle that excludes the sole origin is legal (the rows stay
         # meaningful), so only the ordering is checked.
         object.__setattr__(self, "foot_size", ((x_min, x_max), (y_min, y_max)))
@@ -119,8 +103,6 @@ jax.tree_util.register_dataclass(
     data_fields=[],
     meta_fields=["mu", "n_points", "mu_t", "fz_min", "foot_size"],
 )
-
-
 
 
 @dataclasses.dataclass(frozen=True)
@@ -151,6 +133,10 @@ class Contact:
       touches: scene object this contact touches: collision spheres are added on the body and
         paired with it. None: the body's existing contact geoms (the feet on the floor).
       activation: :class:`ContactActivation` (feet: multiplied by the task's foot activation).
+      detect: contact detection: the normal force the simulator measures gates the activation (a
+        contact it does not see ramps out, a re-touch ramps back in; the settings are the
+        ``detection_*`` fields of :class:`wbc_jax.controller.ControllerConfig`). Not for the soles,
+        which follow the task's foot schedule.
     """
 
     name: str
@@ -165,6 +151,7 @@ class Contact:
     normal_force: float | None = None
     touches: str | None = None
     activation: ContactActivation = ContactActivation()
+    detect: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -172,9 +159,10 @@ class SceneObject:
     """A fixed box in the world.
 
     Attributes:
-      name: geom name. size: (3,) half sizes (m). pos: (3,) centre (world); or
-      under: the name of a contact whose normal is +z: the box's top face is put at that contact's
-        point (at the initial posture), centred under it, then moved by ``shift``.
+      name: geom name. size: (3,) half sizes (m), world axes. pos: (3,) centre (world); or
+      under: the name of a contact whose normal is along a world axis (+z: a table, horizontal: a
+        wall): the box's face that the normal leaves is put at that contact's point (at the initial
+        posture), centred on it, then moved by ``shift``.
       friction: sliding friction of the contacts with this object (physics).
     """
 
@@ -201,6 +189,7 @@ class ResolvedContact:
     activation: ContactActivation
     foot: int  # 0 / 1 for the soles (the schedule's activation applies), else -1
     geoms: tuple[int, ...]  # collision geoms of this contact (measured wrenches)
+    detect: bool = False  # contact detection gates the activation (Contact.detect)
 
     @property
     def dim(self) -> int:
@@ -250,10 +239,15 @@ def feet_contact_set(robot: model_lib.Robot, params: ContactParams | None = None
     return ContactSet(
         contacts=tuple(
             ResolvedContact(
-                name=name, type="surface", body=int(idx.foot_bodies[k]),
+                name=name,
+                type="surface",
+                body=int(idx.foot_bodies[k]),
                 point=tuple(float(x) for x in idx.foot_points[k]),
                 R_body_contact=tuple(float(x) for x in idx.foot_rotations[k].ravel()),
-                params=params, normal_force=math.nan, activation=ContactActivation(), foot=k,
+                params=params,
+                normal_force=math.nan,
+                activation=ContactActivation(),
+                foot=k,
                 geoms=tuple(int(g) for g in idx.foot_geoms[k]),
             )  # fmt: skip
             for k, name in enumerate(model_lib.FEET)
@@ -261,9 +255,7 @@ def feet_contact_set(robot: model_lib.Robot, params: ContactParams | None = None
     )
 
 
-# ------------------------------------------------------------------------------------------
-# Specification: parsing and checks (before anything is compiled)
-# ------------------------------------------------------------------------------------------
+# ---- Specification: parsing and checks (before anything is compiled) ---------------------
 
 
 def contact_from_dict(values: dict) -> Contact:
@@ -278,10 +270,14 @@ def contact_from_dict(values: dict) -> Contact:
     values = dict(values)
     act = values.pop("activation", {}) or {}
     act_fields = {f.name for f in dataclasses.fields(ContactActivation)}
-    if not isinstance(act, dict) or set(act) - act_fields or not all(
-        isinstance(v, (int, float)) and not isinstance(v, bool) for v in act.values()
+    if (
+        not isinstance(act, dict)
+        or set(act) - act_fields
+        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in act.values())
     ):
-        raise ValueError(f"contact {values['name']!r}: activation must map {sorted(act_fields)} to numbers, got {act!r}")
+        raise ValueError(
+            f"contact {values['name']!r}: activation must map {sorted(act_fields)} to numbers, got {act!r}"
+        )
     if "cop" in values and values["cop"] is not None:
         values["cop"] = tuple(tuple(r) for r in values["cop"])
     values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
@@ -341,6 +337,11 @@ def check_spec(contacts, objects) -> tuple[tuple[Contact, ...], tuple[SceneObjec
             raise ValueError(f"{owner}: normal_force must be finite and >= fz_min ({c.fz_min}), got {c.normal_force}")
         if c.type == "point" and c.cop is not None:
             raise ValueError(f"{owner}: a point contact has no CoP rectangle (got cop {c.cop}); use type 'surface'")
+        if not isinstance(c.detect, bool):
+            raise ValueError(f"{owner}: detect must be true or false, got {c.detect!r}")
+        if c.detect and c.frame in FEET_FRAMES and not np.any(_vector(owner, "offset", c.offset)):
+            raise ValueError(f"{owner}: the soles follow the task's foot schedule; contact detection (detect) is for "
+                             "the other contacts")  # fmt: skip
         a = c.activation
         if not (math.isfinite(a.start) and a.ramp >= 0 and math.isfinite(a.ramp) and a.stop > a.start + a.ramp):
             raise ValueError(f"{owner}: activation needs finite start, ramp >= 0 and stop > start + ramp, got {a}")
@@ -365,9 +366,7 @@ def check_spec(contacts, objects) -> tuple[tuple[Contact, ...], tuple[SceneObjec
     return contacts, objects
 
 
-# ------------------------------------------------------------------------------------------
-# Scene: objects, collision spheres, contact pairs
-# ------------------------------------------------------------------------------------------
+# ---- Scene: objects, collision spheres, contact pairs ------------------------------------
 
 
 def _frame_point(m: mujoco.MjModel, idx: model_lib.RobotIndex, c: Contact):
@@ -395,6 +394,29 @@ def _contact_rotation(normal: np.ndarray, site_R: np.ndarray | None) -> np.ndarr
     x = ref - (ref @ z) * z
     x /= np.linalg.norm(x)
     return np.stack([x, np.cross(z, x), z], axis=1)
+
+
+def _box_distance(p: np.ndarray, centre: np.ndarray, half: np.ndarray) -> float:
+    """Signed distance of p (3,) to an axis-aligned box (negative inside)."""
+    q = np.abs(p - centre) - half
+    return float(np.linalg.norm(np.maximum(q, 0.0)) + min(q.max(), 0.0))
+
+
+def _check_touch(c: Contact, W_p: np.ndarray, normal: np.ndarray, centre: np.ndarray, half: np.ndarray) -> None:
+    """A contact's point must lie on the surface of what it touches (within REACH_TOL) at the
+    initial posture, and its normal must leave that surface (not point into the object)."""
+    dist = _box_distance(W_p, centre, half)
+    if abs(dist) > REACH_TOL:
+        raise ValueError(f"contact {c.name!r}: its point {W_p.round(3).tolist()} is {abs(dist) * 100:.1f} cm "
+                         f"{'inside' if dist < 0 else 'away from'} the surface of {c.touches!r} at the initial posture "
+                         f"(at most {REACH_TOL * 1e3:.0f} mm: it must touch it); move the object (pos, shift) or "
+                         "change the initial posture")  # fmt: skip
+    rise = lambda e: (_box_distance(W_p + 0.01 * e, centre, half) - _box_distance(W_p - 0.01 * e, centre, half)) / 0.02  # noqa: E731
+    n = normal / np.linalg.norm(normal)
+    if rise(n) < 0.5:  # more than 60 deg from the surface's outward normal
+        raise ValueError(f"contact {c.name!r}: normal {np.round(n, 3).tolist()} points into {c.touches!r} or along its "
+                         f"surface (the surface faces {np.round([rise(e) for e in np.eye(3)], 3).tolist()}); the "
+                         "normal points out of the touched surface, towards the robot")  # fmt: skip
 
 
 def _pair_geoms(m: mujoco.MjModel, body: int) -> list[int]:
@@ -450,21 +472,28 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
             spec.delete(geom)
     for mesh in list(spec.meshes):
         spec.delete(mesh)
+    placed = {}
     for o in objects:
         if o.under is not None:
             _, _, _, W_p, W_R_c = frames[o.under]
-            if W_R_c[2, 2] < 1 - 1e-6:
-                raise ValueError(f"scene object {o.name!r}: 'under' needs a contact with normal +z; "
-                                 f"{o.under!r} has normal {W_R_c[:, 2].round(3).tolist()}")  # fmt: skip
-            pos = W_p - np.array([0.0, 0.0, o.size[2]]) + np.asarray(o.shift, float)
+            axis = int(np.argmax(np.abs(W_R_c[:, 2])))
+            if abs(W_R_c[axis, 2]) < 1 - 1e-6 or W_R_c[2, 2] < -1e-6:
+                raise ValueError(f"scene object {o.name!r}: 'under' needs a contact with normal +z or horizontal "
+                                 f"along a world axis; {o.under!r} has normal {W_R_c[:, 2].round(3).tolist()}")  # fmt: skip
+            pos = W_p - W_R_c[:, 2].round() * o.size[axis] + np.asarray(o.shift, float)
         else:
             pos = np.asarray(o.pos, float)
+        placed[o.name] = (pos, np.asarray(o.size, float))
         spec.worldbody.add_geom(
             name=o.name, type=mujoco.mjtGeom.mjGEOM_BOX, size=list(o.size), pos=pos.tolist(),
             contype=0, conaffinity=0, rgba=[0.6, 0.45, 0.3, 1],
         )  # fmt: skip
     friction = {o.name: o.friction for o in objects}
     friction["floor"] = 1.0
+    placed["floor"] = (np.array([0.0, 0.0, d.geom_xpos[base.geom("floor").id][2] - 1e3]), np.full(3, 1e3))
+    for c in contacts:
+        if c.touches is not None:
+            _check_touch(c, frames[c.name][3], frames[c.name][4][:, 2], *placed[c.touches])
     added: dict[str, list[str]] = {}
     for c in contacts:
         if c.touches is None:
@@ -510,19 +539,23 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
         params = ContactParams(mu=c.mu, mu_t=c.mu_t, fz_min=c.fz_min, foot_size=cop)
         resolved.append(
             ResolvedContact(
-                name=c.name, type=c.type, body=int(body), point=tuple(float(x) for x in point),
-                R_body_contact=tuple(float(x) for x in R_bc.ravel()), params=params,
+                name=c.name,
+                type=c.type,
+                body=int(body),
+                point=tuple(float(x) for x in point),
+                R_body_contact=tuple(float(x) for x in R_bc.ravel()),
+                params=params,
                 normal_force=math.nan if c.normal_force is None else float(c.normal_force),
-                activation=c.activation, foot=FEET_FRAMES.get(c.frame, -1) if not np.any(c.offset) else -1,
+                activation=c.activation,
+                foot=FEET_FRAMES.get(c.frame, -1) if not np.any(c.offset) else -1,
                 geoms=tuple(int(g) for g in geoms),
+                detect=c.detect,
             )  # fmt: skip
         )
     return scene_robot, ContactSet(contacts=tuple(resolved))
 
 
-# ------------------------------------------------------------------------------------------
-# At run time
-# ------------------------------------------------------------------------------------------
+# ---- At run time -------------------------------------------------------------------------
 
 
 @pytree_dataclass

@@ -1,7 +1,7 @@
 """[controller] The balancing controller of the seed paper: momentum task first, postural task in
 its null space, any motion tasks in between.
 
-One control tick (controller-spec 1.10, seed paper) reads like the pipeline::
+One control tick (seed paper; robotology whole-body-controllers) reads like the pipeline::
 
     dynamics terms -> contact terms -> L_dot* (momentum task) -> contact wrenches f (QP or analytic)
                    -> tau = Sigma f + tau_model (torques, postural task in the null space)
@@ -16,13 +16,17 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Callable, NamedTuple
+from collections.abc import Callable
+from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 from wbc_jax import contacts as contacts_lib
 from wbc_jax import forces, hierarchy, momentum, qp, torques
 from wbc_jax import tasks as tasks_lib
+from wbc_jax.constants import min_jerk
 from wbc_jax.dynamics import DynamicsTerms, Frames
 from wbc_jax.gains import Gains
 from wbc_jax.model import Robot
@@ -51,9 +55,20 @@ class ControllerConfig:
         inexact gradient; kept for experiments/grad_check_sources.py).
       solution_damping, projector_reg: of the motion-task hierarchy (None: by precision,
         :data:`wbc_jax.hierarchy.SOLUTION_DAMPING` / :data:`wbc_jax.hierarchy.PROJECTOR_REG`).
+      effort_damping: mu >= 0 of the hierarchy's effort-bounded pseudo-inverses
+        (:mod:`wbc_jax.hierarchy`): a task direction that the levels above block to a fraction rho
+        of its gain gets rho^4 / (rho^4 + mu (1 - rho^2)^2) of its acceleration, the postural task
+        keeps the rest; 0: plain hierarchical least squares.
       compensate_passive: include the model's joint damping in the bias h.
-      contact_detection: the measured contact forces gate the contacts' activations (a contact
-        the simulator does not see ramps out; a re-touch ramps back in).
+      violation_tol: the largest violation of a contact's own constraints, relative to its normal
+        force, that the force QP's wrenches may have before the soft QP is used instead (None: by
+        precision, :data:`wbc_jax.forces.VIOLATION_TOL`).
+      contact_detection: contact detection on every contact but the soles (``Contact.detect``: on
+        one contact; :func:`make_controller` sets this when a contact of the set detects, so that
+        the rollout measures the contact forces): the measured normal force gates the contact's
+        activation. A contact the simulator does not see (normal force below
+        ``detection_threshold`` x its fz_min) ramps out in ``detection_ramp_out`` s; once seen again
+        it ramps back in over ``detection_ramp_in`` s (a minimum-jerk gate, rate-limited per tick).
     """
 
     forces: str = "qp"
@@ -70,28 +85,46 @@ class ControllerConfig:
     freeze_postural_projector: bool = False
     solution_damping: float | None = None
     projector_reg: float | None = None
+    effort_damping: float = 1.0
     compensate_passive: bool = True
+    violation_tol: float | None = None
     contact_detection: bool = False
+    detection_threshold: float = 0.1
+    detection_ramp_out: float = 0.02
+    detection_ramp_in: float = 0.3
 
     def __post_init__(self):
         if self.forces not in FORCE_MODES:
             raise ValueError(f"unknown forces mode {self.forces!r}; valid: {list(FORCE_MODES)}")
         if self.postural not in torques.POSTURAL_VARIANTS:
-            raise ValueError(
-                f"unknown postural variant {self.postural!r}; valid: {list(torques.POSTURAL_VARIANTS)}"
-            )
+            raise ValueError(f"unknown postural variant {self.postural!r}; valid: {list(torques.POSTURAL_VARIANTS)}")
         positive = ("pinv_damping", "pinv_tol", "hessian_reg", "base_vel_damping", "torque_limit",
                     "torque_weight_soft", "normal_force_weight")  # fmt: skip
         for name in positive:
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not (math.isfinite(value) and value > 0)
+            ):
                 raise ValueError(f"controller setting {name} must be positive and finite, got {value!r}")
         if not (isinstance(self.kp_postural_reg, (int, float)) and math.isfinite(self.kp_postural_reg)
                 and self.kp_postural_reg >= 0):  # fmt: skip
             raise ValueError(f"controller setting kp_postural_reg must be >= 0, got {self.kp_postural_reg!r}")
         if isinstance(self.qp_iterations, bool) or not isinstance(self.qp_iterations, int) or self.qp_iterations < 1:
             raise ValueError(f"controller setting qp_iterations must be an integer >= 1, got {self.qp_iterations!r}")
-        for name in ("solution_damping", "projector_reg"):
+        if isinstance(self.effort_damping, bool) or not (isinstance(self.effort_damping, (int, float))
+                                                        and 0.0 <= self.effort_damping < math.inf):  # fmt: skip
+            raise ValueError(f"controller setting effort_damping must be >= 0 and finite, got {self.effort_damping!r}")
+        for name in ("detection_threshold", "detection_ramp_out", "detection_ramp_in"):
+            value = getattr(self, name)
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not (math.isfinite(value) and value > 0)
+            ):
+                raise ValueError(f"controller setting {name} must be positive and finite, got {value!r}")
+        for name in ("solution_damping", "projector_reg", "violation_tol"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ValueError(f"controller setting {name} must be positive or None, got {value!r}")
@@ -101,6 +134,7 @@ class ControllerConfig:
         return forces.ForceSettings(
             mode=self.forces, hessian_reg=self.hessian_reg, qp_iterations=self.qp_iterations,
             torque_weight_soft=self.torque_weight_soft, normal_force_weight=self.normal_force_weight,
+            violation_tol=self.violation_tol,
         )  # fmt: skip
 
 
@@ -113,12 +147,16 @@ class ControllerState:
       centroidal_jacobian_ref: (2, 3, n) J_G,ang at the postural reference, left/right stance.
       pinv_damping, kp_postural_reg: () Reg.pinvDamp and Reg.KP_postural as arrays, so that
         gradients reach them (gain tuning's gradient check).
+      contact_gate: (K,) contact detection's gate of each contact in [0, 1] (1: seen; its
+        activation is multiplied by mj(gate), mj the minimum-jerk ramp); 1 for contacts without
+        detection.
     """
 
     com_err_integral: Array
     centroidal_jacobian_ref: Array
     pinv_damping: Array
     kp_postural_reg: Array
+    contact_gate: Array
 
 
 @pytree_dataclass
@@ -190,6 +228,11 @@ def make_controller(
     """
     config = ControllerConfig() if config is None else config
     cset = contacts_lib.feet_contact_set(robot) if contact_set is None else contact_set
+    # Contacts whose activation the measured contact state gates (never the soles).
+    detect = np.array([c.foot < 0 and (c.detect or config.contact_detection) for c in cset.contacts])
+    if detect.any() and not config.contact_detection:
+        config = dataclasses.replace(config, contact_detection=True)  # the rollout measures the forces
+    seen_force = config.detection_threshold * np.array([c.params.fz_min for c in cset.contacts])
     stack = stack if stack is not None and stack.tasks else None
     frames = cset.frames if stack is None else cset.frames + stack.frames
     frame0 = len(cset.contacts)
@@ -205,13 +248,24 @@ def make_controller(
             centroidal_jacobian_ref=J,
             pinv_damping=jnp.asarray(config.pinv_damping, dtype),
             kp_postural_reg=jnp.asarray(config.kp_postural_reg, dtype),
+            contact_gate=jnp.ones(len(cset.contacts), dtype),
         )
+
+    def detection(gate: Array, measured) -> Array:
+        """The gates (K,) after one tick: up by dt / ramp_in where the measured normal force
+        (K,) shows the contact, down by dt / ramp_out where it does not."""
+        if measured is None or not detect.any():
+            return gate
+        seen = jnp.asarray(measured, gate.dtype) > jnp.asarray(seen_force, gate.dtype)
+        rate = jnp.where(seen, control_dt / config.detection_ramp_in, -control_dt / config.detection_ramp_out)
+        return jnp.where(detect, jnp.clip(gate + rate, 0.0, 1.0), 1.0)
 
     def step(gains: Gains, state: ControllerState, t: DynamicsTerms, ref: Reference, time: Array, measured=None):
         dtype = t.M.dtype
         f_grav = forces.gravity_wrench(mass, dtype)
         cterms = contacts_lib.contact_terms(cset, t, time, jnp.clip(ref.activation, 0.0, 1.0))
-        act = cterms.activation
+        gate = detection(state.contact_gate, measured)
+        act = cterms.activation * jnp.where(detect, min_jerk(gate)[0], 1.0) if detect.any() else cterms.activation
 
         # Momentum task. The angular-momentum integral is linearised about the postural
         # reference, with the foot that carries more of the weight as the fixed one.
@@ -229,7 +283,8 @@ def make_controller(
 
         # Torque law, affine in f, with each contact's rows scaled by its activation.
         rows = contacts_lib.row_activation(cset, act)
-        tt = torques.torque_terms(
+        with jax.named_scope("torque_law"):
+            tt = torques.torque_terms(
             t, cterms.J * rows[:, None], cterms.Jdot_nu * rows, postural=config.postural,
             kp_postural=gains.kp_postural, kd_postural=gains.kd_postural, s_des=ref.s_des,
             pinv_damping=state.pinv_damping, pinv_tol=config.pinv_tol,
@@ -239,7 +294,8 @@ def make_controller(
 
         # Force task: the contact wrenches.
         A = forces.wrench_map(cset, cterms.W_p, t.W_p_CoM).astype(dtype)
-        f, infeasible = forces.distribute(cset, act, A, wrench_des, tt, cterms.W_R, settings)
+        with jax.named_scope("force_distribution"):
+            f, infeasible = forces.distribute(cset, act, A, wrench_des, tt, cterms.W_R, settings)
 
         # Motion tasks in the null space of the force task, the postural task last.
         task_err = jnp.zeros(0, dtype)
@@ -249,6 +305,7 @@ def make_controller(
             tau_unsat = hierarchy.solve(
                 t, tt, f, levels, solution_damping=config.solution_damping,
                 projector_reg=config.projector_reg, compensate_passive=config.compensate_passive,
+                effort_damping=config.effort_damping,
             ).tau  # fmt: skip
         else:
             tau_unsat = tt.tau_model + tt.Sigma @ f
@@ -265,6 +322,6 @@ def make_controller(
             contact_R=cterms.W_R,
             task_err=task_err,
         )
-        return out, state.replace(com_err_integral=com_err_integral)
+        return out, state.replace(com_err_integral=com_err_integral, contact_gate=gate)
 
     return Controller(frames=frames, init=init, step=step, config=config, contact_set=cset, stack=stack)

@@ -44,7 +44,7 @@ class Frames:
     def __len__(self) -> int:
         return len(self.bodies)
 
-    def __add__(self, other: "Frames") -> "Frames":
+    def __add__(self, other: Frames) -> Frames:
         return Frames(self.bodies + other.bodies, self.points + other.points)
 
 

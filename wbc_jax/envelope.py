@@ -16,8 +16,8 @@ import pathlib
 
 import numpy as np
 
-from wbc_jax import metrics as metrics_lib
 from wbc_jax import io, model, runs, scenario, sweep
+from wbc_jax import metrics as metrics_lib
 from wbc_jax.gains import gains_to_dict
 
 
@@ -44,10 +44,14 @@ def search(cfg: sweep.SweepConfig, *, impulse_max: float, resolution: float = 0.
     st = sweep.make_setup(cfg, base, robot_name=robot_name)
     rng = np.random.default_rng(cfg.seed)
     sets = sweep.gain_sets(base, cfg.gain_sets, cfg.gain_scale_range, rng)
-    azi, gset = (a.ravel() for a in np.meshgrid(np.asarray(cfg.directions, float), np.arange(cfg.gain_sets), indexing="ij"))
+    azi, gset = (
+        a.ravel() for a in np.meshgrid(np.asarray(cfg.directions, float), np.arange(cfg.gain_sets), indexing="ij")
+    )
     K = azi.size
     friction, mass_scale = rng.uniform(*cfg.friction, K), rng.uniform(*cfg.mass_scale, K)
-    joint_offset = rng.normal(scale=cfg.joint_noise, size=(K, robot.index.n)) if cfg.joint_noise else np.zeros((K, robot.index.n))
+    joint_offset = (
+        rng.normal(scale=cfg.joint_noise, size=(K, robot.index.n)) if cfg.joint_noise else np.zeros((K, robot.index.n))
+    )
     rounds = max(1, math.ceil(math.log2(impulse_max / resolution)))
     lo, hi = np.zeros(K), np.full(K, float(impulse_max))
     push_end = cfg.push_onset + cfg.push_duration
@@ -92,6 +96,10 @@ def compare_with_grid(found: dict, grid_summary: dict, grid_step_ns: float) -> d
         g = grid_summary["envelope"][str(az)] if str(az) in grid_summary["envelope"] else grid_summary["envelope"][az]
         diff = e["impulse_ns"] - g["monotone_impulse_ns"]
         worst = max(worst, abs(diff))
-        rows[az] = {"bisection_ns": e["impulse_ns"], "grid_monotone_ns": g["monotone_impulse_ns"], "difference_ns": diff}
+        rows[az] = {
+            "bisection_ns": e["impulse_ns"],
+            "grid_monotone_ns": g["monotone_impulse_ns"],
+            "difference_ns": diff,
+        }
     return {"directions": rows, "max_abs_difference_ns": worst, "grid_step_ns": grid_step_ns,
             "within_one_grid_step": worst <= grid_step_ns + 1e-9}  # fmt: skip

@@ -1,7 +1,7 @@
 """[contact forces] The momentum rate distributed over the contact set: constraints, wrench map, QPs.
 
 The momentum task asks for ``L_dot* - f_grav = A f`` with ``f`` (D,) the stacked contact wrenches
-(world axes, at the contact points). The WBC balancing controller (controller-spec 1.6-1.8,
+(world axes, at the contact points). The WBC balancing controller (robotology whole-body-controllers,
 seed paper) picks, among the wrenches that realise it, those that minimise the joint torques,
 inside each contact's rigid-contact constraints::
 
@@ -31,7 +31,6 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
@@ -318,6 +317,19 @@ def _row_mask(cset: ContactSet, mask: Array) -> Array:
     return jnp.concatenate([jnp.full(c.dim, mask[k]) for k, c in enumerate(cset.contacts)])
 
 
+def _normal_force_scaling(NZ: Array, weight: float) -> Array:
+    """T (m, m): the change of variables y = T u that scales the k directions of y that move the
+    desired normal forces (the row space of NZ = S_n Z, (k, m)) so that ``weight |NZ T u|^2`` is
+    ``|u|^2`` there, and leaves the others alone. Without it the Hessian sums the torque terms
+    (eigenvalues 1e-2 to 1) with ``weight`` (1e3) x a rank-k term: in float32 the rounding of
+    the large term (1e-7 x 1e3) swamps the weakly determined directions (the weights' split
+    between the feet), whose solution then jumped by several N from tick to tick in closed loop.
+    A change of basis of null(A): the minimiser f is the same (held constant in derivatives)."""
+    _, s, Vt = jnp.linalg.svd(lax.stop_gradient(NZ), full_matrices=False)
+    scale = jnp.where(s > 1e-3, 1.0 / (math.sqrt(weight) * jnp.maximum(s, 1e-3)), 1.0)
+    return jnp.eye(NZ.shape[1], dtype=NZ.dtype) + (Vt.T * (scale - 1.0)) @ Vt
+
+
 def momentum_equality_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: Array,
                          settings: ForceSettings) -> tuple[Array, qp.QPInfo]:  # fmt: skip
     """The WBC QP (module docstring) over the contacts with ``mask`` = 1, the others' wrenches 0::
@@ -325,7 +337,8 @@ def momentum_equality_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Ar
         min |tau_model + Sigma f|^2 + w_n |S_n f - F_n|^2   s.t.  A f = wrench_des,  C f <= b
 
     solved in y with f = f1 + Z y (f1 = A^+ wrench_des, Z a basis of null(A) over the kept
-    contacts), as WBC's f0 formulation but well conditioned.
+    contacts), as WBC's f0 formulation but well conditioned. With desired normal forces, the
+    directions of y that change them are rescaled (:func:`_normal_force_scaling`).
 
     Args:
       mask: (K,) 1 for the contacts that may carry a wrench. A: (6, D) wrench map.
@@ -351,6 +364,8 @@ def momentum_equality_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Ar
                              kkt_residual=zero, iterations=jnp.zeros((), jnp.int32))  # fmt: skip
     S_n = S_n * keep[None, :]
     w_n = settings.normal_force_weight
+    if S_n.shape[0]:
+        Z = Z @ _normal_force_scaling(S_n @ Z, w_n)
     SZ, NZ = tt.Sigma @ Z, S_n @ Z
     H = SZ.T @ SZ + w_n * NZ.T @ NZ + jnp.diag(settings.hessian_reg + spare.astype(dtype))
     g = SZ.T @ (tt.tau_model + tt.Sigma @ f1) + w_n * NZ.T @ (S_n @ f1 - F_n)

@@ -52,9 +52,7 @@ def validate_gains(gains: Gains, n: int) -> None:
             raise ValueError(f"gain {name} has negative entries: {value.tolist()}")
         lo, hi = GAIN_RANGES[name]
         if np.any(value > hi):
-            raise ValueError(
-                f"gain {name} has entries above its range [{lo:g}, {hi:g}]: max {float(value.max()):g}"
-            )
+            raise ValueError(f"gain {name} has entries above its range [{lo:g}, {hi:g}]: max {float(value.max()):g}")
 
 
 def gains_to_dict(gains: Gains) -> dict:

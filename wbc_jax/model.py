@@ -79,10 +79,7 @@ def load_mj_model(robot: str = "icub", *, visual: bool = False) -> mujoco.MjMode
     _check_name("robot", robot, list(ROBOTS))
     path = ROBOTS[robot]
     if not path.exists():
-        raise FileNotFoundError(
-            f"model file {path} is missing; regenerate it with "
-            "'python assets/build_icub_mjcf.py'"
-        )
+        raise FileNotFoundError(f"model file {path} is missing; regenerate it with 'python assets/build_icub_mjcf.py'")
     spec = mujoco.MjSpec.from_file(str(path))
     if visual:
         spec.meshdir = str(icub_mesh_dir())
@@ -161,8 +158,7 @@ def build_index(m: mujoco.MjModel, robot: str = "icub", joints=ICUB_JOINTS) -> R
     free = [j for j in range(m.njnt) if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
     if len(free) != 1 or m.jnt_qposadr[free[0]] != 0:
         raise ValueError(
-            "the model needs exactly one free joint at the root (a floating base); "
-            f"found {len(free)} free joints"
+            f"the model needs exactly one free joint at the root (a floating base); found {len(free)} free joints"
         )
     base_body = int(m.jnt_bodyid[free[0]])
     joint_names = _names(m, mujoco.mjtObj.mjOBJ_JOINT, m.njnt)

@@ -7,7 +7,7 @@
 
 References: seed paper (force task of highest priority); whole-body-controllers
 ``momentumBasedController.m``; Nava et al., IROS 2016 (the angular-momentum integral,
-linearised around the postural reference). See shared/reference/controller-spec.md 1.2-1.3.
+linearised around the postural reference).
 """
 
 from __future__ import annotations
@@ -17,9 +17,8 @@ import jax.numpy as jnp
 from wbc_jax.dynamics import DynamicsTerms
 from wbc_jax.types import Array
 
-def centroidal_jacobian_at_posture(
-    t_ref: DynamicsTerms, foot: int, base_damping: float = 1e-7
-) -> Array:
+
+def centroidal_jacobian_at_posture(t_ref: DynamicsTerms, foot: int, base_damping: float = 1e-7) -> Array:
     """J_G,ang (3, n): angular momentum per joint displacement with the frame ``foot`` (an index
     into the frames of ``t_ref``, a sole) fixed (Nava 2016).
 
@@ -53,10 +52,5 @@ def momentum_rate_reference(
     ki_ang: Array,
 ) -> Array:
     """L_dot* (6,) = [m x_ddot*; -K_P,w L_ang - K_I,w int(L_ang)] (all gains diagonal, (3,))."""
-    acc = (
-        com_acc_des
-        - kp_com * (W_p_CoM - com_pos_des)
-        - kd_com * (W_v_CoM - com_vel_des)
-        - ki_com * com_err_integral
-    )
+    acc = com_acc_des - kp_com * (W_p_CoM - com_pos_des) - kd_com * (W_v_CoM - com_vel_des) - ki_com * com_err_integral
     return jnp.concatenate([mass * acc, -kp_ang * L_ang - ki_ang * ang_integral])

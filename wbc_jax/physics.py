@@ -21,9 +21,9 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
-import os
 import importlib.util
 import math
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -90,7 +90,9 @@ def resolve_backend(name: str, *, differentiable: bool = False) -> str:
             return "warp" if has_warp() else "jax"
         return "jax" if jax.default_backend() != "cpu" else "mujoco"
     if name == "warp":
-        missing = [what for what, ok in (("a CUDA GPU", has_cuda() or warp_on_cpu()), ("warp-lang", has_warp())) if not ok]
+        missing = [
+            what for what, ok in (("a CUDA GPU", has_cuda() or warp_on_cpu()), ("warp-lang", has_warp())) if not ok
+        ]
         if missing:
             raise ValueError(
                 f"the 'warp' physics backend needs {' and '.join(missing)} (devices here: "
@@ -213,9 +215,7 @@ def contacts(m: mjx.Model, d: mjx.Data) -> tuple[Array, Array, Array]:
         )
     contact = d._impl.contact
     # efc addresses are static (numpy) in MJX: loop over the (few) contact slots.
-    forces = jnp.stack(
-        [support.contact_force(m, d, i, to_world_frame=True)[:3] for i in range(contact.dist.shape[0])]
-    )
+    forces = jnp.stack([support.contact_force(m, d, i, to_world_frame=True)[:3] for i in range(contact.dist.shape[0])])
     return contact.pos, jnp.where((contact.dist <= 0)[:, None], forces, 0.0), contact.geom
 
 

@@ -27,15 +27,14 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from wbc_jax._mjx import mjx
 from wbc_jax import constants, dynamics, forces, physics
 from wbc_jax import metrics as metrics_lib
+from wbc_jax._mjx import mjx
 from wbc_jax.controller import Controller, ControllerState
 from wbc_jax.gains import Gains
 from wbc_jax.model import Robot
 from wbc_jax.references import Schedule
 from wbc_jax.types import Array, pytree_dataclass
-
 
 # Compiled programs of closed loops, by ClosedLoop.structure_key and batch shape (loops built alike,
 # e.g. by repeated runs of a job in one process, share them).
@@ -72,7 +71,11 @@ class SimConfig:
     def __post_init__(self):
         for name in ("control_dt", "duration"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not (math.isfinite(value) and value > 0)
+            ):
                 raise ValueError(f"{name} must be a positive finite number of seconds, got {value!r}")
         if self.loss_trace and self.record:
             raise ValueError("loss_trace and record are exclusive (set record=False)")
@@ -370,6 +373,7 @@ class ClosedLoop:
     def chunk(self, plant: mjx.Model, gains: Gains, push: Push, carry, k0, n_ticks: int):
         """Run ``n_ticks`` (static) ticks from tick ``k0`` (traced) on an MJX backend:
         (carry, records with a leading time axis or None)."""
+
         def tick(carry, k):
             d, state, ok = carry
             state, ctrl, record = self.control(gains, state, d.qpos, d.qvel, k, ok, push)
@@ -405,7 +409,6 @@ class ClosedLoop:
         (d, state, ok), records = self.chunk(plant, gains, push, carry, 0, self.n_ticks)
         return metrics_lib.final(state.metrics, ok), records
 
-
     # -- C MuJoCo: ticks in a Python loop -----------------------------------------------------
 
     def run_host(self, scen: Scenario, qpos0: np.ndarray, dtype, *, on_tick=None, threads: int | None = None):
@@ -425,7 +428,10 @@ class ClosedLoop:
         B = int(scen.friction.shape[0])
         base = physics.solver_mj_model(self.robot.mj_model, self.cfg.physics)
         if self.cfg.perturb_plant:
-            models = [physics.plant_mj_model(base, float(f), float(s)) for f, s in zip(scen.friction, scen.mass_scale, strict=True)]
+            models = [
+                physics.plant_mj_model(base, float(f), float(s))
+                for f, s in zip(scen.friction, scen.mass_scale, strict=True)
+            ]
         else:
             models = base
         qpos = np.asarray(qpos0, float)[None].repeat(B, 0)
@@ -442,7 +448,9 @@ class ClosedLoop:
         try:
             for k in range(self.n_ticks):
                 q, v = host.state()
-                state, ctrl, record, forces, bodies = fns["control"](gains, state, cast(q), cast(v), np.int32(k), ok, push)
+                state, ctrl, record, forces, bodies = fns["control"](
+                    gains, state, cast(q), cast(v), np.int32(k), ok, push
+                )
                 host.step(np.asarray(ctrl, float), self._host_xfrc(forces, bodies))
                 ok = ~host.diverged
                 if self.cfg.record or self.observes_contacts:
@@ -490,8 +498,10 @@ class ClosedLoop:
         state = jax.eval_shape(init, qpos)
         control = jax.jit(jax.vmap(self.control_host, in_axes=(0, 0, 0, 0, None, 0, 0)))
         ok = np.ones(B, bool)
-        programs = {"init": init.lower(qpos).compile(),
-                    "control": control.lower(gains, state, qpos, qpos[:, : self.idx.nv], np.int32(0), ok, push).compile()}
+        programs = {
+            "init": init.lower(qpos).compile(),
+            "control": control.lower(gains, state, qpos, qpos[:, : self.idx.nv], np.int32(0), ok, push).compile(),
+        }
         n_con = physics.max_contacts(self.robot.mj_model)
         slots = (np.zeros((B, n_con, 3)), np.zeros((B, n_con, 3)), np.zeros((B, n_con, 2), np.int64))
         if self.cfg.record:
@@ -501,6 +511,7 @@ class ClosedLoop:
             programs["observe"] = jax.jit(jax.vmap(self.observe)).lower(state, *slots).compile()
         cache[key] = programs
         return programs, time.perf_counter() - t0
+
 
 def make_closed_loop(robot: Robot, schedule: Schedule, controller: Controller, cfg: SimConfig) -> ClosedLoop:
     """Build the :class:`ClosedLoop` of one environment (see its docstring)."""

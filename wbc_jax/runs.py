@@ -79,8 +79,7 @@ def check_output_dir(path, kind: str) -> pathlib.Path:
         others = sorted(p.name for p in path.iterdir() if not p.name.startswith("."))
         if others:
             raise ValueError(
-                f"--out {path} is not empty and holds no {MANIFEST} (found {others[:5]}); "
-                "give a new or empty folder"
+                f"--out {path} is not empty and holds no {MANIFEST} (found {others[:5]}); give a new or empty folder"
             )
     # Writable: the folder itself, or the nearest existing parent.
     probe = path

@@ -18,7 +18,7 @@ import math
 import os
 import pathlib
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -26,8 +26,8 @@ import mujoco
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from wbc_jax import metrics as metrics_lib
 from wbc_jax import contacts as contacts_lib
+from wbc_jax import metrics as metrics_lib
 from wbc_jax import model as model_lib
 from wbc_jax import physics, references
 from wbc_jax import rollout as rollout_lib
@@ -41,9 +41,10 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> pathlib.P
     """Turn on JAX's persistent compilation cache (``$WBC_JAX_CACHE`` or the user's cache
     directory), so a second run of a job reuses the compiled programs of the first."""
     if path is None:
-        path = os.environ.get("WBC_JAX_CACHE") or pathlib.Path(
-            os.environ.get("XDG_CACHE_HOME", pathlib.Path.home() / ".cache")
-        ) / "wbc_jax" / "xla"
+        path = (
+            os.environ.get("WBC_JAX_CACHE")
+            or pathlib.Path(os.environ.get("XDG_CACHE_HOME", pathlib.Path.home() / ".cache")) / "wbc_jax" / "xla"
+        )
     path = pathlib.Path(path)
     path.mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", str(path))
@@ -177,7 +178,9 @@ def single(setup_: Setup, push: Push | None = None, gains: Gains | None = None) 
         push=push, gains=gains, joint_offset=np.zeros(setup_.robot.index.n, dtype),
         friction=np.asarray(1.0, dtype), mass_scale=np.asarray(1.0, dtype),
     )  # fmt: skip
-    return jax.tree_util.tree_map(lambda x: np.asarray(x, dtype)[None] if np.asarray(x).dtype.kind == "f" else np.asarray(x)[None], one)
+    return jax.tree_util.tree_map(
+        lambda x: np.asarray(x, dtype)[None] if np.asarray(x).dtype.kind == "f" else np.asarray(x)[None], one
+    )
 
 
 def device_mesh() -> Mesh:
@@ -190,7 +193,9 @@ def pad_batch(tree, size: int):
     n = int(jax.tree_util.tree_leaves(tree)[0].shape[0])
     if n == size:
         return tree
-    return jax.tree_util.tree_map(lambda x: np.concatenate([np.asarray(x), np.repeat(np.asarray(x)[-1:], size - n, 0)]), tree)
+    return jax.tree_util.tree_map(
+        lambda x: np.concatenate([np.asarray(x), np.repeat(np.asarray(x)[-1:], size - n, 0)]), tree
+    )
 
 
 @dataclasses.dataclass
@@ -215,7 +220,9 @@ def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
     padded = pad_batch(jax.tree_util.tree_map(np.asarray, scen), size)
     if loop.backend == "mujoco":
         if jax.process_count() > 1:
-            raise ValueError("a run over several processes (jax.distributed) needs an MJX backend: --backend jax or warp")
+            raise ValueError(
+                "a run over several processes (jax.distributed) needs an MJX backend: --backend jax or warp"
+            )
         t0 = time.perf_counter()
         metrics, records, compile_s = loop.run_host(padded, setup_.qpos0, setup_.dtype, on_tick=on_tick)
         out = Run(metrics, records, compile_s, time.perf_counter() - t0 - compile_s)
@@ -225,8 +232,6 @@ def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
     if out.records is not None:
         out.records = jax.tree_util.tree_map(lambda x: np.asarray(x)[:B], out.records)
     return out
-
-
 
 
 def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
@@ -262,11 +267,14 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
     # program for the whole horizon, recorded or not.
     if not loop.cfg.record or loop.backend == "warp":
         if key not in cache:
+
             def whole(s):
                 return loop.rollout(plant(s), loop.initial_qpos(qpos0, s.joint_offset), s.gains, s.push,
                                     batch=batch // n_dev)  # fmt: skip
 
-            cache[key] = jax.jit(jax.vmap(whole), in_shardings=sharding, out_shardings=sharding).lower(scen_dev).compile()
+            cache[key] = (
+                jax.jit(jax.vmap(whole), in_shardings=sharding, out_shardings=sharding).lower(scen_dev).compile()
+            )
             compile_s = time.perf_counter() - t0
         t0 = time.perf_counter()
         metrics, records = jax.tree_util.tree_map(_to_host, cache[key](scen_dev))

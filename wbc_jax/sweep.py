@@ -19,8 +19,8 @@ import pathlib
 import jax
 import numpy as np
 
-from wbc_jax import metrics as metrics_lib
 from wbc_jax import constants, io, physics, runs, scenario, sweep_plots
+from wbc_jax import metrics as metrics_lib
 from wbc_jax import model as model_lib
 from wbc_jax import rollout as rollout_lib
 from wbc_jax.controller import FORCE_MODES, ControllerConfig
@@ -258,7 +258,7 @@ def _read_part(path: pathlib.Path, lo: int, hi: int):
         return None
     try:
         table = pd.read_parquet(path)
-    except Exception:  # noqa: BLE001 - any unreadable file is recomputed
+    except Exception:
         return None
     if "env" not in table or not np.array_equal(table["env"].to_numpy(), np.arange(lo, hi)):
         return None
@@ -302,7 +302,7 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
             part = parts / _part_name(c)
             table = _read_part(part, lo, hi)
             if table is None:
-                chunk = jax.tree_util.tree_map(lambda x: np.asarray(x)[lo:hi], scen)
+                chunk = jax.tree_util.tree_map(lambda x, lo=lo, hi=hi: np.asarray(x)[lo:hi], scen)
                 result = scenario.run(st, chunk, batch_size=cfg.chunk_size)
                 compile_s += result.compile_s
                 run_s += result.run_s
@@ -468,5 +468,7 @@ def replay_env(run_dir, env: int, *, robot_name: str = "icub", backend: str | No
     one = jax.tree_util.tree_map(lambda x: np.asarray(x)[env : env + 1], scen)
     result = scenario.run(st, one)
     traj = {name: np.asarray(v)[0] for name, v in dataclasses.asdict(result.records).items()}
-    metrics = metrics_lib.summarize(jax.tree_util.tree_map(lambda x: x[0], result.metrics), cfg.push_onset + cfg.push_duration)
+    metrics = metrics_lib.summarize(
+        jax.tree_util.tree_map(lambda x: x[0], result.metrics), cfg.push_onset + cfg.push_duration
+    )
     return st, traj, metrics, row

@@ -35,6 +35,7 @@ REFERENCE_KINDS = ("constant", "circle")
 TASK_DIMENSIONS = {"position": 3, "orientation": 3, "com": 3, "base_orientation": 3}
 AXES = {"x": 0, "y": 1, "z": 2}
 
+
 @dataclasses.dataclass(frozen=True)
 class TaskReference:
     """Reference of a task.
@@ -158,7 +159,9 @@ def check_types(task: MotionTask) -> None:
             raise ValueError(f"{owner}: {name} must be {what}, got {value!r}")
     ref = task.reference
     if not isinstance(ref, TaskReference):
-        raise ValueError(f"{owner}: reference must be a mapping of {[f.name for f in dataclasses.fields(TaskReference)]}")
+        raise ValueError(
+            f"{owner}: reference must be a mapping of {[f.name for f in dataclasses.fields(TaskReference)]}"
+        )
     ref_expected = {
         "kind": (lambda v: isinstance(v, str), f"one of {list(REFERENCE_KINDS)}"),
         "target": (lambda v: v is None or _numbers(v), "a list of numbers or null"),
@@ -268,7 +271,9 @@ def resolve(robot: Robot, stack, qpos: np.ndarray | None = None) -> TaskStack:
                 raise ValueError(f"task {task.name!r}: a joints task needs joint names")
             for j in task.joints:
                 if j not in robot.index.joints:
-                    raise ValueError(f"task {task.name!r}: unknown joint {j!r}; valid joints: {list(robot.index.joints)}")
+                    raise ValueError(
+                        f"task {task.name!r}: unknown joint {j!r}; valid joints: {list(robot.index.joints)}"
+                    )
             dofs = tuple(robot.index.joints.index(j) for j in task.joints)
         if task.kind in ("position", "orientation"):
             body, offset = _resolve_frame(robot, task)
@@ -301,10 +306,16 @@ def resolve(robot: Robot, stack, qpos: np.ndarray | None = None) -> TaskStack:
         target = _resolve_target(robot, task, qpos, frames[frame] if frame >= 0 else None)
         resolved.append(
             ResolvedTask(
-                name=task.name, kind=task.kind, level=level_of[priority], frame=frame, dofs=dofs,
+                name=task.name,
+                kind=task.kind,
+                level=level_of[priority],
+                frame=frame,
+                dofs=dofs,
                 kp=_per_row("kp", task.kp, rows),
                 kd=_per_row("kd", 2 * np.sqrt(np.asarray(task.kp, float)) if task.kd is None else task.kd, rows),
-                weight=float(task.weight), reference=ref, target=target,
+                weight=float(task.weight),
+                reference=ref,
+                target=target,
             )  # fmt: skip
         )
     return TaskStack(
@@ -330,7 +341,9 @@ def _resolve_target(robot: Robot, task: MotionTask, qpos, frame) -> tuple[float,
     if task.kind == "position":
         return tuple(float(x) for x in _initial_values(robot, qpos, *frame)[0])
     if task.kind == "joints":
-        return tuple(float(qpos[robot.index.qpos_joints[k]]) for k in (robot.index.joints.index(j) for j in task.joints))
+        return tuple(
+            float(qpos[robot.index.qpos_joints[k]]) for k in (robot.index.joints.index(j) for j in task.joints)
+        )
     d = mujoco.MjData(robot.mj_model)  # com
     d.qpos[:] = qpos
     mujoco.mj_forward(robot.mj_model, d)
@@ -520,6 +533,8 @@ def initial_qpos(robot: Robot, posture_deg: dict) -> np.ndarray:
         k = robot.index.joints.index(name)
         lo, hi = np.degrees(robot.mj_model.jnt_range[robot.mj_model.dof_jntid[robot.index.dof_joints[k]]])
         if not lo - 1e-9 <= deg <= hi + 1e-9:
-            raise ValueError(f"initial_posture_deg: {name} = {deg} deg is outside its joint range [{lo:.1f}, {hi:.1f}] deg")
+            raise ValueError(
+                f"initial_posture_deg: {name} = {deg} deg is outside its joint range [{lo:.1f}, {hi:.1f}] deg"
+            )
         qpos[robot.index.qpos_joints[k]] = math.radians(deg)
     return qpos

@@ -6,7 +6,7 @@ Substituting nu_dot from M nu_dot + h - J_c^T f = B tau into J_c nu_dot + Jdot_c
     tau = Lambda^+ (J_c M^-1 (h - J_c^T f) - Jdot_c nu) + N_Lambda tau_0,   N_Lambda = I - Lambda^+ Lambda
     tau_0 = h_s - M_sb M_b^-1 h_b - (J_s^T - M_sb M_b^-1 J_b^T) f + u_0         (postural task)
 
-which is affine in the contact wrenches f (D,): tau = Sigma f + tau_model (controller-spec 1.5), with
+which is affine in the contact wrenches f (D,): tau = Sigma f + tau_model, with
 
     Sigma     = -(Lambda^+ J_c M^-1 J_c^T + N_Lambda (J_s^T - M_sb M_b^-1 J_b^T))   (n, D)
     tau_model = Lambda^+ (J_c M^-1 h - Jdot_c nu) + N_Lambda (h_s - M_sb M_b^-1 h_b + u_0)

@@ -8,10 +8,10 @@ The pipeline (brax-APG shape)::
 
 Differentiation: reverse mode (``jax.value_and_grad``) through the whole ``lax.scan`` of the
 closed loop: MJX physics with the model's contact solver (Newton, 4 iterations), 4 corner spheres
-per foot (foot boxes gave NaN gradients, measured.md), the contact QP through its implicit
+per foot (foot boxes gave NaN gradients), the contact QP through its implicit
 (custom_jvp, transposed) derivative, and ``jax.checkpoint`` on each 10 ms control tick
 (``--checkpoint tick``), so memory grows with the horizon only by one carry per tick. Reverse
-mode costs one backward pass for all 57 (60 with the regularisation) parameters.
+mode costs one backward pass for all 58 (60 with the regularisation) parameters.
 
 MJX's Newton loop is a ``lax.while_loop`` (not reverse-differentiable) unless iterations == 1.
 With iterations = 1 the closed loop is chaotic (float64, 0.35 s after a 50 N push: the loss
@@ -178,8 +178,10 @@ def save_controls(out: pathlib.Path, name: str, gains: Gains, reg, problem: Prob
     ``{name}_regularisation.json``."""
     io.atomic_write_json(out / f"{name}_gains.json", gains_to_dict(gains))
     if problem.tc.tune_regularisation:
-        io.atomic_write_json(out / f"{name}_regularisation.json",
-                             dict(zip(("pinv_damping", "kp_postural_reg"), np.asarray(reg, float).tolist())))
+        io.atomic_write_json(
+            out / f"{name}_regularisation.json",
+            dict(zip(("pinv_damping", "kp_postural_reg"), np.asarray(reg, float).tolist())),
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -210,7 +212,7 @@ def run(cfg: TuneConfig | None = None, *, lc: LossConfig | None = None, progress
         sets[kind] = res["equal_steps"]["controls"]
         histories[kind] = res["history"]
         save_controls(out, kind, *sets[kind], problem)
-    tuning_eval.learning_curves(histories, out / "learning.png")
+    tuning_eval.learning_curves(histories, out / "learning.png", budget)
     held = tuning_eval.evaluate_pushes(problem, sets, progress=progress)
     report = {"held_out": held, "budget": budget, "train": info, "config": dataclasses.asdict(tc),
               "loss": dataclasses.asdict(lc), "nava_2016": {k: nava_conditions(*v) for k, v in sets.items()},

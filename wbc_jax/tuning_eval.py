@@ -21,16 +21,14 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import math
 import pathlib
 import time
 
 import jax
 import numpy as np
 
-from wbc_jax import constants, io, physics, scenario, sweep
-from wbc_jax import rollout as rollout_lib
-from wbc_jax import tuning_loss
+from wbc_jax import constants, io, physics, scenario, sweep, tuning_loss
+from wbc_jax import metrics as metrics_lib
 from wbc_jax import tuning_problem as tp
 from wbc_jax.controller import ControllerConfig
 from wbc_jax.gains import Gains
@@ -138,10 +136,14 @@ def _run_table(st: scenario.Setup, scen: Scenario, cols: dict, folder: pathlib.P
             if part.exists():
                 table = pd.read_parquet(part)
             else:
-                res = scenario.run(st, jax.tree_util.tree_map(lambda x: np.asarray(x)[lo:hi], scen), batch_size=min(chunk, B))
+                res = scenario.run(
+                    st,
+                    jax.tree_util.tree_map(lambda x, lo=lo, hi=hi: np.asarray(x)[lo:hi], scen),
+                    batch_size=min(chunk, B),
+                )
                 compile_s, run_s, ran = compile_s + res.compile_s, run_s + res.run_s, ran + hi - lo
-                metrics = rollout_lib.summarize(res.metrics, push_end)
-                table = pd.DataFrame({**{k: np.asarray(v)[lo:hi] for k, v in cols.items()}, **metrics})
+                metrics = metrics_lib.summarize(res.metrics, push_end)
+                table = pd.DataFrame({**{k: np.asarray(v)[lo:hi] for k, v in cols.items() if k != "onset"}, **metrics})
                 io.atomic_write_parquet(part, table)
             tables.append(table)
             bar.update(hi - lo)
@@ -255,7 +257,7 @@ def sinusoid(gains: list, reg, hc: HeldoutConfig, robot_name: str = "icub") -> t
     scen = scen.replace(gains=Gains(**{k: np.stack([np.asarray(getattr(g, k), st.dtype) for g in gains])
                                        for k in constants.GAIN_FIELDS}))  # fmt: skip
     res = scenario.run(st, scen)
-    cols = rollout_lib.summarize(res.metrics)
+    cols = metrics_lib.summarize(res.metrics)
     return [float(x) for x in cols["com_rmse_m"]], {"compile_s": round(res.compile_s, 2), "run_s": round(res.run_s, 2),
                                                     "backend": st.backend}  # fmt: skip
 
@@ -270,14 +272,16 @@ def evaluate_pushes(problem: tp.Problem, sets: dict, *, n: int | None = None, st
     at ``eval_horizon``: loss, strict survival, CoM RMSE, torque RMS (MJX JAX physics)."""
     tc = problem.tc
     ev = tp.make_problem(tc, problem.lc, horizon=tc.eval_horizon, checkpoint=False)
-    scen, _ = tp.sample_pushes(tc, ev.robot, ev.table, tp.batch_rng(tc.seed, stream, 0), n or tc.eval_pushes, ev.setup.dtype)
+    scen, _ = tp.sample_pushes(
+        tc, ev.robot, ev.table, tp.batch_rng(tc.seed, stream, 0), n or tc.eval_pushes, ev.setup.dtype
+    )
     fn = jax.jit(tp.make_batched_loss(ev, fixed_solver=False))
     results = {}
     for name, (gains, reg) in sets.items():
         regd = dict(zip(("pinv_damping", "kp_postural_reg"), np.asarray(reg, float)))
         t0 = time.perf_counter()
         obj, terms, metrics = fn(gains, regd, scen)
-        cols = rollout_lib.summarize(metrics)
+        cols = metrics_lib.summarize(metrics)
         results[name] = {"objective": float(obj), "survival_rate": float(np.mean(cols["survived"])),
                          "upright_rate": float(np.mean(cols["upright"])), "com_rmse_m": float(np.mean(cols["com_rmse_m"])),
                          "torque_rms_nm": float(np.sqrt(np.mean(terms["effort"]))) * problem.lc.torque_scale,
@@ -301,13 +305,18 @@ def survival_prediction(problem: tp.Problem, n: int, *, gains=None, reg=None, ou
 
     def both(g, r, s):
         metrics, trace = ev.loop.rollout(*_env_args(ev, s), g, s.push, controller_overrides=r)
-        return (tuning_loss.loss_terms(trace, ev.lc, n_train)["total"], tuning_loss.loss_terms(trace, ev.lc)["total"],
-                metrics)  # fmt: skip
+        return tuning_loss.loss_terms(trace, ev.lc, n_train), tuning_loss.loss_terms(trace, ev.lc)["total"], metrics
+
     t0 = time.perf_counter()
-    train_loss, full_loss, metrics = jax.jit(jax.vmap(both, in_axes=(None, None, 0)))(gains, regd, scen)
+    terms, full_loss, metrics = jax.jit(jax.vmap(both, in_axes=(None, None, 0)))(gains, regd, scen)
     wall = time.perf_counter() - t0
-    survived = np.asarray(rollout_lib.summarize(metrics)["survived"])
-    train_loss, full_loss = np.asarray(train_loss), np.asarray(full_loss)
+    survived = np.asarray(metrics_lib.summarize(metrics)["survived"])
+    train_loss, full_loss = np.asarray(terms["total"]), np.asarray(full_loss)
+    per_term = {
+        k: {"spearman": tuning_loss.spearman(np.asarray(v), survived), "auc": tuning_loss.auc(np.asarray(v), survived)}
+        for k, v in terms.items()
+        if k != "total"
+    }
     rel = cols["impulse_ns"] / tp.interp_periodic(*problem.table, cols["azimuth_deg"])
     res = {"n": n, "survival_rate": float(survived.mean()), "horizon_s": tc.eval_horizon, "train_horizon_s": tc.horizon,
            "spearman_train_horizon": tuning_loss.spearman(train_loss, survived),
@@ -316,7 +325,7 @@ def survival_prediction(problem: tp.Problem, n: int, *, gains=None, reg=None, ou
            "spearman_impulse_fraction": tuning_loss.spearman(rel, survived),
            "auc_impulse_fraction": tuning_loss.auc(rel, survived), "wall_s": round(wall, 1),
            "loss_train_horizon": train_loss.tolist(), "loss_full": full_loss.tolist(), "survived": survived.tolist(),
-           "impulse_fraction_of_envelope": rel.tolist(), "device": str(jax.devices()[0])}  # fmt: skip
+           "impulse_fraction_of_envelope": rel.tolist(), "per_term_train_horizon": per_term, "device": str(jax.devices()[0])}  # fmt: skip
     if out is not None:
         out = pathlib.Path(out)
         io.atomic_write_json(out / "prediction.json", res)
@@ -423,9 +432,10 @@ def envelope_polar(summary: dict, path) -> None:
     _save(fig, path)
 
 
-def learning_curves(histories: dict, path) -> None:
+def learning_curves(histories: dict, path, budget: dict | None = None) -> None:
     """Loss of the current solution against simulated physics steps and against wall time, per
-    method ({name: history rows with loss, sim_steps, wall_s})."""
+    method ({name: history rows with loss, sim_steps, wall_s}); ``budget`` {"sim_steps", "wall_s"}:
+    the gradient run's, drawn as vertical lines."""
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(10, 3.8))
@@ -436,6 +446,9 @@ def learning_curves(histories: dict, path) -> None:
         loss = [float(r["loss"]) for r in rows]
         for ax, col in zip(axes, ("sim_steps", "wall_s"), strict=True):
             ax.plot([float(r[col]) for r in rows], loss, ".-", label=name)
+    for ax, col in zip(axes, ("sim_steps", "wall_s"), strict=True):
+        if budget:
+            ax.axvline(float(budget[col]), color="gray", ls=":", lw=1, label="gradient's budget")
     for ax, label in zip(axes, ("simulated physics steps", "wall time [s] (compilation included)"), strict=True):
         ax.set_xlabel(label)
         ax.set_ylabel("loss of the current solution (its batch)")

@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax import constants
+from wbc_jax import metrics as metrics_lib
 from wbc_jax import rollout as rollout_lib
 from wbc_jax.types import Array, pytree_dataclass
 
@@ -115,7 +116,7 @@ class LossConfig:
 
 def _margins(points: Array, p: Array) -> Array:
     """(T,) signed distance of p (T, 2) inside the convex hull of points (T, F, 2)."""
-    return jax.vmap(rollout_lib.polygon_margin)(points, p)
+    return jax.vmap(metrics_lib.polygon_margin)(points, p)
 
 
 def loss_terms(trace: TuneTrace, lc: LossConfig, n_ticks: int | None = None,

@@ -30,10 +30,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax import constants, io, physics, scenario, sweep
+from wbc_jax import constants, io, physics, scenario, sweep, tuning_loss, tuning_params
+from wbc_jax import metrics as metrics_lib
 from wbc_jax import model as model_lib
 from wbc_jax import rollout as rollout_lib
-from wbc_jax import tuning_loss, tuning_params
 from wbc_jax.controller import ControllerConfig
 from wbc_jax.gains import Gains, default_gains, load_gains
 from wbc_jax.rollout import Push, Scenario
@@ -82,6 +82,7 @@ class TuneConfig:
     es_sigma: float = option(0.5, "CMA-ES initial step / random-search spread (unconstrained units)")
     baselines: tuple[str, ...] = option(("cmaes", "random"), "gradient-free baselines at equal simulated steps",
                                         nargs="*")  # fmt: skip
+    wall_budget: bool = option(True, "the baselines also run until the gradient run's wall time is spent")
     eval_pushes: int = option(16, "held-out pushes (the training distribution, another seed)")
     eval_horizon: float = option(3.0, "seconds per held-out rollout")
 
@@ -113,7 +114,7 @@ class TuneConfig:
         push_end = self.push_onset + self.duration_range[1]
         for name in ("horizon", "eval_horizon"):
             if getattr(self, name) <= push_end:
-                raise ValueError(f"--{name.replace('_', '-')} {getattr(self, name)} s is shorter than the pushes "
+                raise ValueError(f"--{name.replace('_', '-')} {getattr(self, name)} s must end after the push "
                                  f"(onset {self.push_onset} + up to {self.duration_range[1]} s)")  # fmt: skip
         if not self.train_bodies:
             raise ValueError("--train-bodies: give at least one body")
@@ -140,7 +141,7 @@ def default_config() -> TuneConfig:
 
 
 # Fields that do not change what the gradient training computes.
-NOT_TRAINING = ("out", "population", "es_batch", "es_sigma", "baselines", "eval_pushes", "eval_horizon")
+NOT_TRAINING = ("out", "population", "es_batch", "es_sigma", "baselines", "wall_budget", "eval_pushes", "eval_horizon")
 
 
 def config_key(*configs, exclude=()) -> str:
@@ -227,8 +228,15 @@ def pushes_at(robot, az, impulse, body, duration, onset, friction, mass, offsets
         joint_offset=np.asarray(offsets, dtype), friction=np.asarray(friction, dtype),
         mass_scale=np.asarray(mass, dtype),
     )  # fmt: skip
-    cols = {"azimuth_deg": az, "impulse_ns": impulse, "magnitude_n": impulse / duration, "duration_s": duration,
-            "body": np.asarray(body), "friction": np.asarray(friction, float), "mass_scale": np.asarray(mass, float)}
+    cols = {
+        "azimuth_deg": az,
+        "impulse_ns": impulse,
+        "magnitude_n": impulse / duration,
+        "duration_s": duration,
+        "body": np.asarray(body),
+        "friction": np.asarray(friction, float),
+        "mass_scale": np.asarray(mass, float),
+    }
     return scen, cols
 
 
@@ -315,6 +323,40 @@ def make_problem(tc: TuneConfig, lc: tuning_loss.LossConfig | None = None, *, ro
                    bounds=bounds, table=table, iterations=iterations)  # fmt: skip
 
 
+def _touch(tree, seed):
+    """Every leaf of ``tree`` made to depend on the scalar ``seed`` (adding seed * 0)."""
+    zero = seed * 0
+
+    def touch(x):
+        x = jnp.asarray(x)
+        if jnp.issubdtype(x.dtype, jnp.inexact) or jnp.issubdtype(x.dtype, jnp.integer):
+            return x + zero.astype(x.dtype)
+        if x.dtype == jnp.bool_:
+            return x | (zero > 1)
+        return x
+
+    return jax.tree_util.tree_map(touch, tree)
+
+
+def rollout(loop: rollout_lib.ClosedLoop, plant, qpos, gains, push, reg=None, seed=None):
+    """:meth:`wbc_jax.rollout.ClosedLoop.rollout` with, when ``seed`` is given (a scalar that varies
+    along the vmapped batch and depends on the differentiated parameters), every leaf of the
+    initial carry made to depend on it. The batching (vmap) and linearisation (grad) rules of
+    ``lax.scan`` then find which carry entries are batched / have tangents in one pass over the
+    body instead of several, and the nested scans (ticks, physics steps, solver iterations, line
+    search) no longer multiply those passes: the values are the same, the trace is shorter."""
+    carry = loop.start(qpos)
+    if reg:
+        carry = (carry[0], carry[1].replace(controller=carry[1].controller.replace(**reg)), carry[2])
+    if seed is not None:
+        carry = _touch(carry, seed)
+    (d, state, ok), records = loop.chunk(plant, gains, push, carry, 0, loop.n_ticks)
+    return metrics_lib.final(state.metrics, ok), records
+
+
+SEED_CARRY = True  # see :func:`rollout`; False: the closed loop's own rollout (measurements)
+
+
 def _rollout_fn(problem: Problem, n_ticks: int | None):
     """env(gains, reg, scen) -> (loss terms {name: ()}, Metrics) of one push."""
     loop, st = problem.loop, problem.setup
@@ -323,8 +365,12 @@ def _rollout_fn(problem: Problem, n_ticks: int | None):
 
     def env(gains, reg, scen):
         plant = physics.plant_model(nominal, scen.friction, scen.mass_scale)
-        metrics, trace = loop.rollout(plant, loop.initial_qpos(qpos0, scen.joint_offset), gains, scen.push,
-                                      controller_overrides=reg)  # fmt: skip
+        qpos = loop.initial_qpos(qpos0, scen.joint_offset)
+        if SEED_CARRY:
+            seed = scen.friction + sum(jnp.sum(x) for x in jax.tree_util.tree_leaves((gains, reg)))
+            metrics, trace = rollout(loop, plant, qpos, gains, scen.push, reg, seed)
+        else:
+            metrics, trace = loop.rollout(plant, qpos, gains, scen.push, controller_overrides=reg)
         return tuning_loss.loss_terms(trace, problem.lc, n_ticks, loop.cfg.control_dt), metrics
 
     return env
@@ -383,7 +429,7 @@ def shard_batch(tree):
 
 def survival_stats(metrics) -> dict:
     """Strict survival and the lax upright rate of a batch's Metrics (host side)."""
-    cols = rollout_lib.summarize(jax.tree_util.tree_map(lambda x: np.asarray(x).reshape(-1), metrics))
+    cols = metrics_lib.summarize(jax.tree_util.tree_map(lambda x: np.asarray(x).reshape(-1), metrics))
     return {"survival_rate": float(np.mean(cols["survived"])), "upright_rate": float(np.mean(cols["upright"])),
             "qp_infeasible_rate": float(np.mean(np.asarray(cols["qp_infeasible_ticks"]) > 0))}  # fmt: skip
 
@@ -415,7 +461,7 @@ def load_checkpoint(path: pathlib.Path, like, key: str):
         leaves = [jnp.asarray(stored[f"leaf_{i:04d}"], dtype=jnp.asarray(x).dtype) for i, x in enumerate(like_leaves)]
     except KeyError as err:
         raise ValueError(f"{path} lacks {err}; remove it to restart") from None
-    extra = {k[len("extra_"):]: v for k, v in stored.items() if k.startswith("extra_")}
+    extra = {k[len("extra_") :]: v for k, v in stored.items() if k.startswith("extra_")}
     return jax.tree_util.tree_unflatten(treedef, leaves), int(stored["step"]), extra
 
 

@@ -194,7 +194,9 @@ def log_trajectory(rec, traj: dict, *, robot: str = "icub", push_body: str = "ch
     rec.log("world/floor", rr.Boxes3D(centers=[[0, 0, -0.005]], half_sizes=[[1.0, 1.0, 0.005]],
                                       colors=[[90, 90, 90, 255]], fill_mode="solid"), static=True)  # fmt: skip
     K = np.shape(traj["contact_pos"])[1]
-    contacts = list(contacts) if contacts is not None else (["left", "right"] if K == 2 else [f"c{k}" for k in range(K)])
+    contacts = (
+        list(contacts) if contacts is not None else (["left", "right"] if K == 2 else [f"c{k}" for k in range(K)])
+    )
     dims = list(dims) if dims is not None else [6] * K
     for name, (center, half, R) in (boxes or {}).items():
         quat = np.zeros(4)
