@@ -42,9 +42,7 @@ FIXED_JOINTS = ("neck_pitch", "neck_roll", "neck_yaw") + tuple(
     f"{side}_wrist_{j}" for side in "lr" for j in ("prosup", "pitch", "yaw")
 )
 # WBC Matlab simulator initial posture (configRobotSim.m), degrees, DRIVEN_JOINTS order.
-HOME_POSTURE_DEG = (
-    [0.0, 0.0, 0.0] + [-35.97, 29.97, 0.06, 50.0] * 2 + [10.0, 0.0, 0.0, -20.0, -10.0, 0.0] * 2
-)
+HOME_POSTURE_DEG = [0.0, 0.0, 0.0] + [-35.97, 29.97, 0.06, 50.0] * 2 + [10.0, 0.0, 0.0, -20.0, -10.0, 0.0] * 2
 MESHDIR_PLACEHOLDER = "ICUB_MODELS_MESHES"
 TORQUE_LIMIT = 60.0  # N m
 SPHERE_RADIUS = 0.005  # m
@@ -54,7 +52,7 @@ CONTACT_SOLREF = (0.004, 1.0)  # stiff contact (>= 2 timesteps): ~0.2 mm sink at
 
 def icub_paths() -> tuple[pathlib.Path, pathlib.Path]:
     """(URDF file, mesh folder) of the installed icub-models package."""
-    import icub_models  # noqa: PLC0415  (only needed when building/loading meshes)
+    import icub_models
 
     urdf = pathlib.Path(str(icub_models.get_model_file(ROBOT_NAME)))
     meshes = urdf.parents[2] / "meshes" / "simmechanics"
@@ -65,9 +63,7 @@ def _urdf_text(fusestatic: bool) -> str:
     urdf, _ = icub_paths()
     text = urdf.read_text()
     for joint in FIXED_JOINTS:
-        text, n = re.subn(
-            rf'<joint name="{joint}" type="revolute"', f'<joint name="{joint}" type="fixed"', text
-        )
+        text, n = re.subn(rf'<joint name="{joint}" type="revolute"', f'<joint name="{joint}" type="fixed"', text)
         if n != 1:
             raise RuntimeError(f"joint {joint!r} not found once in {urdf}")
     head = (

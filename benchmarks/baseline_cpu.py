@@ -177,9 +177,7 @@ class BaselineSpec:
         if self.forces not in FORCE_MODES:
             raise ValueError(f"unknown forces mode {self.forces!r}; valid: {list(FORCE_MODES)}")
         if self.postural not in POSTURAL_VARIANTS:
-            raise ValueError(
-                f"unknown postural variant {self.postural!r}; valid: {list(POSTURAL_VARIANTS)}"
-            )
+            raise ValueError(f"unknown postural variant {self.postural!r}; valid: {list(POSTURAL_VARIANTS)}")
         act = np.clip(np.asarray(self.ref_activation, float), 0.0, 1.0)
         engaged, active = act > 0, act >= 1
         ramping = np.any(engaged & ~active, axis=1)
@@ -305,9 +303,7 @@ def spec_from_setup(st, controller_state=None) -> BaselineSpec:
     idx, config, cfg = robot.index, loop.controller.config, loop.cfg
     m = solver_model(robot.mj_model, cfg.physics.solver_iterations, cfg.physics.ls_iterations)
     integrators = mujoco.mjtIntegrator
-    if m.opt.integrator not in (
-        integrators.mjINT_EULER, integrators.mjINT_IMPLICIT, integrators.mjINT_IMPLICITFAST
-    ):
+    if m.opt.integrator not in (integrators.mjINT_EULER, integrators.mjINT_IMPLICIT, integrators.mjINT_IMPLICITFAST):
         # mj_step1 + mj_step2 equals mj_step for these only (RK4 would fall back to Euler).
         raise ValueError("the CPU baseline needs the Euler or an implicit integrator (mj_step1/2)")
     params = loop.controller.contact_set.contacts[0].params
@@ -379,7 +375,11 @@ def make_spec(
 
 
 def centroidal_jacobian_ref(
-    m: mujoco.MjModel, d: mujoco.MjData, dof_perm, foot_sites, base_body: int,
+    m: mujoco.MjModel,
+    d: mujoco.MjData,
+    dof_perm,
+    foot_sites,
+    base_body: int,
     base_damping: float = 1e-7,
 ) -> np.ndarray:
     """J_G,ang (2, 3, n) of momentum.centroidal_jacobian_at_posture for a left/right stance, at
@@ -427,9 +427,7 @@ def gains_to_numpy(gains, n_envs: int, n: int) -> dict:
         value = np.asarray(value, float)
         size = n if name.endswith("postural") else 3
         if value.shape[-1:] != (size,) or value.ndim > 2:
-            raise ValueError(
-                f"gain {name} must have shape ({size},) or (n_envs, {size}), got {value.shape}"
-            )
+            raise ValueError(f"gain {name} must have shape ({size},) or (n_envs, {size}), got {value.shape}")
         if not np.all(np.isfinite(value)) or np.any(value < 0):
             raise ValueError(f"gain {name} must be finite and non-negative")
         out[name] = np.ascontiguousarray(np.broadcast_to(value, (n_envs, size)))
@@ -450,9 +448,7 @@ def push_to_numpy(push, n_envs: int) -> dict:
     if force.ndim == 2:
         force, onset, dur = force[None], onset[None], dur[None]
     if force.shape[-1] != 3 or onset.shape != force.shape[:-1] or dur.shape != onset.shape:
-        raise ValueError(
-            f"push shapes: force {force.shape}, onset {onset.shape}, duration {dur.shape}"
-        )
+        raise ValueError(f"push shapes: force {force.shape}, onset {onset.shape}, duration {dur.shape}")
     P = force.shape[1]
     return {
         "force": np.ascontiguousarray(np.broadcast_to(force, (n_envs, P, 3))),
@@ -466,7 +462,6 @@ def _push_force(push: dict, t) -> np.ndarray:
     (..., 1, 1) to broadcast against onset (B, P)."""
     on = (t >= push["onset"]) & (t < push["onset"] + push["duration"])
     return np.sum(push["force"] * on[..., None], axis=-2)
-
 
 
 # --------------------------------------------------------------------------------------
@@ -713,13 +708,9 @@ class NumpyController:
                 - sp.kp_postural_reg * _mv(X, s_err)
                 - g["kd_postural"] * _mv(P, s_dot)
             )
-        Sigma = -(
-            Lambda_pinv @ (J_c @ Minv_JcT) + N_Lambda @ (_T(J_c[:, :, 6:]) - M_sb @ Mb_inv_JbT)
-        )
+        Sigma = -(Lambda_pinv @ (J_c @ Minv_JcT) + N_Lambda @ (_T(J_c[:, :, 6:]) - M_sb @ Mb_inv_JbT))
         mv = _mv
-        tau_model = mv(Lambda_pinv, mv(J_c, Minv_h) - Jdot_nu_c) + mv(
-            N_Lambda, h[:, 6:] - mv(M_sb, Mb_inv_hb) + u0
-        )
+        tau_model = mv(Lambda_pinv, mv(J_c, Minv_h) - Jdot_nu_c) + mv(N_Lambda, h[:, 6:] - mv(M_sb, Mb_inv_hb) + u0)
 
         # Force task (forces.distribute): the engaged feet's formulation blended with the fully
         # active feet's while a foot ramps, f = w f_engaged + (1 - w) f_active.
@@ -866,6 +857,7 @@ class NumpyController:
 # --------------------------------------------------------------------------------------
 # Closed loop
 # --------------------------------------------------------------------------------------
+
 
 def _batch_size(gains, push) -> int:
     """Leading axis of batched (2-D) gains or (3-D) push forces; 1 if none is batched."""
@@ -1141,7 +1133,7 @@ def _worker_main(job: dict, conn, start_event) -> None:
         t1 = time.monotonic()
         res.update(info, t_start=t0, t_end=t1, sim_wall_s=t1 - t0)
         conn.send(("ok", res))
-    except BaseException:  # noqa: BLE001 - report everything to the parent
+    except BaseException:
         conn.send(("error", traceback.format_exc()))
     finally:
         conn.close()
@@ -1286,13 +1278,10 @@ def run_parallel(
         "steps_per_s_per_worker": [r["physics_steps"] / r["sim_wall_s"] for r in results],
         "timing": results[0]["timing"],
         "workers": [
-            {k: r[k] for k in ("worker", "n_envs", "startup_s", "sim_wall_s", "jax_imported",
-                               "timing")}  # fmt: skip
+            {k: r[k] for k in ("worker", "n_envs", "startup_s", "sim_wall_s", "jax_imported", "timing")}  # fmt: skip
             for r in results
         ],
-        "metrics": {
-            k: np.concatenate([r["metrics"][k] for r in results]) for k in results[0]["metrics"]
-        },
+        "metrics": {k: np.concatenate([r["metrics"][k] for r in results]) for k in results[0]["metrics"]},
     }
     if record:
         out["com"] = np.concatenate([r["com"] for r in results])

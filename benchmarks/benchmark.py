@@ -54,9 +54,7 @@ def make_setup(backend: str, horizon: float, iterations: int | None, *, record: 
     """The stand task's closed loop on ``backend`` (default gains, the two feet)."""
     from wbc_jax import physics, rollout, scenario
 
-    sim = rollout.SimConfig(
-        record=record, physics=physics.PhysicsConfig(backend=backend, solver_iterations=iterations)
-    )
+    sim = rollout.SimConfig(record=record, physics=physics.PhysicsConfig(backend=backend, solver_iterations=iterations))
     return scenario.setup("stand", duration=horizon, sim=sim)
 
 
@@ -113,10 +111,9 @@ def time_closed_loop(st, scen, push_end: float, repeats: int = 1) -> dict:
 def hold_torques(st):
     """(nu,) torques to hold in the physics-only run: the controller's first tick at the initial
     posture (NumPy baseline, C MuJoCo: no compilation), so that the robot stands as in the loop."""
+    import baseline_cpu
     import mujoco
     import numpy as np
-
-    import baseline_cpu
 
     spec = baseline_cpu.spec_from_setup(st)
     ctrl = baseline_cpu.NumpyController(spec)
@@ -191,9 +188,9 @@ def equivalence_check(horizon: float = 1.0, iterations: int | None = None) -> di
     """Same scenario, both simulators: the MJX closed loop (JAX physics, this device, its dtype)
     and the C MuJoCo + NumPy baseline (float64), stand task with a 40 N lateral chest push at
     0.3 s for 0.1 s. The bar: CoM within 1 mm over 1 s."""
+    import baseline_cpu
     import numpy as np
 
-    import baseline_cpu
     from wbc_jax import scenario
 
     st = make_setup("jax", horizon, iterations, record=True)
@@ -219,9 +216,8 @@ def equivalence_check(horizon: float = 1.0, iterations: int | None = None) -> di
 def device_description(backend: str) -> str:
     """What ran the closed loop: the accelerator's kind, or the host CPU's model (C MuJoCo: the
     host CPU, with the accelerator that ran the controller if any)."""
-    import jax
-
     import baseline_cpu
+    import jax
 
     dev = jax.devices()[0]
     cpu = f"{baseline_cpu.cpu_name()} ({os.cpu_count()} cores)"
@@ -270,27 +266,55 @@ def update_json_rows(path: pathlib.Path, rows: list[dict]) -> list[dict]:
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default=str(ROOT / "runs" / "bench"), help="folder of bench.json")
-    parser.add_argument("--json", default=None, metavar="FILE",
-                        help="also append/update one row per setting in FILE (e.g. docs/benchmarks.json)")
-    parser.add_argument("--backends", nargs="+", choices=BACKENDS, default=None,
-                        help="closed-loop physics backends (default: warp on a CUDA GPU with warp-lang, else jax)")
+    parser.add_argument(
+        "--json",
+        default=None,
+        metavar="FILE",
+        help="also append/update one row per setting in FILE (e.g. docs/benchmarks.json)",
+    )
+    parser.add_argument(
+        "--backends",
+        nargs="+",
+        choices=BACKENDS,
+        default=None,
+        help="closed-loop physics backends (default: warp on a CUDA GPU with warp-lang, else jax)",
+    )
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 64])
     parser.add_argument("--horizon", type=float, default=1.0, help="simulated seconds per run")
-    parser.add_argument("--iterations", type=int, nargs="+", default=[None],
-                        help="contact solver Newton iterations (default: the model's)")
-    parser.add_argument("--cpu-baseline-envs", type=int, default=0,
-                        help="environments per CPU worker (0: no CPU baseline)")
-    parser.add_argument("--cpu-workers", type=int, nargs="+", default=[os.cpu_count()],
-                        help="worker counts to time (scaling over cores); the largest is the baseline")
+    parser.add_argument(
+        "--iterations",
+        type=int,
+        nargs="+",
+        default=[None],
+        help="contact solver Newton iterations (default: the model's)",
+    )
+    parser.add_argument(
+        "--cpu-baseline-envs", type=int, default=0, help="environments per CPU worker (0: no CPU baseline)"
+    )
+    parser.add_argument(
+        "--cpu-workers",
+        type=int,
+        nargs="+",
+        default=[os.cpu_count()],
+        help="worker counts to time (scaling over cores); the largest is the baseline",
+    )
     parser.add_argument("--push-onset", type=float, default=0.2, help="s")
     parser.add_argument("--push-duration", type=float, default=0.1, help="s")
-    parser.add_argument("--repeats", type=int, default=1,
-                        help="timed runs per measurement after the first (compiling) one; the fastest counts")
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=1,
+        help="timed runs per measurement after the first (compiling) one; the fastest counts",
+    )
     parser.add_argument("--skip-physics-only", action="store_true")
-    parser.add_argument("--skip-equivalence", action="store_true",
-                        help="skip the MJX vs C MuJoCo trajectory check")
-    parser.add_argument("--find-largest", type=int, default=0, metavar="K",
-                        help="after --batches, up to K doublings of the largest, until one fails")
+    parser.add_argument("--skip-equivalence", action="store_true", help="skip the MJX vs C MuJoCo trajectory check")
+    parser.add_argument(
+        "--find-largest",
+        type=int,
+        default=0,
+        metavar="K",
+        help="after --batches, up to K doublings of the largest, until one fails",
+    )
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error("--repeats must be >= 1")
@@ -308,9 +332,9 @@ def main(argv=None) -> dict:
     args = parse_args(argv)
     command = "python " + shlex.join(sys.argv if argv is None else [sys.argv[0], *argv])
 
+    import baseline_cpu
     import jax
 
-    import baseline_cpu
     from wbc_jax import io, physics
 
     backends = args.backends or ["warp" if physics.has_cuda() and physics.has_warp() else "jax"]
