@@ -50,7 +50,7 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from wbc_jax import balance, contacts, io, physics, scenario, sweep, tasks  # noqa: E402
+from wbc_jax import balance, contact_scene, io, physics, scenario, sweep, tasks  # noqa: E402
 from wbc_jax import metrics as metrics_lib  # noqa: E402
 from wbc_jax import rollout as rollout_lib  # noqa: E402
 
@@ -177,7 +177,7 @@ def ramp_scene() -> scenario.Scene:
     robot = scenario.load_scene("icub").robot
     qpos = tasks.initial_qpos(robot, spec["initial_posture_deg"])
     cons = [dict(c, activation=RAMP, detect=False) if c["name"] == "left_hand" else c for c in spec["contacts"]]
-    robot, cset = contacts.build_scene("icub", cons, copy.deepcopy(spec["scene"]), qpos)
+    robot, cset = contact_scene.build_scene("icub", cons, copy.deepcopy(spec["scene"]), qpos)
     return scenario.Scene(robot, None, cset, qpos, str(HAND))
 
 

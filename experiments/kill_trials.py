@@ -15,6 +15,7 @@ with --record).
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import os
 import pathlib
@@ -32,8 +33,8 @@ JOBS = {
     "sweep": ["push-sweep", "--magnitudes", "20", "120", "6", "--directions", "8", "--horizon", "1.0",
               "--push-onset", "0.3", "--chunk-size", "4", "--joint-noise", "0.01", "--friction", "0.7", "1.0",
               "--quiet"],
-    "tune": ["tune", "--steps", "6", "--batch", "2", "--horizon", "0.4", "--eval-horizon", "0.4", "--no-baseline",
-             "--eval-magnitudes", "55", "--eval-directions", "22.5", "--quiet"],
+    "tune": ["tune", "--steps", "6", "--batch", "2", "--horizon", "0.4", "--push-onset", "0.1", "--duration-range",
+             "0.05", "0.1", "--baselines", "--eval-pushes", "2", "--eval-horizon", "0.4", "--quiet"],
 }  # fmt: skip
 
 
@@ -50,6 +51,13 @@ def run_job(job: str, out: pathlib.Path, kill_after: float | None, env: dict) ->
     return proc.returncode, time.time() - t0
 
 
+def _deterministic_columns(text: str) -> list:
+    """The rows of a history.csv without the columns that measure time or memory."""
+    rows = list(csv.reader(text.splitlines()))
+    keep = [i for i, name in enumerate(rows[0]) if name not in ("step_s", "wall_s", "rss_mb")]
+    return [[r[i] for i in keep] for r in rows]
+
+
 def compare(job: str, ref: pathlib.Path, got: pathlib.Path) -> list[str]:
     """Differences between two finished runs' result files (empty: identical)."""
     if job == "sweep":
@@ -63,8 +71,7 @@ def compare(job: str, ref: pathlib.Path, got: pathlib.Path) -> list[str]:
     for name in ("history.csv", "tuned_gains.json"):
         ra, rb = (ref / name).read_text(), (got / name).read_text()
         if name == "history.csv":  # the per-step wall time and memory columns differ by nature
-            keep = lambda text: [",".join(r.split(",")[:9]) for r in text.splitlines()]  # noqa: E731
-            ra, rb = keep(ra), keep(rb)
+            ra, rb = _deterministic_columns(ra), _deterministic_columns(rb)
         if ra != rb:
             diffs.append(name)
     return diffs

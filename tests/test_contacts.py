@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from wbc_jax import balance, contacts, dynamics, forces, physics, scenario, tasks, torques
+from wbc_jax import balance, contact_scene, contacts, dynamics, forces, physics, scenario, tasks, torques
 from wbc_jax import controller as C
 from wbc_jax.gains import default_gains
 from wbc_jax.references import Reference
@@ -135,7 +135,7 @@ def test_force_distribution_meets_its_constraints(distribution):
 def test_feet_from_a_spec_file_are_the_default_contact_set(robot):
     """The two feet listed in a contact file resolve to the default contact set (same frames, sole
     axes, geoms), and the controller gives the same wrenches and torques with either."""
-    cset = contacts.build_scene("icub", FEET, [])[1]
+    cset = contact_scene.build_scene("icub", FEET, [])[1]
     default = contacts.feet_contact_set(robot)
     for a, b in zip(cset.contacts, default.contacts, strict=True):
         assert (a.body, a.foot, a.geoms, a.type) == (b.body, b.foot, b.geoms, b.type)
@@ -214,7 +214,7 @@ def test_activation_ramps():
 )
 def test_bad_contact_sets_are_named(contact_list, objects, message):
     with pytest.raises(ValueError, match=message):
-        contacts.build_scene("icub", contact_list, objects)
+        contact_scene.build_scene("icub", contact_list, objects)
 
 
 def test_bad_spec_files(tmp_path, robot):
@@ -234,9 +234,11 @@ def test_touching_contacts_must_touch(hand_scene):
     table_pos = hand_scene[0].mj_model.geom("table").pos.copy()
     placed = {k: v for k, v in TABLE.items() if k not in ("under", "shift")}
     with pytest.raises(ValueError, match="cm away from the surface of 'table'"):
-        contacts.build_scene("icub", [*FEET, HAND], [{**placed, "pos": (table_pos - [0, 0, 0.05]).tolist()}])
+        contact_scene.build_scene("icub", [*FEET, HAND], [{**placed, "pos": (table_pos - [0, 0, 0.05]).tolist()}])
     with pytest.raises(ValueError, match="points into 'table'"):
-        contacts.build_scene("icub", [*FEET, {**HAND, "normal": [0, 0, -1]}], [{**placed, "pos": table_pos.tolist()}])
+        contact_scene.build_scene(
+            "icub", [*FEET, {**HAND, "normal": [0, 0, -1]}], [{**placed, "pos": table_pos.tolist()}]
+        )
 
 
 def test_wall_is_placed_at_the_hand():

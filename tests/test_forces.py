@@ -855,31 +855,3 @@ def test_one_foot_wrench():
     rel = np.max(np.abs(np.asarray(f32, np.float64) - f)) / np.max(np.abs(f))
     assert rel < 1e-4
     # (Derivatives of the formulations: test_two_feet_gradients.)
-
-
-def test_polish_recovers_the_exact_minimiser_from_a_biased_iterate():
-    """The polishing step (qp._polish) takes an interior-point-like iterate (slacks and multipliers
-    biased by ~1e-4, as a loose stopping tolerance leaves them) to quadprog's minimiser to rounding.
-    From a wrong active-set guess (an inactive row taken as active) it either corrects the guess
-    within its passes or reports failure (the interior-point iterate is then kept): it never
-    returns a wrong point as polished."""
-    rng = np.random.default_rng(21)
-    corrected = 0
-    for _ in range(6):
-        H, g, C, b = random_qp(rng, 6, 19)
-        x_ref, lam = ref_qp(H, g, C, b)
-        s = np.maximum(b - C @ x_ref, 0.0) + 1e-4
-        z = lam + 1e-4
-        assert np.sum(lam > 1e-9) >= 1  # some rows are active
-        atol = 1e-9 * (1 + np.abs(x_ref).max())
-        x, ok = qp._polish(*(jnp.asarray(a) for a in (H, g, C, b, s, z)), 6, 1e-10)
-        assert bool(ok)
-        np.testing.assert_allclose(np.asarray(x), x_ref, rtol=0, atol=atol)
-        wrong = np.argmax(np.where(lam > 1e-9, -np.inf, -(b - C @ x_ref)))  # the nearest inactive row
-        z_bad, s_bad = z.copy(), s.copy()
-        z_bad[wrong], s_bad[wrong] = 1.0, 1e-6
-        x2, ok2 = qp._polish(*(jnp.asarray(a) for a in (H, g, C, b, s_bad, z_bad)), 6, 1e-10)
-        if bool(ok2):
-            np.testing.assert_allclose(np.asarray(x2), x_ref, rtol=0, atol=atol)
-            corrected += 1
-    assert corrected >= 2

@@ -28,16 +28,6 @@ iterate has converged (under ``vmap``: once every problem of the batch has):
   surplus iterations of a batch cannot degrade it; a step that would produce
   non-finite numbers is rejected likewise. The loop is never differentiated
   (below), so a ``while_loop`` serves reverse mode as well as a ``scan``.
-* Polishing (as OSQP's): once the loop stops, the equality-constrained QP on
-  the active set the iterate shows (rows with z_i > s_i, corrected by up to
-  ``POLISH_PASSES`` passes that add violated rows and drop negative
-  multipliers) is solved, one LU of a Newton step's size per pass
-  (:func:`_polish`); its solution replaces the iterate if it meets every row
-  and its multipliers are >= 0. It removes the
-  stopping tolerance's barrier bias: the inactive rows' multipliers (~tol)
-  push x by ~tol / the smallest eigenvalue of H, which in float32 moved the
-  weakly determined directions of the contact QPs (the split of the weight
-  between the feet) by several N from tick to tick.
 * The final iterate is strictly interior (slacks ``s > 0`` and multipliers
   ``lam > 0``), so the linearised KKT system used for the derivative is
   nonsingular even at weakly active constraints, and its solution is smooth
@@ -96,7 +86,6 @@ converge in 8-19 (float64, tol 1e-11) or 7-22 (float32, tol 2e-6); the loop stop
 the iterate has converged."""
 
 _STEP_TO_BOUNDARY = 0.99  # fraction of the max step keeping s, lam > 0
-POLISH_PASSES = 3  # active-set corrections of the final polishing (:func:`_polish`)
 
 # --------------------------------------------------------------------------------------
 # Generic dense QP
@@ -473,8 +462,6 @@ def _interior_point(
     x, s, z, _, count, _ = lax.while_loop(running, step, init)
     _, _, res = residuals(x, s, z)
     finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(z)) & jnp.all(jnp.isfinite(s))
-    x_polished, polished = _polish(Hs + reg * eye, gs, Cs, bs, s, z, n_keep, tol)
-    x = jnp.where(polished & finite, x_polished, x)
     violation = jnp.max(jnp.maximum(Cs @ x - bs, 0.0)) / (1.0 + jnp.max(jnp.abs(x)))
     return _IPMResult(
         x=data * x,
@@ -487,53 +474,6 @@ def _interior_point(
         kkt_residual=res,
         iterations=count,
     )
-
-
-def _polish(
-    H: Array, g: Array, C: Array, b: Array, s: Array, z: Array, n_keep: int, tol: float, passes: int = POLISH_PASSES
-):
-    """The exact minimiser on the active set the interior point found (OSQP's "polishing").
-
-    The interior-point iterate stops at a relative KKT residual ``tol``; its inactive rows keep
-    multipliers ~``tol`` that push x by ~``tol / (smallest eigenvalue of H)``: in float32 (tol
-    2e-6) the weakly determined directions of the contact QPs (the split of the weight between
-    the feet, eigenvalues ~1e-3 of the largest) moved by several N. With A the rows taken as
-    active (at most ``n_keep``), solve the equality-constrained QP::
-
-        [H      C_A'] [x  ]   [-g ]
-        [C_A    0   ] [z_A] = [b_A]        (the other rows: z_i = 0)
-
-    A starts as the rows with z_i > s_i; each of the ``passes`` solves then adds the rows that x
-    violates and drops those with z_i < 0 (weakly active rows, z_i and s_i both ~tol, are
-    ambiguous in the iterate). Accepted only if the last x meets every row within ``tol`` and its
-    multipliers are >= 0.
-
-    Returns:
-        ``(x (n,), ok ())``.
-    """
-    n, m = H.shape[0], b.shape[0]
-    ratio = z / s
-    active = ratio > 1.0
-    z_scale = 1.0 + jnp.max(jnp.abs(z))
-    for _ in range(passes):
-        _, keep = lax.top_k(jnp.where(active, 2.0, 0.0) + ratio / (1.0 + ratio), n_keep)
-        a = active[keep].astype(H.dtype)
-        C_k = C[keep]
-        K = jnp.concatenate(
-            [
-                jnp.concatenate([H, C_k.T * a], axis=1),
-                jnp.concatenate([a[:, None] * C_k, -jnp.diag(1.0 - a)], axis=1),
-            ],
-            axis=0,
-        )
-        sol = jnp.linalg.solve(K, jnp.concatenate([-g, a * b[keep]]))
-        x, z_k = sol[:n], sol[n:]
-        excess = C @ x - b
-        scale = 1.0 + jnp.max(jnp.abs(x))
-        negative = jnp.zeros(m, bool).at[keep].set((a > 0) & (z_k < -tol * z_scale))
-        ok = jnp.all(jnp.isfinite(sol)) & (jnp.max(excess) <= tol * scale) & ~jnp.any(negative)
-        active = (active & ~negative) | (excess > tol * scale)
-    return x, ok
 
 
 @jax.custom_jvp

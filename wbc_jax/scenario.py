@@ -26,10 +26,10 @@ import mujoco
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from wbc_jax import contact_scene, physics, references
 from wbc_jax import contacts as contacts_lib
 from wbc_jax import metrics as metrics_lib
 from wbc_jax import model as model_lib
-from wbc_jax import physics, references
 from wbc_jax import rollout as rollout_lib
 from wbc_jax import tasks as tasks_lib
 from wbc_jax.controller import ControllerConfig, make_controller
@@ -68,7 +68,7 @@ class Scene:
 def load_scene(robot_name: str = "icub", tasks_file=None) -> Scene:
     """Robot, motion tasks, contact set and initial posture of a specification file (None: the
     plain robot on both feet at the home posture). With ``contacts`` in the file the robot is the
-    scene of :func:`wbc_jax.contacts.build_scene` (objects, collision spheres, pairs)."""
+    scene of :func:`wbc_jax.contact_scene.build_scene` (objects, collision spheres, pairs)."""
     robot = model_lib.load_robot(robot_name)
     if not tasks_file:
         return Scene(robot, None, contacts_lib.feet_contact_set(robot), robot.home_qpos())
@@ -76,7 +76,7 @@ def load_scene(robot_name: str = "icub", tasks_file=None) -> Scene:
     qpos = tasks_lib.initial_qpos(robot, spec["initial_posture_deg"])
     contact_set = contacts_lib.feet_contact_set(robot)
     if spec["contacts"] is not None:
-        robot, contact_set = contacts_lib.build_scene(robot_name, spec["contacts"], spec["scene"], qpos)
+        robot, contact_set = contact_scene.build_scene(robot_name, spec["contacts"], spec["scene"], qpos)
     elif spec["scene"]:
         raise ValueError(f"{tasks_file}: scene objects need a 'contacts' list (what touches them)")
     return Scene(robot, spec["tasks"], contact_set, qpos, str(tasks_file))
