@@ -25,13 +25,13 @@ from wbc_jax import model  # noqa: E402
 
 def pytest_configure(config):
     config.addinivalue_line("markers", "gpu: needs a GPU (skipped on the CPU)")
-    config.addinivalue_line("markers", "slow: long closed-loop runs")
+    config.addinivalue_line("markers", "slow: over the default suite's time; the nightly `pytest -m slow` runs it")
 
 
 # pytest-xdist (`-n 2 --dist loadgroup`, pyproject's addopts): each test module is one unit of work,
 # so module-scoped fixtures (compiled programs) are built once; each notebook is a unit of its own.
-# Units start longest first (measured on the 2-core CI machine), so that the two gradient programs
-# (test_tune's check, notebook 04) compile side by side instead of one after the other.
+# Units start longest first (measured on the 2-core CI machine): test_tune's gradient program compiles on one
+# worker while the other works through the rest (and, with `-m slow`, notebook 04 compiles beside it).
 _LONGEST_FIRST = ["test_tune", "04_gain_tuning", "02_balancing", "03_push_recovery", "test_dynamics",
                   "test_sweep", "test_viz", "01_dynamics", "test_mjx_physics", "test_baseline_cpu"]  # fmt: skip
 

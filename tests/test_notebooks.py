@@ -17,6 +17,9 @@ NOTEBOOK_TIMEOUT_S = 150
 # forward ones (CMA-ES's population, the held-out pushes): 335 s alone on the 2-core CPU, at any size; in the suite it
 # compiles beside test_tune's gradient program (conftest), so its budget leaves room for that.
 BUDGETS_S = {"04_gain_tuning.ipynb": 900}
+# Over the default suite's time: run by the nightly command (`python3 -m pytest -m slow`, README). The gradient program
+# it compiles is checked in the default suite by tests/test_tune.py (against central differences).
+SLOW = {"04_gain_tuning.ipynb"}
 MARGIN_S = 30  # past the budget, pytest-timeout stops a hung run (the assertion below reports a slow one)
 
 
@@ -39,9 +42,12 @@ def test_committed_without_outputs(path):
     assert not dirty, f"{path.name}: cells {dirty} have outputs; clear them before committing"
 
 
-@pytest.mark.parametrize(
-    "path", [pytest.param(p, id=p.stem, marks=pytest.mark.timeout(_budget(p) + MARGIN_S)) for p in NOTEBOOKS]
-)
+def _marks(path: pathlib.Path) -> list:
+    marks = [pytest.mark.timeout(_budget(path) + MARGIN_S)]
+    return marks + [pytest.mark.slow] if path.name in SLOW else marks
+
+
+@pytest.mark.parametrize("path", [pytest.param(p, id=p.stem, marks=_marks(p)) for p in NOTEBOOKS])
 def test_notebook_runs(path, tmp_path, monkeypatch):
     nb = nbformat.read(path, as_version=4)
     budget = _budget(path)
