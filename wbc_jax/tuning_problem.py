@@ -45,7 +45,7 @@ ENVELOPE_FILE = pathlib.Path(__file__).resolve().parent.parent / "docs" / "tunin
 
 @dataclasses.dataclass(frozen=True)
 class TuneConfig:
-    """A tuning run (defaults: minutes on a 2-core CPU; the GPU sizes come as flags, e.g.
+    """A tuning run (the defaults are small, for a CPU; the GPU sizes come as flags, e.g.
     ``--batch 1024``). The CLI flags of ``wbc-jax tune`` are generated from these fields."""
 
     out: str = option("runs/tune", "output folder (resumes a run there)")
