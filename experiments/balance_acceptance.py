@@ -21,7 +21,7 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from wbc_jax import balance, io  # noqa: E402
+from wbc_jax import balance, io, scenario  # noqa: E402
 
 # 4 N s lateral: inside the measured survival envelope at 90 deg (~6 N s, docs/sweep_h100).
 PUSH = {"push_force": (0.0, 40.0, 0.0), "push_onset": 1.0, "push_duration": 0.1}  # chest, world +y (left)
@@ -82,6 +82,7 @@ def main() -> None:
         help="MJX Newton iterations (default: the model's 4); results keyed NAME-itN",
     )
     args = parser.parse_args()
+    scenario.enable_compilation_cache()  # scenarios of the same shape compile once, as in the CLI
     out = pathlib.Path(args.out)
     summary_path = pathlib.Path(args.summary)
     it = args.solver_iterations
