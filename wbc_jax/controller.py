@@ -99,7 +99,8 @@ class ControllerConfig:
         if self.postural not in torques.POSTURAL_VARIANTS:
             raise ValueError(f"unknown postural variant {self.postural!r}; valid: {list(torques.POSTURAL_VARIANTS)}")
         positive = ("pinv_damping", "pinv_tol", "hessian_reg", "base_vel_damping", "torque_limit",
-                    "torque_weight_soft", "normal_force_weight")  # fmt: skip
+                    "torque_weight_soft", "normal_force_weight", "detection_threshold", "detection_ramp_out",
+                    "detection_ramp_in")  # fmt: skip
         for name in positive:
             value = getattr(self, name)
             if (
@@ -116,14 +117,6 @@ class ControllerConfig:
         if isinstance(self.effort_damping, bool) or not (isinstance(self.effort_damping, (int, float))
                                                         and 0.0 <= self.effort_damping < math.inf):  # fmt: skip
             raise ValueError(f"controller setting effort_damping must be >= 0 and finite, got {self.effort_damping!r}")
-        for name in ("detection_threshold", "detection_ramp_out", "detection_ramp_in"):
-            value = getattr(self, name)
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, (int, float))
-                or not (math.isfinite(value) and value > 0)
-            ):
-                raise ValueError(f"controller setting {name} must be positive and finite, got {value!r}")
         for name in ("solution_damping", "projector_reg", "violation_tol"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
