@@ -6,10 +6,14 @@
 Random scenarios, every one valid but extreme: a push of 0-5,000 N in any 3-D direction on any body,
 lasting 0.001-1 s from 0.05-0.3 s; floor friction 0.05-2; plant masses x0.5-1.5; initial joint noise
 (0.05 rad, inside the joint limits); every gain group scaled by 0.1-10 (inside its stated range).
-Each chunk runs under a watchdog (a chunk that does not return in --chunk-timeout s is a hang).
-Counted: environments, hangs, NaN leaks (a metric that should be finite but is not, for an
-environment not flagged as diverged; or a non-finite aggregate), flagged divergences, falls.
-Writes soak.json into --out and the soak keys of docs/reliability.json with --record.
+Each chunk runs under a watchdog thread: a chunk that does not return in --chunk-timeout s is a
+hang, recorded in chunks.jsonl before the process exits with status 3 (a signal handler could not
+run while the main thread waits inside XLA). Counted: environments, hangs, NaN leaks (a metric that
+should be finite but is not, for an environment not flagged as diverged; or a non-finite
+aggregate), flagged divergences, falls. Chunk c's scenarios come from the seed (--seed, c), and each
+finished chunk is appended to --out/chunks.jsonl, so a stopped soak resumes where it stopped with
+the same scenarios. Writes soak.json into --out and the soak keys of docs/reliability.json with
+--record.
 """
 
 from __future__ import annotations
@@ -17,9 +21,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import pathlib
-import signal
 import sys
+import threading
 import time
 
 import numpy as np
@@ -30,10 +35,6 @@ sys.path.insert(0, str(ROOT))
 from wbc_jax import constants, io, physics, rollout, scenario  # noqa: E402
 from wbc_jax import metrics as metrics_lib  # noqa: E402
 from wbc_jax.gains import Gains  # noqa: E402
-
-
-class Hang(Exception):
-    pass
 
 
 def random_scenarios(rng: np.random.Generator, n: int, robot, dtype) -> rollout.Scenario:
@@ -84,47 +85,71 @@ def main(argv=None) -> dict:
     scenario.enable_compilation_cache()
     sim = rollout.SimConfig(record=False, perturb_plant=True, physics=physics.PhysicsConfig(backend=args.backend))
     st = scenario.setup("stand", duration=args.horizon, sim=sim)
-    rng = np.random.default_rng(args.seed)
-    totals = {"envs": 0, "hangs": 0, "nan_leaks": 0, "diverged_flagged": 0, "fell": 0, "upright": 0,
-              "compile_s": 0.0, "run_s": 0.0, "max_chunk_s": 0.0, "leaks_by_column": {}}  # fmt: skip
-
-    def alarm(signum, frame):
-        raise Hang
-
-    signal.signal(signal.SIGALRM, alarm)
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    log = out / "chunks.jsonl"
+    done = {}
+    if log.exists():
+        for line in log.read_text().splitlines():
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:  # a line cut by a kill: that chunk runs again
+                continue
+            if (
+                rec.get("seed") == args.seed
+                and rec.get("chunk_size") == args.chunk
+                and rec.get("horizon") == args.horizon
+            ):
+                done[rec["chunk"]] = rec
     n_chunks = math.ceil(args.envs / args.chunk)
     for c in range(n_chunks):
         n = min(args.chunk, args.envs - c * args.chunk)
-        scen = random_scenarios(rng, n, st.robot, st.dtype)
+        if c in done and done[c].get("envs") == n:
+            continue
+        scen = random_scenarios(np.random.default_rng((args.seed, c)), n, st.robot, st.dtype)
         t0 = time.perf_counter()
-        signal.alarm(int(args.chunk_timeout))
+        key = dict(chunk=c, seed=args.seed, chunk_size=args.chunk, horizon=args.horizon)
+
+        def hang(key=key):  # runs on the watchdog thread
+            with open(log, "a") as f:
+                f.write(json.dumps(dict(key, hang=True)) + "\n")
+            print(json.dumps(dict(key, hang=True)), flush=True)
+            os._exit(3)
+
+        watchdog = threading.Timer(args.chunk_timeout, hang)
+        watchdog.daemon = True
+        watchdog.start()
         try:
             run = scenario.run(st, scen, batch_size=args.chunk)
-        except Hang:
-            totals["hangs"] += 1
-            print(json.dumps({"chunk": c, "hang": True}), flush=True)
-            continue
+            cols = metrics_lib.summarize(run.metrics, 0.0)
         finally:
-            signal.alarm(0)
-        cols = metrics_lib.summarize(run.metrics, 0.0)
+            watchdog.cancel()
         flagged = np.asarray(cols["nan"], bool)
-        leaks, by_column = 0, {}
+        by_column = {}
         for name in FINITE:
             bad = int(np.sum(~np.isfinite(np.asarray(cols[name], float)) & ~flagged))
             if bad:
                 by_column[name] = bad
-                totals["leaks_by_column"][name] = totals["leaks_by_column"].get(name, 0) + bad
-            leaks += bad
-        totals["envs"] += n
-        totals["nan_leaks"] += leaks
-        totals["diverged_flagged"] += int(flagged.sum())
-        totals["fell"] += int(np.sum(cols["fell"]))
-        totals["upright"] += int(np.sum(cols["upright"]))
-        totals["compile_s"] += run.compile_s
-        totals["run_s"] += run.run_s
-        totals["max_chunk_s"] = max(totals["max_chunk_s"], time.perf_counter() - t0)
-        print(json.dumps({"chunk": c, "envs": n, "nan_leaks": leaks, "by_column": by_column,
-                          "flagged": int(flagged.sum()), "run_s": round(run.run_s, 2)}), flush=True)  # fmt: skip
+        rec = dict(key, envs=n, nan_leaks=sum(by_column.values()), by_column=by_column, flagged=int(flagged.sum()),
+                   fell=int(np.sum(cols["fell"])), upright=int(np.sum(cols["upright"])),
+                   compile_s=round(run.compile_s, 2), run_s=round(run.run_s, 3),
+                   chunk_s=round(time.perf_counter() - t0, 2))  # fmt: skip
+        with open(log, "a") as f:
+            f.write(json.dumps(rec) + "\n")
+        done[c] = rec
+        print(json.dumps(rec), flush=True)
+    totals = {"envs": 0, "hangs": 0, "nan_leaks": 0, "diverged_flagged": 0, "fell": 0, "upright": 0,
+              "compile_s": 0.0, "run_s": 0.0, "max_chunk_s": 0.0, "leaks_by_column": {}}  # fmt: skip
+    for rec in done.values():
+        totals["hangs"] += int(bool(rec.get("hang")))
+        for k in ("envs", "nan_leaks", "fell", "upright", "compile_s", "run_s"):
+            totals[k] += rec[k]
+        totals["diverged_flagged"] += rec["flagged"]
+        totals["max_chunk_s"] = max(totals["max_chunk_s"], rec["chunk_s"])
+        for name, bad in rec["by_column"].items():
+            totals["leaks_by_column"][name] = totals["leaks_by_column"].get(name, 0) + bad
+    # a hang recorded by an earlier, killed process counts too
+    totals["hangs"] = sum(1 for line in log.read_text().splitlines() if '"hang": true' in line)
     rates = {k: totals[k] / max(totals["envs"], 1) for k in ("fell", "upright", "diverged_flagged")}
     aggregate_ok = all(math.isfinite(v) for v in rates.values())
     import jax
@@ -136,10 +161,10 @@ def main(argv=None) -> dict:
         "soak_nan_leaks_by_column": totals["leaks_by_column"],
         "soak_horizon_s": args.horizon, "soak_backend": st.backend,
         "soak_compile_s": round(totals["compile_s"], 1), "soak_run_s": round(totals["run_s"], 1),
+        "soak_max_chunk_s": totals["max_chunk_s"], "soak_chunk_timeout_s": args.chunk_timeout,
         "soak_physics_steps_per_s": totals["envs"] * st.loop.n_ticks * st.loop.n_sub / max(totals["run_s"], 1e-9),
         "device": str(jax.devices()[0]), "command": "python experiments/soak.py " + " ".join(sys.argv[1:] if argv is None else argv),
     }  # fmt: skip
-    out = pathlib.Path(args.out)
     io.atomic_write_json(out / "soak.json", result)
     if args.record:
         path = ROOT / "docs" / "reliability.json"
