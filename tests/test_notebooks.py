@@ -13,25 +13,31 @@ NOTEBOOKS = sorted((pathlib.Path(__file__).resolve().parent.parent / "notebooks"
 # Issue target: a notebook runs in 90 s on a 2-core CPU (C MuJoCo forward runs, tiny sizes); the budget leaves room
 # for a machine busy with other tests. A notebook over it fails: it got slower, or too big for a laptop.
 NOTEBOOK_TIMEOUT_S = 150
-# Notebook 04 compiles a reverse-mode program through the whole closed loop (MJX physics + controller) and two
-# forward ones (CMA-ES's population, the held-out pushes): 335 s alone on the 2-core CPU, at any size; in the suite it
-# compiles beside test_tune's gradient program (conftest), so its budget leaves room for that.
-BUDGETS_S = {"04_gain_tuning.ipynb": 900}
-# Over the default suite's time: run by the nightly command (`python3 -m pytest -m slow`, README). The gradient program
-# it compiles is checked in the default suite by tests/test_tune.py (against central differences).
-SLOW = {"04_gain_tuning.ipynb"}
+# Notebook 04 with RUN_TUNING (its environment switch below) compiles a reverse-mode program through the whole closed
+# loop (MJX physics + controller) and two forward ones (CMA-ES's population, the held-out pushes): 335 s alone on the
+# 2-core CPU, at any size. That run is over the default suite's time: the nightly command runs it (`python3 -m pytest
+# -m slow`, README); the gradient program is checked in the default suite by tests/test_tune.py.
+VARIANTS = {"04_gain_tuning.ipynb": ("run_tuning", {"WBC_JAX_NB_RUN_TUNING": "1"}, 900)}
 MARGIN_S = 30  # past the budget, pytest-timeout stops a hung run (the assertion below reports a slow one)
 
 
-def _budget(path: pathlib.Path) -> int:
-    return BUDGETS_S.get(path.name, NOTEBOOK_TIMEOUT_S)
+def _runs() -> list:
+    """(path, environment, budget) per notebook run: each notebook as committed, and its slow variant if any."""
+    runs = [pytest.param(p, {}, NOTEBOOK_TIMEOUT_S, id=p.stem, marks=pytest.mark.timeout(NOTEBOOK_TIMEOUT_S + MARGIN_S))
+            for p in NOTEBOOKS]  # fmt: skip
+    for p in NOTEBOOKS:
+        if p.name in VARIANTS:
+            name, env, budget = VARIANTS[p.name]
+            marks = [pytest.mark.timeout(budget + MARGIN_S), pytest.mark.slow]
+            runs.append(pytest.param(p, env, budget, id=f"{p.stem}-{name}", marks=marks))
+    return runs
 
 
 def test_there_are_notebooks():
     names = {p.name for p in NOTEBOOKS}
     expected = {"01_dynamics.ipynb", "02_balancing.ipynb", "03_push_recovery.ipynb", "04_gain_tuning.ipynb"}
     assert expected <= names, names
-    assert set(BUDGETS_S) <= names, f"budgets for notebooks that do not exist: {set(BUDGETS_S) - names}"
+    assert set(VARIANTS) <= names, f"variants of notebooks that do not exist: {set(VARIANTS) - names}"
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
@@ -42,15 +48,11 @@ def test_committed_without_outputs(path):
     assert not dirty, f"{path.name}: cells {dirty} have outputs; clear them before committing"
 
 
-def _marks(path: pathlib.Path) -> list:
-    marks = [pytest.mark.timeout(_budget(path) + MARGIN_S)]
-    return marks + [pytest.mark.slow] if path.name in SLOW else marks
-
-
-@pytest.mark.parametrize("path", [pytest.param(p, id=p.stem, marks=_marks(p)) for p in NOTEBOOKS])
-def test_notebook_runs(path, tmp_path, monkeypatch):
+@pytest.mark.parametrize(("path", "env", "budget"), _runs())
+def test_notebook_runs(path, env, budget, tmp_path, monkeypatch):
     nb = nbformat.read(path, as_version=4)
-    budget = _budget(path)
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
     # The kernel inherits this environment: CPU, and temporary outputs under tmp_path.
     monkeypatch.setenv("JAX_PLATFORMS", "cpu")
     monkeypatch.setenv("TMPDIR", str(tmp_path))
