@@ -30,10 +30,11 @@ def pytest_configure(config):
 
 # pytest-xdist (`-n 2 --dist loadgroup`, pyproject's addopts): each test module is one unit of work,
 # so module-scoped fixtures (compiled programs) are built once; each notebook is a unit of its own.
-# Units start longest first (measured on the 2-core CI machine): test_tune's gradient program compiles on one
-# worker while the other works through the rest (and, with `-m slow`, notebook 04 compiles beside it).
-_LONGEST_FIRST = ["test_tune", "04_gain_tuning", "02_balancing", "03_push_recovery", "test_dynamics",
-                  "test_sweep", "test_viz", "01_dynamics", "test_mjx_physics", "test_baseline_cpu"]  # fmt: skip
+# Units start longest first (measured on the 2-core CI machine, cold compilation cache). With `-m slow`, test_tune's
+# closed-loop gradient check and notebook 04's pipeline compile on the two workers side by side.
+_LONGEST_FIRST = ["test_tune", "04_gain_tuning-run_tuning", "test_contacts", "test_dynamics", "test_sweep",
+                  "test_baseline_cpu", "test_mjx_physics", "test_viz", "02_balancing", "03_push_recovery",
+                  "test_rollout", "01_dynamics"]  # fmt: skip
 
 
 def _work_unit(item) -> str:

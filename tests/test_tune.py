@@ -25,7 +25,12 @@ from wbc_jax.constants import GAIN_FIELDS
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 # One subprocess (float64, XLA backend optimisation lowered) holds the one gradient program:
 # experiments/grad_check.py, per-scenario gradients over N random push scenarios at a 0.1 s
-# horizon, and central differences of the loss on the first of them.
+# horizon, and central differences of the loss on the first of them. Compiling the reverse-mode
+# program through the whole closed loop takes 4-7 minutes on a 2-core CPU, most of the default
+# suite's time budget: these two tests are `slow` (the nightly `python3 -m pytest -m slow`). In the
+# default suite, gradients are checked piecewise: MJX physics through standing contact against a
+# central difference (tests/test_mjx_physics.py), the contact QP's implicit derivative against
+# finite differences (tests/test_forces.py), the dynamics terms (tests/test_dynamics.py).
 GRAD_CHECK = ROOT / "experiments" / "grad_check.py"
 TINY = dict(horizon=0.1, push_onset=0.0, duration_range=(0.02, 0.05), eval_horizon=0.1)
 
@@ -41,6 +46,7 @@ def grad_check():
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("group", tuning_params.PARAM_GROUPS)
 def test_closed_loop_gradient_matches_central_differences(grad_check, group):
     """On the first scenarios: where central differences at steps 1e-4 and 1e-5 agree (the loss is
@@ -52,6 +58,7 @@ def test_closed_loop_gradient_matches_central_differences(grad_check, group):
         assert r["rel_err"] < 0.05, (group, r)
 
 
+@pytest.mark.slow
 def test_no_nan_gradients_over_random_scenarios(grad_check):
     assert grad_check["n"] == 24 and grad_check["nonfinite"] == 0
     loss = np.asarray(grad_check["loss"])

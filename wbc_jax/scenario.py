@@ -183,9 +183,25 @@ def single(setup_: Setup, push: Push | None = None, gains: Gains | None = None) 
     )
 
 
+def batch_devices() -> list:
+    """The devices a batch is sharded over: every GPU (local, or global after jax.distributed); on
+    the CPU, one device per process."""
+    devices = jax.devices()
+    if devices[0].platform != "cpu":
+        return list(devices)
+    # Host CPU devices of one process (XLA_FLAGS=--xla_force_host_platform_device_count) share that
+    # machine's cores, so sharding over them gains nothing; and XLA:CPU deadlocks in the sharded
+    # closed loop once a device holds several environments (jax 0.9.2: every thread idle, the
+    # caller waiting forever; tests/test_sweep.py runs that configuration under a timeout).
+    first: dict = {}
+    for d in devices:
+        first.setdefault(d.process_index, d)
+    return list(first.values())
+
+
 def device_mesh() -> Mesh:
-    """1-D mesh over all (local, or global after jax.distributed) devices, axis 'batch'."""
-    return Mesh(np.asarray(jax.devices()), ("batch",))
+    """1-D mesh over :func:`batch_devices`, axis 'batch'."""
+    return Mesh(np.asarray(batch_devices()), ("batch",))
 
 
 def pad_batch(tree, size: int):
