@@ -56,10 +56,11 @@ SHARDED = textwrap.dedent(
     if backend == "jax":
         assert len(jax.devices()) == 2, jax.devices()
     out = pathlib.Path(sys.argv[1])
-    # 8 per chunk: sharded over the two host devices (4 each) this deadlocked XLA:CPU (jax 0.9.2);
-    # on the CPU the batch now runs on one device per process (scenario.batch_devices).
-    cfg = sweep.SweepConfig(magnitudes=(20.0, 400.0), directions=(90.0,), horizon=0.8,
-                            push_onset=0.1, push_duration=0.1, chunk_size=8, backend=backend, out=str(out))
+    # MJX, 8 per chunk: sharded over the two host devices (4 each) this deadlocked XLA:CPU (jax
+    # 0.9.2); on the CPU the batch now runs on one device per process (scenario.batch_devices).
+    cfg = sweep.SweepConfig(magnitudes=(20.0, 400.0), directions=(90.0,), horizon=0.8, push_onset=0.1,
+                            push_duration=0.1, chunk_size=8 if backend == "jax" else 2, backend=backend,
+                            out=str(out))
     s = sweep.run_sweep(cfg, progress=False)
     if sys.argv[2] != "nan":
         print(json.dumps({"summary": {k: s[k] for k in ("n_envs", "n_devices")}}))
