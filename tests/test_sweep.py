@@ -71,8 +71,8 @@ SHARDED = textwrap.dedent(
     scen = jax.tree_util.tree_map(lambda x: np.asarray(x)[:2], scen)
     scen = scen.replace(joint_offset=scen.joint_offset.copy())
     scen.joint_offset[1] = np.nan
-    run = scenario.run(st, scen, batch_size=2)
-    again = scenario.run(st, scen, batch_size=2)
+    run = scenario.run(st, scen, batch_size=cfg.chunk_size)  # the sweep's compiled program
+    again = scenario.run(st, scen, batch_size=cfg.chunk_size)
     m = run.metrics
     print(json.dumps({"summary": {k: s[k] for k in ("n_envs", "upright_rate", "nan_envs", "n_devices", "backend")},
                       "nan": np.asarray(m.nan).tolist(), "fell": np.asarray(m.fell).tolist(),
