@@ -68,6 +68,21 @@ FINITE = ("com_rmse_m", "com_max_err_m", "max_constraint_violation", "max_foot_s
           "max_abs_torque_nm", "min_com_height_m", "end_com_speed_mps", "end_com_support_margin_m")  # fmt: skip
 
 
+def _records(log: pathlib.Path) -> list[dict]:
+    """The lines of chunks.jsonl; a line cut by a kill is skipped (its chunk runs again)."""
+    out = []
+    for line in log.read_text().splitlines() if log.exists() else []:
+        try:
+            out.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue
+    return out
+
+
+def _same_soak(rec: dict, args) -> bool:
+    return rec.get("seed") == args.seed and rec.get("chunk_size") == args.chunk and rec.get("horizon") == args.horizon
+
+
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--envs", type=int, default=1_000_000)
@@ -88,19 +103,7 @@ def main(argv=None) -> dict:
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     log = out / "chunks.jsonl"
-    done = {}
-    if log.exists():
-        for line in log.read_text().splitlines():
-            try:
-                rec = json.loads(line)
-            except json.JSONDecodeError:  # a line cut by a kill: that chunk runs again
-                continue
-            if (
-                rec.get("seed") == args.seed
-                and rec.get("chunk_size") == args.chunk
-                and rec.get("horizon") == args.horizon
-            ):
-                done[rec["chunk"]] = rec
+    done = {rec["chunk"]: rec for rec in _records(log) if _same_soak(rec, args)}
     n_chunks = math.ceil(args.envs / args.chunk)
     for c in range(n_chunks):
         n = min(args.chunk, args.envs - c * args.chunk)
@@ -141,18 +144,16 @@ def main(argv=None) -> dict:
     totals = {"envs": 0, "hangs": 0, "nan_leaks": 0, "diverged_flagged": 0, "fell": 0, "upright": 0,
               "compile_s": 0.0, "run_s": 0.0, "max_chunk_s": 0.0, "leaks_by_column": {}}  # fmt: skip
     for rec in done.values():
-        totals["hangs"] += int(bool(rec.get("hang")))
         for k in ("envs", "nan_leaks", "fell", "upright", "compile_s", "run_s"):
             totals[k] += rec[k]
         totals["diverged_flagged"] += rec["flagged"]
         totals["max_chunk_s"] = max(totals["max_chunk_s"], rec["chunk_s"])
         for name, bad in rec["by_column"].items():
             totals["leaks_by_column"][name] = totals["leaks_by_column"].get(name, 0) + bad
-    # a hang recorded by an earlier, killed process counts too
-    totals["hangs"] = sum(1 for line in log.read_text().splitlines() if '"hang": true' in line)
+    # Hangs: every line of this soak's key that records one, also from an earlier, killed process.
+    totals["hangs"] = sum(1 for rec in _records(log) if rec.get("hang") and _same_soak(rec, args))
     rates = {k: totals[k] / max(totals["envs"], 1) for k in ("fell", "upright", "diverged_flagged")}
     aggregate_ok = all(math.isfinite(v) for v in rates.values())
-    import jax
 
     result = {
         "soak_envs": totals["envs"], "soak_hangs": totals["hangs"],
@@ -163,7 +164,7 @@ def main(argv=None) -> dict:
         "soak_compile_s": round(totals["compile_s"], 1), "soak_run_s": round(totals["run_s"], 1),
         "soak_max_chunk_s": totals["max_chunk_s"], "soak_chunk_timeout_s": args.chunk_timeout,
         "soak_physics_steps_per_s": totals["envs"] * st.loop.n_ticks * st.loop.n_sub / max(totals["run_s"], 1e-9),
-        "device": str(jax.devices()[0]), "command": "python experiments/soak.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        "device": scenario.device_label(), "command": "python experiments/soak.py " + " ".join(sys.argv[1:] if argv is None else argv),
     }  # fmt: skip
     io.atomic_write_json(out / "soak.json", result)
     if args.record:

@@ -93,7 +93,6 @@ def main(argv=None) -> int:
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
     args, tc = parse(argv)
     hc = heldout_config(args)  # every check before anything compiles
-    import jax
 
     from wbc_jax import baselines, io, scenario, tune, tuning_eval
     from wbc_jax.gains import default_gains, load_gains
@@ -108,9 +107,9 @@ def main(argv=None) -> int:
     critical = load_gains(args.critical, problem.robot.index.n, problem.setup.dtype)
     check_in_bounds(critical, problem.reg0, problem.bounds, source=f"--critical {args.critical}")
     io.atomic_write_json(out / "config.json", {"tune": dataclasses.asdict(tc), "heldout": dataclasses.asdict(hc),
-                                               "argv": sys.argv[1:], "device": str(jax.devices()[0])})  # fmt: skip
+                                               "argv": sys.argv[1:], "device": scenario.device_label()})  # fmt: skip
     timings = _load(out / "timings.json")
-    print(json.dumps({"device": str(jax.devices()[0]), "batch": tc.batch, "steps": tc.steps, "horizon": tc.horizon,
+    print(json.dumps({"device": scenario.device_label(), "batch": tc.batch, "steps": tc.steps, "horizon": tc.horizon,
                       "population": tc.population, "candidate_batch": tc.candidate_batch,
                       "steps_per_rollout": problem.steps_per_rollout}), flush=True)  # fmt: skip
 

@@ -199,6 +199,12 @@ def batch_devices() -> list:
     return list(first.values())
 
 
+def device_label() -> str:
+    """The first device, named for result files: its kind and JAX's name (e.g. 'NVIDIA H200 (cuda:0)')."""
+    d = jax.devices()[0]
+    return f"{d.device_kind} ({d})"
+
+
 def device_mesh() -> Mesh:
     """1-D mesh over :func:`batch_devices`, axis 'batch'."""
     return Mesh(np.asarray(batch_devices()), ("batch",))

@@ -318,12 +318,13 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
         io.atomic_write_parquet(out / "results.parquet", table)
     steps_per_env = st.loop.n_ticks * st.loop.n_sub
     summary = summarize_table(table, cfg, st.robot)
+    devices = scenario.batch_devices() if st.backend != "mujoco" else jax.devices()[:1]  # C MuJoCo: host only
     summary.update({
         "config": dataclasses.asdict(cfg),
         "backend": st.backend,
         "survival_criterion": constants.SURVIVAL_CRITERION,
-        "device": [str(d) for d in (scenario.batch_devices() if st.backend != "mujoco" else jax.devices()[:1])],
-        "n_devices": len(scenario.batch_devices()) if st.backend != "mujoco" else 1,
+        "device": [str(d) for d in devices],
+        "n_devices": len(devices),
         "versions": {"jax": jax.__version__, "mujoco": __import__("mujoco").__version__,
                      "wbc_jax": __import__("wbc_jax").__version__},
         "compile_s": round(compile_s, 2),

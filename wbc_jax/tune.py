@@ -139,7 +139,7 @@ def train(problem: Problem, out, *, progress: bool = True, step_fn=None):
         ma = step_fn.memory_analysis()
         if ma is not None:
             info.update(temp_mb=ma.temp_size_in_bytes / 2**20, argument_mb=ma.argument_size_in_bytes / 2**20)
-        info.update(device=str(jax.devices()[0]), n_devices=len(scenario.batch_devices()), batch=tc.batch, horizon_s=tc.horizon,
+        info.update(device=scenario.device_label(), n_devices=len(scenario.batch_devices()), batch=tc.batch, horizon_s=tc.horizon,
                     steps_per_rollout=problem.steps_per_rollout)  # fmt: skip
         io.atomic_write_json(info_path, info)
     wall = float(rows[-1]["wall_s"]) if rows else float(info.get("compile_s", 0.0))
@@ -216,7 +216,7 @@ def run(cfg: TuneConfig | None = None, *, lc: LossConfig | None = None, progress
     held = tuning_eval.evaluate_pushes(problem, sets, progress=progress)
     report = {"held_out": held, "budget": budget, "train": info, "config": dataclasses.asdict(tc),
               "loss": dataclasses.asdict(lc), "nava_2016": {k: nava_conditions(*v) for k, v in sets.items()},
-              "survival_criterion": tp.constants_used(), "device": str(jax.devices()[0]),
+              "survival_criterion": tp.constants_used(), "device": scenario.device_label(),
               "versions": {"jax": jax.__version__, "mujoco": __import__("mujoco").__version__}}  # fmt: skip
     io.atomic_write_json(out / "eval.json", report)
     return report

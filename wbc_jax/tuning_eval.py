@@ -325,7 +325,7 @@ def survival_prediction(problem: tp.Problem, n: int, *, gains=None, reg=None, ou
            "spearman_impulse_fraction": tuning_loss.spearman(rel, survived),
            "auc_impulse_fraction": tuning_loss.auc(rel, survived), "wall_s": round(wall, 1),
            "loss_train_horizon": train_loss.tolist(), "loss_full": full_loss.tolist(), "survived": survived.tolist(),
-           "impulse_fraction_of_envelope": rel.tolist(), "per_term_train_horizon": per_term, "device": str(jax.devices()[0])}  # fmt: skip
+           "impulse_fraction_of_envelope": rel.tolist(), "per_term_train_horizon": per_term, "device": scenario.device_label()}  # fmt: skip
     if out is not None:
         out = pathlib.Path(out)
         io.atomic_write_json(out / "prediction.json", res)
@@ -374,7 +374,7 @@ def write_heldout(path, results: dict, budgets: dict, *, extra: dict | None = No
     sinusoid_com_rmse_m, sim_steps, wall_s, device, the per-direction envelope, the unseen
     variations and the one-foot task), the targets, and the survival criterion used.
     ``budgets``: {name: {"sim_steps", "wall_s"}} of the tuning runs (0 for hand-set rows)."""
-    device = str(jax.devices()[0])
+    device = scenario.device_label()
     summary = {}
     for name, r in results.items():
         if name.startswith("_"):
