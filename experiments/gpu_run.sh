@@ -3,7 +3,7 @@
 # machine's own jax (never replacing it), then run the jobs named as arguments. Results go to
 # $OUT (one folder per job, log.txt), so a call that runs past its limit still returns what finished.
 #
-#   bash experiments/gpu_run.sh setup check bench sweep agree envelope soak
+#   bash experiments/gpu_run.sh setup check bench sweep agree envelope queue soak
 #
 # Carried folders (git-ignored): .wheels/ (mujoco, mujoco-mjx, trimesh, quadprog, evosax, dotmap),
 # and warp-lang 1.18.0 (the extra of mujoco-mjx, 149 MB as a wheel) as an xz tar of the wheel's
@@ -51,6 +51,17 @@ for job in "$@"; do
     envelope)  # bisection envelope (32 directions, 8 rounds) against the warp grid of 'agree'
       run envelope python3 experiments/envelope_check.py --grid /tmp/sw/agree_warp --out "$OUT/envelope" -- \
         --directions 32 --horizon 3 --backend warp ;;
+    queue)  # the 64 x 32 x 8 sweep on warp: plain, with 2 and 4 scenarios per batch slot (fallen robots retired),
+            # and plain at chunk 8192
+      for q in ${QUEUES:-1 2 4}; do
+        run queue_$q python3 experiments/sweep_timing.py --out "$OUT/queue_$q" --repeats 2 -- --magnitudes 10 400 64 \
+          --directions 32 --gain-sets 8 --horizon 3 --chunk-size 16384 --backend ${QUEUE_BACKEND:-warp} --queue $q
+      done
+      # the control: the plain sweep compiled at another chunk size (float32 rounding alone)
+      run queue_1c python3 experiments/sweep_timing.py --out "$OUT/queue_1c" --repeats 1 -- --magnitudes 10 400 64 \
+        --directions 32 --gain-sets 8 --horizon 3 --chunk-size 8192 --backend ${QUEUE_BACKEND:-warp}
+      run queue_check python3 experiments/queue_check.py "$OUT/queue_1" "$OUT/queue_1c" \
+        $(for q in ${QUEUES:-1 2 4}; do [ $q != 1 ] && echo "$OUT/queue_$q"; done) --out "$OUT/queue_check.json" ;;
     soak)  # hostile scenarios on warp
       run soak python3 experiments/soak.py --envs ${SOAK_ENVS:-1000000} --chunk 65536 --horizon ${SOAK_HORIZON:-0.5} \
         --backend warp --out "$OUT/soak" ;;

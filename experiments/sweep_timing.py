@@ -44,6 +44,7 @@ def main(argv=None) -> dict:
         s = sweep.run_sweep(dataclasses.replace(base, out=str(target)), progress=False)
         runs.append({"repeat": k, "compile_s": s["compile_s"], "run_s": s["run_s"], "wall_s": round(time.perf_counter() - t0, 2),
                      "physics_steps_per_s": s["physics_steps_per_s"], "survival_rate": s["survival_rate"],
+                     "physics_steps_simulated": s.get("physics_steps_simulated"),
                      "upright_rate": s["upright_rate"]})  # fmt: skip
         print(json.dumps(runs[-1]), flush=True)
     first = out / "run_0"

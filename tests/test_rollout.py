@@ -40,6 +40,24 @@ def test_c_mujoco_backend_equals_the_mjx_closed_loop(runs):
     assert m_c["upright"] and not m_c["nan"]
 
 
+def test_pipelined_host_batch_equals_environments_run_alone():
+    """An even batch without records runs as two halves in a pipeline (one half's controller beside
+    the other half's physics): each environment's metrics equal those of the same environment run
+    alone, a diverged one (NaN joints) is flagged and poisons nothing."""
+    st = scenario.setup("stand", duration=0.5, sim=rollout.SimConfig(record=False,
+                        physics=physics.PhysicsConfig(backend="mujoco")))  # fmt: skip
+    pushed = scenario.single(st, scenario.make_push(*PUSH, st.dtype))
+    broken = pushed.replace(joint_offset=np.full_like(pushed.joint_offset, np.nan))
+    both = jax.tree_util.tree_map(lambda a, b: np.concatenate([np.asarray(a), np.asarray(b)]), pushed, broken)
+    together = scenario.run(st, both).metrics
+    alone = [scenario.run(st, one).metrics for one in (pushed, broken)]
+    for k in range(2):
+        for name, value in vars(alone[k]).items():
+            np.testing.assert_array_equal(np.asarray(getattr(together, name))[k], np.asarray(value)[0], err_msg=name)
+    assert not bool(together.nan[0]) and bool(together.nan[1]) and int(together.ticks[0]) == 50
+    assert float(together.com_max_err[0]) > 1e-3  # the push moved the robot
+
+
 def test_recorded_push_and_host_wrenches(runs):
     st, run = runs["mujoco"]
     traj = run.records

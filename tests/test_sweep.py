@@ -50,7 +50,7 @@ SHARDED = textwrap.dedent(
     """
     import json, pathlib, sys
     import jax, numpy as np
-    from wbc_jax import scenario, sweep
+    from wbc_jax import metrics, scenario, sweep
     from wbc_jax.gains import default_gains
     backend = sys.argv[3]
     if backend == "jax":
@@ -74,9 +74,26 @@ SHARDED = textwrap.dedent(
     run = scenario.run(st, scen, batch_size=cfg.chunk_size)  # the sweep's compiled program
     again = scenario.run(st, scen, batch_size=cfg.chunk_size)
     m = run.metrics
-    print(json.dumps({"summary": {k: s[k] for k in ("n_envs", "upright_rate", "nan_envs", "n_devices", "backend")},
-                      "nan": np.asarray(m.nan).tolist(), "fell": np.asarray(m.fell).tolist(),
-                      "com_max": np.asarray(m.com_max_err).tolist(), "recompiled": again.compile_s > 0}))
+    res = {"summary": {k: s[k] for k in ("n_envs", "upright_rate", "nan_envs", "n_devices", "backend")},
+           "nan": np.asarray(m.nan).tolist(), "fell": np.asarray(m.fell).tolist(),
+           "com_max": np.asarray(m.com_max_err).tolist(), "recompiled": again.compile_s > 0}
+    if backend == "jax":
+        # Two scenarios per batch slot: 1,600 N (falls), 20 N (survives), NaN joints (diverges), 10 N
+        # (survives; it starts in the slot the fallen and the diverged robot left).
+        four, _ = sweep.build_scenarios(cfg, default_gains(), 23, scenario.float_dtype())
+        four = jax.tree_util.tree_map(lambda x: np.asarray(x)[[1, 0, 0, 0]].copy(), four)
+        four.push.force[0] *= 4  # 1,600 N for 0.1 s: down well before the end
+        four.joint_offset[2] = np.nan
+        four.push.force[3] *= 0.5
+        plain = scenario.run(st, four, batch_size=cfg.chunk_size).metrics
+        queued = scenario.run(st, four, batch_size=cfg.chunk_size, queue=2).metrics
+        cols = [metrics.summarize(x) for x in (plain, queued)]
+        res["queue"] = {
+            "outcomes": [[c[k].tolist() for k in ("survived", "upright", "fell", "nan")] for c in cols],
+            "ticks": [np.asarray(x.ticks).tolist() for x in (plain, queued)],
+            "survivors": [[float(c[k][i]) for i in (1, 3) for k in ("com_rmse_m", "max_abs_torque_nm")] for c in cols],
+        }
+    print(json.dumps(res))
     """
 )
 
@@ -103,6 +120,16 @@ def test_sweep_isolates_nan_and_resumes(tmp_path, backend):
     assert table.sort_values("magnitude_n")["upright"].tolist() == [True, False]
     assert res["nan"] == [False, True], "the NaN environment is flagged, the other is not"
     assert not res["fell"][0] and res["com_max"][0] < 0.05 and not res["recompiled"]
+    if backend == "jax":  # a queue of 2 scenarios per slot: the fallen and the diverged robot retire early
+        q = res["queue"]
+        assert q["outcomes"][0] == q["outcomes"][1] == [[False, True, False, True], [False, True, False, True],
+                                                        [True, False, False, False], [False, False, True, False]]  # fmt: skip
+        assert q["ticks"][0] == [80] * 4  # 0.8 s at 100 Hz
+        fall_ticks, survivor, nan_ticks, refilled = q["ticks"][1]
+        assert fall_ticks < 80 and fall_ticks % 20 == 0 and nan_ticks == 20  # decided at a check (every 20 ticks)
+        assert survivor == refilled == 80  # the refilled slot runs its new scenario's whole horizon
+        # float32 in this subprocess: the two programs round differently (measured 2.5e-6 relative).
+        np.testing.assert_allclose(q["survivors"][1], q["survivors"][0], rtol=1e-4)
     assert (out / "survival.png").exists() and (out / "envelope.png").exists()
     # Resume: a complete sweep is read back from its parts without recomputing.
     before = (out / "parts" / "part-00000.parquet").stat().st_mtime

@@ -128,7 +128,8 @@ def state_ok(qpos, qvel):
     """() True while the state is finite and its speeds physical (below
     :data:`wbc_jax.constants.DIVERGED_SPEED`); numpy or JAX arrays alike."""
     xp = jnp if isinstance(qpos, jax.Array) else np
-    return xp.all(xp.isfinite(qpos)) & xp.all(xp.isfinite(qvel)) & (xp.max(xp.abs(qvel)) < DIVERGED_SPEED)
+    # max |qvel| < DIVERGED_SPEED is False for a NaN or infinite speed: no separate finiteness check.
+    return xp.all(xp.isfinite(qpos)) & (xp.max(xp.abs(qvel)) < DIVERGED_SPEED)
 
 
 def floor_pairs(pair_geom1: np.ndarray, pair_geom2: np.ndarray) -> np.ndarray:
@@ -276,6 +277,7 @@ class HostBatch:
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
         self._lock = threading.Lock()
         self.diverged = np.zeros(self.B, bool)
+        self.checked = np.zeros(self.B, bool)  # state known sound (checked after the last step)
 
     def close(self):
         if self._pool is not None:
@@ -292,25 +294,26 @@ class HostBatch:
         becomes non-finite is restored to its state before the call and marked in ``diverged``."""
         ctrl = np.asarray(ctrl, float)
         xfrc = np.asarray(xfrc, float)
+        steps = xfrc.shape[1]
+        ctrl_ok = np.all(np.isfinite(ctrl), axis=1)
+        # Where each env's wrenches change between steps: runs of equal wrenches go in one call.
+        changes = np.any(xfrc[:, 1:] != xfrc[:, :-1], axis=(2, 3))
 
         def run(envs):
             for i in envs:
                 m, d = self.models[i], self.data[i]
                 if self.diverged[i]:
                     continue
-                if not (np.all(np.isfinite(ctrl[i])) and state_ok(d.qpos, d.qvel)):
+                if not (ctrl_ok[i] and (self.checked[i] or state_ok(d.qpos, d.qvel))):
                     self.diverged[i] = True  # flagged before C MuJoCo warns about it
                     continue
                 saved = (d.time, d.qpos.copy(), d.qvel.copy(), d.qacc_warmstart.copy())
                 d.ctrl[:] = ctrl[i]
-                j, steps = 0, xfrc.shape[1]
-                while j < steps:  # runs of equal wrenches in one call
-                    k = j + 1
-                    while k < steps and np.array_equal(xfrc[i, k], xfrc[i, j]):
-                        k += 1
+                bounds = [0, *(np.flatnonzero(changes[i]) + 1), steps]
+                for j, k in zip(bounds[:-1], bounds[1:]):
                     d.xfrc_applied[:] = xfrc[i, j]
                     mujoco.mj_step(m, d, nstep=k - j)
-                    j = k
+                self.checked[i] = True  # the state below is checked
                 if not state_ok(d.qpos, d.qvel):
                     d.time, d.qpos[:], d.qvel[:], d.qacc_warmstart[:] = saved
                     mujoco.mj_forward(m, d)

@@ -11,7 +11,9 @@ vmap it over scenarios, differentiate it (``jax``). With C MuJoCo (``mujoco``) t
 Python loop: the jitted, vmapped ``control`` and the threaded C physics alternate
 (:meth:`ClosedLoop.run_host`). Both paths compute the controller and the metrics with the same
 code. A diverged environment (NaN) is frozen at its last finite state and flagged; a fall is
-flagged and the simulation goes on, so one bad environment never poisons a batch.
+flagged and the simulation goes on, so one bad environment never poisons a batch. A sweep may
+instead queue several scenarios per batch slot (:meth:`ClosedLoop.rollout_queue`): a fallen or
+diverged robot is retired and its slot starts the next scenario.
 """
 
 from __future__ import annotations
@@ -20,7 +22,9 @@ import dataclasses
 import functools
 import hashlib
 import math
+import os
 import time
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -409,17 +413,92 @@ class ClosedLoop:
         (d, state, ok), records = self.chunk(plant, gains, push, carry, 0, self.n_ticks)
         return metrics_lib.final(state.metrics, ok), records
 
+    def rollout_queue(self, plant_of: Callable, qpos0: Array, scens: Scenario, slot: Array, segment: int,
+                      axis_name: str, batch: int = 1):  # fmt: skip
+        """One of S batch slots (``jax.vmap`` over ``slot`` with ``axis_name``) working through a
+        shared queue of N scenarios on an MJX backend; returns the N scenarios' Metrics.
+
+        Slot s starts scenario s. Each scenario runs until it has fallen or diverged (its outcome
+        is then decided: neither upright nor survived) or reaches the horizon; every ``segment``
+        ticks (static, a divisor of the horizon's) the slots whose scenario is decided hand in its
+        metrics and take the next pending scenarios in slot order, so the batch stops paying
+        solver iterations for robots on the floor. The loop runs until the queue is empty, with
+        one predicate for all slots (a per-slot predicate would make JAX merge the loop's carry
+        leaf by leaf, which Warp's batch-shared contact buffer does not allow). Each slot keeps its
+        own tick, so the tick is batched under vmap: the force distribution's contact-ramp branch
+        (:func:`wbc_jax.forces.distribute`) then runs as a select, both QPs every tick, which
+        makes a queued tick dearer than a plain one (BENCHMARKS.md).
+
+        Args:
+          plant_of: Scenario -> MJX model simulated (the nominal one, or perturbed).
+          qpos0: (nq,) nominal initial posture.
+          scens: the queue, Scenario with a leading axis N (the same for every slot).
+          slot: () this slot's index s < N (the vmapped argument).
+          segment: ticks between hand-ins.
+          axis_name: the vmap axis of the slots.
+          batch: environments run together (Warp's contact buffer).
+
+        Returns:
+          Metrics with a leading axis N, not mapped over the slots (``out_axes=None``). A retired
+          environment's metrics cover its ticks up to the hand-in (``ticks``); the others equal
+          :meth:`rollout`'s.
+        """
+        if self.n_ticks % segment:
+            raise ValueError(f"segment {segment} must divide the horizon's {self.n_ticks} ticks")
+        N = int(jax.tree_util.tree_leaves(scens)[0].shape[0])
+        pick = lambda i: jax.tree_util.tree_map(lambda x: x[jnp.minimum(i, N - 1)], scens)  # noqa: E731
+
+        def fresh(i):
+            return self.start(self.initial_qpos(qpos0, pick(i).joint_offset), batch)
+
+        def select(decided, new, old):
+            d = old[0].where(decided, new[0])  # Data.where: Warp's batch-shared buffers stay whole
+            rest = jax.tree_util.tree_map(lambda a, b: jnp.where(decided, a, b), new[1:], old[1:])
+            return (d, *rest)
+
+        carry = fresh(slot)
+        outcome = metrics_lib.final(carry[1].metrics, carry[2])
+        out = jax.tree_util.tree_map(lambda x: jnp.zeros((N, *x.shape), x.dtype), outcome)
+        gather = lambda x: jax.lax.all_gather(x, axis_name)  # noqa: E731  (S, ...) the same in every slot
+
+        def body(loop_state):
+            idx, k, carry, out, next_free = loop_state
+            s = pick(idx)
+            carry, _ = self.chunk(plant_of(s), s.gains, s.push, carry, k, segment)
+            k = k + segment
+            met = metrics_lib.final(carry[1].metrics, carry[2])
+            decided = (met.fell | met.nan | (k >= self.n_ticks)) & (idx < N)
+            flags = gather(decided)
+            rows = jnp.where(flags, gather(idx), N)  # N: out of bounds, dropped
+            out = jax.tree_util.tree_map(lambda o, m: o.at[rows].set(m, mode="drop"), out, gather(met))
+            counts = flags.astype(jnp.int32)
+            rank = (jnp.cumsum(counts, dtype=jnp.int32) - counts)[jax.lax.axis_index(axis_name)]
+            new_idx = jnp.where(decided, next_free + rank, idx)
+            carry = select(decided & (new_idx < N), fresh(new_idx), carry)
+            return new_idx, jnp.where(decided, 0, k), carry, out, next_free + jnp.sum(counts, dtype=jnp.int32)
+
+        def pending(loop_state):
+            return jnp.any(gather(loop_state[0]) < N)
+
+        S = jax.lax.psum(1, axis_name)
+        start = (jnp.asarray(slot, jnp.int32), jnp.zeros((), jnp.int32), carry, out, jnp.asarray(S, jnp.int32))
+        return jax.lax.while_loop(pending, body, start)[3]
+
     # -- C MuJoCo: ticks in a Python loop -----------------------------------------------------
 
     def run_host(self, scen: Scenario, qpos0: np.ndarray, dtype, *, on_tick=None, threads: int | None = None):
         """Every tick of a batch of B environments on C MuJoCo (``mujoco`` backend).
+
+        An even batch of 2 or more without records runs as two halves in a pipeline: while XLA
+        computes one half's controller (one core), C MuJoCo steps the other half (the other
+        cores), so the controller and the physics overlap; one XLA execution at a time.
 
         Args:
           scen: Scenario with a leading batch axis B (numpy or JAX arrays).
           qpos0: (nq,) nominal initial posture (each env adds its joint offset).
           dtype: the controller's float dtype.
           on_tick: called with the number of ticks done (progress bars).
-          threads: C MuJoCo worker threads (None: all cores).
+          threads: C MuJoCo worker threads (None: all cores, one fewer when pipelined).
 
         Returns:
           (Metrics with a batch axis, records with axes (B, T, ...) or None, seconds compiling).
@@ -433,37 +512,65 @@ class ClosedLoop:
                 for f, s in zip(scen.friction, scen.mass_scale, strict=True)
             ]
         else:
-            models = base
+            models = [base] * B
         qpos = np.asarray(qpos0, float)[None].repeat(B, 0)
         qpos[:, self.idx.qpos_joints] += scen.joint_offset
         cast = lambda x: jnp.asarray(x, dtype if np.asarray(x).dtype.kind == "f" else None)  # noqa: E731
-        gains = jax.tree_util.tree_map(cast, scen.gains)
-        push = jax.tree_util.tree_map(cast, scen.push)
-        fns, compile_s = self._host_programs(gains, cast(qpos), push)
-        state = fns["init"](cast(qpos))
-        host = physics.HostBatch(models, qpos, threads)
-        ok = np.ones(B, bool)
+        pipelined = B >= 2 and B % 2 == 0 and not (self.cfg.record or self.observes_contacts)
+        parts = [slice(0, B // 2), slice(B // 2, B)] if pipelined else [slice(0, B)]
+        take = lambda tree, part: jax.tree_util.tree_map(lambda x: cast(np.asarray(x)[part]), tree)  # noqa: E731
+        gains = [take(scen.gains, part) for part in parts]
+        push = [take(scen.push, part) for part in parts]
+        fns, compile_s = self._host_programs(gains[0], cast(qpos[parts[0]]), push[0])
+        states = [fns["init"](cast(qpos[part])) for part in parts]
+        cores = threads or os.cpu_count() or 1
+        hosts = [physics.HostBatch(models[part], qpos[part], max(1, cores - 1) if pipelined else cores)
+                 for part in parts]  # fmt: skip
         records = []
         n_con = physics.max_contacts(self.robot.mj_model)
+
+        def control(h, k):  # dispatched: XLA computes while the caller goes on
+            q, v = hosts[h].state()
+            return fns["control"](gains[h], states[h], cast(q), cast(v), np.int32(k), ~hosts[h].diverged, push[h])
+
+        def physics_tick(h, out):
+            states[h], ctrl, record, forces, bodies = out
+            hosts[h].step(np.asarray(ctrl, float), self._host_xfrc(forces, bodies))
+            return record
+
         try:
-            for k in range(self.n_ticks):
-                q, v = host.state()
-                state, ctrl, record, forces, bodies = fns["control"](
-                    gains, state, cast(q), cast(v), np.int32(k), ok, push
-                )
-                host.step(np.asarray(ctrl, float), self._host_xfrc(forces, bodies))
-                ok = ~host.diverged
-                if self.cfg.record or self.observes_contacts:
-                    slots = host.contacts(n_con)
-                    if self.cfg.record:
-                        records.append(fns["measure"](record, *slots))
-                    if self.observes_contacts:
-                        state = fns["observe"](state, *slots)
-                if on_tick is not None:
-                    on_tick(k + 1)
+            if pipelined:
+                # C0(k+1) and C1(k) each run beside the other half's physics of tick k.
+                out0 = jax.block_until_ready(control(0, 0))
+                for k in range(self.n_ticks):
+                    out1 = control(1, k)
+                    physics_tick(0, out0)
+                    jax.block_until_ready(out1)
+                    if k + 1 < self.n_ticks:
+                        out0 = control(0, k + 1)
+                    physics_tick(1, out1)
+                    if k + 1 < self.n_ticks:
+                        jax.block_until_ready(out0)
+                    if on_tick is not None:
+                        on_tick(k + 1)
+            else:
+                for k in range(self.n_ticks):
+                    record = physics_tick(0, control(0, k))
+                    if self.cfg.record or self.observes_contacts:
+                        slots = hosts[0].contacts(n_con)
+                        if self.cfg.record:
+                            records.append(fns["measure"](record, *slots))
+                        if self.observes_contacts:
+                            states[0] = fns["observe"](states[0], *slots)
+                    if on_tick is not None:
+                        on_tick(k + 1)
         finally:
-            host.close()
-        metrics = state.metrics.replace(nan=state.metrics.nan | jnp.asarray(host.diverged))
+            for host in hosts:
+                host.close()
+        diverged = np.concatenate([host.diverged for host in hosts])
+        metrics = jax.tree_util.tree_map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]),
+                                         *[state.metrics for state in states])  # fmt: skip
+        metrics = metrics.replace(nan=metrics.nan | diverged)
         if not records:
             return metrics, None, compile_s
         stacked = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs], axis=1), *records)

@@ -36,6 +36,10 @@ from wbc_jax.controller import ControllerConfig, make_controller
 from wbc_jax.gains import Gains, default_gains, validate_gains
 from wbc_jax.rollout import Push, Scenario, SimConfig
 
+# A queued run (scenarios per batch slot) checks which robots are decided every this many ticks
+# at most (the largest divisor of the horizon's ticks up to it): 0.25 s at 100 Hz.
+QUEUE_CHECK_TICKS = 25
+
 
 def enable_compilation_cache(path: str | os.PathLike | None = None) -> pathlib.Path:
     """Turn on JAX's persistent compilation cache (``$WBC_JAX_CACHE`` or the user's cache
@@ -230,17 +234,35 @@ class Run:
     run_s: float
 
 
+def check_queue(queue, backend: str, record: bool = False) -> None:
+    """A queue length (scenarios per batch slot, :meth:`wbc_jax.rollout.ClosedLoop.rollout_queue`)
+    that can run on ``backend``; a clear error otherwise."""
+    if isinstance(queue, bool) or not isinstance(queue, int) or queue < 1:
+        raise ValueError(f"queue must be a whole number >= 1 (scenarios per batch slot), got {queue!r}")
+    if queue > 1 and backend == "mujoco":
+        raise ValueError("a queue of scenarios per batch slot (queue > 1) needs an MJX backend: --backend jax or warp")
+    if queue > 1 and record:
+        raise ValueError("a queue of scenarios per batch slot (queue > 1) cannot record trajectories")
+
+
 def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
-        on_tick: Callable[[int], None] | None = None) -> Run:  # fmt: skip
+        on_tick: Callable[[int], None] | None = None, queue: int = 1) -> Run:  # fmt: skip
     """Run the closed loop over a Scenario batch (leading axis B) on the setup's backend.
 
     ``batch_size``: the compiled batch shape (B is padded up to it; None: B). ``on_tick``: called
-    with the ticks done (C MuJoCo and chunked MJX runs), for progress bars."""
+    with the ticks done (C MuJoCo and chunked MJX runs), for progress bars. ``queue``: scenarios
+    per batch slot (MJX backends): the batch runs ceil(size / queue) slots, each retiring fallen
+    or diverged robots and starting its next scenario (:meth:`ClosedLoop.rollout_queue`); the
+    outcomes equal those of the plain run, and a retired environment's metrics stop at its
+    retirement (``ticks``)."""
     loop = setup_.loop
+    check_queue(queue, loop.backend, loop.cfg.record)
     B = int(np.asarray(scen.friction).shape[0])
     size = B if batch_size is None else max(batch_size, B)
     padded = pad_batch(jax.tree_util.tree_map(np.asarray, scen), size)
-    if loop.backend == "mujoco":
+    if queue > 1:
+        out = _run_mjx_queue(setup_, padded, queue)
+    elif loop.backend == "mujoco":
         if jax.process_count() > 1:
             raise ValueError(
                 "a run over several processes (jax.distributed) needs an MJX backend: --backend jax or warp"
@@ -256,6 +278,16 @@ def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
     return out
 
 
+def _global_batch(tree, sharding: NamedSharding, dtype):
+    """Global arrays (floats in ``dtype``) from the full batch every process holds: one process, or
+    several after jax.distributed.initialize(), each filling the shards of its own devices."""
+    floats = lambda x: np.asarray(x, dtype) if np.asarray(x).dtype.kind == "f" else np.asarray(x)  # noqa: E731
+    return jax.tree_util.tree_map(
+        lambda x: jax.make_array_from_callback(x.shape, sharding, lambda i, x=x: x[i]),
+        jax.tree_util.tree_map(floats, tree),
+    )
+
+
 def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
     """MJX backends: jit(vmap(closed loop)) over the batch, sharded along it. A run without
     records is one program (Warp's data never leaves it: its contact buffer is shared by the
@@ -267,13 +299,7 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
     batch = int(padded.friction.shape[0])
     sharding = NamedSharding(mesh, PartitionSpec("batch"))
     replicated = NamedSharding(mesh, PartitionSpec())
-    floats = lambda x: np.asarray(x, dtype) if np.asarray(x).dtype.kind == "f" else np.asarray(x)  # noqa: E731
-    # Global arrays from the full batch every process holds (one process, or several after
-    # jax.distributed.initialize(): each fills the shards of its own devices).
-    scen_dev = jax.tree_util.tree_map(
-        lambda x: jax.make_array_from_callback(x.shape, sharding, lambda i, x=x: x[i]),
-        jax.tree_util.tree_map(floats, padded),
-    )
+    scen_dev = _global_batch(padded, sharding, dtype)
     qpos0 = jnp.asarray(setup_.qpos0, dtype)
     nominal = physics.device_model(setup_.robot.mj_model, loop.backend, loop.cfg.physics)
     perturb = loop.cfg.perturb_plant
@@ -333,6 +359,44 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
     metrics = jax.tree_util.tree_map(_to_host, metrics_lib.final(carry[1].metrics, carry[2]))
     records = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=1), *pieces)
     return Run(metrics, records, compile_s, time.perf_counter() - t0)
+
+
+def _run_mjx_queue(setup_: Setup, scen: Scenario, queue: int, check_ticks: int = QUEUE_CHECK_TICKS) -> Run:
+    """MJX backends, a shared queue: S = ceil(size / queue) batch slots (a multiple of the device
+    count) work through the batch's scenarios in order (:meth:`ClosedLoop.rollout_queue`), jit(vmap)
+    over the slots, sharded along them; the scenarios and results are replicated. ``check_ticks``:
+    the most ticks between hand-ins (``experiments/queue_overhead.py`` varies it)."""
+    loop, dtype = setup_.loop, setup_.dtype
+    mesh = device_mesh()
+    n_dev = mesh.devices.size
+    size = int(scen.friction.shape[0])
+    slots = min(math.ceil(math.ceil(size / queue) / n_dev) * n_dev, size + (-size) % n_dev)
+    padded = pad_batch(scen, max(size, slots))
+    replicated = NamedSharding(mesh, PartitionSpec())
+    scen_dev = _global_batch(padded, replicated, dtype)
+    slot_ids = _global_batch(np.arange(slots, dtype=np.int32), NamedSharding(mesh, PartitionSpec("batch")), dtype)
+    qpos0 = jnp.asarray(setup_.qpos0, dtype)
+    nominal = physics.device_model(setup_.robot.mj_model, loop.backend, loop.cfg.physics)
+    perturb = loop.cfg.perturb_plant
+    segment = _tick_chunk(loop.n_ticks, target=check_ticks)
+    key = ("mjx-queue", loop.structure_key, int(padded.friction.shape[0]), slots, segment, str(dtype), n_dev)
+    cache = rollout_lib.PROGRAMS
+    compile_s = 0.0
+    t0 = time.perf_counter()
+    if key not in cache:
+
+        def plant_of(x):
+            return physics.plant_model(nominal, x.friction, x.mass_scale) if perturb else nominal
+
+        def slot(i, s):
+            return loop.rollout_queue(plant_of, qpos0, s, i, segment, "slots", batch=slots // n_dev)
+
+        program = jax.vmap(slot, in_axes=(0, None), out_axes=None, axis_name="slots")
+        cache[key] = jax.jit(program, out_shardings=replicated).lower(slot_ids, scen_dev).compile()
+        compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    metrics = jax.tree_util.tree_map(lambda x: _to_host(x)[:size], cache[key](slot_ids, scen_dev))
+    return Run(metrics, None, compile_s, time.perf_counter() - t0)
 
 
 def _to_host(x) -> np.ndarray:

@@ -93,6 +93,10 @@ class SweepConfig:
     seed: int = option(0, "seed of the random perturbations")
     tasks: str | None = option(None, "task/contact file (JSON/YAML), as balance --tasks", metavar="FILE")
     chunk_size: int = option(12, "environments per compiled batch")
+    queue: int = option(
+        1, "scenarios per batch slot (MJX backends): a fallen or diverged robot is retired and its slot "
+        "starts the next scenario; same outcomes, fewer physics steps (1: off)",
+    )  # fmt: skip
     backend: str = option("auto", "physics engine (auto: C MuJoCo on a CPU, MJX-Warp/JAX on a GPU)",
                           choices=physics.BACKENDS)  # fmt: skip
     out: str = option("runs/push_sweep", "output folder (a sweep resumes there)")
@@ -115,7 +119,7 @@ class SweepConfig:
             raise ValueError(
                 f"--horizon {self.horizon} s must end after the push ({self.push_onset} + {self.push_duration} s)"
             )
-        for name in ("gain_sets", "chunk_size"):
+        for name in ("gain_sets", "chunk_size", "queue"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be a whole number >= 1, got {value!r}")
@@ -283,6 +287,7 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
     base = base_gains(cfg, robot.index.n, dtype)
     robot.index.body_id(cfg.body)
     st = make_setup(cfg, base, robot_name=robot_name)
+    scenario.check_queue(cfg.queue, st.backend)
     scen, columns = build_scenarios(cfg, base, robot.index.n, dtype)
     # With several processes (jax.distributed), each computes every chunk with its devices' share
     # and gathers the results; the first process writes them.
@@ -294,7 +299,7 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
     n_chunks = math.ceil(cfg.size / cfg.chunk_size)
     parts = out / "parts"
     compile_s = run_s = 0.0
-    done_envs = 0
+    done_envs = simulated_ticks = 0
     tables = []
     with tqdm(total=cfg.size, unit="env", disable=not progress, desc=f"sweep ({st.backend})") as bar:
         for c in range(n_chunks):
@@ -303,10 +308,11 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
             table = _read_part(part, lo, hi)
             if table is None:
                 chunk = jax.tree_util.tree_map(lambda x, lo=lo, hi=hi: np.asarray(x)[lo:hi], scen)
-                result = scenario.run(st, chunk, batch_size=cfg.chunk_size)
+                result = scenario.run(st, chunk, batch_size=cfg.chunk_size, queue=cfg.queue)
                 compile_s += result.compile_s
                 run_s += result.run_s
                 done_envs += hi - lo
+                simulated_ticks += int(np.sum(result.metrics.ticks))
                 cols = metrics_lib.summarize(result.metrics, push_end)
                 table = pd.DataFrame({"env": np.arange(lo, hi), **{k: v[lo:hi] for k, v in columns.items()}, **cols})
                 if writer:
@@ -329,7 +335,9 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
                      "wbc_jax": __import__("wbc_jax").__version__},
         "compile_s": round(compile_s, 2),
         "run_s": round(run_s, 2),
+        # Steps of the whole grid per second of run (with a queue, fewer were simulated).
         "physics_steps_per_s": (done_envs * steps_per_env / run_s) if run_s > 0 else None,
+        "physics_steps_simulated": simulated_ticks * st.loop.n_sub,
         "gains": gains_to_dict(base),
     })  # fmt: skip
     if writer:

@@ -1,0 +1,64 @@
+"""What the queue's machinery costs by itself (issue: GPU throughput, retire-and-refill).
+
+    python experiments/queue_overhead.py --out runs/queue_overhead -- [push-sweep flags]
+
+Runs the sweep's scenarios as one batch three ways in one process, each timed twice after its
+compile: the plain program, and the queue program (``scenario._run_mjx_queue``) with one
+scenario per slot, checking every 25 ticks and every 100: no robot is refilled there, so any
+difference from the plain program is the queue's own cost (segments, hand-ins, resets). Writes
+queue_overhead.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+import numpy as np  # noqa: E402
+
+from wbc_jax import cli, io, scenario, sweep  # noqa: E402
+from wbc_jax.gains import default_gains  # noqa: E402
+
+
+def main(argv=None) -> dict:
+    argv = sys.argv[1:] if argv is None else argv
+    split = argv.index("--") if "--" in argv else len(argv)
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", default="runs/queue_overhead")
+    p.add_argument("--repeats", type=int, default=2)
+    args = p.parse_args(argv[:split])
+    cfg = cli.config_from_args(
+        cli.build_parser().parse_args(["push-sweep", *argv[split + 1 :]]), sweep.default_config()
+    )
+    cfg.check()
+    scenario.enable_compilation_cache()
+    dtype = scenario.float_dtype()
+    st = sweep.make_setup(cfg, default_gains(23, dtype))
+    scen, _ = sweep.build_scenarios(cfg, default_gains(), 23, dtype)
+    variants = {
+        "plain": lambda: scenario.run(st, scen),
+        "queue1_check25": lambda: scenario._run_mjx_queue(st, scenario.pad_batch(scen, cfg.size), 1, 25),
+        "queue1_check100": lambda: scenario._run_mjx_queue(st, scenario.pad_batch(scen, cfg.size), 1, 100),
+    }
+    result = {
+        "n_envs": cfg.size,
+        "backend": st.loop.backend,
+        "command": "python experiments/queue_overhead.py " + " ".join(argv),
+    }
+    for name, fn in variants.items():
+        runs = [fn() for _ in range(args.repeats + 1)]
+        survived = [float(np.mean(~np.asarray(r.metrics.fell) & ~np.asarray(r.metrics.nan))) for r in runs]
+        result[name] = {"compile_s": runs[0].compile_s, "run_s": [r.run_s for r in runs], "upright_rate": survived}
+        print(name, json.dumps(result[name]), flush=True)
+    out = pathlib.Path(args.out)
+    io.atomic_write_json(out / "queue_overhead.json", result)
+    return result
+
+
+if __name__ == "__main__":
+    main()
