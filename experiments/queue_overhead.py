@@ -31,6 +31,7 @@ def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", default="runs/queue_overhead")
     p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--variants", nargs="+", default=["plain", "queue1_check25", "queue1_check100"])
     args = p.parse_args(argv[:split])
     cfg = cli.config_from_args(
         cli.build_parser().parse_args(["push-sweep", *argv[split + 1 :]]), sweep.default_config()
@@ -50,7 +51,8 @@ def main(argv=None) -> dict:
         "backend": st.loop.backend,
         "command": "python experiments/queue_overhead.py " + " ".join(argv),
     }
-    for name, fn in variants.items():
+    for name in args.variants:
+        fn = variants[name]
         runs = [fn() for _ in range(args.repeats + 1)]
         survived = [float(np.mean(~np.asarray(r.metrics.fell) & ~np.asarray(r.metrics.nan))) for r in runs]
         result[name] = {"compile_s": runs[0].compile_s, "run_s": [r.run_s for r in runs], "upright_rate": survived}

@@ -2,6 +2,7 @@
 kinematics against the feet terms, the force distribution against its constraints and against the
 two-feet QP, a short closed loop with the measured hand force, and clear errors for bad input."""
 
+import dataclasses
 import math
 
 import jax
@@ -187,6 +188,15 @@ def test_activation_ramps():
     )  # fmt: skip
     a = [float(contacts.activation_at(c, t, jnp.ones(2), jnp.float64)) for t in (0.9, 1.25, 1.5, 2.9, 3.25, 3.6)]
     np.testing.assert_allclose(a, [0, 0.5, 1, 1, 0.5, 0], atol=1e-12)
+    # On from before the first tick and never off: 1, and not a function of a batched time (a
+    # queued sweep's slots each keep their own tick; vmap with out_axes=None refuses a batched output).
+    ts = jnp.linspace(0.0, 5.0, 7)
+    for act in (contacts.ContactActivation(), contacts.ContactActivation(start=-1.0, ramp=0.5)):
+        on = dataclasses.replace(c, activation=act)
+        a = jax.vmap(lambda t, on=on: contacts.activation_at(on, t, jnp.ones(2), jnp.float64), out_axes=None)(ts)
+        assert float(a) == 1.0
+    with pytest.raises(ValueError, match="out_axes"):  # a ramping contact depends on the time
+        jax.vmap(lambda t: contacts.activation_at(c, t, jnp.ones(2), jnp.float64), out_axes=None)(ts)
 
 
 @pytest.mark.parametrize(

@@ -386,7 +386,11 @@ def activation_at(c: ResolvedContact, t: Array, foot_activation: Array, dtype) -
     """Activation () of one contact at time t (feet: times the schedule's ``foot_activation`` (2,))."""
     a = c.activation
     t = jnp.asarray(t, dtype)
-    if a.ramp > 0:
+    if a.start + a.ramp <= 0.0 and not math.isfinite(a.stop):
+        # Fully on from the first tick (t >= 0) and never off: a constant, not a function of t, so
+        # a branch on it (forces.distribute) stays a branch when t is batched (queued sweeps).
+        up, down = jnp.ones((), dtype), 0.0
+    elif a.ramp > 0:
         up = constants.min_jerk((t - a.start) / a.ramp)[0]
         down = constants.min_jerk((t - a.stop) / a.ramp)[0] if math.isfinite(a.stop) else 0.0
     else:

@@ -425,9 +425,10 @@ class ClosedLoop:
         solver iterations for robots on the floor. The loop runs until the queue is empty, with
         one predicate for all slots (a per-slot predicate would make JAX merge the loop's carry
         leaf by leaf, which Warp's batch-shared contact buffer does not allow). Each slot keeps its
-        own tick, so the tick is batched under vmap: the force distribution's contact-ramp branch
-        (:func:`wbc_jax.forces.distribute`) then runs as a select, both QPs every tick, which
-        makes a queued tick dearer than a plain one (BENCHMARKS.md).
+        own tick, so the tick is batched under vmap and a branch on the time runs both sides: the
+        force distribution's contact-ramp branch (:func:`wbc_jax.forces.distribute`) stays a
+        branch only because a contact that never ramps has a constant activation
+        (:func:`wbc_jax.contacts.activation_at`; BENCHMARKS.md).
 
         Args:
           plant_of: Scenario -> MJX model simulated (the nominal one, or perturbed).
