@@ -9,7 +9,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from wbc_jax import sweep
+from wbc_jax import scenario, sweep
 from wbc_jax.gains import default_gains
 
 
@@ -22,6 +22,12 @@ def test_bad_sweep_input_is_rejected_before_compiling(robot, tmp_path):
         sweep.SweepConfig(push_duration=-0.1).check()
     with pytest.raises(ValueError, match=r"unknown body 'nose'.*chest"):
         sweep.run_sweep(sweep.SweepConfig(body="nose", out=str(tmp_path / "s")), progress=False)
+    with pytest.raises(ValueError, match="--queue must be a whole number >= 1, got 0"):
+        sweep.SweepConfig(queue=0).check()
+    with pytest.raises(ValueError, match="needs an MJX backend: --backend jax or warp"):
+        sweep.run_sweep(sweep.SweepConfig(queue=2, backend="mujoco", out=str(tmp_path / "s")), progress=False)
+    with pytest.raises(ValueError, match="cannot record"):
+        scenario.check_queue(2, "jax", record=True)
     assert not (tmp_path / "s").exists()  # nothing written
 
 
