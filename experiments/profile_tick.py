@@ -5,7 +5,8 @@
 Times each stage of the controller tick on its own, jitted and vmapped over ``--batch`` states
 near the standing posture, on this device: the dynamics terms (kinematics, its derivative, mass
 matrix, bias), the contact terms and momentum task, the torque law, the force distribution (the
-contact QPs), and the whole tick; then one MJX physics step of the same batch for scale. Each
+contact QPs; and its first QP alone, without the soft fallback that vmap runs for every
+environment), and the whole tick; then one MJX physics step of the same batch for scale. Each
 figure is the fastest of --repeats runs after a warm-up, in microseconds per environment.
 ``--trace DIR`` also writes a JAX profiler (Perfetto) trace of the whole tick, whose stages carry
 ``jax.named_scope`` names.
@@ -81,6 +82,13 @@ def main(argv=None) -> dict:
         w = jnp.asarray([5.0, -3.0, 9.81 * st.robot.index.mass, 0.5, -1.0, 0.2], dtype)
         return forces.distribute(cset, ct.activation, A, w, tt, ct.W_R, settings)
 
+    def stage_equality_qp(t, tt):  # the distribution's first QP alone, without its soft fallback
+        ref = ref_at(0.5)
+        ct = contacts.contact_terms(cset, t, 0.5, ref.activation)
+        A = forces.wrench_map(cset, ct.W_p, t.W_p_CoM)
+        w = jnp.asarray([5.0, -3.0, 9.81 * st.robot.index.mass, 0.5, -1.0, 0.2], dtype)
+        return forces.momentum_equality_qp(cset, jnp.ones_like(ct.activation), A, w, tt, ct.W_R, settings)[0]
+
     def whole_tick(q, v):
         return ctrl.step(gains, state0.controller, loop.terms(q, v), ref_at(0.5), jnp.asarray(0.5, dtype))[0].tau
 
@@ -94,6 +102,12 @@ def main(argv=None) -> dict:
     result["us_per_env"]["torque_law"] = us(timed(vtt, t_batch, repeats=args.repeats))
     result["us_per_env"]["force_distribution"] = us(
         timed(jax.jit(jax.vmap(stage_forces)), t_batch, tt_batch, repeats=args.repeats)
+    )
+    # Under vmap the soft QP (the fallback when the first is infeasible) runs for every
+    # environment: the lax.cond on a batched predicate becomes a select. The difference between
+    # these two figures is what that costs.
+    result["us_per_env"]["force_distribution_first_qp_only"] = us(
+        timed(jax.jit(jax.vmap(stage_equality_qp)), t_batch, tt_batch, repeats=args.repeats)
     )
     vw = jax.jit(jax.vmap(whole_tick))
     result["us_per_env"]["whole_tick"] = us(timed(vw, qpos, qvel, repeats=args.repeats))
