@@ -21,8 +21,7 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
-from wbc_jax import cli, io, scenario, sweep  # noqa: E402
-from wbc_jax.gains import default_gains  # noqa: E402
+from wbc_jax import cli, io, model, scenario, sweep  # noqa: E402
 
 
 def main(argv=None) -> dict:
@@ -33,18 +32,17 @@ def main(argv=None) -> dict:
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--variants", nargs="+", default=["plain", "queue1_check25", "queue1_check100"])
     args = p.parse_args(argv[:split])
-    cfg = cli.config_from_args(
-        cli.build_parser().parse_args(["push-sweep", *argv[split + 1 :]]), sweep.default_config()
-    )
-    cfg.check()
+    cfg = cli.push_sweep_config(argv[split + 1 :])
     scenario.enable_compilation_cache()
     dtype = scenario.float_dtype()
-    st = sweep.make_setup(cfg, default_gains(23, dtype))
-    scen, _ = sweep.build_scenarios(cfg, default_gains(), 23, dtype)
+    n = model.load_robot("icub").index.n  # the robot run_sweep loads
+    base = sweep.base_gains(cfg, n, dtype)  # the sweep's own: --gains or the defaults
+    st = sweep.make_setup(cfg, base)
+    scen, _ = sweep.build_scenarios(cfg, base, n, dtype)
     variants = {
         "plain": lambda: scenario.run(st, scen),
-        "queue1_check25": lambda: scenario._run_mjx_queue(st, scenario.pad_batch(scen, cfg.size), 1, 25),
-        "queue1_check100": lambda: scenario._run_mjx_queue(st, scenario.pad_batch(scen, cfg.size), 1, 100),
+        "queue1_check25": lambda: scenario._run_mjx_queue(st, scen, 1, 25),
+        "queue1_check100": lambda: scenario._run_mjx_queue(st, scen, 1, 100),
     }
     result = {
         "n_envs": cfg.size,

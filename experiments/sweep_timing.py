@@ -31,9 +31,7 @@ def main(argv=None) -> dict:
     p.add_argument("--out", default="runs/sweep_timing")
     p.add_argument("--repeats", type=int, default=2)
     args = p.parse_args(argv[:split])
-    parsed = cli.build_parser().parse_args(["push-sweep", *argv[split + 1 :]])
-    base = cli.config_from_args(parsed, sweep.default_config())
-    base.check()
+    base = cli.push_sweep_config(argv[split + 1 :])
     scenario.enable_compilation_cache()
     out = pathlib.Path(args.out)
     runs = []

@@ -94,6 +94,16 @@ def config_from_args(args: argparse.Namespace, config):
     return dataclasses.replace(config, **changes)
 
 
+def push_sweep_config(flags: list[str]):
+    """The checked config that ``wbc-jax push-sweep FLAGS`` would run: for the scripts of
+    experiments/ that take the job's flags after ``--``."""
+    from wbc_jax import sweep
+
+    cfg = config_from_args(build_parser().parse_args(["push-sweep", *flags]), sweep.default_config())
+    cfg.check()
+    return cfg
+
+
 def _info(args: argparse.Namespace) -> int:
     from wbc_jax import model
 
