@@ -63,7 +63,7 @@ def main(argv=None) -> dict:
     result: dict = {
         "date": time.strftime("%Y-%m-%d"),
         "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
-                    "python": platform.python_version()},
+                    "python": platform.python_version(), "xla_flags": os.environ.get("XLA_FLAGS", "")},
         "command": "python experiments/cpu_targets.py " + " ".join(argv if argv is not None else sys.argv[1:]),
     }  # fmt: skip
 
