@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import math
+import re
 import types
 
 import jax
@@ -760,6 +761,49 @@ def test_two_feet_infeasible_total_wrench_falls_back(two_feet_problems, two_feet
     SN = p["Sigma"] @ p["N_A"]
     f0 = np.linalg.lstsq(SN, -(p["tau_model"] + p["Sigma"] @ p["f1"]), rcond=None)[0]
     np.testing.assert_allclose(f, p["f1"] + p["N_A"] @ f0, rtol=1e-6, atol=1e-6)
+
+
+def test_distribute_batch_runs_fallbacks_only_where_needed(two_feet_problems):
+    """Under vmap the soft-QP fallback and the ramp's second formulation run as branches on a
+    batch-level ``any`` (math.batch_any): each environment's wrenches equal those it gets alone,
+    whether or not others in its batch needed a fallback; with none needing one, the program
+    keeps both branches as conds (a batched predicate would have turned them into selects)."""
+
+    def one(Sigma, tau_model, A, w_des, W_R_left, W_R_right, activation):
+        tt = types.SimpleNamespace(Sigma=Sigma, tau_model=tau_model)
+        return forces.distribute(FEET, activation, A, w_des, tt, jnp.stack([W_R_left, W_R_right]), SETTINGS)
+
+    probs = [dict(p) for p in two_feet_problems[:4]]
+    pull = np.array([0.0, 0.0, -100.0, 0.0, 0.0, 0.0])  # infeasible: the feet cannot pull
+    probs[1]["w_des"] = pull
+    acts = np.array([[1.0, 1.0], [1.0, 1.0], [1.0, 0.4], [1.0, 1.0]])
+    batch = {k: jnp.asarray(v) for k, v in stack_dicts(probs, TWO_FEET_KEYS).items()}
+    args = [batch[k] for k in TWO_FEET_KEYS] + [jnp.asarray(acts)]
+    f_batch, infeasible_batch = jit(jax.vmap(one))(*args)
+    single = jit(one)
+    alone = [single(*(a[i] for a in args)) for i in range(4)]
+    for i, (f_i, inf_i) in enumerate(alone):
+        np.testing.assert_allclose(f_batch[i], f_i, rtol=1e-9, atol=1e-9 * np.abs(f_i).max(), err_msg=str(i))
+        assert bool(infeasible_batch[i]) == bool(inf_i)
+    # The fallbacks were taken where needed and only there: the pull got the soft QP's wrenches
+    # (not the equality QP's unconstrained fallback), the ramping feet a blend of two formulations.
+    tt1 = types.SimpleNamespace(Sigma=args[0][1], tau_model=args[1][1])
+    W_R1 = jnp.stack([args[4][1], args[5][1]])
+    f_soft, _ = forces.soft_momentum_qp(FEET, jnp.ones(2), args[2][1], args[3][1], tt1, W_R1, SETTINGS)
+    f_eq, info_eq = forces.momentum_equality_qp(FEET, jnp.ones(2), args[2][1], args[3][1], tt1, W_R1, SETTINGS)
+    assert bool(info_eq.infeasible)
+    np.testing.assert_allclose(f_batch[1], f_soft, rtol=1e-9, atol=1e-9 * np.abs(f_soft).max())
+    assert np.abs(np.asarray(f_batch[1] - f_eq)).max() > 1.0
+    f_full, _ = single(*(a[2] for a in args[:-1]), jnp.ones(2))
+    assert np.abs(np.asarray(f_batch[2] - f_full)).max() > 1.0
+    for i in (0, 3):  # neither needs a fallback: the equality QP's wrenches
+        np.testing.assert_allclose(f_batch[i], alone[i][0], rtol=1e-9, atol=1e-9)
+    calm = [a[jnp.array([0, 3])] for a in args]
+    jaxpr = str(jax.make_jaxpr(jax.vmap(one))(*calm))
+    # Three branches (the soft QP after each of the two formulations, the ramp); the linear
+    # algebra's own conds are dispatch on the platform (platform_index).
+    branches = len(re.findall(r"= cond\[", jaxpr)) - len(re.findall(r"= platform_index\[", jaxpr))
+    assert branches == 3
 
 
 def test_two_feet_gradients(two_feet_problems):

@@ -387,8 +387,8 @@ def activation_at(c: ResolvedContact, t: Array, foot_activation: Array, dtype) -
     a = c.activation
     t = jnp.asarray(t, dtype)
     if a.start + a.ramp <= 0.0 and not math.isfinite(a.stop):
-        # Fully on from the first tick (t >= 0) and never off: a constant, not a function of t, so
-        # a branch on it (forces.distribute) stays a branch when t is batched (queued sweeps).
+        # Fully on from the first tick (t >= 0) and never off: a constant, not a function of t
+        # (queued sweeps batch t; nothing downstream then depends on it).
         up, down = jnp.ones((), dtype), 0.0
     elif a.ramp > 0:
         up = constants.min_jerk((t - a.start) / a.ramp)[0]

@@ -38,7 +38,7 @@ from jax import lax
 from wbc_jax import qp
 from wbc_jax.constants import GRAVITY
 from wbc_jax.contacts import ContactParams, ContactSet
-from wbc_jax.math import skew
+from wbc_jax.math import batch_any, skew
 from wbc_jax.types import Array
 
 FORCE_MODES = ("qp", "analytic")
@@ -421,8 +421,10 @@ def wbc_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: 
         return f_soft, info_soft.infeasible | exceeds(f_soft)
 
     use_soft = info.infeasible | exceeds(f)
-    f, soft_failed = lax.cond(use_soft, soft, lambda: (f, jnp.zeros((), bool)))
-    return f, use_soft & soft_failed
+    # The soft QP only in ticks where some environment of a batch needs it (batch_any), used
+    # only where this one does.
+    f_soft, soft_failed = lax.cond(batch_any(use_soft), soft, lambda: (f, jnp.zeros((), bool)))
+    return jnp.where(use_soft, f_soft, f), use_soft & soft_failed
 
 
 def analytic(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, settings: ForceSettings) -> Array:
@@ -463,10 +465,12 @@ def distribute(cset: ContactSet, activation: Array, A: Array, wrench_des: Array,
         return wbc_qp(cset, mask, A, wrench_des, tt, W_R, settings)
 
     f_engaged, infeasible_engaged = formulation(engaged)
-    # The fully active contacts' formulation only while a contact ramps (w < 1); with the
-    # schedule's activations shared by a batch this stays a branch under vmap.
+    # The fully active contacts' formulation only in ticks where a contact of some environment
+    # of the batch ramps (w < 1), used only where one does.
+    ramping = w < 1
     f_active, infeasible_active = lax.cond(
-        w < 1, lambda: formulation(active), lambda: (jnp.zeros_like(f_engaged), jnp.zeros((), bool))
+        batch_any(ramping), lambda: formulation(active), lambda: (jnp.zeros_like(f_engaged), jnp.zeros((), bool))
     )
+    f_active = jnp.where(ramping, f_active, 0.0)
     f = jnp.where(any_engaged, w * f_engaged + (1.0 - w) * f_active, 0.0)
     return f, any_engaged & ((w > 0) & infeasible_engaged | (w < 1) & infeasible_active)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
+from jax.custom_batching import custom_vmap
 
 from wbc_jax.types import Array
 
@@ -64,3 +65,21 @@ def pinv_abs_tol(A: Array, tol: float) -> Array:
     keep = s > tol
     s_inv = jnp.where(keep, 1.0 / jnp.where(keep, s, 1.0), 0.0)
     return (Vt.T * s_inv) @ U.T
+
+
+@custom_vmap
+def batch_any(pred: Array) -> Array:
+    """``pred`` () bool, reduced with ``any`` over every vmapped axis it is batched along.
+
+    As the predicate of a ``lax.cond`` whose taken branch is also correct for the environments
+    that did not need it, it keeps the cond a branch under vmap (a batched predicate turns it
+    into a select that evaluates both branches for every environment): the costly branch runs
+    only in the ticks where some environment of the batch needs it. Unbatched it is ``pred``.
+    """
+    return pred
+
+
+@batch_any.def_vmap
+def _batch_any_vmap(axis_size: int, in_batched: list[bool], pred: Array) -> tuple[Array, bool]:
+    del axis_size
+    return (jnp.any(pred, axis=0) if in_batched[0] else pred), False
