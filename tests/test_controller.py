@@ -20,9 +20,11 @@ def state_terms(robot):
     return jax.jit(lambda d: dynamics.terms(robot.mjx_model, d, robot.index))(d)
 
 
-def _torque_terms(t, damping, postural="stable"):
+def _torque_terms(t, damping, postural="stable", rows=None):
     gains = G.default_gains(23, jnp.float64)
     J_c, Jdot_nu_c = t.J_frames.reshape(12, -1), t.Jdot_nu_frames.reshape(12)  # both soles, active
+    if rows is not None:  # contact rows scaled by their activations
+        J_c, Jdot_nu_c = J_c * rows[:, None], Jdot_nu_c * rows
     return torques.torque_terms(
         t, J_c, Jdot_nu_c, postural=postural, kp_postural=gains.kp_postural,
         kd_postural=gains.kd_postural, s_des=t.s + 0.05, pinv_damping=damping,
@@ -46,6 +48,27 @@ def test_torque_law_satisfies_its_definition(state_terms, postural):
     nu_dot = jnp.linalg.solve(t.M, jnp.concatenate([jnp.zeros(6), tau]) + tt.J_c.T @ f - h)
     acc = tt.J_c @ nu_dot + tt.Jdot_nu_c
     assert float(jnp.linalg.norm(acc)) < 1e-6 * float(jnp.linalg.norm(tt.Jdot_nu_c) + 1.0)
+
+
+@pytest.mark.parametrize("damping, active", [(1.0, (1.0, 1.0)), (0.1, (1.0, 1.0)), (10.0, (1.0, 0.0))])
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_postural_projector_equals_pinv_of_the_svd(state_terms, damping, active, dtype):
+    """P = pinv(X, tol) X with X = N_Lambda Mbar, against NumPy's float64 SVD of X: the same rank
+    (tol 1e-5 cuts X's smallest singular values here) and the same projector."""
+    rows = jnp.repeat(jnp.asarray(active), 6)
+    tt = _torque_terms(state_terms, damping, rows=rows)
+    Lambda, Mbar = np.asarray(tt.Lambda), np.asarray(tt.Mbar)
+    X = np.linalg.inv(np.eye(23) + Lambda.T @ Lambda / damping) @ Mbar
+    _, s, Vt = np.linalg.svd(X)
+    keep = s > 1e-5
+    assert 0 < keep.sum() < 23 if active[1] else keep.all(), s
+    P_ref = (Vt.T * keep) @ Vt
+    P = np.asarray(torques.postural_projector(jnp.asarray(Lambda, dtype), jnp.asarray(Mbar, dtype), damping, 1e-5))
+    assert P.dtype == dtype
+    np.testing.assert_allclose(P, P_ref, atol=1e-12 if dtype == jnp.float64 else 2e-5)
+    # X's own pseudo-inverse, the definition, in float64.
+    np.testing.assert_allclose(np.asarray(torques.postural_projector(tt.Lambda, tt.Mbar, damping, 1e-5)),
+                               np.linalg.pinv(X, rcond=1e-5 / s[0]) @ X, atol=1e-10)  # fmt: skip
 
 
 def test_damped_pseudo_inverse_residual_is_small(state_terms):

@@ -55,18 +55,6 @@ def damped_pinv(A: Array, damping: float) -> Array:
     return jnp.linalg.solve(A @ A.T + damping * jnp.eye(r, dtype=A.dtype), A).T
 
 
-def pinv_abs_tol(A: Array, tol: float) -> Array:
-    """Pseudo-inverse with an *absolute* singular-value cut-off (MATLAB ``pinv(A, tol)``).
-
-    ``jnp.linalg.pinv`` uses a relative cut-off; the WBC code (Reg.pinvTol = 1e-5) is absolute.
-    The where-guard keeps gradients finite for the discarded singular values.
-    """
-    U, s, Vt = jnp.linalg.svd(A, full_matrices=False)
-    keep = s > tol
-    s_inv = jnp.where(keep, 1.0 / jnp.where(keep, s, 1.0), 0.0)
-    return (Vt.T * s_inv) @ U.T
-
-
 @custom_vmap
 def batch_any(pred: Array) -> Array:
     """``pred`` () bool, reduced with ``any`` over every vmapped axis it is batched along.

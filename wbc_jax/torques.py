@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 
 from wbc_jax.dynamics import DynamicsTerms
-from wbc_jax.math import damped_pinv, pinv_abs_tol
+from wbc_jax.math import damped_pinv
 from wbc_jax.types import Array, pytree_dataclass
 
 POSTURAL_VARIANTS = ("stable", "seed")
@@ -68,6 +68,29 @@ class TorqueTerms:
     tau_0: Array
 
 
+def postural_projector(Lambda: Array, Mbar: Array, pinv_damping: Array | float, pinv_tol: float) -> Array:
+    """P (n, n) = pinv(X, tol) X for X = N_Lambda Mbar: the projector on X's right singular
+    vectors whose singular values exceed ``pinv_tol`` (absolute, as MATLAB's ``pinv(X, tol)``).
+
+    Lambda: (D, n); Mbar: (n, n) positive definite; pinv_damping > 0 (of N_Lambda's damped
+    pseudo-inverse). With that pseudo-inverse N_Lambda = (I + Lambda^T Lambda / damping)^-1
+    (Woodbury), so X^-1 = Mbar^-1 (I + Lambda^T Lambda / damping) = V S^-1 U^T and the cut
+    directions are the eigenvectors of X^-1 X^-T = V S^-2 V^T with eigenvalues 1 / s^2 above
+    1 / tol^2 (computed for damping X^-1, whose entries stay in float32's range for any damping).
+    A symmetric eigensolver instead of X's SVD (batched on a GPU, the cheaper of the two), and in
+    the form where the cut singular values are the large eigenvalues, which float32 resolves
+    (X^T X would put them at 1e-11 next to rounding of 1e-8). Differentiable through the
+    eigensolver (X's singular values are distinct in practice; the derivative is undefined only
+    where two coincide).
+    """
+    n = Mbar.shape[0]
+    eye = jnp.eye(n, dtype=Mbar.dtype)
+    X_inv_scaled = jnp.linalg.solve(Mbar, pinv_damping * eye + Lambda.T @ Lambda)  # damping X^-1
+    inv_sq_scaled, V = jnp.linalg.eigh(X_inv_scaled @ X_inv_scaled.T)  # damping^2 / s^2
+    cut = inv_sq_scaled > (pinv_damping / pinv_tol) ** 2
+    return eye - (V * cut) @ V.T
+
+
 def postural_torque(
     variant: str,
     *,
@@ -77,24 +100,24 @@ def postural_torque(
     s_dot: Array,
     N_Lambda: Array,
     Mbar: Array,
+    Lambda: Array,
+    pinv_damping: Array | float = 1.0,
     pinv_tol: float = 1e-5,
     kp_reg: float = 0.1,
     freeze_projector: bool = False,
 ) -> Array:
     """u_0 (n,) of the postural task (module docstring). kp, kd, s_err, s_dot: (n,).
 
-    For ``stable``, diag(k) pinv(X) X v is evaluated as diag(k) P v with P = pinv(X) X the
-    projector on the row space of X = N_Lambda Mbar (absolute tolerance, as MATLAB's pinv).
-    P is differentiated through its SVD (X's singular values are distinct in practice; the
-    derivative is undefined only where two coincide). Holding it constant (``freeze_projector``,
-    kept for comparison) made reverse-mode gradients differ from central differences by up to 9 %
-    (experiments/grad_check_sources.py); differentiated, they agree to 1e-6.
+    For ``stable``, diag(k) pinv(X) X v is evaluated as diag(k) P v with P = pinv(X) X
+    (:func:`postural_projector`) for X = N_Lambda Mbar. Holding P constant in derivatives
+    (``freeze_projector``, kept for comparison) made reverse-mode gradients differ from central
+    differences by up to 9 % (experiments/grad_check_sources.py); differentiated, they agree to 1e-6.
     """
     if variant == "seed":
         return -kp * s_err - kd * s_dot
     if variant == "stable":
         X = N_Lambda @ Mbar
-        P = pinv_abs_tol(X, pinv_tol) @ X
+        P = postural_projector(Lambda, Mbar, pinv_damping, pinv_tol)
         P = jax.lax.stop_gradient(P) if freeze_projector else P
         return -kp * (P @ s_err) - kp_reg * (X @ s_err) - kd * (P @ s_dot)
     raise ValueError(f"unknown postural variant {variant!r}; valid: {list(POSTURAL_VARIANTS)}")
@@ -155,6 +178,8 @@ def torque_terms(
         s_dot=t.s_dot,
         N_Lambda=N_Lambda,
         Mbar=Mbar,
+        Lambda=Lambda,
+        pinv_damping=pinv_damping,
         pinv_tol=pinv_tol,
         kp_reg=kp_postural_reg,
         freeze_projector=freeze_projector,
