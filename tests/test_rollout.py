@@ -107,6 +107,44 @@ def test_polygon_margin_in_float32_on_tilted_soles():
         assert np.isfinite(m32) and abs(m32 - m64) < 1e-5, (m32, m64)
 
 
+def _aligned_soles(offset):
+    """(8, 2) float32 corners of two parallel soles side by side (front and back edges collinear),
+    shifted by ``offset``: the stand posture's support polygon."""
+    x0, x1, y0, y1 = -0.07, 0.12, -0.045, 0.045
+    feet = [np.array([[x, y] for x in (x0, x1) for y in (y0, y1)]) + [0.01, f * 0.07] for f in (-1, 1)]
+    return (np.concatenate(feet) + offset).astype(np.float32)
+
+
+def test_support_geometry_uses_no_matrix_products():
+    """The support-polygon metrics compare against a 1e-6 m tolerance: a GPU may run float32 matrix
+    products in TensorFloat-32 (1e-4 m here), which turned the stand posture's margin negative on
+    an H200 (24 % of a 40 N benchmark batch counted as failed). No dot_general may appear in them."""
+    pts, p = _aligned_soles([0.4, -0.3]), np.float32([0.42, -0.3])
+    jaxpr = str(jax.make_jaxpr(metrics_lib.polygon_margin)(pts, p))
+    assert "dot_general" not in jaxpr
+    cset = scenario.setup("stand", duration=0.05).loop.contact_set
+    K = len(cset.contacts)
+    corners = jax.make_jaxpr(lambda pos, R: metrics_lib.support_corners(cset, pos, R))(
+        np.zeros((K, 3), np.float32), np.tile(np.eye(3, dtype=np.float32), (K, 1, 1))
+    )
+    assert "dot_general" not in str(corners)
+
+
+@pytest.mark.gpu
+def test_polygon_margin_on_the_gpu_equals_float64():
+    """On a CUDA GPU (skipped on the CPU): the float32 margin of the stand posture's soles, at
+    offsets up to a few metres, equals the float64 one on the host to 1e-5 m."""
+    rng = np.random.default_rng(2)
+    fn = jax.jit(metrics_lib.polygon_margin)
+    for _ in range(64):
+        off = rng.uniform(-3, 3, 2)
+        pts, p = _aligned_soles(off), (off + rng.normal(scale=0.05, size=2)).astype(np.float32)
+        with jax.default_device(jax.devices("cpu")[0]), jax.enable_x64(True):
+            m64 = float(metrics_lib.polygon_margin(np.float64(pts), np.float64(p)))
+        m32 = float(fn(pts, p))
+        assert abs(m32 - m64) < 1e-5, (off, m32, m64)
+
+
 def test_blown_up_states_count_as_diverged():
     """Finite but unphysical speeds are a divergence (flagged and frozen), like NaN."""
     q, v = np.zeros(30), np.zeros(29)

@@ -61,9 +61,9 @@ def update(met: Metrics, *, com, com_ref, com_vel, tau, violation, infeasible, c
     # Slip: displacement of each fully active contact, tangential to its surface; tilt: the
     # rotation of its normal since it was set down.
     dp = contact_pos - anchors
-    dp = dp - jnp.einsum("ki,ki->k", dp, normals)[:, None] * normals
+    dp = dp - jnp.sum(dp * normals, -1)[:, None] * normals
     slip = jnp.max(jnp.where(fully_active, safe_norm(dp), 0.0))
-    tilt_k = jnp.arctan2(safe_norm(jnp.cross(normals, anchor_normals)), jnp.einsum("ki,ki->k", normals, anchor_normals))
+    tilt_k = jnp.arctan2(safe_norm(jnp.cross(normals, anchor_normals)), jnp.sum(normals * anchor_normals, -1))
     tilt = jnp.max(jnp.where(fully_active, tilt_k, 0.0))
     body_low = jnp.min(body_heights) < constants.BODY_FLOOR_HEIGHT
     fell = met.fell | (com[2] < constants.FALL_COM_HEIGHT * com0_height) | body_low
@@ -97,7 +97,8 @@ def support_corners(cset, contact_pos: Array, contact_R: Array) -> Array:
     for k in cset.feet:
         (x0, x1), (y0, y1) = cset.contacts[k].params.foot_size
         local = jnp.asarray([[x, y, 0.0] for x in (x0, x1) for y in (y0, y1)], contact_pos.dtype)
-        corners.append(contact_pos[k] + local @ contact_R[k].T)
+        # Elementwise rotation (no matrix product: see polygon_margin on TensorFloat-32).
+        corners.append(contact_pos[k] + jnp.sum(local[:, None, :] * contact_R[k][None], -1))
     return jnp.concatenate(corners)
 
 
@@ -105,15 +106,20 @@ def polygon_margin(points: Array, p: Array, tol: float = 1e-6) -> Array:
     """Signed distance () of p (2,) inside the convex hull of points (N, 2): the smallest distance
     to a hull edge, negative outside. Hull edges: the ordered pairs with every point on their left
     (to ``tol`` m: rounding puts the two other corners of a sole's edge a hair to either side in
-    float32). A degenerate hull (no edge found) gives minus the distance to the nearest point."""
+    float32). A degenerate hull (no edge found) gives minus the distance to the nearest point.
+
+    Products are elementwise, never matrix products: on a GPU, float32 matrix products may run in
+    TensorFloat-32 (10-bit mantissa, 1e-4 m on these coordinates), far coarser than ``tol``, and
+    the edge test would then miss the edges of collinear sole corners."""
     a = points[:, None, :]
     b = points[None, :, :]
     e = b - a  # (N, N, 2)
     length = jnp.sqrt(jnp.sum(e * e, -1) + 1e-30)
-    normal = jnp.stack([-e[..., 1], e[..., 0]], -1) / length[..., None]  # left normal
-    side = jnp.einsum("ijk,lk->ijl", normal, points) - jnp.einsum("ijk,ijk->ij", normal, a)[..., None]
+    normal = jnp.stack([-e[..., 1], e[..., 0]], -1) / length[..., None]  # left normal, (N, N, 2)
+    offset = jnp.sum(normal * a, -1)  # (N, N)
+    side = jnp.sum(normal[:, :, None, :] * points[None, None], -1) - offset[..., None]  # (N, N, N)
     is_edge = (length > 1e-6) & jnp.all(side >= -tol, axis=-1)
-    dist = jnp.einsum("ijk,k->ij", normal, p) - jnp.einsum("ijk,ijk->ij", normal, a)
+    dist = jnp.sum(normal * p, -1) - offset
     margin = jnp.min(jnp.where(is_edge, dist, jnp.inf))
     nearest = jnp.min(jnp.linalg.norm(points - p, axis=-1))
     return jnp.where(jnp.any(is_edge), margin, -nearest)
