@@ -101,7 +101,7 @@ def postural_torque(
     N_Lambda: Array,
     Mbar: Array,
     Lambda: Array,
-    pinv_damping: Array | float = 1.0,
+    pinv_damping: Array | float,
     pinv_tol: float = 1e-5,
     kp_reg: float = 0.1,
     freeze_projector: bool = False,
@@ -109,7 +109,9 @@ def postural_torque(
     """u_0 (n,) of the postural task (module docstring). kp, kd, s_err, s_dot: (n,).
 
     For ``stable``, diag(k) pinv(X) X v is evaluated as diag(k) P v with P = pinv(X) X
-    (:func:`postural_projector`) for X = N_Lambda Mbar. Holding P constant in derivatives
+    (:func:`postural_projector`) for X = N_Lambda Mbar; P is formed from Lambda (D, n) and
+    ``pinv_damping``, so N_Lambda must be I - damped_pinv(Lambda, pinv_damping) Lambda (no default
+    damping: a mismatch would give a projector of another X). Holding P constant in derivatives
     (``freeze_projector``, kept for comparison) made reverse-mode gradients differ from central
     differences by up to 9 % (experiments/grad_check_sources.py); differentiated, they agree to 1e-6.
     """
