@@ -20,6 +20,13 @@ if [ "${1:-}" = "--limit" ]; then LIMIT=$2; shift 2; fi
 if ls .wheels/*.whl >/dev/null 2>&1; then
   python3 -m pip install -q --no-deps --no-compile .wheels/*.whl 2>&1 | grep -v -i warning
 fi
+# warp-lang (for the held-out sweeps on MJX-Warp), carried in parts as for experiments/gpu_run.sh:
+# collected in ~/wp while the machine is held, unpacked into /tmp/site once all four are there.
+SITE=/tmp/site; mkdir -p "$SITE" ~/wp
+for d in .wa .wb .wc; do [ -d $d ] && cp $d/* ~/wp/; done
+if [ ! -d $SITE/warp ] && [ "$(ls ~/wp/wpart_0* 2>/dev/null | wc -l)" -eq 4 ]; then
+  cat ~/wp/wpart_0* | xz -d | tar xf - -C $SITE && echo "warp-lang unpacked"
+fi
 # Compile time dominates a tuning run on the GPU: no autotuning of the many small matrix products
 # of the closed loop (the default configurations are used), and no triton gemm rewriting.
 FLAGS=${TUNE_XLA_FLAGS-"--xla_gpu_autotune_level=0"}
@@ -30,7 +37,7 @@ RUN_DIR=runs/tune_gpu prev=""
 for a in "$@"; do if [ "$prev" = "--out" ]; then RUN_DIR=$a; fi; prev=$a; done
 # The compilation cache lives in the run folder, so that it travels with the results: a later call
 # that carries them back skips XLA's compilation of the same programs (tracing still runs).
-export XLA_FLAGS="$FLAGS" PYTHONPATH=$PWD PYTHONUNBUFFERED=1 WBC_JAX_CACHE=${WBC_JAX_CACHE:-$RUN_DIR/xla_cache}
+export XLA_FLAGS="$FLAGS" PYTHONPATH=$SITE:$PWD PYTHONUNBUFFERED=1 WBC_JAX_CACHE=${WBC_JAX_CACHE:-$RUN_DIR/xla_cache}
 nvidia-smi -L || true
 python3 -c "import jax, mujoco, evosax; print('jax', jax.__version__, jax.devices(), 'mujoco', mujoco.__version__)"
 SECONDS=0

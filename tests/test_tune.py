@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from wbc_jax import baselines, cli, constants, tune, tuning_eval, tuning_loss, tuning_params
+from wbc_jax import baselines, cli, constants, sweep, tune, tuning_eval, tuning_loss, tuning_params
 from wbc_jax import gains as C
 from wbc_jax import metrics as metrics_lib
 from wbc_jax import rollout as rollout_lib
@@ -128,6 +128,9 @@ def test_out_of_bound_init_gains_are_a_clear_error_before_compiling(tmp_path):
     ({"zeta_range": (2.0, 0.5)}, r"--zeta-range must be positive and ordered"),
     ({"baselines": ("pso",)}, r"--baselines: unknown"),
     ({"envelope": "/nonexistent.json"}, r"--envelope /nonexistent.json is not a file"),
+    ({"env_clip": float("nan")}, r"--env-clip must be finite and >= 0"),
+    ({"env_clip": -1.0}, r"--env-clip must be finite and >= 0"),
+    ({"push_scale": "lipp"}, r"--push-scale must be one of \['envelope', 'lip'\]"),
 ])  # fmt: skip
 def test_bad_tune_config_is_a_clear_error(kwargs, message):
     with pytest.raises(ValueError, match=message):
@@ -198,6 +201,19 @@ def test_push_distribution_is_reproducible_and_in_range(robot):
     assert np.all((a.friction >= 0.6) & (a.friction <= 1.2)) and np.all(np.abs(a.mass_scale - 1) <= 0.1 + 1e-6)
 
 
+def test_lip_push_scale_draws_impulses_as_fractions_of_m_omega_d(robot):
+    """--push-scale lip: impulses are magnitude_range multiples of the LIP bound m omega d per
+    direction (sweep.lip_bound)."""
+    tc = tp.TuneConfig(push_scale="lip", magnitude_range=(0.3, 1.0), **TINY)
+    az, bound = tp.envelope_table(tc, robot)
+    ref = sweep.lip_bound(robot, az)
+    np.testing.assert_allclose(bound, [ref[float(a)]["impulse_bound_ns"] for a in az])
+    assert np.all((bound > 5.0) & (bound < 40.0))  # N s: 33 kg at omega ~3.6 1/s, edges 5-20 cm away
+    _, cols = tp.sample_pushes(tc, robot, (az, bound), tp.batch_rng(0, 0, 0), 256)
+    rel = cols["impulse_ns"] / tp.interp_periodic(az, bound, cols["azimuth_deg"])
+    assert rel.min() >= 0.3 - 1e-9 and rel.max() <= 1.0 + 1e-9 and rel.max() > 0.95
+
+
 # ---------------------------------------------------------------------------------------------
 # Training and baselines with stand-in steps (no compilation): guard, resume, budgets
 
@@ -251,9 +267,39 @@ def _fake_step(problem, optimizer, target, stop_at=None, nan_at=()):
             _metrics(B),
             optax.global_norm(grad),
             finite,
+            {"nonfinite_envs": 0, "clipped_envs": 0, "env_grad_norm_median": optax.global_norm(grad)},
         )
 
     return step
+
+
+def test_robust_mean_gradient_drops_diverged_rollouts_and_clips_outliers():
+    """Per-rollout gradients (B = 5): three ordinary ones, one NaN (a diverged rollout), one 1e14
+    times larger (a falling robot). The mean leaves the NaN out and scales the outlier to
+    clip_factor x the median norm of the four finite ones; against numpy."""
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(5, 3)), rng.normal(size=(5, 2, 2))
+    a[3, 1] = np.nan
+    a[4] *= 1e14
+    b[4] *= 1e14
+    grads = {"a": jnp.asarray(a), "b": jnp.asarray(b)}
+    flat = np.concatenate([a.reshape(5, -1), b.reshape(5, -1)], 1)
+    keep = np.array([0, 1, 2, 4])
+    norms = np.linalg.norm(flat[keep], axis=1)
+    cap = 3.0 * np.median(norms)
+    scale = np.minimum(1.0, cap / norms)
+    mean, stats = tune.robust_mean_gradient(grads, 3.0)
+    np.testing.assert_allclose(mean["a"], (scale[:, None] * a[keep]).mean(0), rtol=1e-6)
+    np.testing.assert_allclose(mean["b"], (scale[:, None, None] * b[keep]).mean(0), rtol=1e-6)
+    assert int(stats["nonfinite_envs"]) == 1 and int(stats["clipped_envs"]) == 1
+    assert float(stats["env_grad_norm_median"]) == pytest.approx(np.median(norms), rel=1e-6)
+    # Without clipping: the plain mean of the finite rollouts.
+    plain, stats0 = tune.robust_mean_gradient(grads, 0.0)
+    np.testing.assert_allclose(plain["a"], a[keep].mean(0), rtol=1e-6)
+    assert int(stats0["clipped_envs"]) == 0
+    # No finite rollout: a non-finite mean, which the optimiser's guard skips.
+    bad, stats_bad = tune.robust_mean_gradient({"a": jnp.full((2, 3), jnp.nan)}, 3.0)
+    assert not np.any(np.isfinite(bad["a"])) and int(stats_bad["nonfinite_envs"]) == 2
 
 
 @pytest.fixture(scope="module")

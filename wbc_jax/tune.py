@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from wbc_jax import baselines, io, runs, scenario, tuning_eval
+from wbc_jax import baselines, io, physics, runs, scenario, tuning_eval
 from wbc_jax import tuning_problem as tp
 from wbc_jax.gains import Gains, default_gains, gains_to_dict
 from wbc_jax.tuning_loss import TERMS, LossConfig, TuningLoop, loss_terms  # noqa: F401 (the tuning API)
@@ -62,8 +62,9 @@ from wbc_jax.tuning_problem import (  # noqa: F401 (the tuning API)
     sample_pushes,
 )
 
+ENV_STATS = ("nonfinite_envs", "clipped_envs", "env_grad_norm_median")  # robust_mean_gradient's counts
 HISTORY_COLUMNS = ("step", "loss", *TERMS, "survival_rate", "upright_rate", "qp_infeasible_rate", "grad_norm",
-                   "finite", "skipped_total", "step_s", "sim_steps", "wall_s", "rss_mb")  # fmt: skip
+                   "finite", "skipped_total", "step_s", "sim_steps", "wall_s", "rss_mb", *ENV_STATS)  # fmt: skip
 
 
 def make_optimizer(lr: float, clip_norm: float):
@@ -81,23 +82,64 @@ def skipped_count(opt_state) -> int:
     return int(opt_state.total_notfinite)
 
 
+def robust_mean_gradient(grads, clip_factor: float):
+    """The batch mean of per-rollout gradients, robust to rollouts that diverge.
+
+    grads: a pytree whose leaves have a leading batch axis B (one gradient per rollout). A rollout
+    whose gradient has a non-finite entry is left out; with ``clip_factor`` > 0 each remaining
+    gradient is scaled down to at most ``clip_factor`` x the median norm of the remaining ones
+    (a falling robot's gradient can be 1e14 times a standing one's and would otherwise set the
+    direction of the whole batch's step). Elementwise products only (no matrix products, which
+    run in reduced precision on some GPUs).
+
+    Returns (mean gradient (the leaves without the batch axis; NaN if no rollout is finite, so
+    that the optimiser's guard skips the step), stats {"nonfinite_envs": (), "clipped_envs": (),
+    "env_grad_norm_median": ()})."""
+    leaves = jax.tree_util.tree_leaves(grads)
+    B = leaves[0].shape[0]
+    flat = jnp.concatenate([jnp.reshape(x, (B, -1)) for x in leaves], axis=1)
+    finite = jnp.all(jnp.isfinite(flat), axis=1)  # (B,)
+    norms = jnp.sqrt(jnp.sum(jnp.where(jnp.isfinite(flat), flat, 0.0) ** 2, axis=1))
+    n_ok = jnp.sum(finite)
+    median = jnp.nanmedian(jnp.where(finite, norms, jnp.nan))
+    if clip_factor > 0:
+        cap = clip_factor * median
+        clipped = finite & (norms > cap)
+        scale = jnp.where(clipped, cap / jnp.where(norms > 0, norms, 1.0), 1.0)
+    else:
+        clipped = jnp.zeros_like(finite)
+        scale = jnp.ones_like(norms)
+    weight = jnp.where(finite, scale, 0.0) / jnp.maximum(n_ok, 1) * jnp.where(n_ok > 0, 1.0, jnp.nan)
+
+    def mean(x):
+        x = jnp.where(jnp.reshape(finite, (B,) + (1,) * (x.ndim - 1)), x, 0.0)
+        return jnp.sum(jnp.reshape(weight, (B,) + (1,) * (x.ndim - 1)).astype(x.dtype) * x, axis=0)
+
+    stats = {"nonfinite_envs": B - n_ok, "clipped_envs": jnp.sum(clipped), "env_grad_norm_median": median}
+    return jax.tree_util.tree_map(mean, grads), stats
+
+
 def make_train_step(problem: Problem, optimizer):
     """One optimiser step, jitted: ``(params, opt_state, scen) -> (params, opt_state, loss (),
-    terms {name: ()}, Metrics (B,), grad_norm (), finite ())``."""
-    loss_fn = make_batched_loss(problem, fixed_solver=True)
+    terms {name: ()}, Metrics (B,), grad_norm (), finite (), env_stats {name: ()})``.
 
-    def objective(params, scen):
-        gains, reg = problem.controls(params)
-        loss, terms, metrics = loss_fn(gains, reg, scen)
-        return loss, (jax.tree_util.tree_map(jnp.mean, terms), metrics)
+    Each push's gradient is taken on its own (vmap of value_and_grad: the same backward pass as
+    the batch mean's) and combined by :func:`robust_mean_gradient` (``tc.env_clip``), so a
+    rollout that diverges neither poisons nor steers the step; ``env_stats`` counts them."""
+    env_objective = tp.make_env_objective(problem)
+    clip_factor = float(problem.tc.env_clip)
 
     @jax.jit
     def step(params, opt_state, scen):
-        (loss, (terms, metrics)), grad = jax.value_and_grad(objective, has_aux=True)(params, scen)
+        with physics.fixed_iteration_solver(problem.iterations):
+            per_env = jax.vmap(jax.value_and_grad(env_objective, has_aux=True), in_axes=(None, 0))
+            (values, (terms, metrics)), grads = per_env(params, scen)
+        grad, env_stats = robust_mean_gradient(grads, clip_factor)
         finite = jnp.all(jnp.asarray([jnp.all(jnp.isfinite(g)) for g in jax.tree_util.tree_leaves(grad)]))
         updates, opt_state = optimizer.update(grad, opt_state, params)
         params = optax.apply_updates(params, updates)
-        return params, opt_state, loss, terms, metrics, optax.global_norm(grad), finite
+        terms = jax.tree_util.tree_map(jnp.mean, terms)
+        return params, opt_state, jnp.mean(values), terms, metrics, optax.global_norm(grad), finite, env_stats
 
     return step
 
@@ -148,7 +190,7 @@ def train(problem: Problem, out, *, progress: bool = True, step_fn=None):
         for k in range(start, tc.steps):
             scen = tp.shard_batch(training_batch(problem, k)[0])
             t0 = time.perf_counter()
-            params, opt_state, loss, terms, metrics, gnorm, finite = step_fn(*state, scen)
+            params, opt_state, loss, terms, metrics, gnorm, finite, env_stats = step_fn(*state, scen)
             jax.block_until_ready(params)
             dt = time.perf_counter() - t0
             wall += dt
@@ -156,11 +198,12 @@ def train(problem: Problem, out, *, progress: bool = True, step_fn=None):
             rows.append({"step": k, "loss": float(loss), **{n: float(terms[n]) for n in TERMS},
                          **tp.survival_stats(metrics), "grad_norm": float(gnorm), "finite": bool(finite),
                          "skipped_total": skipped_count(opt_state), "step_s": round(dt, 3),
-                         "sim_steps": (k + 1) * per_step, "wall_s": round(wall, 3), "rss_mb": round(tp.rss_mb(), 1)})  # fmt: skip
+                         "sim_steps": (k + 1) * per_step, "wall_s": round(wall, 3), "rss_mb": round(tp.rss_mb(), 1),
+                         **{n: float(env_stats[n]) for n in ENV_STATS}})  # fmt: skip
             tp.save_checkpoint(ckpt, state, k + 1, problem.key)
             tp.write_csv(hist_path, rows, HISTORY_COLUMNS)
             bar.set_postfix(loss=f"{float(loss):.4g}", surv=f"{rows[-1]['survival_rate']:.2f}",
-                            skipped=skipped_count(opt_state))  # fmt: skip
+                            skipped=skipped_count(opt_state), dropped=int(env_stats["nonfinite_envs"]))  # fmt: skip
             bar.update(1)
     gains, reg = problem.controls(state[0])
     reg = problem.regularisation(reg)

@@ -305,13 +305,14 @@ def survival_prediction(problem: tp.Problem, n: int, *, gains=None, reg=None, ou
 
     def both(g, r, s):
         metrics, trace = ev.loop.rollout(*_env_args(ev, s), g, s.push, controller_overrides=r)
-        return tuning_loss.loss_terms(trace, ev.lc, n_train), tuning_loss.loss_terms(trace, ev.lc)["total"], metrics
+        return tuning_loss.loss_terms(trace, ev.lc, n_train), tuning_loss.loss_terms(trace, ev.lc), metrics
 
     t0 = time.perf_counter()
-    terms, full_loss, metrics = jax.jit(jax.vmap(both, in_axes=(None, None, 0)))(gains, regd, scen)
+    terms, full_terms, metrics = jax.jit(jax.vmap(both, in_axes=(None, None, 0)))(gains, regd, scen)
     wall = time.perf_counter() - t0
-    survived = np.asarray(metrics_lib.summarize(metrics)["survived"])
-    train_loss, full_loss = np.asarray(terms["total"]), np.asarray(full_loss)
+    outcome = metrics_lib.summarize(metrics)
+    survived = np.asarray(outcome["survived"])
+    train_loss, full_loss = np.asarray(terms["total"]), np.asarray(full_terms["total"])
     per_term = {
         k: {"spearman": tuning_loss.spearman(np.asarray(v), survived), "auc": tuning_loss.auc(np.asarray(v), survived)}
         for k, v in terms.items()
@@ -325,7 +326,10 @@ def survival_prediction(problem: tp.Problem, n: int, *, gains=None, reg=None, ou
            "spearman_impulse_fraction": tuning_loss.spearman(rel, survived),
            "auc_impulse_fraction": tuning_loss.auc(rel, survived), "wall_s": round(wall, 1),
            "loss_train_horizon": train_loss.tolist(), "loss_full": full_loss.tolist(), "survived": survived.tolist(),
-           "impulse_fraction_of_envelope": rel.tolist(), "per_term_train_horizon": per_term, "device": scenario.device_label()}  # fmt: skip
+           "impulse_fraction_of_envelope": rel.tolist(), "per_term_train_horizon": per_term, "device": scenario.device_label(),
+           "terms_train_horizon": {k: np.asarray(v).tolist() for k, v in terms.items()},
+           "terms_full": {k: np.asarray(v).tolist() for k, v in full_terms.items()},
+           "outcome": {k: np.asarray(v, float).tolist() for k, v in outcome.items()}}  # fmt: skip
     if out is not None:
         out = pathlib.Path(out)
         io.atomic_write_json(out / "prediction.json", res)

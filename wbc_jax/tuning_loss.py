@@ -153,9 +153,14 @@ def loss_terms(trace: TuneTrace, lc: LossConfig, n_ticks: int | None = None,
     return terms
 
 
+def env_objective(total: Array, lc: LossConfig) -> Array:
+    """Per-rollout objective of totals (any shape): log1p (``robust``) or the total itself."""
+    return jnp.log1p(total) if lc.robust else total
+
+
 def batch_objective(total: Array, lc: LossConfig) -> Array:
-    """() the training objective of per-rollout totals (B,): mean of log1p (``robust``) or mean."""
-    return jnp.mean(jnp.log1p(total)) if lc.robust else jnp.mean(total)
+    """() the training objective of per-rollout totals (B,): the mean of :func:`env_objective`."""
+    return jnp.mean(env_objective(total, lc))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -3,9 +3,9 @@
     TuneConfig --sample_pushes--> Scenario batch (B,) --objective--> loss (), terms (B,), Metrics (B,)
 
 * the push distribution (:func:`sample_pushes`): azimuth uniform over 360 deg, impulse a
-  uniform multiple (``magnitude_range``) of the default gains' envelope in that direction, pushed
-  body among ``train_bodies``, duration uniform in ``duration_range``, floor friction, plant mass
-  scale and initial joint noise; batch k of a stream is drawn from ``default_rng([seed, stream,
+  uniform multiple (``magnitude_range``) of the default gains' envelope or of the feet-in-place
+  LIP bound (``push_scale``) in that direction, pushed body among ``train_bodies``, duration
+  uniform in ``duration_range``, floor friction, plant mass scale and initial joint noise; batch k of a stream is drawn from ``default_rng([seed, stream,
   k])``, so a resumed run draws the same pushes;
 * the objectives on MJX's JAX implementation (:func:`make_batched_loss`: one gain set over B
   pushes, differentiable; :func:`make_population_loss`: P gain sets over the same b pushes,
@@ -40,6 +40,7 @@ from wbc_jax.rollout import Push, Scenario
 from wbc_jax.types import option
 
 CHECKPOINTS = ("tick", "none")
+PUSH_SCALES = ("envelope", "lip")
 ENVELOPE_FILE = pathlib.Path(__file__).resolve().parent.parent / "docs" / "tuning" / "default_envelope.json"
 
 
@@ -62,8 +63,11 @@ class TuneConfig:
                                        "gains file; the evaluation then compiles per gain set)")  # fmt: skip
     init_gains: str | None = option(None, "start from this gains file (inside the bounds; default: WBC's)",
                                     metavar="FILE")  # fmt: skip
-    magnitude_range: tuple[float, float] = option((0.6, 1.4), "push impulses as multiples of the default gains' "
-                                                  "envelope in the push's direction", nargs=2)  # fmt: skip
+    magnitude_range: tuple[float, float] = option((0.6, 1.4), "push impulses as multiples of --push-scale in the "
+                                                  "push's direction", nargs=2)  # fmt: skip
+    push_scale: str = option("envelope", "what push impulses are multiples of, per direction: 'envelope' (the default "
+                             "gains' strict envelope, --envelope) or 'lip' (the feet-in-place LIP bound m omega d)",
+                             choices=PUSH_SCALES)  # fmt: skip
     train_bodies: tuple[str, ...] = option(("chest", "root_link"), "pushed bodies", nargs="+")
     duration_range: tuple[float, float] = option((0.05, 0.3), "push durations [s]", nargs=2)
     push_onset: float = option(0.2, "push start [s]")
@@ -77,6 +81,9 @@ class TuneConfig:
     solver_iterations: int | None = option(None, "contact-solver Newton iterations in training (default: the model's)")
     ls_iterations: int | None = option(None, "contact-solver line-search iterations in training (default: the model's)")
     checkpoint: str = option("tick", "rematerialisation in the backward pass", choices=CHECKPOINTS)
+    env_clip: float = option(3.0, "each rollout's gradient is clipped to this multiple of the batch's median "
+                             "per-rollout gradient norm before the batch mean (0: no per-rollout clipping); "
+                             "rollouts with a non-finite gradient are left out of the mean")  # fmt: skip
     population: int = option(8, "CMA-ES / random-search candidates per generation")
     es_batch: int = option(0, "pushes per candidate (0: batch // (population + 1), at least 1)")
     es_sigma: float = option(0.5, "CMA-ES initial step / random-search spread (unconstrained units)")
@@ -101,6 +108,8 @@ class TuneConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"--{name.replace('_', '-')} must be positive and finite, got {v!r}")
+        if isinstance(self.env_clip, bool) or not (math.isfinite(self.env_clip) and self.env_clip >= 0):
+            raise ValueError(f"--env-clip must be finite and >= 0, got {self.env_clip!r}")
         if not (math.isfinite(self.bound_factor) and self.bound_factor > 1.0):
             raise ValueError(f"--bound-factor must be > 1, got {self.bound_factor}")
         for name in ("zeta_range", "magnitude_range", "duration_range", "friction_range", "mass_range"):
@@ -118,6 +127,8 @@ class TuneConfig:
                                  f"(onset {self.push_onset} + up to {self.duration_range[1]} s)")  # fmt: skip
         if not self.train_bodies:
             raise ValueError("--train-bodies: give at least one body")
+        if self.push_scale not in PUSH_SCALES:
+            raise ValueError(f"--push-scale must be one of {list(PUSH_SCALES)}, got {self.push_scale!r}")
         if self.checkpoint not in CHECKPOINTS:
             raise ValueError(f"--checkpoint must be one of {list(CHECKPOINTS)}, got {self.checkpoint!r}")
         unknown = sorted(set(self.baselines) - {"cmaes", "random"})
@@ -175,9 +186,14 @@ def load_envelope(path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def envelope_table(tc: TuneConfig, robot: model_lib.Robot) -> tuple[np.ndarray, np.ndarray]:
-    """The default envelope per direction that push impulses are scaled by: ``tc.envelope``, the
-    stored :data:`ENVELOPE_FILE`, or ``envelope_fraction`` x the feet-in-place LIP bound over 32
-    directions."""
+    """(azimuths (32,) or (K,) deg, impulses N s) that push impulses are scaled by: with
+    ``push_scale == "lip"`` the feet-in-place LIP bound over 32 directions; else the default
+    envelope per direction: ``tc.envelope``, the stored :data:`ENVELOPE_FILE`, or
+    ``envelope_fraction`` x the LIP bound."""
+    if tc.push_scale == "lip":
+        az = np.arange(32) * 360.0 / 32
+        bound = sweep.lip_bound(robot, az)
+        return az, np.array([bound[float(a)]["impulse_bound_ns"] for a in az])
     if tc.envelope is not None:
         return load_envelope(tc.envelope)
     if ENVELOPE_FILE.is_file():
@@ -397,6 +413,23 @@ def make_batched_loss(problem: Problem, *, n_ticks: int | None = None, fixed_sol
         else:
             terms, metrics = jax.vmap(env, in_axes=(None, None, 0))(gains, reg, scen)
         return tuning_loss.batch_objective(terms["total"], problem.lc), terms, metrics
+
+    return fn
+
+
+def make_env_objective(problem: Problem):
+    """Objective of one push as a function of the unconstrained parameters (unjitted; the training
+    step vmaps its gradient over the batch, so that each rollout's gradient can be checked and
+    clipped on its own): ``fn(params {group: (k,)}, scen) -> (objective (), (terms {name: ()},
+    Metrics))``. Trace it inside :func:`wbc_jax.physics.fixed_iteration_solver` for reverse mode."""
+    env = _rollout_fn(problem, None)
+    dtype = problem.setup.dtype
+
+    def fn(params, scen):
+        gains, reg = problem.controls(params)
+        reg = None if reg is None else _cast(dtype, reg)
+        terms, metrics = env(_cast(dtype, gains), reg, scen)
+        return tuning_loss.env_objective(terms["total"], problem.lc), (terms, metrics)
 
     return fn
 
