@@ -457,3 +457,24 @@ def test_tuned_gains_file_runs_in_balance_and_push_sweep(tmp_path, capsys):
     summary = json.loads((tmp_path / "sw" / "summary.json").read_text())
     np.testing.assert_allclose(summary["gains"]["kp_com"], np.asarray(gains.kp_com), rtol=1e-6)
     assert summary["n_envs"] == 1 and summary["nan_envs"] == 0
+
+
+def test_com_floor_raises_kp_com_in_x_y_and_keeps_each_damping_ratio():
+    """experiments/stiffen_com.py: K_P,CoM x, y raised to the floor (never lowered), z and every other gain
+    unchanged, K_D,CoM = 2 zeta sqrt(K_P,CoM) with each axis's zeta of the input set."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("stiffen_com", ROOT / "experiments" / "stiffen_com.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    g = C.load_gains(ROOT / "experiments" / "gains" / "tuned_gradient.json", 23)
+    out = module.with_com_floor(g, 85.0)
+    kp, kp2 = np.asarray(g.kp_com, float), np.asarray(out.kp_com, float)
+    np.testing.assert_allclose(kp2, [max(kp[0], 85.0), max(kp[1], 85.0), kp[2]], rtol=1e-6)
+    zeta = np.asarray(g.kd_com, float) / (2 * np.sqrt(kp))
+    np.testing.assert_allclose(np.asarray(out.kd_com, float) / (2 * np.sqrt(kp2)), zeta, rtol=1e-5)
+    for k in GAIN_FIELDS:
+        if k not in ("kp_com", "kd_com"):
+            np.testing.assert_array_equal(np.asarray(getattr(out, k)), np.asarray(getattr(g, k)))
+    high = module.with_com_floor(out, 10.0)  # a floor below the gains leaves them as they are
+    np.testing.assert_array_equal(np.asarray(high.kp_com), np.asarray(out.kp_com))

@@ -68,6 +68,8 @@ DIVERGED_SPEED = 1e4
 SURVIVAL_MAX_SLIP_M = 0.02
 SURVIVAL_MAX_TILT_DEG = 5.0
 SURVIVAL_END_COM_SPEED = 0.05  # m/s: CoM speed at the end
+# Tuned gains must keep the seed's task: CoM RMSE on the 20 s sinusoid (issue 20's bound).
+SINUSOID_MAX_COM_RMSE_M = 1.5e-3
 SURVIVAL_CRITERION = {
     "max_foot_slip_m": SURVIVAL_MAX_SLIP_M,
     "max_foot_tilt_deg": SURVIVAL_MAX_TILT_DEG,

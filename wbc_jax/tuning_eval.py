@@ -363,7 +363,7 @@ def targets(summary: dict) -> dict:
            "no_direction_below_default": not below, "directions_below_default": below,
            "survival_ge_1.5x_default": g["survival_rate"] >= 1.5 * d["survival_rate"],
            "sinusoid_rmse_le_1.5mm": (g.get("sinusoid_com_rmse_m") is not None
-                                      and g["sinusoid_com_rmse_m"] <= 1.5e-3)}  # fmt: skip
+                                      and g["sinusoid_com_rmse_m"] <= constants.SINUSOID_MAX_COM_RMSE_M)}  # fmt: skip
     hand = [n for n in ("critical",) if n in summary]
     if hand:
         best = max(hand, key=lambda n: summary[n]["survival_rate"])
