@@ -478,3 +478,31 @@ def test_com_floor_raises_kp_com_in_x_y_and_keeps_each_damping_ratio():
             np.testing.assert_array_equal(np.asarray(getattr(out, k)), np.asarray(getattr(g, k)))
     high = module.with_com_floor(out, 10.0)  # a floor below the gains leaves them as they are
     np.testing.assert_array_equal(np.asarray(high.kp_com), np.asarray(out.kp_com))
+    # --restore-yaw: K_P,w z and K_I,w z raised to the reference's (0.165 -> 1, 0.080 -> 0.25 here), x and y kept.
+    ref = C.default_gains(23)
+    yaw = module.with_yaw_floor(g, ref)
+    assert float(g.kp_ang[2]) < 1.0 and float(g.ki_ang[2]) < 0.25
+    np.testing.assert_allclose(np.asarray(yaw.kp_ang), [g.kp_ang[0], g.kp_ang[1], ref.kp_ang[2]], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(yaw.ki_ang), [g.ki_ang[0], g.ki_ang[1], ref.ki_ang[2]], rtol=1e-6)
+
+
+def test_keep_tracking_bounds_hold_kp_com_and_the_yaw_gains_up():
+    """--keep-tracking: every parameter maps to K_P,CoM x, y >= the floor and yaw K_I,w, zeta_w >= the fraction
+    of the WBC defaults (the lowest params included); the hand-set start stays inside, the free-yaw tuned set not."""
+    tc = tp.TuneConfig(keep_tracking=True, **TINY)
+    problem = tp.make_problem(tc)
+    lo = problem.bounds.lo
+    assert np.asarray(lo["kp_com"]).tolist()[:2] == [constants.TRACKING_KP_COM_FLOOR] * 2
+    assert float(lo["kp_com"][2]) == pytest.approx(1.0)  # z: the default bound, 10 / 10
+    assert float(lo["ki_ang"][2]) == pytest.approx(constants.TRACKING_YAW_FRACTION * 0.25)
+    assert float(lo["zeta_ang"][2]) == pytest.approx(constants.TRACKING_YAW_FRACTION * 1.0)
+    lowest = {k: jnp.full_like(v, -30.0) for k, v in problem.init_params().items()}
+    gains, _ = problem.controls(lowest)
+    assert np.all(np.asarray(gains.kp_com)[:2] >= constants.TRACKING_KP_COM_FLOOR * (1 - 1e-5))
+    assert float(gains.ki_ang[2]) >= 0.9 * 0.25 * (1 - 1e-5)
+    assert float(gains.kp_ang[2]) >= 2 * 0.9 * np.sqrt(0.9 * 0.25) * (1 - 1e-5)
+    critical = C.load_gains(ROOT / "experiments" / "gains" / "com_critical_100.json", 23)
+    tuning_params.check_in_bounds(critical, problem.reg0, problem.bounds)
+    free = C.load_gains(ROOT / "experiments" / "gains" / "tuned_gradient.json", 23)
+    with pytest.raises(ValueError, match="kp_com is outside its bounds"):
+        tuning_params.check_in_bounds(free, problem.reg0, problem.bounds)

@@ -101,6 +101,23 @@ def default_bounds(base: Gains, factor: float = 10.0, zeta_range=(0.02, 2.0), re
     return Bounds(lo={k: jnp.asarray(v) for k, v in lo.items()}, hi={k: jnp.asarray(v) for k, v in hi.items()})
 
 
+def tracking_bounds(bounds: Bounds, base: Gains, kp_com_floor: float, yaw_fraction: float) -> Bounds:
+    """``bounds`` raised so that tuned gains keep tracking the CoM: the lower bound of K_P,CoM in x
+    and y to ``kp_com_floor``, and of K_I,w z and the angular damping ratio z to ``yaw_fraction``
+    x ``base``'s (horizontal pushes hardly excite yaw, so a push loss leaves these free to drop).
+    Raises ValueError if a raised lower bound reaches its upper bound."""
+    lo = {k: np.array(v) for k, v in bounds.lo.items()}
+    c = controls_of(base, default_regularisation())
+    lo["kp_com"][:2] = np.maximum(lo["kp_com"][:2], kp_com_floor)
+    lo["ki_ang"][2] = max(lo["ki_ang"][2], yaw_fraction * float(c["ki_ang"][2]))
+    lo["zeta_ang"][2] = max(lo["zeta_ang"][2], yaw_fraction * float(c["zeta_ang"][2]))
+    for k, v in lo.items():
+        if np.any(v >= np.asarray(bounds.hi[k])):
+            raise ValueError(f"tracking bounds: {k} lower bound {v.tolist()} reaches its upper bound "
+                             f"{np.asarray(bounds.hi[k]).tolist()}")  # fmt: skip
+    return Bounds(lo={k: jnp.asarray(v) for k, v in lo.items()}, hi=bounds.hi)
+
+
 def _to_unit(value, lo, hi):
     return (jnp.log(value) - jnp.log(lo)) / (jnp.log(hi) - jnp.log(lo))
 

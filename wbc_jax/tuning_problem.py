@@ -84,6 +84,10 @@ class TuneConfig:
     env_clip: float = option(3.0, "each rollout's gradient is clipped to this multiple of the batch's median "
                              "per-rollout gradient norm before the batch mean (0: no per-rollout clipping); "
                              "rollouts with a non-finite gradient are left out of the mean")  # fmt: skip
+    keep_tracking: bool = option(False, "bounds that keep the seed's CoM sinusoid tracked: K_P,CoM x, y >= "
+                                 f"{constants.TRACKING_KP_COM_FLOOR:g}, the yaw entries of K_I,w and of the "
+                                 f"angular damping ratio >= {constants.TRACKING_YAW_FRACTION:g} x the WBC "
+                                 "defaults (docs/tuning/README.md)")  # fmt: skip
     population: int = option(8, "CMA-ES / random-search candidates per generation")
     es_batch: int = option(0, "pushes per candidate (0: batch // (population + 1), at least 1)")
     es_sigma: float = option(0.5, "CMA-ES initial step / random-search spread (unconstrained units)")
@@ -321,6 +325,9 @@ def make_problem(tc: TuneConfig, lc: tuning_loss.LossConfig | None = None, *, ro
     base = default_gains(robot.index.n, dtype)
     reg0 = tuning_params.default_regularisation()
     bounds = tuning_params.default_bounds(base, tc.bound_factor, tc.zeta_range, reg0)
+    if tc.keep_tracking:
+        bounds = tuning_params.tracking_bounds(bounds, base, constants.TRACKING_KP_COM_FLOOR,
+                                               constants.TRACKING_YAW_FRACTION)  # fmt: skip
     init = base
     if tc.init_gains is not None:
         init = load_gains(tc.init_gains, robot.index.n, dtype)
