@@ -33,8 +33,10 @@ GAINS = ROOT / "experiments" / "gains"
 def with_com_floor(gains, floor: float):
     """Gains with K_P,CoM x, y raised to ``floor`` (N/m per kg) and K_D,CoM keeping each axis's
     damping ratio; z and every other gain unchanged."""
+    from wbc_jax.tuning_params import damping_ratio
+
     kp = np.asarray(gains.kp_com, float)
-    zeta = np.asarray(gains.kd_com, float) / (2.0 * np.sqrt(kp))
+    zeta = damping_ratio(np.asarray(gains.kd_com, float), kp)
     kp_new = kp.copy()
     kp_new[:2] = np.maximum(kp[:2], floor)
     dtype = np.asarray(gains.kp_com).dtype

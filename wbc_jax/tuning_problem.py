@@ -195,16 +195,20 @@ def envelope_table(tc: TuneConfig, robot: model_lib.Robot) -> tuple[np.ndarray, 
     envelope per direction: ``tc.envelope``, the stored :data:`ENVELOPE_FILE`, or
     ``envelope_fraction`` x the LIP bound."""
     if tc.push_scale == "lip":
-        az = np.arange(32) * 360.0 / 32
-        bound = sweep.lip_bound(robot, az)
-        return az, np.array([bound[float(a)]["impulse_bound_ns"] for a in az])
+        return _lip_table(robot)
     if tc.envelope is not None:
         return load_envelope(tc.envelope)
     if ENVELOPE_FILE.is_file():
         return load_envelope(ENVELOPE_FILE)
+    az, bound = _lip_table(robot)
+    return az, tc.envelope_fraction * bound
+
+
+def _lip_table(robot: model_lib.Robot) -> tuple[np.ndarray, np.ndarray]:
+    """(azimuths (32,) deg, the feet-in-place LIP bound m omega d (32,) N s)."""
     az = np.arange(32) * 360.0 / 32
     bound = sweep.lip_bound(robot, az)
-    return az, tc.envelope_fraction * np.array([bound[float(a)]["impulse_bound_ns"] for a in az])
+    return az, np.array([bound[float(a)]["impulse_bound_ns"] for a in az])
 
 
 def interp_periodic(az_table: np.ndarray, values: np.ndarray, az) -> np.ndarray:
@@ -424,18 +428,22 @@ def make_batched_loss(problem: Problem, *, n_ticks: int | None = None, fixed_sol
     return fn
 
 
+def _controls_cast(problem: Problem, params: dict):
+    """(Gains, regularisation dict or None) of unconstrained params, in the closed loop's dtype."""
+    dtype = problem.setup.dtype
+    gains, reg = problem.controls(params)
+    return _cast(dtype, gains), None if reg is None else _cast(dtype, reg)
+
+
 def make_env_objective(problem: Problem):
     """Objective of one push as a function of the unconstrained parameters (unjitted; the training
     step vmaps its gradient over the batch, so that each rollout's gradient can be checked and
     clipped on its own): ``fn(params {group: (k,)}, scen) -> (objective (), (terms {name: ()},
     Metrics))``. Trace it inside :func:`wbc_jax.physics.fixed_iteration_solver` for reverse mode."""
     env = _rollout_fn(problem, None)
-    dtype = problem.setup.dtype
 
     def fn(params, scen):
-        gains, reg = problem.controls(params)
-        reg = None if reg is None else _cast(dtype, reg)
-        terms, metrics = env(_cast(dtype, gains), reg, scen)
+        terms, metrics = env(*_controls_cast(problem, params), scen)
         return tuning_loss.env_objective(terms["total"], problem.lc), (terms, metrics)
 
     return fn
@@ -445,12 +453,9 @@ def make_population_loss(problem: Problem):
     """Forward objective of P gain sets on the same b pushes, vmapped over the population:
     ``fn(params {group: (P, k)}, scen (b,)) -> (objective (P,), terms {name: (P, b)}, Metrics (P, b))``."""
     env = _rollout_fn(problem, None)
-    dtype = problem.setup.dtype
 
     def one(params, scen):
-        gains, reg = problem.controls(params)
-        reg = None if reg is None else _cast(dtype, reg)
-        terms, metrics = jax.vmap(env, in_axes=(None, None, 0))(_cast(dtype, gains), reg, scen)
+        terms, metrics = jax.vmap(env, in_axes=(None, None, 0))(*_controls_cast(problem, params), scen)
         return tuning_loss.batch_objective(terms["total"], problem.lc), terms, metrics
 
     return jax.vmap(one, in_axes=(0, None))
