@@ -26,19 +26,6 @@ for _path in (str(ROOT), str(ROOT / "benchmarks")):
 QUANTITIES = ("max_foot_slip_m", "max_foot_tilt_deg", "end_com_speed_mps", "end_com_support_margin_m", "com_max_err_m")
 
 
-def failing(cols: dict) -> dict:
-    """(B,) booleans: which environments fail each test of the strict criterion."""
-    from wbc_jax import constants
-
-    return {
-        "slip": cols["max_foot_slip_m"] > constants.SURVIVAL_MAX_SLIP_M,
-        "tilt": cols["max_foot_tilt_deg"] > constants.SURVIVAL_MAX_TILT_DEG,
-        "end_speed": cols["end_com_speed_mps"] > constants.SURVIVAL_END_COM_SPEED,
-        "end_support_margin": cols["end_com_support_margin_m"] < 0,
-        "not_upright": ~cols["upright"].astype(bool),
-    }
-
-
 def probe(backend: str, batch: int) -> dict:
     import benchmark
 
@@ -50,7 +37,7 @@ def probe(backend: str, batch: int) -> dict:
     r = scenario.run(st, benchmark.push_batch(st, batch, 0.2, 0.1))
     cols = {k: np.asarray(v) for k, v in metrics_lib.summarize(r.metrics, 0.3).items()}
     azimuth = np.linspace(0, 360, batch, endpoint=False)
-    fails = failing(cols)
+    fails = metrics_lib.failed_tests(cols)
     idx = np.linspace(0, batch - 1, min(16, batch)).astype(int)
     return {
         "backend": backend, "batch": batch, "dtype": str(st.dtype), "device": scenario.device_label(),

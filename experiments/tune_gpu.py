@@ -183,7 +183,8 @@ def main(argv=None) -> int:
             results = _load(out / "heldout_raw.json")
             if not results:
                 raise ValueError("no held-out results yet: run --phases heldout first")
-            extra = {"nava_2016": {n: nava_conditions(*v) for n, v in sets.items()}, "timings_s": timings,
+            extra = {"command": "python experiments/tune_gpu.py " + " ".join(sys.argv[1:] if argv is None else argv),
+                     "nava_2016": {n: nava_conditions(*v) for n, v in sets.items()}, "timings_s": timings,
                      "config": {"tune": dataclasses.asdict(tc), "heldout": dataclasses.asdict(hc)}}  # fmt: skip
             if (out / "prediction.json").exists():
                 pred = _load(out / "prediction.json")

@@ -506,3 +506,19 @@ def test_keep_tracking_bounds_hold_kp_com_and_the_yaw_gains_up():
     free = C.load_gains(ROOT / "experiments" / "gains" / "tuned_gradient.json", 23)
     with pytest.raises(ValueError, match="kp_com is outside its bounds"):
         tuning_params.check_in_bounds(free, problem.reg0, problem.bounds)
+
+
+def test_failed_tests_name_each_strict_criterion_at_its_threshold():
+    """metrics.failed_tests: env 0 passes every test exactly at the thresholds; envs 1-5 each fail one test."""
+    eps = 1e-6
+    cols = {
+        "max_foot_slip_m": np.array([0.02, 0.02 + eps, 0, 0, 0, 0]),
+        "max_foot_tilt_deg": np.array([5.0, 0, 5.0 + eps, 0, 0, 0]),
+        "end_com_speed_mps": np.array([0.05, 0, 0, 0.05 + eps, 0, 0]),
+        "end_com_support_margin_m": np.array([0.0, 0, 0, 0, -eps, 0]),
+        "upright": np.array([True, True, True, True, True, False]),
+    }
+    fails = metrics_lib.failed_tests(cols)
+    assert list(fails) == ["slip", "tilt", "end_speed", "end_support_margin", "not_upright"]
+    for i, name in enumerate(fails, start=1):
+        assert fails[name].tolist() == [j == i for j in range(6)], name

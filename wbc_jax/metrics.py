@@ -125,6 +125,18 @@ def polygon_margin(points: Array, p: Array, tol: float = 1e-6) -> Array:
     return jnp.where(jnp.any(is_edge), margin, -nearest)
 
 
+def failed_tests(cols: dict) -> dict:
+    """Which environments fail each test of the strict criterion, from :func:`summarize`'s
+    columns: {"slip", "tilt", "end_speed", "end_support_margin", "not_upright": (B,) bool}."""
+    return {
+        "slip": np.asarray(cols["max_foot_slip_m"]) > constants.SURVIVAL_MAX_SLIP_M,
+        "tilt": np.asarray(cols["max_foot_tilt_deg"]) > constants.SURVIVAL_MAX_TILT_DEG,
+        "end_speed": np.asarray(cols["end_com_speed_mps"]) > constants.SURVIVAL_END_COM_SPEED,
+        "end_support_margin": np.asarray(cols["end_com_support_margin_m"]) < 0,
+        "not_upright": ~np.asarray(cols["upright"]).astype(bool),
+    }
+
+
 def summarize(metrics: Metrics, push_end: float = 0.0) -> dict:
     """Host-side summary of metrics under :data:`wbc_jax.constants.METRIC_NAMES`: plain numbers
     for one environment, numpy columns for a batch. ``survived`` is the strict criterion of

@@ -319,6 +319,10 @@ def survival_prediction(problem: tp.Problem, n: int, *, gains=None, reg=None, ou
         if k != "total"
     }
     rel = cols["impulse_ns"] / tp.interp_periodic(*problem.table, cols["azimuth_deg"])
+    edges = np.linspace(*tc.magnitude_range, 5)
+    bins = np.clip(np.searchsorted(edges, rel, side="right") - 1, 0, 3)
+    by_size = [{"impulse_fraction": [float(edges[i]), float(edges[i + 1])], "n": int(np.sum(bins == i)),
+                "survival_rate": float(survived[bins == i].mean()) if np.any(bins == i) else None} for i in range(4)]  # fmt: skip
     res = {"n": n, "survival_rate": float(survived.mean()), "horizon_s": tc.eval_horizon, "train_horizon_s": tc.horizon,
            "spearman_train_horizon": tuning_loss.spearman(train_loss, survived),
            "spearman_full": tuning_loss.spearman(full_loss, survived),
@@ -329,7 +333,9 @@ def survival_prediction(problem: tp.Problem, n: int, *, gains=None, reg=None, ou
            "impulse_fraction_of_envelope": rel.tolist(), "per_term_train_horizon": per_term, "device": scenario.device_label(),
            "terms_train_horizon": {k: np.asarray(v).tolist() for k, v in terms.items()},
            "terms_full": {k: np.asarray(v).tolist() for k, v in full_terms.items()},
-           "outcome": {k: np.asarray(v, float).tolist() for k, v in outcome.items()}}  # fmt: skip
+           "outcome": {k: np.asarray(v, float).tolist() for k, v in outcome.items()},
+           "survival_by_impulse_fraction": by_size,
+           "failure_rates": {k: float(np.mean(v)) for k, v in metrics_lib.failed_tests(outcome).items()}}  # fmt: skip
     if out is not None:
         out = pathlib.Path(out)
         io.atomic_write_json(out / "prediction.json", res)
