@@ -169,7 +169,8 @@ def time_physics_only(st, batch: int, tau, repeats: int = 1) -> dict:
 
     q = jnp.asarray(qpos, dtype)
     t0 = time.perf_counter()
-    fn = jax.jit(jax.vmap(env)).lower(q).compile()
+    with jax.default_matmul_precision(loop.cfg.matmul_precision):  # as the closed loop's physics
+        fn = jax.jit(jax.vmap(env)).lower(q).compile()
     compile_s = time.perf_counter() - t0
     jax.block_until_ready(fn(q))  # warm
     times = []

@@ -3,7 +3,7 @@
 # machine's own jax (never replacing it), then run the jobs named as arguments. Results go to
 # $OUT (one folder per job, log.txt), so a call that runs past its limit still returns what finished.
 #
-#   bash experiments/gpu_run.sh setup check bench sweep agree envelope queue soak
+#   bash experiments/gpu_run.sh setup check bench sweep agree envelope regrid queue soak
 #
 # Carried folders (git-ignored): .wheels/ (mujoco, mujoco-mjx, trimesh, quadprog, evosax, dotmap),
 # and warp-lang 1.18.0 (the extra of mujoco-mjx, 149 MB as a wheel) as an xz tar of the wheel's
@@ -43,14 +43,29 @@ for job in "$@"; do
       run sweep python3 experiments/sweep_timing.py --out "$OUT/sweep" --repeats 2 -- \
         --magnitudes 10 400 64 --directions 32 --gain-sets 8 --horizon 3 --chunk-size 16384 --backend warp ;;
     agree)  # default-gain grid (2,048 envs) on warp and on jax: outcomes outside the transition band
-      run agree_warp $SW --chunk-size 2048 --backend warp --out /tmp/sw/agree_warp
-      run agree_jax $SW --chunk-size 2048 --backend jax --out /tmp/sw/agree_jax
-      run agree python3 experiments/island_check.py /tmp/sw/agree_jax /tmp/sw/agree_warp --out "$OUT/agree/islands.json"
-      for s in agree_warp agree_jax; do cp /tmp/sw/$s/summary.json "$OUT/agree/$s.summary.json"; done
-      cp /tmp/sw/agree_warp/survival.png /tmp/sw/agree_warp/envelope.png "$OUT/agree/" ;;
-    envelope)  # bisection envelope (32 directions, 8 rounds) against the warp grid of 'agree'
-      run envelope python3 experiments/envelope_check.py --grid /tmp/sw/agree_warp --out "$OUT/envelope" -- \
-        --directions 32 --horizon 3 --backend warp ;;
+      mkdir -p "$OUT/agree"
+      for b in ${AGREE_BACKENDS:-warp jax}; do
+        run agree_$b $SW --chunk-size 2048 --backend $b --out /tmp/sw/agree_$b
+        cp /tmp/sw/agree_$b/summary.json "$OUT/agree/agree_$b.summary.json"
+        cp /tmp/sw/agree_$b/survival.png "$OUT/agree/survival_$b.png"
+      done
+      if [ -f /tmp/sw/agree_jax/summary.json ] && [ -f /tmp/sw/agree_warp/summary.json ]; then
+        run agree python3 experiments/island_check.py /tmp/sw/agree_jax /tmp/sw/agree_warp --out "$OUT/agree/islands.json"
+      fi ;;
+    envelope)  # bisection envelope (32 directions, 8 rounds) against the grid of 'agree', per backend
+      for b in ${ENVELOPE_BACKENDS:-warp}; do
+        run envelope_$b python3 experiments/envelope_check.py --grid /tmp/sw/agree_$b --out "$OUT/envelope_$b" -- \
+          --backend $b
+      done ;;
+    regrid)  # the grids of 'agree' run again (the engine's run-to-run floor) and kept with their tables
+      for b in ${ENVELOPE_BACKENDS:-warp}; do
+        run regrid_$b $SW --chunk-size 2048 --backend $b --out /tmp/sw/agree_${b}_2
+        run regrid_${b}_islands python3 experiments/island_check.py /tmp/sw/agree_$b /tmp/sw/agree_${b}_2 \
+          --out "$OUT/regrid_$b/islands.json"
+        for g in agree_$b agree_${b}_2; do
+          mkdir -p "$OUT/grids/$g"; cp /tmp/sw/$g/summary.json /tmp/sw/$g/results.parquet "$OUT/grids/$g/"
+        done
+      done ;;
     queue)  # the 64 x 32 x 8 sweep on warp: plain, with 2 and 4 scenarios per batch slot (fallen robots retired),
             # and plain at chunk 8192
       for q in ${QUEUES:-1 2 4}; do

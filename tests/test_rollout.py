@@ -1,6 +1,8 @@
 """The closed loop: the C MuJoCo backend against the MJX closed loop (float64, the benchmark
 scenario), the pushes, the metrics' geometry, one set of metric names."""
 
+import dataclasses
+
 import jax
 import numpy as np
 import pytest
@@ -128,6 +130,32 @@ def test_support_geometry_uses_no_matrix_products():
         np.zeros((K, 3), np.float32), np.tile(np.eye(3, dtype=np.float32), (K, 1, 1))
     )
     assert "dot_general" not in str(corners)
+
+
+def _dot_precisions(sim: rollout.SimConfig) -> list[str]:
+    """The precision of every matrix product in the start and one tick of the MJX closed loop
+    (controller and physics), as traced."""
+    st = scenario.setup("stand", duration=0.02, sim=sim)
+    one = jax.tree_util.tree_map(lambda x: x[0], scenario.single(st, scenario.make_push(*PUSH, st.dtype)))
+    loop = st.loop
+    tick = lambda q: loop.chunk(loop.mx, one.gains, one.push, loop.start(q), 0, 1)  # noqa: E731
+    jaxpr = str(jax.make_jaxpr(tick)(st.qpos0))
+    return [line.split("precision=")[1].split(")")[0] if "precision=" in line else "None"
+            for line in jaxpr.split("dot_general[")[1:]]  # fmt: skip
+
+
+def test_closed_loop_products_run_in_full_float32():
+    """A GPU may run float32 products in TensorFloat-32 (a 10-bit mantissa), which moved survival
+    outcomes at the fall boundary of a push grid (BENCHMARKS.md): every product of the loop's
+    programs is traced at HIGHEST precision, unless the config asks for XLA's default."""
+    sim = rollout.SimConfig(physics=physics.PhysicsConfig(backend="jax"), record=False)
+    highest = _dot_precisions(sim)
+    assert len(highest) > 50 and all(p.startswith("(Precision.HIGHEST") for p in highest)
+    # XLA's default where the code names none (MJX asks for HIGHEST in a few products itself).
+    default = _dot_precisions(dataclasses.replace(sim, matmul_precision="default"))
+    assert len(default) == len(highest) and default.count("(Precision.DEFAULT, Precision.DEFAULT") > 0.8 * len(default)
+    with pytest.raises(ValueError, match=r"unknown matmul_precision 'tf32'; valid: \['highest', 'default'\]"):
+        rollout.SimConfig(matmul_precision="tf32")
 
 
 @pytest.mark.gpu

@@ -135,14 +135,14 @@ def _push_sweep(args: argparse.Namespace) -> int:
 
 
 def _envelope(args: argparse.Namespace) -> int:
-    from wbc_jax import envelope, scenario, sweep
+    from wbc_jax import envelope, scenario
 
-    cfg = config_from_args(args, sweep.default_config())
-    cfg = dataclasses.replace(cfg, out=args.out if "out" in vars(args) else "runs/envelope")
+    cfg = config_from_args(args, envelope.default_config())
     cfg.check()
     scenario.enable_compilation_cache()
-    found = envelope.search(cfg, impulse_max=args.impulse_max, resolution=args.resolution, progress=not args.quiet)
-    line = {"rollouts": found["rollouts"], "rounds": found["rounds"], "backend": found["backend"],
+    found = envelope.search(cfg, resolution=args.resolution, progress=not args.quiet)
+    line = {"rollouts": found["rollouts"], "grid_rollouts": found["grid_rollouts"], "rounds": found["rounds"],
+            "backend": found["backend"],
             "run_s": found["run_s"], "compile_s": found["compile_s"],
             "impulse_ns": {str(a): e["impulse_ns"] for a, e in found["envelope"][0].items()}}  # fmt: skip
     print(json.dumps(line, separators=(",", ":")))
@@ -172,6 +172,7 @@ def _tune(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     from wbc_jax import balance, sweep, tune
+    from wbc_jax.envelope import default_config as envelope_default
 
     parser = _Parser(prog="wbc-jax", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -189,9 +190,8 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--quiet", action="store_true", help="no progress bar")
     sw.set_defaults(func=_push_sweep)
 
-    ev = sub.add_parser("envelope", help="recovery envelope by batched bisection (the sweep's flags, no grid)")
-    add_config_arguments(ev, sweep.default_config(), skip=("magnitudes",))
-    ev.add_argument("--impulse-max", type=float, default=40.0, help="upper end of the search [N s] (default: 40)")
+    ev = sub.add_parser("envelope", help="recovery envelope by batched bisection over the sweep's magnitudes")
+    add_config_arguments(ev, envelope_default())
     ev.add_argument("--resolution", type=float, default=0.25, help="bracket width to reach [N s] (default: 0.25)")
     ev.add_argument("--quiet", action="store_true", help="no progress bar")
     ev.set_defaults(func=_envelope)

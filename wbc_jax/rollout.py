@@ -45,6 +45,21 @@ from wbc_jax.types import Array, pytree_dataclass
 PROGRAMS: dict = {}
 
 
+MATMUL_PRECISIONS = ("highest", "default")
+
+
+def _traced_at_matmul_precision(method):
+    """Trace ``method`` of a :class:`ClosedLoop` under its config's matmul precision (the setting
+    is read when JAX traces, so it is part of every program built from the method)."""
+
+    @functools.wraps(method)
+    def traced(self, *args, **kwargs):
+        with jax.default_matmul_precision(self.cfg.matmul_precision):
+            return method(self, *args, **kwargs)
+
+    return traced
+
+
 @dataclasses.dataclass(frozen=True)
 class SimConfig:
     """Static rollout settings.
@@ -61,6 +76,10 @@ class SimConfig:
       physics: the physics backend and its solver settings.
       perturb_plant: the plant's friction and masses differ per environment (sweeps); False: the
         nominal model is simulated.
+      matmul_precision: of the float32 matrix products in the loop's programs (controller and MJX
+        physics): "highest" (full float32), or "default" (XLA's choice: TensorFloat-32, a 10-bit
+        mantissa, on recent NVIDIA GPUs). Survival near a push's fall boundary hangs on it
+        (BENCHMARKS.md); CPUs compute both in full float32.
     """
 
     control_dt: float = constants.CONTROL_DT
@@ -71,6 +90,7 @@ class SimConfig:
     checkpoint: bool = False
     physics: physics.PhysicsConfig = physics.PhysicsConfig()
     perturb_plant: bool = False
+    matmul_precision: str = "highest"
 
     def __post_init__(self):
         for name in ("control_dt", "duration"):
@@ -83,6 +103,8 @@ class SimConfig:
                 raise ValueError(f"{name} must be a positive finite number of seconds, got {value!r}")
         if self.loss_trace and self.record:
             raise ValueError("loss_trace and record are exclusive (set record=False)")
+        if self.matmul_precision not in MATMUL_PRECISIONS:
+            raise ValueError(f"unknown matmul_precision {self.matmul_precision!r}; valid: {list(MATMUL_PRECISIONS)}")
 
 
 @pytree_dataclass
@@ -248,6 +270,7 @@ class ClosedLoop:
         d = self._d_template.replace(qpos=qpos, qvel=jnp.asarray(qvel, qpos.dtype))
         return dynamics.terms(self.mx, d, self.idx, self.controller.frames)
 
+    @_traced_at_matmul_precision
     def init(self, qpos0: Array) -> LoopState:
         """Loop state at the initial posture ``qpos0`` (nq,), zero velocity; it is also the
         controller's postural reference."""
@@ -264,6 +287,7 @@ class ClosedLoop:
             measured_normal=jnp.full(K, jnp.inf, dtype),
         )  # fmt: skip
 
+    @_traced_at_matmul_precision
     def control(self, gains: Gains, state: LoopState, qpos: Array, qvel: Array, k: Array,
                 physics_ok: Array, push: Push):  # fmt: skip
         """One control tick at the state (qpos, qvel) of tick ``k``.
@@ -338,6 +362,7 @@ class ClosedLoop:
         """The controller reads the measured contact forces (contact detection)."""
         return self.controller.config.contact_detection
 
+    @_traced_at_matmul_precision
     def observe(self, state: LoopState, contact_pos, contact_force, contact_geom) -> LoopState:
         """Store the normal force (K,) the simulator applied at each contact (from the contact
         slots after the tick's physics, along the contact normals of the tick) for the next
@@ -351,6 +376,7 @@ class ClosedLoop:
         normal = jnp.stack([n[k] @ f[sl.start : sl.start + 3] for k, sl in enumerate(cset.slices())])
         return state.replace(measured_normal=normal)
 
+    @_traced_at_matmul_precision
     def measure(self, record, contact_pos, contact_force, contact_geom):
         """Fill the measured wrenches of a Trajectory record from the contact slots after the
         tick's physics (:func:`wbc_jax.physics.contacts`)."""
@@ -368,12 +394,14 @@ class ClosedLoop:
     def initial_qpos(self, qpos0: Array, joint_offset: Array) -> Array:
         return qpos0.at[self.idx.qpos_joints].add(joint_offset.astype(qpos0.dtype))
 
+    @_traced_at_matmul_precision
     def start(self, qpos: Array, batch: int = 1):
         """Initial carry (physics data, loop state, physics_ok) of an MJX backend at ``qpos``;
         ``batch``: the number of environments run together (Warp's contact buffer)."""
         d = physics.device_data(self.robot.mj_model, self.backend, self.cfg.physics, qpos, qpos.dtype, batch)
         return d, self.init(qpos), jnp.ones((), bool)
 
+    @_traced_at_matmul_precision
     def chunk(self, plant: mjx.Model, gains: Gains, push: Push, carry, k0, n_ticks: int):
         """Run ``n_ticks`` (static) ticks from tick ``k0`` (traced) on an MJX backend:
         (carry, records with a leading time axis or None)."""
@@ -413,6 +441,7 @@ class ClosedLoop:
         (d, state, ok), records = self.chunk(plant, gains, push, carry, 0, self.n_ticks)
         return metrics_lib.final(state.metrics, ok), records
 
+    @_traced_at_matmul_precision
     def rollout_queue(self, plant_of: Callable, qpos0: Array, scens: Scenario, slot: Array, segment: int,
                       axis_name: str, batch: int = 1):  # fmt: skip
         """One of S batch slots (``jax.vmap`` over ``slot`` with ``axis_name``) working through a
