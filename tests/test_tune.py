@@ -509,16 +509,17 @@ def test_keep_tracking_bounds_hold_kp_com_and_the_yaw_gains_up():
 
 
 def test_failed_tests_name_each_strict_criterion_at_its_threshold():
-    """metrics.failed_tests: env 0 passes every test exactly at the thresholds; envs 1-5 each fail one test."""
+    """metrics.failed_tests: env 0 passes every test exactly at the thresholds; envs 1-5 each fail one test;
+    env 6, upright with a NaN slip, fails the slip test."""
     eps = 1e-6
     cols = {
-        "max_foot_slip_m": np.array([0.02, 0.02 + eps, 0, 0, 0, 0]),
-        "max_foot_tilt_deg": np.array([5.0, 0, 5.0 + eps, 0, 0, 0]),
-        "end_com_speed_mps": np.array([0.05, 0, 0, 0.05 + eps, 0, 0]),
-        "end_com_support_margin_m": np.array([0.0, 0, 0, 0, -eps, 0]),
-        "upright": np.array([True, True, True, True, True, False]),
+        "max_foot_slip_m": np.array([0.02, 0.02 + eps, 0, 0, 0, 0, np.nan]),
+        "max_foot_tilt_deg": np.array([5.0, 0, 5.0 + eps, 0, 0, 0, 0]),
+        "end_com_speed_mps": np.array([0.05, 0, 0, 0.05 + eps, 0, 0, 0]),
+        "end_com_support_margin_m": np.array([0.0, 0, 0, 0, -eps, 0, 0]),
+        "upright": np.array([True, True, True, True, True, False, True]),
     }
     fails = metrics_lib.failed_tests(cols)
     assert list(fails) == ["slip", "tilt", "end_speed", "end_support_margin", "not_upright"]
     for i, name in enumerate(fails, start=1):
-        assert fails[name].tolist() == [j == i for j in range(6)], name
+        assert fails[name].tolist() == [j == i or (j == 6 and name == "slip") for j in range(7)], name

@@ -127,12 +127,13 @@ def polygon_margin(points: Array, p: Array, tol: float = 1e-6) -> Array:
 
 def failed_tests(cols: dict) -> dict:
     """Which environments fail each test of the strict criterion, from :func:`summarize`'s
-    columns: {"slip", "tilt", "end_speed", "end_support_margin", "not_upright": (B,) bool}."""
+    columns: {"slip", "tilt", "end_speed", "end_support_margin", "not_upright": (B,) bool}. A NaN
+    quantity fails its test. ``survived`` is passing them all."""
     return {
-        "slip": np.asarray(cols["max_foot_slip_m"]) > constants.SURVIVAL_MAX_SLIP_M,
-        "tilt": np.asarray(cols["max_foot_tilt_deg"]) > constants.SURVIVAL_MAX_TILT_DEG,
-        "end_speed": np.asarray(cols["end_com_speed_mps"]) > constants.SURVIVAL_END_COM_SPEED,
-        "end_support_margin": np.asarray(cols["end_com_support_margin_m"]) < 0,
+        "slip": ~(np.asarray(cols["max_foot_slip_m"]) <= constants.SURVIVAL_MAX_SLIP_M),
+        "tilt": ~(np.asarray(cols["max_foot_tilt_deg"]) <= constants.SURVIVAL_MAX_TILT_DEG),
+        "end_speed": ~(np.asarray(cols["end_com_speed_mps"]) <= constants.SURVIVAL_END_COM_SPEED),
+        "end_support_margin": ~(np.asarray(cols["end_com_support_margin_m"]) >= 0),
         "not_upright": ~np.asarray(cols["upright"]).astype(bool),
     }
 
@@ -145,15 +146,8 @@ def summarize(metrics: Metrics, push_end: float = 0.0) -> dict:
     ticks = np.maximum(m.ticks, 1)
     upright = ~m.fell & ~m.nan
     tilt_deg = np.rad2deg(m.max_tilt)
-    survived = (
-        upright
-        & (m.max_slip <= constants.SURVIVAL_MAX_SLIP_M)
-        & (tilt_deg <= constants.SURVIVAL_MAX_TILT_DEG)
-        & (m.end_com_speed <= constants.SURVIVAL_END_COM_SPEED)
-        & (m.end_support_margin >= 0)
-    )
     cols = {
-        "survived": survived,
+        "survived": None,  # filled below from the other columns
         "upright": upright,
         "fell": m.fell,
         "nan": m.nan,
@@ -169,6 +163,7 @@ def summarize(metrics: Metrics, push_end: float = 0.0) -> dict:
         "end_com_speed_mps": m.end_com_speed,
         "end_com_support_margin_m": m.end_support_margin,
     }
+    cols["survived"] = ~np.logical_or.reduce(list(failed_tests(cols).values()))
     assert tuple(cols) == constants.METRIC_NAMES
     if np.ndim(m.ticks) == 0:
         return {k: (v.item() if isinstance(v, np.ndarray) else v) for k, v in cols.items()}
