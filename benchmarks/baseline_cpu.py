@@ -122,7 +122,7 @@ class BaselineSpec:
       base_body: floating-base body; foot_sites, foot_bodies (2,); mass (kg).
       push_body: body the pushes act on; non_foot_bodies: bodies that must stay off the floor.
       forces, postural, pinv_damping, pinv_tol, kp_postural_reg, hessian_reg, torque_limit,
-        torque_weight_soft, compensate_passive: as ControllerConfig.
+        torque_weight_soft, angular_weight_soft, compensate_passive: as ControllerConfig.
       C_foot (m, 6), b_foot (m,): contact constraints of a sole in its frame
         (:func:`wbc_jax.forces.contact_constraints`); fz_row: the row of ``-f_z <= -fz_min``;
         fz_min (N); foot_size ((x_min, x_max), (y_min, y_max)): the CoP rectangle (m).
@@ -155,6 +155,7 @@ class BaselineSpec:
     hessian_reg: float
     torque_limit: float
     torque_weight_soft: float
+    angular_weight_soft: float
     compensate_passive: bool
     C_foot: np.ndarray
     b_foot: np.ndarray
@@ -329,7 +330,7 @@ def spec_from_setup(st, controller_state=None) -> BaselineSpec:
         forces=config.forces, postural=config.postural, pinv_damping=float(config.pinv_damping),
         pinv_tol=float(config.pinv_tol), kp_postural_reg=float(config.kp_postural_reg),
         hessian_reg=float(config.hessian_reg), torque_limit=float(config.torque_limit),
-        torque_weight_soft=float(config.torque_weight_soft),
+        torque_weight_soft=float(config.torque_weight_soft), angular_weight_soft=float(config.angular_weight_soft),
         compensate_passive=bool(config.compensate_passive),
         C_foot=C_foot, b_foot=b_foot, fz_row=int(forces_lib.constraint_rows(params, "surface").unilateral),
         fz_min=float(params.fz_min), foot_size=params.foot_size,
@@ -776,10 +777,11 @@ class NumpyController:
             y[i], bad[i] = solve_qp(H[i], gq[i], Cq[i], bq[i])
         f = f1 + mv(Z, y)
         # The equality is infeasible (A f = L_dot* - f_grav not realisable): the soft momentum QP.
+        rows = np.array([1.0, 1.0, 1.0] + [sp.angular_weight_soft] * 3)  # soft QP row weights
         for i in np.flatnonzero(bad):
             c = sp.torque_weight_soft
-            Hs = A[i].T @ A[i] + c * Sigma[i].T @ Sigma[i] + eps * self._eye12
-            gs = -A[i].T @ wrench_des[i] + c * Sigma[i].T @ tau_model[i]
+            Hs = A[i].T @ (rows[:, None] * A[i]) + c * Sigma[i].T @ Sigma[i] + eps * self._eye12
+            gs = -A[i].T @ (rows * wrench_des[i]) + c * Sigma[i].T @ tau_model[i]
             f[i], infeasible[i] = solve_qp(Hs, gs, C2[i], b2)
         return f, infeasible
 
@@ -804,10 +806,11 @@ class NumpyController:
         scale = np.maximum(np.max(np.abs(slack), axis=1), 1.0)
         bad = np.max(-slack, axis=1) > QP_FALLBACK_TOL * scale
         eps, c = sp.hessian_reg, sp.torque_weight_soft
+        rows = np.array([1.0, 1.0, 1.0] + [sp.angular_weight_soft] * 3)  # soft QP row weights
         for i in np.flatnonzero(bad):
             S_k = Sigma[i][:, cols]
-            Hs = A_k[i].T @ A_k[i] + c * S_k.T @ S_k + eps * self._eye6
-            gs = -A_k[i].T @ wrench_des[i] + c * S_k.T @ tau_model[i]
+            Hs = A_k[i].T @ (rows[:, None] * A_k[i]) + c * S_k.T @ S_k + eps * self._eye6
+            gs = -A_k[i].T @ (rows * wrench_des[i]) + c * S_k.T @ tau_model[i]
             f[i, cols], infeasible[i] = solve_qp(Hs, gs, C_k[i], sp.b_foot)
         return f, infeasible
 

@@ -3,6 +3,7 @@
     python experiments/cop_margin.py --out docs/tuning/cop_margin --scales 1.0 0.9 0.8 0.7 0.6 \
         --gains gradient=experiments/gains/tuned_gradient.json critical=experiments/gains/com_critical_100.json
     python experiments/cop_margin.py --rectangle sole --out docs/tuning/cop_margin_sole ...
+    python experiments/cop_margin.py --rectangle sole --scales 0.95 --angular-weights 1 0.1 0.01 ...
 
 Foot tilt ends most directions' strict envelope (experiments/envelope_limits.py): the force QP may
 put each foot's CoP on the edge of the sole, where the real foot starts to rotate. This shrinks the
@@ -16,6 +17,10 @@ footSize) or each foot's real support in the model (``--rectangle sole``: the ex
 contact spheres in the sole frame, the polygon the LIP bound of wbc_jax/sweep.py uses). The two
 differ: the default reaches 1.6 mm behind the heel's contact points, stops 1.05 cm short of the
 toe's and 0.8 cm short of the outer edge.
+
+``--angular-weights``: the soft momentum QP's angular_weight_soft (wbc_jax/forces.py) of each run;
+``--body``: the pushed body (chest, as the held-out grid; root_link: 6 cm above the CoM instead of
+14.5 cm, less moment about the CoM for the same impulse).
 """
 
 from __future__ import annotations
@@ -74,20 +79,26 @@ def main(argv=None) -> dict:
     p.add_argument("--backend", default="mujoco")
     p.add_argument("--rectangle", choices=("wbc", "sole"), default="wbc",
                    help="the rectangle scaled: the QP's default (wbc) or each foot's contact spheres (sole)")  # fmt: skip
+    p.add_argument("--angular-weights", nargs="+", type=float, default=[1.0],
+                   help="the soft momentum QP's angular_weight_soft of each run (1: WBC)")  # fmt: skip
+    p.add_argument("--body", default="chest", help="pushed body")
     p.add_argument("--out", default="runs/cop_margin")
     args = p.parse_args(argv)
     if any(not (0 < s <= 1) for s in args.scales):
         raise ValueError(f"--scales must lie in (0, 1], got {args.scales}")
+    if any(not (np.isfinite(w) and w > 0) for w in args.angular_weights):
+        raise ValueError(f"--angular-weights must be positive and finite, got {args.angular_weights}")
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     scenario.enable_compilation_cache()
-    base = dataclasses.replace(envelope.default_config(), horizon=3.0, backend=args.backend, out=None,
+    base = dataclasses.replace(envelope.default_config(), horizon=3.0, backend=args.backend, out=None, body=args.body,
                                directions=tuple(float(a) for a in np.arange(args.directions) * 360.0 / args.directions))  # fmt: skip
     if args.rectangle == "wbc":
         rectangles = {"left": WBC_RECTANGLE, "right": WBC_RECTANGLE}
     else:
         rectangles = sole_rectangles(model.load_robot())
-    result = {"rectangle": args.rectangle, "cop_rectangles_m": rectangles, "runs": {}}
+    model.load_robot().index.body_id(args.body)  # an unknown body: the error lists the bodies
+    result = {"rectangle": args.rectangle, "body": args.body, "cop_rectangles_m": rectangles, "runs": {}}
     for spec in args.gains:
         name, _, path = spec.partition("=")
         if not path:
@@ -96,15 +107,18 @@ def main(argv=None) -> dict:
         for scale in args.scales:
             tasks = out / f"feet_{args.rectangle}{round(scale * 100)}.json"
             io.atomic_write_bytes(tasks, task_file(rectangles, scale).encode())
-            found = envelope.search(dataclasses.replace(base, gains=gains, tasks=str(tasks)), progress=False)
-            frac = {az: e["fraction_of_bound"] for az, e in found["envelope"][0].items()}
-            result["runs"][f"{name}@{scale:g}"] = {
-                "gains": path, "cop_scale": scale, "fraction_of_bound": frac,
-                "median": float(np.median(list(frac.values()))), "min": float(np.min(list(frac.values()))),
-                "rollouts": found["rollouts"], "run_s": found["run_s"],
-            }  # fmt: skip
-            print(json.dumps({"run": f"{name}@{scale:g}", "median": result["runs"][f"{name}@{scale:g}"]["median"],
-                              "min": result["runs"][f"{name}@{scale:g}"]["min"]}), flush=True)  # fmt: skip
+            for weight in args.angular_weights:
+                cfg = dataclasses.replace(base, gains=gains, tasks=str(tasks), angular_weight_soft=weight)
+                found = envelope.search(cfg, progress=False)
+                frac = {az: e["fraction_of_bound"] for az, e in found["envelope"][0].items()}
+                key = f"{name}@{scale:g}" + ("" if weight == 1.0 else f"@w{weight:g}")
+                result["runs"][key] = {
+                    "gains": path, "cop_scale": scale, "angular_weight_soft": weight, "fraction_of_bound": frac,
+                    "median": float(np.median(list(frac.values()))), "min": float(np.min(list(frac.values()))),
+                    "rollouts": found["rollouts"], "run_s": found["run_s"],
+                }  # fmt: skip
+                print(json.dumps({"run": key, "median": result["runs"][key]["median"],
+                                  "min": result["runs"][key]["min"]}), flush=True)  # fmt: skip
     result["command"] = "python experiments/cop_margin.py " + " ".join(sys.argv[1:] if argv is None else argv)
     io.atomic_write_json(out / "cop_margin.json", result)
     return result

@@ -83,7 +83,8 @@ def heldout_config(args):
     lo, hi, n = args.grid_magnitudes
     kw = dict(magnitudes=(lo, hi, int(n)), directions=args.grid_directions, variation_magnitudes=args.variation_magnitudes,
               variation_directions=args.variation_directions, one_foot=not args.no_one_foot, sinusoid_s=args.sinusoid_s,
-              backend=args.heldout_backend, sinusoid_backend=args.sinusoid_backend, chunk_size=args.chunk_size)  # fmt: skip
+              backend=args.heldout_backend, sinusoid_backend=args.sinusoid_backend, chunk_size=args.chunk_size,
+              tasks=args.tasks, angular_weight_soft=args.angular_weight_soft)  # fmt: skip
     if args.quick:
         kw.update(QUICK_HELDOUT)
     return tuning_eval.HeldoutConfig(**kw)

@@ -71,6 +71,7 @@ def _cases(tmp):
         (["balance", "--solver-iterations", "0"], r"solver_iterations must be a positive integer"),
         (["balance", "--solver-iterations", "1.5"], r"--solver-iterations expects a whole number"),
         (["balance", "--control-dt", "0"], r"--control-dt must be a positive"),
+        (["balance", "--angular-weight-soft", "nan"], r"--angular-weight-soft must be positive and finite"),
         (["balance", "--out", a_file], r"is a file"),
         (["balance", "--out", str(sweep_run)], r"holds a sweep run"),
         (["balance", "--out", str(corrupt)], r"run.json is unreadable"),
@@ -114,6 +115,7 @@ def _cases(tmp):
         (["push-sweep", "--chunk-size", "0"], r"--chunk-size must be a whole number >= 1"),
         (["push-sweep", "--horizon", "0.5"], r"--horizon 0.5 s must end after the push"),
         (["push-sweep", "--friction", "1", "0.5"], r"--friction range must be positive and ordered"),
+        (["push-sweep", "--angular-weight-soft", "0"], r"--angular-weight-soft must be positive and finite"),
         (["push-sweep", "--body", "nose", "--out", out], r"unknown body 'nose'; valid bodies"),
         (["push-sweep", "--out", a_file], r"is a file"),
         (["push-sweep", "--out", str(balance_run)], r"holds a balance run"),
@@ -127,7 +129,7 @@ def _cases(tmp):
     ]
 
 
-CASE_COUNT = 37
+CASE_COUNT = 39
 
 
 def test_every_bad_input_case_is_listed(tmp_path):

@@ -2,6 +2,7 @@
 
 import json
 import os
+import pathlib
 import subprocess
 import sys
 import textwrap
@@ -11,6 +12,24 @@ import pytest
 
 from wbc_jax import scenario, sweep
 from wbc_jax.gains import default_gains
+
+
+def test_controller_settings_of_a_sweep_and_a_held_out_evaluation_reach_the_loop():
+    """--angular-weight-soft and --tasks travel into the closed loop's force QP and contact set (the
+    held-out evaluation's and the tuning run's configs too), not only into the run's records."""
+    from wbc_jax import tuning_eval
+
+    tasks = str(pathlib.Path(__file__).resolve().parent.parent / "experiments" / "tasks" / "feet_sole95.yaml")
+    cfg = sweep.SweepConfig(angular_weight_soft=0.01, tasks=tasks, forces="qp")
+    st = sweep.make_setup(cfg, default_gains(23, scenario.float_dtype()))
+    assert st.loop.controller.config.force_settings.angular_weight_soft == 0.01
+    rects = [c.params.foot_size for c in st.loop.contact_set.contacts]
+    assert rects[0] == ((-0.0635, 0.1255), (-0.0425, 0.0505)) and rects[1][1] == (-0.0505, 0.0425)
+    hc = tuning_eval.HeldoutConfig(angular_weight_soft=0.1, tasks=tasks)
+    assert tuning_eval._controller((1.0, 0.1), hc).angular_weight_soft == 0.1
+    assert sweep.make_setup(sweep.SweepConfig()).loop.controller.config.angular_weight_soft == 1.0
+    with pytest.raises(ValueError, match="held-out tasks file /nowhere.yaml is not a file"):
+        tuning_eval.HeldoutConfig(tasks="/nowhere.yaml")
 
 
 def test_bad_sweep_input_is_rejected_before_compiling(robot, tmp_path):

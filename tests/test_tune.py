@@ -131,6 +131,8 @@ def test_out_of_bound_init_gains_are_a_clear_error_before_compiling(tmp_path):
     ({"env_clip": float("nan")}, r"--env-clip must be finite and >= 0"),
     ({"env_clip": -1.0}, r"--env-clip must be finite and >= 0"),
     ({"push_scale": "lipp"}, r"--push-scale must be one of \['envelope', 'lip'\]"),
+    ({"angular_weight_soft": 0.0}, r"--angular-weight-soft must be positive and finite"),
+    ({"tasks": "/nonexistent.yaml"}, r"--tasks /nonexistent.yaml is not a file"),
 ])  # fmt: skip
 def test_bad_tune_config_is_a_clear_error(kwargs, message):
     with pytest.raises(ValueError, match=message):

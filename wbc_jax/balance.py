@@ -29,6 +29,10 @@ class BalanceConfig:
     duration: float | None = option(None, "seconds (default: the task's: stand 10, sinusoid 20, one-foot 16)")
     forces: str = option("qp", "force distribution", choices=FORCE_MODES)
     postural: str = option("stable", "postural task variant", choices=POSTURAL_VARIANTS)
+    angular_weight_soft: float = option(
+        1.0, "soft momentum QP: weight of the angular-momentum rate against the linear one where a push asks for "
+        "more than the feet can give (1: WBC; < 1: the CoM first, the upper body absorbs the rest)",
+    )  # fmt: skip
     gains: str | None = option(None, "gains JSON file (default: WBC iCubGazeboV2_5)", metavar="FILE")
     tasks: str | None = option(
         None, "task/contact file (JSON/YAML): motion tasks, contacts, scene objects, initial posture; "
@@ -58,10 +62,21 @@ class BalanceConfig:
         if not (math.isfinite(self.control_dt) and self.control_dt > 0):
             raise ValueError(f"--control-dt must be a positive number of seconds, got {self.control_dt}")
         physics.PhysicsConfig(backend=self.backend, solver_iterations=self.solver_iterations)
-        ControllerConfig(forces=self.forces, postural=self.postural)
+        if isinstance(self.angular_weight_soft, bool) or not (
+            isinstance(self.angular_weight_soft, (int, float))
+            and math.isfinite(self.angular_weight_soft)
+            and self.angular_weight_soft > 0
+        ):
+            raise ValueError(f"--angular-weight-soft must be positive and finite, got {self.angular_weight_soft!r}")
+        self.controller_config()
         for name, path in (("gains", self.gains), ("tasks", self.tasks)):
             runs.check_input_file(path, name)
         runs.check_output_dir(self.out, "balance")
+
+    def controller_config(self, base: ControllerConfig | None = None) -> ControllerConfig:
+        """``base`` (default: the defaults) with this run's controller settings."""
+        return dataclasses.replace(base or ControllerConfig(), forces=self.forces, postural=self.postural,
+                                   angular_weight_soft=self.angular_weight_soft)  # fmt: skip
 
 
 def default_config() -> BalanceConfig:
@@ -72,7 +87,8 @@ def make_setup(
     cfg: BalanceConfig, robot_name: str = "icub", controller: ControllerConfig | None = None
 ) -> scenario.Setup:
     """Scene, controller and closed loop of a balance run (checked, nothing compiled).
-    ``controller``: further controller settings (forces and postural come from ``cfg``)."""
+    ``controller``: further controller settings (forces, postural and angular_weight_soft come from
+    ``cfg``)."""
     scene = scenario.load_scene(robot_name, cfg.tasks)
     dtype = scenario.float_dtype()
     gains = load_gains(cfg.gains, scene.robot.index.n, dtype) if cfg.gains else None
@@ -82,7 +98,7 @@ def make_setup(
     )  # fmt: skip
     return scenario.setup(
         cfg.task, duration=cfg.duration,
-        controller=dataclasses.replace(controller or ControllerConfig(), forces=cfg.forces, postural=cfg.postural),
+        controller=cfg.controller_config(controller),
         sim=sim, gains=gains, scene=scene,
     )  # fmt: skip
 

@@ -81,6 +81,7 @@ class ControllerConfig:
     torque_limit: float = 60.0
     qp_iterations: int = qp.DEFAULT_ITERATIONS
     torque_weight_soft: float = 1e-4
+    angular_weight_soft: float = 1.0
     normal_force_weight: float = 1e3
     freeze_postural_projector: bool = False
     solution_damping: float | None = None
@@ -99,7 +100,7 @@ class ControllerConfig:
         if self.postural not in torques.POSTURAL_VARIANTS:
             raise ValueError(f"unknown postural variant {self.postural!r}; valid: {list(torques.POSTURAL_VARIANTS)}")
         positive = ("pinv_damping", "pinv_tol", "hessian_reg", "base_vel_damping", "torque_limit",
-                    "torque_weight_soft", "normal_force_weight", "detection_threshold", "detection_ramp_out",
+                    "torque_weight_soft", "angular_weight_soft", "normal_force_weight", "detection_threshold", "detection_ramp_out",
                     "detection_ramp_in")  # fmt: skip
         for name in positive:
             value = getattr(self, name)
@@ -126,7 +127,8 @@ class ControllerConfig:
     def force_settings(self) -> forces.ForceSettings:
         return forces.ForceSettings(
             mode=self.forces, hessian_reg=self.hessian_reg, qp_iterations=self.qp_iterations,
-            torque_weight_soft=self.torque_weight_soft, normal_force_weight=self.normal_force_weight,
+            torque_weight_soft=self.torque_weight_soft, angular_weight_soft=self.angular_weight_soft,
+            normal_force_weight=self.normal_force_weight,
             violation_tol=self.violation_tol,
         )  # fmt: skip
 

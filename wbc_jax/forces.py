@@ -287,6 +287,7 @@ class ForceSettings:
     hessian_reg: float = 1e-7
     qp_iterations: int = qp.DEFAULT_ITERATIONS
     torque_weight_soft: float = 1e-4  # |tau|^2 against |A f - w|^2 (N^2 vs (N m)^2), soft QP
+    angular_weight_soft: float = 1.0  # the angular rows of |A f - w|^2 against the linear ones, soft QP
     normal_force_weight: float = 1e3  # desired normal forces, per N^2 against (N m)^2
     violation_tol: float | None = None  # accepted contact_violation of a QP's wrenches (None: by dtype)
 
@@ -391,8 +392,9 @@ def soft_momentum_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array,
     S_n, F_n = normal_force_rows(cset, W_R)
     c, w_n = settings.torque_weight_soft, settings.normal_force_weight
     Ak, Sk, Nk = A * keep[None, :], tt.Sigma * keep[None, :], S_n * keep[None, :]
-    H = Ak.T @ Ak + c * (Sk.T @ Sk + w_n * Nk.T @ Nk) + jnp.diag(settings.hessian_reg + 1.0 - keep)
-    g = -Ak.T @ wrench_des + c * (Sk.T @ tt.tau_model - w_n * Nk.T @ F_n)
+    rows = jnp.asarray([1.0, 1.0, 1.0] + [settings.angular_weight_soft] * 3, dtype)
+    H = Ak.T @ (rows[:, None] * Ak) + c * (Sk.T @ Sk + w_n * Nk.T @ Nk) + jnp.diag(settings.hessian_reg + 1.0 - keep)
+    g = -Ak.T @ (rows * wrench_des) + c * (Sk.T @ tt.tau_model - w_n * Nk.T @ F_n)
     x, info = qp.solve_qp(H, g, C * keep[None, :], jnp.where(row_kept, b, 1.0), iterations=settings.qp_iterations,
                           row_weight=row_weights(cset))  # fmt: skip
     return keep * x, info

@@ -89,6 +89,10 @@ class SweepConfig:
     )  # fmt: skip
     forces: str = option("qp", "force distribution", choices=FORCE_MODES)
     postural: str = option("stable", "postural task variant", choices=POSTURAL_VARIANTS)
+    angular_weight_soft: float = option(
+        1.0, "soft momentum QP: weight of the angular-momentum rate against the linear one where a push asks for "
+        "more than the feet can give (1: WBC; < 1: the CoM first, the upper body absorbs the rest)",
+    )  # fmt: skip
     solver_iterations: int | None = option(None, "contact solver Newton iterations (default: the model's, 4)")
     seed: int = option(0, "seed of the random perturbations")
     tasks: str | None = option(None, "task/contact file (JSON/YAML), as balance --tasks", metavar="FILE")
@@ -145,8 +149,19 @@ class SweepConfig:
             lo, hi = getattr(self, name)
             if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
                 raise ValueError(f"--{name.replace('_', '-')} range must be positive and ordered, got {(lo, hi)}")
-        ControllerConfig(forces=self.forces, postural=self.postural)
+        if isinstance(self.angular_weight_soft, bool) or not (
+            isinstance(self.angular_weight_soft, (int, float))
+            and math.isfinite(self.angular_weight_soft)
+            and self.angular_weight_soft > 0
+        ):
+            raise ValueError(f"--angular-weight-soft must be positive and finite, got {self.angular_weight_soft!r}")
+        self.controller_config()
         physics.PhysicsConfig(backend=self.backend, solver_iterations=self.solver_iterations)
+
+    def controller_config(self, base: ControllerConfig | None = None) -> ControllerConfig:
+        """``base`` (default: the defaults) with this sweep's controller settings."""
+        return dataclasses.replace(base or ControllerConfig(), forces=self.forces, postural=self.postural,
+                                   angular_weight_soft=self.angular_weight_soft)  # fmt: skip
 
     @property
     def size(self) -> int:
@@ -226,7 +241,8 @@ def make_setup(cfg: SweepConfig, base_gains: Gains | None = None, *, robot_name:
                loss_trace: bool = False, checkpoint: bool = False, record: bool = False,
                controller: ControllerConfig | None = None) -> scenario.Setup:  # fmt: skip
     """The closed loop of a sweep's environments (tuning uses it with a LossTrace, replays with
-    ``record``). ``controller``: further controller settings (forces, postural from ``cfg``)."""
+    ``record``). ``controller``: further controller settings (forces, postural, angular_weight_soft
+    from ``cfg``)."""
     scene = scenario.load_scene(robot_name, cfg.tasks)
     sim = rollout_lib.SimConfig(
         record=record, loss_trace=loss_trace, checkpoint=checkpoint, push_body=cfg.body,
@@ -235,7 +251,7 @@ def make_setup(cfg: SweepConfig, base_gains: Gains | None = None, *, robot_name:
     )  # fmt: skip
     return scenario.setup(
         cfg.task, duration=cfg.horizon,
-        controller=dataclasses.replace(controller or ControllerConfig(), forces=cfg.forces, postural=cfg.postural),
+        controller=cfg.controller_config(controller),
         sim=sim, gains=base_gains, scene=scene,
     )  # fmt: skip
 

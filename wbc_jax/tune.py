@@ -244,7 +244,7 @@ def run(cfg: TuneConfig | None = None, *, lc: LossConfig | None = None, progress
     runs.check_output_dir(out, "tune")
     problem = make_problem(tc, lc, robot_name=robot_name)
     runs.claim_output_dir(out, "tune", runs.fingerprint({"tune": dataclasses.asdict(tc), "loss": dataclasses.asdict(lc),
-                                                         "dtype": str(scenario.float_dtype())}, [tc.init_gains, tc.envelope]),
+                                                         "dtype": str(scenario.float_dtype())}, [tc.init_gains, tc.envelope, tc.tasks]),
                           resume=True)  # fmt: skip
     gains, reg, rows, info = train(problem, out, progress=progress)
     sets = {"default": (default_gains(problem.robot.index.n), problem.reg0), "gradient": (gains, reg)}

@@ -51,7 +51,9 @@ class HeldoutConfig:
     grid: (LO N, HI N, M magnitudes) x ``directions`` azimuths, chest pushes of ``duration`` s at
     ``onset`` s, ``horizon`` s. variations: ``variation_magnitudes`` x ``variation_directions``
     over the same impulse range. one_foot: pushes at ``one_foot_onset`` s of the one-foot task
-    (horizon ``one_foot_horizon``). sinusoid_s: seconds of the CoM sinusoid (0: skip)."""
+    (horizon ``one_foot_horizon``). sinusoid_s: seconds of the CoM sinusoid (0: skip).
+    tasks, angular_weight_soft: the contact file and soft-QP weight of every closed loop (as the
+    tuning run's: :class:`wbc_jax.tuning_problem.TuneConfig`)."""
 
     magnitudes: tuple[float, float, int] = (10.0, 400.0, 64)
     directions: int = 32
@@ -68,6 +70,8 @@ class HeldoutConfig:
     sinusoid_backend: str = "mujoco"
     backend: str = "auto"
     chunk_size: int = 16384
+    tasks: str | None = None
+    angular_weight_soft: float = 1.0
 
     def __post_init__(self):
         lo, hi, m = self.magnitudes
@@ -87,6 +91,9 @@ class HeldoutConfig:
             raise ValueError(f"one-foot pushes must fall in the single-support phase {sweep.ONE_FOOT_WINDOW} s")
         physics.PhysicsConfig(backend=self.backend)
         physics.PhysicsConfig(backend=self.sinusoid_backend)
+        ControllerConfig(angular_weight_soft=self.angular_weight_soft)
+        if self.tasks is not None and not pathlib.Path(self.tasks).is_file():
+            raise ValueError(f"held-out tasks file {self.tasks} is not a file")
 
 
 def _groups(sets: dict) -> dict:
@@ -97,8 +104,9 @@ def _groups(sets: dict) -> dict:
     return groups
 
 
-def _controller(reg) -> ControllerConfig:
-    return ControllerConfig(pinv_damping=float(reg[0]), kp_postural_reg=float(reg[1]))
+def _controller(reg, hc: HeldoutConfig) -> ControllerConfig:
+    return ControllerConfig(pinv_damping=float(reg[0]), kp_postural_reg=float(reg[1]),
+                            angular_weight_soft=hc.angular_weight_soft)  # fmt: skip
 
 
 def _scenarios(robot, rows: dict, gains: list, dtype) -> Scenario:
@@ -186,8 +194,9 @@ def heldout(sets: dict, hc: HeldoutConfig, out, *, progress: bool = True, robot_
         # Stand: the grid and the variations, one program (per-env plant: friction varies).
         cfg = sweep.SweepConfig(magnitudes=tuple(mags), directions=sweep._azimuths(hc.directions),
                                 push_duration=hc.duration, push_onset=hc.onset, horizon=hc.horizon,
-                                friction=(0.5, 1.0), backend=hc.backend, out=None)  # fmt: skip
-        st = sweep.make_setup(cfg, gains[0], robot_name=robot_name, controller=_controller(reg))
+                                friction=(0.5, 1.0), backend=hc.backend, out=None, tasks=hc.tasks,
+                                angular_weight_soft=hc.angular_weight_soft)  # fmt: skip
+        st = sweep.make_setup(cfg, gains[0], robot_name=robot_name, controller=_controller(reg, hc))
         robot = st.robot
         blocks = [("grid", "chest", hc.duration, 1.0, impulses, sweep._azimuths(hc.directions))]
         vimp = np.linspace(impulses[0], impulses[-1], hc.variation_magnitudes)
@@ -206,7 +215,7 @@ def heldout(sets: dict, hc: HeldoutConfig, out, *, progress: bool = True, robot_
         if hc.one_foot:
             of = dataclasses.replace(cfg, task="one-foot", push_onset=hc.one_foot_onset, horizon=hc.one_foot_horizon,
                                      friction=(1.0, 1.0))  # fmt: skip
-            st1 = sweep.make_setup(of, gains[0], robot_name=robot_name, controller=_controller(reg))
+            st1 = sweep.make_setup(of, gains[0], robot_name=robot_name, controller=_controller(reg, hc))
             blocks = [("one_foot", "chest", hc.duration, 1.0, vimp, sweep._azimuths(hc.variation_directions))]
             cols = _block_columns(robot, blocks, len(gains), hc.one_foot_onset)
             table1, timing[f"one_foot_{gi}"] = _run_table(st1, _scenarios(robot, cols, gains, dtype), cols,
@@ -250,8 +259,8 @@ def sinusoid(gains: list, reg, hc: HeldoutConfig, robot_name: str = "icub") -> t
     """CoM RMSE (m) of each gain set on the seed's CoM sinusoid (``hc.sinusoid_s`` s, no push),
     the closed loop of ``wbc-jax balance --task sinusoid`` (metrics only), all sets as one batch."""
     sim = SimConfig(record=False, physics=physics.PhysicsConfig(backend=hc.sinusoid_backend))
-    st = scenario.setup("sinusoid", duration=hc.sinusoid_s, controller=_controller(reg), sim=sim, gains=gains[0],
-                        robot_name=robot_name)  # fmt: skip
+    st = scenario.setup("sinusoid", duration=hc.sinusoid_s, controller=_controller(reg, hc), sim=sim, gains=gains[0],
+                        scene=scenario.load_scene(robot_name, hc.tasks))  # fmt: skip
     one = scenario.single(st)
     scen = jax.tree_util.tree_map(lambda x: np.repeat(np.asarray(x), len(gains), 0), one)
     scen = scen.replace(gains=Gains(**{k: np.stack([np.asarray(getattr(g, k), st.dtype) for g in gains])

@@ -69,6 +69,10 @@ class TuneConfig:
                              "gains' strict envelope, --envelope) or 'lip' (the feet-in-place LIP bound m omega d)",
                              choices=PUSH_SCALES)  # fmt: skip
     train_bodies: tuple[str, ...] = option(("chest", "root_link"), "pushed bodies", nargs="+")
+    tasks: str | None = option(None, "contact file of the two feet (JSON/YAML), as push-sweep --tasks: e.g. "
+                               "experiments/tasks/feet_sole95.yaml (the CoP rectangles of the model's soles)",
+                               metavar="FILE")  # fmt: skip
+    angular_weight_soft: float = option(1.0, "the controller's angular_weight_soft, as push-sweep's (1: WBC)")
     duration_range: tuple[float, float] = option((0.05, 0.3), "push durations [s]", nargs=2)
     push_onset: float = option(0.2, "push start [s]")
     friction_range: tuple[float, float] = option((0.6, 1.2), "floor friction", nargs=2)
@@ -108,7 +112,8 @@ class TuneConfig:
                 raise ValueError(f"--{name.replace('_', '-')} must be a whole number >= 1, got {v!r}")
         if isinstance(self.es_batch, bool) or not isinstance(self.es_batch, int) or self.es_batch < 0:
             raise ValueError(f"--es-batch must be a whole number >= 0, got {self.es_batch!r}")
-        for name in ("horizon", "lr", "clip_norm", "eval_horizon", "es_sigma", "envelope_fraction"):
+        for name in ("horizon", "lr", "clip_norm", "eval_horizon", "es_sigma", "envelope_fraction",
+                     "angular_weight_soft"):  # fmt: skip
             v = getattr(self, name)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"--{name.replace('_', '-')} must be positive and finite, got {v!r}")
@@ -139,7 +144,7 @@ class TuneConfig:
         if unknown:
             raise ValueError(f"--baselines: unknown {unknown}; valid: cmaes, random")
         physics.PhysicsConfig(backend="jax", solver_iterations=self.solver_iterations, ls_iterations=self.ls_iterations)
-        for name, path in (("init-gains", self.init_gains), ("envelope", self.envelope)):
+        for name, path in (("init-gains", self.init_gains), ("envelope", self.envelope), ("tasks", self.tasks)):
             if path is not None:
                 p = pathlib.Path(path)
                 if not p.is_file():
@@ -343,8 +348,9 @@ def make_problem(tc: TuneConfig, lc: tuning_loss.LossConfig | None = None, *, ro
         physics=physics.PhysicsConfig(backend="jax", solver_iterations=tc.solver_iterations,
                                       ls_iterations=tc.ls_iterations),
     )  # fmt: skip
-    st = scenario.setup("stand", duration=tc.horizon if horizon is None else horizon, controller=ControllerConfig(),
-                        sim=sim, gains=base)  # fmt: skip
+    st = scenario.setup("stand", duration=tc.horizon if horizon is None else horizon, sim=sim, gains=base,
+                        controller=ControllerConfig(angular_weight_soft=tc.angular_weight_soft),
+                        scene=scenario.load_scene(robot_name, tc.tasks))  # fmt: skip
     iterations = tc.solver_iterations or int(robot.mj_model.opt.iterations)
     return Problem(tc=tc, lc=lc, setup=st, loop=tuning_loss.tuning_loop(st.loop), base=base, reg0=reg0, init=init,
                    bounds=bounds, table=table, iterations=iterations)  # fmt: skip
