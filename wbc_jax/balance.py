@@ -15,7 +15,7 @@ import numpy as np
 from wbc_jax import io, physics, plots, references, runs, scenario
 from wbc_jax import metrics as metrics_lib
 from wbc_jax import rollout as rollout_lib
-from wbc_jax.controller import FORCE_MODES, ControllerConfig
+from wbc_jax.controller import FORCE_MODES, ControllerConfig, with_job_settings
 from wbc_jax.gains import gains_to_dict, load_gains
 from wbc_jax.torques import POSTURAL_VARIANTS
 from wbc_jax.types import option
@@ -62,12 +62,6 @@ class BalanceConfig:
         if not (math.isfinite(self.control_dt) and self.control_dt > 0):
             raise ValueError(f"--control-dt must be a positive number of seconds, got {self.control_dt}")
         physics.PhysicsConfig(backend=self.backend, solver_iterations=self.solver_iterations)
-        if isinstance(self.angular_weight_soft, bool) or not (
-            isinstance(self.angular_weight_soft, (int, float))
-            and math.isfinite(self.angular_weight_soft)
-            and self.angular_weight_soft > 0
-        ):
-            raise ValueError(f"--angular-weight-soft must be positive and finite, got {self.angular_weight_soft!r}")
         self.controller_config()
         for name, path in (("gains", self.gains), ("tasks", self.tasks)):
             runs.check_input_file(path, name)
@@ -75,8 +69,7 @@ class BalanceConfig:
 
     def controller_config(self, base: ControllerConfig | None = None) -> ControllerConfig:
         """``base`` (default: the defaults) with this run's controller settings."""
-        return dataclasses.replace(base or ControllerConfig(), forces=self.forces, postural=self.postural,
-                                   angular_weight_soft=self.angular_weight_soft)  # fmt: skip
+        return with_job_settings(base, self.forces, self.postural, self.angular_weight_soft)
 
 
 def default_config() -> BalanceConfig:

@@ -23,7 +23,7 @@ from wbc_jax import constants, io, physics, runs, scenario, sweep_plots
 from wbc_jax import metrics as metrics_lib
 from wbc_jax import model as model_lib
 from wbc_jax import rollout as rollout_lib
-from wbc_jax.controller import FORCE_MODES, ControllerConfig
+from wbc_jax.controller import FORCE_MODES, ControllerConfig, with_job_settings
 from wbc_jax.gains import Gains, default_gains, gains_from_dict, gains_to_dict, load_gains, validate_gains
 from wbc_jax.rollout import Push, Scenario
 from wbc_jax.torques import POSTURAL_VARIANTS
@@ -149,19 +149,12 @@ class SweepConfig:
             lo, hi = getattr(self, name)
             if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
                 raise ValueError(f"--{name.replace('_', '-')} range must be positive and ordered, got {(lo, hi)}")
-        if isinstance(self.angular_weight_soft, bool) or not (
-            isinstance(self.angular_weight_soft, (int, float))
-            and math.isfinite(self.angular_weight_soft)
-            and self.angular_weight_soft > 0
-        ):
-            raise ValueError(f"--angular-weight-soft must be positive and finite, got {self.angular_weight_soft!r}")
         self.controller_config()
         physics.PhysicsConfig(backend=self.backend, solver_iterations=self.solver_iterations)
 
     def controller_config(self, base: ControllerConfig | None = None) -> ControllerConfig:
         """``base`` (default: the defaults) with this sweep's controller settings."""
-        return dataclasses.replace(base or ControllerConfig(), forces=self.forces, postural=self.postural,
-                                   angular_weight_soft=self.angular_weight_soft)  # fmt: skip
+        return with_job_settings(base, self.forces, self.postural, self.angular_weight_soft)
 
     @property
     def size(self) -> int:
