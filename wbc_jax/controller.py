@@ -50,6 +50,8 @@ class ControllerConfig:
       base_vel_damping: Reg.pinvDamp_baseVel (angular-momentum integral).
       torque_limit: saturation (N m). qp_iterations: at most this many interior-point steps.
       torque_weight_soft: |tau|^2 against |A f - w|^2 in the soft momentum QP.
+      angular_weight_soft: the angular rows of |A f - w|^2 against the linear ones in the soft
+        momentum QP (1: WBC; < 1: the CoM first where a push asks more than the feet can give).
       normal_force_weight: desired normal forces against the torques in the force QP.
       freeze_postural_projector: hold the postural projector constant in derivatives (the earlier,
         inexact gradient; kept for experiments/grad_check_sources.py).

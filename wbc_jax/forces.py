@@ -12,8 +12,8 @@ inside each contact's rigid-contact constraints::
 (``w_n |S_n f - F_n|^2``: desired normal forces, a hand pressing a table, Nori et al. 2015). When
 a push asks for a momentum rate that no feasible wrench realises, the equality becomes the
 leading cost term instead (the soft momentum QP): ``min |A f - w|^2 + c (the cost above)``,
-always feasible. ``analytic`` is the seed paper's C++: the same least-squares torque
-minimisation without inequality constraints.
+always feasible (its angular rows optionally weighed down: ``angular_weight_soft``). ``analytic``
+is the seed paper's C++: the same least-squares torque minimisation without inequality constraints.
 
 Contact switching (the one-foot blend of codyco ``torqueBalancing``, for any contact set): with
 activations a_k, the engaged contacts (a_k > 0) and the fully active ones (a_k = 1) each get the
@@ -381,10 +381,12 @@ def soft_momentum_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array,
                      settings: ForceSettings) -> tuple[Array, qp.QPInfo]:  # fmt: skip
     """The soft momentum QP over the contacts with ``mask`` = 1 (always feasible)::
 
-        min |A f - wrench_des|^2 + c (|tau_model + Sigma f|^2 + w_n |S_n f - F_n|^2) + eps |f|^2
+        min |A f - wrench_des|_W^2 + c (|tau_model + Sigma f|^2 + w_n |S_n f - F_n|^2) + eps |f|^2
         s.t. C f <= b,   the other contacts' wrenches 0
 
-    (c = ``settings.torque_weight_soft``). Arguments as :func:`momentum_equality_qp`."""
+    (c = ``settings.torque_weight_soft``; W = diag(1, 1, 1, a, a, a) with a =
+    ``settings.angular_weight_soft``: a < 1 keeps the force that moves the CoM and gives up the
+    angular-momentum rate first, docs/tuning/README.md). Arguments as :func:`momentum_equality_qp`."""
     dtype = A.dtype
     keep = _row_mask(cset, mask)
     C, b = constraints(cset, W_R, jnp.ones(len(cset.contacts), dtype))
