@@ -93,11 +93,12 @@ def main(argv=None) -> dict:
     scenario.enable_compilation_cache()
     base = dataclasses.replace(envelope.default_config(), horizon=3.0, backend=args.backend, out=None, body=args.body,
                                directions=tuple(float(a) for a in np.arange(args.directions) * 360.0 / args.directions))  # fmt: skip
+    robot = model.load_robot()
+    robot.index.body_id(args.body)  # an unknown body: the error lists the bodies
     if args.rectangle == "wbc":
         rectangles = {"left": WBC_RECTANGLE, "right": WBC_RECTANGLE}
     else:
-        rectangles = sole_rectangles(model.load_robot())
-    model.load_robot().index.body_id(args.body)  # an unknown body: the error lists the bodies
+        rectangles = sole_rectangles(robot)
     result = {"rectangle": args.rectangle, "body": args.body, "cop_rectangles_m": rectangles, "runs": {}}
     for spec in args.gains:
         name, _, path = spec.partition("=")

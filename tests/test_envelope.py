@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from wbc_jax import envelope, sweep
+from wbc_jax import envelope, scenario, sweep
 
 # The documented grid: 64 pushes of 10-400 N for 0.1 s.
 GRID = np.linspace(10.0, 400.0, 64) * 0.1
@@ -86,4 +86,5 @@ def test_search_matches_a_grid_sweep_on_c_mujoco(tmp_path):
         assert e["grid_impulse_ns"] <= e["impulse_ns"] < e["grid_impulse_ns"] + 1.0
         assert e["bracket_ns"][1] - e["bracket_ns"][0] <= 0.25 and not e["at_cap"]
     assert found["rounds"] == 5 and found["rollouts"] == 10 and found["grid_rollouts"] == 16
-    assert json.loads((tmp_path / "env" / "summary.json").read_text())["rollouts"] == 10
+    written = json.loads((tmp_path / "env" / "summary.json").read_text())
+    assert written["rollouts"] == 10 and written["device"] == scenario.device_label()

@@ -158,7 +158,7 @@ def search(cfg: sweep.SweepConfig, *, resolution: float = 0.25, robot_name: str 
     summary = {
         "envelope": envelope, "rounds": found["rounds"], "rollouts": int(found["rollouts"]), "searches": K,
         "grid_impulses": int(impulses.size), "grid_rollouts": int(K * impulses.size),
-        "resolution_ns": resolution, "backend": st.backend,
+        "resolution_ns": resolution, "backend": st.backend, "device": scenario.device_label(),
         "compile_s": round(timing["compile_s"], 2), "run_s": round(timing["run_s"], 2),
         "config": dataclasses.asdict(cfg), "gains": gains_to_dict(base),
     }  # fmt: skip
