@@ -21,6 +21,27 @@ from wbc_jax.sim import physics
 from wbc_jax.sim.state import Push, Scenario, traced_at_matmul_precision
 
 
+def touch(tree, seed):
+    """Every leaf of ``tree`` made to depend on the scalar ``seed`` (adding seed * 0).
+
+    Give it a carry and a seed that varies along the vmapped batch and depends on the
+    differentiated parameters: the batching (vmap) and linearisation (grad) rules of ``lax.scan``
+    then find which carry entries are batched / have tangents in one pass over the body instead
+    of several, and the nested scans (ticks, physics steps, solver iterations, line search) no
+    longer multiply those passes: the values are the same, the trace is shorter."""
+    zero = seed * 0
+
+    def one(x):
+        x = jnp.asarray(x)
+        if jnp.issubdtype(x.dtype, jnp.inexact) or jnp.issubdtype(x.dtype, jnp.integer):
+            return x + zero.astype(x.dtype)
+        if x.dtype == jnp.bool_:
+            return x | (zero > 1)
+        return x
+
+    return jax.tree_util.tree_map(one, tree)
+
+
 @traced_at_matmul_precision
 def start(loop, qpos: Array, batch: int = 1):
     """Initial carry (physics data, loop state, physics_ok) of an MJX backend at ``qpos``;

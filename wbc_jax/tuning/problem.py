@@ -227,33 +227,16 @@ def make_problem(tc: TuneConfig, lc: tuning_loss.LossConfig | None = None, *, ro
                    bounds=bounds, table=table, iterations=iterations)  # fmt: skip
 
 
-def _touch(tree, seed):
-    """Every leaf of ``tree`` made to depend on the scalar ``seed`` (adding seed * 0)."""
-    zero = seed * 0
-
-    def touch(x):
-        x = jnp.asarray(x)
-        if jnp.issubdtype(x.dtype, jnp.inexact) or jnp.issubdtype(x.dtype, jnp.integer):
-            return x + zero.astype(x.dtype)
-        if x.dtype == jnp.bool_:
-            return x | (zero > 1)
-        return x
-
-    return jax.tree_util.tree_map(touch, tree)
-
-
 def rollout(loop: loop_lib.ClosedLoop, plant, qpos, gains, push, reg=None, seed=None):
     """:meth:`wbc_jax.sim.rollout.ClosedLoop.rollout` with, when ``seed`` is given (a scalar that varies
     along the vmapped batch and depends on the differentiated parameters), every leaf of the
-    initial carry made to depend on it. The batching (vmap) and linearisation (grad) rules of
-    ``lax.scan`` then find which carry entries are batched / have tangents in one pass over the
-    body instead of several, and the nested scans (ticks, physics steps, solver iterations, line
-    search) no longer multiply those passes: the values are the same, the trace is shorter."""
+    initial carry made to depend on it (:func:`wbc_jax.sim.mjx_loop.touch`: the same values, a
+    shorter trace)."""
     carry = mjx_loop.start(loop, qpos)
     if reg:
         carry = (carry[0], carry[1].replace(controller=carry[1].controller.replace(**reg)), carry[2])
     if seed is not None:
-        carry = _touch(carry, seed)
+        carry = mjx_loop.touch(carry, seed)
     (d, state, ok), records = mjx_loop.chunk(loop, plant, gains, push, carry, 0, loop.n_ticks)
     return metrics_lib.final(state.metrics, ok), records
 
