@@ -167,6 +167,7 @@ def _trace(T=60, shift=0.0, tilt=0.0, slip=0.0, speed=0.0):
         tau=jnp.zeros((T, 23)),
         support_xy=jnp.asarray(sup),
         com_height0=jnp.full(T, 0.5),
+        foot_normal=jnp.asarray(normals),
     )
     return tuning_loss.TuneTrace(base=base, foot_normal=jnp.asarray(normals), qp_infeasible=jnp.zeros(T, bool))
 

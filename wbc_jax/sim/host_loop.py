@@ -17,10 +17,11 @@ import numpy as np
 
 from wbc_jax.sim import physics
 from wbc_jax.sim.loop import PROGRAMS
-from wbc_jax.sim.state import Scenario
+from wbc_jax.sim.state import Feedforward, Scenario
 
 
-def run_host(loop, scen: Scenario, qpos0: np.ndarray, dtype, *, on_tick=None, threads: int | None = None):
+def run_host(loop, scen: Scenario, qpos0: np.ndarray, dtype, *, on_tick=None, threads: int | None = None,
+             feedforward: Feedforward | None = None):  # fmt: skip
     """Every tick of a batch of B environments on C MuJoCo (``mujoco`` backend).
 
     An even batch of 2 or more without records runs as two halves in a pipeline: while XLA
@@ -33,6 +34,8 @@ def run_host(loop, scen: Scenario, qpos0: np.ndarray, dtype, *, on_tick=None, th
       dtype: the controller's float dtype.
       on_tick: called with the number of ticks done (progress bars).
       threads: C MuJoCo worker threads (None: all cores, one fewer when pipelined).
+      feedforward: torques added to the controller's, with a leading batch axis B
+        (:class:`wbc_jax.sim.state.Feedforward`; None: none).
 
     Returns:
       (Metrics with a batch axis, records with axes (B, T, ...) or None, seconds compiling).
@@ -55,7 +58,8 @@ def run_host(loop, scen: Scenario, qpos0: np.ndarray, dtype, *, on_tick=None, th
     take = lambda tree, part: jax.tree_util.tree_map(lambda x: cast(np.asarray(x)[part]), tree)  # noqa: E731
     gains = [take(scen.gains, part) for part in parts]
     push = [take(scen.push, part) for part in parts]
-    fns, compile_s = _host_programs(loop, gains[0], cast(qpos[parts[0]]), push[0])
+    ff = [None if feedforward is None else take(feedforward, part) for part in parts]
+    fns, compile_s = _host_programs(loop, gains[0], cast(qpos[parts[0]]), push[0], ff[0])
     states = [fns["init"](cast(qpos[part])) for part in parts]
     cores = threads or os.cpu_count() or 1
     hosts = [physics.HostBatch(models[part], qpos[part], max(1, cores - 1) if pipelined else cores)
@@ -65,7 +69,7 @@ def run_host(loop, scen: Scenario, qpos0: np.ndarray, dtype, *, on_tick=None, th
 
     def control(h, k):  # dispatched: XLA computes while the caller goes on
         q, v = hosts[h].state()
-        return fns["control"](gains[h], states[h], cast(q), cast(v), np.int32(k), ~hosts[h].diverged, push[h])
+        return fns["control"](gains[h], states[h], cast(q), cast(v), np.int32(k), ~hosts[h].diverged, push[h], ff[h])
 
     def physics_tick(h, out):
         states[h], ctrl, record, forces, bodies = out
@@ -123,33 +127,34 @@ def host_xfrc(loop, force: np.ndarray, body: np.ndarray) -> np.ndarray:
     return out
 
 
-def control_host(loop, gains, state, qpos, qvel, k, physics_ok, push):
+def control_host(loop, gains, state, qpos, qvel, k, physics_ok, push, feedforward=None):
     """:meth:`control` plus the pushes' forces of the tick's physics steps (host loop)."""
-    state, ctrl, record = loop.control(gains, state, qpos, qvel, k, physics_ok, push)
+    state, ctrl, record = loop.control(gains, state, qpos, qvel, k, physics_ok, push, feedforward)
     return state, ctrl, record, loop.step_push_forces(push, k).astype(ctrl.dtype), loop.push_bodies(push)
 
 
-def _host_programs(loop, gains, qpos, push):
+def _host_programs(loop, gains, qpos, push, ff=None):
     """The compiled, vmapped init, control and measure of the host loop for this batch shape
-    (compiled once per loop and shape): (programs, seconds spent compiling now)."""
+    (compiled once per loop and shape, with or without a feedforward of this length):
+    (programs, seconds spent compiling now)."""
     cache = PROGRAMS
-    key = ("host", loop.structure_key, qpos.shape, str(qpos.dtype))
+    key = ("host", loop.structure_key, qpos.shape, str(qpos.dtype), None if ff is None else ff.torque.shape)
     if key in cache:
         return cache[key], 0.0
     t0 = time.perf_counter()
     B = qpos.shape[0]
     init = jax.jit(jax.vmap(loop.init))
     state = jax.eval_shape(init, qpos)
-    control = jax.jit(jax.vmap(functools.partial(control_host, loop), in_axes=(0, 0, 0, 0, None, 0, 0)))
+    control = jax.jit(jax.vmap(functools.partial(control_host, loop), in_axes=(0, 0, 0, 0, None, 0, 0, 0)))
     ok = np.ones(B, bool)
     programs = {
         "init": init.lower(qpos).compile(),
-        "control": control.lower(gains, state, qpos, qpos[:, : loop.idx.nv], np.int32(0), ok, push).compile(),
+        "control": control.lower(gains, state, qpos, qpos[:, : loop.idx.nv], np.int32(0), ok, push, ff).compile(),
     }
     n_con = physics.max_contacts(loop.robot.mj_model)
     slots = (np.zeros((B, n_con, 3)), np.zeros((B, n_con, 3)), np.zeros((B, n_con, 2), np.int64))
     if loop.cfg.record:
-        record = jax.eval_shape(control, gains, state, qpos, qpos[:, : loop.idx.nv], np.int32(0), ok, push)[2]
+        record = jax.eval_shape(control, gains, state, qpos, qpos[:, : loop.idx.nv], np.int32(0), ok, push, ff)[2]
         programs["measure"] = jax.jit(jax.vmap(loop.measure)).lower(record, *slots).compile()
     if loop.observes_contacts:
         programs["observe"] = jax.jit(jax.vmap(loop.observe)).lower(state, *slots).compile()

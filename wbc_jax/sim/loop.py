@@ -34,7 +34,8 @@ from wbc_jax.robot import dynamics
 from wbc_jax.robot.model import Robot
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import physics
-from wbc_jax.sim.state import LoopState, LossTrace, Push, SimConfig, Trajectory, push_force, push_forces
+from wbc_jax.sim import state as state_lib
+from wbc_jax.sim.state import Feedforward, LoopState, LossTrace, Push, SimConfig, Trajectory, push_force, push_forces
 from wbc_jax.sim.state import traced_at_matmul_precision as _traced_at_matmul_precision
 
 # Compiled programs of closed loops, by ClosedLoop.structure_key and batch shape (loops built alike,
@@ -113,11 +114,12 @@ class ClosedLoop:
 
     @_traced_at_matmul_precision
     def control(self, gains: Gains, state: LoopState, qpos: Array, qvel: Array, k: Array,
-                physics_ok: Array, push: Push):  # fmt: skip
+                physics_ok: Array, push: Push, feedforward: Feedforward | None = None):  # fmt: skip
         """One control tick at the state (qpos, qvel) of tick ``k``.
 
         ``physics_ok``: () False when the last physics steps diverged (the state was frozen).
-        Returns ``(state, ctrl (nu,), record)``; record is a :class:`Trajectory` (``f_meas`` and
+        ``feedforward``: torques added to the controller's in a window of ticks (None: none); the
+        records and metrics then see the torques applied. Returns ``(state, ctrl (nu,), record)``; record is a :class:`Trajectory` (``f_meas`` and
         ``Ldot_meas`` still zero), a :class:`LossTrace` or None, by the settings."""
         cfg, idx = self.cfg, self.idx
         dtype = qpos.dtype
@@ -125,6 +127,9 @@ class ClosedLoop:
         terms = self.terms(qpos, qvel)
         ref = self.schedule.at(t_now, dtype)
         out, cstate = self.controller.step(gains, state.controller, terms, ref, t_now, state.measured_normal)
+        if feedforward is not None:
+            limit = self.controller.config.torque_limit
+            out = out.replace(tau=state_lib.feedforward_torque(feedforward, k, out.tau, limit))
         ctrl = jnp.zeros(self.robot.mj_model.nu, dtype).at[idx.actuators].set(out.tau)
         metrics, anchors, normals = self._metrics(state, terms, ref, out, t_now, physics_ok)
         state = state.replace(controller=cstate, metrics=metrics, anchors=anchors, anchor_normals=normals,
@@ -143,7 +148,7 @@ class ClosedLoop:
             record = LossTrace(
                 com=terms.W_p_CoM, com_ref=ref.com_pos, com_vel=terms.W_v_CoM, tau=out.tau,
                 support_xy=metrics_lib.support_corners(self.contact_set, out.contact_pos, out.contact_R)[:, :2],
-                com_height0=state.com0_height,
+                com_height0=state.com0_height, foot_normal=out.contact_R[jnp.asarray(self.contact_set.feet), :, 2],
             )  # fmt: skip
         return state, ctrl, record
 

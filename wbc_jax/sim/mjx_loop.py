@@ -18,7 +18,7 @@ from wbc_jax.core.mjx import mjx
 from wbc_jax.core.types import Array
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import physics
-from wbc_jax.sim.state import Push, Scenario, traced_at_matmul_precision
+from wbc_jax.sim.state import Feedforward, Push, Scenario, traced_at_matmul_precision
 
 
 def touch(tree, seed):
@@ -51,13 +51,15 @@ def start(loop, qpos: Array, batch: int = 1):
 
 
 @traced_at_matmul_precision
-def chunk(loop, plant: mjx.Model, gains: Gains, push: Push, carry, k0, n_ticks: int):
+def chunk(loop, plant: mjx.Model, gains: Gains, push: Push, carry, k0, n_ticks: int,
+          feedforward: Feedforward | None = None):  # fmt: skip
     """Run ``n_ticks`` (static) ticks from tick ``k0`` (traced) on an MJX backend:
-    (carry, records with a leading time axis or None)."""
+    (carry, records with a leading time axis or None). ``feedforward``: torques added to the
+    controller's (:class:`wbc_jax.sim.state.Feedforward`; None: none)."""
 
     def tick(carry, k):
         d, state, ok = carry
-        state, ctrl, record = loop.control(gains, state, d.qpos, d.qvel, k, ok, push)
+        state, ctrl, record = loop.control(gains, state, d.qpos, d.qvel, k, ok, push, feedforward)
         xfrc = loop.xfrc(push, k).astype(d.qpos.dtype)
         d_new, _ = jax.lax.scan(lambda dd, x: (physics.step(plant, dd, ctrl, x), None), d, xfrc)
         finite = physics.state_ok(d_new.qpos, d_new.qvel)
@@ -79,16 +81,17 @@ def chunk(loop, plant: mjx.Model, gains: Gains, push: Push, carry, k0, n_ticks: 
 
 
 def rollout(loop, plant: mjx.Model, qpos0: Array, gains: Gains, push: Push, controller_overrides=None,
-            batch: int = 1):  # fmt: skip
+            batch: int = 1, feedforward: Feedforward | None = None):  # fmt: skip
     """The whole horizon on an MJX backend: (Metrics, records or None). ``plant``: the MJX model
     simulated (:func:`wbc_jax.sim.physics.plant_model` of the nominal one for a perturbed plant).
     ``controller_overrides``: fields of the controller state to replace (regularisation as
-    differentiable arrays, gain tuning's gradient check)."""
+    differentiable arrays, gain tuning's gradient check). ``feedforward``: torques added to the
+    controller's (None: none)."""
     d, state, ok = start(loop, qpos0, batch)
     if controller_overrides:
         state = state.replace(controller=state.controller.replace(**controller_overrides))
     carry = (d, state, ok)
-    (d, state, ok), records = chunk(loop, plant, gains, push, carry, 0, loop.n_ticks)
+    (d, state, ok), records = chunk(loop, plant, gains, push, carry, 0, loop.n_ticks, feedforward)
     return metrics_lib.final(state.metrics, ok), records
 
 

@@ -27,7 +27,7 @@ from wbc_jax.sim import host_loop, mjx_loop, physics
 from wbc_jax.sim import loop as loop_lib
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim.scenario import Setup
-from wbc_jax.sim.state import Scenario
+from wbc_jax.sim.state import Feedforward, Scenario
 
 # A queued run (scenarios per batch slot) checks which robots are decided every this many ticks
 # at most (the largest divisor of the horizon's ticks up to it): 0.25 s at 100 Hz.
@@ -103,7 +103,8 @@ def check_queue(queue, backend: str, record: bool = False) -> None:
 
 
 def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
-        on_tick: Callable[[int], None] | None = None, queue: int = 1) -> Run:  # fmt: skip
+        on_tick: Callable[[int], None] | None = None, queue: int = 1,
+        feedforward: Feedforward | None = None) -> Run:  # fmt: skip
     """Run the closed loop over a Scenario batch (leading axis B) on the setup's backend.
 
     ``batch_size``: the compiled batch shape (B is padded up to it; None: B). ``on_tick``: called
@@ -111,12 +112,16 @@ def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
     per batch slot (MJX backends): the batch runs ceil(size / queue) slots, each retiring fallen
     or diverged robots and starting its next scenario (:meth:`ClosedLoop.rollout_queue`); the
     outcomes equal those of the plain run, and a retired environment's metrics stop at its
-    retirement (``ticks``)."""
+    retirement (``ticks``). ``feedforward``: torques added to the controller's in a window of
+    ticks, with the batch axis B (:class:`wbc_jax.sim.state.Feedforward`; None: none)."""
     loop = setup_.loop
     check_queue(queue, loop.backend, loop.cfg.record)
+    if queue > 1 and feedforward is not None:
+        raise ValueError("a queue of scenarios per batch slot (queue > 1) takes no feedforward torques")
     B = int(np.asarray(scen.friction).shape[0])
     size = B if batch_size is None else max(batch_size, B)
     padded = pad_batch(jax.tree_util.tree_map(np.asarray, scen), size)
+    ff = None if feedforward is None else pad_batch(jax.tree_util.tree_map(np.asarray, feedforward), size)
     if queue > 1:
         out = _run_mjx_queue(setup_, padded, queue)
     elif loop.backend == "mujoco":
@@ -125,10 +130,11 @@ def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
                 "a run over several processes (jax.distributed) needs an MJX backend: --backend jax or warp"
             )
         t0 = time.perf_counter()
-        metrics, records, compile_s = host_loop.run_host(loop, padded, setup_.qpos0, setup_.dtype, on_tick=on_tick)
+        metrics, records, compile_s = host_loop.run_host(loop, padded, setup_.qpos0, setup_.dtype, on_tick=on_tick,
+                                                         feedforward=ff)  # fmt: skip
         out = Run(metrics, records, compile_s, time.perf_counter() - t0 - compile_s)
     else:
-        out = _run_mjx(setup_, padded, size, on_tick)
+        out = _run_mjx(setup_, padded, size, on_tick, ff)
     out.metrics = jax.tree_util.tree_map(lambda x: np.asarray(x)[:B], out.metrics)
     if out.records is not None:
         out.records = jax.tree_util.tree_map(lambda x: np.asarray(x)[:B], out.records)
@@ -145,7 +151,7 @@ def _global_batch(tree, sharding: NamedSharding, dtype):
     )
 
 
-def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
+def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick, ff: Feedforward | None = None) -> Run:
     """MJX backends: jit(vmap(closed loop)) over the batch, sharded along it. A run without
     records is one program (Warp's data never leaves it: its contact buffer is shared by the
     batch); a recorded run (``jax`` only) goes in chunks of ticks, for progress."""
@@ -157,6 +163,7 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
     sharding = NamedSharding(mesh, PartitionSpec("batch"))
     replicated = NamedSharding(mesh, PartitionSpec())
     scen_dev = _global_batch(padded, sharding, dtype)
+    ff_dev = None if ff is None else _global_batch(pad_batch(ff, batch), sharding, dtype)
     qpos0 = jnp.asarray(setup_.qpos0, dtype)
     nominal = physics.device_model(setup_.robot.mj_model, loop.backend, loop.cfg.physics)
     perturb = loop.cfg.perturb_plant
@@ -165,7 +172,8 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
         return physics.plant_model(nominal, s.friction, s.mass_scale) if perturb else nominal
 
     cache = loop_lib.PROGRAMS  # compiled once per loop structure and batch shape
-    key = ("mjx", loop.structure_key, batch, str(dtype), n_dev, loop.cfg.record)
+    ff_shape = None if ff is None else ff.torque.shape
+    key = ("mjx", loop.structure_key, batch, str(dtype), n_dev, loop.cfg.record, ff_shape)
     compile_s = 0.0
     t0 = time.perf_counter()
     # Warp's data may not cross a vmap boundary (its contact buffer is shared by the batch): one
@@ -173,16 +181,15 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
     if not loop.cfg.record or loop.backend == "warp":
         if key not in cache:
 
-            def whole(s):
+            def whole(s, f):
                 return mjx_loop.rollout(loop, plant(s), loop.initial_qpos(qpos0, s.joint_offset), s.gains, s.push,
-                                    batch=batch // n_dev)  # fmt: skip
+                                        batch=batch // n_dev, feedforward=f)  # fmt: skip
 
-            cache[key] = (
-                jax.jit(jax.vmap(whole), in_shardings=sharding, out_shardings=sharding).lower(scen_dev).compile()
-            )
+            program = jax.jit(jax.vmap(whole), in_shardings=sharding, out_shardings=sharding)
+            cache[key] = program.lower(scen_dev, ff_dev).compile()
             compile_s = time.perf_counter() - t0
         t0 = time.perf_counter()
-        metrics, records = jax.tree_util.tree_map(_to_host, cache[key](scen_dev))
+        metrics, records = jax.tree_util.tree_map(_to_host, cache[key](scen_dev, ff_dev))
         if on_tick is not None:
             on_tick(loop.n_ticks)
         return Run(metrics, records, compile_s, time.perf_counter() - t0)
@@ -192,16 +199,16 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
     def start(s):
         return mjx_loop.start(loop, loop.initial_qpos(qpos0, s.joint_offset))
 
-    def advance(s, carry, k0):
-        return mjx_loop.chunk(loop, plant(s), s.gains, s.push, carry, k0, chunk)
+    def advance(s, carry, k0, f):
+        return mjx_loop.chunk(loop, plant(s), s.gains, s.push, carry, k0, chunk, f)
 
     if key not in cache:
         start_fn = jax.jit(jax.vmap(start), in_shardings=sharding, out_shardings=sharding).lower(scen_dev).compile()
         carry_shape = jax.eval_shape(jax.vmap(start), scen_dev)
         advance_fn = jax.jit(
-            jax.vmap(advance, in_axes=(0, 0, None)), in_shardings=(sharding, sharding, replicated),
+            jax.vmap(advance, in_axes=(0, 0, None, 0)), in_shardings=(sharding, sharding, replicated, sharding),
             out_shardings=sharding,
-        ).lower(scen_dev, carry_shape, jnp.int32(0)).compile()  # fmt: skip
+        ).lower(scen_dev, carry_shape, jnp.int32(0), ff_dev).compile()  # fmt: skip
         cache[key] = (start_fn, advance_fn)
         compile_s = time.perf_counter() - t0
     start_fn, advance_fn = cache[key]
@@ -209,7 +216,7 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
     carry = start_fn(scen_dev)
     pieces = []
     for k0 in range(0, loop.n_ticks, chunk):
-        carry, records = advance_fn(scen_dev, carry, jnp.int32(k0))
+        carry, records = advance_fn(scen_dev, carry, jnp.int32(k0), ff_dev)
         pieces.append(jax.tree_util.tree_map(_to_host, records))
         if on_tick is not None:
             on_tick(min(k0 + chunk, loop.n_ticks))

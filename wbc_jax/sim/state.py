@@ -1,7 +1,8 @@
 """The closed loop's data: its settings, pushes, scenarios, carry and per-tick records.
 
 Everything here is a frozen dataclass: :class:`SimConfig` (static settings) or a pytree of arrays
-(:class:`Push`, :class:`Scenario`, :class:`LoopState`, :class:`Trajectory`, :class:`LossTrace`),
+(:class:`Push`, :class:`Feedforward`, :class:`Scenario`, :class:`LoopState`, :class:`Trajectory`,
+:class:`LossTrace`),
 shared by the tick (:mod:`wbc_jax.sim.loop`) and its two drivers (:mod:`wbc_jax.sim.mjx_loop`,
 :mod:`wbc_jax.sim.host_loop`).
 """
@@ -116,6 +117,33 @@ def push_force(push: Push, t) -> Array:
 
 
 @pytree_dataclass
+class Feedforward:
+    """Joint torques added to the controller's over a window of ticks (zero-order hold at the
+    control rate): at tick ``k`` with ``0 <= k - start < T`` the plant gets
+    ``clip(tau_WBC + torque[k - start], -limit, limit)``, the controller's own torques otherwise
+    (:func:`feedforward_torque`). A driver argument, None by default (the loop's programs are then
+    those without it); the trajectory optimiser of ``wbc-jax limit`` searches over ``torque``.
+
+    Attributes: start () int32, the window's first tick; torque (T, n) N m.
+    """
+
+    start: Array
+    torque: Array
+
+
+def feedforward_torque(ff: Feedforward | None, k, tau: Array, limit: float) -> Array:
+    """(n,) the torques the plant gets at tick ``k``: the controller's saturated ``tau`` (n,)
+    plus ``ff``'s torque of that tick, saturated at +-``limit`` N m (``ff`` None: ``tau``)."""
+    if ff is None:
+        return tau
+    i = k - ff.start
+    T = ff.torque.shape[0]
+    inside = (i >= 0) & (i < T)
+    u = ff.torque[jnp.clip(i, 0, T - 1)].astype(tau.dtype)
+    return jnp.where(inside, jnp.clip(tau + u, -limit, limit), tau)
+
+
+@pytree_dataclass
 class Scenario:
     """What an environment of a batch varies (a leading batch axis in a sweep).
 
@@ -185,7 +213,8 @@ class LossTrace:
 
     com (T, 3), com_ref (T, 3), com_vel (T, 3): CoM, its reference, its velocity (world);
     tau (T, n): applied torques; support_xy (T, F, 2): xy of the F support corners (the CoP
-    rectangles' corners of the soles, world); com_height0 (T,): the initial CoM height.
+    rectangles' corners of the soles, world); com_height0 (T,): the initial CoM height;
+    foot_normal (T, 2, 3): the soles' normals (world).
     """
 
     com: Array
@@ -194,3 +223,4 @@ class LossTrace:
     tau: Array
     support_xy: Array
     com_height0: Array
+    foot_normal: Array

@@ -60,13 +60,11 @@ class TuneTrace:
 class TuningLoop(loop_lib.ClosedLoop):
     """The closed loop with a :class:`TuneTrace` per tick (``cfg.loss_trace``)."""
 
-    def control(self, gains, state, qpos, qvel, k, physics_ok, push):
-        new_state, ctrl, record = super().control(gains, state, qpos, qvel, k, physics_ok, push)
+    def control(self, gains, state, qpos, qvel, k, physics_ok, push, feedforward=None):
+        new_state, ctrl, record = super().control(gains, state, qpos, qvel, k, physics_ok, push, feedforward)
         if self.cfg.loss_trace:
-            feet = list(self.controller.contact_set.feet)
             infeasible = new_state.metrics.qp_infeasible_ticks > state.metrics.qp_infeasible_ticks
-            record = TuneTrace(base=record, foot_normal=new_state.contact_normals[jnp.asarray(feet)],
-                               qp_infeasible=infeasible)  # fmt: skip
+            record = TuneTrace(base=record, foot_normal=record.foot_normal, qp_infeasible=infeasible)
         return new_state, ctrl, record
 
 
