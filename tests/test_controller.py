@@ -171,3 +171,43 @@ def test_bad_modes_and_gain_files(tmp_path):
         G.load_gains(tmp_path)
     round_trip = G.gains_from_dict(G.gains_to_dict(G.default_gains()))
     np.testing.assert_allclose(round_trip.kp_postural, G.default_gains().kp_postural)
+
+
+def test_postural_projector_derivative_at_a_symmetric_posture(robot):
+    """At the home posture (left-right symmetric: mirrored limbs give near-equal eigenvalues of
+    X^-1 X^-T) eigh's own JVP of the projector is NaN in float32; spectral_projector's is finite,
+    equals eigh's in float64 and matches central differences of the postural projector."""
+    d = mjx.make_data(robot.mj_model).replace(qpos=jnp.asarray(robot.home_qpos()))
+    tt = _torque_terms(jax.jit(lambda d: dynamics.terms(robot.mjx_model, d, robot.index))(d), 1.0)
+    A = jnp.linalg.solve(tt.Mbar, jnp.eye(23) + tt.Lambda.T @ tt.Lambda)
+    A = A @ A.T
+    rng = np.random.default_rng(2)
+    dA = jnp.asarray(rng.normal(size=A.shape))
+    dA = dA + dA.T
+    cut = 1e10  # (damping / tol)^2, as postural_projector's
+
+    def by_eigh(a):
+        w, V = jnp.linalg.eigh(a)
+        return (V * (w > cut)) @ V.T
+
+    derivative = {}
+    for dtype in (jnp.float64, jnp.float32):
+        a, da = A.astype(dtype), dA.astype(dtype)
+        mine = jax.jvp(lambda x, a=a: torques.spectral_projector(x, cut), (a,), (da,))[1]
+        ref = jax.jvp(by_eigh, (a,), (da,))[1]
+        assert bool(jnp.all(jnp.isfinite(mine)))
+        derivative[dtype] = (mine, ref)
+    mine, ref = derivative[jnp.float64]
+    np.testing.assert_allclose(mine, ref, atol=1e-9 * float(jnp.abs(ref).max()))
+    mine32, ref32 = derivative[jnp.float32]
+    assert not bool(jnp.all(jnp.isfinite(ref32)))
+    np.testing.assert_allclose(mine32, mine, atol=1e-3 * float(jnp.abs(mine).max()))
+    # Through the whole postural projector, against central differences (float64).
+    dL = jnp.asarray(rng.normal(size=tt.Lambda.shape))
+
+    def proj(s):
+        return torques.postural_projector(tt.Lambda + s * dL, tt.Mbar, 1.0, 1e-5)
+
+    dP = jax.jvp(proj, (0.0,), (1.0,))[1]
+    h = 1e-6
+    np.testing.assert_allclose(dP, (proj(h) - proj(-h)) / (2 * h), atol=1e-5 * float(jnp.abs(dP).max()))

@@ -79,16 +79,50 @@ def postural_projector(Lambda: Array, Mbar: Array, pinv_damping: Array | float, 
     1 / tol^2 (computed for damping X^-1, whose entries stay in float32's range for any damping).
     A symmetric eigensolver instead of X's SVD (batched on a GPU, the cheaper of the two), and in
     the form where the cut singular values are the large eigenvalues, which float32 resolves
-    (X^T X would put them at 1e-11 next to rounding of 1e-8). Differentiable through the
-    eigensolver (X's singular values are distinct in practice; the derivative is undefined only
-    where two coincide).
+    (X^T X would put them at 1e-11 next to rounding of 1e-8). Differentiable
+    (:func:`spectral_projector`): the derivative is undefined only where a cut and a kept
+    singular value coincide.
     """
     n = Mbar.shape[0]
     eye = jnp.eye(n, dtype=Mbar.dtype)
     X_inv_scaled = jnp.linalg.solve(Mbar, pinv_damping * eye + Lambda.T @ Lambda)  # damping X^-1
-    inv_sq_scaled, V = jnp.linalg.eigh(X_inv_scaled @ X_inv_scaled.T)  # damping^2 / s^2
-    cut = inv_sq_scaled > (pinv_damping / pinv_tol) ** 2
-    return eye - (V * cut) @ V.T
+    return eye - spectral_projector(X_inv_scaled @ X_inv_scaled.T, (pinv_damping / pinv_tol) ** 2)
+
+
+@jax.custom_jvp
+def spectral_projector(A: Array, threshold: Array | float) -> Array:
+    """(n, n) the orthogonal projector V_c V_c^T on the eigenvectors of the symmetric A (n, n)
+    whose eigenvalues exceed ``threshold`` (not differentiated: the cut is a step).
+
+    Its derivative (a custom JVP) involves only pairs of a cut and a kept eigenvalue:
+
+    .. math::
+
+        dP = V (F + F^T) V^T, \\quad F_{ij} = \\frac{v_i^T dA\\, v_j}{\\lambda_i - \\lambda_j}
+        \\ (i \\text{ cut}, j \\text{ kept}), \\ 0 \\text{ otherwise}.
+
+    The eigenvector derivatives of ``jnp.linalg.eigh`` divide by every eigenvalue gap, so its JVP
+    is NaN wherever two eigenvalues coincide, even with a zero tangent (inf x 0): at any
+    left-right symmetric posture of the robot, whose mirrored limbs give equal pairs. The
+    projector's derivative is defined there, and equals eigh's elsewhere."""
+    _, V, cut = _cut_eigenvectors(A, threshold)
+    return (V * cut) @ V.T
+
+
+def _cut_eigenvectors(A, threshold):
+    w, V = jnp.linalg.eigh(A)
+    return w, V, w > threshold
+
+
+@spectral_projector.defjvp
+def _spectral_projector_jvp(primals, tangents):
+    A, threshold = primals
+    dA = tangents[0]
+    w, V, cut = _cut_eigenvectors(A, threshold)
+    across = cut[:, None] & ~cut[None, :]  # (i cut, j kept)
+    gap = jnp.where(across, w[:, None] - w[None, :], 1.0)
+    F = jnp.where(across, (V.T @ dA @ V) / gap, 0.0)
+    return (V * cut) @ V.T, V @ (F + F.T) @ V.T
 
 
 def postural_torque(
