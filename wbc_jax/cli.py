@@ -152,6 +152,22 @@ def _envelope(args: argparse.Namespace) -> int:
     return 0
 
 
+def _limit(args: argparse.Namespace) -> int:
+    from wbc_jax.jobs import limit, limit_rounds
+    from wbc_jax.robot import model
+    from wbc_jax.sim import runner
+
+    cfg = config_from_args(args, limit.default_config())
+    cfg.check(model.load_robot("icub"))
+    runner.enable_compilation_cache()
+    summary = limit_rounds.run(cfg, progress=not args.quiet)
+    line = {"body": cfg.body, "median_fraction_of_lip": summary["median_fraction_of_lip"],
+            "targets": summary["targets"], "wall_s": summary["wall_s"], "device": summary["device"],
+            "limit_ns": {str(a): r["limit_ns"] for a, r in summary["directions"].items()}}  # fmt: skip
+    print(json.dumps(line, separators=(",", ":")))
+    return 0
+
+
 def _view(args: argparse.Namespace) -> int:
     from wbc_jax.jobs import view
 
@@ -177,6 +193,7 @@ def _tune(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     from wbc_jax.jobs import balance, sweep_config
     from wbc_jax.jobs.envelope import default_config as envelope_default
+    from wbc_jax.jobs.limit import default_config as limit_default
     from wbc_jax.tuning import tune
 
     parser = _Parser(prog="wbc-jax", description=__doc__)
@@ -200,6 +217,12 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--resolution", type=float, default=0.25, help="bracket width to reach [N s] (default: 0.25)")
     ev.add_argument("--quiet", action="store_true", help="no progress bar")
     ev.set_defaults(func=_envelope)
+
+    lm = sub.add_parser("limit", help="the physical limit of push recovery: trajectory optimisation through MJX, "
+                        "bisection over the impulse, every limit replayed in C MuJoCo")  # fmt: skip
+    add_config_arguments(lm, limit_default())
+    lm.add_argument("--quiet", action="store_true", help="no progress bar")
+    lm.set_defaults(func=_limit)
 
     vw = sub.add_parser("view", help="log a run (or one env of a push sweep) to rerun: .rrd or viewer")
     vw.add_argument("run_dir", help="output folder of a balance run or a push sweep")

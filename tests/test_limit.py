@@ -1,0 +1,177 @@
+"""``wbc-jax limit``: the feedforward torques of the tick, the bracket of the bisection rounds, bad
+input named before anything compiles, the C MuJoCo replay check, and (slow) the optimiser
+recovering a push that the controller alone cannot."""
+
+import dataclasses
+import json
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from wbc_jax import cli
+from wbc_jax.core import constants
+from wbc_jax.jobs import limit, limit_rounds, trajopt
+from wbc_jax.sim.state import Feedforward, feedforward_torque
+
+
+def test_feedforward_torque_adds_in_its_window_and_saturates():
+    tau = jnp.array([10.0, -50.0, 59.0])
+    ff = Feedforward(start=jnp.asarray(5, jnp.int32), torque=jnp.array([[1.0, -20.0, 5.0], [2.0, 0.0, 0.0]]))
+    np.testing.assert_array_equal(feedforward_torque(ff, 4, tau, 60.0), tau)  # before the window
+    np.testing.assert_array_equal(feedforward_torque(ff, 5, tau, 60.0), [11.0, -60.0, 60.0])  # saturated
+    np.testing.assert_array_equal(feedforward_torque(ff, 6, tau, 60.0), [12.0, -50.0, 59.0])
+    np.testing.assert_array_equal(feedforward_torque(ff, 7, tau, 60.0), tau)  # after it
+    np.testing.assert_array_equal(feedforward_torque(None, 5, tau, 60.0), tau)
+    # The gradient reaches u inside the window, not where the saturation holds the torque.
+    g = jax.grad(lambda u: jnp.sum(feedforward_torque(ff.replace(torque=u), 5, tau, 60.0)))(ff.torque)
+    np.testing.assert_array_equal(g, [[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+
+
+def test_bracket_and_next_impulses():
+    # Round 1: from the lower start to the upper end; nothing failed above 6: above the tested span.
+    np.testing.assert_allclose(limit.next_impulses([], 4, 3.0, 9.0), [3.0, 5.0, 7.0, 9.0])
+    tested = [(3.0, True), (5.0, True), (7.0, False), (9.0, False)]
+    assert limit.bracket(tested) == (5.0, 7.0)
+    np.testing.assert_allclose(limit.next_impulses(tested, 3, 3.0, 9.0), [5.5, 6.0, 6.5])
+    # A verified impulse above a failed one moves the bracket up: the limit is a lower bound.
+    assert limit.bracket([(3.0, False), (5.0, True), (7.0, False)]) == (5.0, 7.0)
+    assert limit.bracket([(3.0, False)]) == (0.0, 3.0)
+    at_cap = [(3.0, True), (9.0, True)]
+    assert limit.bracket(at_cap) == (9.0, np.inf)
+    np.testing.assert_allclose(limit.next_impulses(at_cap, 2, 3.0, 9.0), [12.0, 15.0])
+
+
+def test_knots_interpolate_linearly():
+    W = trajopt.knot_matrix(30, 5)
+    assert W.shape == (30, 7)
+    np.testing.assert_allclose(W.sum(1), 1.0)
+    z = np.arange(7.0)[:, None] * [1.0, -2.0]  # a linear u is reproduced at every tick
+    np.testing.assert_allclose(W @ z, np.arange(30)[:, None] / 5 * [1.0, -2.0])
+    np.testing.assert_array_equal(trajopt.knot_matrix(4, 1), np.eye(4))
+
+
+def test_warm_starts_take_the_next_lower_verified_trajectory():
+    u3, u5 = np.full((2, 1), 3.0), np.full((2, 1), 5.0)
+    tested = [[(3.0, u3), (5.0, u5)], []]
+    out = trajopt.warm_starts(tested, [(0, 4.0), (0, 6.0), (0, 2.0), (1, 6.0)], 2, 1)
+    np.testing.assert_array_equal(out[:, 0, 0], [3.0, 5.0, 0.0, 0.0])
+
+
+@pytest.fixture
+def tripwire(monkeypatch):
+    """Any jax.jit after this point means the input check came too late."""
+
+    def late(*args, **kwargs):
+        raise AssertionError("late failure: the bad input reached jax.jit (compilation)")
+
+    monkeypatch.setattr(jax, "jit", late)
+
+
+def _envelope_file(tmp_path, body="chest", azimuths=(0.0, 90.0, 180.0, 270.0)):
+    path = tmp_path / f"env_{body}" / "summary.json"
+    path.parent.mkdir()
+    env = {str(a): {"impulse_ns": 4.0} for a in azimuths}
+    config = {"body": body, "push_duration": 0.1, "push_onset": 0.5, "elevation": 0.0}
+    path.write_text(json.dumps({"envelope": {"0": env}, "config": config}))
+    return str(path)
+
+
+BAD = [
+    (["--lower-fraction", "-0.5"], r"--lower-fraction must be >= 0, got -0.5"),
+    (["--lower-fraction", "0"], r"--lower-fraction must be > 0"),
+    (["--upper-fraction", "0.2"], r"--upper-fraction 0.2 must exceed --lower-fraction 0.3"),
+    (["--body", "nose"], r"unknown body 'nose'; valid bodies"),
+    (["--window", "3"], r"--horizon 3.0 s must end after the push and the optimised window"),
+    (["--candidates", "0"], r"--candidates must be a whole number >= 1"),
+    (["--slip-margin", "0.03"], r"the margins must be inside the strict tests"),
+    (["--learning-rate", "nan"], r"--learning-rate must be a finite number"),
+    (["--envelopes", "ENV_ROOT"], r"its pushes have body 'root_link', the search 'chest'"),
+    (["--envelopes", "ENV_FEW"], r"no envelope at azimuths \[90.0, 270.0\]"),
+    (["--gains", "MISSING"], r"--gains file .* does not exist"),
+]
+
+
+@pytest.mark.parametrize("k", range(len(BAD)))
+def test_bad_input_fails_before_compiling(k, tmp_path, capsys, tripwire):
+    flags, message = BAD[k]
+    files = {"ENV_ROOT": _envelope_file(tmp_path, "root_link"),
+             "ENV_FEW": _envelope_file(tmp_path, "chest", (0.0, 180.0)), "MISSING": str(tmp_path / "none.json")}  # fmt: skip
+    flags = [files.get(f, f) for f in flags]
+    rc = cli.main(["limit", *flags, "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "Traceback" not in err and re.search(message, err), err
+    assert len([line for line in err.splitlines() if line.strip()]) == 1, err
+    assert not (tmp_path / "out").exists(), "nothing is written for bad input"
+
+
+def test_flags_are_the_config_fields(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["limit", "--help"])
+    text = capsys.readouterr().out
+    for field in limit.LimitConfig.__dataclass_fields__:
+        assert f"--{field.replace('_', '-')}" in text, field
+    args = cli.build_parser().parse_args(["limit", "--directions", "32", "--envelopes", "a.json", "b.json"])
+    cfg = cli.config_from_args(args, limit.default_config())
+    assert len(cfg.directions) == 32 and cfg.envelopes == ("a.json", "b.json")
+
+
+# A push of 1 N s forward, horizon 1.5 s; u adds 45 N m to the left hip roll for 0.1 s from the onset.
+SMALL = limit.LimitConfig(directions=(0.0,), horizon=1.5, window=0.3, tail=0.1, out=None)
+
+
+def test_replay_rejects_a_trajectory_that_slips():
+    """The C MuJoCo replay of two policies: the controller's own (u = 0) passes the strict criterion,
+    45 N m more on the left hip roll for 0.1 s (then down to 0 in 0.05 s) drags the left sole
+    over 2 cm and is rejected."""
+    search = limit_rounds.Search(SMALL)
+    scen = search.scenarios(np.zeros(2, int), np.array([1.0, 1.0]))
+    z = np.zeros((2, search.Kn, search.n))
+    z[1, :3, search.grad_setup.robot.index.joints.index("l_hip_roll")] = 45.0
+    cols = search.judge(scen, z, "mujoco")
+    assert cols["survived"][0] and cols["failed"][0] == [], cols["failed"]
+    assert not cols["survived"][1] and "slip" in cols["failed"][1], cols["failed"]
+    assert cols["max_foot_slip_m"][1] > constants.SURVIVAL_MAX_SLIP_M > cols["max_foot_slip_m"][0]
+    assert np.all(cols["max_abs_torque_nm"] <= 60.0 + 1e-9)
+
+
+def test_es_gradient_points_uphill_and_sees_only_ranks():
+    """On f(z) = |z - a|^2 the antithetic ES gradient correlates with the true one, 2 (z - a), and a
+    monotone transform of f leaves it unchanged."""
+    rng = np.random.default_rng(0)
+    a, z = rng.normal(size=(3, 4)), np.zeros((3, 4))
+    eps = jnp.asarray(rng.normal(size=(64, 3, 4)))
+    samples = np.concatenate([z + 0.1 * eps, z - 0.1 * eps])
+    f = jnp.asarray(np.sum((samples - a) ** 2, axis=(1, 2)))
+    g = np.asarray(trajopt.es_gradient(f, eps, 0.1)).ravel()
+    true = (2 * (z - a)).ravel()
+    assert g @ true / np.linalg.norm(g) / np.linalg.norm(true) > 0.8
+    np.testing.assert_array_equal(trajopt.es_gradient(jnp.log1p(f), eps, 0.1), g.reshape(3, 4))
+
+
+@pytest.mark.slow
+def test_optimiser_recovers_a_push_the_controller_cannot(tmp_path):
+    """Forward push of 11 N s on the chest: the tuned controller alone tilts a sole past 5 deg
+    (strict failure); the optimised torques around it pass the strict criterion on MJX and in the
+    C MuJoCo replay. A rerun resumes (nothing to do), another config is refused."""
+    cfg = limit.LimitConfig(
+        directions=(0.0,), gains="experiments/gains/tuned_gradient.json", window=0.5, tail=0.3, candidates=1,
+        rounds=1, iterations=60, judge_every=10, lower_fraction=0.5, upper_fraction=0.673, out=str(tmp_path / "lim"),
+    )  # fmt: skip
+    summary = limit_rounds.run(cfg, progress=False)
+    (cand,) = summary["candidates"]
+    assert abs(cand["impulse_ns"] - 11.0) < 0.05
+    assert "tilt" in cand["warm_failed"], cand  # the controller alone
+    assert cand["mjx_passed"] and cand["verified"] and cand["replay_failed"] == [], cand
+    assert cand["replay_max_foot_tilt_deg"] <= constants.SURVIVAL_MAX_TILT_DEG
+    assert cand["replay_max_foot_slip_m"] <= constants.SURVIVAL_MAX_SLIP_M
+    row = summary["directions"][0.0]
+    assert row["limit_ns"] == cand["impulse_ns"] and row["at_cap"]
+    with np.load(tmp_path / "lim" / "witness.npz") as w:
+        assert w["u"].shape == (1, 50, 23) and np.abs(w["u"]).max() > 1.0
+    again = limit_rounds.run(cfg, progress=False)
+    assert again["directions"][0.0]["limit_ns"] == row["limit_ns"] and again["optimiser_steps"] == 0
+    with pytest.raises(ValueError, match="made with other inputs"):
+        limit_rounds.run(dataclasses.replace(cfg, iterations=61), progress=False)

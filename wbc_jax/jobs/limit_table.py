@@ -1,0 +1,97 @@
+"""The table of docs/limit: per pushed body and direction, the physical limit of push recovery
+(``wbc-jax limit`` summaries), the feet-in-place LIP bound and the strict envelopes of controllers
+(``wbc-jax envelope`` summaries), each as a fraction of the limit.
+
+A body whose limit search has not been run (it needs a GPU in reasonable time) keeps its LIP
+bound and envelopes, its limit columns are None and ``missing`` names the command that fills them.
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+
+import numpy as np
+
+from wbc_jax.core import io, provenance
+from wbc_jax.jobs import sweep_table
+from wbc_jax.robot import model as model_lib
+
+
+def _read(path) -> dict:
+    path = pathlib.Path(path)
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ValueError(f"{path} is unreadable: {err}") from None
+
+
+def body_table(limit_summary: dict | None, envelopes: dict, azimuths, robot) -> dict:
+    """{azimuth: row} of one body: ``limit_summary`` (a limit run's summary.json or None),
+    ``envelopes`` {label: envelope summary.json dict} (gain set 0), the LIP bound at ``azimuths``."""
+    lip = sweep_table.lip_bound(robot, azimuths)
+    rows = {}
+    for az in azimuths:
+        found = None if limit_summary is None else limit_summary["directions"].get(str(float(az)))
+        lim = None if found is None else found["limit_ns"]
+        envs = {}
+        for label, summary in envelopes.items():
+            e = summary["envelope"].get("0", summary["envelope"].get(0))[str(float(az))]["impulse_ns"]
+            envs[label] = {"impulse_ns": e, "fraction_of_lip": e / lip[az]["impulse_bound_ns"],
+                           "fraction_of_limit": e / lim if lim else None}  # fmt: skip
+        rows[float(az)] = {
+            "lip_bound_ns": lip[az]["impulse_bound_ns"], "limit_ns": lim,
+            "fraction_of_lip": None if lim is None else lim / lip[az]["impulse_bound_ns"],
+            "bracket_ns": None if found is None else found["bracket_ns"],
+            "limit_at_least_envelopes": None if lim is None else all(v["impulse_ns"] <= lim + 1e-9 for v in envs.values()),
+            "envelopes": envs,
+        }  # fmt: skip
+    return rows
+
+
+def medians(rows: dict) -> dict:
+    """Median (min) over directions of each envelope as a fraction of the LIP bound and of the
+    limit, and of the limit itself (None where not measured)."""
+
+    def stat(values):
+        v = [x for x in values if x is not None]
+        return None if len(v) < len(values) or not v else {"median": float(np.median(v)), "min": float(np.min(v))}
+
+    labels = sorted({k for r in rows.values() for k in r["envelopes"]})
+    out = {"limit": {"fraction_of_lip": stat([r["fraction_of_lip"] for r in rows.values()])}}
+    for label in labels:
+        out[label] = {k: stat([r["envelopes"][label][k] for r in rows.values()]) for k in ("fraction_of_lip",
+                                                                                           "fraction_of_limit")}  # fmt: skip
+    return out
+
+
+def write(out_dir, bodies: dict, command: str, robot_name: str = "icub") -> dict:
+    """docs/limit/limit.json and limit.png from ``bodies`` {body: {"limit": summary path or None,
+    "envelopes": {label: summary path}}}; ``command``: the limit command of a missing body (with
+    ``{body}`` in it)."""
+    from wbc_jax.report import limit_plots
+
+    robot = model_lib.load_robot(robot_name)
+    tables, missing, inputs = {}, {}, {}
+    for body, spec in bodies.items():
+        envelopes = {label: _read(p) for label, p in spec["envelopes"].items()}
+        inputs.update({f"{body}_envelope_{label}": p for label, p in spec["envelopes"].items()})
+        summary = _read(spec["limit"]) if spec.get("limit") else None
+        if summary is None:
+            missing[body] = command.format(body=body)
+        else:
+            inputs[f"{body}_limit"] = spec["limit"]
+        azimuths = sorted({float(a) for s in envelopes.values() for a in s["envelope"]["0"]})
+        tables[body] = body_table(summary, envelopes, azimuths, robot)
+    result = {
+        "what": "per pushed body and direction: the physical limit of push recovery (largest impulse with a torque "
+        "trajectory within +-60 N m that passes the strict criterion on MJX and replayed in C MuJoCo), the LIP bound "
+        "m omega d and the strict envelopes of controllers, as fractions of the LIP bound and of the limit",
+        "bodies": {body: {"medians": medians(rows), "directions": rows} for body, rows in tables.items()},
+        "missing": missing or None,
+        "provenance": provenance.record(inputs),
+    }  # fmt: skip
+    out_dir = pathlib.Path(out_dir)
+    io.atomic_write_json(out_dir / "limit.json", result)
+    limit_plots.polar_bodies(tables, out_dir / "limit.png")
+    return result
