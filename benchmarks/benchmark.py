@@ -33,10 +33,8 @@ import time
 import traceback
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-HERE = pathlib.Path(__file__).resolve().parent
-for _path in (str(ROOT), str(HERE)):  # wbc_jax; baseline_cpu next to this script
-    if _path not in sys.path:
-        sys.path.insert(0, _path)
+# baseline_cpu is imported from this script's folder: Python puts it first on sys.path when the
+# script runs (and spawn's workers inherit that path).
 
 BACKENDS = ("jax", "warp", "mujoco")
 PUSH_MAGNITUDE = 40.0  # N, horizontal, azimuths spread over 360 deg

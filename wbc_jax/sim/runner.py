@@ -222,7 +222,7 @@ def _run_mjx_queue(setup_: Setup, scen: Scenario, queue: int, check_ticks: int =
     """MJX backends, a shared queue: S = ceil(size / queue) batch slots (a multiple of the device
     count) work through the batch's scenarios in order (:meth:`ClosedLoop.rollout_queue`), jit(vmap)
     over the slots, sharded along them; the scenarios and results are replicated. ``check_ticks``:
-    the most ticks between hand-ins (``experiments/queue_overhead.py`` varies it)."""
+    the most ticks between hand-ins (``experiments/benchmarks/queue_overhead.py`` varies it)."""
     loop, dtype = setup_.loop, setup_.dtype
     mesh = device_mesh()
     n_dev = mesh.devices.size
