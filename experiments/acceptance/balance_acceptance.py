@@ -17,7 +17,7 @@ import pathlib
 
 import numpy as np
 
-from wbc_jax.core import io
+from wbc_jax.core import io, provenance
 from wbc_jax.jobs import balance
 from wbc_jax.sim import runner
 
@@ -69,8 +69,8 @@ def joint_error_figure(out: pathlib.Path, dest: pathlib.Path) -> dict:
     return summary
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--only", nargs="*", default=list(SCENARIOS), choices=list(SCENARIOS))
     parser.add_argument("--out", default=str(ROOT / "runs" / "acceptance"))
     parser.add_argument("--summary", default=str(ROOT / "docs" / "balance_acceptance.json"))
@@ -81,7 +81,8 @@ def main() -> None:
         default=None,
         help="MJX Newton iterations (default: the model's 4); results keyed NAME-itN",
     )
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    record = provenance.record(argv=provenance.script_argv(__file__, argv))
     runner.enable_compilation_cache()  # scenarios of the same shape compile once, as in the CLI
     out = pathlib.Path(args.out)
     summary_path = pathlib.Path(args.summary)
@@ -93,13 +94,12 @@ def main() -> None:
         print(key, json.dumps(result), flush=True)
         # Merge (re-read: other processes may have written other scenarios meanwhile).
         current = json.loads(summary_path.read_text()) if summary_path.exists() else {}
-        flag = "" if it is None else f" --solver-iterations {it}"
-        current[key] = {**result, "command": f"python experiments/acceptance/balance_acceptance.py --only {name}{flag}"}
+        current[key] = {**result, "provenance": record}
         io.atomic_write_json(summary_path, current)
     if (out / "sinusoid-60-stable").exists() or (out / "sinusoid-60-seed").exists():
         figure = ROOT / "docs" / "postural_joint_error.png"
         current = json.loads(summary_path.read_text()) if summary_path.exists() else {}
-        current["postural_comparison"] = joint_error_figure(out, figure)
+        current["postural_comparison"] = {**joint_error_figure(out, figure), "provenance": record}
         io.atomic_write_json(summary_path, current)
 
 

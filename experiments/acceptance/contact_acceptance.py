@@ -4,7 +4,7 @@
     python experiments/acceptance/contact_acceptance.py --backend jax                # GPU (MJX), float32
     python experiments/acceptance/contact_acceptance.py --only ramp wall [--quick]   # some parts; the others kept
 
-Parts (each writes its keys into OUT/acceptance.json, with the device and the command; re-running a
+Parts (each writes its keys into OUT/acceptance.json, with the device, precision and provenance; re-running a
 part replaces its keys):
 
 - ``sweep``: the hand-on-table chest-push sweep (experiments/tasks/hand_on_table.yaml, contact
@@ -41,14 +41,13 @@ import dataclasses
 import json
 import math
 import pathlib
-import sys
 import time
 
 import jax
 import numpy as np
 
 from wbc_jax.control import task_files
-from wbc_jax.core import io
+from wbc_jax.core import io, provenance
 from wbc_jax.jobs import balance, sweep, sweep_config, sweep_table
 from wbc_jax.robot import scene as contact_scene
 from wbc_jax.sim import metrics as metrics_lib
@@ -76,12 +75,10 @@ def sizes(quick: bool) -> dict:
                 wall_directions=tuple(np.arange(8) * 45.0))  # fmt: skip
 
 
-def where() -> str:
-    return f"{jax.devices()[0].device_kind} ({jax.devices()[0].platform}), {scenario.float_dtype()}"
-
-
-def entry(value, device: str, command: str, **details) -> dict:
-    return {"value": value, "device": device, "command": command, **details}
+def entry(value, prov: dict, **details) -> dict:
+    """One figure: its value, the device (provenance.device_label), the precision, its provenance."""
+    return {"value": value, "device": prov["device"]["label"], "dtype": str(scenario.float_dtype()),
+            "provenance": prov, **details}  # fmt: skip
 
 
 def as_dict(records) -> dict:
@@ -131,7 +128,7 @@ def push_sweep(spec: pathlib.Path, backend: str, magnitudes, directions, horizon
     return st, table, run.records
 
 
-def part_sweep(args, sz, command: str) -> dict:
+def part_sweep(args, sz, prov: dict) -> dict:
     st, table, rec = push_sweep(HAND, args.backend, sz["magnitudes"], sz["directions"], sz["horizon"], record=True)
     rec = as_dict(rec)
     cset = st.loop.contact_set
@@ -149,12 +146,11 @@ def part_sweep(args, sz, command: str) -> dict:
         phantom = np.maximum(phantom, ticks * dt)
         per_contact[c.name] = {"phantom_max_s": float(ticks.max() * dt),
                                "envs_leaving": int(np.any(~seen, axis=1).sum())}  # fmt: skip
-    device = where()
     grid = {"magnitudes_n": [float(sz["magnitudes"][0]), float(sz["magnitudes"][-1]), len(sz["magnitudes"])],
             "directions_deg": list(sz["directions"]), "horizon_s": sz["horizon"], "push_s": [0.5, 0.1]}  # fmt: skip
     return {
         "hand_sweep_max_violation_rel": entry(
-            float(viol[upright].max()) if upright.any() else None, device, command,
+            float(viol[upright].max()) if upright.any() else None, prov,
             definition="max over ticks and contacts of the commanded wrench's constraint violation relative to the "
                        "contact's normal force, over the environments that did not fall",
             survived_only=float(viol[survived].max()) if survived.any() else None,
@@ -163,7 +159,7 @@ def part_sweep(args, sz, command: str) -> dict:
             grid=grid,
         ),
         "phantom_contact_max_s": entry(
-            float(phantom.max()), device, command,
+            float(phantom.max()), prov,
             definition="longest time an environment's controller counted a contact (activation > 0) while MuJoCo's "
                        "normal force on it was zero, over every environment", per_contact=per_contact,
             upright_only=float(phantom[upright].max()) if upright.any() else None, grid=grid,
@@ -184,7 +180,7 @@ def ramp_scene() -> scenario.Scene:
     return scenario.Scene(robot, None, cset, qpos, str(HAND))
 
 
-def part_ramp(args, sz, command: str) -> dict:
+def part_ramp(args, sz, prov: dict) -> dict:
     end = RAMP["stop"] + RAMP["ramp"] + 0.3
     st, traj, _ = single_run(ramp_scene(), end, args.backend)
     cset = st.loop.contact_set
@@ -212,22 +208,21 @@ def part_ramp(args, sz, command: str) -> dict:
                        "range_n": [float(meas[window].min()), float(meas[window].max())]}  # fmt: skip
         worst = max(worst, out[c.name]["ripple_rel"])
     return {"ramp_feet_ripple_rel": entry(
-        worst, where(), command, backend=st.backend, contacts=out, hand_schedule_s=RAMP,
+        worst, prov, backend=st.backend, contacts=out, hand_schedule_s=RAMP,
         definition="feet measured normal forces from the ramp-in's start to 0.3 s after the ramp-out, less their 0.1 s "
                    "moving average, peak to peak, relative to their mean; the larger foot's",
     )}  # fmt: skip
 
 
-def part_posture(args, sz, command: str) -> dict:
+def part_posture(args, sz, prov: dict) -> dict:
     st, traj, m = single_run(scenario.load_scene("icub", POSTURE), sz["posture_s"], args.backend)
     tracking = balance.task_tracking(st.loop.controller.stack, traj)
     err = traj["task_err"][:, :POSTURE_JOINTS]
-    device = where()
     return {
-        "posture_below_hand_fell": entry(bool(m["fell"] or m["nan"]), device, command, duration_s=sz["posture_s"],
+        "posture_below_hand_fell": entry(bool(m["fell"] or m["nan"]), prov, duration_s=sz["posture_s"],
                                          com_rmse_m=m["com_rmse_m"], max_abs_torque_nm=m["max_abs_torque_nm"]),
         "posture_below_hand_rmse_rad": entry(
-            tracking["posture_joints"]["rmse"], device, command, duration_s=sz["posture_s"],
+            tracking["posture_joints"]["rmse"], prov, duration_s=sz["posture_s"],
             definition="RMSE over ticks of the norm of the 7 posture joints' error (torso, right arm)",
             max_rad=tracking["posture_joints"]["max"], per_joint_rmse_max_rad=float(np.sqrt((err**2).mean(0)).max()),
             hand_rmse_m=tracking["right_hand"]["rmse"],
@@ -235,7 +230,7 @@ def part_posture(args, sz, command: str) -> dict:
     }  # fmt: skip
 
 
-def part_wall(args, sz, command: str) -> dict:
+def part_wall(args, sz, prov: dict) -> dict:
     st, traj, m = single_run(scenario.load_scene("icub", WALL), sz["wall_s"], args.backend)
     hand = balance.contact_tracking(st.loop.contact_set, traj)["left_hand"]
     envelope = {}
@@ -254,9 +249,8 @@ def part_wall(args, sz, command: str) -> dict:
             row[f"{name}_survival_rate"] = float(group["survived"].mean())
         row["gain"] = row["hand_impulse_ns"] / row["feet_impulse_ns"] if row["feet_impulse_ns"] > 0 else None
         envelope[str(float(az))] = row
-    device = where()
     return {"wall_hand_force_max_err_n": entry(
-        hand["normal_force_err_max_n"], device, command, duration_s=sz["wall_s"], fell=bool(m["fell"] or m["nan"]),
+        hand["normal_force_err_max_n"], prov, duration_s=sz["wall_s"], fell=bool(m["fell"] or m["nan"]),
         definition="max over ticks after 1 s of |MuJoCo's hand normal force - 5 N|",
         normal_force_meas_median_n=hand["normal_force_meas_median_n"], max_drift_m=hand["max_drift_m"],
         com_rmse_m=m["com_rmse_m"], max_constraint_violation=m["max_constraint_violation"],
@@ -281,14 +275,15 @@ def main(argv=None) -> dict:
     p.add_argument("--out", default="docs/contacts")
     args = p.parse_args(argv)
     runner.enable_compilation_cache()
-    command = "python experiments/acceptance/contact_acceptance.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    inputs = {"hand_on_table": HAND, "hand_on_wall": WALL, "feet": FEET, "posture": POSTURE}
+    prov = provenance.record(inputs, argv=provenance.script_argv(__file__, argv))
     out = pathlib.Path(args.out) / "acceptance.json"
     result = json.loads(out.read_text()) if out.exists() else {}
     sz = sizes(args.quick)
     for part in args.only:
         t0 = time.time()
         print(f"{part} ...", flush=True)
-        values = globals()[f"part_{part}"](args, sz, command)
+        values = globals()[f"part_{part}"](args, sz, prov)
         for key, value in values.items():
             value["wall_time_s"] = round(time.time() - t0, 1)
             print(f"  {key}: {json.dumps(value['value'])}", flush=True)

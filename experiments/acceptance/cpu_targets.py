@@ -17,7 +17,8 @@ cache where the target is about a first run:
   compilation cache the jobs above filled (as a user who ran the main job first).
 
 Writes ``cpu_targets.json`` into ``--out``: the figures, their targets, whether each is met, the
-command of each and the machine.
+command of each and the machine. The check (:func:`failures`): every target measured is met; exit
+status 1 otherwise (after the file is written).
 """
 
 from __future__ import annotations
@@ -32,8 +33,16 @@ import sys
 import tempfile
 import time
 
+from wbc_jax.core import checks, provenance
+
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 PARTS = ("main_job", "sinusoid", "sweep64", "notebooks")
+BAR = "every target measured (each part's 'target') met"
+
+
+def failures(result: dict) -> list[str]:
+    """The parts measured whose target is not met."""
+    return [f"{part}: {result[part]['target']} not met" for part in PARTS if part in result and not result[part]["met"]]
 
 
 def timed(cmd: list[str], env: dict, cwd: pathlib.Path) -> tuple[float, str]:
@@ -51,7 +60,9 @@ def last_json(stdout: str) -> dict:
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], epilog=f"Check: {BAR}; exit status 1 otherwise."
+    )
     parser.add_argument("--out", default=str(ROOT / "runs" / "cpu_targets"))
     parser.add_argument("--skip", nargs="*", default=[], choices=PARTS)
     args = parser.parse_args(argv)
@@ -60,16 +71,17 @@ def main(argv=None) -> dict:
     work = pathlib.Path(tempfile.mkdtemp(prefix="wbc_cpu_targets_"))
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "WBC_JAX_CACHE": str(work / "xla")}
     cli = [sys.executable, "-m", "wbc_jax.cli"]
+    record = provenance.record(argv=provenance.script_argv(__file__, argv))
     result: dict = {
-        "date": time.strftime("%Y-%m-%d"),
-        "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
-                    "python": platform.python_version(), "xla_flags": os.environ.get("XLA_FLAGS", "")},
-        "command": "python experiments/acceptance/cpu_targets.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "date": record["date"], "device": record["device"]["label"],
+        "machine": {"python": platform.python_version(), "xla_flags": os.environ.get("XLA_FLAGS", "")},
+        "provenance": record,
     }  # fmt: skip
 
     def save():
         from wbc_jax.core import io
 
+        result["check"] = checks.verdict(failures(result), BAR)
         io.atomic_write_json(out / "cpu_targets.json", result)
 
     if "main_job" not in args.skip:
@@ -141,9 +153,10 @@ def main(argv=None) -> dict:
             "wall_s": nbs, "target": "<= 90 s each", "met": all(v <= 90 for v in nbs.values()),
         }  # fmt: skip
         save()
+    save()
     print(json.dumps(result, indent=1), flush=True)
     return result
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(checks.exit_status(main()))

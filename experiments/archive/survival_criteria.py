@@ -74,11 +74,9 @@ def main(argv=None) -> dict:
         row = probe(engine, batch)
         print(json.dumps({k: v for k, v in row.items() if k != "samples"}), flush=True)
         result[f"{engine}:{batch}"] = row
-    from wbc_jax.core import io
+    from wbc_jax.core import io, provenance
 
-    result["command"] = "python experiments/archive/survival_criteria.py " + " ".join(
-        argv if argv is not None else sys.argv[1:]
-    )
+    result["provenance"] = provenance.record(argv=provenance.script_argv(__file__, argv))
     io.atomic_write_json(out, result)
     return result
 

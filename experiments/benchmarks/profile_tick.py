@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
-import sys
 import time
 
 import jax
@@ -25,12 +24,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.control import constraints, forces, torques
-from wbc_jax.core import io
+from wbc_jax.core import io, provenance
 from wbc_jax.robot import contacts
 from wbc_jax.sim import physics, runner, scenario
 from wbc_jax.sim.state import SimConfig
-
-ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 
 def timed(fn, *args, repeats: int) -> float:
@@ -97,7 +94,7 @@ def main(argv=None) -> dict:
     t_batch = vt(qpos, qvel)
     vtt = jax.jit(jax.vmap(stage_torques))
     tt_batch = vtt(t_batch)
-    result = {"batch": B, "device": str(jax.devices()[0]), "dtype": str(dtype), "us_per_env": {}}
+    result = {"batch": B, "device": provenance.device_label(), "dtype": str(dtype), "us_per_env": {}}
     us = lambda s: round(1e6 * s / B, 3)  # noqa: E731
     result["us_per_env"]["dynamics_terms"] = us(timed(vt, qpos, qvel, repeats=args.repeats))
     result["us_per_env"]["torque_law"] = us(timed(vtt, t_batch, repeats=args.repeats))
@@ -127,9 +124,7 @@ def main(argv=None) -> dict:
     if args.trace:
         with jax.profiler.trace(args.trace):
             jax.block_until_ready(vw(qpos, qvel))
-    result["command"] = "python experiments/benchmarks/profile_tick.py " + " ".join(
-        sys.argv[1:] if argv is None else argv
-    )
+    result["provenance"] = provenance.record(argv=provenance.script_argv(__file__, argv))
     io.atomic_write_json(pathlib.Path(args.out) / "profile_tick.json", result)
     print(json.dumps(result), flush=True)
     return result

@@ -19,15 +19,14 @@ import sys
 import numpy as np
 
 from wbc_jax import cli
-from wbc_jax.core import io
+from wbc_jax.core import io, provenance
 from wbc_jax.jobs import sweep
 from wbc_jax.robot import model
 from wbc_jax.sim import runner, scenario
 
-ROOT = pathlib.Path(__file__).resolve().parents[2]
-
 
 def main(argv=None) -> dict:
+    given = argv
     argv = sys.argv[1:] if argv is None else argv
     split = argv.index("--") if "--" in argv else len(argv)
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -50,7 +49,10 @@ def main(argv=None) -> dict:
     result = {
         "n_envs": cfg.size,
         "backend": st.loop.backend,
-        "command": "python experiments/benchmarks/queue_overhead.py " + " ".join(argv),
+        "device": provenance.device_label(),
+        "provenance": provenance.record(
+            {"gains": cfg.gains, "tasks": cfg.tasks}, argv=provenance.script_argv(__file__, given)
+        ),
     }
     for name in args.variants:
         fn = variants[name]

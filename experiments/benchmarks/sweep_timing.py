@@ -19,14 +19,13 @@ import sys
 import time
 
 from wbc_jax import cli
-from wbc_jax.core import io
+from wbc_jax.core import io, provenance
 from wbc_jax.jobs import sweep
 from wbc_jax.sim import runner
 
-ROOT = pathlib.Path(__file__).resolve().parents[2]
-
 
 def main(argv=None) -> dict:
+    given = argv
     argv = sys.argv[1:] if argv is None else argv
     split = argv.index("--") if "--" in argv else len(argv)
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -52,7 +51,8 @@ def main(argv=None) -> dict:
         shutil.copy(first / name, out / name)
     s = json.loads((first / "summary.json").read_text())
     result = {"runs": runs, "n_envs": s["n_envs"], "backend": s["backend"], "device": s["device"],
-              "command": "python experiments/benchmarks/sweep_timing.py " + " ".join(argv)}  # fmt: skip
+              "provenance": provenance.record({"gains": base.gains, "tasks": base.tasks},
+                                              argv=provenance.script_argv(__file__, given))}  # fmt: skip
     io.atomic_write_json(out / "timing.json", result)
     print(json.dumps(result), flush=True)
     return result

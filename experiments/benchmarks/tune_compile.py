@@ -33,6 +33,7 @@ def main() -> None:
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
     import jax
 
+    from wbc_jax.core import provenance
     from wbc_jax.sim import runner
     from wbc_jax.tuning import config, tune
     from wbc_jax.tuning import problem as tp
@@ -55,7 +56,7 @@ def main() -> None:
         loss = tp.make_batched_loss(problem, fixed_solver=False)
         f, fargs = jax.jit(lambda q, s: loss(*problem.controls(q), s)[0]), (p0, scen)
     res = {"mode": args.mode, "batch": args.batch, "horizon_s": args.horizon, "seed_carry": tp.SEED_CARRY,
-           "checkpoint": args.checkpoint, "solver_iterations": problem.iterations, "device": str(jax.devices()[0]),
+           "checkpoint": args.checkpoint, "solver_iterations": problem.iterations, "device": provenance.device_label(),
            "xla_flags": os.environ.get("XLA_FLAGS", ""), "cache": args.cache}  # fmt: skip
     t0 = time.perf_counter()
     traced = f.trace(*fargs)
@@ -76,6 +77,7 @@ def main() -> None:
             res[f"step{k}_s"] = round(time.perf_counter() - t0, 2)
         res["physics_steps_per_s"] = round(args.batch * problem.steps_per_rollout / res["step2_s"], 1)
     res["load_avg"] = round(os.getloadavg()[0], 2)
+    res["provenance"] = provenance.record()
     line = json.dumps(res)
     print(line, flush=True)
     if args.out:

@@ -13,12 +13,9 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
-import sys
 
 from wbc_jax import cli
-from wbc_jax.core import io
-
-ROOT = pathlib.Path(__file__).resolve().parents[2]
+from wbc_jax.core import io, provenance
 
 VARIANTS = {  # name -> push-sweep arguments
     "qp-stable": ["--forces", "qp", "--postural", "stable"],
@@ -28,14 +25,15 @@ VARIANTS = {  # name -> push-sweep arguments
 }
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default="runs/variants")
     parser.add_argument("--magnitudes", type=float, nargs=3, default=[20.0, 160.0, 8])
     parser.add_argument("--directions", type=int, default=8)
     parser.add_argument("--horizon", type=float, default=2.5, help="s after the push onset + 0.5")
     parser.add_argument("--only", nargs="*", default=list(VARIANTS), choices=list(VARIANTS))
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    record = provenance.record(argv=provenance.script_argv(__file__, argv))
     out = pathlib.Path(args.out)
     comparison = {}
     for name in args.only:
@@ -57,7 +55,8 @@ def main() -> None:
             "largest_survived_impulse_ns": {k: v["largest_survived_impulse_ns"] for k, v in env.items()},
             "fraction_of_bound": {k: v["fraction_of_bound"] for k, v in env.items()},
             "mean_fraction_of_bound": sum(v["fraction_of_bound"] for v in env.values()) / len(env),
-            "command": "python experiments/campaigns/compare_variants.py " + " ".join(sys.argv[1:]),
+            "device": record["device"]["label"],
+            "provenance": record,
         }
         io.atomic_write_json(out / "comparison.json", comparison)
         print(json.dumps({name: {k: comparison[name][k] for k in

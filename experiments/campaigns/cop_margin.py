@@ -1,8 +1,8 @@
 """The strict envelope against the QP's CoP rectangle (issue: gradient tuning, the 0.8 target).
 
-    python experiments/campaigns/cop_margin.py --out docs/tuning/cop_margin --scales 1.0 0.9 0.8 0.7 0.6 \
+    python experiments/campaigns/cop_margin.py --out docs/tuning/cop_margin/wbc_8 --scales 1.0 0.9 0.8 0.7 0.6 \
         --gains gradient=experiments/gains/tuned_gradient.json critical=experiments/gains/com_critical_100.json
-    python experiments/campaigns/cop_margin.py --rectangle sole --out docs/tuning/cop_margin_sole ...
+    python experiments/campaigns/cop_margin.py --rectangle sole --out docs/tuning/cop_margin/sole_8 ...
     python experiments/campaigns/cop_margin.py --rectangle sole --scales 0.95 --angular-weights 1 0.1 0.01 ...
 
 Foot tilt ends most directions' strict envelope (experiments/campaigns/envelope_limits.py): the force QP may
@@ -34,12 +34,10 @@ import sys
 import mujoco
 import numpy as np
 
-from wbc_jax.core import io
+from wbc_jax.core import io, provenance
 from wbc_jax.jobs import envelope
 from wbc_jax.robot import contacts, model
 from wbc_jax.sim import runner
-
-ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 WBC_RECTANGLE = contacts.ContactParams().foot_size  # the QP's default CoP rectangle
 
@@ -101,6 +99,8 @@ def main(argv=None) -> dict:
     else:
         rectangles = sole_rectangles(robot)
     result = {"rectangle": args.rectangle, "body": args.body, "cop_rectangles_m": rectangles, "runs": {}}
+    gains_files = {f"gains:{n}": path for n, _, path in (g.partition("=") for g in args.gains) if path != "default"}
+    prov = provenance.record(gains_files, argv=provenance.script_argv(__file__, argv))  # the files as they are read
     for spec in args.gains:
         name, _, path = spec.partition("=")
         if not path:
@@ -121,7 +121,8 @@ def main(argv=None) -> dict:
                 }  # fmt: skip
                 print(json.dumps({"run": key, "median": result["runs"][key]["median"],
                                   "min": result["runs"][key]["min"]}), flush=True)  # fmt: skip
-    result["command"] = "python experiments/campaigns/cop_margin.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    result["device"] = prov["device"]["label"]
+    result["provenance"] = prov
     io.atomic_write_json(out / "cop_margin.json", result)
     return result
 

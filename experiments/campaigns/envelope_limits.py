@@ -19,11 +19,9 @@ import sys
 import numpy as np
 import pandas as pd
 
-from wbc_jax.core import constants, io
+from wbc_jax.core import constants, io, provenance
 from wbc_jax.jobs import sweep, sweep_table
 from wbc_jax.sim import metrics
-
-ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 TESTS = ("slip", "tilt", "end_speed", "end_support_margin")
 
@@ -70,9 +68,11 @@ def main(argv=None) -> dict:
         if not path:
             raise ValueError(f"give sweeps as NAME=SWEEP_DIR, got {spec!r}")
         result["sweeps"][name] = limits(pathlib.Path(path))
-    result["command"] = "python experiments/campaigns/envelope_limits.py " + " ".join(
-        sys.argv[1:] if argv is None else argv
-    )
+    inputs = {
+        f"sweep:{name}": pathlib.Path(path) / "results.parquet"
+        for name, _, path in (x.partition("=") for x in args.sweeps)
+    }
+    result["provenance"] = provenance.record(inputs, argv=provenance.script_argv(__file__, argv), with_device=False)
     io.atomic_write_json(pathlib.Path(args.out), result)
     brief = {n: {**s["envelope_fraction_of_lip_bound"], "at_boundary": s["tests_failing_at_the_boundary"]}
              for n, s in result["sweeps"].items()}  # fmt: skip

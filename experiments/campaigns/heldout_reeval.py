@@ -66,6 +66,7 @@ def load_sets(specs: list, n: int, dtype) -> dict:
 
 
 def main(argv=None) -> int:
+    from wbc_jax.core import provenance
     from wbc_jax.report import tuning_plots
     from wbc_jax.robot.model import load_robot
     from wbc_jax.sim import scenario
@@ -86,14 +87,17 @@ def main(argv=None) -> int:
     )  # checks the sizes before anything compiles
     robot = load_robot("icub")
     sets = load_sets(args.sets, robot.index.n, scenario.float_dtype())
+    inputs = {f"gains:{name}": path for name, _, path in (x.partition("=") for x in args.sets) if path}
+    prov = provenance.record({**inputs, "previous": args.previous}, argv=provenance.script_argv(__file__, argv))
     out = pathlib.Path(args.out)
     results = tuning_eval.heldout(sets, hc, out / "heldout")
     for name in sets:
         if hc.sinusoid_s == 0 and name in prev:
             results[name]["sinusoid_com_rmse_m"] = prev[name].get("sinusoid_com_rmse_m")
     budgets = {n: {"sim_steps": prev[n]["sim_steps"], "wall_s": prev[n]["wall_s"]} for n in sets if n in prev}
-    extra = {"command": "python " + " ".join([pathlib.Path(sys.argv[0]).as_posix(), *(argv or sys.argv[1:])]),
-             "sets": args.sets, "budgets_and_sinusoid_from": args.previous if prev else None}  # fmt: skip
+    shown = [f"{n}={provenance.display_path(f)}" if f else n for n, _, f in (x.partition("=") for x in args.sets)]
+    extra = {"provenance": prov, "sets": shown,
+             "budgets_and_sinusoid_from": args.previous if prev else None}  # fmt: skip
     if "nava_2016" in prev:  # the stability conditions depend on the gains alone
         extra["nava_2016"] = {n: v for n, v in prev["nava_2016"].items() if n in sets}
     rep = tuning_eval.write_heldout(out / "heldout.json", results, budgets, extra=extra)

@@ -43,7 +43,7 @@ def windowed(traj, windows=WINDOWS, top: int = 4) -> dict:
 
 def main(argv=None) -> int:
     from wbc_jax.control.gains import default_gains, load_gains
-    from wbc_jax.core import io
+    from wbc_jax.core import io, provenance
     from wbc_jax.jobs import balance
     from wbc_jax.tuning import heldout as tuning_eval
     from wbc_jax.tuning import params as tuning_params
@@ -56,6 +56,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     names = ["default", *[s for s in args.sets if s != "default"]]
     gains = [default_gains(23) if n == "default" else load_gains(GAINS / f"{n}.json", 23) for n in names]
+    files = {f"gains:{n}": GAINS / f"{n}.json" for n in {*names, *args.windowed} if n != "default"}
+    prov = provenance.record(files, argv=provenance.script_argv(__file__, argv))  # the files as they are read
     rmse = {n: {} for n in names}
     for dur in args.durations:
         hc = tuning_eval.HeldoutConfig(sinusoid_s=dur, sinusoid_backend="mujoco")
@@ -69,7 +71,7 @@ def main(argv=None) -> int:
                         progress=False)  # fmt: skip
             drift[n] = windowed(dict(np.load(pathlib.Path(tmp) / "trajectory.npz")))
     report = {"sinusoid_com_rmse_m_by_duration": rmse, "drift_20s": drift, "backend": "mujoco",
-              "command": "python " + " ".join(["experiments/campaigns/sinusoid_drift.py", *(argv or sys.argv[1:])])}  # fmt: skip
+              "device": prov["device"]["label"], "provenance": prov}  # fmt: skip
     out = pathlib.Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     io.atomic_write_json(out, report)

@@ -9,10 +9,12 @@ sinusoid (2 cm along y at 0.2 Hz) is then tracked with 2.2-4.4 mm RMSE against i
 sinusoid RMSE of each tuned set with K_P,CoM x, y raised to each floor (K_D,CoM = 2 zeta sqrt(K_P,CoM),
 zeta of the tuned set; nothing else changes), and with ``--write-gains`` writes, per set, the
 lowest floor whose RMSE is within the bound (the highest floor if none is) as
-``experiments/gains/tuned_{set}_stiff_com.json``. ``--restore-yaw`` first raises the yaw (z) gains
+``experiments/gains/tuned_{set}{--suffix}.json`` (``_stiff_com``), refusing to overwrite a file
+that holds other gains (results name gains files by sha256: choose another ``--suffix`` and add the
+new files to experiments/gains/index.json). ``--restore-yaw`` first raises the yaw (z) gains
 of the angular-momentum task, K_P,w and K_I,w, back to at least the WBC defaults (horizontal pushes
 hardly excite yaw, so the push loss leaves them free, and with them lowered the upper body slowly
-yaws against the feet over the 20 s); its files end in ``_stiff_com_yaw.json``. Their push envelope is then measured on the GPU
+yaws against the feet over the 20 s); its files end in ``_stiff_com_yaw.json`` by default. Their push envelope is then measured on the GPU
 with ``experiments/campaigns/heldout_reeval.py`` (docs/tuning/README.md).
 """
 
@@ -52,7 +54,7 @@ def with_yaw_floor(gains, reference):
 
 def main(argv=None) -> int:
     from wbc_jax.control.gains import default_gains, gains_to_dict, load_gains
-    from wbc_jax.core import constants, io
+    from wbc_jax.core import constants, io, provenance
     from wbc_jax.robot.model import load_robot
     from wbc_jax.tuning import heldout as tuning_eval
     from wbc_jax.tuning import params as tuning_params
@@ -64,7 +66,9 @@ def main(argv=None) -> int:
     )
     p.add_argument("--floors", type=float, nargs="+", default=[30.0, 50.0, 70.0, 85.0, 100.0])
     p.add_argument("--sinusoid-s", type=float, default=20.0)
-    p.add_argument("--write-gains", action="store_true", help="write experiments/gains/tuned_{set}_stiff_com.json")
+    p.add_argument("--write-gains", action="store_true", help="write experiments/gains/tuned_{set}{suffix}.json")
+    p.add_argument("--suffix", default=None, help="of the gains files written (default: _stiff_com, with "
+                   "--restore-yaw _stiff_com_yaw); an existing file with other gains is never overwritten")  # fmt: skip
     p.add_argument("--restore-yaw", action="store_true", help="first raise K_P,w z and K_I,w z to the WBC defaults")
     args = p.parse_args(argv)
     if not args.floors or any(not (np.isfinite(f) and f > 0) for f in args.floors):
@@ -74,7 +78,10 @@ def main(argv=None) -> int:
     tuned = {s: load_gains(GAINS / f"tuned_{s}.json", n) for s in args.sets}
     if args.restore_yaw:
         tuned = {s: with_yaw_floor(g, default_gains(n, np.asarray(g.kp_ang).dtype)) for s, g in tuned.items()}
-    suffix = "_stiff_com_yaw" if args.restore_yaw else "_stiff_com"
+    suffix = args.suffix or ("_stiff_com_yaw" if args.restore_yaw else "_stiff_com")
+    targets = {s: GAINS / f"tuned_{s}{suffix}.json" for s in args.sets}
+    prov = provenance.record({f"gains:{s}": GAINS / f"tuned_{s}.json" for s in args.sets},
+                             argv=provenance.script_argv(__file__, argv))  # fmt: skip
     rows = [(s, f, with_com_floor(g, f)) for s, g in tuned.items() for f in floors]
     hc = tuning_eval.HeldoutConfig(sinusoid_s=args.sinusoid_s, sinusoid_backend="mujoco")
     rmse, timing = tuning_eval.sinusoid([g for _, _, g in rows], tuning_params.default_regularisation(), hc)
@@ -91,12 +98,13 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     report = {"sinusoid_com_rmse_m": table, "chosen": chosen, "bound_m": bound, "sinusoid_s": args.sinusoid_s,
               "restore_yaw": args.restore_yaw,
-              "backend": "mujoco", "timing": timing,
-              "command": "python " + " ".join(["experiments/campaigns/stiffen_com.py", *(argv or sys.argv[1:])])}  # fmt: skip
+              "backend": "mujoco", "timing": timing, "device": prov["device"]["label"], "provenance": prov}  # fmt: skip
     io.atomic_write_json(out / "sinusoid_cpu.json", report)
-    if args.write_gains:
+    if args.write_gains:  # after the report: a name taken by other gains loses no measurement
         for s, c in chosen.items():
-            io.atomic_write_json(GAINS / f"tuned_{s}{suffix}.json", gains_to_dict(with_com_floor(tuned[s], c["floor"])))
+            io.write_new_json(targets[s], gains_to_dict(with_com_floor(tuned[s], c["floor"])))
+        report["gains_written"] = {s: provenance.display_path(t) for s, t in targets.items()}
+        io.atomic_write_json(out / "sinusoid_cpu.json", report)
     print(json.dumps({"chosen": chosen, "rmse_mm": {s: {f: round(v * 1e3, 3) for f, v in t.items()}
                                                     for s, t in table.items()}}))  # fmt: skip
     return 0
@@ -105,5 +113,5 @@ def main(argv=None) -> int:
 if __name__ == "__main__":
     try:
         sys.exit(main())
-    except (ValueError, FileNotFoundError) as err:
+    except (ValueError, FileNotFoundError, FileExistsError) as err:
         sys.exit(f"error: {err}")

@@ -112,8 +112,11 @@ def main(argv=None) -> int:
     problem = tp.make_problem(tc)
     critical = load_gains(args.critical, problem.robot.index.n, problem.setup.dtype)
     check_in_bounds(critical, problem.reg0, problem.bounds, source=f"--critical {args.critical}")
+    inputs = {"critical": args.critical, "init_gains": tc.init_gains, "tasks": tc.tasks, "envelope": tc.envelope}
+    prov = provenance.record(inputs, argv=provenance.script_argv(__file__, argv))
     io.atomic_write_json(out / "config.json", {"tune": dataclasses.asdict(tc), "heldout": dataclasses.asdict(hc),
-                                               "argv": sys.argv[1:], "device": provenance.device_label()})  # fmt: skip
+                                               "argv": sys.argv[1:], "device": prov["device"]["label"],
+                                               "provenance": prov})  # fmt: skip
     timings = _load(out / "timings.json")
     print(json.dumps({"device": provenance.device_label(), "batch": tc.batch, "steps": tc.steps, "horizon": tc.horizon,
                       "population": tc.population, "candidate_batch": tc.candidate_batch,
@@ -189,7 +192,9 @@ def main(argv=None) -> int:
             results = _load(out / "heldout_raw.json")
             if not results:
                 raise ValueError("no held-out results yet: run --phases heldout first")
-            extra = {"command": "python experiments/campaigns/tune_gpu.py " + " ".join(sys.argv[1:] if argv is None else argv),
+            # The gain sets evaluated, by sha256 (experiments/gains/index.json lists the copies kept).
+            sets_files = {f"gains:{n}": out / "gains" / f"{n}.json" for n in sets}
+            extra = {"provenance": provenance.record({**inputs, **sets_files}, argv=provenance.script_argv(__file__, argv)),
                      "nava_2016": {n: nava_conditions(*v) for n, v in sets.items()}, "timings_s": timings,
                      "config": {"tune": dataclasses.asdict(tc), "heldout": dataclasses.asdict(hc)}}  # fmt: skip
             if (out / "prediction.json").exists():

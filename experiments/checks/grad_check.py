@@ -12,38 +12,65 @@ the regularisation (Reg.pinvDamp, Reg.KP_postural). Prints one JSON line (and wr
 --out). tests/test_tune.py runs it with N = 24; docs/tuning/grad_check_100.json is N = 100.
 XLA's backend optimisation is lowered by the caller (XLA_FLAGS) to keep the compile to minutes on
 a 2-core CPU.
+
+The check (:func:`failures`): every loss and gradient finite; in every parameter group at least
+one scenario where the central differences agree (the loss is smooth at that scale), and on each
+such scenario the gradient within ``MAX_REL_ERR`` (5 %) of them; exit status 1 otherwise.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import pathlib
+import sys
 
-import jax
+import numpy as np
 
-jax.config.update("jax_enable_x64", True)
-
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-
-from wbc_jax.core import io  # noqa: E402
-from wbc_jax.tuning import config  # noqa: E402
-from wbc_jax.tuning import params as tuning_params  # noqa: E402
-from wbc_jax.tuning import problem as tp  # noqa: E402
+from wbc_jax.core import checks, provenance
 
 FD_STEPS = (1e-3, 1e-4, 1e-5)  # central-difference steps in the (unconstrained) parameters
+MAX_REL_ERR = 0.05
+BAR = (f"no non-finite loss or gradient; per parameter group a smooth scenario, and the gradient within "
+       f"{100 * MAX_REL_ERR:g} % of the central differences on every smooth one")  # fmt: skip
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
+def failures(result: dict) -> list[str]:
+    """Non-finite values; groups without a smooth scenario; smooth scenarios off by more than MAX_REL_ERR."""
+    out = [f"{result['nonfinite']} non-finite losses or gradients"] if result["nonfinite"] else []
+    out += [f"non-finite loss of scenario {i}" for i, v in enumerate(result["loss"]) if not math.isfinite(v)]
+    for group in result.get("groups", result["fd"]):
+        rows = result["fd"].get(group, [])
+        smooth = [r for r in rows if r["smooth"]]
+        if not smooth:
+            out.append(f"{group}: the central differences disagree between steps on every scenario checked")
+        out += [f"{group}, scenario {r['scenario']}: gradient {r['ad']:.6g} vs central difference "
+                f"{r['fd'][str(FD_STEPS[2])]:.6g} ({100 * r['rel_err']:.2f} % > {100 * MAX_REL_ERR:g} %)"
+                for r in smooth if not r["rel_err"] < MAX_REL_ERR]  # fmt: skip
+    return out
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog=f"Check: {BAR}; exit status 1 otherwise.")  # fmt: skip
     parser.add_argument("n", type=int, help="number of random scenarios")
     parser.add_argument("--out", default=None, help="also write the JSON here")
     parser.add_argument("--fd-scenarios", type=int, default=3, help="scenarios checked by central differences")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     n = args.n
     if n < 1:
         parser.error("N must be >= 1")
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # before any array is made
+    import jax.numpy as jnp
+
+    from wbc_jax.core import io
+    from wbc_jax.tuning import config
+    from wbc_jax.tuning import params as tuning_params
+    from wbc_jax.tuning import problem as tp
+
     rng = np.random.default_rng(7)
     tc = config.TuneConfig(horizon=0.1, push_onset=0.02, duration_range=(0.05, 0.05), joint_noise=0.02,
                        friction_range=(0.6, 1.2), mass_range=(0.9, 1.1), tune_regularisation=True,
@@ -92,12 +119,14 @@ def main() -> None:
                          "rel_err": abs(ad - b) / max(abs(b), 1e-300)})  # fmt: skip
         fd[k] = rows
     result = {"nonfinite": nonfinite, "n": n, "loss": np.asarray(loss).tolist(), "fd": fd,
-              "groups": list(tuning_params.PARAM_GROUPS), "command": f"python experiments/checks/grad_check.py {n}",
-              "device": str(jax.devices()[0])}  # fmt: skip
+              "groups": list(tuning_params.PARAM_GROUPS), "device": provenance.device_label(),
+              "provenance": provenance.record(argv=provenance.script_argv(__file__, argv))}  # fmt: skip
+    result["check"] = checks.verdict(failures(result), BAR)
     print(json.dumps(result))
     if args.out:
         io.atomic_write_json(pathlib.Path(args.out), result)
+    return result
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(checks.exit_status(main()))

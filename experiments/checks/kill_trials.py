@@ -10,6 +10,10 @@ compared with a reference run that was never interrupted: the sweep's results.pa
 column, every env, exactly), the tuning run's history.csv (losses and gradient norms) and
 tuned_gains.json. Writes kill_<job>.json into --out (and the kill keys of docs/reliability.json
 with --record).
+
+The check (:func:`failures`): every trial's resumed results equal the reference's, and at least
+one trial was killed (a trial that finished before its kill tests nothing); exit status 1
+otherwise.
 """
 
 from __future__ import annotations
@@ -26,7 +30,10 @@ import subprocess
 import sys
 import time
 
+from wbc_jax.core import checks, provenance
+
 ROOT = pathlib.Path(__file__).resolve().parents[2]
+BAR = "every resumed run's results equal the uninterrupted reference's, and at least one trial was killed"
 
 JOBS = {
     "sweep": ["push-sweep", "--magnitudes", "20", "120", "6", "--directions", "8", "--horizon", "1.0",
@@ -76,8 +83,25 @@ def compare(job: str, ref: pathlib.Path, got: pathlib.Path) -> list[str]:
     return diffs
 
 
+def failures(result: dict) -> list[str]:
+    """Trials whose resumed results differ from the reference (or did not finish); no trial killed.
+    From the trials when recorded (the counts alone in records before 2026-11-25)."""
+    trials = result.get("trials")
+    if trials is None:
+        differ, killed = result["kill_mismatches"], result["kill_killed"]
+        out = [f"{differ} of {result['kill_trials']} trials differ from the reference"] if differ else []
+    else:
+        killed = sum(bool(t["killed"]) for t in trials)
+        out = [
+            f"trial {t['trial']}: differs from the reference in {t['differences']}" for t in trials if t["differences"]
+        ]
+    if not killed:
+        out.append(f"none of the {result['kill_trials']} trials was killed: raise --trials or lower --kill-after")
+    return out
+
+
 def main(argv=None) -> dict:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog=f"Check: {BAR}; exit status 1 otherwise.")
     p.add_argument("--job", choices=sorted(JOBS), required=True)
     p.add_argument("--trials", type=int, default=10)
     p.add_argument("--kill-after", type=float, nargs=2, default=[15.0, 60.0], metavar=("LO", "HI"))
@@ -113,13 +137,12 @@ def main(argv=None) -> dict:
         trials.append({"trial": k, "kill_after_s": round(delay, 2), "killed": bool(kills), "starts": starts,
                        "differences": diffs})  # fmt: skip
         print(json.dumps(trials[-1]), flush=True)
-    import jax
-
     result = {
         "kill_job": args.job, "kill_trials": len(trials), "kill_killed": sum(t["killed"] for t in trials),
         "kill_mismatches": sum(bool(t["differences"]) for t in trials), "trials": trials,
-        "device": str(jax.devices()[0]), "command": "python experiments/checks/kill_trials.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        "device": provenance.device_label(), "provenance": provenance.record(argv=provenance.script_argv(__file__, argv)),
     }  # fmt: skip
+    result["check"] = checks.verdict(failures(result), BAR)
     from wbc_jax.core import io
 
     io.atomic_write_json(out / f"kill_{args.job}.json", result)
@@ -133,4 +156,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(checks.exit_status(main()))

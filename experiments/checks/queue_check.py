@@ -12,6 +12,11 @@ run seconds and the physics steps simulated against the plain sweep's. The floor
 differences against: the plain sweep's own repeat (same program: the device's nondeterminism),
 and a plain sweep compiled at another chunk size passed as one of the others (another program:
 float32 rounding alone, amplified where the closed loop is chaotic).
+
+The check (:func:`failures`): against the plain sweep, no other sweep (nor the plain sweep's own
+repeat) has a NaN outcome that differs, and none has more than ``--max-differ`` (default 1.5 %) of its
+environments with a survived or upright outcome that differs: the floor measured on the H200 (Warp,
+float32) is 0.9-1.2 % (BENCHMARKS.md, 2026-11-24). Exit status 1 otherwise.
 """
 
 from __future__ import annotations
@@ -19,13 +24,41 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import sys
 
 import numpy as np
 import pandas as pd
 
-from wbc_jax.core import io
+from wbc_jax.core import checks, io, provenance
 
 OUTCOMES = ("survived", "upright", "fell", "nan")
+MAX_DIFFER = 0.015  # of the environments: a survived or upright outcome that differs from the plain sweep's
+
+
+def bar(max_differ: float = MAX_DIFFER) -> str:
+    return (f"no NaN outcome differs from the plain sweep's, and at most {100 * max_differ:g} % of the environments' "
+            "survived or upright outcomes do (each other sweep, and the plain sweep's repeat)")  # fmt: skip
+
+
+def failures(result: dict, max_differ: float = MAX_DIFFER) -> list[str]:
+    """Each comparison with the plain sweep (its repeat, each other sweep) over the bar."""
+    n = result["plain"]["n_envs"]
+    compared = (
+        [("the plain sweep's repeat", result["plain"]["repeat_outcomes"])]
+        if "repeat_outcomes" in result["plain"]
+        else []
+    )
+    compared += [(q["dir"], q["outcomes"]) for q in result["queued"]]
+    out = []
+    for name, outcomes in compared:
+        if outcomes["nan"]["differ"]:
+            out.append(f"{name}: {outcomes['nan']['differ']} environments differ in NaN outcome")
+        for column in ("survived", "upright"):
+            rate = outcomes[column]["differ"] / n
+            if not rate <= max_differ:
+                out.append(f"{name}: {outcomes[column]['differ']} of {n} {column} outcomes differ "
+                           f"({100 * rate:.2f} % > {100 * max_differ:g} %)")  # fmt: skip
+    return out
 
 
 def load(path: str, repeat: int = 0) -> tuple[pd.DataFrame, dict]:
@@ -34,8 +67,13 @@ def load(path: str, repeat: int = 0) -> tuple[pd.DataFrame, dict]:
     summary = json.loads(((d / "run_0" if (d / "run_0").exists() else d) / "summary.json").read_text())
     if (d / "timing.json").exists():
         summary["run_s"] = json.loads((d / "timing.json").read_text())["runs"][-1]["run_s"]
-    d = d / f"run_{repeat}" if (d / f"run_{repeat}" / "results.parquet").exists() else d
-    return pd.read_parquet(d / "results.parquet").sort_values("env"), summary
+    return pd.read_parquet(results_path(d, repeat)).sort_values("env"), summary
+
+
+def results_path(path, repeat: int = 0) -> pathlib.Path:
+    """The results table of a sweep folder (a sweep_timing.py folder: its repeat's)."""
+    d = pathlib.Path(path)
+    return (d / f"run_{repeat}" if (d / f"run_{repeat}" / "results.parquet").exists() else d) / "results.parquet"
 
 
 def in_band(plain: pd.DataFrame, row, column: str) -> bool:
@@ -60,12 +98,16 @@ def compare(plain: pd.DataFrame, queued: pd.DataFrame) -> dict:
     return out
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog=f"Check: {bar()} (--max-differ); exit status 1 otherwise.")  # fmt: skip
     parser.add_argument("plain")
     parser.add_argument("queued", nargs="+")
+    parser.add_argument("--max-differ", type=float, default=MAX_DIFFER, help="the bar, a fraction of the environments")
     parser.add_argument("--out", required=True)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    if not 0 <= args.max_differ < 1:
+        parser.error(f"--max-differ must lie in [0, 1), got {args.max_differ}")
     plain, ps = load(args.plain)
     result = {"plain": {"dir": args.plain, "queue": ps["config"].get("queue", 1), "run_s": ps["run_s"],
                         "chunk_size": ps["config"]["chunk_size"],
@@ -82,9 +124,13 @@ def main() -> None:
             "speedup_run": ps["run_s"] / s["run_s"] if s["run_s"] else None,
             "outcomes": compare(plain, table),
         })  # fmt: skip
+    inputs = {f"sweep:{i}": results_path(d) for i, d in enumerate([args.plain, *args.queued])}
+    result["provenance"] = provenance.record(inputs, argv=provenance.script_argv(__file__, argv), with_device=False)
+    result["check"] = checks.verdict(failures(result, args.max_differ), bar(args.max_differ))
     io.atomic_write_json(pathlib.Path(args.out), result)
     print(json.dumps(result, indent=1))
+    return result
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(checks.exit_status(main()))

@@ -14,6 +14,9 @@ aggregate), flagged divergences, falls. Chunk c's scenarios come from the seed (
 finished chunk is appended to --out/chunks.jsonl, so a stopped soak resumes where it stopped with
 the same scenarios. Writes soak.json into --out and the soak keys of docs/reliability.json with
 --record.
+
+The check (:func:`failures`): no hang, no NaN leak, every environment run; exit status 1
+otherwise (a flagged divergence or a fall is an outcome, not a failure).
 """
 
 from __future__ import annotations
@@ -30,12 +33,26 @@ import time
 import numpy as np
 
 from wbc_jax.control.gains import Gains
-from wbc_jax.core import constants, io, provenance
+from wbc_jax.core import checks, constants, io, provenance
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import physics, runner, scenario
 from wbc_jax.sim.state import Push, Scenario, SimConfig
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
+BAR = "no hang, no NaN leak (a non-finite metric of an environment not flagged as diverged), every environment run"
+
+
+def failures(result: dict) -> list[str]:
+    """Hangs, NaN leaks, environments not run."""
+    out = []
+    if result["soak_hangs"]:
+        out.append(f"{result['soak_hangs']} chunks hung (no return within {result.get('soak_chunk_timeout_s')} s)")
+    if result["soak_nan_leaks"]:
+        out.append(f"{result['soak_nan_leaks']} NaN leaks, by metric: {result.get('soak_nan_leaks_by_column')}")
+    asked = result.get("soak_envs_requested", result["soak_envs"])  # not recorded before 2026-11-25
+    if result["soak_envs"] != asked:
+        out.append(f"{result['soak_envs']} environments run of the {asked} asked")
+    return out
 
 
 def random_scenarios(rng: np.random.Generator, n: int, robot, dtype) -> Scenario:
@@ -85,7 +102,7 @@ def _same_soak(rec: dict, args) -> bool:
 
 
 def main(argv=None) -> dict:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog=f"Check: {BAR}; exit status 1 otherwise.")
     p.add_argument("--envs", type=int, default=1_000_000)
     p.add_argument("--chunk", type=int, default=65_536)
     p.add_argument("--horizon", type=float, default=0.5)
@@ -144,7 +161,7 @@ def main(argv=None) -> dict:
         print(json.dumps(rec), flush=True)
     totals = {"envs": 0, "hangs": 0, "nan_leaks": 0, "diverged_flagged": 0, "fell": 0, "upright": 0,
               "compile_s": 0.0, "run_s": 0.0, "max_chunk_s": 0.0, "leaks_by_column": {}}  # fmt: skip
-    for rec in done.values():
+    for rec in (done[c] for c in range(n_chunks)):  # this soak's chunks (a longer earlier one may have logged more)
         for k in ("envs", "nan_leaks", "fell", "upright", "compile_s", "run_s"):
             totals[k] += rec[k]
         totals["diverged_flagged"] += rec["flagged"]
@@ -157,7 +174,7 @@ def main(argv=None) -> dict:
     aggregate_ok = all(math.isfinite(v) for v in rates.values())
 
     result = {
-        "soak_envs": totals["envs"], "soak_hangs": totals["hangs"],
+        "soak_envs": totals["envs"], "soak_envs_requested": args.envs, "soak_hangs": totals["hangs"],
         "soak_nan_leaks": totals["nan_leaks"] + (0 if aggregate_ok else 1),
         "soak_diverged_flagged": totals["diverged_flagged"], "soak_rates": rates,
         "soak_nan_leaks_by_column": totals["leaks_by_column"],
@@ -165,8 +182,9 @@ def main(argv=None) -> dict:
         "soak_compile_s": round(totals["compile_s"], 1), "soak_run_s": round(totals["run_s"], 1),
         "soak_max_chunk_s": totals["max_chunk_s"], "soak_chunk_timeout_s": args.chunk_timeout,
         "soak_physics_steps_per_s": totals["envs"] * st.loop.n_ticks * st.loop.n_sub / max(totals["run_s"], 1e-9),
-        "device": provenance.device_label(), "command": "python experiments/checks/soak.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        "device": provenance.device_label(), "provenance": provenance.record(argv=provenance.script_argv(__file__, argv)),
     }  # fmt: skip
+    result["check"] = checks.verdict(failures(result), BAR)
     io.atomic_write_json(out / "soak.json", result)
     if args.record:
         path = ROOT / "docs" / "reliability.json"
@@ -178,4 +196,4 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(checks.exit_status(main()))

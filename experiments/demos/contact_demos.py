@@ -20,11 +20,10 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
-import sys
 
 import numpy as np
 
-from wbc_jax.core import io
+from wbc_jax.core import io, provenance
 from wbc_jax.jobs import balance, sweep, sweep_config
 
 EXPERIMENTS = pathlib.Path(__file__).resolve().parents[1]
@@ -62,7 +61,8 @@ def main(argv=None) -> dict:
         envelope[az] = {"feet_impulse_ns": feet, "hand_impulse_ns": hand,
                         "gain": hand / feet if feet > 0 else None}  # fmt: skip
     result = {
-        "command": "python experiments/demos/contact_demos.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        "device": provenance.device_label(),
+        "provenance": provenance.record({"hand": HAND, "feet": FEET}, argv=provenance.script_argv(__file__, argv)),
         "hand_on_table": {
             k: run[k]
             for k in (

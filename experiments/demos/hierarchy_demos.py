@@ -24,7 +24,7 @@ import argparse
 import json
 import pathlib
 
-from wbc_jax.core import io
+from wbc_jax.core import io, provenance
 from wbc_jax.jobs import balance
 
 EXPERIMENTS = pathlib.Path(__file__).resolve().parents[1]
@@ -45,7 +45,6 @@ def summarize(out: pathlib.Path, duration: float) -> dict:
             runs[name] = {k: v for k, v in json.loads(path.read_text()).items() if k != "gains"}
     none = runs.get("no_hand_task")
     return {
-        "command": f"python experiments/demos/hierarchy_demos.py --duration {duration}",
         "duration_s": duration,
         "task_rmse_m": {k: {t: v["rmse"] for t, v in r.get("tasks", {}).items()} for k, r in runs.items()},
         "com_rmse_m": {k: r["com_rmse_m"] for k, r in runs.items()},
@@ -56,13 +55,13 @@ def summarize(out: pathlib.Path, duration: float) -> dict:
     }  # fmt: skip
 
 
-def main() -> None:
+def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--duration", type=float, default=20.0)
     parser.add_argument("--out", default="docs/hierarchy")
     parser.add_argument("--runs", nargs="+", default=list(RUNS), choices=list(RUNS))
     parser.add_argument("--quiet", action="store_true")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     out = pathlib.Path(args.out)
     for name in args.runs:
         task_file = RUNS[name]
@@ -70,6 +69,8 @@ def main() -> None:
                              tasks=None if task_file is None else str(task_file))  # fmt: skip
         print(name, json.dumps(result), flush=True)
     summary = summarize(out, args.duration)
+    files = {f"tasks:{name}": RUNS[name] for name in args.runs if RUNS[name] is not None}
+    summary["provenance"] = provenance.record(files, argv=provenance.script_argv(__file__, argv))
     io.atomic_write_json(out / "demos.json", summary)
     print(json.dumps({k: v for k, v in summary.items() if k != "runs"}, indent=1))
 
