@@ -115,7 +115,7 @@ def main(argv=None) -> int:
     inputs = {"critical": args.critical, "init_gains": tc.init_gains, "tasks": tc.tasks, "envelope": tc.envelope}
     prov = provenance.record(inputs, argv=provenance.script_argv(__file__, argv))
     io.atomic_write_json(out / "config.json", {"tune": dataclasses.asdict(tc), "heldout": dataclasses.asdict(hc),
-                                               "argv": sys.argv[1:], "device": prov["device"]["label"],
+                                               "argv": sys.argv[1:] if argv is None else argv, "device": prov["device"]["label"],
                                                "provenance": prov})  # fmt: skip
     timings = _load(out / "timings.json")
     print(json.dumps({"device": provenance.device_label(), "batch": tc.batch, "steps": tc.steps, "horizon": tc.horizon,
