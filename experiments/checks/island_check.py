@@ -33,7 +33,7 @@ MAX_STEPS = 1.0
 
 
 def bar(max_steps: float = MAX_STEPS) -> str:
-    return f"every cell that differs from the first sweep within {max_steps:g} grid steps of its transition band"
+    return f"every cell that differs from the first sweep within {max_steps:g} x the grid step of its transition band"
 
 
 def failures(result: dict, max_steps: float = MAX_STEPS) -> list[str]:
