@@ -207,8 +207,9 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
         return jax.vmap(step)(s, carry)
 
     if key not in cache:
-        start_fn = per_device(start, mesh, in_specs=(batched,), out_specs=batched).lower(scen_dev).compile()
-        carry_shape = jax.eval_shape(start_fn, scen_dev)
+        start_program = per_device(start, mesh, in_specs=(batched,), out_specs=batched)
+        start_fn = start_program.lower(scen_dev).compile()
+        carry_shape = jax.eval_shape(start_program, scen_dev)
         advance_fn = per_device(advance, mesh, in_specs=(batched, batched, same), out_specs=batched)
         cache[key] = (start_fn, advance_fn.lower(scen_dev, carry_shape, jnp.int32(0)).compile())
         compile_s = time.perf_counter() - t0
