@@ -174,12 +174,39 @@ def _tune(args: argparse.Namespace) -> int:
     return 0
 
 
+def _initialize_distributed(args: argparse.Namespace) -> None:
+    """``jax.distributed.initialize`` from the flags (or, where they are left out, from SLURM's or
+    Open MPI's environment): after it every process sees the global device list, the batch of a
+    run is sharded over all of them and process 0 writes the results."""
+    import jax
+
+    given = {"coordinator_address": args.coordinator, "num_processes": args.num_processes,
+             "process_id": args.process_id}  # fmt: skip
+    if any(v is not None for v in given.values()) and any(v is None for v in given.values()):
+        raise ValueError("--coordinator, --num-processes and --process-id go together (or none: from SLURM/MPI)")
+    if args.num_processes is not None and not 0 <= args.process_id < args.num_processes:
+        raise ValueError(f"--process-id must be in 0..{args.num_processes - 1}, got {args.process_id}")
+    if os.environ.get("JAX_PLATFORMS", "").startswith("cpu"):
+        # CPU devices of several processes talk through Gloo (no NCCL there).
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(**{k: v for k, v in given.items() if v is not None})
+
+
 def build_parser() -> argparse.ArgumentParser:
     from wbc_jax.jobs import balance, sweep_config
     from wbc_jax.jobs.envelope import default_config as envelope_default
     from wbc_jax.tuning import tune
 
     parser = _Parser(prog="wbc-jax", description=__doc__)
+    dist = parser.add_argument_group(
+        "several processes (jax.distributed; one process per host or per GPU, the same command in each)"
+    )
+    dist.add_argument("--distributed", action="store_true",
+                      help="join the processes with jax.distributed.initialize() before the job (under SLURM or "
+                           "Open MPI the addresses and ranks are read from the environment)")  # fmt: skip
+    dist.add_argument("--coordinator", default=None, metavar="HOST:PORT", help="process 0's address")
+    dist.add_argument("--num-processes", type=int, default=None, help="processes in all")
+    dist.add_argument("--process-id", type=int, default=None, help="this process's rank, 0..N-1")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     info = sub.add_parser("info", help="print the robot model summary as JSON")
     info.add_argument("--robot", default="icub")
@@ -222,6 +249,8 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
     args = build_parser().parse_args(argv)
     try:
+        if args.distributed or args.coordinator is not None:
+            _initialize_distributed(args)
         return args.func(args)
     except (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError) as err:
         print(f"wbc-jax {args.command}: error: {err}", file=sys.stderr)

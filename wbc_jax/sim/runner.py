@@ -145,19 +145,30 @@ def _global_batch(tree, sharding: NamedSharding, dtype):
     )
 
 
+def per_device(fn, mesh: Mesh, in_specs, out_specs):
+    """``jit(shard_map(fn))``: each device runs ``fn`` on its own shard of the batch axis, with no
+    communication between devices. MJX-Warp's step is a foreign call with no partitioning rule:
+    under plain ``jit`` with sharded inputs XLA ran it over the whole batch on every device (its
+    contact buffer sized for one device's share), which made two GPUs slower than one and changed
+    outcomes; here each device sees exactly its share."""
+    return jax.jit(jax.shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=out_specs, check_vma=False))
+
+
 def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
-    """MJX backends: jit(vmap(closed loop)) over the batch, sharded along it. A run without
-    records is one program (Warp's data never leaves it: its contact buffer is shared by the
-    batch); a recorded run (``jax`` only) goes in chunks of ticks, for progress."""
+    """MJX backends: vmap(closed loop) per device (:func:`per_device`) over the batch, sharded
+    along it over the device mesh. A run without records is one program (Warp's data never leaves
+    it: its contact buffer is shared by a device's environments); a recorded run (``jax`` only)
+    goes in chunks of ticks, for progress. Every array the programs close over lives on this
+    process's own device (:mod:`wbc_jax.core.mjx`), so the same code runs in several processes."""
     loop, dtype = setup_.loop, setup_.dtype
     mesh = device_mesh()
     n_dev = mesh.devices.size
     padded = pad_batch(scen, size + (-size) % n_dev)
     batch = int(padded.friction.shape[0])
-    sharding = NamedSharding(mesh, PartitionSpec("batch"))
-    replicated = NamedSharding(mesh, PartitionSpec())
-    scen_dev = _global_batch(padded, sharding, dtype)
-    qpos0 = jnp.asarray(setup_.qpos0, dtype)
+    local = batch // n_dev  # environments per device
+    batched, same = PartitionSpec("batch"), PartitionSpec()
+    scen_dev = _global_batch(padded, NamedSharding(mesh, batched), dtype)
+    qpos0 = np.asarray(setup_.qpos0, dtype)
     nominal = physics.device_model(setup_.robot.mj_model, loop.backend, loop.cfg.physics)
     perturb = loop.cfg.perturb_plant
 
@@ -173,13 +184,12 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
     if not loop.cfg.record or loop.backend == "warp":
         if key not in cache:
 
-            def whole(s):
-                return mjx_loop.rollout(loop, plant(s), loop.initial_qpos(qpos0, s.joint_offset), s.gains, s.push,
-                                    batch=batch // n_dev)  # fmt: skip
+            def one(s):
+                return mjx_loop.rollout(loop, plant(s), loop.initial_qpos(jnp.asarray(qpos0), s.joint_offset),
+                                        s.gains, s.push, batch=local)  # fmt: skip
 
-            cache[key] = (
-                jax.jit(jax.vmap(whole), in_shardings=sharding, out_shardings=sharding).lower(scen_dev).compile()
-            )
+            program = per_device(jax.vmap(one), mesh, in_specs=(batched,), out_specs=batched)
+            cache[key] = program.lower(scen_dev).compile()
             compile_s = time.perf_counter() - t0
         t0 = time.perf_counter()
         metrics, records = jax.tree_util.tree_map(_to_host, cache[key](scen_dev))
@@ -190,19 +200,18 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
     chunk = _tick_chunk(loop.n_ticks)
 
     def start(s):
-        return mjx_loop.start(loop, loop.initial_qpos(qpos0, s.joint_offset))
+        return jax.vmap(lambda x: mjx_loop.start(loop, loop.initial_qpos(jnp.asarray(qpos0), x.joint_offset)))(s)
 
     def advance(s, carry, k0):
-        return mjx_loop.chunk(loop, plant(s), s.gains, s.push, carry, k0, chunk)
+        step = lambda x, c: mjx_loop.chunk(loop, plant(x), x.gains, x.push, c, k0, chunk)  # noqa: E731
+        return jax.vmap(step)(s, carry)
 
     if key not in cache:
-        start_fn = jax.jit(jax.vmap(start), in_shardings=sharding, out_shardings=sharding).lower(scen_dev).compile()
-        carry_shape = jax.eval_shape(jax.vmap(start), scen_dev)
-        advance_fn = jax.jit(
-            jax.vmap(advance, in_axes=(0, 0, None)), in_shardings=(sharding, sharding, replicated),
-            out_shardings=sharding,
-        ).lower(scen_dev, carry_shape, jnp.int32(0)).compile()  # fmt: skip
-        cache[key] = (start_fn, advance_fn)
+        start_program = per_device(start, mesh, in_specs=(batched,), out_specs=batched)
+        start_fn = start_program.lower(scen_dev).compile()
+        carry_shape = jax.eval_shape(start_program, scen_dev)
+        advance_fn = per_device(advance, mesh, in_specs=(batched, batched, same), out_specs=batched)
+        cache[key] = (start_fn, advance_fn.lower(scen_dev, carry_shape, jnp.int32(0)).compile())
         compile_s = time.perf_counter() - t0
     start_fn, advance_fn = cache[key]
     t0 = time.perf_counter()
@@ -219,20 +228,22 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
 
 
 def _run_mjx_queue(setup_: Setup, scen: Scenario, queue: int, check_ticks: int = QUEUE_CHECK_TICKS) -> Run:
-    """MJX backends, a shared queue: S = ceil(size / queue) batch slots (a multiple of the device
-    count) work through the batch's scenarios in order (:meth:`ClosedLoop.rollout_queue`), jit(vmap)
-    over the slots, sharded along them; the scenarios and results are replicated. ``check_ticks``:
-    the most ticks between hand-ins (``experiments/benchmarks/queue_overhead.py`` varies it)."""
+    """MJX backends, a queue of scenarios per batch slot: each device takes its share of the
+    batch's scenarios and works through them in order with ceil(share / queue) slots
+    (:func:`wbc_jax.sim.mjx_loop.rollout_queue`, vmap over its slots; :func:`per_device`). A
+    scenario's outcome does not depend on the slot that runs it, so the results equal the plain
+    run's on any number of devices. ``check_ticks``: the most ticks between hand-ins
+    (``experiments/benchmarks/queue_overhead.py`` varies it)."""
     loop, dtype = setup_.loop, setup_.dtype
     mesh = device_mesh()
     n_dev = mesh.devices.size
     size = int(scen.friction.shape[0])
-    slots = min(math.ceil(math.ceil(size / queue) / n_dev) * n_dev, size + (-size) % n_dev)
-    padded = pad_batch(scen, max(size, slots))
-    replicated = NamedSharding(mesh, PartitionSpec())
-    scen_dev = _global_batch(padded, replicated, dtype)
-    slot_ids = _global_batch(np.arange(slots, dtype=np.int32), NamedSharding(mesh, PartitionSpec("batch")), dtype)
-    qpos0 = jnp.asarray(setup_.qpos0, dtype)
+    padded = pad_batch(scen, size + (-size) % n_dev)
+    share = int(padded.friction.shape[0]) // n_dev  # scenarios per device
+    slots = min(math.ceil(share / queue), share)  # slots per device
+    batched = PartitionSpec("batch")
+    scen_dev = _global_batch(padded, NamedSharding(mesh, batched), dtype)
+    qpos0 = np.asarray(setup_.qpos0, dtype)
     nominal = physics.device_model(setup_.robot.mj_model, loop.backend, loop.cfg.physics)
     perturb = loop.cfg.perturb_plant
     segment = _tick_chunk(loop.n_ticks, target=check_ticks)
@@ -245,14 +256,17 @@ def _run_mjx_queue(setup_: Setup, scen: Scenario, queue: int, check_ticks: int =
         def plant_of(x):
             return physics.plant_model(nominal, x.friction, x.mass_scale) if perturb else nominal
 
-        def slot(i, s):
-            return mjx_loop.rollout_queue(loop, plant_of, qpos0, s, i, segment, "slots", batch=slots // n_dev)
+        def on_device(s):
+            def slot(i):
+                return mjx_loop.rollout_queue(loop, plant_of, jnp.asarray(qpos0), s, i, segment, "slots", batch=slots)
 
-        program = jax.vmap(slot, in_axes=(0, None), out_axes=None, axis_name="slots")
-        cache[key] = jax.jit(program, out_shardings=replicated).lower(slot_ids, scen_dev).compile()
+            return jax.vmap(slot, out_axes=None, axis_name="slots")(jnp.arange(slots, dtype=jnp.int32))
+
+        program = per_device(on_device, mesh, in_specs=(batched,), out_specs=batched)
+        cache[key] = program.lower(scen_dev).compile()
         compile_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    metrics = jax.tree_util.tree_map(lambda x: _to_host(x)[:size], cache[key](slot_ids, scen_dev))
+    metrics = jax.tree_util.tree_map(lambda x: _to_host(x)[:size], cache[key](scen_dev))
     return Run(metrics, None, compile_s, time.perf_counter() - t0)
 
 
