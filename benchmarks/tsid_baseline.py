@@ -652,7 +652,8 @@ class TsidPeer:
             on ``push_body``'s CoM, world axes; None: no push.
           config: :class:`TsidConfig` (None: the defaults). record: keep the CoM and torques per tick.
           timing: time the controller (state map; TSID problem data + solve + torques) and the physics
-            (mj_step1 + mj_step2 + the tick's other mj_step) with perf_counter.
+            (mj_step1 + mj_step2 + the tick's other mj_step): wall clock (perf_counter) and this
+            thread's CPU time (thread_time: what a shared machine's other load does not add).
 
         Returns:
           dict: ``t`` (T,), ``com_ref`` (T, 3), ``metrics`` (``baseline_cpu.LoopMetrics.metrics``,
@@ -676,8 +677,8 @@ class TsidPeer:
         tracker = bc.LoopMetrics(config.foot_size if config else FOOT_SIZE, d.site_xpos[sites][None].copy(),
                                  d.site_xmat[sites].reshape(1, 2, 3, 3).copy(), d.subtree_com[base, 2:3].copy())  # fmt: skip
         rec = {"com": np.zeros((T, 3)), "tau": np.zeros((T, len(smap.joints))), "status": np.zeros(T, int)}
-        clock = time.perf_counter
-        t_map = t_tsid = t_phys = 0.0
+        wall, cpu = time.perf_counter, time.thread_time
+        t_map, t_tsid, t_phys = [0.0, 0.0], [0.0, 0.0], [0.0, 0.0]  # (wall, this thread's CPU) seconds
         sub_times = np.arange(self.n_sub) * self.physics_dt
         F_cur = np.zeros(3)
         limit = m.actuator_ctrlrange[smap.actuators]
@@ -686,23 +687,22 @@ class TsidPeer:
             t_now = k * self.control_dt
             saved = (d.qpos.copy(), d.qvel.copy(), d.qacc_warmstart.copy(), d.time)
             F_all = bc._push_force(pu, (t_now + sub_times)[:, None, None])[:, 0]  # (n_sub, 3)
-            c0 = clock()
+            c0 = (wall(), cpu())
             mujoco.mj_step1(m, d)
-            c1 = clock()
+            c1 = (wall(), cpu())
             q, v = smap.q_v(d.qpos, d.qvel, d.xmat[base].reshape(3, 3))
-            c2 = clock()
+            c2 = (wall(), cpu())
             tau_pin, sol = ctrl.solve(t_now, q, v, ref["com_pos"][k], ref["com_vel"][k], ref["com_acc"][k])
-            c3 = clock()
             infeasible = tau_pin is None
             tau = np.clip(ctrl.torques(tau_pin, d.qvel[smap.mj_dof]), limit[:, 0], limit[:, 1])
-            c4 = clock()
+            c4 = (wall(), cpu())
             # The tick's state for the metrics (after mj_step1: kinematics and CoM at it).
             mujoco.mj_subtreeVel(m, d)
             com, com_vel = d.subtree_com[base].copy(), d.subtree_linvel[base].copy()
             W_p_feet, W_R_feet = d.site_xpos[sites].copy(), d.site_xmat[sites].reshape(2, 3, 3).copy()
             body_low = bool(d.xpos[nfb, 2].min() < constants.BODY_FLOOR_HEIGHT)
             violation = ctrl.violation(sol)
-            c5 = clock()
+            c5 = (wall(), cpu())
             for j in range(n_sub):
                 if np.any(F_all[j] != F_cur):
                     d.xfrc_applied[pb, :3] = F_cur = F_all[j]
@@ -711,10 +711,11 @@ class TsidPeer:
                     mujoco.mj_step2(m, d)
                 else:
                     mujoco.mj_step(m, d)
-            c6 = clock()
-            t_phys += (c1 - c0) + (c6 - c5)
-            t_map += c2 - c1
-            t_tsid += (c3 - c2) + (c4 - c3)
+            c6 = (wall(), cpu())
+            for j in (0, 1):
+                t_phys[j] += (c1[j] - c0[j]) + (c6[j] - c5[j])
+                t_map[j] += c2[j] - c1[j]
+                t_tsid[j] += c4[j] - c2[j]
             qpos_, qvel_, warm, time_ = saved
             finite = (
                 abs(d.time - (time_ + n_sub * dt)) < 0.5 * dt
@@ -741,17 +742,16 @@ class TsidPeer:
         if record:
             out.update(rec)
         if timing:
-            out["timing"] = {
-                "ticks": T,
-                "state_map_s": t_map,
-                "tsid_s": t_tsid,
-                "physics_s": t_phys,
-                "state_map_us_per_tick": 1e6 * t_map / T,
-                "tsid_us_per_tick": 1e6 * t_tsid / T,
-                "controller_us_per_tick": 1e6 * (t_map + t_tsid) / T,
-                "physics_us_per_tick": 1e6 * t_phys / T,
-                "physics_us_per_mj_step": 1e6 * t_phys / (T * n_sub),
-            }
+            out["timing"] = {"ticks": T}
+            for j, kind in enumerate(("", "cpu_")):  # wall clock; CPU time of this thread
+                out["timing"].update({
+                    f"state_map_{kind}s": t_map[j], f"tsid_{kind}s": t_tsid[j], f"physics_{kind}s": t_phys[j],
+                    f"state_map_{kind}us_per_tick": 1e6 * t_map[j] / T,
+                    f"tsid_{kind}us_per_tick": 1e6 * t_tsid[j] / T,
+                    f"controller_{kind}us_per_tick": 1e6 * (t_map[j] + t_tsid[j]) / T,
+                    f"physics_{kind}us_per_tick": 1e6 * t_phys[j] / T,
+                    f"physics_{kind}us_per_mj_step": 1e6 * t_phys[j] / (T * n_sub),
+                })  # fmt: skip
         return out
 
 
