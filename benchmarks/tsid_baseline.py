@@ -674,7 +674,8 @@ class TsidPeer:
         d.qvel[:] = 0.0
         mujoco.mj_forward(m, d)
         sites, base, nfb = self.foot_sites, smap.base_body, self.non_foot_bodies
-        tracker = bc.LoopMetrics(config.foot_size if config else FOOT_SIZE, d.site_xpos[sites][None].copy(),
+        # The metrics' support rectangle is the project's (FOOT_SIZE), whatever the contact points.
+        tracker = bc.LoopMetrics(FOOT_SIZE, d.site_xpos[sites][None].copy(),
                                  d.site_xmat[sites].reshape(1, 2, 3, 3).copy(), d.subtree_com[base, 2:3].copy())  # fmt: skip
         rec = {"com": np.zeros((T, 3)), "tau": np.zeros((T, len(smap.joints))), "status": np.zeros(T, int)}
         wall, cpu = time.perf_counter, time.thread_time
