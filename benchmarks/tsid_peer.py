@@ -57,6 +57,7 @@ MAGNITUDES = (10.0, 400.0, 64)  # N: LO, HI, count (np.linspace)
 DIRECTIONS = 32  # azimuths k 360 / N deg from 0 (forward; 90 = left)
 PUSH_ONSET, PUSH_DURATION, HORIZON = 0.5, 0.1, 3.0  # s
 RESOLUTION = 0.25  # N s: wbc_jax.envelope.search's default
+CODE = ("benchmarks", "assets", "wbc_jax/constants.py")  # what the measurement runs (code_version)
 PACKAGES = ("tsid", "libtsid", "pin", "libpinocchio", "eiquadprog", "mujoco", "numpy", "icub-models")
 
 
@@ -268,14 +269,15 @@ def versions() -> dict:
 
 
 def code_version() -> dict:
-    """The repository's commit and whether the working tree differs from it (None outside git)."""
+    """The repository's commit and whether the measurement's code (benchmarks/, assets/,
+    wbc_jax/constants.py) differs from it in the working tree (None outside git)."""
     import subprocess
 
     def git(*cmd):
         return subprocess.run(["git", *cmd], cwd=HERE.parent, capture_output=True, text=True, check=True).stdout.strip()
 
     try:
-        return {"commit": git("rev-parse", "HEAD"), "dirty": bool(git("status", "--porcelain", "--untracked-files=no"))}
+        return {"commit": git("rev-parse", "HEAD"), "dirty": bool(git("status", "--porcelain", "--", *CODE))}
     except (OSError, subprocess.CalledProcessError):
         return {"commit": None, "dirty": None}
 
