@@ -48,8 +48,8 @@ task at 1, the angular momentum at ``w_am`` = 1e-3 (about 1 / m^2: an angular-mo
 equal weighting of the WBC's momentum rows), the posture at 1e-3 (small: it yields to the momentum;
 TSID's own biped examples use 1e-4 to 1e-1), the forces' regularisation at 1e-5 (TSID's examples).
 The weights have no WBC counterpart and move the push envelope (``tsid_peer.py --sensitivity``).
-The torque limits are not in the QP: TSID's ``TaskActuationBounds`` as hard constraints lowered
-survival and, on one push (158.6 N forward, 0.1 s), left eiquadprog looping without returning.
+The torque limits are not in the QP: with TSID's ``TaskActuationBounds`` as hard constraints (level
+0), eiquadprog looped without returning on a 158.6 N, 0.1 s forward push.
 
 Gains: the WBC defaults (``wbc_jax/constants.py``) where the formulations correspond:
 

@@ -183,6 +183,12 @@ def test_stand_10s_survives_with_small_drift(peer):
     # Standing still asks the static torques only (measured 3.54 N m, the WBC's 3.47 N m).
     assert 3.0 < s["max_abs_torque_nm"] < 4.0
     assert s["max_constraint_violation"] < 1e-9
+    # One tick through the controller's own interface, at the first tick's state: the loop's torques.
+    ctrl = tb.TsidController(peer.pin_model, peer.map, peer.mj_model, peer.qpos0, peer.s0)
+    ref0 = {"com_pos": r["com_ref"][0], "com_vel": np.zeros(3), "com_acc": np.zeros(3)}
+    tau, info = ctrl(0.0, peer.qpos0, np.zeros(peer.mj_model.nv), ref0)
+    assert info["status"] == 0 and not info["infeasible"]
+    np.testing.assert_allclose(tau, r["tau"][0], rtol=1e-9, atol=1e-9)
 
 
 @needs_tsid
