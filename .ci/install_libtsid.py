@@ -67,7 +67,10 @@ def retag(wheel: pathlib.Path, out_dir: pathlib.Path) -> pathlib.Path:
     return out
 
 
-def main() -> None:
+def main(argv=None) -> None:
+    import argparse
+
+    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args(argv)  # --help: nothing installed
     try:
         if metadata.version("libtsid") == LIBTSID:
             print(f"libtsid {LIBTSID} is installed")
