@@ -217,7 +217,7 @@ def build() -> str:
     qpos[:2] -= mid  # centre the feet on the world origin
     spec.add_key(name="home", qpos=qpos, ctrl=np.zeros(m.nu))
     spec.compile()
-    # Machine-independent mesh folder: wbc_jax.model points it at the installed package.
+    # Machine-independent mesh folder: wbc_jax.robot.model points it at the installed package.
     xml = spec.to_xml()
     return xml.replace(f'meshdir="{icub_paths()[1]}', f'meshdir="{MESHDIR_PLACEHOLDER}')
 

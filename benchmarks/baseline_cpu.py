@@ -1,20 +1,20 @@
 """[CPU baseline] C MuJoCo stepping + the balancing controller in NumPy, one process per core.
 
 This is the baseline a user would write without JAX/MJX, used only by the benchmark
-(``benchmarks/benchmark.py``): the controller of :mod:`wbc_jax.controller` on the default contact
+(``benchmarks/benchmark.py``): the controller of :mod:`wbc_jax.control.controller` on the default contact
 set (the two soles) reproduced equation for equation in NumPy (batched over the environments of a
 worker with stacked ``np.linalg`` calls), the dynamics terms read from C MuJoCo, the contact-wrench
 QPs solved with ``quadprog`` (Goldfarb-Idnani, C), physics with ``mujoco.mj_step`` at 1 kHz, the
 controller at 100 Hz with zero-order hold, pushes through ``xfrc_applied`` on the CoM of the push
-body, and the metrics of :class:`wbc_jax.rollout.ClosedLoop`.
+body, and the metrics of :class:`wbc_jax.sim.loop.ClosedLoop`.
 
 Dynamics terms from C MuJoCo (mixed representation, controller joint order, as
-:func:`wbc_jax.dynamics.terms` with the two sole frames; ``T = blkdiag(I3, W_R_B, I_n)``):
+:func:`wbc_jax.robot.dynamics.terms` with the two sole frames; ``T = blkdiag(I3, W_R_B, I_n)``):
 
 * ``M = T^-T M_mj T^-1`` with ``M_mj`` from ``mj_fullM``; ``h = T^-T qfrc_bias``,
   ``tau_passive = T^-T qfrc_passive``;
 * sole Jacobians ``J = J_mj T^-1`` from ``mj_jacSite`` (``J_frames``); ``Jdot nu = Jdot_mj qvel``
-  from ``mj_jacDot`` (exact: d/dt(T^-1) nu = 0, see :mod:`wbc_jax.dynamics`); the sole frames
+  from ``mj_jacDot`` (exact: d/dt(T^-1) nu = 0, see :mod:`wbc_jax.robot.dynamics`); the sole frames
   ``site_xmat`` (= ``W_R_frames[k] @ foot_rotations[k]``, the contact frames of the feet);
 * CoM, CoM velocity and the centroidal angular momentum from ``subtree_com``,
   ``mj_subtreeVel`` -> ``subtree_linvel``/``subtree_angmom`` of the base body;
@@ -27,10 +27,10 @@ computations at the current state, which the controller reads) -> controller -> 
 ``mj_step2``; with the Euler integrator this is exactly ``mj_step``, so the controller costs no
 extra ``mj_forward``. The other 9 physics steps of a tick are plain ``mj_step``.
 
-Force distribution (:func:`wbc_jax.forces.distribute` for the two feet): with activations a_k,
+Force distribution (:func:`wbc_jax.control.forces.distribute` for the two feet): with activations a_k,
 the engaged feet (a_k > 0) and the fully active ones (a_k = 1) each get the formulation, restricted
 to them, and ``f = w f_engaged + (1 - w) f_active`` with ``w = min a_k`` over the engaged feet.
-The formulation (:func:`wbc_jax.forces.wbc_qp`): the momentum-equality QP ``min |tau_model +
+The formulation (:func:`wbc_jax.control.forces.wbc_qp`): the momentum-equality QP ``min |tau_model +
 Sigma f|^2 s.t. A f = L_dot* - f_grav, C f <= b`` in ``f = f1 + Z y``; where it is infeasible, the
 soft momentum QP ``min |A f - w|^2 + c |tau_model + Sigma f|^2 + eps |f|^2 s.t. C f <= b``. For
 two feet the orthonormal basis Z of null(A) comes from a QR factorisation instead of an SVD
@@ -46,11 +46,11 @@ instead of the SVD of X (same V and sigma^2, cheaper).
 Workers: ``run_parallel`` starts ``n_workers`` processes with the ``spawn`` context; each runs
 *this file* through ``runpy.run_path`` (not ``import wbc_jax...``, whose package ``__init__``
 imports JAX/MJX, ~3 s and ~200 MB per worker), so a worker imports only numpy, mujoco, quadprog
-and ``wbc_jax/constants.py`` (loaded by file path, below). (As always with ``spawn``, the parent's
+and ``wbc_jax/core/constants.py`` (loaded by file path, below). (As always with ``spawn``, the parent's
 ``__main__`` script is re-imported in the children: keep heavy imports of a driver script under
 ``if __name__ == "__main__"`` or inside functions.) The parent builds a picklable, JAX-free job
 (model, indices, references at the ticks, constants) with :func:`spec_from_setup` (from a
-:class:`wbc_jax.scenario.Setup`) or :func:`make_spec` (the same, from a task name).
+:class:`wbc_jax.sim.scenario.Setup`) or :func:`make_spec` (the same, from a task name).
 """
 
 from __future__ import annotations
@@ -72,17 +72,17 @@ import quadprog
 
 
 def _load_constants():
-    """``wbc_jax/constants.py``, loaded by file path.
+    """``wbc_jax/core/constants.py``, loaded by file path.
 
     The numbers and names shared with the package live there (gravity, gain names and
     defaults, the minimum-jerk ramp, thresholds, metric names). It is loaded from its file, not
-    imported as ``wbc_jax.constants``: importing that name runs ``wbc_jax/__init__.py``, which
+    imported as ``wbc_jax.core.constants``: importing that name runs ``wbc_jax/__init__.py``, which
     imports ``mujoco.mjx`` and so JAX (~3 s and ~200 MB in every worker process, and the
     baseline is meant to be JAX-free). constants.py itself imports only numpy."""
     name = "_wbc_jax_constants_by_path"  # its own name: no clash with a normal import
     module = sys.modules.get(name)
     if module is None:
-        path = pathlib.Path(__file__).resolve().parent.parent / "wbc_jax" / "constants.py"
+        path = pathlib.Path(__file__).resolve().parent.parent / "wbc_jax" / "core" / "constants.py"
         spec = importlib.util.spec_from_file_location(name, path)
         module = importlib.util.module_from_spec(spec)
         sys.modules[name] = module
@@ -96,11 +96,11 @@ GAIN_FIELDS = constants.GAIN_FIELDS
 RECOVERY_THRESHOLD = constants.RECOVERY_THRESHOLD
 METRIC_NAMES = constants.METRIC_NAMES
 min_jerk = constants.min_jerk
-# Copies of names of modules that import JAX (wbc_jax.forces / wbc_jax.torques); checked
+# Copies of names of modules that import JAX (wbc_jax.control.forces / wbc_jax.control.torques); checked
 # against them in tests/test_baseline_cpu.py.
 FORCE_MODES = ("qp", "analytic")
 POSTURAL_VARIANTS = ("stable", "seed")
-QP_FALLBACK_TOL = 1e-6  # wbc_jax.qp.default_tolerances(float64)[1]
+QP_FALLBACK_TOL = 1e-6  # wbc_jax.control.qp.default_tolerances(float64)[1]
 _NULL_DIM = 6
 _WORKER_RUN_NAME = "__wbc_baseline_cpu_worker__"
 _THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
@@ -117,14 +117,14 @@ class BaselineSpec:
 
     Attributes:
       mj_model: C MuJoCo model (solver overrides of the setup's PhysicsConfig applied, no
-        auto-reset, as :func:`wbc_jax.physics.solver_mj_model`).
+        auto-reset, as :func:`wbc_jax.sim.physics.solver_mj_model`).
       nq, nv, n: sizes; qpos_joints, dof_joints, actuators (n,), dof_perm (nv,): as RobotIndex.
       base_body: floating-base body; foot_sites, foot_bodies (2,); mass (kg).
       push_body: body the pushes act on; non_foot_bodies: bodies that must stay off the floor.
       forces, postural, pinv_damping, pinv_tol, kp_postural_reg, hessian_reg, torque_limit,
         torque_weight_soft, angular_weight_soft, compensate_passive: as ControllerConfig.
       C_foot (m, 6), b_foot (m,): contact constraints of a sole in its frame
-        (:func:`wbc_jax.forces.contact_constraints`); fz_row: the row of ``-f_z <= -fz_min``;
+        (:func:`wbc_jax.control.constraints.contact_constraints`); fz_row: the row of ``-f_z <= -fz_min``;
         fz_min (N); foot_size ((x_min, x_max), (y_min, y_max)): the CoP rectangle (m).
       centroidal_jacobian_ref: (2, 3, n) J_G,ang at the reference (left, right stance).
       control_dt, physics_dt, n_sub, n_ticks: as the ClosedLoop / SimConfig.
@@ -220,7 +220,7 @@ def _segments(t: np.ndarray, x0: np.ndarray, starts, durations, deltas):
 
 
 def schedule_table(schedule, times: np.ndarray) -> dict:
-    """Evaluate a :class:`wbc_jax.references.Schedule` at the times (T,) in NumPy (float64).
+    """Evaluate a :class:`wbc_jax.control.references.Schedule` at the times (T,) in NumPy (float64).
 
     Returns a dict of com_pos, com_vel, com_acc (T, 3), s_des (T, n), activation (T, 2)."""
     t = np.asarray(times, float)
@@ -245,7 +245,7 @@ def schedule_table(schedule, times: np.ndarray) -> dict:
 def solver_model(m: mujoco.MjModel, iterations: int | None = None,
                  ls_iterations: int | None = None) -> mujoco.MjModel:  # fmt: skip
     """A copy of the C model with the solver overrides, never resetting a diverged state on its
-    own (as :func:`wbc_jax.physics.solver_mj_model`; the loop restores and flags it)."""
+    own (as :func:`wbc_jax.sim.physics.solver_mj_model`; the loop restores and flags it)."""
     m = copy.copy(m)
     if iterations is not None:
         m.opt.iterations = int(iterations)
@@ -258,7 +258,7 @@ def solver_model(m: mujoco.MjModel, iterations: int | None = None,
 def _check_feet_only(st) -> None:
     """The baseline implements the controller on the default contact set (the two soles) without
     motion tasks, on the nominal plant: refuse anything else, naming what differs."""
-    from wbc_jax import contacts as contacts_lib
+    from wbc_jax.robot import contacts as contacts_lib
 
     loop, idx = st.loop, st.robot.index
     ctrl = loop.controller
@@ -287,7 +287,7 @@ def _check_feet_only(st) -> None:
 
 
 def spec_from_setup(st, controller_state=None) -> BaselineSpec:
-    """Build the spec of a :class:`wbc_jax.scenario.Setup` (same task, settings and references).
+    """Build the spec of a :class:`wbc_jax.sim.scenario.Setup` (same task, settings and references).
 
     Args:
       st: the setup (``scenario.setup``): ``st.loop.schedule``, ``st.loop.controller.config``,
@@ -297,7 +297,7 @@ def spec_from_setup(st, controller_state=None) -> BaselineSpec:
         for J_G,ang at the reference; None: computed with C MuJoCo (:func:`centroidal_jacobian_ref`,
         equal to ~1e-12, tests/test_baseline_cpu.py), so that building a spec evaluates no JAX.
     """
-    from wbc_jax import forces as forces_lib
+    from wbc_jax.control import constraints
 
     _check_feet_only(st)
     loop, robot = st.loop, st.robot
@@ -308,7 +308,7 @@ def spec_from_setup(st, controller_state=None) -> BaselineSpec:
         # mj_step1 + mj_step2 equals mj_step for these only (RK4 would fall back to Euler).
         raise ValueError("the CPU baseline needs the Euler or an implicit integrator (mj_step1/2)")
     params = loop.controller.contact_set.contacts[0].params
-    C_foot, b_foot = forces_lib.contact_constraints(params, "surface")
+    C_foot, b_foot = constraints.contact_constraints(params, "surface")
     times = np.arange(loop.n_ticks) * cfg.control_dt
     ref = schedule_table(loop.schedule, times)
     qpos0 = np.asarray(st.qpos0, float)
@@ -332,7 +332,7 @@ def spec_from_setup(st, controller_state=None) -> BaselineSpec:
         hessian_reg=float(config.hessian_reg), torque_limit=float(config.torque_limit),
         torque_weight_soft=float(config.torque_weight_soft), angular_weight_soft=float(config.angular_weight_soft),
         compensate_passive=bool(config.compensate_passive),
-        C_foot=C_foot, b_foot=b_foot, fz_row=int(forces_lib.constraint_rows(params, "surface").unilateral),
+        C_foot=C_foot, b_foot=b_foot, fz_row=int(constraints.constraint_rows(params, "surface").unilateral),
         fz_min=float(params.fz_min), foot_size=params.foot_size,
         centroidal_jacobian_ref=J_G,
         control_dt=float(cfg.control_dt), physics_dt=float(loop.physics_dt),
@@ -354,16 +354,17 @@ def make_spec(
     push_body: str = "chest",
     robot_name: str = "icub",
 ):
-    """The spec of a task on the two feet, built as :func:`wbc_jax.scenario.setup` builds the
+    """The spec of a task on the two feet, built as :func:`wbc_jax.sim.scenario.setup` builds the
     closed loop (same schedule, settings and indices), without evaluating JAX: J_G,ang comes
     from C MuJoCo (:func:`spec_from_setup` without a controller state).
 
-    ``controller``: further :class:`wbc_jax.controller.ControllerConfig` fields.
+    ``controller``: further :class:`wbc_jax.control.controller.ControllerConfig` fields.
     Returns ``(spec, gains)``: gains = the WBC default gains as a dict of float64 numpy arrays."""
-    from wbc_jax import physics, rollout, scenario
-    from wbc_jax.controller import ControllerConfig
+    from wbc_jax.control.controller import ControllerConfig
+    from wbc_jax.sim import physics, scenario
+    from wbc_jax.sim.state import SimConfig
 
-    sim = rollout.SimConfig(
+    sim = SimConfig(
         record=False, push_body=push_body,
         # No compilation either way; 'mujoco' is valid on every machine.
         physics=physics.PhysicsConfig(backend="mujoco", solver_iterations=solver_iterations,
@@ -418,7 +419,7 @@ def centroidal_jacobian_ref(
 
 
 def gains_to_numpy(gains, n_envs: int, n: int) -> dict:
-    """Gains (wbc_jax.gains.Gains, a dict, or None: the WBC defaults of
+    """Gains (wbc_jax.control.gains.Gains, a dict, or None: the WBC defaults of
     ``constants.default_gain_values``) -> dict of (n_envs, dim) float64 arrays."""
     if gains is None:
         gains = constants.default_gain_values(n)
@@ -436,7 +437,7 @@ def gains_to_numpy(gains, n_envs: int, n: int) -> dict:
 
 
 def push_to_numpy(push, n_envs: int) -> dict:
-    """Push (rollout.Push, dict with force/onset/duration, or None) -> force (B, P, 3), onset
+    """Push (wbc_jax.sim.state.Push, dict with force/onset/duration, or None) -> force (B, P, 3), onset
     (B, P), duration (B, P) float64; unbatched pushes are broadcast to every environment."""
     if push is None:
         return {"force": np.zeros((n_envs, 1, 3)), "onset": np.zeros((n_envs, 1)),
@@ -459,7 +460,7 @@ def push_to_numpy(push, n_envs: int) -> dict:
 
 
 def _push_force(push: dict, t) -> np.ndarray:
-    """Total push force (..., B, 3) at the time(s) t (as rollout.push_force); t: scalar or
+    """Total push force (..., B, 3) at the time(s) t (as wbc_jax.sim.state.push_force); t: scalar or
     (..., 1, 1) to broadcast against onset (B, P)."""
     on = (t >= push["onset"]) & (t < push["onset"] + push["duration"])
     return np.sum(push["force"] * on[..., None], axis=-2)
@@ -473,7 +474,7 @@ def _push_force(push: dict, t) -> np.ndarray:
 @dataclasses.dataclass
 class Terms:
     """Batched dynamics terms (B environments), mixed representation, controller joint order;
-    the quantities of :class:`wbc_jax.dynamics.DynamicsTerms` (sole frames) that the controller
+    the quantities of :class:`wbc_jax.robot.dynamics.DynamicsTerms` (sole frames) that the controller
     and the metrics use.
 
     nu (B, nv), s/s_dot (B, n), W_R_B (B, 3, 3), M (B, nv, nv), h/tau_passive (B, nv),
@@ -531,7 +532,7 @@ def _world_constraints(C_foot: np.ndarray, R: np.ndarray) -> np.ndarray:
 
 def solve_qp(H: np.ndarray, g: np.ndarray, C: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
     """``min 1/2 x'Hx + g'x  s.t.  C x <= b`` with quadprog; on failure ``-(H + ridge I)^-1 g``
-    (ridge = n eps max|diag H|, as wbc_jax.qp) and ``infeasible = True``.
+    (ridge = n eps max|diag H|, as wbc_jax.control.qp) and ``infeasible = True``.
 
     Returns ``(x, infeasible)``."""
     H = 0.5 * (H + H.T)
@@ -554,7 +555,7 @@ def solve_qp(H: np.ndarray, g: np.ndarray, C: np.ndarray, b: np.ndarray) -> tupl
 
 
 class NumpyController:
-    """The controller tick of :func:`wbc_jax.controller.make_controller` (``step``) on the two
+    """The controller tick of :func:`wbc_jax.control.controller.make_controller` (``step``) on the two
     feet, in NumPy, batched over environments.
 
     Usage per tick: the MjData must hold the position- and velocity-dependent quantities of
@@ -802,7 +803,7 @@ class NumpyController:
             return f, infeasible
         C_k = C_feet[:, k]
         slack = sp.b_foot - _mv(C_k, f1)  # (B, m)
-        # Scaled as wbc_jax.qp: the other foot's rows (0 <= 1) put 1 in the data scale.
+        # Scaled as wbc_jax.control.qp: the other foot's rows (0 <= 1) put 1 in the data scale.
         scale = np.maximum(np.max(np.abs(slack), axis=1), 1.0)
         bad = np.max(-slack, axis=1) > QP_FALLBACK_TOL * scale
         eps, c = sp.hessian_reg, sp.torque_weight_soft
@@ -875,7 +876,7 @@ def _batch_size(gains, push) -> int:
 
 
 def support_corners(spec: BaselineSpec, W_p_feet: np.ndarray, W_R_feet: np.ndarray) -> np.ndarray:
-    """(B, 8, 3) corners of the soles' CoP rectangles, world axes (rollout.support_corners)."""
+    """(B, 8, 3) corners of the soles' CoP rectangles, world axes (wbc_jax.sim.metrics.support_corners)."""
     return rectangle_corners(spec.foot_size, W_p_feet, W_R_feet)
 
 
@@ -890,7 +891,7 @@ def rectangle_corners(foot_size, W_p_feet: np.ndarray, W_R_feet: np.ndarray) -> 
 
 def polygon_margin(points: np.ndarray, p: np.ndarray) -> np.ndarray:
     """(B,) signed distance of p (B, 2) inside the convex hull of points (B, N, 2): the smallest
-    distance to a hull edge, negative outside (rollout.polygon_margin: hull edges = the ordered
+    distance to a hull edge, negative outside (wbc_jax.sim.metrics.polygon_margin: hull edges = the ordered
     pairs with every point on their left)."""
     a = points[:, :, None, :]
     e = points[:, None, :, :] - a  # (B, N, N, 2)
@@ -904,7 +905,7 @@ def polygon_margin(points: np.ndarray, p: np.ndarray) -> np.ndarray:
 
 
 class LoopMetrics:
-    """The metrics of ``rollout.ClosedLoop._metrics``, accumulated tick by tick for B environments.
+    """The metrics of ``wbc_jax.sim.loop.ClosedLoop._metrics``, accumulated tick by tick for B environments.
 
     One implementation for every C MuJoCo closed loop of ``benchmarks/`` (:func:`simulate` here,
     the TSID peer of ``benchmarks/tsid_baseline.py``): build it at the initial state, call
@@ -949,7 +950,7 @@ class LoopMetrics:
         finite: np.ndarray,
         body_low: np.ndarray,
     ) -> None:
-        """Add one tick (rollout.ClosedLoop._metrics).
+        """Add one tick (wbc_jax.sim.loop.ClosedLoop._metrics).
 
         Args:
           t_now: the tick's time (s). ref_com (3,): the CoM reference; activation (2,): the feet's.
@@ -999,14 +1000,14 @@ def simulate(
     timing: bool = False,
     n_ticks: int | None = None,
 ) -> dict:
-    """Closed-loop simulation of a batch of environments with C MuJoCo (as rollout.ClosedLoop).
+    """Closed-loop simulation of a batch of environments with C MuJoCo (as wbc_jax.sim.loop.ClosedLoop).
 
     Args:
       spec: the task (:func:`spec_from_setup` / :func:`make_spec`).
-      gains: per-environment gains, (B, dim) or (dim,) arrays (dict or wbc_jax.gains.Gains);
+      gains: per-environment gains, (B, dim) or (dim,) arrays (dict or wbc_jax.control.gains.Gains);
         None: the WBC defaults.
       push: pushes on ``spec.push_body``: force (B, P, 3) or (P, 3), onset/duration (B, P)
-        or (P,) (dict or rollout.Push); None: no push.
+        or (P,) (dict or wbc_jax.sim.state.Push); None: no push.
       n_envs: batch size (default: from the batched gains/push, else 1).
       record: keep per-tick trajectories (CoM, torques, wrenches).
       timing: measure the time spent in physics and in the controller (perf_counter).
@@ -1014,7 +1015,7 @@ def simulate(
 
     Returns:
       dict with ``t`` (T,), ``com_ref`` (T, 3), ``metrics`` (dict of (B,) arrays, the fields of
-      wbc_jax.metrics.Metrics; :func:`summarize` names them as ``constants.METRIC_NAMES``), with
+      wbc_jax.sim.metrics.Metrics; :func:`summarize` names them as ``constants.METRIC_NAMES``), with
       ``record``: ``com`` (B, T, 3), ``tau`` (B, T, n), ``f_cmd`` (B, T, 12), ``qp_infeasible``
       (B, T); with ``timing``: ``timing`` (dict: wall and CPU seconds of the loop, seconds in
       physics (mj_step1/mj_step2/mj_step) and in the controller (terms + tick), microseconds per
@@ -1034,7 +1035,7 @@ def simulate(
     state = ctrl.init_state(B)
     acts, pb = sp.actuators, sp.push_body
 
-    # Metrics as rollout.ClosedLoop.init / _metrics.
+    # Metrics as wbc_jax.sim.loop.ClosedLoop.init / _metrics.
     for d in datas:
         mujoco.mj_forward(m, d)
     t0 = ctrl.terms(datas)
@@ -1091,7 +1092,7 @@ def simulate(
                 d.qpos[:], d.qvel[:], d.qacc_warmstart[:], d.time = qpos, qvel, warm, time_
                 finite[i] = False
 
-        # Metrics (rollout.ClosedLoop._metrics), at the tick's state.
+        # Metrics (wbc_jax.sim.loop.ClosedLoop._metrics), at the tick's state.
         tracker.update(
             t_now, ref["com_pos"], ref["activation"], terms.W_p_CoM, terms.W_v_CoM, terms.W_p_feet,
             terms.W_R_feet, tau, out["qp_violation"], out["qp_infeasible"], finite, body_low,
@@ -1130,7 +1131,7 @@ def simulate(
 
 def summary_columns(metrics: dict, push_end: float = 0.0) -> dict:
     """The metrics of :func:`simulate` under ``constants.METRIC_NAMES`` (numpy columns, (B,)),
-    computed as :func:`wbc_jax.metrics.summarize`: ``survived`` is the strict criterion of
+    computed as :func:`wbc_jax.sim.metrics.summarize`: ``survived`` is the strict criterion of
     ``constants.SURVIVAL_CRITERION``, ``upright`` the lax one (no fall, no NaN)."""
     m = {k: np.asarray(v) for k, v in metrics.items()}
     ticks = np.maximum(m["ticks"], 1)
@@ -1166,7 +1167,7 @@ def summary_columns(metrics: dict, push_end: float = 0.0) -> dict:
 
 def summarize(metrics: dict, push_end: float = 0.0) -> list[dict]:
     """Per-environment summaries (plain numbers) under ``constants.METRIC_NAMES``, as
-    :func:`wbc_jax.metrics.summarize` gives for one environment."""
+    :func:`wbc_jax.sim.metrics.summarize` gives for one environment."""
     cols = summary_columns(metrics, push_end)
     B = len(cols["fell"])
     return [{k: v[i].item() for k, v in cols.items()} for i in range(B)]

@@ -6,7 +6,7 @@
 
 For each physics backend (``jax``: MJX's JAX implementation, ``warp``: MJX-Warp on a CUDA GPU,
 ``mujoco``: C MuJoCo on the host with the jitted JAX controller), solver iteration count and batch
-size: compile time, closed-loop physics steps/s and control ticks/s (``scenario.run`` on a batch of
+size: compile time, closed-loop physics steps/s and control ticks/s (``runner.run`` on a batch of
 40 N pushes spread over 360 deg; 1 kHz physics, 100 Hz control), the same physics with the torques
 held fixed (physics only), the controller's share of the time (1 - closed loop / physics only),
 peak device memory. Then the CPU baseline (benchmarks/baseline_cpu.py: C MuJoCo + the controller in
@@ -52,9 +52,10 @@ JSON_ROW_KEY = ("device", "backend", "solver_iterations", "batch", "n_devices", 
 
 def make_setup(backend: str, horizon: float, iterations: int | None, *, record: bool = False):
     """The stand task's closed loop on ``backend`` (default gains, the two feet)."""
-    from wbc_jax import physics, rollout, scenario
+    from wbc_jax.sim import physics, scenario
+    from wbc_jax.sim.state import SimConfig
 
-    sim = rollout.SimConfig(record=record, physics=physics.PhysicsConfig(backend=backend, solver_iterations=iterations))
+    sim = SimConfig(record=record, physics=physics.PhysicsConfig(backend=backend, solver_iterations=iterations))
     return scenario.setup("stand", duration=horizon, sim=sim)
 
 
@@ -63,9 +64,9 @@ def push_batch(st, batch: int, onset: float, duration: float):
     over 360 deg (sweep.build_scenarios), nominal plant, default gains."""
     import numpy as np
 
-    from wbc_jax import sweep
+    from wbc_jax.jobs import sweep, sweep_config
 
-    cfg = sweep.SweepConfig(
+    cfg = sweep_config.SweepConfig(
         magnitudes=(PUSH_MAGNITUDE,), directions=tuple(float(a) for a in np.linspace(0, 360, batch, endpoint=False)),
         horizon=st.loop.cfg.duration, push_onset=onset, push_duration=duration, chunk_size=batch,
     )  # fmt: skip
@@ -81,15 +82,15 @@ def peak_memory() -> int | None:
 
 
 def time_closed_loop(st, scen, push_end: float, repeats: int = 1) -> dict:
-    """Compile + first run, then ``repeats`` timed runs of the same batch (scenario.run,
+    """Compile + first run, then ``repeats`` timed runs of the same batch (runner.run,
     compiled programs cached on the setup); the fastest counts."""
     import numpy as np
 
-    from wbc_jax import metrics as metrics_lib
-    from wbc_jax import scenario
+    from wbc_jax.sim import metrics as metrics_lib
+    from wbc_jax.sim import runner
 
-    first = scenario.run(st, scen)
-    timed = [scenario.run(st, scen) for _ in range(repeats)]
+    first = runner.run(st, scen)
+    timed = [runner.run(st, scen) for _ in range(repeats)]
     run_s = min(r.run_s for r in timed)
     B = int(np.asarray(scen.friction).shape[0])
     steps = B * st.loop.n_ticks * st.loop.n_sub
@@ -135,7 +136,7 @@ def time_physics_only(st, batch: int, tau, repeats: int = 1) -> dict:
     import jax.numpy as jnp
     import numpy as np
 
-    from wbc_jax import physics
+    from wbc_jax.sim import physics
 
     loop, robot = st.loop, st.robot
     cfg = loop.cfg.physics
@@ -192,11 +193,11 @@ def equivalence_check(horizon: float = 1.0, iterations: int | None = None) -> di
     import baseline_cpu
     import numpy as np
 
-    from wbc_jax import scenario
+    from wbc_jax.sim import runner, scenario
 
     st = make_setup("jax", horizon, iterations, record=True)
     push = scenario.make_push([0.0, 40.0, 0.0], 0.3, 0.1, st.dtype)
-    run = scenario.run(st, scenario.single(st, push))
+    run = runner.run(st, scenario.single(st, push))
     spec = baseline_cpu.spec_from_setup(st)
     base = baseline_cpu.simulate(spec, st.gains, push)
     com_mjx, com_cpu = np.asarray(run.records.com[0], float), base["com"][0]
@@ -245,7 +246,7 @@ def json_rows(result: dict) -> list[dict]:
 def update_json_rows(path: pathlib.Path, rows: list[dict]) -> list[dict]:
     """Append the rows to the JSON list in ``path``, replacing those of the same setting
     (JSON_ROW_KEY); written atomically."""
-    from wbc_jax import io
+    from wbc_jax.core import io
 
     existing = []
     if path.exists():
@@ -336,7 +337,8 @@ def main(argv=None) -> dict:
     import baseline_cpu
     import jax
 
-    from wbc_jax import io, physics
+    from wbc_jax.core import io
+    from wbc_jax.sim import physics
 
     backends = args.backends or ["warp" if physics.has_cuda() and physics.has_warp() else "jax"]
     for b in backends:

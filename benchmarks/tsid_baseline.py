@@ -4,9 +4,9 @@ A real peer of wbc_jax on the CPU: the controller a user of this robot would oth
 TSID (stack-of-tasks/tsid), on the same plant, tasks, pushes and metrics as the rest of the project,
 so that the figures compare like for like. JAX-free: it imports numpy, mujoco, pinocchio, tsid,
 ``benchmarks/baseline_cpu.py`` (the closed-loop metrics, the reference table, pushes) and
-``wbc_jax/constants.py`` / ``assets/build_icub_mjcf.py`` by file path.
+``wbc_jax/core/constants.py`` / ``assets/build_icub_mjcf.py`` by file path.
 
-Plant (as :func:`wbc_jax.model.load_mj_model`): ``assets/icub/icub_23dof.xml`` without its visual
+Plant (as :func:`wbc_jax.robot.model.load_mj_model`): ``assets/icub/icub_23dof.xml`` without its visual
 meshes, C MuJoCo at 1 kHz (the model's Newton solver, pyramidal cones, four 5 mm corner spheres per
 sole), 23 torque motors saturated at their ctrlrange (+-60 N m; MuJoCo clamps ``ctrl`` to it, the
 torques are clipped here first so that the metrics see the applied torque), pushes as a world-axes
@@ -51,7 +51,7 @@ The weights have no WBC counterpart and move the push envelope (``tsid_peer.py -
 The torque limits are not in the QP: with TSID's ``TaskActuationBounds`` as hard constraints (level
 0), eiquadprog looped without returning on a 158.6 N, 0.1 s forward push.
 
-Gains: the WBC defaults (``wbc_jax/constants.py``) where the formulations correspond:
+Gains: the WBC defaults (``wbc_jax/core/constants.py``) where the formulations correspond:
 
 * K_P,CoM = (50, 50, 10), K_D,CoM = 2 sqrt(K_P,CoM) / 20 -> ``TaskComEquality`` Kp, Kd: the same
   law (the WBC asks the momentum rate m (c_ddot_ref - K_P e - K_D e_dot), TSID the CoM acceleration
@@ -72,14 +72,14 @@ the WBC controller's ``compensate_passive`` does by default. A tick whose QP fai
 != 0) keeps the previous torques and counts in ``qp_infeasible_ticks``.
 
 Metrics: ``baseline_cpu.LoopMetrics`` (one implementation with the NumPy baseline, the quantities of
-``rollout.ClosedLoop``: CoM from MuJoCo's ``subtree_com``, the sole sites, the anchors at the start),
+``wbc_jax.sim.loop.ClosedLoop``: CoM from MuJoCo's ``subtree_com``, the sole sites, the anchors at the start),
 named by ``baseline_cpu.summary_columns`` as ``constants.METRIC_NAMES``; ``survived`` is the strict
 criterion of ``constants.SURVIVAL_CRITERION``. ``max_constraint_violation``: the largest violation of
 TSID's own contact-force inequalities by the commanded corner forces, divided by the foot's normal
-force (at least ``FZ_MIN``), as ``forces.violation`` normalises.
+force (at least ``FZ_MIN``), as ``wbc_jax.control.constraints.violation`` normalises.
 
 References (:func:`make_schedule`): the ``stand`` and ``sinusoid`` tasks of
-:func:`wbc_jax.references.make_schedule` (CoM at its initial value; plus 2 cm along world y at
+:func:`wbc_jax.control.references.make_schedule` (CoM at its initial value; plus 2 cm along world y at
 0.2 Hz from t = 0; posture at the home keyframe; both feet active), evaluated with
 ``baseline_cpu.schedule_table``.
 """
@@ -123,9 +123,9 @@ DRIVEN_JOINTS: tuple[str, ...] = tuple(mjcf.DRIVEN_JOINTS)
 FEET = ("l_sole", "r_sole")
 TASKS = ("stand", "sinusoid")
 # Copies of wbc_jax names (modules that import JAX), checked in tests/test_tsid_baseline.py:
-FOOT_SIZE = ((-0.07, 0.12), (-0.045, 0.045))  # contacts.ContactParams().foot_size (m, sole frame)
-FZ_MIN = 10.0  # contacts.ContactParams().fz_min (N, per foot)
-TASK_DURATION = {"stand": 10.0, "sinusoid": 20.0}  # references.make_schedule's defaults (s)
+FOOT_SIZE = ((-0.07, 0.12), (-0.045, 0.045))  # robot.contacts.ContactParams().foot_size (m, sole frame)
+FZ_MIN = 10.0  # robot.contacts.ContactParams().fz_min (N, per foot)
+TASK_DURATION = {"stand": 10.0, "sinusoid": 20.0}  # control.references.make_schedule's defaults (s)
 SINE_AMPLITUDE, SINE_FREQUENCY, SINE_AXIS = 0.02, 0.2, (0.0, 1.0, 0.0)  # its sinusoid (m, Hz)
 FZ_MAX = 1e4  # N per foot: no WBC counterpart (TSID needs one); ~30 x the robot's weight
 # TSID wheels are built against one Pinocchio: another version's Model crashes TSID's RobotWrapper
@@ -173,7 +173,7 @@ def _import_tsid():
 
 
 def load_mj_model(path: pathlib.Path | str = MODEL_XML) -> mujoco.MjModel:
-    """The C MuJoCo model as :func:`wbc_jax.model.load_mj_model` (``visual=False``) compiles it: the
+    """The C MuJoCo model as :func:`wbc_jax.robot.model.load_mj_model` (``visual=False``) compiles it: the
     MJCF without its visual mesh geoms and meshes (they never collide), no auto-reset either way.
 
     Raises FileNotFoundError (missing model file)."""
@@ -245,7 +245,7 @@ def sole_contact_rectangle(m: mujoco.MjModel, qpos: np.ndarray | None = None) ->
 
 
 def non_foot_bodies(m: mujoco.MjModel) -> np.ndarray:
-    """Bodies that must stay off the floor (rollout.ClosedLoop): all but the world, the soles'
+    """Bodies that must stay off the floor (wbc_jax.sim.loop.ClosedLoop): all but the world, the soles'
     bodies and their parents (the ankles). (k,) int."""
     feet = np.array([m.site_bodyid[m.site(s).id] for s in FEET])
     excluded = set(feet.tolist()) | set(m.body_parentid[feet].tolist())
@@ -356,7 +356,7 @@ class StateMap:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class TaskSchedule:
-    """The fields of :class:`wbc_jax.references.Schedule` that ``baseline_cpu.schedule_table``
+    """The fields of :class:`wbc_jax.control.references.Schedule` that ``baseline_cpu.schedule_table``
     reads, for the stand and sinusoid tasks: com0 (3,), s0 (n,) (joints order), no minimum-jerk
     segments, an optional CoM sinusoid (m, Hz, world axis)."""
 
@@ -373,7 +373,7 @@ class TaskSchedule:
 
 
 def make_schedule(task: str, com0: np.ndarray, s0: np.ndarray, duration: float | None = None) -> TaskSchedule:
-    """The references of ``task`` as :func:`wbc_jax.references.make_schedule` builds them:
+    """The references of ``task`` as :func:`wbc_jax.control.references.make_schedule` builds them:
     ``stand`` (CoM held at com0 (3,), default 10 s) or ``sinusoid`` (com0 + 2 cm sin(2 pi 0.2 t)
     along world y, default 20 s); posture s0 (n,). Raises ValueError (other tasks, bad sizes)."""
     if task not in TASKS:
@@ -675,8 +675,8 @@ class TsidPeer:
         mujoco.mj_forward(m, d)
         sites, base, nfb = self.foot_sites, smap.base_body, self.non_foot_bodies
         # The metrics' support rectangle is the project's (FOOT_SIZE), whatever the contact points.
-        tracker = bc.LoopMetrics(FOOT_SIZE, d.site_xpos[sites][None].copy(),
-                                 d.site_xmat[sites].reshape(1, 2, 3, 3).copy(), d.subtree_com[base, 2:3].copy())  # fmt: skip
+        W_R_feet0 = d.site_xmat[sites].reshape(1, 2, 3, 3).copy()
+        tracker = bc.LoopMetrics(FOOT_SIZE, d.site_xpos[sites][None].copy(), W_R_feet0, d.subtree_com[base, 2:3].copy())
         rec = {"com": np.zeros((T, 3)), "tau": np.zeros((T, len(smap.joints))), "status": np.zeros(T, int)}
         wall, cpu = time.perf_counter, time.thread_time
         t_map, t_tsid, t_phys = [0.0, 0.0], [0.0, 0.0], [0.0, 0.0]  # (wall, this thread's CPU) seconds

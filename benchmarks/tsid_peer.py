@@ -7,13 +7,13 @@ MuJoCo step one robot in one thread; ``--cpu`` also pins the process to one core
    the physics (``mj_step1`` + ``mj_step2`` + 9 ``mj_step``) separately, over the 20 s sinusoid;
 2. the 20 s sinusoid's CoM tracking (``com_rmse_m`` and the other ``constants.METRIC_NAMES``) and
    the 10 s stand task's;
-3. the strict recovery envelope over the chest-push grid of ``wbc_jax/envelope.py``
+3. the strict recovery envelope over the chest-push grid of ``wbc_jax/jobs/envelope.py``
    (``DEFAULT_MAGNITUDES``: 64 forces of 10-400 N for 0.1 s from 0.5 s, 32 azimuths, 3 s horizon):
    per direction the largest impulse that survives the strict criterion, by the two-phase bisection
-   of ``wbc_jax.envelope.bisect`` (6 rounds over the 64 grid impulses, then 2 inside the bracketing
+   of ``wbc_jax.jobs.envelope.bisect`` (6 rounds over the 64 grid impulses, then 2 inside the bracketing
    step, to 0.25 N s: 8 rollouts per direction instead of 64); as a fraction of the feet-in-place LIP
-   bound m omega d of ``wbc_jax.sweep.lip_bound``. ``--full-grid`` also runs all 64 x 32 pushes
-   (survival rate and the grid's monotone envelope, as ``wbc_jax.sweep.envelope_of``);
+   bound m omega d of ``wbc_jax.jobs.sweep_table.lip_bound``. ``--full-grid`` also runs all 64 x 32 pushes
+   (survival rate and the grid's monotone envelope, as ``wbc_jax.jobs.sweep_table.envelope_of``);
 4. ``--sensitivity``: the sinusoid and the envelope again with each setting that has no WBC
    counterpart changed, one at a time (:data:`SENSITIVITY`).
 
@@ -52,17 +52,17 @@ if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 import tsid_baseline as tb  # noqa: E402
 
-# The grid of wbc_jax/envelope.py (DEFAULT_MAGNITUDES) and of the documented 64 x 32 sweeps.
+# The grid of wbc_jax/jobs/envelope.py (DEFAULT_MAGNITUDES) and of the documented 64 x 32 sweeps.
 MAGNITUDES = (10.0, 400.0, 64)  # N: LO, HI, count (np.linspace)
 DIRECTIONS = 32  # azimuths k 360 / N deg from 0 (forward; 90 = left)
 PUSH_ONSET, PUSH_DURATION, HORIZON = 0.5, 0.1, 3.0  # s
-RESOLUTION = 0.25  # N s: wbc_jax.envelope.search's default
-CODE = ("benchmarks", "assets", "wbc_jax/constants.py")  # what the measurement runs (code_version)
+RESOLUTION = 0.25  # N s: wbc_jax.jobs.envelope.search's default
+CODE = ("benchmarks", "assets", "wbc_jax/core/constants.py")  # what the measurement runs (code_version)
 PACKAGES = ("tsid", "libtsid", "pin", "libpinocchio", "eiquadprog", "mujoco", "numpy", "icub-models")
 
 
 def lip_bound(m: mujoco.MjModel, qpos: np.ndarray, directions_deg, mass: float | None = None) -> dict:
-    """Feet-in-place bound per azimuth (``wbc_jax.sweep.lip_bound``, two feet): the LIP with its
+    """Feet-in-place bound per azimuth (``wbc_jax.jobs.sweep_table.lip_bound``, two feet): the LIP with its
     CoP on the edge of the hull of the soles' contact spheres survives a CoM velocity up to omega d
     (omega = sqrt(g / z_CoM), d the distance from the CoM to the hull along the push); as an impulse
     m omega d. qpos (nq,): the home state. Returns {azimuth: {edge_distance_m, velocity_bound_mps,
@@ -93,7 +93,7 @@ def lip_bound(m: mujoco.MjModel, qpos: np.ndarray, directions_deg, mass: float |
 
 def bisect(impulses: np.ndarray, survives: Callable[[np.ndarray, np.ndarray], np.ndarray], searches: int,
            resolution: float) -> dict:  # fmt: skip
-    """The two-phase search of ``wbc_jax.envelope.bisect``: per search, the bracket of grid indices
+    """The two-phase search of ``wbc_jax.jobs.envelope.bisect``: per search, the bracket of grid indices
     [lo, hi] starts at (-1: no push, M - 1: taken as a fall) and is halved until adjacent over the
     sorted distinct ``impulses`` (M,) N s, then the bracket inside that grid step is halved until at
     most ``resolution`` N s wide. ``survives(k, impulse)`` -> bool (len(k),) for the open searches k.
@@ -178,7 +178,8 @@ def envelope(peer: tb.TsidPeer, config, args, log=print) -> dict:
         "fraction_of_bound_median": float(np.median(frac)), "fraction_of_bound_min": float(np.min(frac)),
         "impulse_ns_median": float(np.median(imp)), "impulse_ns_min": float(np.min(imp)),
         "min_at_azimuth_deg": float(azimuths[int(np.argmin(frac))]),
-        "rollouts": int(found["rollouts"]), "rounds": int(found["rounds"]), "grid_rollouts": int(impulses.size * azimuths.size),
+        "rollouts": int(found["rollouts"]), "rounds": int(found["rounds"]),
+        "grid_rollouts": int(impulses.size * azimuths.size),
         "run_s": round(run_s, 2), "grid_impulses": int(impulses.size), "resolution_ns": args.resolution,
         "directions": rows,
     }  # fmt: skip
@@ -187,7 +188,7 @@ def envelope(peer: tb.TsidPeer, config, args, log=print) -> dict:
 def full_grid(peer: tb.TsidPeer, config, args, log=print) -> dict:
     """Every push of the grid: strict and lax survival rates, the grid's envelope per azimuth
     (largest survived impulse; monotone: the largest below the first failure, as
-    ``wbc_jax.sweep.envelope_of``), with the LIP bound."""
+    ``wbc_jax.jobs.sweep_table.envelope_of``), with the LIP bound."""
     magnitudes = np.unique(np.linspace(*args.magnitudes[:2], int(args.magnitudes[2])))
     azimuths = np.arange(args.directions) * 360.0 / args.directions
     start = time.perf_counter()
@@ -215,7 +216,8 @@ def full_grid(peer: tb.TsidPeer, config, args, log=print) -> dict:
     frac = np.array([r["monotone_fraction_of_bound"] for r in rows.values()])
     return {
         "survival_rate": float(survived.mean()), "upright_rate": float(upright.mean()),
-        "monotone_fraction_of_bound_median": float(np.median(frac)), "monotone_fraction_of_bound_min": float(np.min(frac)),
+        "monotone_fraction_of_bound_median": float(np.median(frac)),
+        "monotone_fraction_of_bound_min": float(np.min(frac)),
         "rollouts": int(survived.size), "run_s": round(run_s, 2), "directions": rows,
         "survived": survived.astype(int).tolist(), "magnitudes_n": magnitudes.tolist(),
         "azimuths_deg": azimuths.tolist(),
@@ -248,7 +250,8 @@ def sensitivity(peer: tb.TsidPeer, args, log=print) -> dict:
         out[name] = {
             "change": {k: list(v) if isinstance(v, tuple) else v for k, v in change.items()},
             "sinusoid_com_rmse_m": sin["com_rmse_m"], "sinusoid_survived": sin["survived"],
-            "fraction_of_bound_median": e["fraction_of_bound_median"], "fraction_of_bound_min": e["fraction_of_bound_min"],
+            "fraction_of_bound_median": e["fraction_of_bound_median"],
+            "fraction_of_bound_min": e["fraction_of_bound_min"],
             "fraction_of_bound": {az: round(r["fraction_of_bound"], 4) for az, r in e["directions"].items()},
             "rollouts": e["rollouts"], "run_s": e["run_s"],
         }  # fmt: skip
@@ -270,7 +273,7 @@ def versions() -> dict:
 
 def code_version() -> dict:
     """The repository's commit and whether the measurement's code (benchmarks/, assets/,
-    wbc_jax/constants.py) differs from it in the working tree (None outside git)."""
+    wbc_jax/core/constants.py) differs from it in the working tree (None outside git)."""
     import subprocess
 
     def git(*cmd):
@@ -330,7 +333,8 @@ def measure(args, log=print) -> dict:
         "timing": {"command": command, "task": f"sinusoid, {args.sinusoid_duration} s, one robot, one thread, "
                    f"median of {args.timing_repeats} runs (microseconds per 10 ms tick)", **timing},
         "sinusoid": {"command": command, "duration_s": args.sinusoid_duration, **_rounded(sin["summary"])},
-        "stand": {"command": command, "duration_s": args.stand_duration, "com_drift_m": drift, **_rounded(stand["summary"])},
+        "stand": {"command": command, "duration_s": args.stand_duration, "com_drift_m": drift,
+                  **_rounded(stand["summary"])},
     }  # fmt: skip
     log("envelope (bisection)")
     grid_def = {"magnitudes_n": list(args.magnitudes), "directions": args.directions, "push_onset_s": args.push_onset,
@@ -419,7 +423,8 @@ def main(argv=None) -> dict:
     e = result["envelope"]
     t = result["timing"]
     print(f"wrote {out}: tick {t['controller_us_per_tick']:.0f} us controller + {t['physics_us_per_tick']:.0f} us "
-          f"physics (CPU time {t['controller_cpu_us_per_tick']:.0f} + {t['physics_cpu_us_per_tick']:.0f}); sinusoid CoM RMSE "
+          f"physics (CPU time {t['controller_cpu_us_per_tick']:.0f} + {t['physics_cpu_us_per_tick']:.0f}); "
+          "sinusoid CoM RMSE "
           f"{result['sinusoid']['com_rmse_m'] * 1e3:.3f} mm; envelope {e['fraction_of_bound_median']:.3f} "
           f"({e['fraction_of_bound_min']:.3f}) of the LIP bound")  # fmt: skip
     return result

@@ -19,11 +19,12 @@ import sys
 import jax
 import numpy as np
 
-ROOT = pathlib.Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from wbc_jax.core import io
+from wbc_jax.sim import metrics as metrics_lib
+from wbc_jax.sim import physics, runner, scenario
+from wbc_jax.sim.state import SimConfig
 
-from wbc_jax import io, physics, rollout, scenario  # noqa: E402
-from wbc_jax import metrics as metrics_lib  # noqa: E402
+ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 PUSH = ([0.0, 40.0, 0.0], 0.3, 0.1)
 
@@ -34,11 +35,11 @@ def main(argv=None) -> dict:
     p.add_argument("--out", default="runs/backend_check")
     args = p.parse_args(argv)
     backends = args.backends or ["jax", "mujoco"] + (["warp"] if physics.has_warp() and physics.has_cuda() else [])
-    scenario.enable_compilation_cache()
+    runner.enable_compilation_cache()
     com, summary = {}, {}
     for b in backends:
-        st = scenario.setup("stand", duration=1.0, sim=rollout.SimConfig(physics=physics.PhysicsConfig(backend=b)))
-        run = scenario.run(st, scenario.single(st, scenario.make_push(*PUSH, st.dtype)))
+        st = scenario.setup("stand", duration=1.0, sim=SimConfig(physics=physics.PhysicsConfig(backend=b)))
+        run = runner.run(st, scenario.single(st, scenario.make_push(*PUSH, st.dtype)))
         com[b] = np.asarray(run.records.com[0], float)
         m = metrics_lib.summarize(jax.tree_util.tree_map(lambda x: x[0], run.metrics), PUSH[1] + PUSH[2])
         summary[b] = {"compile_s": round(run.compile_s, 2), "com_max_err_m": m["com_max_err_m"],

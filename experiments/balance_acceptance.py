@@ -2,7 +2,7 @@
 
     python experiments/balance_acceptance.py [--only NAME ...] [--out runs/acceptance]
 
-Runs each scenario with ``wbc_jax.balance.run`` and merges the metrics into
+Runs each scenario with ``wbc_jax.jobs.balance.run`` and merges the metrics into
 ``docs/balance_acceptance.json`` (one key per scenario; re-running one scenario updates it).
 Scenarios: stand (10 s), sinusoid (20 s, 2 cm at 0.2 Hz), one-foot (16 s), push-qp /
 push-analytic (same lateral push, both force distributions), sinusoid-60-stable /
@@ -14,14 +14,14 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
-import sys
 
 import numpy as np
 
-ROOT = pathlib.Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from wbc_jax.core import io
+from wbc_jax.jobs import balance
+from wbc_jax.sim import runner
 
-from wbc_jax import balance, io, scenario  # noqa: E402
+ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 # 4 N s lateral: inside the measured survival envelope at 90 deg (~6 N s, docs/sweep_h100).
 PUSH = {"push_force": (0.0, 40.0, 0.0), "push_onset": 1.0, "push_duration": 0.1}  # chest, world +y (left)
@@ -74,7 +74,7 @@ def main() -> None:
     parser.add_argument("--only", nargs="*", default=list(SCENARIOS), choices=list(SCENARIOS))
     parser.add_argument("--out", default=str(ROOT / "runs" / "acceptance"))
     parser.add_argument("--summary", default=str(ROOT / "docs" / "balance_acceptance.json"))
-    parser.add_argument("--backend", default="auto", help="physics backend (wbc_jax.physics.BACKENDS)")
+    parser.add_argument("--backend", default="auto", help="physics backend (wbc_jax.sim.physics.BACKENDS)")
     parser.add_argument(
         "--solver-iterations",
         type=int,
@@ -82,7 +82,7 @@ def main() -> None:
         help="MJX Newton iterations (default: the model's 4); results keyed NAME-itN",
     )
     args = parser.parse_args()
-    scenario.enable_compilation_cache()  # scenarios of the same shape compile once, as in the CLI
+    runner.enable_compilation_cache()  # scenarios of the same shape compile once, as in the CLI
     out = pathlib.Path(args.out)
     summary_path = pathlib.Path(args.summary)
     it = args.solver_iterations

@@ -15,10 +15,10 @@ import json
 import pathlib
 import sys
 
-ROOT = pathlib.Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from wbc_jax import cli
+from wbc_jax.core import io
 
-from wbc_jax import cli, io  # noqa: E402
+ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 VARIANTS = {  # name -> push-sweep arguments
     "qp-stable": ["--forces", "qp", "--postural", "stable"],

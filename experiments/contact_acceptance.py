@@ -47,12 +47,15 @@ import time
 import jax
 import numpy as np
 
-ROOT = pathlib.Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from wbc_jax.control import task_files
+from wbc_jax.core import io
+from wbc_jax.jobs import balance, sweep, sweep_config, sweep_table
+from wbc_jax.robot import scene as contact_scene
+from wbc_jax.sim import metrics as metrics_lib
+from wbc_jax.sim import physics, runner, scenario
+from wbc_jax.sim.state import SimConfig
 
-from wbc_jax import balance, contact_scene, io, physics, scenario, sweep, tasks  # noqa: E402
-from wbc_jax import metrics as metrics_lib  # noqa: E402
-from wbc_jax import rollout as rollout_lib  # noqa: E402
+ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 HERE = pathlib.Path(__file__).resolve().parent
 HAND = HERE / "tasks" / "hand_on_table.yaml"
@@ -94,9 +97,9 @@ def normal_force(traj: dict, cset, k: int, key: str = "f_meas") -> np.ndarray:
 
 def single_run(scene: scenario.Scene, duration: float, backend: str):
     """One recorded closed-loop run of a scene (stand task): (setup, trajectory dict, metrics)."""
-    sim = rollout_lib.SimConfig(record=True, physics=physics.PhysicsConfig(backend=backend))
+    sim = SimConfig(record=True, physics=physics.PhysicsConfig(backend=backend))
     st = scenario.setup("stand", duration=duration, sim=sim, scene=scene)
-    run = scenario.run(st, scenario.single(st))
+    run = runner.run(st, scenario.single(st))
     traj = {k: v[0] for k, v in as_dict(run.records).items()}
     metrics = metrics_lib.summarize(jax.tree_util.tree_map(lambda x: x[0], run.metrics))
     print(f"  {pathlib.Path(scene.tasks_file or 'feet').stem}: {duration} s, {run.compile_s:.0f} s compiling, "
@@ -116,12 +119,12 @@ def longest_run(mask: np.ndarray) -> np.ndarray:
 
 def push_sweep(spec: pathlib.Path, backend: str, magnitudes, directions, horizon: float, record: bool):
     """A chest-push sweep of a contact file: (setup, metrics dict of columns, records or None)."""
-    cfg = sweep.SweepConfig(magnitudes=tuple(magnitudes), directions=tuple(directions), horizon=horizon,
+    cfg = sweep_config.SweepConfig(magnitudes=tuple(magnitudes), directions=tuple(directions), horizon=horizon,
                             push_onset=0.5, push_duration=0.1, tasks=str(spec), backend=backend)  # fmt: skip
     dtype = scenario.float_dtype()
     st = sweep.make_setup(cfg, sweep.base_gains(cfg, 23, dtype), record=record)
     scen, columns = sweep.build_scenarios(cfg, st.gains, st.robot.index.n, dtype)
-    run = scenario.run(st, scen)
+    run = runner.run(st, scen)
     table = {**columns, **metrics_lib.summarize(run.metrics, cfg.push_onset + cfg.push_duration)}
     print(f"  {spec.stem}: {len(table['survived'])} envs, {run.compile_s:.0f} s compiling, {run.run_s:.0f} s running",
           flush=True)  # fmt: skip
@@ -173,9 +176,9 @@ RAMP = {"start": 0.5, "stop": 1.5, "ramp": 0.5}  # s, the hand's schedule in the
 
 def ramp_scene() -> scenario.Scene:
     """hand_on_table.yaml with the hand ramped in and out by its schedule (RAMP), no detection."""
-    spec = tasks.load_spec_file(HAND)
+    spec = task_files.load_spec_file(HAND)
     robot = scenario.load_scene("icub").robot
-    qpos = tasks.initial_qpos(robot, spec["initial_posture_deg"])
+    qpos = task_files.initial_qpos(robot, spec["initial_posture_deg"])
     cons = [dict(c, activation=RAMP, detect=False) if c["name"] == "left_hand" else c for c in spec["contacts"]]
     robot, cset = contact_scene.build_scene("icub", cons, copy.deepcopy(spec["scene"]), qpos)
     return scenario.Scene(robot, None, cset, qpos, str(HAND))
@@ -247,7 +250,7 @@ def part_wall(args, sz, command: str) -> dict:
         for name in ("hand", "feet"):
             table = pd.DataFrame({k: np.asarray(v) for k, v in tables[name].items()})
             group = table[np.isclose(table["azimuth_deg"], az)]
-            row[f"{name}_impulse_ns"] = sweep.envelope_of(group)[1]
+            row[f"{name}_impulse_ns"] = sweep_table.envelope_of(group)[1]
             row[f"{name}_survival_rate"] = float(group["survived"].mean())
         row["gain"] = row["hand_impulse_ns"] / row["feet_impulse_ns"] if row["feet_impulse_ns"] > 0 else None
         envelope[str(float(az))] = row
@@ -277,7 +280,7 @@ def main(argv=None) -> dict:
     p.add_argument("--only", nargs="+", choices=PARTS, default=list(PARTS))
     p.add_argument("--out", default="docs/contacts")
     args = p.parse_args(argv)
-    scenario.enable_compilation_cache()
+    runner.enable_compilation_cache()
     command = "python experiments/contact_acceptance.py " + " ".join(sys.argv[1:] if argv is None else argv)
     out = pathlib.Path(args.out) / "acceptance.json"
     result = json.loads(out.read_text()) if out.exists() else {}

@@ -24,7 +24,8 @@ import sys
 
 import numpy as np
 
-from wbc_jax import balance, io, sweep
+from wbc_jax.core import io
+from wbc_jax.jobs import balance, sweep, sweep_config
 
 HERE = pathlib.Path(__file__).resolve().parent
 HAND = HERE / "tasks" / "hand_on_table.yaml"
@@ -52,7 +53,7 @@ def main(argv=None) -> dict:
     )  # fmt: skip
     sweeps = {}
     for name, spec in (("hand", HAND), ("feet", FEET)):
-        cfg = sweep.SweepConfig(**grid, tasks=str(spec), out=str(out / f"sweep_{name}"))
+        cfg = sweep_config.SweepConfig(**grid, tasks=str(spec), out=str(out / f"sweep_{name}"))
         sweeps[name] = sweep.run_sweep(cfg)
     envelope = {}
     for az in sweeps["feet"]["envelope"]:

@@ -8,17 +8,17 @@
 Foot tilt ends most directions' strict envelope (experiments/envelope_limits.py): the force QP may
 put each foot's CoP on the edge of the sole, where the real foot starts to rotate. This shrinks the
 CoP rectangle of both feet about its centre (a task file of the two feet with ``cop`` set,
-wbc_jax/contacts.py) and bisects the envelope (``wbc_jax.envelope.search``, C MuJoCo, the held-out
+wbc_jax/robot/contacts.py) and bisects the envelope (``wbc_jax.jobs.envelope.search``, C MuJoCo, the held-out
 grid's pushes) per gain set and scale. Writes cop_margin.json (envelope / LIP bound per direction,
 median and min) and the task files.
 
 The rectangle scaled is the QP's default (``--rectangle wbc``: ContactParams.foot_size, the WBC
 footSize) or each foot's real support in the model (``--rectangle sole``: the extent of its four
-contact spheres in the sole frame, the polygon the LIP bound of wbc_jax/sweep.py uses). The two
+contact spheres in the sole frame, the polygon the LIP bound of wbc_jax/jobs/sweep.py uses). The two
 differ: the default reaches 1.6 mm behind the heel's contact points, stops 1.05 cm short of the
 toe's and 0.8 cm short of the outer edge.
 
-``--angular-weights``: the soft momentum QP's angular_weight_soft (wbc_jax/forces.py) of each run;
+``--angular-weights``: the soft momentum QP's angular_weight_soft (wbc_jax/control/forces.py) of each run;
 ``--body``: the pushed body (chest, as the held-out grid; root_link: 6 cm above the CoM instead of
 14.5 cm, less moment about the CoM for the same impulse).
 """
@@ -31,14 +31,15 @@ import json
 import pathlib
 import sys
 
+import mujoco
 import numpy as np
 
+from wbc_jax.core import io
+from wbc_jax.jobs import envelope
+from wbc_jax.robot import contacts, model
+from wbc_jax.sim import runner
+
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-import mujoco  # noqa: E402
-
-from wbc_jax import contacts, envelope, io, model, scenario  # noqa: E402
 
 WBC_RECTANGLE = contacts.ContactParams().foot_size  # the QP's default CoP rectangle
 
@@ -90,7 +91,7 @@ def main(argv=None) -> dict:
         raise ValueError(f"--angular-weights must be positive and finite, got {args.angular_weights}")
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    scenario.enable_compilation_cache()
+    runner.enable_compilation_cache()
     base = dataclasses.replace(envelope.default_config(), horizon=3.0, backend=args.backend, out=None, body=args.body,
                                directions=tuple(float(a) for a in np.arange(args.directions) * 360.0 / args.directions))  # fmt: skip
     robot = model.load_robot()

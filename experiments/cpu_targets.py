@@ -68,7 +68,7 @@ def main(argv=None) -> dict:
     }  # fmt: skip
 
     def save():
-        from wbc_jax import io
+        from wbc_jax.core import io
 
         io.atomic_write_json(out / "cpu_targets.json", result)
 

@@ -2,7 +2,7 @@
 
     python experiments/envelope_check.py --grid SWEEP_DIR --out runs/envelope_check -- [sweep flags]
 
-Runs ``wbc_jax.envelope.search`` on the grid's settings (its magnitudes, directions, horizon...;
+Runs ``wbc_jax.jobs.envelope.search`` on the grid's settings (its magnitudes, directions, horizon...;
 the sweep flags after ``--`` change them, e.g. the backend; gain set 0 unless --gain-sets is
 given) to 0.25 N s and compares each direction with the grid's monotone envelope: the largest
 difference, the grid step, the directions where the search's grid bracket is the grid's, and the
@@ -20,10 +20,12 @@ import sys
 import numpy as np
 import pandas as pd
 
-ROOT = pathlib.Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from wbc_jax import cli
+from wbc_jax.core import io
+from wbc_jax.jobs import envelope, sweep
+from wbc_jax.sim import runner
 
-from wbc_jax import cli, envelope, io, scenario, sweep  # noqa: E402
+ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 
 def main(argv=None) -> dict:
@@ -42,7 +44,7 @@ def main(argv=None) -> dict:
     grid_rollouts = int((table["gain_set"] == 0).sum())
     impulses = np.sort(table["impulse_ns"].unique())
     step = float(np.median(np.diff(impulses)))
-    scenario.enable_compilation_cache()
+    runner.enable_compilation_cache()
     found = envelope.search(cfg, resolution=args.resolution, progress=False)
     comparison = envelope.compare_with_grid(found, grid_summary, step)
     result = {**comparison, "bisection_rollouts": found["rollouts"], "grid_rollouts": grid_rollouts,

@@ -19,10 +19,11 @@ import sys
 import numpy as np
 import pandas as pd
 
-ROOT = pathlib.Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from wbc_jax.core import constants, io
+from wbc_jax.jobs import sweep, sweep_table
+from wbc_jax.sim import metrics
 
-from wbc_jax import constants, io, metrics, sweep  # noqa: E402
+ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 TESTS = ("slip", "tilt", "end_speed", "end_support_margin")
 
@@ -38,7 +39,7 @@ def limits(run_dir: pathlib.Path) -> dict:
     per_direction, first_failures = {}, {name: 0 for name in (*TESTS, "not_upright")}
     for az, group in table.groupby("azimuth_deg"):
         bound = summary["envelope"][str(float(az))]["bound_impulse_ns"]
-        row = {c: sweep.envelope_of(group, c)[1] / bound for c in criteria}
+        row = {c: sweep_table.envelope_of(group, c)[1] / bound for c in criteria}
         group = group.sort_values("impulse_ns")
         over = group[~group["survived"].to_numpy()]
         if len(over):

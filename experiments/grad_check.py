@@ -2,7 +2,7 @@
 
     python experiments/grad_check.py N [--out FILE]
 
-Per-scenario reverse-mode gradients of the tuning loss (wbc_jax/tuning_loss.py: capture point,
+Per-scenario reverse-mode gradients of the tuning loss (wbc_jax/tuning/loss.py: capture point,
 foot tilt and slip, settling, CoM, effort; log1p of the total) over N random push scenarios
 (0.1 s horizon, float64, random parameters of every group inside the bounds, random push
 magnitudes 0-150 N and azimuths, friction 0.6-1.2, mass +-10 %, joint noise), a count of
@@ -27,8 +27,10 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from wbc_jax import io, tuning_params  # noqa: E402
-from wbc_jax import tuning_problem as tp  # noqa: E402
+from wbc_jax.core import io  # noqa: E402
+from wbc_jax.tuning import config  # noqa: E402
+from wbc_jax.tuning import params as tuning_params  # noqa: E402
+from wbc_jax.tuning import problem as tp  # noqa: E402
 
 FD_STEPS = (1e-3, 1e-4, 1e-5)  # central-difference steps in the (unconstrained) parameters
 
@@ -43,7 +45,7 @@ def main() -> None:
     if n < 1:
         parser.error("N must be >= 1")
     rng = np.random.default_rng(7)
-    tc = tp.TuneConfig(horizon=0.1, push_onset=0.02, duration_range=(0.05, 0.05), joint_noise=0.02,
+    tc = config.TuneConfig(horizon=0.1, push_onset=0.02, duration_range=(0.05, 0.05), joint_noise=0.02,
                        friction_range=(0.6, 1.2), mass_range=(0.9, 1.1), tune_regularisation=True,
                        eval_horizon=0.1)  # fmt: skip
     problem = tp.make_problem(tc, checkpoint=True)

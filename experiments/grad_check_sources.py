@@ -24,9 +24,12 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from wbc_jax import io, model, sweep, tune  # noqa: E402
-from wbc_jax.controller import ControllerConfig  # noqa: E402
-from wbc_jax.gains import default_gains  # noqa: E402
+from wbc_jax.control.controller import ControllerConfig  # noqa: E402
+from wbc_jax.control.gains import default_gains  # noqa: E402
+from wbc_jax.core import io  # noqa: E402
+from wbc_jax.jobs import sweep, sweep_config  # noqa: E402
+from wbc_jax.robot import model  # noqa: E402
+from wbc_jax.tuning import tune  # noqa: E402
 
 
 def main() -> None:
@@ -40,7 +43,7 @@ def main() -> None:
     controller = ControllerConfig(freeze_postural_projector=args.variant == "frozen-projector")
     robot = model.load_robot("icub")
     rng = np.random.default_rng(7)  # the draws of grad_check.py, in its order
-    scfg = sweep.SweepConfig(magnitudes=(60.0,), directions=(0.0,), push_onset=0.02, push_duration=0.05,
+    scfg = sweep_config.SweepConfig(magnitudes=(60.0,), directions=(0.0,), push_onset=0.02, push_duration=0.05,
                              horizon=0.1, joint_noise=0.02, friction=(0.6, 1.2), mass_scale=(0.9, 1.1),
                              gain_sets=n, seed=3, backend="jax",
                              forces="analytic" if args.variant == "analytic" else "qp")  # fmt: skip

@@ -4,7 +4,7 @@
         [--sets default gradient=experiments/gains/tuned_gradient.json ...] [--sinusoid-s 0]
 
 The held-out evaluation of ``experiments/tune_gpu.py`` needs the tuning run's folder; this runs the
-same ``wbc_jax.tuning_eval.heldout`` on gains files alone (the sets of docs/tuning by default), and
+same ``wbc_jax.tuning.heldout.heldout`` on gains files alone (the sets of docs/tuning by default), and
 writes heldout.json and envelope_polar.png as ``tune_gpu.py``'s report does. What a gains file does
 not hold is taken from ``--previous`` (a heldout.json): each set's tuning budget (sim_steps, wall_s)
 and, with ``--sinusoid-s 0``, its 20 s sinusoid RMSE (run on C MuJoCo on the host).
@@ -18,7 +18,6 @@ import pathlib
 import sys
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 
 GAINS = ROOT / "experiments" / "gains"
 DEFAULT_SETS = ("default", f"gradient={GAINS / 'tuned_gradient.json'}", f"cmaes={GAINS / 'tuned_cmaes.json'}",
@@ -26,7 +25,7 @@ DEFAULT_SETS = ("default", f"gradient={GAINS / 'tuned_gradient.json'}", f"cmaes=
 
 
 def parse(argv=None):
-    from wbc_jax import tuning_eval
+    from wbc_jax.tuning import heldout as tuning_eval
 
     hc0 = tuning_eval.HeldoutConfig()
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -48,8 +47,8 @@ def parse(argv=None):
 
 def load_sets(specs: list, n: int, dtype) -> dict:
     """{name: (Gains, regularisation)} from 'NAME=FILE' or 'default' (clear errors before compiling)."""
-    from wbc_jax import tuning_params
-    from wbc_jax.gains import default_gains, load_gains
+    from wbc_jax.control.gains import default_gains, load_gains
+    from wbc_jax.tuning import params as tuning_params
 
     reg0 = tuning_params.default_regularisation()
     sets = {}
@@ -67,8 +66,10 @@ def load_sets(specs: list, n: int, dtype) -> dict:
 
 
 def main(argv=None) -> int:
-    from wbc_jax import scenario, tuning_eval
-    from wbc_jax.model import load_robot
+    from wbc_jax.report import tuning_plots
+    from wbc_jax.robot.model import load_robot
+    from wbc_jax.sim import scenario
+    from wbc_jax.tuning import heldout as tuning_eval
 
     args = parse(argv)
     prev = json.loads(pathlib.Path(args.previous).read_text()) if args.previous else {}
@@ -96,7 +97,7 @@ def main(argv=None) -> int:
     if "nava_2016" in prev:  # the stability conditions depend on the gains alone
         extra["nava_2016"] = {n: v for n, v in prev["nava_2016"].items() if n in sets}
     rep = tuning_eval.write_heldout(out / "heldout.json", results, budgets, extra=extra)
-    tuning_eval.envelope_polar(rep, out / "envelope_polar.png")
+    tuning_plots.envelope_polar(rep, out / "envelope_polar.png")
     line = {n: {k: rep[n][k] for k in ("envelope_fraction_median", "envelope_fraction_min", "survival_rate",
                                        "upright_rate", "sinusoid_com_rmse_m")} for n in sets}  # fmt: skip
     print(json.dumps({"heldout": line, "targets": rep["targets"]}), flush=True)

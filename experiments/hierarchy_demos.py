@@ -24,7 +24,8 @@ import argparse
 import json
 import pathlib
 
-from wbc_jax import balance, io
+from wbc_jax.core import io
+from wbc_jax.jobs import balance
 
 HERE = pathlib.Path(__file__).resolve().parent
 RUNS = {

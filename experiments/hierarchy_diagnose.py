@@ -16,8 +16,10 @@ import pathlib
 
 import jax
 
-from wbc_jax import balance, hierarchy, io
-from wbc_jax.controller import ControllerConfig
+from wbc_jax.control import hierarchy
+from wbc_jax.control.controller import ControllerConfig
+from wbc_jax.core import io
+from wbc_jax.jobs import balance
 
 HERE = pathlib.Path(__file__).resolve().parent
 

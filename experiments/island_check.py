@@ -19,7 +19,7 @@ import pathlib
 import numpy as np
 import pandas as pd
 
-from wbc_jax import io
+from wbc_jax.core import io
 
 
 def main() -> None:

@@ -27,7 +27,6 @@ import sys
 import time
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 
 JOBS = {
     "sweep": ["push-sweep", "--magnitudes", "20", "120", "6", "--directions", "8", "--horizon", "1.0",
@@ -121,7 +120,7 @@ def main(argv=None) -> dict:
         "kill_mismatches": sum(bool(t["differences"]) for t in trials), "trials": trials,
         "device": str(jax.devices()[0]), "command": "python experiments/kill_trials.py " + " ".join(sys.argv[1:] if argv is None else argv),
     }  # fmt: skip
-    from wbc_jax import io
+    from wbc_jax.core import io
 
     io.atomic_write_json(out / f"kill_{args.job}.json", result)
     if args.record:

@@ -1,6 +1,6 @@
 """The support-polygon margin under the device's default matrix-product precision, against float64.
 
-    git show 7abb9f8:wbc_jax/metrics.py > /tmp/metrics_7abb9f8.py   # the version before the fix
+    git show 7abb9f8:wbc_jax/sim/metrics.py > /tmp/metrics_7abb9f8.py   # the version before the fix
     python experiments/margin_precision_check.py --old /tmp/metrics_7abb9f8.py --out runs/margin_precision.json
 
 256 random stances (two parallel soles side by side, shifted up to 3 m, a point near their middle):
@@ -19,11 +19,10 @@ import sys
 import jax
 import numpy as np
 
-ROOT = pathlib.Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from wbc_jax.core import io
+from wbc_jax.sim import metrics as metrics_lib
 
-from wbc_jax import io  # noqa: E402
-from wbc_jax import metrics as metrics_lib  # noqa: E402
+ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 SOLE = (-0.07, 0.12, -0.045, 0.045)  # x0, x1, y0, y1 of the CoP rectangle (m), as tests/test_rollout.py
 

@@ -21,6 +21,7 @@ import subprocess
 import sys
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
+
 SWEEP = ["push-sweep", "--magnitudes", "20", "300", "4", "--directions", "2", "--horizon", "0.6",
          "--push-onset", "0.1", "--chunk-size", "8", "--backend", "jax", "--quiet"]  # fmt: skip
 

@@ -24,10 +24,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-ROOT = pathlib.Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from wbc_jax.control import constraints, forces, torques
+from wbc_jax.core import io
+from wbc_jax.robot import contacts
+from wbc_jax.sim import physics, runner, scenario
+from wbc_jax.sim.state import SimConfig
 
-from wbc_jax import contacts, forces, io, physics, rollout, scenario, torques  # noqa: E402
+ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 
 def timed(fn, *args, repeats: int) -> float:
@@ -48,10 +51,8 @@ def main(argv=None) -> dict:
     p.add_argument("--out", default="runs/profile_tick")
     p.add_argument("--trace", default=None)
     args = p.parse_args(argv)
-    scenario.enable_compilation_cache()
-    st = scenario.setup(
-        "stand", duration=1.0, sim=rollout.SimConfig(physics=physics.PhysicsConfig(backend=args.backend))
-    )
+    runner.enable_compilation_cache()
+    st = scenario.setup("stand", duration=1.0, sim=SimConfig(physics=physics.PhysicsConfig(backend=args.backend)))
     loop, ctrl, dtype, B = st.loop, st.loop.controller, st.dtype, args.batch
     rng = np.random.default_rng(0)
     qpos = np.repeat(st.qpos0[None], B, 0)
@@ -78,14 +79,14 @@ def main(argv=None) -> dict:
     def stage_forces(t, tt):
         ref = ref_at(0.5)
         ct = contacts.contact_terms(cset, t, 0.5, ref.activation)
-        A = forces.wrench_map(cset, ct.W_p, t.W_p_CoM)
+        A = constraints.wrench_map(cset, ct.W_p, t.W_p_CoM)
         w = jnp.asarray([5.0, -3.0, 9.81 * st.robot.index.mass, 0.5, -1.0, 0.2], dtype)
         return forces.distribute(cset, ct.activation, A, w, tt, ct.W_R, settings)
 
     def stage_equality_qp(t, tt):  # the distribution's first QP alone, without its soft fallback
         ref = ref_at(0.5)
         ct = contacts.contact_terms(cset, t, 0.5, ref.activation)
-        A = forces.wrench_map(cset, ct.W_p, t.W_p_CoM)
+        A = constraints.wrench_map(cset, ct.W_p, t.W_p_CoM)
         w = jnp.asarray([5.0, -3.0, 9.81 * st.robot.index.mass, 0.5, -1.0, 0.2], dtype)
         return forces.momentum_equality_qp(cset, jnp.ones_like(ct.activation), A, w, tt, ct.W_R, settings)[0]
 

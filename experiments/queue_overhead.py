@@ -3,7 +3,7 @@
     python experiments/queue_overhead.py --out runs/queue_overhead -- [push-sweep flags]
 
 Runs the sweep's scenarios as one batch three ways in one process, each timed twice after its
-compile: the plain program, and the queue program (``scenario._run_mjx_queue``) with one
+compile: the plain program, and the queue program (``runner._run_mjx_queue``) with one
 scenario per slot, checking every 25 ticks and every 100: no robot is refilled there, so any
 difference from the plain program is the queue's own cost (segments, hand-ins, resets). Writes
 queue_overhead.json.
@@ -16,12 +16,15 @@ import json
 import pathlib
 import sys
 
+import numpy as np
+
+from wbc_jax import cli
+from wbc_jax.core import io
+from wbc_jax.jobs import sweep
+from wbc_jax.robot import model
+from wbc_jax.sim import runner, scenario
+
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-import numpy as np  # noqa: E402
-
-from wbc_jax import cli, io, model, scenario, sweep  # noqa: E402
 
 
 def main(argv=None) -> dict:
@@ -33,16 +36,16 @@ def main(argv=None) -> dict:
     p.add_argument("--variants", nargs="+", default=["plain", "queue1_check25", "queue1_check100"])
     args = p.parse_args(argv[:split])
     cfg = cli.push_sweep_config(argv[split + 1 :])
-    scenario.enable_compilation_cache()
+    runner.enable_compilation_cache()
     dtype = scenario.float_dtype()
     n = model.load_robot("icub").index.n  # the robot run_sweep loads
     base = sweep.base_gains(cfg, n, dtype)  # the sweep's own: --gains or the defaults
     st = sweep.make_setup(cfg, base)
     scen, _ = sweep.build_scenarios(cfg, base, n, dtype)
     variants = {
-        "plain": lambda: scenario.run(st, scen),
-        "queue1_check25": lambda: scenario._run_mjx_queue(st, scen, 1, 25),
-        "queue1_check100": lambda: scenario._run_mjx_queue(st, scen, 1, 100),
+        "plain": lambda: runner.run(st, scen),
+        "queue1_check25": lambda: runner._run_mjx_queue(st, scen, 1, 25),
+        "queue1_check100": lambda: runner._run_mjx_queue(st, scen, 1, 100),
     }
     result = {
         "n_envs": cfg.size,

@@ -19,7 +19,6 @@ import tempfile
 import numpy as np
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 GAINS = ROOT / "experiments" / "gains"
 SETS = ("com_critical_100", "tuned_gradient", "tuned_cmaes", "tuned_random", "tuned_gradient_stiff_com",
         "tuned_cmaes_stiff_com", "tuned_random_stiff_com")  # fmt: skip
@@ -43,8 +42,11 @@ def windowed(traj, windows=WINDOWS, top: int = 4) -> dict:
 
 
 def main(argv=None) -> int:
-    from wbc_jax import balance, io, tuning_eval, tuning_params
-    from wbc_jax.gains import default_gains, load_gains
+    from wbc_jax.control.gains import default_gains, load_gains
+    from wbc_jax.core import io
+    from wbc_jax.jobs import balance
+    from wbc_jax.tuning import heldout as tuning_eval
+    from wbc_jax.tuning import params as tuning_params
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default="runs/sinusoid_drift.json")

@@ -29,15 +29,16 @@ import time
 
 import numpy as np
 
+from wbc_jax.control.gains import Gains
+from wbc_jax.core import constants, io, provenance
+from wbc_jax.sim import metrics as metrics_lib
+from wbc_jax.sim import physics, runner, scenario
+from wbc_jax.sim.state import Push, Scenario, SimConfig
+
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from wbc_jax import constants, io, physics, rollout, scenario  # noqa: E402
-from wbc_jax import metrics as metrics_lib  # noqa: E402
-from wbc_jax.gains import Gains  # noqa: E402
 
 
-def random_scenarios(rng: np.random.Generator, n: int, robot, dtype) -> rollout.Scenario:
+def random_scenarios(rng: np.random.Generator, n: int, robot, dtype) -> Scenario:
     """n hostile but valid scenarios (module docstring)."""
     idx = robot.index
     m = robot.mj_model
@@ -55,8 +56,8 @@ def random_scenarios(rng: np.random.Generator, n: int, robot, dtype) -> rollout.
     lo_lim, hi_lim = m.jnt_range[m.dof_jntid[idx.dof_joints]].T
     home = robot.home_qpos()[idx.qpos_joints]
     offset = np.clip(home + rng.normal(scale=0.05, size=(n, idx.n)), lo_lim, hi_lim) - home
-    return rollout.Scenario(
-        push=rollout.Push(force=force[:, None].astype(dtype), onset=rng.uniform(0.05, 0.3, (n, 1)).astype(dtype),
+    return Scenario(
+        push=Push(force=force[:, None].astype(dtype), onset=rng.uniform(0.05, 0.3, (n, 1)).astype(dtype),
                           duration=duration[:, None].astype(dtype), body=body[:, None].astype(np.int32)),
         gains=Gains(**{k: v.astype(dtype) for k, v in gains.items()}),
         joint_offset=offset.astype(dtype), friction=rng.uniform(0.05, 2.0, n).astype(dtype),
@@ -97,8 +98,8 @@ def main(argv=None) -> dict:
     args = p.parse_args(argv)
     if args.quick:
         args.envs, args.chunk = 256, 64
-    scenario.enable_compilation_cache()
-    sim = rollout.SimConfig(record=False, perturb_plant=True, physics=physics.PhysicsConfig(backend=args.backend))
+    runner.enable_compilation_cache()
+    sim = SimConfig(record=False, perturb_plant=True, physics=physics.PhysicsConfig(backend=args.backend))
     st = scenario.setup("stand", duration=args.horizon, sim=sim)
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -123,7 +124,7 @@ def main(argv=None) -> dict:
         watchdog.daemon = True
         watchdog.start()
         try:
-            run = scenario.run(st, scen, batch_size=args.chunk)
+            run = runner.run(st, scen, batch_size=args.chunk)
             cols = metrics_lib.summarize(run.metrics, 0.0)
         finally:
             watchdog.cancel()
@@ -164,7 +165,7 @@ def main(argv=None) -> dict:
         "soak_compile_s": round(totals["compile_s"], 1), "soak_run_s": round(totals["run_s"], 1),
         "soak_max_chunk_s": totals["max_chunk_s"], "soak_chunk_timeout_s": args.chunk_timeout,
         "soak_physics_steps_per_s": totals["envs"] * st.loop.n_ticks * st.loop.n_sub / max(totals["run_s"], 1e-9),
-        "device": scenario.device_label(), "command": "python experiments/soak.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        "device": provenance.device_label(), "command": "python experiments/soak.py " + " ".join(sys.argv[1:] if argv is None else argv),
     }  # fmt: skip
     io.atomic_write_json(out / "soak.json", result)
     if args.record:

@@ -26,14 +26,13 @@ import sys
 import numpy as np
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 GAINS = ROOT / "experiments" / "gains"
 
 
 def with_com_floor(gains, floor: float):
     """Gains with K_P,CoM x, y raised to ``floor`` (N/m per kg) and K_D,CoM keeping each axis's
     damping ratio; z and every other gain unchanged."""
-    from wbc_jax.tuning_params import damping_ratio
+    from wbc_jax.tuning.params import damping_ratio
 
     kp = np.asarray(gains.kp_com, float)
     zeta = damping_ratio(np.asarray(gains.kd_com, float), kp)
@@ -52,9 +51,11 @@ def with_yaw_floor(gains, reference):
 
 
 def main(argv=None) -> int:
-    from wbc_jax import constants, io, tuning_eval, tuning_params
-    from wbc_jax.gains import default_gains, gains_to_dict, load_gains
-    from wbc_jax.model import load_robot
+    from wbc_jax.control.gains import default_gains, gains_to_dict, load_gains
+    from wbc_jax.core import constants, io
+    from wbc_jax.robot.model import load_robot
+    from wbc_jax.tuning import heldout as tuning_eval
+    from wbc_jax.tuning import params as tuning_params
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default="runs/stiff_com")

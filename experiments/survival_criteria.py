@@ -29,18 +29,19 @@ QUANTITIES = ("max_foot_slip_m", "max_foot_tilt_deg", "end_com_speed_mps", "end_
 def probe(backend: str, batch: int) -> dict:
     import benchmark
 
-    from wbc_jax import metrics as metrics_lib
-    from wbc_jax import scenario
+    from wbc_jax.core import provenance
+    from wbc_jax.sim import metrics as metrics_lib
+    from wbc_jax.sim import runner
 
     t0 = time.perf_counter()
     st = benchmark.make_setup(backend, 0.5, 4)
-    r = scenario.run(st, benchmark.push_batch(st, batch, 0.2, 0.1))
+    r = runner.run(st, benchmark.push_batch(st, batch, 0.2, 0.1))
     cols = {k: np.asarray(v) for k, v in metrics_lib.summarize(r.metrics, 0.3).items()}
     azimuth = np.linspace(0, 360, batch, endpoint=False)
     fails = metrics_lib.failed_tests(cols)
     idx = np.linspace(0, batch - 1, min(16, batch)).astype(int)
     return {
-        "backend": backend, "batch": batch, "dtype": str(st.dtype), "device": scenario.device_label(),
+        "backend": backend, "batch": batch, "dtype": str(st.dtype), "device": provenance.device_label(),
         "wall_s": round(time.perf_counter() - t0, 1), "survived_rate": float(np.mean(cols["survived"])),
         "failing": {k: int(v.sum()) for k, v in fails.items()},
         "quantiles_0_50_90_99_100": {k: np.quantile(cols[k], [0, 0.5, 0.9, 0.99, 1]).round(5).tolist() for k in QUANTITIES},
@@ -66,7 +67,7 @@ def main(argv=None) -> dict:
         row = probe(engine, batch)
         print(json.dumps({k: v for k, v in row.items() if k != "samples"}), flush=True)
         result[f"{engine}:{batch}"] = row
-    from wbc_jax import io
+    from wbc_jax.core import io
 
     result["command"] = "python experiments/survival_criteria.py " + " ".join(
         argv if argv is not None else sys.argv[1:]

@@ -18,10 +18,12 @@ import shutil
 import sys
 import time
 
-ROOT = pathlib.Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from wbc_jax import cli
+from wbc_jax.core import io
+from wbc_jax.jobs import sweep
+from wbc_jax.sim import runner
 
-from wbc_jax import cli, io, scenario, sweep  # noqa: E402
+ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 
 def main(argv=None) -> dict:
@@ -32,7 +34,7 @@ def main(argv=None) -> dict:
     p.add_argument("--repeats", type=int, default=2)
     args = p.parse_args(argv[:split])
     base = cli.push_sweep_config(argv[split + 1 :])
-    scenario.enable_compilation_cache()
+    runner.enable_compilation_cache()
     out = pathlib.Path(args.out)
     runs = []
     for k in range(args.repeats):

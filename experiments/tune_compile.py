@@ -15,11 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import pathlib
-import sys
 import time
-
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent.parent))
 
 
 def main() -> None:
@@ -37,14 +33,15 @@ def main() -> None:
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
     import jax
 
-    from wbc_jax import scenario, tune
-    from wbc_jax import tuning_problem as tp
+    from wbc_jax.sim import runner
+    from wbc_jax.tuning import config, tune
+    from wbc_jax.tuning import problem as tp
 
     if args.cache:
-        scenario.enable_compilation_cache(args.cache)
+        runner.enable_compilation_cache(args.cache)
     tp.SEED_CARRY = not args.no_seed_carry
     short = args.horizon < 0.6
-    tc = tp.TuneConfig(batch=args.batch, horizon=args.horizon, push_onset=0.0 if short else 0.2,
+    tc = config.TuneConfig(batch=args.batch, horizon=args.horizon, push_onset=0.0 if short else 0.2,
                        duration_range=(0.02, 0.05) if short else (0.05, 0.3), eval_horizon=max(args.horizon, 0.6),
                        checkpoint=args.checkpoint, solver_iterations=args.solver_iterations)  # fmt: skip
     problem = tp.make_problem(tc)

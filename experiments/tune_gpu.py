@@ -7,12 +7,12 @@ Phases (each resumable: run again with the same --out and it continues where it 
 
 * ``predict``: the loss against strict survival on --predict-pushes held-out pushes (Spearman, ROC
   area, survival_vs_loss.png, prediction.json);
-* ``train``: gradient tuning (wbc_jax/tune.py), --steps x --batch pushes, history + checkpoint;
-* ``cmaes``, ``random``: the baselines (wbc_jax/baselines.py) until both the gradient run's
+* ``train``: gradient tuning (wbc_jax/tuning/tune.py), --steps x --batch pushes, history + checkpoint;
+* ``cmaes``, ``random``: the baselines (wbc_jax/tuning/baselines.py) until both the gradient run's
   simulated physics steps and its wall time are spent;
 * ``heldout``: default, gradient, cmaes, random (equal steps), cmaes_wall, random_wall (equal wall
   time) and the hand-set critical gains on the held-out grid, the unseen variations, the one-foot
-  task and the 20 s sinusoid (wbc_jax/tuning_eval.py);
+  task and the 20 s sinusoid (wbc_jax/tuning/heldout.py);
 * ``report``: heldout.json, envelope_polar.png, learning_curves.png, summary.json.
 
 Every TuneConfig field is a flag (``wbc-jax tune``'s); --quick shrinks every size for a CPU check.
@@ -31,7 +31,6 @@ import sys
 import time
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 
 PHASES = ("predict", "train", "cmaes", "random", "heldout", "report")
 QUICK = dict(steps=2, batch=2, horizon=0.6, push_onset=0.05, duration_range=(0.05, 0.15), population=2, es_batch=1,
@@ -42,7 +41,8 @@ QUICK_HELDOUT = dict(magnitudes=(20.0, 200.0, 3), directions=4, variation_magnit
 
 
 def parse(argv=None):
-    from wbc_jax import cli, tune
+    from wbc_jax import cli
+    from wbc_jax.tuning import tune
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     cli.add_config_arguments(p, tune.default_config(), skip=("out",))
@@ -78,7 +78,7 @@ def parse(argv=None):
 
 
 def heldout_config(args):
-    from wbc_jax import tuning_eval
+    from wbc_jax.tuning import heldout as tuning_eval
 
     lo, hi, n = args.grid_magnitudes
     kw = dict(magnitudes=(lo, hi, int(n)), directions=args.grid_directions, variation_magnitudes=args.variation_magnitudes,
@@ -95,22 +95,27 @@ def main(argv=None) -> int:
     args, tc = parse(argv)
     hc = heldout_config(args)  # every check before anything compiles
 
-    from wbc_jax import baselines, io, scenario, tune, tuning_eval
-    from wbc_jax.gains import default_gains, load_gains
-    from wbc_jax.tuning_params import check_in_bounds, nava_conditions
+    from wbc_jax.control.gains import default_gains, load_gains
+    from wbc_jax.core import io, provenance
+    from wbc_jax.report import tuning_plots
+    from wbc_jax.sim import runner
+    from wbc_jax.tuning import baselines, tune
+    from wbc_jax.tuning import heldout as tuning_eval
+    from wbc_jax.tuning import problem as tp
+    from wbc_jax.tuning.params import check_in_bounds, nava_conditions
 
     if args.predict_pushes < 2:
         raise ValueError("--predict-pushes must be >= 2")
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    scenario.enable_compilation_cache(args.cache)
-    problem = tune.make_problem(tc)
+    runner.enable_compilation_cache(args.cache)
+    problem = tp.make_problem(tc)
     critical = load_gains(args.critical, problem.robot.index.n, problem.setup.dtype)
     check_in_bounds(critical, problem.reg0, problem.bounds, source=f"--critical {args.critical}")
     io.atomic_write_json(out / "config.json", {"tune": dataclasses.asdict(tc), "heldout": dataclasses.asdict(hc),
-                                               "argv": sys.argv[1:], "device": scenario.device_label()})  # fmt: skip
+                                               "argv": sys.argv[1:], "device": provenance.device_label()})  # fmt: skip
     timings = _load(out / "timings.json")
-    print(json.dumps({"device": scenario.device_label(), "batch": tc.batch, "steps": tc.steps, "horizon": tc.horizon,
+    print(json.dumps({"device": provenance.device_label(), "batch": tc.batch, "steps": tc.steps, "horizon": tc.horizon,
                       "population": tc.population, "candidate_batch": tc.candidate_batch,
                       "steps_per_rollout": problem.steps_per_rollout}), flush=True)  # fmt: skip
 
@@ -201,9 +206,9 @@ def main(argv=None) -> int:
                     )
                 }
             rep = tuning_eval.write_heldout(out / "heldout.json", results, budgets, extra=extra)
-            tuning_eval.envelope_polar(rep, out / "envelope_polar.png")
+            tuning_plots.envelope_polar(rep, out / "envelope_polar.png")
             hist = {"gradient": tune_rows, **{k: v["history"] for k, v in searches.items()}}
-            tuning_eval.learning_curves(hist, out / "learning_curves.png", budgets["gradient"])
+            tuning_plots.learning_curves(hist, out / "learning_curves.png", budgets["gradient"])
             line = {n: {k: rep[n][k] for k in ("envelope_fraction_median", "envelope_fraction_min", "survival_rate",
                                                "sinusoid_com_rmse_m", "sim_steps", "wall_s")}
                     for n in sets if n in rep}  # fmt: skip
@@ -218,7 +223,7 @@ def _load(path) -> dict:
 
 
 def _rows(path) -> list:
-    from wbc_jax import tuning_problem
+    from wbc_jax.tuning import problem as tuning_problem
 
     return tuning_problem.read_csv(path)
 
@@ -231,7 +236,7 @@ def _reg(path, reg0):
 
 
 def _gains_dict(g) -> dict:
-    from wbc_jax.gains import gains_to_dict
+    from wbc_jax.control.gains import gains_to_dict
 
     return gains_to_dict(g)
 

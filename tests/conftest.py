@@ -20,7 +20,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from mujoco import mjx  # noqa: E402
 
-from wbc_jax import model  # noqa: E402
+from wbc_jax.robot import model  # noqa: E402
 
 
 def pytest_configure(config):

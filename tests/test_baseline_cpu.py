@@ -15,10 +15,13 @@ import pytest
 from conftest import c_data, random_state
 from mujoco import mjx
 
-from wbc_jax import constants, dynamics, forces, physics, qp, references, scenario, torques
-from wbc_jax import metrics as metrics_lib
-from wbc_jax import rollout as rollout_lib
-from wbc_jax.controller import ControllerConfig, make_controller
+from wbc_jax.control import forces, qp, references, torques
+from wbc_jax.control.controller import ControllerConfig, make_controller
+from wbc_jax.core import constants
+from wbc_jax.robot import dynamics
+from wbc_jax.sim import metrics as metrics_lib
+from wbc_jax.sim import physics, runner, scenario
+from wbc_jax.sim.state import SimConfig
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
@@ -56,7 +59,7 @@ def _mjx_data(robot, qpos, qvel):
 def stand(robot, terms_fn):
     """The setup of a 1 s stand task on MJX's JAX physics (float64), its initial controller state
     and the matching CPU spec."""
-    sim = rollout_lib.SimConfig(physics=physics.PhysicsConfig(backend="jax"))
+    sim = SimConfig(physics=physics.PhysicsConfig(backend="jax"))
     st = scenario.setup("stand", duration=1.0, sim=sim)
     assert st.dtype == np.float64 and st.robot is robot
     t_ref = terms_fn(_mjx_data(robot, st.qpos0, np.zeros(robot.index.nv)))
@@ -85,7 +88,7 @@ def _rel(actual, expected) -> float:
 
 
 def test_shared_constants_and_names():
-    """The baseline uses wbc_jax/constants.py (loaded by path, without JAX) and the library's names."""
+    """The baseline uses wbc_jax/core/constants.py (loaded by path, without JAX) and the library's names."""
     assert pathlib.Path(bc.constants.__file__).resolve() == pathlib.Path(constants.__file__).resolve()
     assert bc.GAIN_FIELDS == constants.GAIN_FIELDS and bc.METRIC_NAMES == constants.METRIC_NAMES
     assert bc.GRAVITY == constants.GRAVITY and bc.RECOVERY_THRESHOLD == constants.RECOVERY_THRESHOLD
@@ -224,7 +227,7 @@ def test_closed_loop_matches_mjx_rollout(stand):
     push; the metrics under the same names (constants.METRIC_NAMES)."""
     st, _, spec = stand
     push = scenario.make_push(PUSH["force"], PUSH["onset"], PUSH["duration"], st.dtype)
-    run = scenario.run(st, scenario.single(st, push))
+    run = runner.run(st, scenario.single(st, push))
     res = bc.simulate(spec, st.gains, push, timing=True)
     com_j, com_n = np.asarray(run.records.com[0]), res["com"][0]
     diff = np.linalg.norm(com_j - com_n, axis=1)

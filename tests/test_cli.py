@@ -10,12 +10,14 @@ import jax
 import numpy as np
 import pytest
 
-from wbc_jax import balance, cli, sweep, tune
-from wbc_jax.gains import default_gains, gains_to_dict
+from wbc_jax import cli
+from wbc_jax.control.gains import default_gains, gains_to_dict
+from wbc_jax.jobs import balance, sweep_config
+from wbc_jax.tuning import tune
 
 
 def test_flags_are_generated_from_the_configs(capsys):
-    for command, config in (("balance", balance.default_config()), ("push-sweep", sweep.default_config()),
+    for command, config in (("balance", balance.default_config()), ("push-sweep", sweep_config.default_config()),
                             ("tune", tune.default_config())):  # fmt: skip
         with pytest.raises(SystemExit):
             cli.main([command, "--help"])
@@ -25,9 +27,12 @@ def test_flags_are_generated_from_the_configs(capsys):
     # Defaults shown as they are given on the command line; values parsed into the config.
     parser = cli.build_parser()
     args = parser.parse_args(["push-sweep", "--magnitudes", "10", "30", "3", "--directions", "8"])
-    cfg = cli.config_from_args(args, sweep.default_config())
+    cfg = cli.config_from_args(args, sweep_config.default_config())
     assert cfg.magnitudes == (10.0, 20.0, 30.0) and len(cfg.directions) == 8 and cfg.directions[2] == 90.0
-    assert cli.config_from_args(parser.parse_args(["push-sweep"]), sweep.default_config()) == sweep.default_config()
+    assert (
+        cli.config_from_args(parser.parse_args(["push-sweep"]), sweep_config.default_config())
+        == sweep_config.default_config()
+    )
 
 
 @pytest.fixture
@@ -154,7 +159,7 @@ def test_bad_input_is_one_clear_early_line(k, tmp_path, capsys, tripwire):
 
 
 def test_result_files_have_the_users_permissions(tmp_path):
-    from wbc_jax import io
+    from wbc_jax.core import io
 
     old = os.umask(0o022)
     try:

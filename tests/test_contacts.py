@@ -12,10 +12,14 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from wbc_jax import balance, contact_scene, contacts, dynamics, forces, physics, scenario, tasks, torques
-from wbc_jax import controller as C
-from wbc_jax.gains import default_gains
-from wbc_jax.references import Reference
+from wbc_jax.control import constraints, forces, task_files, torques
+from wbc_jax.control import controller as C
+from wbc_jax.control.gains import default_gains
+from wbc_jax.control.references import Reference
+from wbc_jax.jobs import balance
+from wbc_jax.robot import contacts, dynamics
+from wbc_jax.robot import scene as contact_scene
+from wbc_jax.sim import physics, scenario
 
 HAND_FILE = "experiments/tasks/hand_on_table.yaml"
 FEET = [
@@ -107,7 +111,7 @@ def distribution(hand_scene):
     rows = contacts.row_activation(cset, ct.activation)
     tt = torques.torque_terms(t, ct.J * rows[:, None], ct.Jdot_nu * rows, postural="stable",
                               kp_postural=g.kp_postural, kd_postural=g.kd_postural, s_des=t.s)  # fmt: skip
-    A = forces.wrench_map(cset, ct.W_p, t.W_p_CoM)
+    A = constraints.wrench_map(cset, ct.W_p, t.W_p_CoM)
     # A desired wrench that needs the contacts: the weight and a forward/sideways force.
     wrench = jnp.array([8.0, -3.0, 9.81 * robot.index.mass, 0.5, -1.0, 0.2])
     f, infeasible = forces.wbc_qp(cset, jnp.ones(3), A, wrench, tt, ct.W_R, cfg.force_settings)
@@ -122,10 +126,10 @@ def test_force_distribution_meets_its_constraints(distribution):
     assert not bool(s["infeasible"])
     np.testing.assert_allclose(s["A"] @ f, s["wrench"], rtol=1e-8, atol=1e-8)
     assert abs(float(f[12:15] @ ct.W_R[2][:, 2]) - 5.0) < 0.05
-    Cm, b = forces.constraints(cset, ct.W_R, ct.activation)
+    Cm, b = constraints.constraints(cset, ct.W_R, ct.activation)
     assert Cm.shape == (19 + 19 + 13, 15)
     assert float(jnp.max(Cm @ f - b)) < 1e-7
-    assert float(forces.violation(cset, f, ct.W_R, ct.activation)) < 1e-8
+    assert float(constraints.violation(cset, f, ct.W_R, ct.activation)) < 1e-8
     # A wrench the contacts cannot produce (pulling the robot down through the floor) is infeasible
     # for the equality; the soft QP still returns a constrained answer.
     f_bad, inf_bad = forces.wbc_qp(cset, jnp.ones(3), s["A"], -s["wrench"], s["tt"], ct.W_R, s["cfg"].force_settings)
@@ -231,12 +235,12 @@ def test_bad_spec_files(tmp_path, robot):
     bad = tmp_path / "bad.yaml"
     bad.write_text("contacts: [{name: lf, frame: l_sole, normal: [0, 0, 1]}]\nscenery: []\n")
     with pytest.raises(ValueError, match="unknown keys \\['scenery'\\]"):
-        tasks.load_spec_file(bad)
+        task_files.load_spec_file(bad)
     bad.write_text("scene: [{name: t, pos: [0, 0, 0]}]\ntasks: [{name: posture, kind: postural}]\n")
     with pytest.raises(ValueError, match="scene objects need a 'contacts' list"):
         scenario.load_scene("icub", bad)
     with pytest.raises(ValueError, match="unknown joint 'l_wrist'"):
-        tasks.initial_qpos(robot, {"l_wrist": 10.0})
+        task_files.initial_qpos(robot, {"l_wrist": 10.0})
 
 
 def test_touching_contacts_must_touch(hand_scene):

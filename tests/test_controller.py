@@ -7,10 +7,11 @@ import pytest
 from conftest import random_state
 from mujoco import mjx
 
-from wbc_jax import contacts, dynamics, forces, torques
-from wbc_jax import controller as C
-from wbc_jax import gains as G
-from wbc_jax.references import Reference
+from wbc_jax.control import constraints, torques
+from wbc_jax.control import controller as C
+from wbc_jax.control import gains as G
+from wbc_jax.control.references import Reference
+from wbc_jax.robot import contacts, dynamics
 
 
 @pytest.fixture(scope="module")
@@ -138,7 +139,7 @@ def test_unrealisable_momentum_rate_keeps_the_contact_constraints(robot, state_t
 def test_wrench_map_matches_moment_arithmetic(robot):
     rng = np.random.default_rng(2)
     p, c, f = rng.normal(size=(2, 3)), rng.normal(size=3), rng.normal(size=12)
-    A = np.asarray(forces.wrench_map(contacts.feet_contact_set(robot), jnp.asarray(p), jnp.asarray(c)))
+    A = np.asarray(constraints.wrench_map(contacts.feet_contact_set(robot), jnp.asarray(p), jnp.asarray(c)))
     net_force = f[:3] + f[6:9]
     net_moment = f[3:6] + f[9:] + np.cross(p[0] - c, f[:3]) + np.cross(p[1] - c, f[6:9])
     np.testing.assert_allclose(A @ f, np.concatenate([net_force, net_moment]), rtol=1e-12)

@@ -8,7 +8,7 @@ import pytest
 from conftest import assert_close, c_data, random_state
 from mujoco import mjx
 
-from wbc_jax import dynamics, model
+from wbc_jax.robot import dynamics, model
 
 SEEDS = range(5)
 REL = 1e-6  # issue 4: relative error < 1e-6 (float64)

@@ -7,7 +7,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from wbc_jax import envelope, scenario, sweep
+from wbc_jax.core import provenance
+from wbc_jax.jobs import envelope, sweep, sweep_config
 
 # The documented grid: 64 pushes of 10-400 N for 0.1 s.
 GRID = np.linspace(10.0, 400.0, 64) * 0.1
@@ -65,17 +66,17 @@ def test_bad_search_input():
     with pytest.raises(ValueError, match="resolution must be a positive"):
         envelope.bisect(GRID, lambda k, i: i < 1, 1, float("nan"))
     with pytest.raises(ValueError, match="--magnitudes and --push-duration must be > 0"):
-        envelope.search(sweep.SweepConfig(magnitudes=(0.0, 50.0), out=None), progress=False)
+        envelope.search(sweep_config.SweepConfig(magnitudes=(0.0, 50.0), out=None), progress=False)
     with pytest.raises(ValueError, match="--resolution must be a positive"):
-        envelope.search(sweep.SweepConfig(out=None), resolution=0.0, progress=False)
+        envelope.search(sweep_config.SweepConfig(out=None), resolution=0.0, progress=False)
 
 
 def test_search_matches_a_grid_sweep_on_c_mujoco(tmp_path):
     """Two directions, pushes of 1-8 N s in 1 N s steps: the search's grid bracket is the grid's
     monotone envelope, its answer within the step above it, in 5 rounds (10 rollouts, 16 for the grid)."""
     common = dict(magnitudes=tuple(np.linspace(10.0, 80.0, 8)), directions=(0.0, 180.0), backend="mujoco")
-    grid = sweep.run_sweep(sweep.SweepConfig(**common, chunk_size=2, out=str(tmp_path / "grid")), progress=False)
-    found = envelope.search(sweep.SweepConfig(**common, out=str(tmp_path / "env")), progress=False)
+    grid = sweep.run_sweep(sweep_config.SweepConfig(**common, chunk_size=2, out=str(tmp_path / "grid")), progress=False)
+    found = envelope.search(sweep_config.SweepConfig(**common, out=str(tmp_path / "env")), progress=False)
     table = pd.read_parquet(tmp_path / "grid" / "results.parquet")
     for az in (0.0, 180.0):
         rows = table[table["azimuth_deg"] == az].sort_values("impulse_ns")
@@ -87,4 +88,4 @@ def test_search_matches_a_grid_sweep_on_c_mujoco(tmp_path):
         assert e["bracket_ns"][1] - e["bracket_ns"][0] <= 0.25 and not e["at_cap"]
     assert found["rounds"] == 5 and found["rollouts"] == 10 and found["grid_rollouts"] == 16
     written = json.loads((tmp_path / "env" / "summary.json").read_text())
-    assert written["rollouts"] == 10 and written["device"] == scenario.device_label()
+    assert written["rollouts"] == 10 and written["device"] == provenance.device_label()

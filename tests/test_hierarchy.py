@@ -12,9 +12,10 @@ import scipy.linalg
 from conftest import c_data
 from mujoco import mjx
 
-from wbc_jax import dynamics, hierarchy, tasks, torques
-from wbc_jax.gains import default_gains
-from wbc_jax.hierarchy import TaskLevel
+from wbc_jax.control import hierarchy, task_rows, tasks, torques
+from wbc_jax.control.gains import default_gains
+from wbc_jax.control.hierarchy import TaskLevel
+from wbc_jax.robot import dynamics
 
 FRAME0 = 2  # the stack's frames follow the two soles'
 
@@ -47,7 +48,7 @@ def state(robot):
 
 
 def _levels(state, time=0.3):
-    return tasks.levels(state["stack"], state["t"], jnp.asarray(time), FRAME0)
+    return task_rows.levels(state["stack"], state["t"], jnp.asarray(time), FRAME0)
 
 
 def test_frame_jacobians_match_c_mujoco(robot, state):
@@ -171,7 +172,7 @@ def test_equal_priority_weights(robot, state):
             tasks.MotionTask("posture", "postural", priority=1),
         ])  # fmt: skip
         assert stack.n_levels == 1
-        L = tasks.levels(stack, t, jnp.asarray(0.0), FRAME0)  # r_hand is the stack's frame 0 in both
+        L = task_rows.levels(stack, t, jnp.asarray(0.0), FRAME0)  # r_hand is the stack's frame 0 in both
         sol = hierarchy.solve(t, tt, f, L)
         star_a = L[0].nu_dot_star[:3] / np.sqrt(w)
         errors.append(float(jnp.linalg.norm(sol.task_acc[0][:3] / np.sqrt(w) - star_a)))
@@ -196,13 +197,13 @@ def test_circle_reference_derivatives(robot):
         tasks.MotionTask("posture", "postural"),
     ])  # fmt: skip
     task = stack.tasks[0]
-    p0, v0, a0 = tasks.reference_at(task, 0.0, jnp.float64)
+    p0, v0, a0 = task_rows.reference_at(task, 0.0, jnp.float64)
     np.testing.assert_allclose(p0, task.target, atol=1e-12)  # starts at the hand, at rest
     assert float(jnp.abs(v0).max()) == 0.0 and float(jnp.abs(a0).max()) == 0.0
     t, eps = 2.3, 1e-5
-    p, v, a = tasks.reference_at(task, t, jnp.float64)
-    pp, vp, _ = tasks.reference_at(task, t + eps, jnp.float64)
-    pm, vm, _ = tasks.reference_at(task, t - eps, jnp.float64)
+    p, v, a = task_rows.reference_at(task, t, jnp.float64)
+    pp, vp, _ = task_rows.reference_at(task, t + eps, jnp.float64)
+    pm, vm, _ = task_rows.reference_at(task, t - eps, jnp.float64)
     np.testing.assert_allclose(v, (pp - pm) / (2 * eps), atol=1e-8)
     np.testing.assert_allclose(a, (vp - vm) / (2 * eps), atol=1e-6)
     # After the ramp: a circle of radius 5 cm in the y-z plane.
@@ -210,9 +211,9 @@ def test_circle_reference_derivatives(robot):
     assert abs(float(jnp.linalg.norm(p - center)) - 0.05) < 1e-12 and abs(float(p[0] - center[0])) < 1e-12
     # Signed axes: plane (-z, y) leaves the start point along +y and reaches 2 r above it at half a period.
     signed = dataclasses.replace(task, reference=dataclasses.replace(task.reference, plane=("-z", "y")))
-    p_half, _, _ = tasks.reference_at(signed, 3.0, jnp.float64)  # t = 3 s: after the ramp, w t = 3 pi
+    p_half, _, _ = task_rows.reference_at(signed, 3.0, jnp.float64)  # t = 3 s: after the ramp, w t = 3 pi
     np.testing.assert_allclose(p_half - np.asarray(task.target), [0.0, 0.0, 0.1], atol=1e-12)
-    p_quarter, _, _ = tasks.reference_at(signed, 2.5, jnp.float64)  # w t = 2.5 pi: +r along y, +r along z
+    p_quarter, _, _ = task_rows.reference_at(signed, 2.5, jnp.float64)  # w t = 2.5 pi: +r along y, +r along z
     np.testing.assert_allclose(p_quarter - np.asarray(task.target), [0.0, 0.05, 0.05], atol=1e-12)
 
 

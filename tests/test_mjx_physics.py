@@ -14,7 +14,7 @@ ROLLOUT_SCRIPT = textwrap.dedent(
     """
     import jax, jax.numpy as jnp
     from mujoco import mjx
-    from wbc_jax import model
+    from wbc_jax.robot import model
     r = model.load_robot("icub")
     mx = r.mjx_model
     d0 = mjx.make_data(r.mj_model).replace(qpos=jnp.asarray(r.home_qpos()))

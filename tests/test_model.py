@@ -7,7 +7,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from wbc_jax import model
+from wbc_jax.robot import model
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 

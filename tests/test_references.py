@@ -5,7 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from wbc_jax import constants, model, references
+from wbc_jax.control import references
+from wbc_jax.core import constants
+from wbc_jax.robot import model
 
 
 def test_min_jerk_derivatives_match_finite_differences():

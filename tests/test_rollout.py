@@ -8,15 +8,17 @@ import numpy as np
 import pytest
 from scipy.spatial import ConvexHull
 
-from wbc_jax import constants, physics, rollout, scenario
-from wbc_jax import metrics as metrics_lib
+from wbc_jax.core import constants
+from wbc_jax.sim import host_loop, mjx_loop, physics, runner, scenario
+from wbc_jax.sim import metrics as metrics_lib
+from wbc_jax.sim.state import SimConfig
 
 PUSH = ([0.0, 40.0, 0.0], 0.3, 0.1)  # the benchmark scenario: stand, 40 N lateral chest push, 1 s
 
 
 def _run(backend: str):
-    st = scenario.setup("stand", duration=1.0, sim=rollout.SimConfig(physics=physics.PhysicsConfig(backend=backend)))
-    return st, scenario.run(st, scenario.single(st, scenario.make_push(*PUSH, st.dtype)))
+    st = scenario.setup("stand", duration=1.0, sim=SimConfig(physics=physics.PhysicsConfig(backend=backend)))
+    return st, runner.run(st, scenario.single(st, scenario.make_push(*PUSH, st.dtype)))
 
 
 @pytest.fixture(scope="module")
@@ -46,13 +48,13 @@ def test_pipelined_host_batch_equals_environments_run_alone():
     """An even batch without records runs as two halves in a pipeline (one half's controller beside
     the other half's physics): each environment's metrics equal those of the same environment run
     alone, a diverged one (NaN joints) is flagged and poisons nothing."""
-    st = scenario.setup("stand", duration=0.5, sim=rollout.SimConfig(record=False,
+    st = scenario.setup("stand", duration=0.5, sim=SimConfig(record=False,
                         physics=physics.PhysicsConfig(backend="mujoco")))  # fmt: skip
     pushed = scenario.single(st, scenario.make_push(*PUSH, st.dtype))
     broken = pushed.replace(joint_offset=np.full_like(pushed.joint_offset, np.nan))
     both = jax.tree_util.tree_map(lambda a, b: np.concatenate([np.asarray(a), np.asarray(b)]), pushed, broken)
-    together = scenario.run(st, both).metrics
-    alone = [scenario.run(st, one).metrics for one in (pushed, broken)]
+    together = runner.run(st, both).metrics
+    alone = [runner.run(st, one).metrics for one in (pushed, broken)]
     for k in range(2):
         for name, value in vars(alone[k]).items():
             np.testing.assert_array_equal(np.asarray(getattr(together, name))[k], np.asarray(value)[0], err_msg=name)
@@ -73,7 +75,7 @@ def test_recorded_push_and_host_wrenches(runs):
     for k in (29, 30, 34, 35, 39, 40):
         traced = np.asarray(st.loop.xfrc(two, k))
         forces = np.asarray(st.loop.step_push_forces(two, k))[None]
-        host = st.loop._host_xfrc(forces, np.asarray(st.loop.push_bodies(two))[None])[0]
+        host = host_loop.host_xfrc(st.loop, forces, np.asarray(st.loop.push_bodies(two))[None])[0]
         np.testing.assert_allclose(host, traced, atol=1e-9)
     assert np.abs(np.asarray(st.loop.xfrc(two, 32))).sum() > 0
 
@@ -132,13 +134,13 @@ def test_support_geometry_uses_no_matrix_products():
     assert "dot_general" not in str(corners)
 
 
-def _dot_precisions(sim: rollout.SimConfig) -> list[str]:
+def _dot_precisions(sim: SimConfig) -> list[str]:
     """The precision of every matrix product in the start and one tick of the MJX closed loop
     (controller and physics), as traced."""
     st = scenario.setup("stand", duration=0.02, sim=sim)
     one = jax.tree_util.tree_map(lambda x: x[0], scenario.single(st, scenario.make_push(*PUSH, st.dtype)))
     loop = st.loop
-    tick = lambda q: loop.chunk(loop.mx, one.gains, one.push, loop.start(q), 0, 1)  # noqa: E731
+    tick = lambda q: mjx_loop.chunk(loop, loop.mx, one.gains, one.push, mjx_loop.start(loop, q), 0, 1)  # noqa: E731
     jaxpr = str(jax.make_jaxpr(tick)(st.qpos0))
     return [line.split("precision=")[1].split(")")[0] if "precision=" in line else "None"
             for line in jaxpr.split("dot_general[")[1:]]  # fmt: skip
@@ -148,14 +150,14 @@ def test_closed_loop_products_run_in_full_float32():
     """A GPU may run float32 products in TensorFloat-32 (a 10-bit mantissa), which moved survival
     outcomes at the fall boundary of a push grid (BENCHMARKS.md): every product of the loop's
     programs is traced at HIGHEST precision, unless the config asks for XLA's default."""
-    sim = rollout.SimConfig(physics=physics.PhysicsConfig(backend="jax"), record=False)
+    sim = SimConfig(physics=physics.PhysicsConfig(backend="jax"), record=False)
     highest = _dot_precisions(sim)
     assert len(highest) > 50 and all(p.startswith("(Precision.HIGHEST") for p in highest)
     # XLA's default where the code names none (MJX asks for HIGHEST in a few products itself).
     default = _dot_precisions(dataclasses.replace(sim, matmul_precision="default"))
     assert len(default) == len(highest) and default.count("(Precision.DEFAULT, Precision.DEFAULT") > 0.8 * len(default)
     with pytest.raises(ValueError, match=r"unknown matmul_precision 'tf32'; valid: \['highest', 'default'\]"):
-        rollout.SimConfig(matmul_precision="tf32")
+        SimConfig(matmul_precision="tf32")
 
 
 @pytest.mark.gpu
@@ -186,15 +188,15 @@ def test_blown_up_states_count_as_diverged():
 
 def test_bad_settings_are_named():
     with pytest.raises(ValueError, match="duration must be a positive finite"):
-        rollout.SimConfig(duration=float("inf"))
+        SimConfig(duration=float("inf"))
     with pytest.raises(ValueError, match="control_dt must be a positive"):
-        rollout.SimConfig(control_dt=0.0)
+        SimConfig(control_dt=0.0)
     with pytest.raises(ValueError, match="unknown physics backend 'gpu'"):
         physics.PhysicsConfig(backend="gpu")
     with pytest.raises(ValueError, match="shorter than one control tick"):
         scenario.setup("stand", duration=0.001)
     with pytest.raises(ValueError, match="multiple of the physics timestep"):
-        scenario.setup("stand", duration=1.0, sim=rollout.SimConfig(control_dt=0.0105))
+        scenario.setup("stand", duration=1.0, sim=SimConfig(control_dt=0.0105))
     if not physics.has_cuda():
         with pytest.raises(ValueError, match="needs a CUDA GPU"):
             physics.resolve_backend("warp")

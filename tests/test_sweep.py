@@ -10,48 +10,49 @@ import textwrap
 import numpy as np
 import pytest
 
-from wbc_jax import scenario, sweep
-from wbc_jax.gains import default_gains
+from wbc_jax.control.gains import default_gains
+from wbc_jax.jobs import sweep, sweep_config, sweep_table
+from wbc_jax.sim import runner, scenario
 
 
 def test_controller_settings_of_a_sweep_and_a_held_out_evaluation_reach_the_loop():
     """--angular-weight-soft and --tasks travel into the closed loop's force QP and contact set (the
     held-out evaluation's and the tuning run's configs too), not only into the run's records."""
-    from wbc_jax import tuning_eval
+    from wbc_jax.tuning import heldout as tuning_eval
 
     tasks = str(pathlib.Path(__file__).resolve().parent.parent / "experiments" / "tasks" / "feet_sole95.yaml")
-    cfg = sweep.SweepConfig(angular_weight_soft=0.01, tasks=tasks, forces="qp")
+    cfg = sweep_config.SweepConfig(angular_weight_soft=0.01, tasks=tasks, forces="qp")
     st = sweep.make_setup(cfg, default_gains(23, scenario.float_dtype()))
     assert st.loop.controller.config.force_settings.angular_weight_soft == 0.01
     rects = [c.params.foot_size for c in st.loop.contact_set.contacts]
     assert rects[0] == ((-0.0635, 0.1255), (-0.0425, 0.0505)) and rects[1][1] == (-0.0505, 0.0425)
     hc = tuning_eval.HeldoutConfig(angular_weight_soft=0.1, tasks=tasks)
     assert tuning_eval._controller((1.0, 0.1), hc).angular_weight_soft == 0.1
-    assert sweep.make_setup(sweep.SweepConfig()).loop.controller.config.angular_weight_soft == 1.0
+    assert sweep.make_setup(sweep_config.SweepConfig()).loop.controller.config.angular_weight_soft == 1.0
     with pytest.raises(ValueError, match="held-out tasks file /nowhere.yaml is not a file"):
         tuning_eval.HeldoutConfig(tasks="/nowhere.yaml")
 
 
 def test_bad_sweep_input_is_rejected_before_compiling(robot, tmp_path):
     with pytest.raises(ValueError, match="empty"):
-        sweep.SweepConfig(magnitudes=()).check()
+        sweep_config.SweepConfig(magnitudes=()).check()
     with pytest.raises(ValueError, match="push forces must be finite and >= 0"):
-        sweep.SweepConfig(magnitudes=(-5.0,)).check()
+        sweep_config.SweepConfig(magnitudes=(-5.0,)).check()
     with pytest.raises(ValueError, match="push-duration"):
-        sweep.SweepConfig(push_duration=-0.1).check()
+        sweep_config.SweepConfig(push_duration=-0.1).check()
     with pytest.raises(ValueError, match=r"unknown body 'nose'.*chest"):
-        sweep.run_sweep(sweep.SweepConfig(body="nose", out=str(tmp_path / "s")), progress=False)
+        sweep.run_sweep(sweep_config.SweepConfig(body="nose", out=str(tmp_path / "s")), progress=False)
     with pytest.raises(ValueError, match="--queue must be a whole number >= 1, got 0"):
-        sweep.SweepConfig(queue=0).check()
+        sweep_config.SweepConfig(queue=0).check()
     with pytest.raises(ValueError, match="needs an MJX backend: --backend jax or warp"):
-        sweep.run_sweep(sweep.SweepConfig(queue=2, backend="mujoco", out=str(tmp_path / "s")), progress=False)
+        sweep.run_sweep(sweep_config.SweepConfig(queue=2, backend="mujoco", out=str(tmp_path / "s")), progress=False)
     with pytest.raises(ValueError, match="cannot record"):
-        scenario.check_queue(2, "jax", record=True)
+        runner.check_queue(2, "jax", record=True)
     assert not (tmp_path / "s").exists()  # nothing written
 
 
 def test_scenario_grid(robot):
-    cfg = sweep.SweepConfig(magnitudes=(10.0, 20.0), directions=(0.0, 90.0), gain_sets=3, seed=4)
+    cfg = sweep_config.SweepConfig(magnitudes=(10.0, 20.0), directions=(0.0, 90.0), gain_sets=3, seed=4)
     scen, cols = sweep.build_scenarios(cfg, default_gains(), 23)
     assert scen.push.force.shape == (12, 1, 3) and scen.gains.kp_postural.shape == (12, 23)
     np.testing.assert_allclose(np.linalg.norm(scen.push.force[:, 0], axis=1), cols["magnitude_n"], rtol=1e-6)
@@ -64,7 +65,7 @@ def test_scenario_grid(robot):
 
 
 def test_lip_bound_is_omega_times_edge_distance(robot):
-    b = sweep.lip_bound(robot, [0.0, 90.0])
+    b = sweep_table.lip_bound(robot, [0.0, 90.0])
     omega = np.sqrt(9.81 / 0.5496)
     # Forward: the toe spheres are ~0.13 m ahead of the sole origin, CoM ~0.014 m ahead of it.
     assert b[0.0]["edge_distance_m"] == pytest.approx(0.117, abs=0.005)
@@ -75,15 +76,16 @@ SHARDED = textwrap.dedent(
     """
     import json, pathlib, sys
     import jax, numpy as np
-    from wbc_jax import metrics, scenario, sweep
-    from wbc_jax.gains import default_gains
+    from wbc_jax.control.gains import default_gains
+    from wbc_jax.jobs import sweep, sweep_config
+    from wbc_jax.sim import metrics, runner, scenario
     backend = sys.argv[3]
     if backend == "jax":
         assert len(jax.devices()) == 2, jax.devices()
     out = pathlib.Path(sys.argv[1])
     # MJX, 8 per chunk: sharded over the two host devices (4 each) this deadlocked XLA:CPU (jax
-    # 0.9.2); on the CPU the batch now runs on one device per process (scenario.batch_devices).
-    cfg = sweep.SweepConfig(magnitudes=(20.0, 400.0), directions=(90.0,), horizon=0.8, push_onset=0.1,
+    # 0.9.2); on the CPU the batch now runs on one device per process (runner.batch_devices).
+    cfg = sweep_config.SweepConfig(magnitudes=(20.0, 400.0), directions=(90.0,), horizon=0.8, push_onset=0.1,
                             push_duration=0.1, chunk_size=8 if backend == "jax" else 2, backend=backend,
                             out=str(out))
     s = sweep.run_sweep(cfg, progress=False)
@@ -96,8 +98,8 @@ SHARDED = textwrap.dedent(
     scen = jax.tree_util.tree_map(lambda x: np.asarray(x)[:2], scen)
     scen = scen.replace(joint_offset=scen.joint_offset.copy())
     scen.joint_offset[1] = np.nan
-    run = scenario.run(st, scen, batch_size=cfg.chunk_size)  # the sweep's compiled program
-    again = scenario.run(st, scen, batch_size=cfg.chunk_size)
+    run = runner.run(st, scen, batch_size=cfg.chunk_size)  # the sweep's compiled program
+    again = runner.run(st, scen, batch_size=cfg.chunk_size)
     m = run.metrics
     res = {"summary": {k: s[k] for k in ("n_envs", "upright_rate", "nan_envs", "n_devices", "backend")},
            "nan": np.asarray(m.nan).tolist(), "fell": np.asarray(m.fell).tolist(),
@@ -110,8 +112,8 @@ SHARDED = textwrap.dedent(
         four.push.force[0] *= 4  # 1,600 N for 0.1 s: down well before the end
         four.joint_offset[2] = np.nan
         four.push.force[3] *= 0.5
-        plain = scenario.run(st, four, batch_size=cfg.chunk_size).metrics
-        queued = scenario.run(st, four, batch_size=cfg.chunk_size, queue=2).metrics
+        plain = runner.run(st, four, batch_size=cfg.chunk_size).metrics
+        queued = runner.run(st, four, batch_size=cfg.chunk_size, queue=2).metrics
         cols = [metrics.summarize(x) for x in (plain, queued)]
         res["queue"] = {
             "outcomes": [[c[k].tolist() for k in ("survived", "upright", "fell", "nan")] for c in cols],

@@ -13,7 +13,10 @@ import numpy as np
 import pytest
 from conftest import random_state
 
-from wbc_jax import constants, contacts, envelope, model, references, sweep
+from wbc_jax.control import references
+from wbc_jax.core import constants
+from wbc_jax.jobs import envelope, sweep_table
+from wbc_jax.robot import contacts, model
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
@@ -137,8 +140,9 @@ def test_copies_match_wbc_jax(robot):
         np.testing.assert_array_equal(tb.non_foot_bodies(m), spec.non_foot_bodies)
         assert tb.FOOT_SIZE == spec.foot_size
         peer_sched = tb.make_schedule(task, spec.ref_com_pos[0], spec.ref_s_des[0])  # sin(0) = 0: com0
-        ref_sched = references.make_schedule(task, com0=spec.ref_com_pos[0], s0=spec.ref_s_des[0], left_sole=np.zeros(3),
-                                             joints=model.ICUB_JOINTS)  # fmt: skip
+        ref_sched = references.make_schedule(
+            task, com0=spec.ref_com_pos[0], s0=spec.ref_s_des[0], left_sole=np.zeros(3), joints=model.ICUB_JOINTS
+        )
         assert peer_sched.duration == ref_sched.duration == spec.n_ticks * spec.control_dt
         times = np.arange(spec.n_ticks) * spec.control_dt
         ours, theirs = bc.schedule_table(peer_sched, times), bc.schedule_table(ref_sched, times)
@@ -152,7 +156,7 @@ def test_copies_match_wbc_jax(robot):
 def test_lip_bound_and_bisection_match_wbc_jax(robot):
     azimuths = [0.0, 45.0, 90.0, 191.25]
     ours = tp.lip_bound(tb.load_mj_model(), robot.home_qpos(), azimuths)
-    theirs = sweep.lip_bound(robot, azimuths)
+    theirs = sweep_table.lip_bound(robot, azimuths)
     for az in azimuths:
         assert ours[az]["impulse_bound_ns"] == pytest.approx(theirs[az]["impulse_bound_ns"], rel=1e-12)
     assert ours[0.0]["impulse_bound_ns"] == pytest.approx(16.34, abs=0.01)  # 33.06 kg x 4.225 /s x 0.117 m, forward

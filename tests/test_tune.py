@@ -15,12 +15,19 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from wbc_jax import baselines, cli, constants, sweep, tune, tuning_eval, tuning_loss, tuning_params
-from wbc_jax import gains as C
-from wbc_jax import metrics as metrics_lib
-from wbc_jax import rollout as rollout_lib
-from wbc_jax import tuning_problem as tp
-from wbc_jax.constants import GAIN_FIELDS
+from wbc_jax import cli
+from wbc_jax.control import gains as C
+from wbc_jax.core import constants
+from wbc_jax.core.constants import GAIN_FIELDS
+from wbc_jax.jobs import sweep_table
+from wbc_jax.report import tuning_plots
+from wbc_jax.sim import metrics as metrics_lib
+from wbc_jax.sim.state import LossTrace
+from wbc_jax.tuning import baselines, config, tune
+from wbc_jax.tuning import heldout as tuning_eval
+from wbc_jax.tuning import loss as tuning_loss
+from wbc_jax.tuning import params as tuning_params
+from wbc_jax.tuning import problem as tp
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 # One subprocess (float64, XLA backend optimisation lowered) holds the one gradient program:
@@ -115,7 +122,7 @@ def test_out_of_bound_init_gains_are_a_clear_error_before_compiling(tmp_path):
         path = tmp_path / "g.json"
         path.write_text(json.dumps(values))
         with pytest.raises(ValueError, match=message):
-            tp.make_problem(tp.TuneConfig(init_gains=str(path), **TINY))
+            tp.make_problem(config.TuneConfig(init_gains=str(path), **TINY))
 
 
 @pytest.mark.parametrize("kwargs, message", [
@@ -136,7 +143,7 @@ def test_out_of_bound_init_gains_are_a_clear_error_before_compiling(tmp_path):
 ])  # fmt: skip
 def test_bad_tune_config_is_a_clear_error(kwargs, message):
     with pytest.raises(ValueError, match=message):
-        tp.TuneConfig(**kwargs)
+        config.TuneConfig(**kwargs)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -153,7 +160,7 @@ def _trace(T=60, shift=0.0, tilt=0.0, slip=0.0, speed=0.0):
     n = np.array([np.sin(tilt), 0.0, np.cos(tilt)])
     normals = np.repeat(np.stack([[0, 0, 1.0], n])[None], T, 0)
     normals[0] = [[0, 0, 1.0], [0, 0, 1.0]]
-    base = rollout_lib.LossTrace(
+    base = LossTrace(
         com=jnp.asarray(com),
         com_ref=jnp.asarray(com * [0, 1, 1]),
         com_vel=jnp.asarray(vel),
@@ -190,7 +197,7 @@ def test_rank_statistics():
 
 
 def test_push_distribution_is_reproducible_and_in_range(robot):
-    tc = tp.TuneConfig(**TINY)
+    tc = config.TuneConfig(**TINY)
     table = tp.envelope_table(tc, robot)
     a, ca = tp.sample_pushes(tc, robot, table, tp.batch_rng(0, 0, 3), 64)
     b, _ = tp.sample_pushes(tc, robot, table, tp.batch_rng(0, 0, 3), 64)
@@ -205,10 +212,10 @@ def test_push_distribution_is_reproducible_and_in_range(robot):
 
 def test_lip_push_scale_draws_impulses_as_fractions_of_m_omega_d(robot):
     """--push-scale lip: impulses are magnitude_range multiples of the LIP bound m omega d per
-    direction (sweep.lip_bound)."""
-    tc = tp.TuneConfig(push_scale="lip", magnitude_range=(0.3, 1.0), **TINY)
+    direction (sweep_table.lip_bound)."""
+    tc = config.TuneConfig(push_scale="lip", magnitude_range=(0.3, 1.0), **TINY)
     az, bound = tp.envelope_table(tc, robot)
-    ref = sweep.lip_bound(robot, az)
+    ref = sweep_table.lip_bound(robot, az)
     np.testing.assert_allclose(bound, [ref[float(a)]["impulse_bound_ns"] for a in az])
     assert np.all((bound > 5.0) & (bound < 40.0))  # N s: 33 kg at omega ~3.6 1/s, edges 5-20 cm away
     _, cols = tp.sample_pushes(tc, robot, (az, bound), tp.batch_rng(0, 0, 0), 256)
@@ -306,7 +313,7 @@ def test_robust_mean_gradient_drops_diverged_rollouts_and_clips_outliers():
 
 @pytest.fixture(scope="module")
 def small_problem():
-    return tp.make_problem(tp.TuneConfig(steps=6, batch=2, lr=0.2, clip_norm=10.0, population=3, es_batch=1,
+    return tp.make_problem(config.TuneConfig(steps=6, batch=2, lr=0.2, clip_norm=10.0, population=3, es_batch=1,
                                          **TINY))  # fmt: skip
 
 
@@ -334,7 +341,7 @@ def test_training_loop_guard_resume_and_gains_file(small_problem, tmp_path):
     assert [int(r["step"]) for r in rows] == list(range(6))
     for k in GAIN_FIELDS:
         np.testing.assert_allclose(getattr(resumed, k), getattr(full, k), rtol=1e-6)
-    other = tp.make_problem(tp.TuneConfig(steps=7, batch=2, lr=0.2, clip_norm=10.0, **TINY))
+    other = tp.make_problem(config.TuneConfig(steps=7, batch=2, lr=0.2, clip_norm=10.0, **TINY))
     with pytest.raises(ValueError, match="another tuning config"):
         tune.train(other, tmp_path / "b", progress=False, step_fn=_fake_step(other, opt, target))
     # tuned_gains.json has gains_to_dict's format and loads back.
@@ -357,7 +364,7 @@ def _fake_population(problem, target):
 
 @pytest.fixture(scope="module")
 def search_problem():
-    return tp.make_problem(tp.TuneConfig(batch=2, population=16, es_batch=1, es_sigma=0.2, **TINY))
+    return tp.make_problem(config.TuneConfig(batch=2, population=16, es_batch=1, es_sigma=0.2, **TINY))
 
 
 @pytest.mark.parametrize("kind", baselines.KINDS)
@@ -410,8 +417,8 @@ def test_heldout_json_and_targets(tmp_path):
     t = rep["targets"]
     assert t["median_fraction_ge_0.8"] is False and t["min_fraction_ge_0.6"] and t["no_direction_below_default"]
     assert t["survival_ge_1.5x_default"] and t["survival_above_best_hand_set"] and t["sinusoid_rmse_le_1.5mm"]
-    tuning_eval.envelope_polar(rep, tmp_path / "envelope.png")
-    tuning_eval.learning_curves({"gradient": [{"loss": 1.0, "sim_steps": 10, "wall_s": 1.0}]}, tmp_path / "l.png")
+    tuning_plots.envelope_polar(rep, tmp_path / "envelope.png")
+    tuning_plots.learning_curves({"gradient": [{"loss": 1.0, "sim_steps": 10, "wall_s": 1.0}]}, tmp_path / "l.png")
     assert (tmp_path / "envelope.png").stat().st_size > 0 and (tmp_path / "l.png").stat().st_size > 0
 
 
@@ -491,7 +498,7 @@ def test_com_floor_raises_kp_com_in_x_y_and_keeps_each_damping_ratio():
 def test_keep_tracking_bounds_hold_kp_com_and_the_yaw_gains_up():
     """--keep-tracking: every parameter maps to K_P,CoM x, y >= the floor and yaw K_I,w, zeta_w >= the fraction
     of the WBC defaults (the lowest params included); the hand-set start stays inside, the free-yaw tuned set not."""
-    tc = tp.TuneConfig(keep_tracking=True, **TINY)
+    tc = config.TuneConfig(keep_tracking=True, **TINY)
     problem = tp.make_problem(tc)
     lo = problem.bounds.lo
     assert np.asarray(lo["kp_com"]).tolist()[:2] == [constants.TRACKING_KP_COM_FLOOR] * 2

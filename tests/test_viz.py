@@ -9,14 +9,17 @@ import mujoco
 import numpy as np
 import pytest
 
-from wbc_jax import cli, io, sweep, viz
+from wbc_jax import cli
+from wbc_jax.core import io
+from wbc_jax.jobs import sweep, sweep_config
+from wbc_jax.report import recording as viz
 
 rr = pytest.importorskip("rerun")
 from rerun.chunk import RrdReader  # noqa: E402
 
 # Two envs that differ in every scenario axis but the push: gain set 0 (default) and 1 (scaled),
 # random joint offsets, friction and mass scale of the plant.
-CFG = sweep.SweepConfig(
+CFG = sweep_config.SweepConfig(
     magnitudes=(150.0,), directions=(90.0,), gain_sets=2, horizon=0.3, push_onset=0.05,
     push_duration=0.1, joint_noise=0.01, friction=(0.5, 1.0), mass_scale=(0.9, 1.1), chunk_size=2,
     seed=3,

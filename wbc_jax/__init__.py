@@ -1,8 +1,57 @@
 """wbc_jax: whole-body force (momentum-based) balancing control of the iCub in MuJoCo MJX.
 
-Pipeline (one module per stage, imports point backwards):
-model -> dynamics -> contacts -> momentum -> qp/forces -> torques -> hierarchy/tasks -> controller
--> physics/rollout -> scenario -> experiments (balance, sweep, tune) -> visualisation.
+The subpackages follow the flow of data; each imports only those before it
+(tests/test_layers.py):
+
+    core -> robot -> control -> sim -> report -> jobs -> tuning -> cli
+
+``core`` numbers, types, helpers, results on disk; ``robot`` the model, dynamics terms and
+contacts; ``control`` one controller tick (momentum task, contact forces, torques, motion tasks);
+``sim`` the closed loop on three physics engines and batched runs; ``report`` figures and rerun
+recordings; ``jobs`` balance, push sweep, envelope, view; ``tuning`` gain tuning and its held-out
+evaluation; ``cli`` the ``wbc-jax`` command.
+
+The names below are the public surface, imported on first use (``import wbc_jax`` stays light):
+
+    robot = wbc_jax.load_robot("icub")
+    st = wbc_jax.setup("sinusoid", duration=5.0)
+    result = wbc_jax.run(st, wbc_jax.single(st))
 """
 
-__version__ = "0.2.0"
+import importlib
+
+__version__ = "0.3.0"
+
+_PUBLIC = {
+    "load_robot": "wbc_jax.robot.model",
+    "Robot": "wbc_jax.robot.model",
+    "ContactSet": "wbc_jax.robot.contacts",
+    "Gains": "wbc_jax.control.gains",
+    "default_gains": "wbc_jax.control.gains",
+    "load_gains": "wbc_jax.control.gains",
+    "ControllerConfig": "wbc_jax.control.controller",
+    "make_controller": "wbc_jax.control.controller",
+    "SimConfig": "wbc_jax.sim.state",
+    "Push": "wbc_jax.sim.state",
+    "Scenario": "wbc_jax.sim.state",
+    "PhysicsConfig": "wbc_jax.sim.physics",
+    "load_scene": "wbc_jax.sim.scenario",
+    "setup": "wbc_jax.sim.scenario",
+    "single": "wbc_jax.sim.scenario",
+    "make_push": "wbc_jax.sim.scenario",
+    "run": "wbc_jax.sim.runner",
+    "summarize": "wbc_jax.sim.metrics",
+}
+__all__ = sorted(_PUBLIC)
+
+
+def __getattr__(name: str):
+    if name in _PUBLIC:
+        value = getattr(importlib.import_module(_PUBLIC[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'wbc_jax' has no attribute {name!r}; public names: {__all__}")
+
+
+def __dir__():
+    return sorted([*globals(), *__all__])

@@ -97,36 +97,38 @@ def config_from_args(args: argparse.Namespace, config):
 def push_sweep_config(flags: list[str]):
     """The checked config that ``wbc-jax push-sweep FLAGS`` would run: for the scripts of
     experiments/ that take the job's flags after ``--``."""
-    from wbc_jax import sweep
+    from wbc_jax.jobs import sweep_config
 
-    cfg = config_from_args(build_parser().parse_args(["push-sweep", *flags]), sweep.default_config())
+    cfg = config_from_args(build_parser().parse_args(["push-sweep", *flags]), sweep_config.default_config())
     cfg.check()
     return cfg
 
 
 def _info(args: argparse.Namespace) -> int:
-    from wbc_jax import model
+    from wbc_jax.robot import model
 
     print(json.dumps(model.summary(model.load_robot(args.robot)), indent=2))
     return 0
 
 
 def _balance(args: argparse.Namespace) -> int:
-    from wbc_jax import balance, scenario
+    from wbc_jax.jobs import balance
+    from wbc_jax.sim import runner
 
     cfg = config_from_args(args, balance.default_config())
     cfg.check()
-    scenario.enable_compilation_cache()
+    runner.enable_compilation_cache()
     print(balance.main_json_line(balance.run(cfg, progress=not args.quiet)))
     return 0
 
 
 def _push_sweep(args: argparse.Namespace) -> int:
-    from wbc_jax import scenario, sweep
+    from wbc_jax.jobs import sweep, sweep_config
+    from wbc_jax.sim import runner
 
-    cfg = config_from_args(args, sweep.default_config())
+    cfg = config_from_args(args, sweep_config.default_config())
     cfg.check()
-    scenario.enable_compilation_cache()
+    runner.enable_compilation_cache()
     summary = sweep.run_sweep(cfg, progress=not args.quiet)
     keys = ("n_envs", "survival_rate", "upright_rate", "nan_envs", "qp_infeasible_envs", "backend",
             "physics_steps_per_s", "compile_s", "run_s", "n_devices")  # fmt: skip
@@ -135,11 +137,12 @@ def _push_sweep(args: argparse.Namespace) -> int:
 
 
 def _envelope(args: argparse.Namespace) -> int:
-    from wbc_jax import envelope, scenario
+    from wbc_jax.jobs import envelope
+    from wbc_jax.sim import runner
 
     cfg = config_from_args(args, envelope.default_config())
     cfg.check()
-    scenario.enable_compilation_cache()
+    runner.enable_compilation_cache()
     found = envelope.search(cfg, resolution=args.resolution, progress=not args.quiet)
     line = {"rollouts": found["rollouts"], "grid_rollouts": found["grid_rollouts"], "rounds": found["rounds"],
             "backend": found["backend"],
@@ -150,29 +153,31 @@ def _envelope(args: argparse.Namespace) -> int:
 
 
 def _view(args: argparse.Namespace) -> int:
-    from wbc_jax import viz
+    from wbc_jax.jobs import view
 
     if args.spawn and args.out is not None:
         raise ValueError("--out and --spawn exclude each other: write a file or open a viewer")
-    path = viz.view(args.run_dir, args.env, out=args.out, spawn=args.spawn)
+    path = view.view(args.run_dir, args.env, out=args.out, spawn=args.spawn)
     print(json.dumps({"rrd": None if path is None else str(path), "spawned": bool(args.spawn)}))
     return 0
 
 
 def _tune(args: argparse.Namespace) -> int:
-    from wbc_jax import scenario, tune
+    from wbc_jax.sim import runner
+    from wbc_jax.tuning import tune
 
     cfg = config_from_args(args, tune.default_config())
     cfg.check()
-    scenario.enable_compilation_cache()
+    runner.enable_compilation_cache()
     report = tune.run(cfg, progress=not args.quiet)
     print(json.dumps(tune.report_line(report), separators=(",", ":")))
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from wbc_jax import balance, sweep, tune
-    from wbc_jax.envelope import default_config as envelope_default
+    from wbc_jax.jobs import balance, sweep_config
+    from wbc_jax.jobs.envelope import default_config as envelope_default
+    from wbc_jax.tuning import tune
 
     parser = _Parser(prog="wbc-jax", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -186,7 +191,7 @@ def build_parser() -> argparse.ArgumentParser:
     bal.set_defaults(func=_balance)
 
     sw = sub.add_parser("push-sweep", help="batched push-recovery sweep (the main job)")
-    add_config_arguments(sw, sweep.default_config())
+    add_config_arguments(sw, sweep_config.default_config())
     sw.add_argument("--quiet", action="store_true", help="no progress bar")
     sw.set_defaults(func=_push_sweep)
 

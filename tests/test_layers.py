@@ -1,0 +1,68 @@
+"""The package's layers (README "What is there"): every import points to the same layer or an
+earlier one, and no two modules import each other, directly or through others."""
+
+import ast
+import pathlib
+
+import pytest
+
+PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "wbc_jax"
+# The flow of data: robot -> control -> closed loop -> figures -> jobs -> tuning -> command line.
+LAYERS = ("core", "robot", "control", "sim", "report", "jobs", "tuning", "cli")
+
+
+def _module_name(path: pathlib.Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imports(path: pathlib.Path) -> set[str]:
+    """The wbc_jax modules a file imports (at any depth: function-level imports count too)."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("wbc_jax"):
+            for alias in node.names:
+                sub = f"{node.module}.{alias.name}"
+                found.add(sub if (PACKAGE.parent / (sub.replace(".", "/") + ".py")).exists() else node.module)
+        elif isinstance(node, ast.Import):
+            found |= {a.name for a in node.names if a.name.startswith("wbc_jax")}
+    return found
+
+
+def _layer(module: str) -> int:
+    parts = module.split(".")
+    if len(parts) == 1:
+        return -1  # the package's __init__ (its lazy public surface points anywhere)
+    return LAYERS.index(parts[1] if parts[1] in LAYERS else "cli")
+
+
+MODULES = {_module_name(p): _imports(p) for p in sorted(PACKAGE.rglob("*.py"))}
+
+
+def test_every_module_belongs_to_a_layer():
+    stray = [m for m in MODULES if m.count(".") == 1 and m.split(".")[1] not in (*LAYERS, "cli")]
+    assert not stray, f"modules outside the layers {LAYERS}: {stray}"
+
+
+@pytest.mark.parametrize("module", sorted(m for m in MODULES if m != "wbc_jax"))
+def test_imports_point_backwards(module):
+    upward = sorted(t for t in MODULES[module] if _layer(t) > _layer(module))
+    assert not upward, f"{module} ({LAYERS[_layer(module)]}) imports later layers: {upward}"
+
+
+def test_no_import_cycle():
+    graph = {m: {t for t in deps if t in MODULES and t != m} for m, deps in MODULES.items() if m != "wbc_jax"}
+    state: dict[str, int] = {}
+
+    def visit(m, path):
+        state[m] = 1
+        for t in sorted(graph.get(m, ())):
+            if state.get(t) == 1:
+                raise AssertionError("import cycle: " + " -> ".join([*path[path.index(t) :], t]))
+            if t not in state:
+                visit(t, [*path, t])
+        state[m] = 2
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m, [m])

@@ -1,0 +1,267 @@
+"""The momentum rate distributed over the contact set: constraints, wrench map, QPs.
+
+The momentum task asks for ``L_dot* - f_grav = A f`` with ``f`` (D,) the stacked contact wrenches
+(world axes, at the contact points). The WBC balancing controller (robotology whole-body-controllers,
+seed paper) picks, among the wrenches that realise it, those that minimise the joint torques,
+inside each contact's rigid-contact constraints::
+
+    minimise_f  |tau_model + Sigma f|^2 + w_n |S_n f - F_n|^2
+    subject to  A f = L_dot* - f_grav        (f = f1 + Z y,  Z a basis of null(A), as in WBC)
+                C f <= b                     (friction cone, torsion, CoP, f_n >= fz_min)
+
+(``w_n |S_n f - F_n|^2``: desired normal forces, a hand pressing a table, Nori et al. 2015). When
+a push asks for a momentum rate that no feasible wrench realises, the equality becomes the
+leading cost term instead (the soft momentum QP): ``min |A f - w|^2 + c (the cost above)``,
+always feasible (its angular rows optionally weighed down: ``angular_weight_soft``). ``analytic``
+is the seed paper's C++: the same least-squares torque minimisation without inequality constraints.
+
+Contact switching (the one-foot blend of codyco ``torqueBalancing``, for any contact set): with
+activations a_k, the engaged contacts (a_k > 0) and the fully active ones (a_k = 1) each get the
+formulation above, restricted to them, and ``f = w f_engaged + (1 - w) f_active`` with
+``w = min a_k`` over the engaged contacts, so the wrenches stay continuous while a contact is
+loaded or unloaded. With the two feet and one of them ramping this is WBC's blend of the two-feet
+QP and the one-foot QP.
+
+Every function takes a :class:`wbc_jax.robot.contacts.ContactSet` (static) and arrays of one state;
+the constraint rows of a contact are named by :func:`constraint_rows`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax.numpy as jnp
+from jax import lax
+
+from wbc_jax.control import qp
+from wbc_jax.control.constraints import (
+    VIOLATION_TOL,
+    constraint_contact,
+    constraints,
+    contact_violation,
+    normal_force_rows,
+    row_weights,
+)
+from wbc_jax.core.math import batch_any
+from wbc_jax.core.types import Array
+from wbc_jax.robot.contacts import ContactSet
+
+FORCE_MODES = ("qp", "analytic")
+
+
+def range_basis(N: Array, dim: int) -> Array:
+    """(k, dim) basis Z of range(N) for a symmetric projector N (k, k), differentiable through N.
+
+    ``Q`` = the eigenvectors of the ``dim`` largest eigenvalues of ``stop_gradient(N)``, then
+    ``Z = N Q``. For a projector ``N Q = Q``, so Z is orthonormal at the evaluation point, while its
+    derivative ``dN Q`` carries the rotation of the range. Differentiating an eigenbasis directly
+    would divide by the gaps between the repeated eigenvalues 1 of the projector (NaN); the QP's
+    solution ``Z y`` does not depend on the basis of the same range. Where ``rank(N) < dim`` the
+    surplus columns are zero (up to rounding). A symmetric eigensolver, not an SVD: the
+    eigenvalues 0 and 1 are a gap of 1 apart, and batched on a GPU it is the cheaper of the two.
+    """
+    _, V = jnp.linalg.eigh(lax.stop_gradient(N))  # ascending eigenvalues
+    return N @ V[:, ::-1][:, :dim]
+
+
+@dataclasses.dataclass(frozen=True)
+class ForceSettings:
+    """What the formulations need from the controller's configuration (hashable)."""
+
+    mode: str = "qp"
+    hessian_reg: float = 1e-7
+    qp_iterations: int = qp.DEFAULT_ITERATIONS
+    torque_weight_soft: float = 1e-4  # |tau|^2 against |A f - w|^2 (N^2 vs (N m)^2), soft QP
+    angular_weight_soft: float = 1.0  # the angular rows of |A f - w|^2 against the linear ones, soft QP
+    normal_force_weight: float = 1e3  # desired normal forces, per N^2 against (N m)^2
+    violation_tol: float | None = None  # accepted contact_violation of a QP's wrenches (None: by dtype)
+
+    def tolerance(self, dtype) -> float:
+        """The largest :func:`contact_violation` a formulation's wrenches may have (else the next
+        formulation is used): ``violation_tol`` or :data:`VIOLATION_TOL` of the precision."""
+        return VIOLATION_TOL[jnp.dtype(dtype).itemsize] if self.violation_tol is None else self.violation_tol
+
+
+def _restricted(cset: ContactSet, A: Array, mask: Array, wrench_des: Array):
+    """f1, Z of the momentum equality restricted to the contacts with ``mask`` (K,) = 1: the other
+    contacts' wrenches are zero. Z (D, D - 6) spans null(A) over the kept coordinates; its surplus
+    columns (fewer kept coordinates) are zero and flagged in ``spare`` (D - 6,)."""
+    D = cset.dim
+    dtype = A.dtype
+    keep = _row_mask(cset, mask)
+    A_m = A * keep[None, :]
+    A_pinv = jnp.linalg.solve(A_m @ A_m.T, A_m).T  # A_m has full row rank 6 (a sole is kept)
+    f1 = A_pinv @ wrench_des
+    N = keep[:, None] * (jnp.eye(D, dtype=dtype) - A_pinv @ A_m) * keep[None, :]
+    Z = range_basis(N, D - 6)
+    spare = lax.stop_gradient(jnp.sum(Z * Z, axis=0)) < 0.5
+    # Surplus columns are rounding noise: zero them, or the QP solver's unit-row scaling would
+    # blow the noise up into a direction the wrenches could move along.
+    return f1, jnp.where(spare[None, :], 0.0, Z), spare, keep
+
+
+def _row_mask(cset: ContactSet, mask: Array) -> Array:
+    return jnp.concatenate([jnp.full(c.dim, mask[k]) for k, c in enumerate(cset.contacts)])
+
+
+def _normal_force_scaling(NZ: Array, weight: float) -> Array:
+    """T (m, m): the change of variables y = T u that scales the k directions of y that move the
+    desired normal forces (the row space of NZ = S_n Z, (k, m)) so that ``weight |NZ T u|^2`` is
+    ``|u|^2`` there, and leaves the others alone. Without it the Hessian sums the torque terms
+    (eigenvalues 1e-2 to 1) with ``weight`` (1e3) x a rank-k term: in float32 the rounding of
+    the large term (1e-7 x 1e3) swamps the weakly determined directions (the weights' split
+    between the feet), whose solution then jumped by several N from tick to tick in closed loop.
+    A change of basis of null(A): the minimiser f is the same (held constant in derivatives)."""
+    _, s, Vt = jnp.linalg.svd(lax.stop_gradient(NZ), full_matrices=False)
+    scale = jnp.where(s > 1e-3, 1.0 / (math.sqrt(weight) * jnp.maximum(s, 1e-3)), 1.0)
+    return jnp.eye(NZ.shape[1], dtype=NZ.dtype) + (Vt.T * (scale - 1.0)) @ Vt
+
+
+def momentum_equality_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: Array,
+                         settings: ForceSettings) -> tuple[Array, qp.QPInfo]:  # fmt: skip
+    """The WBC QP (module docstring) over the contacts with ``mask`` = 1, the others' wrenches 0::
+
+        min |tau_model + Sigma f|^2 + w_n |S_n f - F_n|^2   s.t.  A f = wrench_des,  C f <= b
+
+    solved in y with f = f1 + Z y (f1 = A^+ wrench_des, Z a basis of null(A) over the kept
+    contacts), as WBC's f0 formulation but well conditioned. With desired normal forces, the
+    directions of y that change them are rescaled (:func:`_normal_force_scaling`).
+
+    Args:
+      mask: (K,) 1 for the contacts that may carry a wrench. A: (6, D) wrench map.
+      wrench_des: (6,) L_dot* - f_grav. tt: anything with ``Sigma`` (n, D) and ``tau_model`` (n,)
+        (:class:`wbc_jax.control.torques.TorqueTerms`). W_R: (K, 3, 3) contact frames.
+
+    Returns:
+      ``(f (D,), info)``; where infeasible, f = f1 + Z y with y the unconstrained minimiser (the
+      solver's fallback) and ``info.infeasible`` set.
+    """
+    dtype = A.dtype
+    f1, Z, spare, keep = _restricted(cset, A, mask, wrench_des)
+    C, b = constraints(cset, W_R, jnp.ones(len(cset.contacts), dtype))
+    row_kept = mask[jnp.asarray(constraint_contact(cset))] > 0
+    S_n, F_n = normal_force_rows(cset, W_R)
+    if Z.shape[1] == 0:  # a single surface contact: the equality fixes the wrench
+        rows = jnp.linalg.norm(C, axis=1)
+        excess = jnp.where(row_kept, (C @ f1 - b) / rows, 0.0)
+        violation = jnp.max(excess)
+        infeasible = violation > qp.default_tolerances(dtype)[1] * (1.0 + jnp.max(jnp.abs(f1)))
+        zero = jnp.zeros((), dtype)
+        return f1, qp.QPInfo(converged=~infeasible, infeasible=infeasible, max_violation=jnp.maximum(violation, 0.0),
+                             kkt_residual=zero, iterations=jnp.zeros((), jnp.int32))  # fmt: skip
+    S_n = S_n * keep[None, :]
+    w_n = settings.normal_force_weight
+    if S_n.shape[0]:
+        Z = Z @ _normal_force_scaling(S_n @ Z, w_n)
+    SZ, NZ = tt.Sigma @ Z, S_n @ Z
+    H = SZ.T @ SZ + w_n * NZ.T @ NZ + jnp.diag(settings.hessian_reg + spare.astype(dtype))
+    g = SZ.T @ (tt.tau_model + tt.Sigma @ f1) + w_n * NZ.T @ (S_n @ f1 - F_n)
+    # Rows of dropped contacts: 0 <= 1, trivially met (their wrench is zero).
+    y, info = qp.solve_qp(H, g, C @ Z, jnp.where(row_kept, b - C @ f1, 1.0), iterations=settings.qp_iterations,
+                          row_weight=row_weights(cset))  # fmt: skip
+    return f1 + Z @ y, info
+
+
+def soft_momentum_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: Array,
+                     settings: ForceSettings) -> tuple[Array, qp.QPInfo]:  # fmt: skip
+    """The soft momentum QP over the contacts with ``mask`` = 1 (always feasible)::
+
+        min |A f - wrench_des|_W^2 + c (|tau_model + Sigma f|^2 + w_n |S_n f - F_n|^2) + eps |f|^2
+        s.t. C f <= b,   the other contacts' wrenches 0
+
+    (c = ``settings.torque_weight_soft``; W = diag(1, 1, 1, a, a, a) with a =
+    ``settings.angular_weight_soft``: a < 1 keeps the force that moves the CoM and gives up the
+    angular-momentum rate first, docs/tuning/README.md). Arguments as :func:`momentum_equality_qp`."""
+    dtype = A.dtype
+    keep = _row_mask(cset, mask)
+    C, b = constraints(cset, W_R, jnp.ones(len(cset.contacts), dtype))
+    row_kept = mask[jnp.asarray(constraint_contact(cset))] > 0
+    S_n, F_n = normal_force_rows(cset, W_R)
+    c, w_n = settings.torque_weight_soft, settings.normal_force_weight
+    Ak, Sk, Nk = A * keep[None, :], tt.Sigma * keep[None, :], S_n * keep[None, :]
+    rows = jnp.asarray([1.0, 1.0, 1.0] + [settings.angular_weight_soft] * 3, dtype)
+    H = Ak.T @ (rows[:, None] * Ak) + c * (Sk.T @ Sk + w_n * Nk.T @ Nk) + jnp.diag(settings.hessian_reg + 1.0 - keep)
+    g = -Ak.T @ (rows * wrench_des) + c * (Sk.T @ tt.tau_model - w_n * Nk.T @ F_n)
+    x, info = qp.solve_qp(H, g, C * keep[None, :], jnp.where(row_kept, b, 1.0), iterations=settings.qp_iterations,
+                          row_weight=row_weights(cset))  # fmt: skip
+    return keep * x, info
+
+
+def wbc_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: Array,
+           settings: ForceSettings) -> tuple[Array, Array]:  # fmt: skip
+    """:func:`momentum_equality_qp`, or :func:`soft_momentum_qp` where the equality is infeasible
+    (a push asks for a momentum rate that no feasible wrench realises).
+
+    The equality QP's wrenches are used only if every kept contact's own constraints hold within
+    ``settings.tolerance`` relative to its normal force (:func:`contact_violation`): a solver that
+    stops short of an infeasible problem can return a point whose violation is small next to the
+    feet's forces but not next to a hand's (the 0.34 of a hand's normal force under pushes).
+
+    Returns ``(f (D,), infeasible ())``: infeasible when the soft QP failed too (flagged, or its
+    wrenches violate a contact's constraints beyond the tolerance)."""
+    tol = settings.tolerance(A.dtype)
+
+    def exceeds(f):
+        return jnp.max(jnp.where(mask > 0, contact_violation(cset, f, W_R, mask), 0.0)) > tol
+
+    f, info = momentum_equality_qp(cset, mask, A, wrench_des, tt, W_R, settings)
+
+    def soft():
+        f_soft, info_soft = soft_momentum_qp(cset, mask, A, wrench_des, tt, W_R, settings)
+        return f_soft, info_soft.infeasible | exceeds(f_soft)
+
+    use_soft = info.infeasible | exceeds(f)
+    # The soft QP only in ticks where some environment of a batch needs it (batch_any), used
+    # only where this one does.
+    f_soft, soft_failed = lax.cond(batch_any(use_soft), soft, lambda: (f, jnp.zeros((), bool)))
+    return jnp.where(use_soft, f_soft, f), use_soft & soft_failed
+
+
+def analytic(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, settings: ForceSettings) -> Array:
+    """The seed paper's C++ distribution over the contacts with ``mask`` = 1: least torque norm
+    among the wrenches that realise the momentum rate, no inequality constraints (one foot:
+    ``f = A_k^-1 wrench_des``). Returns f (D,)."""
+    dtype = A.dtype
+    f1, Z, spare, _ = _restricted(cset, A, mask, wrench_des)
+    if Z.shape[1] == 0:
+        return f1
+    SZ = tt.Sigma @ Z
+    y = -jnp.linalg.solve(
+        SZ.T @ SZ + jnp.diag(settings.hessian_reg + spare.astype(dtype)),
+        SZ.T @ (tt.tau_model + tt.Sigma @ f1),
+    )
+    return f1 + Z @ y
+
+
+def distribute(cset: ContactSet, activation: Array, A: Array, wrench_des: Array, tt, W_R: Array,
+               settings: ForceSettings) -> tuple[Array, Array]:  # fmt: skip
+    """Contact wrenches f (D,) for the momentum rate ``wrench_des`` (6,) = L_dot* - f_grav, with the
+    blend of the module docstring over the activations (K,).
+
+    Returns ``(f (D,), infeasible ())``: infeasible when a formulation in use had no feasible
+    solution (its soft QP failed too); always False for ``analytic``.
+    """
+    act = jnp.clip(activation, 0.0, 1.0)
+    # Sets that cannot be empty (their wrench map must have rank 6): with no contact engaged the
+    # wrenches are zero below; with none fully active, the most active ones stand in.
+    any_engaged = jnp.any(act > 0)
+    engaged = jnp.where(any_engaged, act > 0, True).astype(A.dtype)
+    active = jnp.where(jnp.any(act >= 1), act >= 1, act >= jnp.max(act)).astype(A.dtype)
+    w = jnp.min(jnp.where(act > 0, act, 1.0))
+
+    def formulation(mask):
+        if settings.mode == "analytic":
+            return analytic(cset, mask, A, wrench_des, tt, settings), jnp.zeros((), bool)
+        return wbc_qp(cset, mask, A, wrench_des, tt, W_R, settings)
+
+    f_engaged, infeasible_engaged = formulation(engaged)
+    # The fully active contacts' formulation only in ticks where a contact of some environment
+    # of the batch ramps (w < 1), used only where one does.
+    ramping = w < 1
+    f_active, infeasible_active = lax.cond(
+        batch_any(ramping), lambda: formulation(active), lambda: (jnp.zeros_like(f_engaged), jnp.zeros((), bool))
+    )
+    f_active = jnp.where(ramping, f_active, 0.0)
+    f = jnp.where(any_engaged, w * f_engaged + (1.0 - w) * f_active, 0.0)
+    return f, any_engaged & ((w > 0) & infeasible_engaged | (w < 1) & infeasible_active)

@@ -1,0 +1,103 @@
+"""The controller's gains: a pytree (batches of gain sets vmap, gradients flow),
+their WBC defaults, checks and gains files."""
+
+from __future__ import annotations
+
+import json
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wbc_jax.core.constants import GAIN_FIELDS, GAIN_RANGES, NON_NEGATIVE_GAINS, default_gain_values
+from wbc_jax.core.types import Array, pytree_dataclass
+
+
+@pytree_dataclass
+class Gains:
+    """Controller gains (n = 23 joints; a leading batch axis for several gain sets).
+
+    Attributes:
+      kp_com, kd_com, ki_com: (3,) CoM PID (ki_com = 0: the WBC law; > 0: the seed's PID)
+      kp_ang: (3,) on the angular momentum;  ki_ang: (3,) on its (linearised) integral
+      kp_postural, kd_postural: (n,) postural task
+    """
+
+    kp_com: Array
+    kd_com: Array
+    ki_com: Array
+    kp_ang: Array
+    ki_ang: Array
+    kp_postural: Array
+    kd_postural: Array
+
+
+def default_gains(n: int = 23, dtype=jnp.float32) -> Gains:
+    """WBC iCubGazeboV2_5 gains (:func:`wbc_jax.core.constants.default_gain_values`)."""
+    return Gains(**{k: jnp.asarray(v, dtype) for k, v in default_gain_values(n).items()})
+
+
+def validate_gains(gains: Gains, n: int) -> None:
+    """Raise ValueError (before any compilation) for wrong shapes, NaN/inf, negative gains or
+    gains outside their stated ranges (:data:`wbc_jax.core.constants.GAIN_RANGES`)."""
+    for name in GAIN_FIELDS:
+        size = n if name.endswith("postural") else 3
+        value = np.asarray(getattr(gains, name))
+        if value.shape[-1:] != (size,):
+            raise ValueError(f"gain {name} must have {size} entries (last axis), got shape {value.shape}")
+        if not np.all(np.isfinite(value)):
+            raise ValueError(f"gain {name} has NaN or infinite entries: {value.tolist()}")
+        if np.any(value < 0):
+            raise ValueError(f"gain {name} has negative entries: {value.tolist()}")
+        lo, hi = GAIN_RANGES[name]
+        if np.any(value > hi):
+            raise ValueError(f"gain {name} has entries above its range [{lo:g}, {hi:g}]: max {float(value.max()):g}")
+
+
+def gains_to_dict(gains: Gains) -> dict:
+    """JSON-ready dict of lists."""
+    return {k: np.asarray(getattr(gains, k)).tolist() for k in GAIN_FIELDS}
+
+
+def gains_from_dict(values: dict, n: int = 23, dtype=jnp.float32, source: str = "gains") -> Gains:
+    """Gains from a dict (e.g. a JSON gains file); names unknown/missing keys, checks values.
+
+    A gains file must have strictly positive gains (a zero gain disables a task); only the CoM
+    integral ki_com may be 0 (the WBC law has none)."""
+    if not isinstance(values, dict):
+        raise ValueError(f"{source}: must be a JSON object with keys {list(GAIN_FIELDS)}")
+    unknown = sorted(set(values) - set(GAIN_FIELDS))
+    missing = sorted(set(GAIN_FIELDS) - set(values))
+    if unknown or missing:
+        raise ValueError(f"{source}: unknown keys {unknown}, missing keys {missing}; expected {list(GAIN_FIELDS)}")
+    arrays = {}
+    for k in GAIN_FIELDS:
+        try:
+            arrays[k] = np.asarray(values[k], dtype=float)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"{source}: gain {k} must be a list of numbers, got {values[k]!r}") from err
+    gains = Gains(**arrays)
+    try:
+        validate_gains(gains, n)
+    except ValueError as err:
+        raise ValueError(f"{source}: {err}") from None
+    zero = {k: np.flatnonzero(arrays[k] <= 0).tolist() for k in GAIN_FIELDS
+            if k not in NON_NEGATIVE_GAINS and np.any(arrays[k] <= 0)}  # fmt: skip
+    if zero:
+        raise ValueError(f"{source}: gains must be positive: non-positive entries (indices) {zero}")
+    return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), gains)
+
+
+def load_gains(path, n: int = 23, dtype=jnp.float32) -> Gains:
+    """Read a gains JSON file (as written by ``wbc-jax tune`` or :func:`gains_to_dict`)."""
+    path = pathlib.Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"gains file {path} does not exist")
+    if not path.is_file():
+        raise ValueError(f"gains file {path} is not a file (a directory?); give a JSON file")
+    try:
+        values = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ValueError(f"gains file {path} is not valid JSON: {err}") from err
+    return gains_from_dict(values, n, dtype, source=f"gains file {path}")

@@ -1,0 +1,121 @@
+"""What a result file records of its origin: the command, the device, the package version and the
+contents (sha256) of every input file, in one format for every job and script.
+
+    record(inputs={"gains": "experiments/gains/x.json"}) -> {"command": ..., "device": ...,
+        "version": ..., "date": ..., "inputs": {"gains": {"path": ..., "sha256": ...}}}
+
+:func:`check_inputs` reads such a record back and names every input whose file has changed since,
+so a figure whose gains file was later overwritten is caught (tests/test_provenance.py runs it over
+every result file in docs/).
+"""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+import os
+import pathlib
+import shlex
+import sys
+
+# The repository's top folder (the package lives in REPO_ROOT / "wbc_jax").
+REPO_ROOT = pathlib.Path(__file__).resolve().parents[2]
+
+
+def sha256(path) -> str:
+    """Hex sha256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def display_path(path) -> str:
+    """A path as results name it: relative to the repository when inside it, else absolute."""
+    p = pathlib.Path(path).resolve()
+    try:
+        return p.relative_to(REPO_ROOT).as_posix()
+    except ValueError:
+        return p.as_posix()
+
+
+def command(argv: list[str] | None = None) -> str:
+    """The command line that is running, as a user would type it again: ``wbc-jax JOB ...`` for the
+    command-line jobs, ``python SCRIPT ...`` for scripts (paths relative to the repository)."""
+    argv = list(sys.argv if argv is None else argv)
+    if not argv:
+        return ""
+    prog = pathlib.Path(argv[0])
+    if prog.name in ("wbc-jax", "__main__.py") or prog.name.startswith("wbc_jax"):
+        head = ["wbc-jax"]
+    elif prog.suffix == ".py":
+        head = ["python", display_path(prog)]
+    else:
+        head = [prog.name]
+    return shlex.join([*head, *argv[1:]])
+
+
+def _cpu_name() -> str:
+    try:
+        for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    import platform
+
+    return platform.processor() or platform.machine() or "CPU"
+
+
+def device() -> dict:
+    """The devices JAX computes on: platform, their kind (the GPU's name, or the CPU's model), how
+    many (across processes after jax.distributed) and the host's cores."""
+    import jax
+
+    devices = jax.devices()
+    first = devices[0]
+    kind = _cpu_name() if first.platform == "cpu" else first.device_kind
+    return {"platform": first.platform, "kind": kind, "count": len(devices),
+            "processes": jax.process_count(), "host_cores": os.cpu_count()}  # fmt: skip
+
+
+def device_label(info: dict | None = None) -> str:
+    """One line for a device record: 'NVIDIA H100 80GB HBM3 x2 (gpu)', 'AMD EPYC, 2 cores (cpu)'."""
+    info = device() if info is None else info
+    if info["platform"] == "cpu":
+        return f"{info['kind']}, {info['host_cores']} cores (cpu)"
+    count = f" x{info['count']}" if info["count"] > 1 else ""
+    return f"{info['kind']}{count} ({info['platform']})"
+
+
+def record(inputs: dict | None = None, *, argv: list[str] | None = None, with_device: bool = True) -> dict:
+    """The provenance of a result: command, device, package version, date (UTC) and, for each
+    named input file (None: skipped), its path and sha256."""
+    from wbc_jax import __version__
+
+    out = {"command": command(argv), "version": __version__,
+           "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d")}  # fmt: skip
+    if with_device:
+        info = device()
+        out["device"] = {**info, "label": device_label(info)}
+    out["inputs"] = {
+        name: {"path": display_path(path), "sha256": sha256(path)}
+        for name, path in (inputs or {}).items()
+        if path is not None and pathlib.Path(path).is_file()
+    }
+    return out
+
+
+def check_inputs(result: dict, base: pathlib.Path = REPO_ROOT) -> list[str]:
+    """The inputs of a recorded result (its ``provenance.inputs``) whose files now differ or are
+    gone: one line each, empty when the record still reproduces."""
+    problems = []
+    for name, entry in (result.get("provenance", {}).get("inputs") or {}).items():
+        path = pathlib.Path(entry["path"])
+        path = path if path.is_absolute() else base / path
+        if not path.is_file():
+            problems.append(f"{name}: {entry['path']} is missing")
+        elif sha256(path) != entry["sha256"]:
+            problems.append(f"{name}: {entry['path']} has changed since (sha256 {entry['sha256'][:12]}...)")
+    return problems

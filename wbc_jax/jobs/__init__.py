@@ -1,0 +1,3 @@
+"""The jobs of the command line: run folders (``runs``), a balancing run (``balance``), batched
+push-recovery sweeps (``sweep``, ``push_grid``, ``sweep_table``), the recovery envelope
+(``envelope``) and recordings of any run (``view``)."""

@@ -1,0 +1,226 @@
+"""The ``balance`` job: one closed-loop run of the controller, with metrics,
+trajectory and plots."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import pathlib
+import time
+
+import jax
+import numpy as np
+
+from wbc_jax.control import references
+from wbc_jax.control.controller import FORCE_MODES, ControllerConfig, with_job_settings
+from wbc_jax.control.gains import gains_to_dict, load_gains
+from wbc_jax.control.torques import POSTURAL_VARIANTS
+from wbc_jax.core import io, provenance
+from wbc_jax.core.types import option
+from wbc_jax.jobs import runs
+from wbc_jax.report import plots
+from wbc_jax.sim import metrics as metrics_lib
+from wbc_jax.sim import physics, runner, scenario
+from wbc_jax.sim.state import SimConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class BalanceConfig:
+    """A balance run (the CLI flags of ``wbc-jax balance`` are generated from these fields)."""
+
+    task: str = option("stand", "balance task", choices=references.TASKS)
+    duration: float | None = option(None, "seconds (default: the task's: stand 10, sinusoid 20, one-foot 16)")
+    forces: str = option("qp", "force distribution", choices=FORCE_MODES)
+    postural: str = option("stable", "postural task variant", choices=POSTURAL_VARIANTS)
+    angular_weight_soft: float = option(
+        1.0, "soft momentum QP: weight of the angular-momentum rate against the linear one where a push asks for "
+        "more than the feet can give (1: WBC; < 1: the CoM first, the upper body absorbs the rest)",
+    )  # fmt: skip
+    gains: str | None = option(None, "gains JSON file (default: WBC iCubGazeboV2_5)", metavar="FILE")
+    tasks: str | None = option(
+        None, "task/contact file (JSON/YAML): motion tasks, contacts, scene objects, initial posture; "
+        "e.g. experiments/tasks/reach_circle.yaml, experiments/tasks/hand_on_table.yaml", metavar="FILE",
+    )  # fmt: skip
+    push_force: tuple[float, float, float] | None = option(
+        None, "push on the chest, world axes [N]", nargs=3, metavar=("FX", "FY", "FZ")
+    )
+    push_onset: float = option(1.0, "push start [s]")
+    push_duration: float = option(0.1, "push length [s]")
+    control_dt: float = option(0.01, "controller period [s], a multiple of the 1 ms physics step")
+    solver_iterations: int | None = option(None, "contact solver Newton iterations (default: the model's, 4)")
+    backend: str = option("auto", "physics engine (auto: C MuJoCo on a CPU, MJX on a GPU)", choices=physics.BACKENDS)
+    out: str = option("runs/balance", "output folder")
+    plots: bool = option(True, "write PNG plots")
+
+    def check(self) -> None:
+        """Every check that needs no model or compilation."""
+        if self.duration is not None and not (math.isfinite(self.duration) and self.duration > 0):
+            raise ValueError(f"--duration must be a positive finite number of seconds, got {self.duration}")
+        for name in ("push_onset", "push_duration"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"--{name.replace('_', '-')} must be a finite number of seconds >= 0, got {value}")
+        if self.push_force is not None:
+            scenario.make_push(self.push_force, self.push_onset, self.push_duration)
+        if not (math.isfinite(self.control_dt) and self.control_dt > 0):
+            raise ValueError(f"--control-dt must be a positive number of seconds, got {self.control_dt}")
+        physics.PhysicsConfig(backend=self.backend, solver_iterations=self.solver_iterations)
+        self.controller_config()
+        for name, path in (("gains", self.gains), ("tasks", self.tasks)):
+            runs.check_input_file(path, name)
+        runs.check_output_dir(self.out, "balance")
+
+    def controller_config(self, base: ControllerConfig | None = None) -> ControllerConfig:
+        """``base`` (default: the defaults) with this run's controller settings."""
+        return with_job_settings(base, self.forces, self.postural, self.angular_weight_soft)
+
+
+def default_config() -> BalanceConfig:
+    return BalanceConfig()
+
+
+def make_setup(
+    cfg: BalanceConfig, robot_name: str = "icub", controller: ControllerConfig | None = None
+) -> scenario.Setup:
+    """Scene, controller and closed loop of a balance run (checked, nothing compiled).
+    ``controller``: further controller settings (forces, postural and angular_weight_soft come from
+    ``cfg``)."""
+    scene = scenario.load_scene(robot_name, cfg.tasks)
+    dtype = scenario.float_dtype()
+    gains = load_gains(cfg.gains, scene.robot.index.n, dtype) if cfg.gains else None
+    sim = SimConfig(
+        control_dt=cfg.control_dt, record=True,
+        physics=physics.PhysicsConfig(backend=cfg.backend, solver_iterations=cfg.solver_iterations),
+    )  # fmt: skip
+    return scenario.setup(
+        cfg.task, duration=cfg.duration,
+        controller=cfg.controller_config(controller),
+        sim=sim, gains=gains, scene=scene,
+    )  # fmt: skip
+
+
+def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: str = "icub",
+        controller: ControllerConfig | None = None, **overrides) -> dict:  # fmt: skip
+    """Run the balance job; write metrics.json, trajectory.npz and PNG plots into ``cfg.out``
+    (None: nothing written). ``overrides``: fields of :class:`BalanceConfig`; ``controller``:
+    further controller settings (hierarchy damping, ...).
+
+    Returns:
+      the metrics dict (also printed by the CLI as one JSON line).
+    """
+    from tqdm.auto import tqdm
+
+    cfg = dataclasses.replace(default_config() if cfg is None else cfg, **overrides)
+    cfg.check()
+    st = make_setup(cfg, robot_name, controller)
+    out = None if cfg.out is None else pathlib.Path(cfg.out)
+    if out is not None:
+        runs.claim_output_dir(out, "balance", runs.fingerprint(dataclasses.asdict(cfg), [cfg.gains, cfg.tasks]))
+    push, push_end = None, 0.0
+    if cfg.push_force is not None:
+        push = scenario.make_push(cfg.push_force, cfg.push_onset, cfg.push_duration, st.dtype)
+        push_end = cfg.push_onset + cfg.push_duration
+    loop = st.loop
+    start = time.time()
+    with tqdm(total=loop.n_ticks, unit="tick", disable=not progress, desc=f"{cfg.task} ({st.backend})") as bar:
+        result_run = runner.run(st, scenario.single(st, push), on_tick=lambda k: bar.update(k - bar.n))
+    wall = time.time() - start
+    metrics = jax.tree_util.tree_map(lambda x: x[0], result_run.metrics)
+    traj = {name: np.asarray(v)[0] for name, v in dataclasses.asdict(result_run.records).items()}
+    result = {"task": cfg.task, "forces": cfg.forces, "postural": cfg.postural, "duration_s": loop.cfg.duration,
+              "solver_iterations": int(cfg.solver_iterations or st.robot.mj_model.opt.iterations),
+              "control_dt_s": loop.cfg.control_dt, "backend": st.backend}  # fmt: skip
+    result.update(metrics_lib.summarize(metrics, push_end))
+    result.update(force_task_error(traj))
+    if loop.controller.stack is not None:
+        result["tasks"] = task_tracking(loop.controller.stack, traj)
+    if st.scene.tasks_file is not None:
+        result["contacts"] = contact_tracking(loop.contact_set, traj)
+    result["compile_s"] = round(result_run.compile_s, 2)
+    result["loop_s"] = round(result_run.run_s, 2)
+    result["real_time_factor"] = round(loop.cfg.duration / result_run.run_s, 3) if result_run.run_s > 0 else None
+    result["wall_time_s"] = round(wall, 2)
+    result["device"] = provenance.device_label()
+    result = _jsonable(result)
+    if out is not None:
+        io.atomic_write_json(out / "metrics.json", {**result, "gains": gains_to_dict(st.gains),
+                                                   "provenance": provenance.record({"gains": cfg.gains,
+                                                                                    "tasks": cfg.tasks}),
+                                                   "config": dataclasses.asdict(cfg),
+                                                   "controller": dataclasses.asdict(st.loop.controller.config)})  # fmt: skip
+        io.atomic_save_npz(out / "trajectory.npz", joints=np.array(st.robot.index.joints),
+                           contact_names=np.array(loop.contact_set.names),
+                           contact_dims=np.array([c.dim for c in loop.contact_set.contacts]), **traj)  # fmt: skip
+        if cfg.plots:
+            title = f"{cfg.task}, forces={cfg.forces}, postural={cfg.postural}"
+            plots.com_tracking(traj, out / "com.png", title)
+            plots.contact_forces(traj, list(loop.contact_set.names), [c.dim for c in loop.contact_set.contacts],
+                                 out / "contact_forces.png", title)  # fmt: skip
+            plots.joint_torques(traj, list(st.robot.index.joints), out / "torques.png", title)
+    return result
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (np.generic, np.ndarray)):
+        value = value.item() if np.ndim(value) == 0 else value.tolist()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def task_tracking(stack, traj: dict, after: float = 0.0) -> dict:
+    """Per motion task: RMSE and max of the error norm (m, or the vee orientation error) over the
+    ticks after ``after`` s, from the trajectory's ``task_err`` columns (stack order)."""
+    sel = traj["t"] >= after
+    out, col = {}, 0
+    for task in stack.tasks:
+        rows = len(task.kp)
+        e = np.linalg.norm(traj["task_err"][sel, col : col + rows], axis=1)
+        out[task.name] = {"rmse": float(np.sqrt(np.mean(e**2))), "max": float(e.max())}
+        col += rows
+    return out
+
+
+def force_task_error(traj: dict, after: float = 1.0) -> dict:
+    """How well the simulator's contact wrenches realise the commanded ones (ticks after ``after``
+    s): median and 95th percentile over ticks of |f_meas - f_cmd| / |f_cmd| (all contacts
+    stacked) and the median momentum-rate error |Ldot_meas - Ldot*| (N)."""
+    sel = traj["t"] >= min(after, 0.5 * float(traj["t"][-1]))
+    df = np.linalg.norm(traj["f_meas"][sel] - traj["f_cmd"][sel], axis=1)
+    rel = df / np.maximum(np.linalg.norm(traj["f_cmd"][sel], axis=1), 1e-9)
+    dL = np.linalg.norm(traj["Ldot_meas"][sel] - traj["Ldot_star"][sel], axis=1)
+    return {
+        "force_rel_err_median": float(np.median(rel)),
+        "force_rel_err_p95": float(np.percentile(rel, 95)),
+        "momentum_rate_err_median_n": float(np.median(dL)),
+    }
+
+
+def contact_tracking(cset, traj: dict, after: float = 1.0) -> dict:
+    """Per contact, over the ticks after ``after`` s: the measured (simulator) and commanded normal
+    forces (median, N) and, where a normal force is desired, the max and median of
+    |measured - desired|; and the max drift of the contact point (m)."""
+    sel = traj["t"] >= min(after, 0.5 * float(traj["t"][-1]))
+    out = {}
+    for k, (c, sl) in enumerate(zip(cset.contacts, cset.slices(), strict=True)):
+        n = traj["contact_normal"][sel, k]
+        meas = np.einsum("ti,ti->t", traj["f_meas"][sel, sl.start : sl.start + 3], n)
+        cmd = np.einsum("ti,ti->t", traj["f_cmd"][sel, sl.start : sl.start + 3], n)
+        entry = {"normal_force_meas_median_n": float(np.median(meas)),
+                 "normal_force_cmd_median_n": float(np.median(cmd))}  # fmt: skip
+        if math.isfinite(c.normal_force):
+            desired = c.normal_force * traj["activation"][sel, k]
+            entry["normal_force_desired_n"] = c.normal_force
+            entry["normal_force_err_max_n"] = float(np.max(np.abs(meas - desired)))
+            entry["normal_force_err_median_n"] = float(np.median(np.abs(meas - desired)))
+        p = traj["contact_pos"][:, k]
+        entry["max_drift_m"] = float(np.max(np.linalg.norm(p - p[0], axis=1)))
+        out[c.name] = entry
+    return out
+
+
+def main_json_line(result: dict) -> str:
+    return json.dumps(result, separators=(",", ":"))

@@ -1,0 +1,123 @@
+"""Run directories: where a job writes, checked first, bound to what made its results.
+
+Every job's output folder holds ``run.json``: the job kind and a fingerprint of everything that
+determines the results (the full config, a content hash of each input file and of the robot
+model, the package version). A job refuses a folder that is a file, is not writable, or holds a
+run of another kind, before anything is loaded or compiled; a resumable job (sweep, tune)
+refuses to resume a run whose fingerprint differs, naming the difference.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import tempfile
+
+from wbc_jax.core import io, provenance
+
+MANIFEST = "run.json"
+
+
+def fingerprint(config: dict, files=(), robot: str = "icub") -> dict:
+    """What determines a run's results: the config, the contents of its input files (paths that
+    are None are skipped), the robot model file and the package version."""
+    from wbc_jax import __version__
+    from wbc_jax.robot.model import ROBOTS
+
+    contents = {}
+    for f in files:
+        if f:
+            path = pathlib.Path(f)
+            contents[str(f)] = provenance.sha256(path) if path.is_file() else None
+    model = ROBOTS.get(robot)
+    return {
+        "config": json.loads(json.dumps(config, default=str)),
+        "files": contents,
+        "model": provenance.sha256(model) if model is not None and model.exists() else None,
+        "version": __version__,
+    }
+
+
+def check_input_file(path, flag: str) -> None:
+    """An input file named on the command line exists and is a file."""
+    if path is None:
+        return
+    path = pathlib.Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"--{flag} file {path} does not exist")
+    if not path.is_file():
+        raise ValueError(f"--{flag} {path} is not a file (a directory?)")
+
+
+def check_output_dir(path, kind: str) -> pathlib.Path:
+    """Fail early if ``path`` cannot hold a ``kind`` run: it is a file, it holds a run of another
+    kind (or files of something else), or it cannot be written."""
+    if path is None:
+        return None
+    path = pathlib.Path(path)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"--out {path} is a file; give a folder for the {kind} run")
+    manifest = path / MANIFEST
+    if manifest.exists():
+        try:
+            found = json.loads(manifest.read_text()).get("kind")
+        except (json.JSONDecodeError, UnicodeDecodeError, AttributeError) as err:
+            raise ValueError(f"--out {path}: its {MANIFEST} is unreadable ({err}); use another folder") from None
+        if found != kind:
+            raise ValueError(f"--out {path} holds a {found} run; a {kind} run needs its own folder")
+    elif path.is_dir():
+        others = sorted(p.name for p in path.iterdir() if not p.name.startswith("."))
+        if others:
+            raise ValueError(
+                f"--out {path} is not empty and holds no {MANIFEST} (found {others[:5]}); give a new or empty folder"
+            )
+    # Writable: the folder itself, or the nearest existing parent.
+    probe = path
+    while not probe.exists():
+        probe = probe.parent
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise ValueError(f"--out {path}: {probe} is not writable")
+    try:
+        probe.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=probe):
+            pass
+    except OSError as err:
+        raise ValueError(f"--out {path}: cannot write there ({err})") from None
+    return path
+
+
+def differences(old: dict, new: dict, prefix: str = "") -> list[str]:
+    """Human-readable differences between two fingerprints."""
+    out = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key, "<absent>"), new.get(key, "<absent>")
+        name = f"{prefix}{key}"
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += differences(a, b, name + ".")
+        elif a != b:
+            if key in ("model",) or prefix.startswith("files"):
+                out.append(f"{name}: contents changed")
+            else:
+                out.append(f"{name}: {a!r} -> {b!r}")
+    return out
+
+
+def claim_output_dir(path, kind: str, fp: dict, *, resume: bool = False) -> bool:
+    """Bind ``path`` to a ``kind`` run with fingerprint ``fp``. With ``resume``, an existing run of
+    the same fingerprint is continued (returns True) and a different one is refused, naming the
+    differences; without, the folder is (re)written by this run (returns False)."""
+    path = check_output_dir(path, kind)
+    manifest = path / MANIFEST
+    if manifest.exists() and resume:
+        old = json.loads(manifest.read_text())
+        diff = differences(old.get("fingerprint", {}), fp)
+        if diff:
+            raise ValueError(
+                f"--out {path} holds a {kind} run made with other inputs ({'; '.join(diff)}); "
+                "use another --out, or remove the folder to start over"
+            )
+        return True
+    path.mkdir(parents=True, exist_ok=True)
+    io.atomic_write_json(manifest, {"kind": kind, "fingerprint": fp})
+    return False

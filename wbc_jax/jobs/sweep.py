@@ -1,0 +1,279 @@
+"""Batched push-recovery sweeps: scenarios -> batched closed loops -> table.
+
+A scenario per environment: one push on a body (azimuth, elevation, magnitude, duration, onset),
+a gain set, initial joint noise, floor friction and a mass scale of the plant. The batch is
+split into chunks of one compiled shape, each written atomically to a Parquet part listed in the
+run's manifest, so a run larger than memory resumes where it stopped; each chunk runs on the
+setup's physics backend (MJX: sharded over a ``jax.sharding.Mesh`` of all devices along the batch
+axis; multi-host: call ``jax.distributed.initialize()`` first and the same code shards over the
+global mesh. C MuJoCo: the jitted controller and threaded C physics).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import pathlib
+
+import jax
+import numpy as np
+
+from wbc_jax.control.controller import ControllerConfig
+from wbc_jax.control.gains import Gains, default_gains, gains_from_dict, gains_to_dict, load_gains, validate_gains
+from wbc_jax.core import constants, io, provenance
+from wbc_jax.jobs import runs
+from wbc_jax.jobs.sweep_config import SweepConfig, default_config
+from wbc_jax.jobs.sweep_table import summarize_table
+from wbc_jax.report import sweep_plots
+from wbc_jax.robot import model as model_lib
+from wbc_jax.sim import metrics as metrics_lib
+from wbc_jax.sim import physics, runner, scenario
+from wbc_jax.sim.state import Push, Scenario, SimConfig
+
+
+def gain_sets(base: Gains, count: int, scale_range, rng: np.random.Generator) -> list:
+    """``count`` gain sets: the base one, then per-group log-uniform scalings of it."""
+    sets = [base]
+    lo, hi = np.log(scale_range[0]), np.log(scale_range[1])
+    for _ in range(count - 1):
+        scaled = {name: np.asarray(getattr(base, name)) * np.exp(rng.uniform(lo, hi)) for name in constants.GAIN_FIELDS}
+        sets.append(Gains(**scaled))
+    return sets
+
+
+def scenarios_at(cfg: SweepConfig, sets: list, mag, azi, gset, friction, mass_scale, joint_offset,
+                 dtype=np.float32) -> tuple[Scenario, dict]:  # fmt: skip
+    """Scenarios (leading axis B) of pushes of magnitude ``mag`` (B,) N at azimuth ``azi`` (B,) deg
+    (the config's elevation, duration, onset, body) with gain set ``gset`` (B,) of ``sets``, and the
+    plant and initial-posture perturbations given. Returns (Scenario, dict of numpy columns)."""
+    mag, azi, gset = np.asarray(mag, float), np.asarray(azi, float), np.asarray(gset, int)
+    B = mag.size
+    el = np.deg2rad(cfg.elevation)
+    direction = np.stack(
+        [np.cos(np.deg2rad(azi)) * np.cos(el), np.sin(np.deg2rad(azi)) * np.cos(el), np.full(B, np.sin(el))], axis=1
+    )
+    stacked = {name: np.stack([np.asarray(getattr(sets[g], name)) for g in gset]) for name in constants.GAIN_FIELDS}
+    columns = {
+        "magnitude_n": mag,
+        "azimuth_deg": azi,
+        "elevation_deg": np.full(B, cfg.elevation),
+        "impulse_ns": mag * cfg.push_duration,
+        "gain_set": gset,
+        "friction": np.asarray(friction, float),
+        "mass_scale": np.asarray(mass_scale, float),
+    }
+    scen = Scenario(
+        push=Push(
+            force=(mag[:, None] * direction)[:, None, :].astype(dtype),
+            onset=np.full((B, 1), cfg.push_onset, dtype),
+            duration=np.full((B, 1), cfg.push_duration, dtype),
+            body=np.full((B, 1), -1, np.int32),  # the setup's push body, cfg.body
+        ),
+        gains=Gains(**{k: v.astype(dtype) for k, v in stacked.items()}),
+        joint_offset=np.asarray(joint_offset).astype(dtype),
+        friction=columns["friction"].astype(dtype),
+        mass_scale=columns["mass_scale"].astype(dtype),
+    )
+    return scen, columns
+
+
+def build_scenarios(cfg: SweepConfig, base_gains: Gains, n: int, dtype=np.float32):
+    """The full grid magnitude x direction x gain set, with seeded random perturbations.
+
+    Returns (Scenario with a leading axis of size cfg.size, dict of numpy columns)."""
+    rng = np.random.default_rng(cfg.seed)
+    sets = gain_sets(base_gains, cfg.gain_sets, cfg.gain_scale_range, rng)
+    mag, azi, gset = np.meshgrid(
+        np.asarray(cfg.magnitudes, float), np.asarray(cfg.directions, float), np.arange(cfg.gain_sets), indexing="ij"
+    )
+    B = mag.size
+    friction, mass_scale = rng.uniform(*cfg.friction, B), rng.uniform(*cfg.mass_scale, B)
+    joint_offset = rng.normal(scale=cfg.joint_noise, size=(B, n)) if cfg.joint_noise else np.zeros((B, n))
+    return scenarios_at(cfg, sets, mag.ravel(), azi.ravel(), gset.ravel(), friction, mass_scale, joint_offset, dtype)
+
+
+def make_setup(cfg: SweepConfig, base_gains: Gains | None = None, *, robot_name: str = "icub",
+               loss_trace: bool = False, checkpoint: bool = False, record: bool = False,
+               controller: ControllerConfig | None = None) -> scenario.Setup:  # fmt: skip
+    """The closed loop of a sweep's environments (tuning uses it with a LossTrace, replays with
+    ``record``). ``controller``: further controller settings (forces, postural, angular_weight_soft
+    from ``cfg``)."""
+    scene = scenario.load_scene(robot_name, cfg.tasks)
+    sim = SimConfig(
+        record=record, loss_trace=loss_trace, checkpoint=checkpoint, push_body=cfg.body,
+        perturb_plant=cfg.perturbs_plant,
+        physics=physics.PhysicsConfig(backend="jax" if loss_trace else cfg.backend, solver_iterations=cfg.solver_iterations),
+    )  # fmt: skip
+    return scenario.setup(
+        cfg.task, duration=cfg.horizon,
+        controller=cfg.controller_config(controller),
+        sim=sim, gains=base_gains, scene=scene,
+    )  # fmt: skip
+
+
+def base_gains(cfg: SweepConfig, n: int, dtype) -> Gains:
+    gains = load_gains(cfg.gains, n, dtype) if cfg.gains else default_gains(n, dtype)
+    validate_gains(gains, n)
+    return gains
+
+
+def fingerprint(cfg: SweepConfig) -> dict:
+    return runs.fingerprint({**dataclasses.asdict(cfg), "dtype": str(scenario.float_dtype())}, [cfg.gains, cfg.tasks])
+
+
+def _part_name(c: int) -> str:
+    return f"part-{c:05d}.parquet"
+
+
+def _read_part(path: pathlib.Path, lo: int, hi: int):
+    """A part file if it holds exactly envs lo..hi-1, else None (missing, unreadable or wrong)."""
+    import pandas as pd
+
+    if not path.exists():
+        return None
+    try:
+        table = pd.read_parquet(path)
+    except Exception:
+        return None
+    if "env" not in table or not np.array_equal(table["env"].to_numpy(), np.arange(lo, hi)):
+        return None
+    return table
+
+
+def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_name: str = "icub", **overrides) -> dict:
+    """Run (or resume) a sweep into ``cfg.out``: parts/*.parquet, results.parquet, summary.json, plots.
+
+    ``overrides``: fields of :class:`SweepConfig`. A resumed run must have the same fingerprint
+    (config, input file contents, model, version); each part file is checked against the env
+    range it must hold and recomputed if it does not."""
+    import pandas as pd
+    from tqdm.auto import tqdm
+
+    cfg = dataclasses.replace(default_config() if cfg is None else cfg, **overrides)
+    cfg.check()
+    runs.check_output_dir(cfg.out, "sweep")
+    out = pathlib.Path(cfg.out)
+    dtype = scenario.float_dtype()
+    robot = model_lib.load_robot(robot_name)
+    base = base_gains(cfg, robot.index.n, dtype)
+    robot.index.body_id(cfg.body)
+    st = make_setup(cfg, base, robot_name=robot_name)
+    runner.check_queue(cfg.queue, st.backend)
+    scen, columns = build_scenarios(cfg, base, robot.index.n, dtype)
+    # With several processes (jax.distributed), each computes every chunk with its devices' share
+    # and gathers the results; the first process writes them.
+    writer = jax.process_index() == 0
+    if writer:
+        runs.claim_output_dir(out, "sweep", fingerprint(cfg), resume=True)
+
+    push_end = cfg.push_onset + cfg.push_duration
+    n_chunks = math.ceil(cfg.size / cfg.chunk_size)
+    parts = out / "parts"
+    compile_s = run_s = 0.0
+    done_envs = simulated_ticks = 0
+    tables = []
+    with tqdm(total=cfg.size, unit="env", disable=not progress, desc=f"sweep ({st.backend})") as bar:
+        for c in range(n_chunks):
+            lo, hi = c * cfg.chunk_size, min((c + 1) * cfg.chunk_size, cfg.size)
+            part = parts / _part_name(c)
+            table = _read_part(part, lo, hi)
+            if table is None:
+                chunk = jax.tree_util.tree_map(lambda x, lo=lo, hi=hi: np.asarray(x)[lo:hi], scen)
+                result = runner.run(st, chunk, batch_size=cfg.chunk_size, queue=cfg.queue)
+                compile_s += result.compile_s
+                run_s += result.run_s
+                done_envs += hi - lo
+                simulated_ticks += int(np.sum(result.metrics.ticks))
+                cols = metrics_lib.summarize(result.metrics, push_end)
+                table = pd.DataFrame({"env": np.arange(lo, hi), **{k: v[lo:hi] for k, v in columns.items()}, **cols})
+                if writer:
+                    io.atomic_write_parquet(part, table)
+            tables.append(table)
+            bar.update(hi - lo)
+    table = pd.concat(tables, ignore_index=True)
+    if writer:
+        io.atomic_write_parquet(out / "results.parquet", table)
+    steps_per_env = st.loop.n_ticks * st.loop.n_sub
+    summary = summarize_table(table, cfg, st.robot)
+    devices = runner.batch_devices() if st.backend != "mujoco" else jax.devices()[:1]  # C MuJoCo: host only
+    summary.update({
+        "config": dataclasses.asdict(cfg),
+        "backend": st.backend,
+        "survival_criterion": constants.SURVIVAL_CRITERION,
+        "device": provenance.device_label(),
+        "n_devices": len(devices),
+        "versions": {"jax": jax.__version__, "mujoco": __import__("mujoco").__version__,
+                     "wbc_jax": __import__("wbc_jax").__version__},
+        "compile_s": round(compile_s, 2),
+        "run_s": round(run_s, 2),
+        # Steps of the whole grid per second of run (with a queue, fewer were simulated).
+        "physics_steps_per_s": (done_envs * steps_per_env / run_s) if run_s > 0 else None,
+        "physics_steps_simulated": simulated_ticks * st.loop.n_sub,
+        "gains": gains_to_dict(base),
+        "provenance": provenance.record({"gains": cfg.gains, "tasks": cfg.tasks}),
+    })  # fmt: skip
+    if writer:
+        io.atomic_write_json(out / "summary.json", summary)
+        sweep_plots.survival_map(table, out / "survival.png", summary["envelope"])
+        sweep_plots.envelope(table, summary["envelope"], out / "envelope.png")
+    return summary
+
+
+def load_sweep(run_dir) -> tuple[SweepConfig, dict]:
+    """The config and summary of a finished sweep in ``run_dir`` (clear errors when not)."""
+    run_dir = pathlib.Path(run_dir)
+    if not run_dir.exists():
+        raise FileNotFoundError(f"{run_dir} does not exist")
+    if not run_dir.is_dir():
+        raise ValueError(f"{run_dir} is a file; give the folder of a push sweep")
+    path = run_dir / "summary.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{path} is missing: the sweep has not finished; rerun it with the same --out")
+    try:
+        summary = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ValueError(f"{path} is not valid JSON ({err})") from None
+    values = {k: tuple(v) if isinstance(v, list) else v for k, v in summary.get("config", {}).items()}
+    known = {f.name for f in dataclasses.fields(SweepConfig)}
+    return SweepConfig(**{k: v for k, v in values.items() if k in known}), summary
+
+
+def replay_env(run_dir, env: int, *, robot_name: str = "icub", backend: str | None = None):
+    """Re-simulate env ``env`` of a finished push sweep, recording its trajectory.
+
+    The scenario is rebuilt deterministically from the stored config, seed and base gains
+    (:func:`build_scenarios`): same push, gain set, joint offset, friction and mass scale, on the
+    sweep's backend (or ``backend``). Run in the dtype the sweep ran in, the replay equals the
+    sweep's metrics (tests/test_viz.py).
+
+    Returns:
+      (setup, trajectory dict of numpy (T, ...), replay metrics dict, the sweep's row dict).
+    """
+    import pandas as pd
+
+    cfg, summary = load_sweep(run_dir)
+    results = pathlib.Path(run_dir) / "results.parquet"
+    if not results.exists():
+        raise FileNotFoundError(f"{results} is missing: the sweep has not finished; rerun it with the same --out")
+    table = pd.read_parquet(results)
+    if not (isinstance(env, int) and 0 <= env < len(table)):
+        raise ValueError(f"env {env} is out of range: this sweep has envs 0..{len(table) - 1}")
+    cfg = dataclasses.replace(cfg, backend=backend or summary.get("backend", cfg.backend))
+    dtype = scenario.float_dtype()
+    robot = model_lib.load_robot(robot_name)
+    base = gains_from_dict(summary["gains"], robot.index.n, dtype)
+    scen, columns = build_scenarios(cfg, base, robot.index.n, dtype)
+    row = table[table["env"] == env].iloc[0].to_dict()
+    for key in ("magnitude_n", "azimuth_deg", "gain_set"):
+        if not np.isclose(columns[key][env], row[key]):
+            raise ValueError(f"the rebuilt scenario of env {env} differs from the sweep's ({key}); "
+                             "the sweep was written by another version")  # fmt: skip
+    st = make_setup(cfg, base, robot_name=robot_name, record=True)
+    one = jax.tree_util.tree_map(lambda x: np.asarray(x)[env : env + 1], scen)
+    result = runner.run(st, one)
+    traj = {name: np.asarray(v)[0] for name, v in dataclasses.asdict(result.records).items()}
+    metrics = metrics_lib.summarize(
+        jax.tree_util.tree_map(lambda x: x[0], result.metrics), cfg.push_onset + cfg.push_duration
+    )
+    return st, traj, metrics, row

@@ -1,0 +1,116 @@
+"""``wbc-jax view``: a run on disk as a rerun recording (:mod:`wbc_jax.report.recording` draws it).
+
+A ``balance`` run (``trajectory.npz``) is logged as is; env I of a push sweep (``results.parquet``
++ ``summary.json``) is first re-simulated with trajectory recording from its stored scenario
+(:func:`wbc_jax.jobs.sweep.replay_env`).
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import zipfile
+
+import numpy as np
+
+from wbc_jax.report.recording import check_trajectory, log_trajectory, scene_boxes
+from wbc_jax.robot import model as model_lib
+
+
+def run_kind(run_dir: str | pathlib.Path) -> str:
+    """``"balance"`` (trajectory.npz) or ``"sweep"`` (results.parquet + summary.json)."""
+    run_dir = pathlib.Path(run_dir)
+    if not run_dir.exists():
+        raise FileNotFoundError(f"run directory {run_dir} does not exist")
+    if not run_dir.is_dir():
+        raise ValueError(f"{run_dir} is a file; give the output folder of a balance run or a push sweep")
+    if (run_dir / "trajectory.npz").exists():
+        return "balance"
+    if (run_dir / "results.parquet").exists() or (run_dir / "summary.json").exists():
+        return "sweep"
+    raise FileNotFoundError(
+        f"{run_dir} is neither a balance run (no trajectory.npz) nor a finished push sweep "
+        f"(no results.parquet); found: {sorted(p.name for p in run_dir.iterdir())}"
+    )
+
+
+def _read_npz(path: pathlib.Path) -> dict:
+    try:
+        with np.load(path) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:  # truncated or not an npz
+        raise ValueError(f"{path} is unreadable ({err}); rerun the balance job") from None
+
+
+def load_run(run_dir: str | pathlib.Path, env: int | None = None) -> tuple[dict, dict]:
+    """The trajectory of a run dir and how to draw it.
+
+    Returns:
+      (traj dict, info {"kind", "push_body", "joints", "name", "contacts", "dims", "boxes"}).
+
+    Raises:
+      FileNotFoundError / ValueError: unknown dir, missing files, env given for a balance run or
+        missing / out of range for a sweep.
+    """
+    from wbc_jax.jobs import sweep
+    from wbc_jax.sim import scenario
+
+    run_dir = pathlib.Path(run_dir)
+    kind = run_kind(run_dir)
+    if kind == "balance":
+        if env is not None:
+            raise ValueError(f"{run_dir} is a balance run (one trajectory): --env applies to sweeps only")
+        traj = _read_npz(run_dir / "trajectory.npz")
+        joints = [str(j) for j in traj.pop("joints", model_lib.ICUB_JOINTS)]
+        names = [str(c) for c in traj.pop("contact_names", ["left", "right"])]
+        dims = [int(d) for d in traj.pop("contact_dims", [6] * len(names))]
+        boxes = {}
+        metrics = run_dir / "metrics.json"
+        tasks = json.loads(metrics.read_text()).get("config", {}).get("tasks") if metrics.exists() else None
+        if tasks:
+            boxes = scene_boxes(scenario.load_scene("icub", tasks).robot)
+        return traj, {"kind": kind, "push_body": "chest", "joints": joints, "name": "rollout",
+                      "contacts": names, "dims": dims, "boxes": boxes}  # fmt: skip
+    if env is None:
+        import pandas as pd
+
+        results = run_dir / "results.parquet"
+        if not results.exists():
+            raise FileNotFoundError(f"{results} is missing: the sweep has not finished")
+        size = len(pd.read_parquet(results))
+        raise ValueError(f"{run_dir} is a push sweep of {size} envs: choose one with --env I, I in 0..{size - 1}")
+    st, traj, _, _ = sweep.replay_env(run_dir, env)
+    cset = st.loop.contact_set
+    return traj, {"kind": kind, "push_body": st.loop.cfg.push_body, "joints": list(st.robot.index.joints),
+                  "name": f"env_{env}", "contacts": list(cset.names), "dims": [c.dim for c in cset.contacts],
+                  "boxes": scene_boxes(st.robot)}  # fmt: skip
+
+
+def view(run_dir: str | pathlib.Path, env: int | None = None, *, out: str | pathlib.Path | None = None,
+         spawn: bool = False) -> pathlib.Path | None:  # fmt: skip
+    """Log a run (or sweep env) to rerun: write ``out`` (default RUN_DIR/rollout.rrd or
+    RUN_DIR/env_I.rrd) or, with ``spawn``, open a viewer. Returns the .rrd path (None if spawned)."""
+    try:
+        import rerun as rr
+    except ImportError:
+        raise ImportError('wbc-jax view needs rerun-sdk: pip install -e ".[viz]"') from None
+
+    run_dir = pathlib.Path(run_dir)
+    traj, info = load_run(run_dir, env)
+    check_trajectory(traj)  # before a file or viewer is opened
+    rec = rr.RecordingStream("wbc_jax", recording_id=f"{run_dir.resolve()}:{info['name']}")
+    if spawn:
+        rec.spawn()
+        path = None
+    else:
+        path = pathlib.Path(out) if out is not None else run_dir / f"{info['name']}.rrd"
+        if path.exists() and path.is_dir():
+            raise ValueError(f"--out {path} is a folder; give a .rrd file name")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        rec.save(str(path))
+    log_trajectory(rec, traj, push_body=info["push_body"], joints=info["joints"], contacts=info["contacts"],
+                   dims=info["dims"], boxes=info["boxes"])  # fmt: skip
+    rec.flush()
+    if path is not None:
+        rec.disconnect()
+    return path

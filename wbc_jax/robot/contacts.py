@@ -1,0 +1,426 @@
+"""The contact set: feet, hands or any body, on the floor or on objects of the scene.
+
+A contact is data (Nori et al. 2015, "rigid non-coplanar contacts"): a frame on the robot, the
+normal of the surface it touches, its friction, its CoP rectangle (``surface`` contacts: a 6-D
+wrench, the constraints of the feet) or none (``point`` contacts: a 3-D force in the friction
+cone), a minimum normal force, an optional desired normal force, and an activation with
+minimum-jerk ramps. The two soles on the floor are the default set (:func:`feet_contact_set`);
+the controller knows no other path.
+
+Contacts on bodies other than the feet need something to touch: :class:`SceneObject` boxes (a
+table, a wall) are added to the MuJoCo model, together with small collision spheres on the robot
+(one for a point contact, the four corners of the CoP rectangle for a surface one, like the feet)
+and the contact pairs between them. :func:`wbc_jax.robot.scene.build_scene` does this before anything is compiled;
+:func:`contact_terms` reads the contact kinematics out of the dynamics terms (pure,
+jit/vmap/grad-safe).
+
+Conventions: the contact frame's z axis is the surface normal (pointing out of the surface, into
+the robot), fixed to the robot's body; wrenches are in world axes at the contact point, force
+first. The normal is given in world axes at the initial posture.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wbc_jax.core import constants
+from wbc_jax.core.types import Array, pytree_dataclass
+from wbc_jax.robot import model as model_lib
+from wbc_jax.robot.dynamics import DynamicsTerms, Frames
+
+CONTACT_TYPES = ("surface", "point")
+OBJECT_TYPES = ("box",)
+DIMENSION = {"surface": 6, "point": 3}
+FEET_FRAMES = {"l_sole": 0, "r_sole": 1}
+
+
+@dataclasses.dataclass(frozen=True)
+class ContactParams:
+    """Static parameters of the rigid-contact constraints of one contact.
+
+    Registered as a pytree without leaves, so it can be passed to ``jax.jit``
+    functions as a normal argument (its values are part of the treedef, i.e.
+    static: a change recompiles).
+
+    Attributes:
+        mu: static friction coefficient (tangential force <= mu f_z).
+        n_points: points per quadrant of the linearised friction cone; the cone
+            is a polygon with 4 (n_points - 1) edges.
+        mu_t: torsional friction coefficient (|tau_z| <= mu_t f_z).
+        fz_min: minimal normal force [N].
+        foot_size: ((x_min, x_max), (y_min, y_max)) of the centre-of-pressure
+            rectangle in the contact frame [m] (default: the iCub sole's).
+    """
+
+    mu: float = 1.0 / 3.0
+    n_points: int = 4
+    mu_t: float = 1.0 / 75.0
+    fz_min: float = 10.0
+    foot_size: tuple[tuple[float, float], tuple[float, float]] = (
+        (-0.07, 0.12),
+        (-0.045, 0.045),
+    )
+
+    def __post_init__(self) -> None:
+        for name in ("mu", "mu_t", "fz_min"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ValueError(f"ContactParams.{name} must be a real number, got {value!r}")
+            if not math.isfinite(value) or value <= 0.0:
+                raise ValueError(f"ContactParams.{name} must be positive and finite, got {value!r}")
+            object.__setattr__(self, name, float(value))
+        n = self.n_points
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2:
+            raise ValueError(f"ContactParams.n_points must be an integer >= 2, got {n!r}")
+        object.__setattr__(self, "n_points", int(n))
+        try:
+            (x_min, x_max), (y_min, y_max) = ((float(a), float(b)) for a, b in self.foot_size)
+        except (TypeError, ValueError) as err:
+            raise ValueError(
+                f"ContactParams.foot_size must be ((x_min, x_max), (y_min, y_max)), got {self.foot_size!r}"
+            ) from err
+        if not all(math.isfinite(v) for v in (x_min, x_max, y_min, y_max)):
+            raise ValueError(f"ContactParams.foot_size must be finite, got {self.foot_size!r}")
+        if not (x_min < x_max and y_min < y_max):
+            raise ValueError(f"ContactParams.foot_size needs x_min < x_max and y_min < y_max, got {self.foot_size!r}")
+        # A CoP rectangle that excludes the sole origin is legal (the rows stay
+        # meaningful), so only the ordering is checked.
+        object.__setattr__(self, "foot_size", ((x_min, x_max), (y_min, y_max)))
+
+
+jax.tree_util.register_dataclass(
+    ContactParams,
+    data_fields=[],
+    meta_fields=["mu", "n_points", "mu_t", "fz_min", "foot_size"],
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class ContactActivation:
+    """a(t) = mj((t - start) / ramp) - mj((t - stop) / ramp), mj the minimum-jerk ramp (0 -> 1).
+    (Not "on"/"off": YAML 1.1 reads those keys as booleans.)"""
+
+    start: float = 0.0
+    stop: float = math.inf
+    ramp: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Contact:
+    """One contact of the set (user-facing; names not yet resolved).
+
+    Attributes:
+      name: unique name.
+      frame: body, site or named point (``wbc_jax.robot.model.NAMED_POINTS``) where the contact acts.
+      normal: (3,) surface normal in world axes at the initial posture (required).
+      type: ``"surface"`` (6-D wrench, friction cone, torsion, CoP rectangle) or ``"point"``.
+      offset: (3,) added to the frame's point, in the body frame.
+      mu, mu_t: friction and torsional friction coefficients (controller side).
+      fz_min: minimum normal force (N) while active.
+      cop: ((x_min, x_max), (y_min, y_max)) CoP rectangle in the contact frame (surface only;
+        None: the iCub sole's).
+      normal_force: desired normal force (N), tracked by the force distribution; None: free.
+      touches: scene object this contact touches: collision spheres are added on the body and
+        paired with it. None: the body's existing contact geoms (the feet on the floor).
+      activation: :class:`ContactActivation` (feet: multiplied by the task's foot activation).
+      detect: contact detection: the normal force the simulator measures gates the activation (a
+        contact it does not see ramps out, a re-touch ramps back in; the settings are the
+        ``detection_*`` fields of :class:`wbc_jax.control.controller.ControllerConfig`). Not for the soles,
+        which follow the task's foot schedule.
+    """
+
+    name: str
+    frame: str
+    normal: tuple[float, float, float] | None = None
+    type: str = "surface"
+    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    mu: float = 1.0 / 3.0
+    mu_t: float = 1.0 / 75.0
+    fz_min: float = 10.0
+    cop: tuple[tuple[float, float], tuple[float, float]] | None = None
+    normal_force: float | None = None
+    touches: str | None = None
+    activation: ContactActivation = ContactActivation()
+    detect: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneObject:
+    """A fixed box in the world.
+
+    Attributes:
+      name: geom name. size: (3,) half sizes (m), world axes. pos: (3,) centre (world); or
+      under: the name of a contact whose normal is along a world axis (+z: a table, horizontal: a
+        wall): the box's face that the normal leaves is put at that contact's point (at the initial
+        posture), centred on it, then moved by ``shift``.
+      friction: sliding friction of the contacts with this object (physics).
+    """
+
+    name: str
+    type: str = "box"
+    size: tuple[float, float, float] = (0.1, 0.1, 0.1)
+    pos: tuple[float, float, float] | None = None
+    under: str | None = None
+    shift: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    friction: float = 1.0
+
+
+@dataclasses.dataclass(frozen=True)
+class ResolvedContact:
+    """A contact with indices (hashable: static configuration of the controller and rollout)."""
+
+    name: str
+    type: str
+    body: int
+    point: tuple[float, float, float]  # in the body frame
+    R_body_contact: tuple[float, ...]  # (9,) contact-frame axes in the body frame, row-major
+    params: ContactParams
+    normal_force: float  # nan: free
+    activation: ContactActivation
+    foot: int  # 0 / 1 for the soles (the schedule's activation applies), else -1
+    geoms: tuple[int, ...]  # collision geoms of this contact (measured wrenches)
+    detect: bool = False  # contact detection gates the activation (Contact.detect)
+
+    @property
+    def dim(self) -> int:
+        return DIMENSION[self.type]
+
+
+@dataclasses.dataclass(frozen=True)
+class ContactSet:
+    """Resolved contacts, in order; ``dim`` = total wrench size D."""
+
+    contacts: tuple[ResolvedContact, ...]
+
+    @property
+    def dim(self) -> int:
+        return sum(c.dim for c in self.contacts)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.contacts)
+
+    def slices(self) -> list[slice]:
+        out, k = [], 0
+        for c in self.contacts:
+            out.append(slice(k, k + c.dim))
+            k += c.dim
+        return out
+
+    @property
+    def frames(self) -> Frames:
+        """The contact points, in order (the first ``len(contacts)`` frames of the dynamics terms)."""
+        return Frames(tuple(c.body for c in self.contacts), tuple(c.point for c in self.contacts))
+
+    @property
+    def feet(self) -> tuple[int, int]:
+        """Indices in the set of the left and right sole contacts (for the angular-momentum
+        integral, linearised about the stance foot). Every contact set holds both soles."""
+        where = {c.foot: k for k, c in enumerate(self.contacts) if c.foot >= 0}
+        return where[0], where[1]
+
+
+def feet_contact_set(robot: model_lib.Robot, params: ContactParams | None = None) -> ContactSet:
+    """The default contact set: both soles on the floor (surface contacts of the WBC controller,
+    rigid-contact constraints ``params``, default :class:`ContactParams`), activated by the
+    task's foot schedule."""
+    idx = robot.index
+    params = ContactParams() if params is None else params
+    return ContactSet(
+        contacts=tuple(
+            ResolvedContact(
+                name=name,
+                type="surface",
+                body=int(idx.foot_bodies[k]),
+                point=tuple(float(x) for x in idx.foot_points[k]),
+                R_body_contact=tuple(float(x) for x in idx.foot_rotations[k].ravel()),
+                params=params,
+                normal_force=math.nan,
+                activation=ContactActivation(),
+                foot=k,
+                geoms=tuple(int(g) for g in idx.foot_geoms[k]),
+            )  # fmt: skip
+            for k, name in enumerate(model_lib.FEET)
+        )
+    )
+
+
+# ---- Specification: parsing and checks (before anything is compiled) ---------------------
+
+
+def contact_from_dict(values: dict) -> Contact:
+    """A :class:`Contact` from a JSON/YAML mapping (``activation`` as a nested mapping)."""
+    if not isinstance(values, dict):
+        raise ValueError(f"a contact must be a mapping, got {values!r}")
+    fields = {f.name for f in dataclasses.fields(Contact)}
+    unknown = sorted(set(values) - fields)
+    if unknown or "name" not in values or "frame" not in values:
+        raise ValueError(f"contact {values.get('name')!r}: unknown keys {unknown} (valid: {sorted(fields)}); "
+                         "'name' and 'frame' are required")  # fmt: skip
+    values = dict(values)
+    act = values.pop("activation", {}) or {}
+    act_fields = {f.name for f in dataclasses.fields(ContactActivation)}
+    if (
+        not isinstance(act, dict)
+        or set(act) - act_fields
+        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in act.values())
+    ):
+        raise ValueError(
+            f"contact {values['name']!r}: activation must map {sorted(act_fields)} to numbers, got {act!r}"
+        )
+    if "cop" in values and values["cop"] is not None:
+        values["cop"] = tuple(tuple(r) for r in values["cop"])
+    values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
+    return Contact(**values, activation=ContactActivation(**{k: float(v) for k, v in act.items()}))
+
+
+def object_from_dict(values: dict) -> SceneObject:
+    """A :class:`SceneObject` from a JSON/YAML mapping."""
+    if not isinstance(values, dict):
+        raise ValueError(f"a scene object must be a mapping, got {values!r}")
+    fields = {f.name for f in dataclasses.fields(SceneObject)}
+    unknown = sorted(set(values) - fields)
+    if unknown or "name" not in values:
+        raise ValueError(f"scene object {values.get('name')!r}: unknown keys {unknown} (valid: {sorted(fields)}); "
+                         "'name' is required")  # fmt: skip
+    return SceneObject(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
+
+
+def _vector(owner: str, name: str, value, size: int = 3) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{owner}: {name} must be {size} numbers, got {value!r}") from err
+    if arr.shape != (size,) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{owner}: {name} must be {size} finite numbers, got {value!r}")
+    return arr
+
+
+def check_spec(contacts, objects) -> tuple[tuple[Contact, ...], tuple[SceneObject, ...]]:
+    """Check a contact set and scene objects for errors that need no model (names, shapes, values)."""
+    contacts = tuple(contact_from_dict(c) if isinstance(c, dict) else c for c in contacts)
+    objects = tuple(object_from_dict(o) if isinstance(o, dict) else o for o in objects)
+    if not contacts:
+        raise ValueError("the contact set is empty; list at least one contact (e.g. the feet)")
+    for kind, items in (("contact", contacts), ("scene object", objects)):
+        names = [i.name for i in items]
+        duplicates = sorted({n for n in names if names.count(n) > 1})
+        if duplicates:
+            raise ValueError(f"duplicate {kind} names {duplicates}; each needs its own name")
+    object_names = [o.name for o in objects]
+    for c in contacts:
+        owner = f"contact {c.name!r}"
+        if c.type not in CONTACT_TYPES:
+            raise ValueError(f"{owner}: unknown type {c.type!r}; valid types: {list(CONTACT_TYPES)}")
+        if c.normal is None:
+            raise ValueError(f"{owner}: no normal direction; give 'normal: [nx, ny, nz]' (world axes, "
+                             "pointing out of the touched surface)")  # fmt: skip
+        n = _vector(owner, "normal", c.normal)
+        if np.linalg.norm(n) < 1e-6:
+            raise ValueError(f"{owner}: the normal must be a non-zero vector, got {list(c.normal)}")
+        _vector(owner, "offset", c.offset)
+        for name in ("mu", "mu_t", "fz_min"):
+            value = getattr(c, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{owner}: {name} must be positive and finite, got {value!r}")
+        if c.normal_force is not None and not (math.isfinite(c.normal_force) and c.normal_force >= c.fz_min):
+            raise ValueError(f"{owner}: normal_force must be finite and >= fz_min ({c.fz_min}), got {c.normal_force}")
+        if c.type == "point" and c.cop is not None:
+            raise ValueError(f"{owner}: a point contact has no CoP rectangle (got cop {c.cop}); use type 'surface'")
+        if not isinstance(c.detect, bool):
+            raise ValueError(f"{owner}: detect must be true or false, got {c.detect!r}")
+        if c.detect and c.frame in FEET_FRAMES and not np.any(_vector(owner, "offset", c.offset)):
+            raise ValueError(f"{owner}: the soles follow the task's foot schedule; contact detection (detect) is for "
+                             "the other contacts")  # fmt: skip
+        a = c.activation
+        if not (math.isfinite(a.start) and a.ramp >= 0 and math.isfinite(a.ramp) and a.stop > a.start + a.ramp):
+            raise ValueError(f"{owner}: activation needs finite start, ramp >= 0 and stop > start + ramp, got {a}")
+        if c.touches is not None and c.touches not in object_names + ["floor"]:
+            raise ValueError(f"{owner}: touches unknown object {c.touches!r}; valid: {object_names + ['floor']}")
+    contact_names = [c.name for c in contacts]
+    for o in objects:
+        owner = f"scene object {o.name!r}"
+        if o.type not in OBJECT_TYPES:
+            raise ValueError(f"{owner}: unknown type {o.type!r}; valid types: {list(OBJECT_TYPES)}")
+        if np.any(_vector(owner, "size", o.size) <= 0):
+            raise ValueError(f"{owner}: size (half sizes) must be positive, got {list(o.size)}")
+        _vector(owner, "shift", o.shift)
+        if (o.pos is None) == (o.under is None):
+            raise ValueError(f"{owner}: give exactly one of 'pos' or 'under' (a contact name)")
+        if o.pos is not None:
+            _vector(owner, "pos", o.pos)
+        if o.under is not None and o.under not in contact_names:
+            raise ValueError(f"{owner}: under unknown contact {o.under!r}; valid: {contact_names}")
+        if not (math.isfinite(o.friction) and o.friction > 0):
+            raise ValueError(f"{owner}: friction must be positive, got {o.friction}")
+    return contacts, objects
+
+
+# ---- At run time -------------------------------------------------------------------------
+
+
+@pytree_dataclass
+class ContactTerms:
+    """Contact kinematics at one state (K contacts, D = total wrench size).
+
+    Attributes:
+      J: (D, nv) stacked contact Jacobians (surface: [linear; angular], point: linear), unscaled
+      Jdot_nu: (D,) their Jdot nu
+      W_p: (K, 3) contact points;  W_R: (K, 3, 3) contact frames (z = normal)
+      activation: (K,) in [0, 1]
+    """
+
+    J: Array
+    Jdot_nu: Array
+    W_p: Array
+    W_R: Array
+    activation: Array
+
+
+def activation_at(c: ResolvedContact, t: Array, foot_activation: Array, dtype) -> Array:
+    """Activation () of one contact at time t (feet: times the schedule's ``foot_activation`` (2,))."""
+    a = c.activation
+    t = jnp.asarray(t, dtype)
+    if a.start + a.ramp <= 0.0 and not math.isfinite(a.stop):
+        # Fully on from the first tick (t >= 0) and never off: a constant, not a function of t
+        # (queued sweeps batch t; nothing downstream then depends on it).
+        up, down = jnp.ones((), dtype), 0.0
+    elif a.ramp > 0:
+        up = constants.min_jerk((t - a.start) / a.ramp)[0]
+        down = constants.min_jerk((t - a.stop) / a.ramp)[0] if math.isfinite(a.stop) else 0.0
+    else:
+        up = (t >= a.start).astype(dtype)
+        down = (t >= a.stop).astype(dtype) if math.isfinite(a.stop) else 0.0
+    value = jnp.asarray(up - down, dtype)
+    return value * foot_activation[c.foot] if c.foot >= 0 else value
+
+
+def contact_terms(cset: ContactSet, t: DynamicsTerms, time: Array, foot_activation: Array) -> ContactTerms:
+    """Contact Jacobians, Jdot nu, poses and activations at one state.
+
+    Args:
+      cset: the contact set. t: dynamics terms whose first frames are ``cset.frames``.
+      time: () s, for the activation schedules. foot_activation: (2,) the task's foot schedule.
+    """
+    K = len(cset.contacts)
+    dtype = t.M.dtype
+    R_bc = jnp.asarray(np.array([c.R_body_contact for c in cset.contacts]).reshape(-1, 3, 3), dtype)
+    rows = np.concatenate([np.arange(6 * k, 6 * k + c.dim) for k, c in enumerate(cset.contacts)])
+    act = jnp.stack([activation_at(c, time, foot_activation, dtype) for c in cset.contacts])
+    return ContactTerms(
+        J=t.J_frames[:K].reshape(-1, t.J_frames.shape[-1])[rows],
+        Jdot_nu=t.Jdot_nu_frames[:K].reshape(-1)[rows],
+        W_p=t.W_p_frames[:K],
+        W_R=jnp.einsum("kij,kjl->kil", t.W_R_frames[:K], R_bc),
+        activation=act,
+    )
+
+
+def row_activation(cset: ContactSet, activation: Array) -> Array:
+    """(D,) the activation of each wrench row (activation: (K,))."""
+    return jnp.concatenate([jnp.full(c.dim, activation[k]) for k, c in enumerate(cset.contacts)])

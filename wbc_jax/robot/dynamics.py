@@ -1,0 +1,238 @@
+"""Free-floating dynamics of eq. (1) of the seed paper, in the mixed representation.
+
+    M(q) nu_dot + h(q, nu) - J(q)^T f = S tau + tau_passive,      J(q) nu_dot + Jdot nu = 0
+
+Every quantity here is expressed in the controller's convention (see :mod:`wbc_jax.core.types`):
+``nu = [W_v_B, W_omega_B, s_dot]`` with the joints in controller order. MuJoCo's free joint
+stores ``[W_v_B, B_omega_B]`` (angular velocity in *base* axes), so with
+``T = blkdiag(I3, W_R_B, I_n)`` (``nu = T qvel``, up to the joint permutation):
+
+    M_mixed = T^-T M_mj T^-1,   h_mixed = T^-T h_mj,   J_mixed = J_mj T^-1.
+
+The bias needs no extra term: d/dt(T^-1) nu = -S(B_omega) W_R_B^T W_omega = 0.
+All functions are pure, jit/vmap/grad-safe, and take an MJX ``Data`` whose ``qpos``/``qvel``
+are set; they recompute the kinematics themselves, so they are valid right after ``mjx.step``
+(whose derived fields describe the state *before* the step).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wbc_jax.core.math import quat_mul, quat_to_mat, skew
+from wbc_jax.core.mjx import mjx
+from wbc_jax.core.types import Array, pytree_dataclass
+from wbc_jax.robot.model import RobotIndex
+
+
+@dataclasses.dataclass(frozen=True)
+class Frames:
+    """Static list of the k points whose kinematics the controller needs (contacts, then the
+    motion tasks' frames): body ids and points in the body frames. Hashable (jit-static)."""
+
+    bodies: tuple[int, ...]
+    points: tuple[tuple[float, float, float], ...]
+
+    def __post_init__(self):
+        if len(self.bodies) != len(self.points):
+            raise ValueError(f"Frames: {len(self.bodies)} bodies but {len(self.points)} points")
+
+    def __len__(self) -> int:
+        return len(self.bodies)
+
+    def __add__(self, other: Frames) -> Frames:
+        return Frames(self.bodies + other.bodies, self.points + other.points)
+
+
+def sole_frames(idx: RobotIndex) -> Frames:
+    """The origins of the two sole sites (left, right): the frames of the default contact set."""
+    return Frames(
+        bodies=tuple(int(b) for b in idx.foot_bodies),
+        points=tuple(tuple(float(x) for x in p) for p in idx.foot_points),
+    )
+
+
+@pytree_dataclass
+class DynamicsTerms:
+    """Controller-side dynamics terms at one state (n = controlled joints, nv = 6 + n, k frames).
+
+    Attributes:
+      nu:             (nv,)       mixed velocity [W_v_B, W_omega_B, s_dot]
+      s, s_dot:       (n,), (n,)  joint positions / velocities, controller order
+      W_p_B, W_R_B:   (3,), (3,3) base pose
+      M:              (nv, nv)    mass matrix
+      h:              (nv,)       Coriolis, centrifugal and gravity forces
+      tau_passive:    (nv,)       passive generalised forces (joint damping)
+      W_p_frames:     (k, 3)      frame points (body origin + point in body axes)
+      W_R_frames:     (k, 3, 3)   orientations of the frames' bodies
+      J_frames:       (k, 6, nv)  frame Jacobians [linear of the point; angular]
+      Jdot_nu_frames: (k, 6)      their Jdot nu
+      W_p_CoM:        (3,)        centre of mass
+      W_v_CoM:        (3,)        CoM velocity
+      J_CoM:          (3, nv)     CoM Jacobian
+      Jdot_nu_CoM:    (3,)        its Jdot nu
+      A_G:            (6, nv)     centroidal momentum matrix, G[W]
+      L_G:            (6,)        centroidal momentum [m v_CoM; angular momentum about CoM]
+      xpos:           (nbody, 3)  body origins (fall detection)
+    """
+
+    nu: Array
+    s: Array
+    s_dot: Array
+    W_p_B: Array
+    W_R_B: Array
+    M: Array
+    h: Array
+    tau_passive: Array
+    W_p_frames: Array
+    W_R_frames: Array
+    J_frames: Array
+    Jdot_nu_frames: Array
+    W_p_CoM: Array
+    W_v_CoM: Array
+    J_CoM: Array
+    Jdot_nu_CoM: Array
+    A_G: Array
+    L_G: Array
+    xpos: Array
+
+
+def mixed_velocity(idx: RobotIndex, qpos: Array, qvel: Array) -> Array:
+    """MuJoCo ``qvel`` (nv,) -> mixed ``nu`` (nv,): rotate the base angular velocity to world
+    axes and reorder the joints into controller order. The only place this conversion lives."""
+    _check_shape("qpos", qpos, (idx.nq,))
+    _check_shape("qvel", qvel, (idx.nv,))
+    R = quat_to_mat(qpos[3:7])
+    return jnp.concatenate([qvel[:3], R @ qvel[3:6], qvel[idx.dof_joints]])
+
+
+def mujoco_velocity(idx: RobotIndex, qpos: Array, nu: Array) -> Array:
+    """Mixed ``nu`` (nv,) -> MuJoCo ``qvel`` (nv,); inverse of :func:`mixed_velocity`."""
+    _check_shape("qpos", qpos, (idx.nq,))
+    _check_shape("nu", nu, (idx.nv,))
+    R = quat_to_mat(qpos[3:7])
+    qvel = jnp.zeros(idx.nv, nu.dtype).at[:3].set(nu[:3]).at[3:6].set(R.T @ nu[3:6])
+    return qvel.at[idx.dof_joints].set(nu[6:])
+
+
+def qpos_rate(idx: RobotIndex, qpos: Array, nu: Array) -> Array:
+    """d qpos / dt (nq,) for the mixed velocity ``nu``; the quaternion rate is (1/2) q (0, B_omega)."""
+    R = quat_to_mat(qpos[3:7])
+    omega_B = R.T @ nu[3:6]
+    quat_dot = 0.5 * quat_mul(qpos[3:7], jnp.concatenate([jnp.zeros(1, nu.dtype), omega_B]))
+    qdot = jnp.zeros(idx.nq, nu.dtype).at[:3].set(nu[:3]).at[3:7].set(quat_dot)
+    return qdot.at[idx.qpos_joints].set(nu[6:])
+
+
+def _check_shape(name: str, x: Array, shape: tuple[int, ...]) -> None:
+    if tuple(x.shape) != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {tuple(x.shape)}")
+
+
+def _to_mixed_cols(idx: RobotIndex, J_mj: Array, R: Array) -> Array:
+    """J_mj (..., nv) in MuJoCo dof order/velocity -> mixed, controller order (J T^-1)."""
+    J = J_mj[..., idx.dof_perm]
+    return J.at[..., 3:6].set(J[..., 3:6] @ R.T)
+
+
+def _kinematics(m: mjx.Model, d: mjx.Data, idx: RobotIndex, qpos: Array, frames: Frames):
+    """Frame Jacobians, centroidal momentum matrix and poses as functions of qpos only."""
+    d = d.replace(qpos=qpos)
+    d = mjx.kinematics(m, d)
+    d = mjx.com_pos(m, d)
+    R = d.xmat[idx.base_body]
+    c = d.subtree_com[idx.base_body]  # com-based frame origin of cdof = whole-robot CoM
+    cdof_ang, cdof_lin = d.cdof[:, :3], d.cdof[:, 3:]
+    masks = jnp.asarray(idx.body_ancestor_dofs, dtype=d.cdof.dtype)  # (nbody, nv)
+
+    def point_jacobian(point: Array, mask: Array) -> tuple[Array, Array]:
+        jacp = (cdof_lin + jnp.cross(cdof_ang, point - c)) * mask[:, None]
+        jacr = cdof_ang * mask[:, None]
+        return jacp.T, jacr.T  # (3, nv) each
+
+    # Frame Jacobians [linear of the point; angular of its body].
+    bodies = np.asarray(frames.bodies, dtype=int)
+    W_R = d.xmat[bodies]
+    W_p = d.xpos[bodies] + jnp.einsum("kij,kj->ki", W_R, jnp.asarray(np.asarray(frames.points), W_R.dtype))
+    jp, jr = jax.vmap(point_jacobian)(W_p, masks[bodies])
+    J_frames = _to_mixed_cols(idx, jnp.concatenate([jp, jr], axis=1), R)
+
+    # Centroidal momentum matrix: sum over bodies of [m Jp; I_W Jr + m S(c_b - c) Jp].
+    all_bodies = np.arange(1, masks.shape[0])
+    jp_b, jr_b = jax.vmap(point_jacobian)(d.xipos[all_bodies], masks[all_bodies])
+    mass_b = m.body_mass[all_bodies]
+    ximat = d.ximat[all_bodies]
+    I_W = jnp.einsum("bij,bj,bkj->bik", ximat, m.body_inertia[all_bodies], ximat)
+    lin = jnp.einsum("b,bjv->jv", mass_b, jp_b)
+    ang = jnp.einsum("bij,bjv->iv", I_W, jr_b) + jnp.einsum(
+        "b,bij,bjv->iv", mass_b, skew(d.xipos[all_bodies] - c), jp_b
+    )
+    A_G = _to_mixed_cols(idx, jnp.concatenate([lin, ang], axis=0), R)
+    return (J_frames, A_G, W_p, W_R), d
+
+
+def terms(m: mjx.Model, d: mjx.Data, idx: RobotIndex, frames: Frames | None = None) -> DynamicsTerms:
+    """All controller-side dynamics terms at the state (``d.qpos``, ``d.qvel``).
+
+    Args:
+      m: MJX model of the robot (JAX implementation).
+      d: MJX data (JAX implementation); only ``qpos`` (nq,) and ``qvel`` (nv,) are read.
+      idx: the robot's static index.
+      frames: the points whose Jacobians are needed (static); None: the two soles.
+
+    Returns:
+      :class:`DynamicsTerms`, mixed representation, controller joint order.
+    """
+    frames = sole_frames(idx) if frames is None else frames
+    qpos, qvel = d.qpos, d.qvel
+    _check_shape("qpos", qpos, (idx.nq,))
+    _check_shape("qvel", qvel, (idx.nv,))
+    nu = mixed_velocity(idx, qpos, qvel)
+
+    # One pass of the kinematics and its derivative along q(t) with nu held fixed:
+    # d/dt (J nu) = Jdot nu, for the frames and the CoM.
+    def kinematics(q: Array):
+        return _kinematics(m, d, idx, q, frames)
+
+    (kin, dk), (dkin, _) = jax.jvp(kinematics, (qpos,), (qpos_rate(idx, qpos, nu),))
+    J_frames, A_G, W_p_frames, W_R_frames = kin
+    dJ_frames, dA_G = dkin[0], dkin[1]
+    R = dk.xmat[idx.base_body]
+
+    dk = mjx.crb(m, dk)
+    dk = mjx.com_vel(m, dk)
+    dk = mjx.passive(m, dk)
+    dk = mjx.rne(m, dk)
+    perm = idx.dof_perm
+
+    def rows_to_mixed(x: Array) -> Array:  # T^-T applied on the left
+        x = x[perm]
+        return x.at[3:6].set(R @ x[3:6])
+
+    M = rows_to_mixed(_to_mixed_cols(idx, mjx.full_m(m, dk), R))
+    L_G = A_G @ nu
+    return DynamicsTerms(
+        nu=nu,
+        s=qpos[idx.qpos_joints],
+        s_dot=nu[6:],
+        W_p_B=dk.xpos[idx.base_body],
+        W_R_B=R,
+        M=M,
+        h=rows_to_mixed(dk.qfrc_bias),
+        tau_passive=rows_to_mixed(dk.qfrc_passive),
+        W_p_frames=W_p_frames,
+        W_R_frames=W_R_frames,
+        J_frames=J_frames,
+        Jdot_nu_frames=dJ_frames @ nu,
+        W_p_CoM=dk.subtree_com[idx.base_body],
+        W_v_CoM=L_G[:3] / idx.mass,
+        J_CoM=A_G[:3] / idx.mass,
+        Jdot_nu_CoM=dA_G[:3] @ nu / idx.mass,
+        A_G=A_G,
+        L_G=L_G,
+        xpos=dk.xpos,
+    )

@@ -1,0 +1,145 @@
+"""The closed loop over a horizon on an MJX engine (``jax``, ``warp``): one ``lax.scan`` of ticks.
+
+Functions of a :class:`wbc_jax.sim.loop.ClosedLoop` first (MJX style, ``f(loop, ...)``): jit
+them, vmap them over scenarios, differentiate them (``jax``). :func:`rollout_queue` instead runs
+several scenarios per batch slot: a fallen or diverged robot is retired and its slot starts the
+next scenario.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+
+from wbc_jax.control.gains import Gains
+from wbc_jax.core.mjx import mjx
+from wbc_jax.core.types import Array
+from wbc_jax.sim import metrics as metrics_lib
+from wbc_jax.sim import physics
+from wbc_jax.sim.state import Push, Scenario, traced_at_matmul_precision
+
+
+@traced_at_matmul_precision
+def start(loop, qpos: Array, batch: int = 1):
+    """Initial carry (physics data, loop state, physics_ok) of an MJX backend at ``qpos``;
+    ``batch``: the number of environments run together (Warp's contact buffer)."""
+    d = physics.device_data(loop.robot.mj_model, loop.backend, loop.cfg.physics, qpos, qpos.dtype, batch)
+    return d, loop.init(qpos), jnp.ones((), bool)
+
+
+@traced_at_matmul_precision
+def chunk(loop, plant: mjx.Model, gains: Gains, push: Push, carry, k0, n_ticks: int):
+    """Run ``n_ticks`` (static) ticks from tick ``k0`` (traced) on an MJX backend:
+    (carry, records with a leading time axis or None)."""
+
+    def tick(carry, k):
+        d, state, ok = carry
+        state, ctrl, record = loop.control(gains, state, d.qpos, d.qvel, k, ok, push)
+        xfrc = loop.xfrc(push, k).astype(d.qpos.dtype)
+        d_new, _ = jax.lax.scan(lambda dd, x: (physics.step(plant, dd, ctrl, x), None), d, xfrc)
+        finite = physics.state_ok(d_new.qpos, d_new.qvel)
+        d_new = d_new.where(~finite, d)  # a diverged env keeps its last sound state
+        if loop.cfg.record and loop.backend == "warp":  # no per-environment contact forces there
+            nan = jnp.full_like(record.f_meas, jnp.nan)
+            record = record.replace(f_meas=nan, Ldot_meas=jnp.full_like(record.Ldot_meas, jnp.nan))
+        elif loop.cfg.record or loop.observes_contacts:
+            slots = physics.contacts(plant, d_new)
+            if loop.cfg.record:
+                record = loop.measure(record, *slots)
+            if loop.observes_contacts:
+                state = loop.observe(state, *slots)
+        return (d_new, state, finite), record
+
+    if loop.cfg.checkpoint:
+        tick = jax.checkpoint(tick)
+    return jax.lax.scan(tick, carry, k0 + jnp.arange(n_ticks))
+
+
+def rollout(loop, plant: mjx.Model, qpos0: Array, gains: Gains, push: Push, controller_overrides=None,
+            batch: int = 1):  # fmt: skip
+    """The whole horizon on an MJX backend: (Metrics, records or None). ``plant``: the MJX model
+    simulated (:func:`wbc_jax.sim.physics.plant_model` of the nominal one for a perturbed plant).
+    ``controller_overrides``: fields of the controller state to replace (regularisation as
+    differentiable arrays, gain tuning's gradient check)."""
+    d, state, ok = start(loop, qpos0, batch)
+    if controller_overrides:
+        state = state.replace(controller=state.controller.replace(**controller_overrides))
+    carry = (d, state, ok)
+    (d, state, ok), records = chunk(loop, plant, gains, push, carry, 0, loop.n_ticks)
+    return metrics_lib.final(state.metrics, ok), records
+
+
+@traced_at_matmul_precision
+def rollout_queue(loop, plant_of: Callable, qpos0: Array, scens: Scenario, slot: Array, segment: int,
+                  axis_name: str, batch: int = 1):  # fmt: skip
+    """One of S batch slots (``jax.vmap`` over ``slot`` with ``axis_name``) working through a
+    shared queue of N scenarios on an MJX backend; returns the N scenarios' Metrics.
+
+    Slot s starts scenario s. Each scenario runs until it has fallen or diverged (its outcome
+    is then decided: neither upright nor survived) or reaches the horizon; every ``segment``
+    ticks (static, a divisor of the horizon's) the slots whose scenario is decided hand in its
+    metrics and take the next pending scenarios in slot order, so the batch stops paying
+    solver iterations for robots on the floor. The loop runs until the queue is empty, with
+    one predicate for all slots (a per-slot predicate would make JAX merge the loop's carry
+    leaf by leaf, which Warp's batch-shared contact buffer does not allow). Each slot keeps its
+    own tick, so the tick is batched under vmap and a branch on the time runs both sides: the
+    force distribution's contact-ramp branch (:func:`wbc_jax.control.forces.distribute`) stays a
+    branch only because a contact that never ramps has a constant activation
+    (:func:`wbc_jax.robot.contacts.activation_at`; BENCHMARKS.md).
+
+    Args:
+      plant_of: Scenario -> MJX model simulated (the nominal one, or perturbed).
+      qpos0: (nq,) nominal initial posture.
+      scens: the queue, Scenario with a leading axis N (the same for every slot).
+      slot: () this slot's index s < N (the vmapped argument).
+      segment: ticks between hand-ins.
+      axis_name: the vmap axis of the slots.
+      batch: environments run together (Warp's contact buffer).
+
+    Returns:
+      Metrics with a leading axis N, not mapped over the slots (``out_axes=None``). A retired
+      environment's metrics cover its ticks up to the hand-in (``ticks``); the others equal
+      :meth:`rollout`'s.
+    """
+    if loop.n_ticks % segment:
+        raise ValueError(f"segment {segment} must divide the horizon's {loop.n_ticks} ticks")
+    N = int(jax.tree_util.tree_leaves(scens)[0].shape[0])
+    pick = lambda i: jax.tree_util.tree_map(lambda x: x[jnp.minimum(i, N - 1)], scens)  # noqa: E731
+
+    def fresh(i):
+        return start(loop, loop.initial_qpos(qpos0, pick(i).joint_offset), batch)
+
+    def select(decided, new, old):
+        d = old[0].where(decided, new[0])  # Data.where: Warp's batch-shared buffers stay whole
+        rest = jax.tree_util.tree_map(lambda a, b: jnp.where(decided, a, b), new[1:], old[1:])
+        return (d, *rest)
+
+    carry = fresh(slot)
+    outcome = metrics_lib.final(carry[1].metrics, carry[2])
+    out = jax.tree_util.tree_map(lambda x: jnp.zeros((N, *x.shape), x.dtype), outcome)
+    gather = lambda x: jax.lax.all_gather(x, axis_name)  # noqa: E731  (S, ...) the same in every slot
+
+    def body(loop_state):
+        idx, k, carry, out, next_free = loop_state
+        s = pick(idx)
+        carry, _ = chunk(loop, plant_of(s), s.gains, s.push, carry, k, segment)
+        k = k + segment
+        met = metrics_lib.final(carry[1].metrics, carry[2])
+        decided = (met.fell | met.nan | (k >= loop.n_ticks)) & (idx < N)
+        flags = gather(decided)
+        rows = jnp.where(flags, gather(idx), N)  # N: out of bounds, dropped
+        out = jax.tree_util.tree_map(lambda o, m: o.at[rows].set(m, mode="drop"), out, gather(met))
+        counts = flags.astype(jnp.int32)
+        rank = (jnp.cumsum(counts, dtype=jnp.int32) - counts)[jax.lax.axis_index(axis_name)]
+        new_idx = jnp.where(decided, next_free + rank, idx)
+        carry = select(decided & (new_idx < N), fresh(new_idx), carry)
+        return new_idx, jnp.where(decided, 0, k), carry, out, next_free + jnp.sum(counts, dtype=jnp.int32)
+
+    def pending(loop_state):
+        return jnp.any(gather(loop_state[0]) < N)
+
+    S = jax.lax.psum(1, axis_name)
+    first = (jnp.asarray(slot, jnp.int32), jnp.zeros((), jnp.int32), carry, out, jnp.asarray(S, jnp.int32))
+    return jax.lax.while_loop(pending, body, first)[3]

@@ -1,0 +1,272 @@
+"""Batched runs of a set-up on any physics engine, sharded over a device mesh along the batch axis.
+
+    run(setup, scenarios) -> Run          metrics (and records) of a Scenario batch
+
+:func:`run` dispatches on the physics backend (:mod:`wbc_jax.sim.physics`): MJX backends run the
+closed loop in XLA (jit + vmap, sharded over a device mesh along the batch axis,
+:mod:`wbc_jax.sim.mjx_loop`), C MuJoCo runs the jitted controller and the threaded C physics tick
+by tick (:mod:`wbc_jax.sim.host_loop`). Compiled programs are cached per loop structure and batch
+shape; the last, smaller chunk of a batch is padded to the same shape.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import pathlib
+import time
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from wbc_jax.sim import host_loop, mjx_loop, physics
+from wbc_jax.sim import loop as loop_lib
+from wbc_jax.sim import metrics as metrics_lib
+from wbc_jax.sim.scenario import Setup
+from wbc_jax.sim.state import Scenario
+
+# A queued run (scenarios per batch slot) checks which robots are decided every this many ticks
+# at most (the largest divisor of the horizon's ticks up to it): 0.25 s at 100 Hz.
+QUEUE_CHECK_TICKS = 25
+
+
+def enable_compilation_cache(path: str | os.PathLike | None = None) -> pathlib.Path:
+    """Turn on JAX's persistent compilation cache (``$WBC_JAX_CACHE`` or the user's cache
+    directory), so a second run of a job reuses the compiled programs of the first."""
+    if path is None:
+        path = (
+            os.environ.get("WBC_JAX_CACHE")
+            or pathlib.Path(os.environ.get("XDG_CACHE_HOME", pathlib.Path.home() / ".cache")) / "wbc_jax" / "xla"
+        )
+    path = pathlib.Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path
+
+
+def batch_devices() -> list:
+    """The devices a batch is sharded over: every GPU (local, or global after jax.distributed); on
+    the CPU, one device per process."""
+    devices = jax.devices()
+    if devices[0].platform != "cpu":
+        return list(devices)
+    # Host CPU devices of one process (XLA_FLAGS=--xla_force_host_platform_device_count) share that
+    # machine's cores, so sharding over them gains nothing; and XLA:CPU deadlocks in the sharded
+    # closed loop once a device holds several environments (jax 0.9.2: every thread idle, the
+    # caller waiting forever; tests/test_sweep.py runs that configuration under a timeout).
+    first: dict = {}
+    for d in devices:
+        first.setdefault(d.process_index, d)
+    return list(first.values())
+
+
+def device_mesh() -> Mesh:
+    """1-D mesh over :func:`batch_devices`, axis 'batch'."""
+    return Mesh(np.asarray(batch_devices()), ("batch",))
+
+
+def pad_batch(tree, size: int):
+    """Pad a batch (leading axis) to ``size`` with copies of its last entry."""
+    n = int(jax.tree_util.tree_leaves(tree)[0].shape[0])
+    if n == size:
+        return tree
+    return jax.tree_util.tree_map(
+        lambda x: np.concatenate([np.asarray(x), np.repeat(np.asarray(x)[-1:], size - n, 0)]), tree
+    )
+
+
+@dataclasses.dataclass
+class Run:
+    """Result of :func:`run`: metrics (batch axis), records (B, T, ...) or None, seconds spent."""
+
+    metrics: metrics_lib.Metrics
+    records: object
+    compile_s: float
+    run_s: float
+
+
+def check_queue(queue, backend: str, record: bool = False) -> None:
+    """A queue length (scenarios per batch slot, :meth:`wbc_jax.sim.rollout.ClosedLoop.rollout_queue`)
+    that can run on ``backend``; a clear error otherwise."""
+    if isinstance(queue, bool) or not isinstance(queue, int) or queue < 1:
+        raise ValueError(f"queue must be a whole number >= 1 (scenarios per batch slot), got {queue!r}")
+    if queue > 1 and backend == "mujoco":
+        raise ValueError("a queue of scenarios per batch slot (queue > 1) needs an MJX backend: --backend jax or warp")
+    if queue > 1 and record:
+        raise ValueError("a queue of scenarios per batch slot (queue > 1) cannot record trajectories")
+
+
+def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
+        on_tick: Callable[[int], None] | None = None, queue: int = 1) -> Run:  # fmt: skip
+    """Run the closed loop over a Scenario batch (leading axis B) on the setup's backend.
+
+    ``batch_size``: the compiled batch shape (B is padded up to it; None: B). ``on_tick``: called
+    with the ticks done (C MuJoCo and chunked MJX runs), for progress bars. ``queue``: scenarios
+    per batch slot (MJX backends): the batch runs ceil(size / queue) slots, each retiring fallen
+    or diverged robots and starting its next scenario (:meth:`ClosedLoop.rollout_queue`); the
+    outcomes equal those of the plain run, and a retired environment's metrics stop at its
+    retirement (``ticks``)."""
+    loop = setup_.loop
+    check_queue(queue, loop.backend, loop.cfg.record)
+    B = int(np.asarray(scen.friction).shape[0])
+    size = B if batch_size is None else max(batch_size, B)
+    padded = pad_batch(jax.tree_util.tree_map(np.asarray, scen), size)
+    if queue > 1:
+        out = _run_mjx_queue(setup_, padded, queue)
+    elif loop.backend == "mujoco":
+        if jax.process_count() > 1:
+            raise ValueError(
+                "a run over several processes (jax.distributed) needs an MJX backend: --backend jax or warp"
+            )
+        t0 = time.perf_counter()
+        metrics, records, compile_s = host_loop.run_host(loop, padded, setup_.qpos0, setup_.dtype, on_tick=on_tick)
+        out = Run(metrics, records, compile_s, time.perf_counter() - t0 - compile_s)
+    else:
+        out = _run_mjx(setup_, padded, size, on_tick)
+    out.metrics = jax.tree_util.tree_map(lambda x: np.asarray(x)[:B], out.metrics)
+    if out.records is not None:
+        out.records = jax.tree_util.tree_map(lambda x: np.asarray(x)[:B], out.records)
+    return out
+
+
+def _global_batch(tree, sharding: NamedSharding, dtype):
+    """Global arrays (floats in ``dtype``) from the full batch every process holds: one process, or
+    several after jax.distributed.initialize(), each filling the shards of its own devices."""
+    floats = lambda x: np.asarray(x, dtype) if np.asarray(x).dtype.kind == "f" else np.asarray(x)  # noqa: E731
+    return jax.tree_util.tree_map(
+        lambda x: jax.make_array_from_callback(x.shape, sharding, lambda i, x=x: x[i]),
+        jax.tree_util.tree_map(floats, tree),
+    )
+
+
+def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
+    """MJX backends: jit(vmap(closed loop)) over the batch, sharded along it. A run without
+    records is one program (Warp's data never leaves it: its contact buffer is shared by the
+    batch); a recorded run (``jax`` only) goes in chunks of ticks, for progress."""
+    loop, dtype = setup_.loop, setup_.dtype
+    mesh = device_mesh()
+    n_dev = mesh.devices.size
+    padded = pad_batch(scen, size + (-size) % n_dev)
+    batch = int(padded.friction.shape[0])
+    sharding = NamedSharding(mesh, PartitionSpec("batch"))
+    replicated = NamedSharding(mesh, PartitionSpec())
+    scen_dev = _global_batch(padded, sharding, dtype)
+    qpos0 = jnp.asarray(setup_.qpos0, dtype)
+    nominal = physics.device_model(setup_.robot.mj_model, loop.backend, loop.cfg.physics)
+    perturb = loop.cfg.perturb_plant
+
+    def plant(s):
+        return physics.plant_model(nominal, s.friction, s.mass_scale) if perturb else nominal
+
+    cache = loop_lib.PROGRAMS  # compiled once per loop structure and batch shape
+    key = ("mjx", loop.structure_key, batch, str(dtype), n_dev, loop.cfg.record)
+    compile_s = 0.0
+    t0 = time.perf_counter()
+    # Warp's data may not cross a vmap boundary (its contact buffer is shared by the batch): one
+    # program for the whole horizon, recorded or not.
+    if not loop.cfg.record or loop.backend == "warp":
+        if key not in cache:
+
+            def whole(s):
+                return mjx_loop.rollout(loop, plant(s), loop.initial_qpos(qpos0, s.joint_offset), s.gains, s.push,
+                                    batch=batch // n_dev)  # fmt: skip
+
+            cache[key] = (
+                jax.jit(jax.vmap(whole), in_shardings=sharding, out_shardings=sharding).lower(scen_dev).compile()
+            )
+            compile_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        metrics, records = jax.tree_util.tree_map(_to_host, cache[key](scen_dev))
+        if on_tick is not None:
+            on_tick(loop.n_ticks)
+        return Run(metrics, records, compile_s, time.perf_counter() - t0)
+
+    chunk = _tick_chunk(loop.n_ticks)
+
+    def start(s):
+        return mjx_loop.start(loop, loop.initial_qpos(qpos0, s.joint_offset))
+
+    def advance(s, carry, k0):
+        return mjx_loop.chunk(loop, plant(s), s.gains, s.push, carry, k0, chunk)
+
+    if key not in cache:
+        start_fn = jax.jit(jax.vmap(start), in_shardings=sharding, out_shardings=sharding).lower(scen_dev).compile()
+        carry_shape = jax.eval_shape(jax.vmap(start), scen_dev)
+        advance_fn = jax.jit(
+            jax.vmap(advance, in_axes=(0, 0, None)), in_shardings=(sharding, sharding, replicated),
+            out_shardings=sharding,
+        ).lower(scen_dev, carry_shape, jnp.int32(0)).compile()  # fmt: skip
+        cache[key] = (start_fn, advance_fn)
+        compile_s = time.perf_counter() - t0
+    start_fn, advance_fn = cache[key]
+    t0 = time.perf_counter()
+    carry = start_fn(scen_dev)
+    pieces = []
+    for k0 in range(0, loop.n_ticks, chunk):
+        carry, records = advance_fn(scen_dev, carry, jnp.int32(k0))
+        pieces.append(jax.tree_util.tree_map(_to_host, records))
+        if on_tick is not None:
+            on_tick(min(k0 + chunk, loop.n_ticks))
+    metrics = jax.tree_util.tree_map(_to_host, metrics_lib.final(carry[1].metrics, carry[2]))
+    records = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=1), *pieces)
+    return Run(metrics, records, compile_s, time.perf_counter() - t0)
+
+
+def _run_mjx_queue(setup_: Setup, scen: Scenario, queue: int, check_ticks: int = QUEUE_CHECK_TICKS) -> Run:
+    """MJX backends, a shared queue: S = ceil(size / queue) batch slots (a multiple of the device
+    count) work through the batch's scenarios in order (:meth:`ClosedLoop.rollout_queue`), jit(vmap)
+    over the slots, sharded along them; the scenarios and results are replicated. ``check_ticks``:
+    the most ticks between hand-ins (``experiments/queue_overhead.py`` varies it)."""
+    loop, dtype = setup_.loop, setup_.dtype
+    mesh = device_mesh()
+    n_dev = mesh.devices.size
+    size = int(scen.friction.shape[0])
+    slots = min(math.ceil(math.ceil(size / queue) / n_dev) * n_dev, size + (-size) % n_dev)
+    padded = pad_batch(scen, max(size, slots))
+    replicated = NamedSharding(mesh, PartitionSpec())
+    scen_dev = _global_batch(padded, replicated, dtype)
+    slot_ids = _global_batch(np.arange(slots, dtype=np.int32), NamedSharding(mesh, PartitionSpec("batch")), dtype)
+    qpos0 = jnp.asarray(setup_.qpos0, dtype)
+    nominal = physics.device_model(setup_.robot.mj_model, loop.backend, loop.cfg.physics)
+    perturb = loop.cfg.perturb_plant
+    segment = _tick_chunk(loop.n_ticks, target=check_ticks)
+    key = ("mjx-queue", loop.structure_key, int(padded.friction.shape[0]), slots, segment, str(dtype), n_dev)
+    cache = loop_lib.PROGRAMS
+    compile_s = 0.0
+    t0 = time.perf_counter()
+    if key not in cache:
+
+        def plant_of(x):
+            return physics.plant_model(nominal, x.friction, x.mass_scale) if perturb else nominal
+
+        def slot(i, s):
+            return mjx_loop.rollout_queue(loop, plant_of, qpos0, s, i, segment, "slots", batch=slots // n_dev)
+
+        program = jax.vmap(slot, in_axes=(0, None), out_axes=None, axis_name="slots")
+        cache[key] = jax.jit(program, out_shardings=replicated).lower(slot_ids, scen_dev).compile()
+        compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    metrics = jax.tree_util.tree_map(lambda x: _to_host(x)[:size], cache[key](slot_ids, scen_dev))
+    return Run(metrics, None, compile_s, time.perf_counter() - t0)
+
+
+def _to_host(x) -> np.ndarray:
+    """A (possibly multi-process) global array as one numpy array on every process."""
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+    return np.asarray(x)
+
+
+def _tick_chunk(n_ticks: int, target: int = 100) -> int:
+    """The largest divisor of n_ticks up to ``target`` (whole horizon if that is tiny): chunks of
+    one shape, compiled once."""
+    best = max(d for d in range(1, min(target, n_ticks) + 1) if n_ticks % d == 0)
+    return best if best >= 10 else n_ticks

@@ -1,0 +1,411 @@
+"""The gain-tuning problem shared by gradient tuning and its baselines.
+
+    TuneConfig --sample_pushes--> Scenario batch (B,) --objective--> loss (), terms (B,), Metrics (B,)
+
+* the push distribution (:func:`sample_pushes`): azimuth uniform over 360 deg, impulse a
+  uniform multiple (``magnitude_range``) of the default gains' envelope or of the feet-in-place
+  LIP bound (``push_scale``) in that direction, pushed body among ``train_bodies``, duration
+  uniform in ``duration_range``, floor friction, plant mass scale and initial joint noise; batch k of a stream is drawn from ``default_rng([seed, stream,
+  k])``, so a resumed run draws the same pushes;
+* the objectives on MJX's JAX implementation (:func:`make_batched_loss`: one gain set over B
+  pushes, differentiable; :func:`make_population_loss`: P gain sets over the same b pushes,
+  forward, vmapped over the population), with the loss of :mod:`wbc_jax.tuning.loss`;
+* checkpoint and history files (atomic, keyed to the config).
+
+Shapes: ``B`` pushes, ``P`` candidates, ``n = 23`` joints, T ticks.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import hashlib
+import io as _io
+import json
+import pathlib
+import zipfile
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wbc_jax.control.controller import ControllerConfig
+from wbc_jax.control.gains import Gains, default_gains, load_gains
+from wbc_jax.core import constants, io
+from wbc_jax.jobs import sweep_table
+from wbc_jax.robot import model as model_lib
+from wbc_jax.sim import loop as loop_lib
+from wbc_jax.sim import metrics as metrics_lib
+from wbc_jax.sim import mjx_loop, physics, runner, scenario
+from wbc_jax.sim.state import Push, Scenario, SimConfig
+from wbc_jax.tuning import loss as tuning_loss
+from wbc_jax.tuning import params as tuning_params
+from wbc_jax.tuning.config import ENVELOPE_FILE, NOT_TRAINING, TuneConfig, config_key
+
+# ---------------------------------------------------------------------------------------------
+# The push distribution
+
+
+def load_envelope(path) -> tuple[np.ndarray, np.ndarray]:
+    """(azimuths (K,) deg, impulses (K,) N s) of an envelope file: {"azimuth_deg": [...],
+    "impulse_ns": [...]}, or the summary.json of ``wbc-jax envelope`` (gain set 0)."""
+    try:
+        data = json.loads(pathlib.Path(path).read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ValueError(f"envelope file {path} is unreadable: {err}") from None
+    if "envelope" in data and "azimuth_deg" not in data:
+        env = data["envelope"].get("0", data["envelope"].get(0, {}))
+        az = np.array([float(a) for a in env], float)
+        imp = np.array([e["impulse_ns"] for e in env.values()], float)
+    else:
+        az, imp = np.asarray(data.get("azimuth_deg", []), float), np.asarray(data.get("impulse_ns", []), float)
+    if az.size == 0 or az.shape != imp.shape or not np.all(np.isfinite(imp)) or np.any(imp <= 0):
+        raise ValueError(f"envelope file {path}: needs matching azimuth_deg and positive impulse_ns lists")
+    order = np.argsort(az % 360.0)
+    return az[order] % 360.0, imp[order]
+
+
+def envelope_table(tc: TuneConfig, robot: model_lib.Robot) -> tuple[np.ndarray, np.ndarray]:
+    """(azimuths (32,) or (K,) deg, impulses N s) that push impulses are scaled by: with
+    ``push_scale == "lip"`` the feet-in-place LIP bound over 32 directions; else the default
+    envelope per direction: ``tc.envelope``, the stored :data:`ENVELOPE_FILE`, or
+    ``envelope_fraction`` x the LIP bound."""
+    if tc.push_scale == "lip":
+        return _lip_table(robot)
+    if tc.envelope is not None:
+        return load_envelope(tc.envelope)
+    if ENVELOPE_FILE.is_file():
+        return load_envelope(ENVELOPE_FILE)
+    az, bound = _lip_table(robot)
+    return az, tc.envelope_fraction * bound
+
+
+def _lip_table(robot: model_lib.Robot) -> tuple[np.ndarray, np.ndarray]:
+    """(azimuths (32,) deg, the feet-in-place LIP bound m omega d (32,) N s)."""
+    az = np.arange(32) * 360.0 / 32
+    bound = sweep_table.lip_bound(robot, az)
+    return az, np.array([bound[float(a)]["impulse_bound_ns"] for a in az])
+
+
+def interp_periodic(az_table: np.ndarray, values: np.ndarray, az) -> np.ndarray:
+    """Linear interpolation over azimuth (deg, period 360) of a table (K,)."""
+    xp = np.concatenate([az_table - 360.0, az_table, az_table + 360.0])
+    return np.interp(np.asarray(az, float) % 360.0, xp, np.tile(values, 3))
+
+
+def batch_rng(seed: int, stream: int, k: int) -> np.random.Generator:
+    """The generator of batch ``k`` of a stream (0: training, 1: CMA-ES, 2: random search, 3:
+    held-out, 4: prediction check): reproducible and independent of what ran before."""
+    return np.random.default_rng([int(seed), int(stream), int(k)])
+
+
+def sample_pushes(tc: TuneConfig, robot: model_lib.Robot, table, rng: np.random.Generator, size: int,
+                  dtype=np.float32) -> tuple[Scenario, dict]:  # fmt: skip
+    """``size`` pushes of the training distribution (module docstring): (Scenario with a leading
+    axis of ``size`` (its gains are the WBC defaults, unused by the objectives), numpy columns)."""
+    n = robot.index.n
+    az = rng.uniform(0.0, 360.0, size)
+    impulse = rng.uniform(*tc.magnitude_range, size) * interp_periodic(*table, az)
+    body = np.array([robot.index.body_id(b) for b in tc.train_bodies])[rng.integers(0, len(tc.train_bodies), size)]
+    duration = rng.uniform(*tc.duration_range, size)
+    friction, mass = rng.uniform(*tc.friction_range, size), rng.uniform(*tc.mass_range, size)
+    offsets = rng.normal(scale=tc.joint_noise, size=(size, n)) if tc.joint_noise else np.zeros((size, n))
+    return pushes_at(robot, az, impulse, body, duration, tc.push_onset, friction, mass, offsets, dtype)
+
+
+def pushes_at(robot, az, impulse, body, duration, onset, friction, mass, offsets, dtype=np.float32):
+    """Scenarios (B,) of horizontal pushes: azimuth (B,) deg, impulse (B,) N s, body ids (B,),
+    duration (B,) s, onset () s, plant friction and mass scale (B,), joint offsets (B, n)."""
+    az, impulse, duration = (np.asarray(x, float) for x in (az, impulse, duration))
+    B = az.size
+    u = np.stack([np.cos(np.deg2rad(az)), np.sin(np.deg2rad(az)), np.zeros(B)], 1)
+    base = default_gains(robot.index.n)
+    scen = Scenario(
+        push=Push(force=((impulse / duration)[:, None] * u)[:, None, :].astype(dtype),
+                  onset=np.full((B, 1), onset, dtype), duration=duration[:, None].astype(dtype),
+                  body=np.asarray(body, np.int32).reshape(B, 1)),
+        gains=jax.tree_util.tree_map(lambda x: np.broadcast_to(np.asarray(x, dtype), (B,) + np.shape(x)), base),
+        joint_offset=np.asarray(offsets, dtype), friction=np.asarray(friction, dtype),
+        mass_scale=np.asarray(mass, dtype),
+    )  # fmt: skip
+    cols = {
+        "azimuth_deg": az,
+        "impulse_ns": impulse,
+        "magnitude_n": impulse / duration,
+        "duration_s": duration,
+        "body": np.asarray(body),
+        "friction": np.asarray(friction, float),
+        "mass_scale": np.asarray(mass, float),
+    }
+    return scen, cols
+
+
+# ---------------------------------------------------------------------------------------------
+# The problem: closed loop with a tuning trace, bounds, objectives
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Problem:
+    """What the objectives close over: configs, robot, the tuning loop, the start and bounds of the
+    search, the default envelope table, the physics steps of one rollout."""
+
+    tc: TuneConfig
+    lc: tuning_loss.LossConfig
+    setup: scenario.Setup
+    loop: tuning_loss.TuningLoop
+    base: Gains
+    reg0: np.ndarray
+    init: Gains
+    bounds: tuning_params.Bounds
+    table: tuple
+    iterations: int
+
+    @property
+    def robot(self) -> model_lib.Robot:
+        return self.setup.robot
+
+    @property
+    def steps_per_rollout(self) -> int:
+        """Physics steps of one rollout (the unit of the simulation budget)."""
+        return self.loop.n_ticks * self.loop.n_sub
+
+    def init_params(self) -> dict:
+        """The unconstrained start of the search {group: (k,)}."""
+        return tuning_params.controls_to_params(self.init, self.reg0, self.bounds,
+                                                regularisation=self.tc.tune_regularisation)  # fmt: skip
+
+    @property
+    def key(self) -> str:
+        """Checkpoints belong to this: the configs and the envelope table the pushes scale with."""
+        table = hashlib.sha256(np.asarray(self.table, float).tobytes()).hexdigest()[:8]
+        return f"{config_key(self.tc, self.lc, exclude=NOT_TRAINING)}-{table}"
+
+    def regularisation(self, reg) -> np.ndarray:
+        """(2,) Reg.pinvDamp, Reg.KP_postural of a controls dict (None: the controller's)."""
+        if reg is None:
+            return np.asarray(self.reg0, float)
+        return np.array([float(reg[k]) for k in tuning_params.REGULARISATION])
+
+    def controls(self, params: dict):
+        """(Gains, regularisation dict) of unconstrained params."""
+        return tuning_params.params_to_controls(params, self.bounds, self.base)
+
+
+def make_problem(tc: TuneConfig, lc: tuning_loss.LossConfig | None = None, *, robot_name: str = "icub",
+                 horizon: float | None = None, checkpoint: bool | None = None) -> Problem:  # fmt: skip
+    """Check the inputs (gains file inside the bounds, bodies) and build the tuning closed loop
+    (stand task, perturbed plant, MJX JAX physics, a :class:`~wbc_jax.tuning.loss.TuneTrace` per
+    tick). ``horizon``: seconds (default ``tc.horizon``); ``checkpoint``: per-tick
+    rematerialisation (default ``tc.checkpoint == "tick"``)."""
+    lc = tuning_loss.LossConfig() if lc is None else lc
+    dtype = scenario.float_dtype()
+    robot = model_lib.load_robot(robot_name)
+    for b in tc.train_bodies:
+        robot.index.body_id(b)
+    base = default_gains(robot.index.n, dtype)
+    reg0 = tuning_params.default_regularisation()
+    bounds = tuning_params.default_bounds(base, tc.bound_factor, tc.zeta_range, reg0)
+    if tc.keep_tracking:
+        bounds = tuning_params.tracking_bounds(bounds, base, constants.TRACKING_KP_COM_FLOOR,
+                                               constants.TRACKING_YAW_FRACTION)  # fmt: skip
+    init = base
+    if tc.init_gains is not None:
+        init = load_gains(tc.init_gains, robot.index.n, dtype)
+        tuning_params.check_in_bounds(init, reg0, bounds, source=f"--init-gains {tc.init_gains}")
+    table = envelope_table(tc, robot)
+    sim = SimConfig(
+        record=False, loss_trace=True, checkpoint=(tc.checkpoint == "tick") if checkpoint is None else checkpoint,
+        push_body=tc.train_bodies[0], perturb_plant=True,
+        physics=physics.PhysicsConfig(backend="jax", solver_iterations=tc.solver_iterations,
+                                      ls_iterations=tc.ls_iterations),
+    )  # fmt: skip
+    st = scenario.setup("stand", duration=tc.horizon if horizon is None else horizon, sim=sim, gains=base,
+                        controller=ControllerConfig(angular_weight_soft=tc.angular_weight_soft),
+                        scene=scenario.load_scene(robot_name, tc.tasks))  # fmt: skip
+    iterations = tc.solver_iterations or int(robot.mj_model.opt.iterations)
+    return Problem(tc=tc, lc=lc, setup=st, loop=tuning_loss.tuning_loop(st.loop), base=base, reg0=reg0, init=init,
+                   bounds=bounds, table=table, iterations=iterations)  # fmt: skip
+
+
+def _touch(tree, seed):
+    """Every leaf of ``tree`` made to depend on the scalar ``seed`` (adding seed * 0)."""
+    zero = seed * 0
+
+    def touch(x):
+        x = jnp.asarray(x)
+        if jnp.issubdtype(x.dtype, jnp.inexact) or jnp.issubdtype(x.dtype, jnp.integer):
+            return x + zero.astype(x.dtype)
+        if x.dtype == jnp.bool_:
+            return x | (zero > 1)
+        return x
+
+    return jax.tree_util.tree_map(touch, tree)
+
+
+def rollout(loop: loop_lib.ClosedLoop, plant, qpos, gains, push, reg=None, seed=None):
+    """:meth:`wbc_jax.sim.rollout.ClosedLoop.rollout` with, when ``seed`` is given (a scalar that varies
+    along the vmapped batch and depends on the differentiated parameters), every leaf of the
+    initial carry made to depend on it. The batching (vmap) and linearisation (grad) rules of
+    ``lax.scan`` then find which carry entries are batched / have tangents in one pass over the
+    body instead of several, and the nested scans (ticks, physics steps, solver iterations, line
+    search) no longer multiply those passes: the values are the same, the trace is shorter."""
+    carry = mjx_loop.start(loop, qpos)
+    if reg:
+        carry = (carry[0], carry[1].replace(controller=carry[1].controller.replace(**reg)), carry[2])
+    if seed is not None:
+        carry = _touch(carry, seed)
+    (d, state, ok), records = mjx_loop.chunk(loop, plant, gains, push, carry, 0, loop.n_ticks)
+    return metrics_lib.final(state.metrics, ok), records
+
+
+SEED_CARRY = True  # see :func:`rollout`; False: the closed loop's own rollout (measurements)
+
+
+def _rollout_fn(problem: Problem, n_ticks: int | None):
+    """env(gains, reg, scen) -> (loss terms {name: ()}, Metrics) of one push."""
+    loop, st = problem.loop, problem.setup
+    qpos0 = jnp.asarray(st.qpos0, st.dtype)
+    nominal = physics.device_model(st.robot.mj_model, "jax", loop.cfg.physics)
+
+    def env(gains, reg, scen):
+        plant = physics.plant_model(nominal, scen.friction, scen.mass_scale)
+        qpos = loop.initial_qpos(qpos0, scen.joint_offset)
+        if SEED_CARRY:
+            seed = scen.friction + sum(jnp.sum(x) for x in jax.tree_util.tree_leaves((gains, reg)))
+            metrics, trace = rollout(loop, plant, qpos, gains, scen.push, reg, seed)
+        else:
+            metrics, trace = mjx_loop.rollout(loop, plant, qpos, gains, scen.push, controller_overrides=reg)
+        return tuning_loss.loss_terms(trace, problem.lc, n_ticks, loop.cfg.control_dt), metrics
+
+    return env
+
+
+def _cast(dtype, tree):
+    return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), tree)
+
+
+def make_batched_loss(problem: Problem, *, n_ticks: int | None = None, fixed_solver: bool = True):
+    """Batched objective of one gain set (unjitted; jit / differentiate it):
+    ``fn(gains, reg, scen) -> (objective (), terms {name: (B,)}, Metrics (B,))``; ``reg``:
+    {"pinv_damping": (), "kp_postural_reg": ()} or None (the controller's). ``fixed_solver``: MJX's
+    solver loop as a fixed-length scan (reverse mode; same values). ``n_ticks``: the loss on the
+    first ticks only (prediction checks)."""
+    env = _rollout_fn(problem, n_ticks)
+    dtype = problem.setup.dtype
+
+    def fn(gains, reg, scen):
+        gains, reg = _cast(dtype, gains), None if reg is None else _cast(dtype, reg)
+        if fixed_solver:
+            with physics.fixed_iteration_solver(problem.iterations):
+                terms, metrics = jax.vmap(env, in_axes=(None, None, 0))(gains, reg, scen)
+        else:
+            terms, metrics = jax.vmap(env, in_axes=(None, None, 0))(gains, reg, scen)
+        return tuning_loss.batch_objective(terms["total"], problem.lc), terms, metrics
+
+    return fn
+
+
+def _controls_cast(problem: Problem, params: dict):
+    """(Gains, regularisation dict or None) of unconstrained params, in the closed loop's dtype."""
+    dtype = problem.setup.dtype
+    gains, reg = problem.controls(params)
+    return _cast(dtype, gains), None if reg is None else _cast(dtype, reg)
+
+
+def make_env_objective(problem: Problem):
+    """Objective of one push as a function of the unconstrained parameters (unjitted; the training
+    step vmaps its gradient over the batch, so that each rollout's gradient can be checked and
+    clipped on its own): ``fn(params {group: (k,)}, scen) -> (objective (), (terms {name: ()},
+    Metrics))``. Trace it inside :func:`wbc_jax.sim.physics.fixed_iteration_solver` for reverse mode."""
+    env = _rollout_fn(problem, None)
+
+    def fn(params, scen):
+        terms, metrics = env(*_controls_cast(problem, params), scen)
+        return tuning_loss.env_objective(terms["total"], problem.lc), (terms, metrics)
+
+    return fn
+
+
+def make_population_loss(problem: Problem):
+    """Forward objective of P gain sets on the same b pushes, vmapped over the population:
+    ``fn(params {group: (P, k)}, scen (b,)) -> (objective (P,), terms {name: (P, b)}, Metrics (P, b))``."""
+    env = _rollout_fn(problem, None)
+
+    def one(params, scen):
+        terms, metrics = jax.vmap(env, in_axes=(None, None, 0))(*_controls_cast(problem, params), scen)
+        return tuning_loss.batch_objective(terms["total"], problem.lc), terms, metrics
+
+    return jax.vmap(one, in_axes=(0, None))
+
+
+def shard_batch(tree):
+    """Put a batch (leading axis) on the devices: sharded along the batch over all devices when
+    it divides evenly, else on the default device."""
+    mesh = runner.device_mesh()
+    B = int(jax.tree_util.tree_leaves(tree)[0].shape[0])
+    if mesh.devices.size > 1 and B % mesh.devices.size == 0:
+        sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+        return jax.device_put(tree, sharding)
+    return jax.device_put(tree)
+
+
+def survival_stats(metrics) -> dict:
+    """Strict survival and the lax upright rate of a batch's Metrics (host side)."""
+    cols = metrics_lib.summarize(jax.tree_util.tree_map(lambda x: np.asarray(x).reshape(-1), metrics))
+    return {"survival_rate": float(np.mean(cols["survived"])), "upright_rate": float(np.mean(cols["upright"])),
+            "qp_infeasible_rate": float(np.mean(np.asarray(cols["qp_infeasible_ticks"]) > 0))}  # fmt: skip
+
+
+# ---------------------------------------------------------------------------------------------
+# Checkpoints and history files
+
+
+def save_checkpoint(path: pathlib.Path, state, step: int, key: str, **extra) -> None:
+    """state (a pytree) + step + config key (+ extra arrays), atomically."""
+    leaves = jax.tree_util.tree_leaves(state)
+    io.atomic_save_npz(path, step=np.asarray(step), key=np.asarray(key),
+                       **{f"leaf_{i:04d}": np.asarray(x) for i, x in enumerate(leaves)},
+                       **{f"extra_{k}": np.asarray(v) for k, v in extra.items()})  # fmt: skip
+
+
+def load_checkpoint(path: pathlib.Path, like, key: str):
+    """(state shaped like ``like``, step, extra {name: array}) of a checkpoint of config ``key``."""
+    try:
+        with np.load(path) as z:
+            stored = {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+        raise ValueError(f"{path} is unreadable ({err}); remove it to restart") from None
+    if "key" not in stored or str(stored["key"]) != key:
+        raise ValueError(f"{path} belongs to another tuning config; use another --out")
+    treedef = jax.tree_util.tree_structure(like)
+    like_leaves = jax.tree_util.tree_leaves(like)
+    try:
+        leaves = [jnp.asarray(stored[f"leaf_{i:04d}"], dtype=jnp.asarray(x).dtype) for i, x in enumerate(like_leaves)]
+    except KeyError as err:
+        raise ValueError(f"{path} lacks {err}; remove it to restart") from None
+    extra = {k[len("extra_") :]: v for k, v in stored.items() if k.startswith("extra_")}
+    return jax.tree_util.tree_unflatten(treedef, leaves), int(stored["step"]), extra
+
+
+def write_csv(path: pathlib.Path, rows: list, columns) -> None:
+    buf = _io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(columns))
+    w.writeheader()
+    w.writerows(rows)
+    io.atomic_write_bytes(path, buf.getvalue().encode())
+
+
+def read_csv(path: pathlib.Path) -> list:
+    with open(path) as fh:
+        return list(csv.DictReader(fh))
+
+
+def rss_mb() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+
+
+def constants_used() -> dict:
+    """The survival thresholds (for reports)."""
+    return dict(constants.SURVIVAL_CRITERION)
