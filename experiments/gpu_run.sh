@@ -5,21 +5,22 @@
 #
 #   bash experiments/gpu_run.sh setup check bench sweep agree envelope regrid queue soak
 #
-# Carried folders (git-ignored): .wheels/ (mujoco, mujoco-mjx, trimesh, quadprog, evosax, dotmap),
-# and warp-lang 1.18.0 (the extra of mujoco-mjx, 149 MB as a wheel) as an xz tar of the wheel's
-# contents (without its CPU compiler and examples) split over .wa/ .wb/ .wc/ (one per call, under
-# the 64 MiB a call carries), collected in ~/wp while the machine is held.
+# Carried folders (git-ignored, one per call, each under the 64 MiB a call carries; collected in ~/wp while the
+# machine is held): .wa/ holds site_small.tar.xz (the Python 3.12 wheels of mujoco 3.17.0 without its filament
+# renderer, mujoco-mjx, trimesh, quadprog, evosax, dotmap, unpacked) and wpart_00, .wb/ wpart_01: the two halves of
+# an xz tar of the warp-lang 1.18.0 wheel's contents (the extra of mujoco-mjx) without its CPU compiler, examples and
+# tests. Both unpack into /tmp/site, beside the machine's own jax (never replacing it).
 set -uo pipefail
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 exec > >(tee -a "$OUT/log.txt") 2>&1
 SITE=/tmp/site; mkdir -p "$SITE" ~/wp
 export PYTHONPATH=$SITE:$PWD PYTHONUNBUFFERED=1 TF_CPP_MIN_LOG_LEVEL=3 WBC_JAX_CACHE=/tmp/xla-cache
 for d in .wa .wb .wc; do [ -d $d ] && cp $d/* ~/wp/; done
-if [ -d .wheels ] && [ ! -d $SITE/mujoco ]; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target $SITE .wheels/*.whl 2>&1 | grep -v WARNING
+if [ ! -d $SITE/mujoco ] && [ -f ~/wp/site_small.tar.xz ]; then
+  xz -dc ~/wp/site_small.tar.xz | tar xf - -C $SITE && echo "wheels unpacked"
 fi
-if [ ! -d $SITE/warp ] && [ $(ls ~/wp/wpart_0* 2>/dev/null | wc -l) -eq 4 ]; then
-  cat ~/wp/wpart_0* | xz -d | tar xf - -C $SITE && echo "warp-lang unpacked"
+if [ ! -d $SITE/warp ] && [ -f ~/wp/wpart_00 ] && [ -f ~/wp/wpart_01 ]; then
+  cat ~/wp/wpart_00 ~/wp/wpart_01 | xz -dc | tar xf - -C $SITE && echo "warp-lang unpacked"
 fi
 run() {  # name, command...: time a job, keep its output
   local name=$1; shift
@@ -77,6 +78,13 @@ for job in "$@"; do
         --directions 32 --gain-sets 8 --horizon 3 --chunk-size 8192 --backend ${QUEUE_BACKEND:-warp}
       run queue_check python3 experiments/checks/queue_check.py "$OUT/queue_1" "$OUT/queue_1c" \
         $(for q in ${QUEUES:-1 2 4}; do [ $q != 1 ] && echo "$OUT/queue_$q"; done) --out "$OUT/queue_check.json" ;;
+    scaling_jax|scaling_warp)  # issue 33: the 64 x 32 x 8 sweep on 1 and 2 GPUs, each twice (repeat floor)
+      b=${job#scaling_}
+      run $job python3 experiments/benchmarks/scaling.py --out "$OUT/$job" --gpus 1 2 --backends $b -- \
+        --magnitudes 10 400 64 --directions 32 --gain-sets 8 --horizon 3 --chunk-size 16384 --push-onset 0.5 \
+        --push-duration 0.1 ;;
+    gputests)  # the tests marked gpu (their log goes to docs/ with the device)
+      run gputests env JAX_PLATFORMS=cuda,cpu python3 -m pytest -q -n 0 -m gpu -p no:cacheprovider tests ;;
     soak)  # hostile scenarios on warp
       run soak python3 experiments/checks/soak.py --envs ${SOAK_ENVS:-1000000} --chunk 65536 --horizon ${SOAK_HORIZON:-0.5} \
         --backend warp --out "$OUT/soak" ;;
