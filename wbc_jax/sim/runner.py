@@ -145,17 +145,64 @@ def _global_batch(tree, sharding: NamedSharding, dtype):
     )
 
 
-def per_device(fn, mesh: Mesh, in_specs, out_specs):
-    """``jit(shard_map(fn))``: each device runs ``fn`` on its own shard of the batch axis, with no
-    communication between devices. MJX-Warp's step is a foreign call with no partitioning rule:
-    under plain ``jit`` with sharded inputs XLA ran it over the whole batch on every device (its
-    contact buffer sized for one device's share), which made two GPUs slower than one and changed
-    outcomes; here each device sees exactly its share."""
-    return jax.jit(jax.shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=out_specs, check_vma=False))
+class PerDevice:
+    """``fn`` compiled once for each of this process's devices of ``mesh``; a call runs each device's
+    shard of the batch axis on that device (asynchronously, side by side) and returns global arrays
+    sharded along the batch axis, as ``jit(shard_map(fn))`` would, with no communication between
+    devices. Single-device programs, because (i) MJX-Warp's step is a foreign call with no
+    partitioning rule: under ``jit`` with sharded inputs XLA ran it over the whole batch on every
+    device (its contact buffer sized for one device's share), which made two GPUs slower than one
+    and changed outcomes, and (ii) XLA (jax 0.11.2, CUDA) crashed compiling the closed loop as one
+    two-GPU ``shard_map`` program.
+
+    Args:
+      fn: the per-device function of its arguments' local shards.
+      mesh: the 1-D batch mesh (:func:`device_mesh`).
+      batched: per positional argument, True if it is sharded along the batch axis (a global
+        array), False if every device takes it whole (a host value).
+    """
+
+    def __init__(self, fn, mesh: Mesh, batched: tuple[bool, ...]):
+        self.fn, self.mesh, self.batched = fn, mesh, batched
+        self.devices = [d for d in mesh.devices.flat if d.process_index == jax.process_index()]
+        self.compiled: dict = {}
+
+    def _local(self, args, device):
+        """The arguments as ``device`` sees them: its shard of each batched global array."""
+
+        def shard(x):
+            return next(s.data for s in x.addressable_shards if s.device == device)
+
+        return [jax.tree_util.tree_map(shard, a) if b else a for a, b in zip(args, self.batched, strict=True)]
+
+    def compile(self, *args) -> float:
+        """Compile for every local device (in parallel threads); returns the seconds spent."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        t0 = time.perf_counter()
+
+        def build(device):
+            on = jax.sharding.SingleDeviceSharding(device)
+            return jax.jit(self.fn, in_shardings=on, out_shardings=on).lower(*self._local(args, device)).compile()
+
+        with ThreadPoolExecutor(max_workers=len(self.devices)) as pool:
+            self.compiled = dict(zip(self.devices, pool.map(build, self.devices), strict=True))
+        return time.perf_counter() - t0
+
+    def __call__(self, *args):
+        outs = [self.compiled[d](*self._local(args, d)) for d in self.devices]  # dispatched side by side
+        sharding = NamedSharding(self.mesh, PartitionSpec("batch"))
+        n_dev = self.mesh.devices.size
+
+        def assemble(*leaves):
+            shape = (leaves[0].shape[0] * n_dev, *leaves[0].shape[1:])
+            return jax.make_array_from_single_device_arrays(shape, sharding, list(leaves))
+
+        return jax.tree_util.tree_map(assemble, *outs)
 
 
 def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
-    """MJX backends: vmap(closed loop) per device (:func:`per_device`) over the batch, sharded
+    """MJX backends: vmap(closed loop) per device (:class:`PerDevice`) over the batch, sharded
     along it over the device mesh. A run without records is one program (Warp's data never leaves
     it: its contact buffer is shared by a device's environments); a recorded run (``jax`` only)
     goes in chunks of ticks, for progress. Every array the programs close over lives on this
@@ -166,7 +213,7 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
     padded = pad_batch(scen, size + (-size) % n_dev)
     batch = int(padded.friction.shape[0])
     local = batch // n_dev  # environments per device
-    batched, same = PartitionSpec("batch"), PartitionSpec()
+    batched = PartitionSpec("batch")
     scen_dev = _global_batch(padded, NamedSharding(mesh, batched), dtype)
     qpos0 = np.asarray(setup_.qpos0, dtype)
     nominal = physics.device_model(setup_.robot.mj_model, loop.backend, loop.cfg.physics)
@@ -188,9 +235,8 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
                 return mjx_loop.rollout(loop, plant(s), loop.initial_qpos(jnp.asarray(qpos0), s.joint_offset),
                                         s.gains, s.push, batch=local)  # fmt: skip
 
-            program = per_device(jax.vmap(one), mesh, in_specs=(batched,), out_specs=batched)
-            cache[key] = program.lower(scen_dev).compile()
-            compile_s = time.perf_counter() - t0
+            cache[key] = PerDevice(jax.vmap(one), mesh, (True,))
+            compile_s = cache[key].compile(scen_dev)
         t0 = time.perf_counter()
         metrics, records = jax.tree_util.tree_map(_to_host, cache[key](scen_dev))
         if on_tick is not None:
@@ -207,18 +253,17 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
         return jax.vmap(step)(s, carry)
 
     if key not in cache:
-        start_program = per_device(start, mesh, in_specs=(batched,), out_specs=batched)
-        start_fn = start_program.lower(scen_dev).compile()
-        carry_shape = jax.eval_shape(start_program, scen_dev)
-        advance_fn = per_device(advance, mesh, in_specs=(batched, batched, same), out_specs=batched)
-        cache[key] = (start_fn, advance_fn.lower(scen_dev, carry_shape, jnp.int32(0)).compile())
-        compile_s = time.perf_counter() - t0
+        start_fn = PerDevice(start, mesh, (True,))
+        compile_s = start_fn.compile(scen_dev)
+        advance_fn = PerDevice(advance, mesh, (True, True, False))
+        compile_s += advance_fn.compile(scen_dev, start_fn(scen_dev), np.int32(0))
+        cache[key] = (start_fn, advance_fn)
     start_fn, advance_fn = cache[key]
     t0 = time.perf_counter()
     carry = start_fn(scen_dev)
     pieces = []
     for k0 in range(0, loop.n_ticks, chunk):
-        carry, records = advance_fn(scen_dev, carry, jnp.int32(k0))
+        carry, records = advance_fn(scen_dev, carry, np.int32(k0))
         pieces.append(jax.tree_util.tree_map(_to_host, records))
         if on_tick is not None:
             on_tick(min(k0 + chunk, loop.n_ticks))
@@ -230,7 +275,7 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
 def _run_mjx_queue(setup_: Setup, scen: Scenario, queue: int, check_ticks: int = QUEUE_CHECK_TICKS) -> Run:
     """MJX backends, a queue of scenarios per batch slot: each device takes its share of the
     batch's scenarios and works through them in order with ceil(share / queue) slots
-    (:func:`wbc_jax.sim.mjx_loop.rollout_queue`, vmap over its slots; :func:`per_device`). A
+    (:func:`wbc_jax.sim.mjx_loop.rollout_queue`, vmap over its slots; :class:`PerDevice`). A
     scenario's outcome does not depend on the slot that runs it, so the results equal the plain
     run's on any number of devices. ``check_ticks``: the most ticks between hand-ins
     (``experiments/benchmarks/queue_overhead.py`` varies it)."""
@@ -262,9 +307,8 @@ def _run_mjx_queue(setup_: Setup, scen: Scenario, queue: int, check_ticks: int =
 
             return jax.vmap(slot, out_axes=None, axis_name="slots")(jnp.arange(slots, dtype=jnp.int32))
 
-        program = per_device(on_device, mesh, in_specs=(batched,), out_specs=batched)
-        cache[key] = program.lower(scen_dev).compile()
-        compile_s = time.perf_counter() - t0
+        cache[key] = PerDevice(on_device, mesh, (True,))
+        compile_s = cache[key].compile(scen_dev)
     t0 = time.perf_counter()
     metrics = jax.tree_util.tree_map(lambda x: _to_host(x)[:size], cache[key](scen_dev))
     return Run(metrics, None, compile_s, time.perf_counter() - t0)
