@@ -190,7 +190,17 @@ class PerDevice:
         return time.perf_counter() - t0
 
     def __call__(self, *args):
-        outs = [self.compiled[d](*self._local(args, d)) for d in self.devices]  # dispatched side by side
+        # One host thread per device: an XLA:GPU program with while loops (the QP, the physics' solver)
+        # runs its loop control on the thread that launched it, so launching the devices one after the
+        # other from one thread ran them one after the other.
+        run = lambda d: self.compiled[d](*self._local(args, d))  # noqa: E731
+        if len(self.devices) == 1:
+            outs = [run(self.devices[0])]
+        else:
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(max_workers=len(self.devices)) as pool:
+                outs = list(pool.map(run, self.devices))
         sharding = NamedSharding(self.mesh, PartitionSpec("batch"))
         n_dev = self.mesh.devices.size
 
