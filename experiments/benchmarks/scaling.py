@@ -17,6 +17,7 @@ import argparse
 import json
 import os
 import pathlib
+import shutil
 import subprocess
 import sys
 
@@ -98,8 +99,6 @@ def main(argv=None) -> int:
                 runs = json.loads(line[-1][len("RESULT ") :])
                 tables[n] = [_outcomes(folder / f"run{k}") for k in range(2)]
                 # The tables come back with the results (the device machine keeps nothing).
-                import shutil
-
                 shutil.copy(folder / "run1" / "results.parquet", out / f"{backend}_{n}gpu_results.parquet")
                 row.update({"run_s": runs[1]["run_s"], "first_run_s": runs[0]["run_s"], "compile_s": runs[0]["compile_s"],
                             "survival_rate": runs[1]["survival_rate"], "n_devices": runs[1]["n_devices"],
