@@ -176,17 +176,22 @@ class PerDevice:
         return [jax.tree_util.tree_map(shard, a) if b else a for a, b in zip(args, self.batched, strict=True)]
 
     def compile(self, *args) -> float:
-        """Compile for every local device (in parallel threads); returns the seconds spent."""
-        from concurrent.futures import ThreadPoolExecutor
-
+        """Compile for every local device; returns the seconds spent. Tracing happens here, in the
+        caller's thread (JAX's settings such as ``enable_x64`` are thread-local); only XLA's compile
+        of several devices runs in parallel threads."""
         t0 = time.perf_counter()
-
-        def build(device):
+        lowered = []
+        for device in self.devices:
             on = jax.sharding.SingleDeviceSharding(device)
-            return jax.jit(self.fn, in_shardings=on, out_shardings=on).lower(*self._local(args, device)).compile()
+            lowered.append(jax.jit(self.fn, in_shardings=on, out_shardings=on).lower(*self._local(args, device)))
+        if len(lowered) == 1:
+            compiled = [lowered[0].compile()]
+        else:
+            from concurrent.futures import ThreadPoolExecutor
 
-        with ThreadPoolExecutor(max_workers=len(self.devices)) as pool:
-            self.compiled = dict(zip(self.devices, pool.map(build, self.devices), strict=True))
+            with ThreadPoolExecutor(max_workers=len(lowered)) as pool:
+                compiled = list(pool.map(lambda low: low.compile(), lowered))
+        self.compiled = dict(zip(self.devices, compiled, strict=True))
         return time.perf_counter() - t0
 
     def __call__(self, *args):
