@@ -148,6 +148,17 @@ class RobotIndex:
         _check_name("body", name, list(self.body_names))
         return self.body_names.index(name)
 
+    @property
+    def pushable_bodies(self) -> tuple[str, ...]:
+        """The bodies a push can act on: the robot's, not the world (body 0, which never moves)."""
+        return self.body_names[1:]
+
+    def pushable_body_id(self, name: str) -> int:
+        """Body id of a body a push can act on; raises ValueError listing the valid names."""
+        if name not in self.pushable_bodies:
+            raise ValueError(f"cannot push body {name!r}; pushable bodies: {sorted(self.pushable_bodies)}")
+        return self.body_names.index(name)
+
 
 def build_index(m: mujoco.MjModel, robot: str = "icub", joints=ICUB_JOINTS) -> RobotIndex:
     """Resolve joint, actuator, site and body names of ``m`` into a :class:`RobotIndex`.
@@ -254,3 +265,9 @@ def summary(robot: Robot) -> dict:
         "torque_limit_nm": float(idx.torque_limit.max()),
         "home_qpos": [round(float(x), 6) for x in robot.home_qpos()],
     }
+
+
+def pushable_bodies(robot: str = "icub") -> tuple[str, ...]:
+    """The bodies of ``robot`` a push can act on (:attr:`RobotIndex.pushable_bodies`): the valid
+    values of the jobs' body flags."""
+    return load_robot(robot).index.pushable_bodies
