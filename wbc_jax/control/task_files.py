@@ -36,7 +36,7 @@ def load_spec_file(path) -> dict:
         import yaml
 
         try:
-            data = yaml.safe_load(text)
+            data = yaml.load(text, Loader=_yaml_loader())
         except yaml.YAMLError as err:
             where = getattr(err, "problem_mark", None)
             at = f" (line {where.line + 1}, column {where.column + 1})" if where is not None else ""
@@ -69,6 +69,21 @@ def load_spec_file(path) -> dict:
         "scene": data.get("scene") or [],
         "initial_posture_deg": posture,
     }
+
+
+def _yaml_loader():
+    """PyYAML's safe loader that also reads ``1e3`` as a number (YAML 1.1 wants ``1.0e+3``: its
+    plain ``1e3`` is a string, a trap for every number of a task file)."""
+    import re
+
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    exponent = re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$")
+    Loader.add_implicit_resolver("tag:yaml.org,2002:float", exponent, list("-+0123456789"))
+    return Loader
 
 
 def load_stack_file(path) -> list[MotionTask]:

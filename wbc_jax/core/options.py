@@ -20,6 +20,7 @@ the field's annotation. File entries (a contact, a scene object) declare theirs 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import pathlib
 import types
@@ -104,7 +105,7 @@ def flag_name(field: dataclasses.Field) -> str:
 def field_type(owner: type, field: dataclasses.Field) -> tuple[type, bool, bool]:
     """(scalar type, is a tuple, may be None) of a config field: ``float | None`` -> (float,
     False, True), ``tuple[float, ...]`` -> (float, True, False)."""
-    hint = typing.get_type_hints(owner)[field.name]
+    hint = _hints(owner)[field.name]
     optional = False
     if typing.get_origin(hint) in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(hint) if a is not type(None)]
@@ -116,12 +117,17 @@ def field_type(owner: type, field: dataclasses.Field) -> tuple[type, bool, bool]
     return hint, False, optional
 
 
+@functools.lru_cache(maxsize=64)
+def _hints(cls: type) -> dict:
+    return typing.get_type_hints(cls)
+
+
 def check_options(obj, owner: str | None = None, robot: str = "icub") -> None:
     """Raise ValueError, in one line naming the field and its valid values, for the first field of
     the dataclass ``obj`` outside its declaration (types, bounds, choices, order, input files,
     names on ``robot``). Fields are named as flags (``--push-onset``), or with ``owner`` as keys of
     a file entry (``contact 'hand': mu``)."""
-    hints = typing.get_type_hints(type(obj))
+    hints = _hints(type(obj))
     for field in dataclasses.fields(obj):
         valid = field.metadata.get("valid")
         if valid is None:

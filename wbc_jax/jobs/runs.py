@@ -56,11 +56,11 @@ def check_output_dir(path, kind: str, fp: dict | None = None) -> pathlib.Path:
         except (json.JSONDecodeError, UnicodeDecodeError, AttributeError) as err:
             raise ValueError(f"--out {path}: its {MANIFEST} is unreadable ({err}); use another folder") from None
         if found != kind:
-            raise ValueError(f"--out {path} holds a {found} run; a {kind} run needs its own folder")
+            raise ValueError(f"--out {path} holds {_a(found)} run; {_a(kind)} run needs its own folder")
         if fp is not None:
             diff = differences(json.loads(manifest.read_text()).get("fingerprint", {}), fp)
             if diff:
-                raise ValueError(f"--out {path} holds a {kind} run made with other inputs ({'; '.join(diff)}); use "
+                raise ValueError(f"--out {path} holds {_a(kind)} run made with other inputs ({'; '.join(diff)}); use "
                                  "another --out, or remove the folder to start over")  # fmt: skip
     elif path.is_dir():
         others = sorted(p.name for p in path.iterdir() if not p.name.startswith("."))
@@ -81,6 +81,10 @@ def check_output_dir(path, kind: str, fp: dict | None = None) -> pathlib.Path:
     except OSError as err:
         raise ValueError(f"--out {path}: cannot write there ({err})") from None
     return path
+
+
+def _a(kind) -> str:
+    return f"{'an' if str(kind)[:1] in 'aeiou' else 'a'} {kind}"
 
 
 def differences(old: dict, new: dict, prefix: str = "") -> list[str]:
