@@ -129,6 +129,8 @@ def cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
         (N, ["tune", "--eval-horizon", "inf"], r"--eval-horizon must be a number in \(0, 600\] s, got inf"),
         (N, ["envelope", "--resolution", "1e-300"], r"--resolution must be a number in \[0.001, 1000\] N s"),
         (N, ["envelope", "--resolution", "nan"], r"--resolution must be a number"),
+        (N, ["envelope", "--magnitudes", "5000", "5000", "1", "--push-duration", "0.5", "--horizon", "2",
+             "--resolution", "0.001"], r"--resolution 0.001 N s needs 22 bisection rounds inside a grid step"),
         (N, ["envelope", "--queue", "2", "--backend", "mujoco"], r"--queue 2 .* needs an MJX backend"),
         (N, ["push-sweep", "--queue", "2", "--backend", "mujoco"], r"--queue 2 .* needs an MJX backend"),
         (N, ["push-sweep", "--queue", "1e6"], r"--queue must be a whole number in \[1, 1024\]"),

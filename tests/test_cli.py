@@ -27,7 +27,7 @@ _spec.loader.exec_module(bad_input)
 
 
 def test_flags_are_generated_from_the_configs(capsys):
-    for command, (config, _) in cli._configs().items():
+    for command, (config, _) in cli.job_configs().items():
         with pytest.raises(SystemExit):
             cli.main([command, "--help"])
         text = capsys.readouterr().out
@@ -57,7 +57,7 @@ def test_every_flag_has_a_declared_range():
     """One mechanism: every number flag of every job declares both bounds; every file flag is an
     input file; every other text flag has its choices or names (or is a path or a folder)."""
     paths = {"out", "run_dir", "tasks", "gains", "init_gains", "envelope"}
-    for command, (config, _) in cli._configs().items():
+    for command, (config, _) in cli.job_configs().items():
         for field in dataclasses.fields(config):
             valid = field.metadata["valid"]
             kind, _, _ = options.field_type(type(config), field)
@@ -80,7 +80,7 @@ def test_every_number_flag_is_refused_outside_its_range(value, tmp_path, monkeyp
     (run / "trajectory.npz").write_bytes(b"")
     checked = 0
     parser = cli.build_parser()
-    for command, (config, _) in cli._configs().items():
+    for command, (config, _) in cli.job_configs().items():
         for field, valid, kind in _declared(config):
             flag = options.flag_name(field)
             nargs = field.metadata.get("nargs", 1)

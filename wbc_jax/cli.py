@@ -87,7 +87,7 @@ def config_from_args(args: argparse.Namespace, config):
     return dataclasses.replace(config, **changes)
 
 
-def _configs() -> dict:
+def job_configs() -> dict:
     """Each job's (default config, help) by command name."""
     from wbc_jax.jobs import balance, envelope, info, sweep_config, view
     from wbc_jax.tuning import tune
@@ -152,7 +152,7 @@ def push_sweep_config(flags: list[str]):
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="wbc-jax", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
-    for command, (config, help_text) in _configs().items():
+    for command, (config, help_text) in job_configs().items():
         job = sub.add_parser(command, help=help_text)
         add_config_arguments(job, config)
         if command not in ("info", "view"):
@@ -169,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         # Every job: the declared ranges and the job's own checks (config.check) before anything
         # loads a program or writes a file.
-        cfg = config_from_args(args, _configs()[args.command][0])
+        cfg = config_from_args(args, job_configs()[args.command][0])
         cfg.check()
         line = _run_job(args.command, cfg, getattr(args, "quiet", False))
     except (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError,

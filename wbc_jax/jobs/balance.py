@@ -4,7 +4,6 @@ trajectory and plots."""
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import pathlib
 import time
@@ -224,7 +223,3 @@ def contact_tracking(cset, traj: dict, after: float = 1.0) -> dict:
         entry["max_drift_m"] = float(np.max(np.linalg.norm(p - p[0], axis=1)))
         out[c.name] = entry
     return out
-
-
-def main_json_line(result: dict) -> str:
-    return json.dumps(result, separators=(",", ":"))

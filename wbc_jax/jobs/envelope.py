@@ -39,9 +39,9 @@ from wbc_jax.sim import runner, scenario
 
 # The grid of the documented sweeps (docs/sweep_h100): 64 chest pushes of 10-400 N for 0.1 s.
 DEFAULT_MAGNITUDES = tuple(float(x) for x in np.linspace(10.0, 400.0, 64))
-# Bisection rounds inside one grid step at most: 2^-30 of a step is far below any engine's
+# Bisection rounds inside one grid step at most: 2^-20 of a step is far below any engine's
 # run-to-run variation.
-MAX_REFINE_ROUNDS = 30
+MAX_REFINE_ROUNDS = 20
 
 
 @dataclasses.dataclass(frozen=True)
