@@ -142,6 +142,8 @@ def cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
         (N, ["push-sweep", "--joint-noise", "10"], r"--joint-noise must be a number in \[0, 0.5\] rad"),
         (N, ["push-sweep", "--gain-scale-range", "0", "2"], r"--gain-scale-range must be a number in \[0.01, 100\]"),
         (N, ["push-sweep", "--friction", "1", "0.5"], r"--friction LO HI must be ordered"),
+        (N, ["push-sweep", "--gain-sets", "4", "--gain-scale-range", "50", "100"],
+         r"--gain-scale-range \[50.0, 100.0\]: gain set 1: gain kp_postural has entries above its range"),
         (N, ["push-sweep", "--seed", "1e20"], r"--seed must be a whole number in \[0, 4,294,967,295\]"),
         (N, ["push-sweep", "--seed", "-1"], r"--seed must be a whole number in \[0, "),
         (N, ["push-sweep", "--solver-iterations", "1e9"], r"--solver-iterations must be a whole number in \[1, 1000\]"),

@@ -1,5 +1,7 @@
 """``wbc-jax`` command line: one subcommand per job; each job's flags and defaults are generated
-from its ``default_config()`` (a frozen dataclass whose fields carry their help)."""
+from its ``default_config()`` (a frozen dataclass whose fields carry their help and valid values,
+:mod:`wbc_jax.core.options`), and every job checks its config (``check()``: the declared ranges
+first) before it loads a program or writes a file."""
 
 from __future__ import annotations
 

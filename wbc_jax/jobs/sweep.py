@@ -35,9 +35,14 @@ def gain_sets(base: Gains, count: int, scale_range, rng: np.random.Generator) ->
     """``count`` gain sets: the base one, then per-group log-uniform scalings of it."""
     sets = [base]
     lo, hi = np.log(scale_range[0]), np.log(scale_range[1])
-    for _ in range(count - 1):
-        scaled = {name: np.asarray(getattr(base, name)) * np.exp(rng.uniform(lo, hi)) for name in constants.GAIN_FIELDS}
-        sets.append(Gains(**scaled))
+    for k in range(1, count):
+        scaled = Gains(**{name: np.asarray(getattr(base, name)) * np.exp(rng.uniform(lo, hi))
+                          for name in constants.GAIN_FIELDS})  # fmt: skip
+        try:  # a scaling can take a gain out of its range: named before anything compiles
+            validate_gains(scaled, np.asarray(base.kp_postural).shape[-1])
+        except ValueError as err:
+            raise ValueError(f"--gain-scale-range {list(scale_range)}: gain set {k}: {err}") from None
+        sets.append(scaled)
     return sets
 
 
