@@ -150,7 +150,8 @@ def cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
         (N, ["push-sweep", "--angular-weight-soft", "0"], r"--angular-weight-soft must be a number in \(0, 10000\]"),
         (N, ["balance", "--angular-weight-soft", "nan"], r"--angular-weight-soft must be a number in \(0, 10000\]"),
         (N, ["balance", "--control-dt", "1"], r"--control-dt must be a number in \[0.001, 0.1\] s"),
-        (N, ["balance", "--push-force", "nan", "0", "0"], r"--push-force must be a number in \[-5000, 5000\] N, got nan"),
+        (N, ["balance", "--push-force", "nan", "0", "0"],
+         r"--push-force must be a number in \[-5000, 5000\] N, got nan"),
         (N, ["balance", "--push-onset", "-1"], r"--push-onset must be a number in \[0, 600\) s"),
         (N, ["balance", "--solver-iterations", "0"], r"--solver-iterations must be a whole number in \[1, 1000\]"),
         (N, ["balance", "--duration", "0.001"], r"shorter than one control tick"),
@@ -185,7 +186,8 @@ def cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
         (M, ["push-sweep", "--magnitudes", "10", "100", "1e9"], r"N must be a whole number in \[1, 100,000\]"),
         (M, ["push-sweep", "--magnitudes", "0", "100", "100000", "--directions", "1000"], r"more than 10,000,000"),
         (M, ["push-sweep", "--magnitudes", "0", "100", "100000", "--directions", "100", "--chunk-size", "1e7"],
-         r"--chunk-size 10,000,000: a batch of 10,000,000 environments needs about [\d,.]+ GB .* free; use --chunk-size"),
+         r"--chunk-size 10,000,000: a batch of 10,000,000 environments needs about [\d,.]+ GB .* free; use "
+         r"--chunk-size"),
         # Tracebacks and late failures: every file problem names the file, before compiling.
         (T, ["balance", "--tasks", f["friction"]], r"scene object 'box': friction must be a number, got 'high'"),
         (T, ["push-sweep", "--tasks", f["normal_force"]], r"contact 'h': normal_force must be a number or null"),

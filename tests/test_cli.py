@@ -62,8 +62,8 @@ def test_every_flag_has_a_declared_range():
             valid = field.metadata["valid"]
             kind, _, _ = options.field_type(type(config), field)
             if kind in (int, float):
-                assert (valid.ge is not None or valid.gt is not None) and (valid.le is not None or valid.lt is not None) \
-                    or valid.choices is not None, (command, field.name)  # fmt: skip
+                bounded = (valid.ge, valid.gt) != (None, None) and (valid.le, valid.lt) != (None, None)
+                assert bounded or valid.choices is not None, (command, field.name)
             elif kind is str:
                 assert valid.choices or valid.names or field.name in paths, (command, field.name)
                 assert valid.input_file == (field.name in paths - {"out", "run_dir"}), (command, field.name)

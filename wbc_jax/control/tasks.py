@@ -288,9 +288,9 @@ def resolve(robot: Robot, stack, qpos: np.ndarray | None = None) -> TaskStack:
                 raise ValueError(f"task {task.name!r}: a circle reference needs a position or com task")
             if not (0 < ref.radius <= MAX_CIRCLE_RADIUS_M and 0 < ref.frequency <= MAX_CIRCLE_FREQUENCY_HZ
                     and 0 <= ref.ramp <= MAX_RAMP_S):  # fmt: skip
-                raise ValueError(f"task {task.name!r}: circle needs radius in (0, {MAX_CIRCLE_RADIUS_M:g}] m, frequency "
-                                 f"in (0, {MAX_CIRCLE_FREQUENCY_HZ:g}] Hz and ramp in [0, {MAX_RAMP_S:g}] s, got "
-                                 f"{ref.radius}, {ref.frequency}, {ref.ramp}")  # fmt: skip
+                raise ValueError(f"task {task.name!r}: circle needs radius in (0, {MAX_CIRCLE_RADIUS_M:g}] m, "
+                                 f"frequency in (0, {MAX_CIRCLE_FREQUENCY_HZ:g}] Hz and ramp in [0, {MAX_RAMP_S:g}] "
+                                 f"s, got {ref.radius}, {ref.frequency}, {ref.ramp}")  # fmt: skip
             axes = [a.lstrip("+-") for a in ref.plane]
             if len(ref.plane) != 2 or any(a not in AXES for a in axes) or axes[0] == axes[1]:
                 raise ValueError(

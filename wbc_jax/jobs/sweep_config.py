@@ -71,13 +71,19 @@ class SweepConfig:
     body: str = option("chest", "pushed body", names=model.pushable_bodies)
     gains: str | None = option(None, "gains JSON file (the first gain set)", metavar="FILE", input_file=True)
     gain_sets: int = option(1, "gain sets: the first, then seeded log-uniform scalings of it", ge=1, le=MAX_ENVS)
-    gain_scale_range: tuple[float, float] = option((0.5, 2.0), "range of those scalings", nargs=2,
-                                                   ge=limits.GAIN_SCALE_RANGE[0], le=limits.GAIN_SCALE_RANGE[1], ordered=True)  # fmt: skip
+    gain_scale_range: tuple[float, float] = option(
+        (0.5, 2.0), "range of those scalings", nargs=2, ge=limits.GAIN_SCALE_RANGE[0], le=limits.GAIN_SCALE_RANGE[1],
+        ordered=True,
+    )  # fmt: skip
     joint_noise: float = option(0.0, "initial joint noise std [rad]", ge=0.0, le=limits.MAX_JOINT_NOISE_RAD, unit="rad")
-    friction: tuple[float, float] = option((1.0, 1.0), "floor friction range", nargs=2, metavar=("LO", "HI"),
-                                           ge=limits.FRICTION_RANGE[0], le=limits.FRICTION_RANGE[1], ordered=True)  # fmt: skip
-    mass_scale: tuple[float, float] = option((1.0, 1.0), "plant mass scale range", nargs=2, metavar=("LO", "HI"),
-                                             ge=limits.MASS_SCALE_RANGE[0], le=limits.MASS_SCALE_RANGE[1], ordered=True)  # fmt: skip
+    friction: tuple[float, float] = option(
+        (1.0, 1.0), "floor friction range", nargs=2, metavar=("LO", "HI"), ge=limits.FRICTION_RANGE[0],
+        le=limits.FRICTION_RANGE[1], ordered=True,
+    )  # fmt: skip
+    mass_scale: tuple[float, float] = option(
+        (1.0, 1.0), "plant mass scale range", nargs=2, metavar=("LO", "HI"), ge=limits.MASS_SCALE_RANGE[0],
+        le=limits.MASS_SCALE_RANGE[1], ordered=True,
+    )  # fmt: skip
     horizon: float = option(1.5, "seconds per rollout", gt=0.0, le=limits.MAX_HORIZON_S, unit="s")
     task: str = option(
         "stand", "two feet (stand) or pushed in the single-support phase of the one-foot task "

@@ -42,9 +42,8 @@ def lip_bound(robot: model_lib.Robot, directions_deg, support: str = "two-feet",
         u = np.array([math.cos(math.radians(az)), math.sin(math.radians(az))])
         # Distance along u from the CoM to the hull boundary: min over facets a.x + b <= 0.
         dist = min((-(eq[:2] @ com[:2] + eq[2]) / (eq[:2] @ u)) for eq in hull.equations if eq[:2] @ u > 1e-12)
-        vertical = abs(elevation_deg) >= 90.0
-        out[float(az)] = {"edge_distance_m": dist, "velocity_bound_mps": omega * dist,
-                          "impulse_bound_ns": None if vertical else robot.index.mass * omega * dist / horizontal}  # fmt: skip
+        bound = None if abs(elevation_deg) >= 90.0 else robot.index.mass * omega * dist / horizontal
+        out[float(az)] = {"edge_distance_m": dist, "velocity_bound_mps": omega * dist, "impulse_bound_ns": bound}
     return out
 
 

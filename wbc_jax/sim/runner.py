@@ -130,9 +130,9 @@ def check_memory(setup_: Setup, batch: int, *, envs: int | None = None, queue: i
         fixed = (envs or batch) * est["scenario_bytes"]
         fits = max(0, int((free - fixed) // est["per_env"]) * queue)
         hint = f"use {flag} {fits:,} or less" if fits >= 1 else "use a smaller grid"
-        raise ValueError(f"{flag} {batch:,}: a batch of {batch:,} environments needs about {est['bytes'] / 1e9:,.1f} GB "
-                         f"({est['per_env'] / 1e3:,.0f} kB each and {fixed / 1e9:,.2f} GB of scenarios, estimated) and "
-                         f"the {where} has {free / 1e9:,.1f} GB free; {hint}")  # fmt: skip
+        raise ValueError(f"{flag} {batch:,}: a batch of {batch:,} environments needs about "
+                         f"{est['bytes'] / 1e9:,.1f} GB ({est['per_env'] / 1e3:,.0f} kB each and {fixed / 1e9:,.2f} GB "
+                         f"of scenarios, estimated) and the {where} has {free / 1e9:,.1f} GB free; {hint}")  # fmt: skip
     return est
 
 

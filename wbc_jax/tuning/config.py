@@ -44,7 +44,8 @@ class TuneConfig:
     init_gains: str | None = option(None, "start from this gains file (inside the bounds; default: WBC's)",
                                     metavar="FILE", input_file=True)  # fmt: skip
     magnitude_range: tuple[float, float] = option((0.6, 1.4), "push impulses as multiples of --push-scale in the "
-                                                  "push's direction", nargs=2, gt=0.0, le=100.0, ordered=True)  # fmt: skip
+                                                  "push's direction", nargs=2, gt=0.0, le=100.0,
+                                                  ordered=True)  # fmt: skip
     push_scale: str = option("envelope", "what push impulses are multiples of, per direction: 'envelope' (the default "
                              "gains' strict envelope, --envelope) or 'lip' (the feet-in-place LIP bound m omega d)",
                              choices=PUSH_SCALES)  # fmt: skip
@@ -53,8 +54,10 @@ class TuneConfig:
     tasks: str | None = option(None, "contact file of the two feet (JSON/YAML), as push-sweep --tasks: e.g. "
                                "experiments/tasks/feet_sole95.yaml (the CoP rectangles of the model's soles)",
                                metavar="FILE", input_file=True)  # fmt: skip
-    angular_weight_soft: float = option(1.0, "the controller's angular_weight_soft, as push-sweep's (1: WBC)",
-                                        gt=constants.ANGULAR_WEIGHT_RANGE[0], le=constants.ANGULAR_WEIGHT_RANGE[1])  # fmt: skip
+    angular_weight_soft: float = option(
+        1.0, "the controller's angular_weight_soft, as push-sweep's (1: WBC)", gt=constants.ANGULAR_WEIGHT_RANGE[0],
+        le=constants.ANGULAR_WEIGHT_RANGE[1],
+    )  # fmt: skip
     duration_range: tuple[float, float] = option((0.05, 0.3), "push durations [s]", nargs=2, gt=0.0,
                                                  le=constants.MAX_PUSH_DURATION_S, unit="s", ordered=True)  # fmt: skip
     push_onset: float = option(0.2, "push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
@@ -76,7 +79,8 @@ class TuneConfig:
     checkpoint: str = option("tick", "rematerialisation in the backward pass", choices=CHECKPOINTS)
     env_clip: float = option(3.0, "each rollout's gradient is clipped to this multiple of the batch's median "
                              "per-rollout gradient norm before the batch mean (0: no per-rollout clipping); "
-                             "rollouts with a non-finite gradient are left out of the mean", ge=0.0, le=1e6)  # fmt: skip
+                             "rollouts with a non-finite gradient are left out of the mean", ge=0.0,
+                             le=1e6)  # fmt: skip
     keep_tracking: bool = option(False, "bounds that keep the seed's CoM sinusoid tracked: K_P,CoM x, y >= "
                                  f"{constants.TRACKING_KP_COM_FLOOR:g}, the yaw entries of K_I,w and of the "
                                  f"angular damping ratio >= {constants.TRACKING_YAW_FRACTION:g} x the WBC "
