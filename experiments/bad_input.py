@@ -47,7 +47,7 @@ def _run_dir(path: pathlib.Path, kind: str, fingerprint: dict | None = None, fil
 
 def cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
     """(class, argv, pattern of the error line) of every case; its input files are written into
-    ``tmp``. A job with an ``--out`` flag gets ``--out tmp/out`` unless the case gives one."""
+    ``tmp``. A job with an ``--out`` flag gets its own ``--out`` unless the case gives one."""
     from wbc_jax.control.gains import default_gains, gains_to_dict
     from wbc_jax.jobs import balance, envelope
 
@@ -64,6 +64,7 @@ def cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
         "file": _write(tmp / "a_file", "x"),
         "rank": _write(tmp / "rank.json", json.dumps(rank)),
         "huge": _write(tmp / "huge.json", json.dumps(huge)),
+        "high": _write(tmp / "high.json", json.dumps({**gains, "kp_com": [5000.0, 5000.0, 10.0]})),
         "text": _write(tmp / "text.json", json.dumps(text)),
         "not_json": _write(tmp / "not.json", "{kp_com: 1"),
         "latin1_json": _write(tmp / "latin1.json", '{"kp_com": "\xe9"}'.encode("latin-1")),
@@ -142,8 +143,8 @@ def cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
         (N, ["push-sweep", "--joint-noise", "10"], r"--joint-noise must be a number in \[0, 0.5\] rad"),
         (N, ["push-sweep", "--gain-scale-range", "0", "2"], r"--gain-scale-range must be a number in \[0.01, 100\]"),
         (N, ["push-sweep", "--friction", "1", "0.5"], r"--friction LO HI must be ordered"),
-        (N, ["push-sweep", "--gain-sets", "4", "--gain-scale-range", "50", "100"],
-         r"--gain-scale-range \[50.0, 100.0\]: gain set 1: gain kp_postural has entries above its range"),
+        (N, ["push-sweep", "--gains", f["high"], "--gain-sets", "4", "--gain-scale-range", "2", "4"],
+         r"--gain-scale-range \[2.0, 4.0\]: gain set 1: gain kp_com has entries above its range \[0, 10000\]"),
         (N, ["push-sweep", "--seed", "1e20"], r"--seed must be a whole number in \[0, 4,294,967,295\]"),
         (N, ["push-sweep", "--seed", "-1"], r"--seed must be a whole number in \[0, "),
         (N, ["push-sweep", "--solver-iterations", "1e9"], r"--solver-iterations must be a whole number in \[1, 1000\]"),
@@ -221,11 +222,11 @@ def cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
     ]  # fmt: skip
 
 
-def argv_with_out(argv: list[str], tmp: pathlib.Path) -> list[str]:
-    """``argv`` with ``--out tmp/out`` where its job has that flag and the case gives none."""
+def argv_with_out(argv: list[str], out: pathlib.Path) -> list[str]:
+    """``argv`` with ``--out OUT`` where its job has that flag and the case gives none."""
     if argv[0] in ("info", "view") or "--out" in argv:
         return list(argv)
-    return [*argv, "--out", str(tmp / "out")]
+    return [*argv, "--out", str(out)]
 
 
 def judge(rc: int, err: str, seconds: float, pattern: str, wrote: bool, max_seconds: float) -> list[str]:
@@ -261,8 +262,9 @@ def main(argv=None) -> int:
     rows, failed = [], 0
     with tempfile.TemporaryDirectory() as d:
         tmp = pathlib.Path(d)
-        for klass, case, pattern in cases(tmp):
-            cmd = argv_with_out(case, tmp)
+        for k, (klass, case, pattern) in enumerate(cases(tmp)):
+            out = tmp / f"out_{k}"  # a case's own: one that writes cannot spoil the next
+            cmd = argv_with_out(case, out)
             if args.k and args.k not in " ".join(cmd):
                 continue
             t0 = time.time()
@@ -273,11 +275,11 @@ def main(argv=None) -> int:
             except subprocess.TimeoutExpired:
                 rc, err = None, "hang"
             seconds = time.time() - t0
-            problems = ["hang"] if rc is None else judge(rc, err, seconds, pattern, (tmp / "out").exists(),
+            problems = ["hang"] if rc is None else judge(rc, err, seconds, pattern, out.exists(),
                                                              args.max_seconds)  # fmt: skip
             failed += bool(problems)
             first = next((line for line in err.splitlines() if line.strip() and not line.startswith("usage")), "")
-            shown = " ".join(a.replace(str(tmp), "$TMP") for a in cmd)
+            shown = " ".join(a.replace(str(out), "$OUT").replace(str(tmp), "$TMP") for a in cmd)
             rows.append({"class": klass, "command": f"wbc-jax {shown}", "exit_code": rc,
                          "stderr_first_line": first.replace(str(tmp), "$TMP"), "seconds": round(seconds, 2),
                          "ok": not problems, "problems": problems})  # fmt: skip

@@ -18,6 +18,7 @@ from wbc_jax import cli
 from wbc_jax.control.gains import default_gains, gains_to_dict
 from wbc_jax.core import options
 from wbc_jax.jobs import sweep_config
+from wbc_jax.tuning import tune  # noqa: F401  (before the tripwire: optax applies jax.jit when imported)
 
 _spec = importlib.util.spec_from_file_location(
     "bad_input", pathlib.Path(__file__).resolve().parents[1] / "experiments" / "bad_input.py"
@@ -132,7 +133,7 @@ def test_bad_input_is_one_clear_early_line(k, tmp_path, capsys, tripwire):
     """experiments/bad_input.py's cases in one process: exit 2, one line naming the problem, no
     traceback, nothing written, before anything compiles (the tripwire)."""
     klass, argv, message = bad_input.cases(tmp_path)[k]
-    argv = bad_input.argv_with_out(argv, tmp_path)
+    argv = bad_input.argv_with_out(argv, tmp_path / "out")
     try:
         rc = cli.main(argv)
     except SystemExit as exc:  # argparse: usage + one error line
