@@ -296,7 +296,7 @@ def main(argv=None) -> int:
             "device": provenance.device_label(), "date": time.strftime("%Y-%m-%d"),
             "command": "python experiments/bad_input.py --record", "cases_run": rows,
         }  # fmt: skip
-        io.atomic_write_json(path, doc)
+        io.atomic_write_bytes(path, (json.dumps(doc, indent=1) + "\n").encode())  # the file's own layout
     return 1 if failed else 0
 
 
