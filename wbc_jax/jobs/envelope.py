@@ -130,7 +130,7 @@ def search(cfg: sweep_config.SweepConfig, *, resolution: float | None = None, ro
            progress: bool = True) -> dict:  # fmt: skip
     """The largest survived impulse per direction (and gain set) of ``cfg`` to its ``resolution``
     N s (a :class:`~wbc_jax.jobs.sweep_config.SweepConfig` is searched at ``resolution``, default
-    0.25), by :func:`bisect` over the impulses of the sweep's grid (``cfg.magnitudes`` x
+    0.25, in batches of the envelope's default chunk size), by :func:`bisect` over the impulses of the sweep's grid (``cfg.magnitudes`` x
     ``cfg.push_duration``). Each search keeps one draw of the plant and posture perturbations for
     all its rounds; each round runs the open searches in batches of ``cfg.chunk_size`` (and
     ``cfg.queue`` scenarios per batch slot).
@@ -140,8 +140,9 @@ def search(cfg: sweep_config.SweepConfig, *, resolution: float | None = None, ro
     "compile_s", ...}; writes summary.json into ``cfg.out`` when set."""
     from tqdm.auto import tqdm
 
-    if not isinstance(cfg, EnvelopeConfig):
-        cfg = EnvelopeConfig(**dataclasses.asdict(cfg), resolution=0.25 if resolution is None else resolution)
+    if not isinstance(cfg, EnvelopeConfig):  # a sweep's grid and settings; its chunk size is the grid's, not ours
+        cfg = EnvelopeConfig(**{**dataclasses.asdict(cfg), "chunk_size": EnvelopeConfig.chunk_size},
+                             resolution=0.25 if resolution is None else resolution)  # fmt: skip
     elif resolution is not None:
         cfg = dataclasses.replace(cfg, resolution=resolution)
     cfg.check()
