@@ -56,12 +56,15 @@ def check_output_dir(path, kind: str, fp: dict | None = None) -> pathlib.Path:
         except (json.JSONDecodeError, UnicodeDecodeError, AttributeError) as err:
             raise ValueError(f"--out {path}: its {MANIFEST} is unreadable ({err}); use another folder") from None
         if found != kind:
-            raise ValueError(f"--out {path} holds {_a(found)} run; {_a(kind)} run needs its own folder")
+            raise ValueError(
+                f"--out {path} holds {with_article(found)} run; {with_article(kind)} run needs its own folder"
+            )
         if fp is not None:
-            diff = differences(json.loads(manifest.read_text()).get("fingerprint", {}), fp)
+            old = json.loads(manifest.read_text()).get("fingerprint")
+            diff = differences(old if isinstance(old, dict) else {}, fp)
             if diff:
-                raise ValueError(f"--out {path} holds {_a(kind)} run made with other inputs ({'; '.join(diff)}); use "
-                                 "another --out, or remove the folder to start over")  # fmt: skip
+                raise ValueError(f"--out {path} holds {with_article(kind)} run made with other inputs "
+                                 f"({'; '.join(diff)}); use another --out, or remove the folder to start over")  # fmt: skip
     elif path.is_dir():
         others = sorted(p.name for p in path.iterdir() if not p.name.startswith("."))
         if others:
@@ -83,7 +86,8 @@ def check_output_dir(path, kind: str, fp: dict | None = None) -> pathlib.Path:
     return path
 
 
-def _a(kind) -> str:
+def with_article(kind) -> str:
+    """A run kind with its article: 'a sweep', 'an envelope'."""
     return f"{'an' if str(kind)[:1] in 'aeiou' else 'a'} {kind}"
 
 

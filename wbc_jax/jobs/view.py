@@ -70,7 +70,7 @@ def run_kind(run_dir: str | pathlib.Path) -> str:
         except (json.JSONDecodeError, AttributeError):
             kind = None
         if kind not in (None, "balance", "sweep"):
-            raise ValueError(f"{run_dir} holds {runs._a(kind)} run, which keeps no "
+            raise ValueError(f"{run_dir} holds {runs.with_article(kind)} run, which keeps no "
                              "trajectories; view shows a balance run or one env of a push sweep (run wbc-jax balance "
                              "or push-sweep with its settings)")  # fmt: skip
     if (run_dir / "trajectory.npz").exists():
