@@ -21,7 +21,7 @@ from wbc_jax.jobs import sweep_config
 from wbc_jax.tuning import tune  # noqa: F401  (before the tripwire: optax applies jax.jit when imported)
 
 _spec = importlib.util.spec_from_file_location(
-    "bad_input", pathlib.Path(__file__).resolve().parents[1] / "experiments" / "bad_input.py"
+    "bad_input", pathlib.Path(__file__).resolve().parents[1] / "experiments" / "checks" / "bad_input.py"
 )
 bad_input = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(bad_input)
@@ -130,7 +130,7 @@ def test_every_class_of_the_issue_has_cases():
 
 @pytest.mark.parametrize("k", range(len(CASES)))
 def test_bad_input_is_one_clear_early_line(k, tmp_path, capsys, tripwire):
-    """experiments/bad_input.py's cases in one process: exit 2, one line naming the problem, no
+    """experiments/checks/bad_input.py's cases in one process: exit 2, one line naming the problem, no
     traceback, nothing written, before anything compiles (the tripwire)."""
     klass, argv, message = bad_input.cases(tmp_path)[k]
     argv = bad_input.argv_with_out(argv, tmp_path / "out")

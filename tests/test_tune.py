@@ -31,14 +31,14 @@ from wbc_jax.tuning import problem as tp
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 # One subprocess (float64, XLA backend optimisation lowered) holds the one gradient program:
-# experiments/grad_check.py, per-scenario gradients over N random push scenarios at a 0.1 s
+# experiments/checks/grad_check.py, per-scenario gradients over N random push scenarios at a 0.1 s
 # horizon, and central differences of the loss on the first of them. Compiling the reverse-mode
 # program through the whole closed loop takes 4-7 minutes on a 2-core CPU, most of the default
 # suite's time budget: these two tests are `slow` (the nightly `python3 -m pytest -m slow`). In the
 # default suite, gradients are checked piecewise: MJX physics through standing contact against a
 # central difference (tests/test_mjx_physics.py), the contact QP's implicit derivative against
 # finite differences (tests/test_forces.py), the dynamics terms (tests/test_dynamics.py).
-GRAD_CHECK = ROOT / "experiments" / "grad_check.py"
+GRAD_CHECK = ROOT / "experiments" / "checks" / "grad_check.py"
 TINY = dict(horizon=0.1, push_onset=0.0, duration_range=(0.02, 0.05), eval_horizon=0.1)
 
 
@@ -480,11 +480,11 @@ def test_tuned_gains_file_runs_in_balance_and_push_sweep(tmp_path, capsys):
 
 
 def test_com_floor_raises_kp_com_in_x_y_and_keeps_each_damping_ratio():
-    """experiments/stiffen_com.py: K_P,CoM x, y raised to the floor (never lowered), z and every other gain
+    """experiments/campaigns/stiffen_com.py: K_P,CoM x, y raised to the floor (never lowered), z and every other gain
     unchanged, K_D,CoM = 2 zeta sqrt(K_P,CoM) with each axis's zeta of the input set."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location("stiffen_com", ROOT / "experiments" / "stiffen_com.py")
+    spec = importlib.util.spec_from_file_location("stiffen_com", ROOT / "experiments" / "campaigns" / "stiffen_com.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     g = C.load_gains(ROOT / "experiments" / "gains" / "tuned_gradient.json", 23)

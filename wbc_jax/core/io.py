@@ -44,7 +44,39 @@ _UMASK = _read_umask()
 
 
 def atomic_write_json(path: pathlib.Path, obj) -> None:
-    atomic_write_bytes(path, (json.dumps(obj, indent=2, default=_jsonable) + "\n").encode())
+    atomic_write_bytes(path, _json_bytes(obj))
+
+
+def write_new_json(path: pathlib.Path, obj) -> None:
+    """Write ``obj`` as JSON to a file that must not exist yet (or already hold exactly this): a
+    result names its gains file by path and sha256, so a gains file is never overwritten; a later
+    campaign writes a new, named file (experiments/gains/README.md)."""
+    path, data = pathlib.Path(path), _json_bytes(obj)
+    if path.exists():
+        if path.read_bytes() == data:
+            return
+        raise FileExistsError(f"{path} exists with other contents; results name it by its sha256, so it is never "
+                              "overwritten: write a new, named file")  # fmt: skip
+    atomic_write_bytes(path, data)
+
+
+def is_gains_file(path) -> bool:
+    """Is ``path`` a gains file: a JSON object whose keys are exactly the gain names
+    (constants.GAIN_FIELDS)? (Reading it as gains, with its values checked: control.gains.load_gains.)"""
+    from wbc_jax.core.constants import GAIN_FIELDS
+
+    path = pathlib.Path(path)
+    if path.suffix != ".json" or not path.is_file():
+        return False
+    try:
+        values = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        return False
+    return isinstance(values, dict) and set(values) == set(GAIN_FIELDS)
+
+
+def _json_bytes(obj) -> bytes:
+    return (json.dumps(obj, indent=2, default=_jsonable) + "\n").encode()
 
 
 def atomic_save_npz(path: pathlib.Path, **arrays) -> None:

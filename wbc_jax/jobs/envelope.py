@@ -14,7 +14,7 @@ is the sweep's (strict) criterion. The search assumes it is monotone in the impu
 monotone envelope does; where it is, phase 1 brackets the grid's monotone envelope exactly when
 both see the same outcomes on the grid's impulses (a continuous bisection does not: it steps over
 grid impulses, and a boundary set by two thresholds crossed tangentially is not monotone between
-them, BENCHMARKS.md). Survival islands near the boundary (experiments/island_check.py) and
+them, BENCHMARKS.md). Survival islands near the boundary (experiments/checks/island_check.py) and
 run-to-run variation of the engine can still move it by a grid step.
 """
 

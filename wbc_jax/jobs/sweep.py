@@ -145,6 +145,15 @@ def _read_part(path: pathlib.Path, lo: int, hi: int):
     return table
 
 
+def _agreed(flags: list[bool]) -> list[bool]:
+    """Process 0's list of flags on every process (the list as is in a one-process run)."""
+    if jax.process_count() == 1:
+        return list(flags)
+    from jax.experimental import multihost_utils
+
+    return [bool(f) for f in multihost_utils.broadcast_one_to_all(np.asarray(flags, bool))]
+
+
 def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_name: str = "icub", **overrides) -> dict:
     """Run (or resume) a sweep into ``cfg.out``: parts/*.parquet, results.parquet, summary.json, plots.
 
@@ -176,12 +185,15 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
     compile_s = run_s = 0.0
     done_envs = 0
     tables = []
+    bounds = [(c * batch, min((c + 1) * batch, cfg.size)) for c in range(n_chunks)]
+    stored = [_read_part(parts / _part_name(c), lo, hi) for c, (lo, hi) in enumerate(bounds)]
+    # Every process must run the same chunks (each run is a collective): process 0's parts decide.
+    todo = _agreed([t is None for t in stored])
     with tqdm(total=cfg.size, unit="env", disable=not progress, desc=f"sweep ({st.backend})") as bar:
-        for c in range(n_chunks):
-            lo, hi = c * batch, min((c + 1) * batch, cfg.size)
+        for c, (lo, hi) in enumerate(bounds):
             part = parts / _part_name(c)
-            table = _read_part(part, lo, hi)
-            if table is None:
+            table = stored[c]
+            if todo[c]:
                 chunk = jax.tree_util.tree_map(lambda x, lo=lo, hi=hi: np.asarray(x)[lo:hi], scen)
                 result = runner.run(st, chunk, batch_size=batch, queue=cfg.queue)
                 compile_s += result.compile_s
@@ -192,7 +204,8 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
                                       "ticks_simulated": np.asarray(result.metrics.ticks)})  # fmt: skip
                 if writer:
                     io.atomic_write_parquet(part, table)
-            tables.append(table)
+            if table is not None:  # None: a part only process 0 can read (no shared file system)
+                tables.append(table)
             bar.update(hi - lo)
     table = pd.concat(tables, ignore_index=True)
     if writer:

@@ -61,7 +61,7 @@ def envelope_of(group, survived: str = "survived") -> tuple[float, float, int]:
     failed = by_mag[by_mag < 1.0]
     islands = int((by_mag[by_mag.index > failed.index.min()] > 0).sum()) if len(failed) else 0
     # Islands: outcomes near the fall boundary that flip with float32/float64 or the solver's
-    # iterations (experiments/island_check.py); the monotone envelope excludes them.
+    # iterations (experiments/checks/island_check.py); the monotone envelope excludes them.
     below = group[group["magnitude_n"] < failed.index.min()] if len(failed) else group
     monotone = float(below["impulse_ns"].max()) if len(below) else 0.0
     return best, monotone, islands

@@ -13,6 +13,7 @@ import pathlib
 import mujoco
 import numpy as np
 
+from wbc_jax.core import mjx as mjx_device
 from wbc_jax.core.mjx import mjx
 
 ASSETS = pathlib.Path(__file__).resolve().parents[2] / "assets"
@@ -243,7 +244,7 @@ class Robot:
 def load_robot(robot: str = "icub") -> Robot:
     """Load a robot by name: C model, MJX model (JAX backend) and index (cached)."""
     m = load_mj_model(robot)
-    return Robot(mj_model=m, mjx_model=mjx.put_model(m), index=build_index(m, robot))
+    return Robot(mj_model=m, mjx_model=mjx_device.put_model(m), index=build_index(m, robot))
 
 
 def summary(robot: Robot) -> dict:
