@@ -268,7 +268,9 @@ def summary(robot: Robot) -> dict:
     }
 
 
+@functools.lru_cache(maxsize=8)
 def pushable_bodies(robot: str = "icub") -> tuple[str, ...]:
     """The bodies of ``robot`` a push can act on (:attr:`RobotIndex.pushable_bodies`): the valid
-    values of the jobs' body flags."""
-    return load_robot(robot).index.pushable_bodies
+    values of the jobs' body flags. From the C model alone: checking a flag starts no JAX backend
+    (``jax.distributed.initialize`` must come before one)."""
+    return build_index(load_mj_model(robot), robot).pushable_bodies
