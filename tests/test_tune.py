@@ -442,10 +442,13 @@ def test_bad_gains_files_name_the_problem(tmp_path):
     cases = [
         ({**good, "kp_foo": [1.0]}, r"unknown keys \['kp_foo'\]"),
         ({k: v for k, v in good.items() if k != "kd_com"}, r"missing keys \['kd_com'\]"),
-        ({**good, "kp_postural": good["kp_postural"][:5]}, r"kp_postural must have 23 entries"),
+        (
+            {**good, "kp_postural": good["kp_postural"][:5]},
+            r"kp_postural must be a list of 23 numbers, got shape \(5,\)",
+        ),
         ({**good, "kp_com": [50.0, 0.0, 10.0]}, r"non-positive entries .*'kp_com': \[1\]"),
         ({**good, "kd_postural": [-1.0] * 23}, r"kd_postural has negative entries"),
-        ({**good, "ki_ang": ["a", "b", "c"]}, r"gain ki_ang must be a list of numbers"),
+        ({**good, "ki_ang": ["a", "b", "c"]}, r"gain ki_ang must be a list of 3 numbers"),
     ]
     for values, message in cases:
         path = tmp_path / "g.json"

@@ -219,9 +219,8 @@ def _type_words(hint) -> str:
         return " or ".join(_type_words(a) for a in typing.get_args(hint))
     if origin is tuple:
         args = typing.get_args(hint)
-        if len(args) == 2 and args[1] is Ellipsis:
-            return f"a list of ({_type_words(args[0])})"
-        return f"a list of {len(args)} ({_type_words(args[0])})"
+        plural = {float: "numbers", int: "whole numbers", str: "names"}.get(args[0]) or f"({_type_words(args[0])})"
+        return f"a list of {plural}" if len(args) == 2 and args[1] is Ellipsis else f"a list of {len(args)} {plural}"
     words = {float: "a number", int: "a whole number", str: "text", bool: "true or false", type(None): "null"}
     return words.get(hint, f"a {getattr(hint, '__name__', hint)} mapping")
 

@@ -156,8 +156,10 @@ class RobotIndex:
 
     def pushable_body_id(self, name: str) -> int:
         """Body id of a body a push can act on; raises ValueError listing the valid names."""
-        if name not in self.pushable_bodies:
-            raise ValueError(f"cannot push body {name!r}; pushable bodies: {sorted(self.pushable_bodies)}")
+        if name in self.body_names and name not in self.pushable_bodies:
+            raise ValueError(f"cannot push body {name!r} (the world does not move); pushable bodies: "
+                             f"{sorted(self.pushable_bodies)}")  # fmt: skip
+        _check_name("body", name, list(self.pushable_bodies))
         return self.body_names.index(name)
 
 
