@@ -25,6 +25,8 @@ SCRIPTS = {
     "kill_trials": "experiments/checks/kill_trials.py",
     "soak": "experiments/checks/soak.py",
     "grad_check": "experiments/checks/grad_check.py",
+    "bad_input": "experiments/checks/bad_input.py",
+    "memory_estimate": "experiments/checks/memory_estimate.py",
     "benchmark": "benchmarks/benchmark.py",
     "cpu_targets": "experiments/acceptance/cpu_targets.py",
 }
@@ -241,3 +243,29 @@ def test_cpu_targets_bar():
     slow = copy.deepcopy(ok)
     slow["main_job"]["met"] = False
     assert ct.failures(slow) == [f"main_job: {ok['main_job']['target']} not met"]
+
+
+def test_bad_input_bar_is_every_case_failing_fast_and_clearly():
+    bi = script("bad_input")
+    ok = doc("docs/reliability.json")["bad_input_pass2"]  # 96 cases on the 2-core CPU, all passed
+    assert ok["cases"] >= 90 and bi.failures(ok) == []
+    bad = copy.deepcopy(ok)
+    bad["cases_run"][0].update(ok=False, problems=["exit code 0", "wrote --out"])
+    assert bi.failures(bad) == [f"{ok['cases_run'][0]['command']}: exit code 0, wrote --out"]
+    assert bi.failures({"cases_run": []}) == ["no case was run"]
+    # The judge of one case: each way of misbehaving is named.
+    assert bi.judge(2, "wbc-jax x: error: --a must be 1\n", 1.0, "--a must", False, 30.0) == []
+    assert bi.judge(0, "", 1.0, "--a", True, 30.0) == ["exit code 0", "0 error lines", "message does not match",
+                                                        "wrote --out"]  # fmt: skip
+    assert bi.judge(2, "Traceback\n  x\nValueError: --a\n", 40.0, "--a", False, 30.0) == [
+        "traceback", "3 error lines", "40.0 s > 30 s"]  # fmt: skip
+
+
+def test_memory_estimate_bar_is_no_measurement_above_the_estimate():
+    me = script("memory_estimate")
+    ok = doc("docs/memory_estimate/memory_estimate.json")  # the 2-core CPU: at most 0.66 of the estimate
+    assert me.failures(ok) == [] and all(r["measured_over_estimate"] <= 1.0 for r in ok["rows"])
+    bad = copy.deepcopy(ok)
+    bad["rows"][-1]["measured_over_estimate"] = 1.2
+    assert len(me.failures(bad)) == 1 and "1.2 x the estimate" in me.failures(bad)[0]
+    assert me.failures({"rows": []}) == ["nothing was measured"]

@@ -1,4 +1,4 @@
-"""Results on disk: atomic writes, gains files."""
+"""Files: input text read with one-line errors naming the file; results written atomically."""
 
 from __future__ import annotations
 
@@ -105,3 +105,29 @@ def atomic_save_figure(path: pathlib.Path, fig, dpi: int = 110) -> None:
     buf = io.BytesIO()
     fig.savefig(buf, dpi=dpi, format="png")
     atomic_write_bytes(path, buf.getvalue())
+
+
+def read_text(path, what: str) -> str:
+    """The UTF-8 text of ``path``; one line naming ``what`` and the file when it cannot be read
+    (missing, a folder, not readable, not UTF-8)."""
+    path = pathlib.Path(path)
+    try:
+        return path.read_bytes().decode("utf-8")
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{what} file {path} does not exist") from None
+    except IsADirectoryError:
+        raise ValueError(f"{what} {path} is not a file (a directory?)") from None
+    except PermissionError:
+        raise ValueError(f"{what} file {path} is not readable (permission denied)") from None
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{what} file {path} is not UTF-8 text (byte {err.start}: {err.reason})") from None
+    except OSError as err:
+        raise ValueError(f"{what} file {path} cannot be read ({err.strerror})") from None
+
+
+def read_json(path, what: str):
+    """The JSON value of ``path`` (:func:`read_text`); one line naming the file when it is not JSON."""
+    try:
+        return json.loads(read_text(path, what))
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{what} file {path} is not valid JSON: {err}") from None

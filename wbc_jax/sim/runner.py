@@ -27,11 +27,19 @@ from wbc_jax.sim import host_loop, mjx_loop, physics
 from wbc_jax.sim import loop as loop_lib
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim.scenario import Setup
+from wbc_jax.sim.scenario import single as single_scenario
 from wbc_jax.sim.state import Scenario
 
 # A queued run (scenarios per batch slot) checks which robots are decided every this many ticks
 # at most (the largest divisor of the horizon's ticks up to it): 0.25 s at 100 Hz.
 QUEUE_CHECK_TICKS = 25
+# Memory of one environment of a batch, as a multiple of its MJX Data (the physics state): 4x
+# covers what was measured (BENCHMARKS.md, the iCub's 31.6 kB Data in float32: 30-36 kB per env
+# on an H100 with MJX-JAX, 117 kB on an H200 with Warp; experiments/checks/memory_estimate.py on the CPU).
+MJX_ENV_FACTOR = 4
+# C MuJoCo: one MjData per environment, resident after stepping (0.56 MB for the iCub,
+# experiments/checks/memory_estimate.py), doubled for contact-rich states.
+HOST_ENV_BYTES = 1_200_000
 
 
 def enable_compilation_cache(path: str | os.PathLike | None = None) -> pathlib.Path:
@@ -79,6 +87,53 @@ def pad_batch(tree, size: int):
     return jax.tree_util.tree_map(
         lambda x: np.concatenate([np.asarray(x), np.repeat(np.asarray(x)[-1:], size - n, 0)]), tree
     )
+
+
+def memory_estimate(setup_: Setup, batch: int, envs: int | None = None, queue: int = 1) -> dict:
+    """Bytes a run of ``batch`` environments at once holds (``envs`` scenarios in all, default
+    ``batch``; ``queue`` scenarios per batch slot), before it is allocated: {"bytes", "per_env",
+    "scenario_bytes"}. Records (balance, view: one environment) are not counted."""
+    envs = batch if envs is None else envs
+    robot_mj = setup_.robot.mj_model
+    data = jax.eval_shape(lambda: physics.device_data(robot_mj, "jax", setup_.loop.cfg.physics, setup_.qpos0))
+    per_env = MJX_ENV_FACTOR * sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(data))
+    if setup_.backend == "mujoco":
+        per_env += HOST_ENV_BYTES
+    one = jax.tree_util.tree_map(lambda x: np.asarray(x)[:1], single_scenario(setup_))
+    scenario_bytes = sum(np.asarray(x).nbytes for x in jax.tree_util.tree_leaves(one)) + 64  # + the table's columns
+    slots = math.ceil(batch / queue)
+    return {"bytes": slots * per_env + envs * scenario_bytes, "per_env": per_env, "scenario_bytes": scenario_bytes}
+
+
+def available_memory() -> tuple[int, str]:
+    """(bytes free, where) on the batch's first device: GPU memory, or the host's available memory."""
+    device = batch_devices()[0]
+    stats = device.memory_stats() if device.platform != "cpu" else None
+    if stats and "bytes_limit" in stats:
+        return int(stats["bytes_limit"] - stats.get("bytes_in_use", 0)) * len(batch_devices()), str(device.platform)
+    try:
+        for line in pathlib.Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024, "host"
+    except OSError:
+        pass
+    return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"), "host"
+
+
+def check_memory(setup_: Setup, batch: int, *, envs: int | None = None, queue: int = 1,
+                 flag: str = "--chunk-size") -> dict:  # fmt: skip
+    """Refuse a batch whose estimated memory (:func:`memory_estimate`) exceeds what is free, in
+    one line naming ``flag``, the estimate and the largest batch that fits. Returns the estimate."""
+    est = memory_estimate(setup_, batch, envs, queue)
+    free, where = available_memory()
+    if est["bytes"] > free:
+        fixed = (envs or batch) * est["scenario_bytes"]
+        fits = max(0, int((free - fixed) // est["per_env"]) * queue)
+        hint = f"use {flag} {fits:,} or less" if fits >= 1 else "use a smaller grid"
+        raise ValueError(f"{flag} {batch:,}: a batch of {batch:,} environments needs about "
+                         f"{est['bytes'] / 1e9:,.1f} GB ({est['per_env'] / 1e3:,.0f} kB each and {fixed / 1e9:,.2f} GB "
+                         f"of scenarios, estimated) and the {where} has {free / 1e9:,.1f} GB free; {hint}")  # fmt: skip
+    return est
 
 
 @dataclasses.dataclass
