@@ -48,8 +48,8 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
-if str(HERE) not in sys.path:
-    sys.path.insert(0, str(HERE))
+# tsid_baseline is imported from this script's folder: Python puts it first on sys.path when the
+# script runs (python benchmarks/tsid_peer.py).
 import tsid_baseline as tb  # noqa: E402
 
 # The grid of wbc_jax/jobs/envelope.py (DEFAULT_MAGNITUDES) and of the documented 64 x 32 sweeps.
