@@ -36,8 +36,13 @@ import pathlib
 import numpy as np
 
 from wbc_jax.core import constants
-from wbc_jax.core.types import option
+from wbc_jax.core.options import check_options, option
 from wbc_jax.jobs import runs, sweep_config, trajopt
+from wbc_jax.robot import model
+from wbc_jax.sim import scenario
+
+MAX_HORIZON_S = 60.0  # a limit search rolls out its whole horizon per judge: minutes, not hours
+MAX_WINDOW_S = 5.0  # optimised seconds: a push is recovered (or not) within seconds
 
 
 def _files(values) -> tuple[str, ...]:
@@ -46,87 +51,73 @@ def _files(values) -> tuple[str, ...]:
 
 @dataclasses.dataclass(frozen=True)
 class LimitConfig:
-    """What ``wbc-jax limit`` searches, and how; its fields are the command's flags."""
+    """What ``wbc-jax limit`` searches, and how; its fields are the command's flags, their declared
+    ranges checked by :meth:`check`."""
 
     directions: tuple[float, ...] = option(
         (0.0, 90.0, 180.0, 270.0), "number of push azimuths over 360 deg (0 = forward, 90 = left)",
-        metavar="N", parse=sweep_config._azimuths, show=len,
+        metavar="N", parse=sweep_config._azimuths, show=len, ge=-360.0, le=360.0, unit="deg", nonempty=True,
     )  # fmt: skip
-    elevation: float = option(0.0, "push elevation [deg]")
-    push_duration: float = option(0.1, "push length [s]")
-    push_onset: float = option(0.5, "push start [s]")
-    body: str = option("chest", "pushed body")
+    elevation: float = option(0.0, "push elevation [deg]", ge=-90.0, le=90.0, unit="deg")
+    push_duration: float = option(0.1, "push length [s]", gt=0.0, le=constants.MAX_PUSH_DURATION_S, unit="s")
+    push_onset: float = option(0.5, "push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
+    body: str = option("chest", "pushed body", names=model.pushable_bodies)
     gains: str | None = option(None, "gains JSON file of the balancing controller around which torques are optimised",
-                               metavar="FILE")  # fmt: skip
-    horizon: float = option(3.0, "seconds per rollout (the strict criterion is judged at its end)")
-    window: float = option(0.6, "seconds of optimised torques from the push onset (the controller alone after)")
-    tail: float = option(0.2, "seconds of controller-only ticks after the window in the optimiser's cost")
-    candidates: int = option(4, "impulses per direction in each round (all optimised in one batch)")
-    rounds: int = option(3, "rounds of the bisection")
+                               metavar="FILE", input_file=True)  # fmt: skip
+    horizon: float = option(3.0, "seconds per rollout (the strict criterion is judged at its end)", gt=0.0,
+                            le=MAX_HORIZON_S, unit="s")  # fmt: skip
+    window: float = option(0.6, "seconds of optimised torques from the push onset (the controller alone after)",
+                           gt=0.0, le=MAX_WINDOW_S, unit="s")  # fmt: skip
+    tail: float = option(0.2, "seconds of controller-only ticks after the window in the optimiser's cost", ge=0.0,
+                         le=MAX_WINDOW_S, unit="s")  # fmt: skip
+    candidates: int = option(4, "impulses per direction in each round (all optimised in one batch)", ge=1, le=64)
+    rounds: int = option(3, "rounds of the bisection", ge=1, le=20)
     knot_interval: float = option(0.05, "seconds between the knots of the optimised torques (linear between; "
-                                  "0.01: every control tick free)")  # fmt: skip
+                                  "0.01: every control tick free)", ge=0.01, le=MAX_WINDOW_S, unit="s")  # fmt: skip
     method: str = option("es", "optimiser: es (evolution-strategies gradient, forward rollouts) or gradient (exact, "
                          "through the closed loop)", choices=trajopt.METHODS)  # fmt: skip
-    iterations: int = option(40, "optimiser (Adam) steps per round")
-    learning_rate: float = option(1.0, "Adam's step [N m]")
-    es_pairs: int = option(8, "es: antithetic sample pairs per candidate and step")
-    es_sigma: float = option(2.0, "es: spread of the samples [N m]")
-    clip_norm: float = option(10.0, "gradient: per-candidate gradient clip (global norm)")
-    judge_every: int = option(10, "optimiser steps between strict checks on MJX (a passing trajectory is kept)")
+    iterations: int = option(40, "optimiser (Adam) steps per round", ge=1, le=100_000)
+    learning_rate: float = option(1.0, "Adam's step [N m]", gt=0.0, le=60.0, unit="N m")
+    es_pairs: int = option(8, "es: antithetic sample pairs per candidate and step", ge=1, le=1024)
+    es_sigma: float = option(2.0, "es: spread of the samples [N m]", gt=0.0, le=60.0, unit="N m")
+    clip_norm: float = option(10.0, "gradient: per-candidate gradient clip (global norm)", gt=0.0, le=1e6)
+    judge_every: int = option(10, "optimiser steps between strict checks on MJX (a passing trajectory is kept)",
+                              ge=1, le=100_000)  # fmt: skip
     envelopes: tuple[str, ...] = option(
         (), "strict envelope summaries of controllers (wbc-jax envelope --out DIR: DIR/summary.json) to compare; "
-        "the best one per direction starts the search", nargs="*", metavar="FILE", parse=_files,
+        "the best one per direction starts the search", nargs="*", metavar="FILE", parse=_files, input_file=True,
     )  # fmt: skip
-    lower_fraction: float = option(0.3, "first impulse of the search without --envelopes, x the LIP bound")
-    upper_fraction: float = option(1.3, "last impulse of round 1, x the LIP bound")
-    slip_margin: float = option(0.01, "the optimiser's slip margin [m] (strict test: 0.02)")
-    tilt_margin_deg: float = option(3.0, "the optimiser's sole tilt margin [deg] (strict test: 5)")
-    solver_iterations: int | None = option(None, "contact solver Newton iterations (default: the model's, 4)")
+    lower_fraction: float = option(0.3, "first impulse of the search without --envelopes, x the LIP bound", gt=0.0,
+                                   le=10.0)  # fmt: skip
+    upper_fraction: float = option(1.3, "last impulse of round 1, x the LIP bound", gt=0.0, le=10.0)
+    slip_margin: float = option(0.01, "the optimiser's slip margin [m] (strict test: 0.02)", gt=0.0,
+                                lt=constants.SURVIVAL_MAX_SLIP_M, unit="m")  # fmt: skip
+    tilt_margin_deg: float = option(3.0, "the optimiser's sole tilt margin [deg] (strict test: 5)", gt=0.0,
+                                    lt=constants.SURVIVAL_MAX_TILT_DEG, unit="deg")  # fmt: skip
+    solver_iterations: int | None = option(None, "contact solver Newton iterations (default: the model's, 4)",
+                                           ge=1, le=constants.MAX_SOLVER_ITERATIONS)  # fmt: skip
+    time_limit: float | None = option(
+        None, "wall-clock seconds after which no new round starts and a round's optimisation stops at its next "
+        "judge (what passed is still replayed and saved; a rerun resumes; 0: only the summary of what is there); "
+        "none: no limit", ge=0.0, le=1e7, unit="s",
+    )  # fmt: skip
     out: str = option("runs/limit", "output folder (a search resumes there)")
 
-    def check(self, robot=None) -> None:
-        """Every check before anything compiles (``robot``: also the pushed body's name)."""
-        if not self.directions:
-            raise ValueError("--directions: give at least one direction")
-        numbers = ("elevation", "push_duration", "push_onset", "horizon", "window", "tail", "knot_interval",
-                   "learning_rate", "es_sigma", "clip_norm", "lower_fraction", "upper_fraction", "slip_margin",
-                   "tilt_margin_deg")  # fmt: skip
-        for name in numbers:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ValueError(f"--{name.replace('_', '-')} must be a finite number, got {value!r}")
-            if name != "elevation" and value < 0:
-                raise ValueError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
-        for name in ("push_duration", "window", "knot_interval", "learning_rate", "es_sigma", "clip_norm",
-                     "lower_fraction", "slip_margin", "tilt_margin_deg"):  # fmt: skip
-            if not getattr(self, name) > 0:
-                raise ValueError(f"--{name.replace('_', '-')} must be > 0, got {getattr(self, name)}")
+    def check(self) -> None:
+        """Every check before anything compiles: the declared ranges, then what ties the flags
+        together, the envelope files and the output folder."""
+        check_options(self)
         if not self.upper_fraction > self.lower_fraction:
             raise ValueError(
-                f"--upper-fraction {self.upper_fraction} must exceed --lower-fraction {self.lower_fraction}"
+                f"--upper-fraction {self.upper_fraction:g} must exceed --lower-fraction {self.lower_fraction:g}"
             )
-        if (
-            not self.slip_margin < constants.SURVIVAL_MAX_SLIP_M
-            or not self.tilt_margin_deg < constants.SURVIVAL_MAX_TILT_DEG
-        ):
-            raise ValueError(f"the margins must be inside the strict tests (slip < {constants.SURVIVAL_MAX_SLIP_M} m, "
-                             f"tilt < {constants.SURVIVAL_MAX_TILT_DEG} deg), got {self.slip_margin}, {self.tilt_margin_deg}")  # fmt: skip
         if self.push_onset + max(self.push_duration, self.window + self.tail) >= self.horizon:
-            raise ValueError(f"--horizon {self.horizon} s must end after the push and the optimised window and tail "
-                             f"({self.push_onset} + max({self.push_duration}, {self.window} + {self.tail}) s)")  # fmt: skip
-        if self.method not in trajopt.METHODS:
-            raise ValueError(f"unknown --method {self.method!r}; valid: {list(trajopt.METHODS)}")
-        for name in ("candidates", "rounds", "iterations", "judge_every", "es_pairs"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"--{name.replace('_', '-')} must be a whole number >= 1, got {value!r}")
-        runs.check_input_file(self.gains, "gains")
-        for path in self.envelopes:
-            runs.check_input_file(path, "envelopes")
+            ends = f"{self.push_onset:g} + max({self.push_duration:g}, {self.window:g} + {self.tail:g}) s"
+            raise ValueError(f"--horizon {self.horizon:g} s must end after the push and the optimised window and tail "
+                             f"({ends})")  # fmt: skip
         self.sweep("mujoco").check()
         load_envelopes(self)
-        if robot is not None:
-            robot.index.body_id(self.body)
+        runs.check_output_dir(self.out, "limit", fingerprint(self))
 
     def sweep(self, backend: str, body: str | None = None) -> sweep_config.SweepConfig:
         """The sweep config that pushes and simulates alike (its setups and scenarios)."""
@@ -149,6 +140,14 @@ class LimitConfig:
 
 def default_config() -> LimitConfig:
     return LimitConfig()
+
+
+def fingerprint(cfg: LimitConfig) -> dict:
+    """What determines a search's results (:func:`wbc_jax.jobs.runs.fingerprint`); ``time_limit``
+    and ``out`` do not (a capped search resumes under another cap, a folder copied off the GPU
+    machine resumes where it lies)."""
+    fields = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("time_limit", "out")}
+    return runs.fingerprint({**fields, "dtype": str(scenario.float_dtype())}, [cfg.gains, *cfg.envelopes])
 
 
 def load_envelopes(cfg: LimitConfig) -> dict:

@@ -98,14 +98,16 @@ class Search:
         cols["failed"] = [sorted(k for k, v in metrics_lib.failed_tests(cols).items() if v[b]) for b in range(len(z))]
         return cols
 
-    def round(self, impulses: np.ndarray, warm: np.ndarray, on_step=None, on_judge=None) -> tuple[dict, np.ndarray]:
-        """One round over all directions: ``impulses`` (D, K) N s, warm starts (D * K, Kn, n).
-        Returns (per-candidate columns (D * K,), the knots kept (D * K, Kn, n): verified where
-        ``verified``)."""
+    def round(self, impulses: np.ndarray, warm: np.ndarray, on_step=None, on_judge=None,
+              deadline: float | None = None) -> tuple[dict, np.ndarray]:  # fmt: skip
+        """One round over all directions: ``impulses`` (D, K) N s, warm starts (D * K, Kn, n);
+        the optimisation stops at its first judge after ``deadline`` (``time.perf_counter()``;
+        None: never). Returns (per-candidate columns (D * K,), the knots kept (D * K, Kn, n):
+        verified where ``verified``)."""
         D, K = impulses.shape
         d = np.repeat(np.arange(D), K)
         scen = self.scenarios(d, impulses.ravel())
-        state, info = self._optimise(scen, warm, on_step, on_judge)
+        state, info = self._optimise(scen, warm, on_step, on_judge, deadline)
         passed, pass_z = np.asarray(state.passed), np.asarray(state.pass_z)
         replay = self._replay(scen, pass_z, passed)
         columns = {"direction": d, "impulse_ns": impulses.ravel(), "mjx_passed": passed,
@@ -113,23 +115,25 @@ class Search:
                    "verified": passed & replay.pop("survived"), **replay}  # fmt: skip
         return columns, pass_z
 
-    def _optimise(self, scen, warm: np.ndarray, on_step, on_judge):
+    def _optimise(self, scen, warm: np.ndarray, on_step, on_judge, deadline: float | None = None):
         """``cfg.iterations`` optimiser steps from the warm starts, judged on MJX before the first,
         every ``judge_every`` steps and after the last (the current knots and the best sample of
-        each candidate still open; the first that passes is kept). Returns (state, columns)."""
+        each candidate still open; the first that passes is kept); cut at the first judge after
+        ``deadline`` ("time_cut"). Returns (state, columns)."""
         cfg, B = self.cfg, len(warm)
         carry0 = self.opt.standing()
         state = self.opt.init(warm)
         obj = obj0 = np.full(B, np.nan)
         terms, failed, first_failed = {}, [[] for _ in range(B)], None
-        steps = 0
+        steps, cut = 0, False
         for i in range(cfg.iterations + 1):
             if i % cfg.judge_every == 0 or i == cfg.iterations:
                 state, failed = self._judge_open(scen, state, i, failed)
                 first_failed = failed if first_failed is None else first_failed
                 if on_judge is not None:
                     on_judge(int(np.sum(np.asarray(state.passed))), B)
-                if bool(np.all(np.asarray(state.passed))) or i == cfg.iterations:
+                cut = deadline is not None and time.perf_counter() >= deadline and i < cfg.iterations
+                if bool(np.all(np.asarray(state.passed))) or i == cfg.iterations or cut:
                     break
             t0 = time.perf_counter()
             compiled = ("step", state.z.shape) in self.opt._programs
@@ -144,7 +148,8 @@ class Search:
         if on_step is not None:
             on_step(cfg.iterations - steps)
         info = {"warm_failed": first_failed, "mjx_failed": failed, "objective_first": obj0, "objective_last": obj,
-                "steps": np.full(B, steps), **{f"cost_{k}": np.asarray(v) for k, v in terms.items()}}  # fmt: skip
+                "steps": np.full(B, steps), "time_cut": np.full(B, cut),
+                **{f"cost_{k}": np.asarray(v) for k, v in terms.items()}}  # fmt: skip
         return state, info
 
     def _judge_open(self, scen, state, step: int, failed: list):
@@ -185,17 +190,12 @@ def _records(columns: dict, round_: int) -> list:
     B = len(columns["direction"])
     out = []
     for b in range(B):
-        rec = {"round": round_}
+        rec = {"round": round_, "device": provenance.device_label()}
         for k, v in columns.items():
             x = v[b]
             rec[k] = x.item() if isinstance(x, np.generic) else x
         out.append(rec)
     return out
-
-
-def _fingerprint(cfg: limit.LimitConfig) -> dict:
-    files = [cfg.gains, *cfg.envelopes]
-    return runs.fingerprint({**dataclasses.asdict(cfg), "dtype": str(scenario.float_dtype())}, files)
 
 
 def _load_state(out: pathlib.Path):
@@ -229,19 +229,21 @@ def run(cfg: limit.LimitConfig, *, progress: bool = True, robot_name: str = "icu
     every round, summary.json and limit.png at the end. Returns the summary."""
     from tqdm.auto import tqdm
 
-    cfg.check(model_lib.load_robot(robot_name))
+    t_start = time.perf_counter()
+    deadline = None if cfg.time_limit is None else t_start + cfg.time_limit
+    cfg.check()
     out = pathlib.Path(cfg.out)
-    runs.check_output_dir(out, "limit")
-    search = Search(cfg, robot_name)  # reads the envelope files: their errors come before the folder is claimed
-    runs.claim_output_dir(out, "limit", _fingerprint(cfg), resume=True)
+    search = Search(cfg, robot_name)
+    runs.claim_output_dir(out, "limit", limit.fingerprint(cfg), resume=True)
     records, witnesses = _load_state(out)
     D = len(search.azimuths)
     done = max((r["round"] for r in records), default=-1) + 1
     bar = tqdm(total=cfg.rounds * cfg.iterations, initial=done * cfg.iterations, unit="step",
                disable=not progress, desc=f"limit {cfg.body}")  # fmt: skip
-    t_start = time.perf_counter()
     for r in range(done, cfg.rounds):
-        tested = [[(x["impulse_ns"], x["verified"]) for x in records if x["direction"] == d] for d in range(D)]
+        if deadline is not None and time.perf_counter() >= deadline:
+            break
+        tested = [_tested(records, d) for d in range(D)]
         impulses = np.stack([limit.next_impulses(tested[d], cfg.candidates, search.lower[d], search.upper[d])
                              for d in range(D)])  # fmt: skip
         pairs = [(d, float(J)) for d in range(D) for J in impulses[d]]
@@ -249,7 +251,11 @@ def run(cfg: limit.LimitConfig, *, progress: bool = True, robot_name: str = "icu
         warm = trajopt.warm_starts(by_dir, pairs, search.Kn, search.n)
         bar.set_description(f"limit {cfg.body} round {r + 1}/{cfg.rounds}")
         columns, best_z = search.round(
-            impulses, warm, on_step=bar.update, on_judge=lambda n, B: bar.set_postfix(passed_mjx=f"{n}/{B}")
+            impulses,
+            warm,
+            on_step=bar.update,
+            on_judge=lambda n, B: bar.set_postfix(passed_mjx=f"{n}/{B}"),
+            deadline=deadline,
         )
         for b, (d, J) in enumerate(pairs):
             if columns["verified"][b]:
@@ -265,13 +271,20 @@ def run(cfg: limit.LimitConfig, *, progress: bool = True, robot_name: str = "icu
     return summary
 
 
+def _tested(records: list, d: int) -> list:
+    """[(impulse, verified)] of direction ``d``: a failure of a round cut by the time limit is no
+    evidence (its optimisation stopped early), so only its verified candidates count."""
+    return [(x["impulse_ns"], x["verified"]) for x in records
+            if x["direction"] == d and (x["verified"] or not x.get("time_cut", False))]  # fmt: skip
+
+
 def summarize(cfg: limit.LimitConfig, search: Search, records: list, wall_s: float) -> dict:
     """Per direction: the limit (largest verified impulse), its bracket, the LIP bound, the
     envelopes given as fractions of the limit and the witness's replay metrics; the targets."""
     directions = {}
     for d, az in enumerate(search.azimuths):
         mine = [x for x in records if x["direction"] == d]
-        lo, hi = limit.bracket([(x["impulse_ns"], x["verified"]) for x in mine])
+        lo, hi = limit.bracket(_tested(records, d))
         bound = search.lip[az]["impulse_bound_ns"]
         witness = max((x for x in mine if x["verified"]), key=lambda x: x["impulse_ns"], default=None)
         envs = {k: {"impulse_ns": e[az], "fraction_of_limit": e[az] / lo if lo > 0 else None}
@@ -293,11 +306,16 @@ def summarize(cfg: limit.LimitConfig, search: Search, records: list, wall_s: flo
             "every_limit_replayed_in_c_mujoco": all(v["witness"] is not None or v["limit_ns"] == 0
                                                     for v in directions.values()),
         },  # fmt: skip
-        "rounds": cfg.rounds, "candidates": records, "batch": B, "optimiser_steps": search.steps,
-        "physics_steps_optimiser": search.steps * B * search.physics_steps_per_candidate_step, "wall_s": round(wall_s, 1),
+        "rounds": cfg.rounds, "rounds_done": 1 + max((x["round"] for x in records), default=-1),
+        "time_cut": any(x.get("time_cut", False) for x in records), "candidates": records, "batch": B,
+        "optimiser_steps": search.steps,
+        "physics_steps_optimiser": search.steps * B * search.physics_steps_per_candidate_step,
+        "wall_s": round(wall_s, 1),
         **{k: round(v, 1) for k, v in search.timing.items()},
         "survival_criterion": constants.SURVIVAL_CRITERION,
-        "device": provenance.device_label(), "dtype": str(search.dtype), "config": dataclasses.asdict(cfg),
+        "device": provenance.device_label(), "devices": sorted({x.get("device", "?") for x in records}),
+        "dtype": str(search.dtype), "config": dataclasses.asdict(cfg),
         "gains": gains_to_dict(search.base),
-        "provenance": provenance.record({"gains": cfg.gains, **{f"envelope_{i}": p for i, p in enumerate(cfg.envelopes)}}),
+        "provenance": provenance.record({"gains": cfg.gains,
+                                         **{f"envelope_{i}": p for i, p in enumerate(cfg.envelopes)}}),
     }  # fmt: skip

@@ -43,7 +43,8 @@ def body_table(limit_summary: dict | None, envelopes: dict, azimuths, robot) -> 
             "lip_bound_ns": lip[az]["impulse_bound_ns"], "limit_ns": lim,
             "fraction_of_lip": None if lim is None else lim / lip[az]["impulse_bound_ns"],
             "bracket_ns": None if found is None else found["bracket_ns"],
-            "limit_at_least_envelopes": None if lim is None else all(v["impulse_ns"] <= lim + 1e-9 for v in envs.values()),
+            "limit_at_least_envelopes": None if lim is None
+            else all(v["impulse_ns"] <= lim + 1e-9 for v in envs.values()),
             "envelopes": envs,
         }  # fmt: skip
     return rows
@@ -60,15 +61,27 @@ def medians(rows: dict) -> dict:
     labels = sorted({k for r in rows.values() for k in r["envelopes"]})
     out = {"limit": {"fraction_of_lip": stat([r["fraction_of_lip"] for r in rows.values()])}}
     for label in labels:
-        out[label] = {k: stat([r["envelopes"][label][k] for r in rows.values()]) for k in ("fraction_of_lip",
-                                                                                           "fraction_of_limit")}  # fmt: skip
+        out[label] = {k: stat([r["envelopes"][label][k] for r in rows.values()])
+                      for k in ("fraction_of_lip", "fraction_of_limit")}  # fmt: skip
     return out
 
 
-def write(out_dir, bodies: dict, command: str, robot_name: str = "icub") -> dict:
+def _targets(rows: dict, summary: dict | None) -> dict:
+    """Issue 37's targets for one body (None: its limit not measured): the limit at least every
+    controller's envelope in every direction; every limit from a trajectory replayed in C MuJoCo."""
+    if summary is None:
+        return {"limit_at_least_every_envelope": None, "every_limit_replayed_in_c_mujoco": None}
+    below = [az for az, r in rows.items() if r["limit_at_least_envelopes"] is False]
+    return {"limit_at_least_every_envelope": not below, "directions_below_an_envelope": below,
+            "every_limit_replayed_in_c_mujoco": summary["targets"]["every_limit_replayed_in_c_mujoco"],
+            "time_cut": summary.get("time_cut"), "rounds_done": summary.get("rounds_done"),
+            "devices": summary.get("devices")}  # fmt: skip
+
+
+def write(out_dir, bodies: dict, commands: dict, robot_name: str = "icub") -> dict:
     """docs/limit/limit.json and limit.png from ``bodies`` {body: {"limit": summary path or None,
-    "envelopes": {label: summary path}}}; ``command``: the limit command of a missing body (with
-    ``{body}`` in it)."""
+    "envelopes": {label: summary path}}}; ``commands`` {body: the command that fills in a missing
+    body's limit}."""
     from wbc_jax.report import limit_plots
 
     robot = model_lib.load_robot(robot_name)
@@ -78,7 +91,7 @@ def write(out_dir, bodies: dict, command: str, robot_name: str = "icub") -> dict
         inputs.update({f"{body}_envelope_{label}": p for label, p in spec["envelopes"].items()})
         summary = _read(spec["limit"]) if spec.get("limit") else None
         if summary is None:
-            missing[body] = command.format(body=body)
+            missing[body] = commands[body]
         else:
             inputs[f"{body}_limit"] = spec["limit"]
         azimuths = sorted({float(a) for s in envelopes.values() for a in s["envelope"]["0"]})
@@ -88,6 +101,8 @@ def write(out_dir, bodies: dict, command: str, robot_name: str = "icub") -> dict
         "trajectory within +-60 N m that passes the strict criterion on MJX and replayed in C MuJoCo), the LIP bound "
         "m omega d and the strict envelopes of controllers, as fractions of the LIP bound and of the limit",
         "bodies": {body: {"medians": medians(rows), "directions": rows} for body, rows in tables.items()},
+        "targets": {body: _targets(rows, _read(bodies[body]["limit"]) if bodies[body].get("limit") else None)
+                    for body, rows in tables.items()},
         "missing": missing or None,
         "provenance": provenance.record(inputs),
     }  # fmt: skip

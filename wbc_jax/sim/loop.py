@@ -28,7 +28,7 @@ from wbc_jax.control import constraints
 from wbc_jax.control.controller import Controller
 from wbc_jax.control.gains import Gains
 from wbc_jax.control.references import Schedule
-from wbc_jax.core.mjx import mjx
+from wbc_jax.core import mjx as mjx_device
 from wbc_jax.core.types import Array
 from wbc_jax.robot import dynamics
 from wbc_jax.robot.model import Robot
@@ -58,13 +58,13 @@ class ClosedLoop:
         self.n_ticks = int(round(cfg.duration / cfg.control_dt))
         if self.n_ticks < 1:
             raise ValueError(f"duration {cfg.duration} s is shorter than one control tick ({cfg.control_dt} s)")
-        self.push_body = idx.body_id(cfg.push_body)
+        self.push_body = idx.pushable_body_id(cfg.push_body)
         # Bodies that must stay off the floor: all but the feet and the ankle links above them.
         feet_and_ankles = set(idx.foot_bodies.tolist()) | set(robot.mj_model.body_parentid[idx.foot_bodies].tolist())
         self.non_foot_bodies = np.array([b for b in range(1, robot.mj_model.nbody) if b not in feet_and_ankles])
         # The controller's own model: MJX's JAX implementation, whatever steps the plant.
-        self.mx = mjx.put_model(robot.mj_model)
-        self._d_template = mjx.make_data(robot.mj_model)
+        self.mx = mjx_device.put_model(robot.mj_model)
+        self._d_template = mjx_device.make_data(robot.mj_model)
         # Gradients (a LossTrace) need MJX's JAX implementation.
         self.backend = physics.resolve_backend(cfg.physics.backend, differentiable=cfg.loss_trace)
         if self.backend == "warp" and controller.config.contact_detection:
