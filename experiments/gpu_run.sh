@@ -91,7 +91,7 @@ for job in "$@"; do
       body=chest; [ "$job" = limit_root ] && body=root_link
       run $job timeout ${LIMIT_WALL:-510} python3 -m wbc_jax.cli limit --quiet --body $body --directions 32 \
         --gains experiments/gains/tuned_gradient.json --envelopes docs/limit/envelopes/*_$body/summary.json \
-        --candidates 3 --rounds 3 --iterations 30 --judge-every 10 --es-pairs 6 --window 0.5 --tail 0.2 \
+        --candidates 3 --rounds 3 --iterations 30 --judge-every 5 --es-pairs 8 --window 0.5 --tail 0.2 \
         --time-limit ${LIMIT_TIME:-390} --out "$OUT/limit_$body" ${LIMIT_FLAGS:-} ;;
     gputests)  # the tests marked gpu (their log goes to docs/ with the device)
       run gputests env JAX_PLATFORMS=cuda,cpu python3 -m pytest -q -n 0 -m gpu -p no:cacheprovider tests ;;

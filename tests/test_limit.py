@@ -14,6 +14,7 @@ import pytest
 from wbc_jax import cli
 from wbc_jax.core import constants
 from wbc_jax.jobs import limit, limit_rounds, trajopt
+from wbc_jax.sim import runner
 from wbc_jax.sim.state import Feedforward, feedforward_torque
 
 
@@ -127,12 +128,14 @@ SMALL = limit.LimitConfig(directions=(0.0,), horizon=1.5, window=0.3, tail=0.1, 
 def replayed():
     """Two policies of a forward push of 1 N s and their C MuJoCo replay: (search, scenarios, knots,
     strict columns): the controller's own (u = 0), and 45 N m more on the left hip roll for 0.1 s
-    (then down to 0 in 0.05 s)."""
+    (then down to 0 in 0.05 s). The batch is padded to 4, the shape the round's replay of 2
+    candidates compiles."""
     search = limit_rounds.Search(SMALL)
     scen = search.scenarios(np.zeros(2, int), np.array([1.0, 1.0]))
     z = np.zeros((2, search.Kn, search.n))
     z[1, :3, search.grad_setup.robot.index.joints.index("l_hip_roll")] = 45.0
-    return search, scen, z, search.judge(scen, z, "mujoco")
+    cols = search.judge(runner.pad_batch(scen, 4), runner.pad_batch(z, 4), "mujoco")
+    return search, scen, z, {k: v[:2] for k, v in cols.items()}
 
 
 def test_replay_rejects_a_trajectory_that_slips(replayed):
@@ -145,12 +148,26 @@ def test_replay_rejects_a_trajectory_that_slips(replayed):
     assert np.all(cols["max_abs_torque_nm"] <= 60.0 + 1e-9)
 
 
+def test_a_candidate_is_verified_by_its_first_passing_replay(replayed):
+    """The round's replay: candidate 0 passed on MJX with the slipping knots, so C MuJoCo replays
+    those alone and rejects them; candidate 1 never passed on MJX: its last knots (slipping) fail
+    in C MuJoCo, its warm start (the controller's own trajectory) passes and is kept."""
+    search, scen, z, _ = replayed
+    slip, zero = np.stack([z[1], z[1]]), np.stack([z[0], z[0]])
+    passed = np.array([True, False])
+    out, kept = search._replay(scen, [slip, slip, zero], [passed, ~passed, ~passed])
+    assert list(out["survived"]) == [False, True] and list(out["replayed"]) == [-1, 2], out
+    assert "slip" in out["replay_failed"][0] and out["replay_failed"][1] == [], out["replay_failed"]
+    assert out["replay_max_foot_slip_m"][0] > constants.SURVIVAL_MAX_SLIP_M > out["replay_max_foot_slip_m"][1]
+    np.testing.assert_array_equal(kept, [z[1], z[0]])
+
+
 @pytest.mark.slow
 def test_mjx_judges_the_replayed_policies_alike(replayed):
     """The same policies on MJX (the feedforward threaded through runner.run's per-device program):
     the same verdicts, the slips as C MuJoCo's (float64)."""
     search, scen, z, cols = replayed
-    mjx = search.judge(scen, z, "jax")
+    mjx = {k: v[:2] for k, v in search.judge(scen, z, "jax").items()}
     assert list(mjx["survived"]) == list(cols["survived"]) and mjx["failed"] == cols["failed"], mjx["failed"]
     np.testing.assert_allclose(mjx["max_foot_slip_m"], cols["max_foot_slip_m"], atol=1e-3)
 

@@ -5,9 +5,10 @@ joint-torque trajectory within the motor limits (+-60 N m) recovers under the st
 (feet in place: slip <= 2 cm, tilt <= 5 deg while in full contact; no fall; the CoM settled over
 the support polygon at the end of the horizon). The feasibility test is the trajectory optimiser
 of :mod:`wbc_jax.jobs.trajopt` (torques around the balancing controller's in a window after the
-onset, the controller alone after it), and a candidate counts only when its trajectory passes the
-strict criterion twice: on MJX (the engine it was optimised on, float32 on a GPU) and replayed in
-C MuJoCo (float64 physics; the same policy: its u, then the controller) (:mod:`wbc_jax.jobs.limit_rounds`).
+onset, the controller alone after it), and a candidate counts only when a trajectory of it passes the
+strict criterion replayed in C MuJoCo (float64 physics; the same policy: its u, then the controller);
+MJX's strict judge (the engine it was optimised on, float32 on a GPU) picks which u of the
+optimisation is replayed (:mod:`wbc_jax.jobs.limit_rounds`).
 The torques applied in that replay are a torque trajectory within the limits that C MuJoCo says
 recovers: the witness. A failed optimisation proves nothing, so the limit is a lower bound, the
 largest impulse with a witness; the bracket's upper end is where the optimiser stopped finding one.

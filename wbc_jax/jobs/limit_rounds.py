@@ -7,9 +7,10 @@ One round, for B = directions x candidates pushes at once:
    ``judge_every`` steps the whole rollout (the policy, then the controller to the horizon) is
    judged by the strict criterion on MJX (forward, :func:`wbc_jax.sim.runner.run` with the
    feedforward torques); the last u that passed is kept; the round stops early once all passed;
-3. the kept u of every candidate that passed is replayed in C MuJoCo (float64 physics, the same
-   policy through the host loop): verified = passed there too. Only verified candidates move a
-   bracket, give warm starts and make the limit.
+3. C MuJoCo replays (float64 physics, the same policy through the host loop) the kept u of every
+   candidate that passed on MJX, and the last u and the warm start of every other (float32 MJX
+   and C MuJoCo part at the criterion's edge); verified = a replay passed. Only verified
+   candidates move a bracket, give warm starts and make the limit.
 """
 
 from __future__ import annotations
@@ -108,12 +109,16 @@ class Search:
         d = np.repeat(np.arange(D), K)
         scen = self.scenarios(d, impulses.ravel())
         state, info = self._optimise(scen, warm, on_step, on_judge, deadline)
-        passed, pass_z = np.asarray(state.passed), np.asarray(state.pass_z)
-        replay = self._replay(scen, pass_z, passed)
+        passed = np.asarray(state.passed)
+        # What C MuJoCo replays: the knots that passed on MJX; for a candidate that never did, its
+        # last knots and its warm start (MJX in float32 and C MuJoCo part at the strict criterion's
+        # edge, e.g. the controller's own trajectory at its envelope's impulse).
+        tries = [np.asarray(state.pass_z), np.asarray(state.z), np.asarray(warm)]
+        replay, kept = self._replay(scen, tries, [passed, ~passed, ~passed])
         columns = {"direction": d, "impulse_ns": impulses.ravel(), "mjx_passed": passed,
                    "passed_step": np.asarray(state.passed_step), **info,
-                   "verified": passed & replay.pop("survived"), **replay}  # fmt: skip
-        return columns, pass_z
+                   "verified": replay.pop("survived"), **replay}  # fmt: skip
+        return columns, kept
 
     def _optimise(self, scen, warm: np.ndarray, on_step, on_judge, deadline: float | None = None):
         """``cfg.iterations`` optimiser steps from the warm starts, judged on MJX before the first,
@@ -166,23 +171,34 @@ class Search:
         failed = [failed[b] if before[b] else cols["failed"][b] for b in range(B)]
         return state, failed
 
-    def _replay(self, scen, pass_z: np.ndarray, passed: np.ndarray) -> dict:
-        """The C MuJoCo replay of the kept knots of the candidates that passed on MJX (the batch
-        padded to one compiled shape): {"survived", "replay_failed", "replay_<column>"} (B,)."""
-        B = len(passed)
-        out = {"survived": np.zeros(B, bool), "replay_failed": [[] for _ in range(B)],
+    def _replay(self, scen, tries: list, which: list) -> tuple[dict, np.ndarray]:
+        """The C MuJoCo replay of knots ``tries[i]`` (B, Kn, n) of the candidates ``which[i]``
+        (B,) bool, in one batch padded to one compiled shape (2B: the tries of a candidate are
+        either the first alone or the other two). A candidate is verified by the first of its
+        tries that survives. Returns ({"survived", "replayed" (which try verified it: its index,
+        -1: none), "replay_failed", "replay_<column>"} (B,), the knots kept (B, Kn, n): the
+        verifying try's, else the first tried)."""
+        B = len(which[0])
+        entries = [(b, i) for i in range(len(tries)) for b in np.flatnonzero(which[i])]
+        b_idx = np.array([b for b, _ in entries], int)
+        z = np.stack([tries[i][b] for b, i in entries])
+        sub = jax.tree_util.tree_map(lambda x: np.asarray(x)[b_idx], scen)
+        size = max(2 * B, len(entries))
+        cols = self.judge(runner.pad_batch(sub, size), runner.pad_batch(z, size), "mujoco")
+        out = {"survived": np.zeros(B, bool), "replayed": np.full(B, -1), "replay_failed": [None] * B,
                **{f"replay_{k}": np.full(B, np.nan) for k in REPLAY_COLUMNS}}  # fmt: skip
-        idx = np.flatnonzero(passed)
-        if idx.size == 0:
-            return out
-        sub = jax.tree_util.tree_map(lambda x: np.asarray(x)[idx], scen)
-        cols = self.judge(runner.pad_batch(sub, B), runner.pad_batch(pass_z[idx], B), "mujoco")
-        for j, b in enumerate(idx):
+        kept = np.zeros_like(tries[0])
+        for j, (b, i) in enumerate(entries):
+            first = out["replay_failed"][b] is None
+            if not (first or (cols["survived"][j] and not out["survived"][b])):
+                continue
             out["survived"][b] = bool(cols["survived"][j])
+            out["replayed"][b] = i if cols["survived"][j] else -1
             out["replay_failed"][b] = cols["failed"][j]
+            kept[b] = z[j]
             for name in REPLAY_COLUMNS:
                 out[f"replay_{name}"][b] = cols[name][j]
-        return out
+        return out, kept
 
 
 def _records(columns: dict, round_: int) -> list:

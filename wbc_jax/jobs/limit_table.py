@@ -72,7 +72,9 @@ def _targets(rows: dict, summary: dict | None) -> dict:
     if summary is None:
         return {"limit_at_least_every_envelope": None, "every_limit_replayed_in_c_mujoco": None}
     below = [az for az, r in rows.items() if r["limit_at_least_envelopes"] is False]
+    measured = sum(r["limit_ns"] is not None for r in rows.values())
     return {"limit_at_least_every_envelope": not below, "directions_below_an_envelope": below,
+            "directions_measured": f"{measured} of {len(rows)}",
             "every_limit_replayed_in_c_mujoco": summary["targets"]["every_limit_replayed_in_c_mujoco"],
             "time_cut": summary.get("time_cut"), "rounds_done": summary.get("rounds_done"),
             "devices": summary.get("devices")}  # fmt: skip
