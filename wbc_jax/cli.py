@@ -131,7 +131,7 @@ def _push_sweep(args: argparse.Namespace) -> int:
     runner.enable_compilation_cache()
     summary = sweep.run_sweep(cfg, progress=not args.quiet)
     keys = ("n_envs", "survival_rate", "upright_rate", "nan_envs", "qp_infeasible_envs", "backend",
-            "physics_steps_per_s", "compile_s", "run_s", "n_devices")  # fmt: skip
+            "physics_steps_per_s", "compile_s", "run_s", "started_s", "n_devices")  # fmt: skip
     print(json.dumps({k: summary[k] for k in keys}, separators=(",", ":")))
     return 0
 
@@ -146,7 +146,7 @@ def _envelope(args: argparse.Namespace) -> int:
     found = envelope.search(cfg, resolution=args.resolution, progress=not args.quiet)
     line = {"rollouts": found["rollouts"], "grid_rollouts": found["grid_rollouts"], "rounds": found["rounds"],
             "backend": found["backend"],
-            "run_s": found["run_s"], "compile_s": found["compile_s"],
+            "run_s": found["run_s"], "compile_s": found["compile_s"], "started_s": found["started_s"],
             "impulse_ns": {str(a): e["impulse_ns"] for a, e in found["envelope"][0].items()}}  # fmt: skip
     print(json.dumps(line, separators=(",", ":")))
     return 0

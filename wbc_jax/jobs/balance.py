@@ -19,7 +19,6 @@ from wbc_jax.control.torques import POSTURAL_VARIANTS
 from wbc_jax.core import io, provenance
 from wbc_jax.core.types import option
 from wbc_jax.jobs import runs
-from wbc_jax.report import plots
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import physics, runner, scenario
 from wbc_jax.sim.state import SimConfig
@@ -138,6 +137,7 @@ def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: 
     if st.scene.tasks_file is not None:
         result["contacts"] = contact_tracking(loop.contact_set, traj)
     result["compile_s"] = round(result_run.compile_s, 2)
+    result["started_s"] = round(result_run.started - provenance.process_started(), 2)  # process start to first tick
     result["loop_s"] = round(result_run.run_s, 2)
     result["real_time_factor"] = round(loop.cfg.duration / result_run.run_s, 3) if result_run.run_s > 0 else None
     result["wall_time_s"] = round(wall, 2)
@@ -153,6 +153,8 @@ def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: 
                            contact_names=np.array(loop.contact_set.names),
                            contact_dims=np.array([c.dim for c in loop.contact_set.contacts]), **traj)  # fmt: skip
         if cfg.plots:
+            from wbc_jax.report import plots  # matplotlib: imported after the simulation
+
             title = f"{cfg.task}, forces={cfg.forces}, postural={cfg.postural}"
             plots.com_tracking(traj, out / "com.png", title)
             plots.contact_forces(traj, list(loop.contact_set.names), [c.dim for c in loop.contact_set.contacts],

@@ -25,7 +25,6 @@ from wbc_jax.core import constants, io, provenance
 from wbc_jax.jobs import runs
 from wbc_jax.jobs.sweep_config import SweepConfig, default_config
 from wbc_jax.jobs.sweep_table import summarize_table
-from wbc_jax.report import sweep_plots
 from wbc_jax.robot import model as model_lib
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import physics, runner, scenario
@@ -180,6 +179,7 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
     n_chunks = math.ceil(cfg.size / cfg.chunk_size)
     parts = out / "parts"
     compile_s = run_s = 0.0
+    started = None  # when the first chunk started simulating
     done_envs = simulated_ticks = 0
     tables = []
     bounds = [(c * cfg.chunk_size, min((c + 1) * cfg.chunk_size, cfg.size)) for c in range(n_chunks)]
@@ -194,6 +194,7 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
                 chunk = jax.tree_util.tree_map(lambda x, lo=lo, hi=hi: np.asarray(x)[lo:hi], scen)
                 result = runner.run(st, chunk, batch_size=cfg.chunk_size, queue=cfg.queue)
                 compile_s += result.compile_s
+                started = started or result.started
                 run_s += result.run_s
                 done_envs += hi - lo
                 simulated_ticks += int(np.sum(result.metrics.ticks))
@@ -219,6 +220,8 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
         "versions": {"jax": jax.__version__, "mujoco": __import__("mujoco").__version__,
                      "wbc_jax": __import__("wbc_jax").__version__},
         "compile_s": round(compile_s, 2),
+        # from the process's start to the first chunk's first tick (None: every chunk was on disk)
+        "started_s": None if started is None else round(started - provenance.process_started(), 2),
         "run_s": round(run_s, 2),
         # Steps of the whole grid per second of run (with a queue, fewer were simulated).
         "physics_steps_per_s": (done_envs * steps_per_env / run_s) if run_s > 0 else None,
@@ -228,6 +231,8 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
     })  # fmt: skip
     if writer:
         io.atomic_write_json(out / "summary.json", summary)
+        from wbc_jax.report import sweep_plots  # matplotlib: imported after the simulation
+
         sweep_plots.survival_map(table, out / "survival.png", summary["envelope"])
         sweep_plots.envelope(table, summary["envelope"], out / "envelope.png")
     return summary

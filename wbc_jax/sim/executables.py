@@ -103,13 +103,15 @@ def _persistent_cache_bypassed():
         compilation_cache.reset_cache()
 
 
-def folder() -> pathlib.Path | None:
-    """Where serialised programs live (None: JAX's persistent cache is off)."""
+def default_folder() -> pathlib.Path | None:
+    """Where serialised programs live: ``wbc_executables/`` in JAX's persistent cache folder
+    (None: the persistent cache is off)."""
     cache = jax.config.jax_compilation_cache_dir
     return pathlib.Path(cache) / FOLDER if cache else None
 
 
-def compiled(name: str, key_parts, args, lower: Callable[[], jax.stages.Lowered]) -> jax.stages.Compiled:
+def compiled(name: str, key_parts, args, lower: Callable[[], jax.stages.Lowered],
+             folder: pathlib.Path | None = None) -> jax.stages.Compiled:  # fmt: skip
     """The compiled program ``lower().compile()``, loaded from disk when an earlier process
     compiled it under the same key (:func:`program_key`), else compiled and saved.
 
@@ -119,8 +121,9 @@ def compiled(name: str, key_parts, args, lower: Callable[[], jax.stages.Lowered]
         anything with a stable ``repr``.
       args: the arguments (arrays or ShapeDtypeStructs), for their tree, shapes and dtypes.
       lower: returns the lowered program (called only when it must be compiled).
+      folder: where the programs are kept (None: :func:`default_folder`).
     """
-    where = folder()
+    where = default_folder() if folder is None else pathlib.Path(folder)
     path = None if where is None else where / program_key(name, key_parts, args)
     if path is not None and path.exists():
         try:
@@ -134,8 +137,13 @@ def compiled(name: str, key_parts, args, lower: Callable[[], jax.stages.Lowered]
     lowered = lower()
     with _persistent_cache_bypassed():
         program = lowered.compile()
+    try:
+        payload = pickle.dumps(serialize_executable.serialize(program))
+    except (NotImplementedError, ValueError, pickle.PicklingError) as err:  # e.g. hoisted constants
+        warnings.warn(f"{name} is not kept on disk: {err}", stacklevel=2)
+        return program
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(f".{os.getpid()}.tmp")
-    tmp.write_bytes(pickle.dumps(serialize_executable.serialize(program)))
+    tmp.write_bytes(payload)
     os.replace(tmp, path)  # atomic: a reader never sees half a file
     return program

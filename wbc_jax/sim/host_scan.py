@@ -30,6 +30,10 @@ from wbc_jax.sim.state import Scenario, traced_at_matmul_precision
 def horizon(loop, gains, push, qpos, handles):
     """Every tick of B environments on C MuJoCo, traced as one program.
 
+    One environment (B = 1) is traced without ``vmap``: under ``vmap`` a branch on a batched
+    predicate runs both sides (the soft momentum QP behind the first one), without it only the
+    side taken.
+
     Args:
       gains, push: the scenarios' Gains and Push with a leading batch axis B.
       qpos: (B, nq) initial positions (zero velocity), in the controller's dtype; the C data of
@@ -41,25 +45,39 @@ def horizon(loop, gains, push, qpos, handles):
     """
     idx, B = loop.idx, qpos.shape[0]
     n_con = physics.max_contacts(loop.robot.mj_model)
-    control = jax.vmap(loop.control, in_axes=(0, 0, 0, 0, None, 0, 0))
+    if B == 1:  # the batch axis only at the physics calls
+        unbatched = lambda tree: jax.tree_util.tree_map(lambda x: x[0], tree)  # noqa: E731
+        gains, push, qpos = unbatched(gains), unbatched(push), unbatched(qpos)
+        batched = lambda fn, in_axes=0: fn  # noqa: E731
+        to_physics = lambda x: x[None]  # noqa: E731
+        from_physics = lambda x: x[0]  # noqa: E731
+    else:
+        batched = jax.vmap
+        to_physics = from_physics = lambda x: x
+    control = batched(loop.control, in_axes=(0, 0, 0, 0, None, 0, 0))
 
     def tick(carry, k):
         state, q, v, ok = carry
         state, ctrl, record = control(gains, state, q, v, k, ok, push)
-        xfrc = jax.vmap(loop.xfrc, in_axes=(0, None))(push, k)
-        q, v, ok = native.step(handles, ctrl, xfrc, ok, idx.nq, idx.nv)
+        xfrc = batched(loop.xfrc, in_axes=(0, None))(push, k)
+        q, v, ok = (from_physics(x) for x in native.step(handles, to_physics(ctrl), to_physics(xfrc), to_physics(ok),
+                                                          idx.nq, idx.nv))  # fmt: skip
         if loop.cfg.record or loop.observes_contacts:
-            slots = native.contacts(handles, q, n_con, q.dtype)
+            slots = tuple(from_physics(x) for x in native.contacts(handles, to_physics(q), n_con, q.dtype))
             if loop.cfg.record:
-                record = jax.vmap(loop.measure)(record, *slots)
+                record = batched(loop.measure)(record, *slots)
             if loop.observes_contacts:
-                state = jax.vmap(loop.observe)(state, *slots)
+                state = batched(loop.observe)(state, *slots)
         return (state, q, v, ok), record
 
-    carry = (jax.vmap(loop.init)(qpos), qpos, jnp.zeros((B, idx.nv), qpos.dtype), jnp.ones(B, bool))
+    start = batched(loop.init)(qpos)
+    carry = (start, qpos, jnp.zeros(qpos.shape[:-1] + (idx.nv,), qpos.dtype), jnp.ones(qpos.shape[:-1], bool))
     (state, _, _, ok), records = jax.lax.scan(tick, carry, jnp.arange(loop.n_ticks, dtype=jnp.int32))
-    records = jax.tree_util.tree_map(lambda x: jnp.swapaxes(x, 0, 1), records)
-    return metrics_lib.final(state.metrics, ok), records
+    metrics = metrics_lib.final(state.metrics, ok)
+    if B == 1:
+        metrics = jax.tree_util.tree_map(lambda x: x[None], metrics)
+        return metrics, jax.tree_util.tree_map(lambda x: x[None], records)
+    return metrics, jax.tree_util.tree_map(lambda x: jnp.swapaxes(x, 0, 1), records)
 
 
 def program(loop, gains, push, qpos, handles):

@@ -7,7 +7,10 @@
 // addresses: handles (B, 4) uint32 = (model low, model high, data low, data high) 32-bit halves
 // (a 64-bit integer array needs JAX's x64 mode).
 
+#include <time.h>
+
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <vector>
@@ -36,6 +39,17 @@ class DefaultFloatMode {
   unsigned int saved_;
 #endif
 };
+
+// CPU time of the calling threads inside the physics (C MuJoCo's steps and their checks) and the
+// ticks stepped, since the last reset: what a tick's physics costs inside the closed loop.
+std::atomic<int64_t> physics_ns{0};
+std::atomic<int64_t> physics_ticks{0};
+
+int64_t ThreadCpuNs() {
+  timespec t;
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t);
+  return int64_t(t.tv_sec) * 1000000000 + t.tv_nsec;
+}
 
 struct Env {
   const mjModel* m;
@@ -109,6 +123,7 @@ ffi::Error StepAll(ffi::Buffer<ffi::U32> handles, ffi::AnyBuffer ctrl, ffi::AnyB
   const uint32_t* h = handles.typed_data();
   std::vector<mjtNum> saved;
   DefaultFloatMode mode;
+  const int64_t start = ThreadCpuNs();
   for (int64_t b = 0; b < B; ++b) {
     Env e = EnvAt(h, b);
     if (xd[2] != e.m->nbody || ctrl.element_count() != static_cast<size_t>(B * e.m->nu) ||
@@ -120,6 +135,8 @@ ffi::Error StepAll(ffi::Buffer<ffi::U32> handles, ffi::AnyBuffer ctrl, ffi::AnyB
                ok.typed_data()[b], max_speed, qpos->typed_data<T>() + b * e.m->nq,
                qvel->typed_data<T>() + b * e.m->nv, ok_out->typed_data() + b, saved);
   }
+  physics_ns += ThreadCpuNs() - start;
+  physics_ticks += 1;
   return ffi::Error::Success();
 }
 
@@ -206,3 +223,13 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(WbcMujocoContacts, Contacts,
                                   .Ret<ffi::AnyBuffer>()
                                   .Ret<ffi::AnyBuffer>()
                                   .Ret<ffi::Buffer<ffi::S32>>());
+
+extern "C" {
+// The physics counters: CPU nanoseconds and ticks since the last reset (wbc_jax.sim.native.physics_cpu).
+int64_t WbcMujocoPhysicsNs() { return physics_ns.load(); }
+int64_t WbcMujocoPhysicsTicks() { return physics_ticks.load(); }
+void WbcMujocoResetCounters() {
+  physics_ns = 0;
+  physics_ticks = 0;
+}
+}

@@ -4,6 +4,7 @@
     step(handles, ctrl, xfrc, ok)        -> (qpos (B, nq), qvel (B, nv), ok (B,))   one tick's physics
     contacts(handles, after, C, dtype)   -> contact slots (B, C, ...) after it
     handles(models, datas)               -> (B, 4) uint32: each environment's model and data
+    physics_cpu(reset=False)             -> (CPU seconds inside the physics, ticks) so far
 
 ``mujoco_ffi.cc`` is compiled at first use with the system's C++ compiler (``$CXX``, ``c++``,
 ``g++`` or ``clang++``) against the FFI headers jaxlib ships and the MuJoCo library the
@@ -86,6 +87,9 @@ def _build(cxx: str) -> pathlib.Path:
     return out
 
 
+_LIBRARY: list = []  # the loaded library, once registered
+
+
 @functools.cache
 def _register() -> str | None:
     """Build, load and register the handlers once per process: None, or why not."""
@@ -100,12 +104,27 @@ def _register() -> str | None:
         return f"building the native C MuJoCo step failed: {err}"
     for name, symbol in TARGETS.items():
         jax.ffi.register_ffi_target(name, jax.ffi.pycapsule(getattr(library, symbol)), platform="cpu")
+    library.WbcMujocoPhysicsNs.restype = library.WbcMujocoPhysicsTicks.restype = ctypes.c_int64
+    _LIBRARY.append(library)
     return None
 
 
 def available() -> str | None:
     """None when the native step is registered in this process; otherwise the reason it is not."""
     return _register()
+
+
+def physics_cpu(reset: bool = False) -> tuple[float, int]:
+    """(CPU seconds the programs' threads spent in the physics of :func:`step`, ticks stepped)
+    since the last reset (``reset``: then start again from zero); for timing the closed loop."""
+    problem = available()
+    if problem is not None:
+        raise RuntimeError(problem)
+    lib = _LIBRARY[0]
+    out = (lib.WbcMujocoPhysicsNs() * 1e-9, int(lib.WbcMujocoPhysicsTicks()))
+    if reset:
+        lib.WbcMujocoResetCounters()
+    return out
 
 
 def handles(models, datas) -> np.ndarray:

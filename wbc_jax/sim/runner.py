@@ -83,12 +83,15 @@ def pad_batch(tree, size: int):
 
 @dataclasses.dataclass
 class Run:
-    """Result of :func:`run`: metrics (batch axis), records (B, T, ...) or None, seconds spent."""
+    """Result of :func:`run`: metrics (batch axis), records (B, T, ...) or None, seconds spent
+    compiling (or loading) and running, and when the simulation started (``time.time()``: the
+    call plus its compile time)."""
 
     metrics: metrics_lib.Metrics
     records: object
     compile_s: float
     run_s: float
+    started: float = 0.0
 
 
 def check_queue(queue, backend: str, record: bool = False) -> None:
@@ -114,6 +117,7 @@ def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
     retirement (``ticks``)."""
     loop = setup_.loop
     check_queue(queue, loop.backend, loop.cfg.record)
+    called = time.time()
     B = int(np.asarray(scen.friction).shape[0])
     size = B if batch_size is None else max(batch_size, B)
     padded = pad_batch(jax.tree_util.tree_map(np.asarray, scen), size)
@@ -129,6 +133,7 @@ def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
         out = Run(metrics, records, compile_s, time.perf_counter() - t0 - compile_s)
     else:
         out = _run_mjx(setup_, padded, size, on_tick)
+    out.started = called + out.compile_s
     out.metrics = jax.tree_util.tree_map(lambda x: np.asarray(x)[:B], out.metrics)
     if out.records is not None:
         out.records = jax.tree_util.tree_map(lambda x: np.asarray(x)[:B], out.records)
@@ -207,8 +212,9 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
         return jax.vmap(step)(s, carry)
 
     if key not in cache:
-        start_fn = per_device(start, mesh, in_specs=(batched,), out_specs=batched).lower(scen_dev).compile()
-        carry_shape = jax.eval_shape(start_fn, scen_dev)
+        start_program = per_device(start, mesh, in_specs=(batched,), out_specs=batched)
+        start_fn = start_program.lower(scen_dev).compile()
+        carry_shape = jax.eval_shape(start_program, scen_dev)
         advance_fn = per_device(advance, mesh, in_specs=(batched, batched, same), out_specs=batched)
         cache[key] = (start_fn, advance_fn.lower(scen_dev, carry_shape, jnp.int32(0)).compile())
         compile_s = time.perf_counter() - t0
