@@ -112,6 +112,9 @@ def _info(args: argparse.Namespace) -> int:
 
 
 def _balance(args: argparse.Namespace) -> int:
+    # One robot: XLA's CPU thread pool of one thread (read when JAX starts its CPU client). The
+    # tick's kernels are small; spread over cores they cost about 40 % more CPU time (BENCHMARKS.md).
+    os.environ.setdefault("PJRT_NPROC", "1")
     from wbc_jax.jobs import balance
     from wbc_jax.sim import runner
 

@@ -19,9 +19,9 @@ from wbc_jax.control.torques import POSTURAL_VARIANTS
 from wbc_jax.core import io, provenance
 from wbc_jax.core.types import option
 from wbc_jax.jobs import runs
+from wbc_jax.sim import host_loop, physics, runner, scenario
 from wbc_jax.sim import metrics as metrics_lib
-from wbc_jax.sim import physics, runner, scenario
-from wbc_jax.sim.state import SimConfig
+from wbc_jax.sim.state import HOST_LOOPS, SimConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -49,6 +49,10 @@ class BalanceConfig:
     control_dt: float = option(0.01, "controller period [s], a multiple of the 1 ms physics step")
     solver_iterations: int | None = option(None, "contact solver Newton iterations (default: the model's, 4)")
     backend: str = option("auto", "physics engine (auto: C MuJoCo on a CPU, MJX on a GPU)", choices=physics.BACKENDS)
+    host_loop: str = option(
+        "auto", "C MuJoCo engine: the horizon as one compiled program, or a Python loop of ticks (auto: compiled "
+        "where the native step builds)", choices=HOST_LOOPS,
+    )  # fmt: skip
     out: str = option("runs/balance", "output folder")
     plots: bool = option(True, "write PNG plots")
 
@@ -89,7 +93,7 @@ def make_setup(
     dtype = scenario.float_dtype()
     gains = load_gains(cfg.gains, scene.robot.index.n, dtype) if cfg.gains else None
     sim = SimConfig(
-        control_dt=cfg.control_dt, record=True,
+        control_dt=cfg.control_dt, record=True, host_loop=cfg.host_loop,
         physics=physics.PhysicsConfig(backend=cfg.backend, solver_iterations=cfg.solver_iterations),
     )  # fmt: skip
     return scenario.setup(
@@ -129,7 +133,8 @@ def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: 
     traj = {name: np.asarray(v)[0] for name, v in dataclasses.asdict(result_run.records).items()}
     result = {"task": cfg.task, "forces": cfg.forces, "postural": cfg.postural, "duration_s": loop.cfg.duration,
               "solver_iterations": int(cfg.solver_iterations or st.robot.mj_model.opt.iterations),
-              "control_dt_s": loop.cfg.control_dt, "backend": st.backend}  # fmt: skip
+              "control_dt_s": loop.cfg.control_dt, "backend": st.backend,
+              "host_loop": host_loop.driver(loop, 1) if st.backend == "mujoco" else None}  # fmt: skip
     result.update(metrics_lib.summarize(metrics, push_end))
     result.update(force_task_error(traj))
     if loop.controller.stack is not None:
