@@ -19,15 +19,20 @@
 * ``notebook`` (in this process): ``wbc_jax.run`` again with new gains, as a notebook cell re-run:
   seconds compiling (target 0).
 
-Writes ``--out`` (merged by part) with each figure's command, the machine, its load average and the
+One robot runs with XLA's CPU thread pool of one thread (``PJRT_NPROC=1`` unless set, as
+``wbc-jax balance`` does). Writes ``--out`` (merged by part) with each figure's command, the machine, its load average and the
 date. Timings on a shared machine are inflated: compare figures of one run; CPU times suffer less.
 """
 
 from __future__ import annotations
 
+import os
+
+# One robot, as `wbc-jax balance` runs it: XLA's CPU pool of one thread (read when JAX starts).
+os.environ.setdefault("PJRT_NPROC", "1")
+
 import argparse
 import json
-import os
 import pathlib
 import platform
 import subprocess

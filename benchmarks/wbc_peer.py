@@ -32,8 +32,8 @@ import os
 import sys
 
 if __name__ == "__main__" and "--timing-worker" in sys.argv:  # pin before JAX starts its threads
-    for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ[_name] = "1"
+    for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "PJRT_NPROC"):
+        os.environ[_name] = "1"  # PJRT_NPROC: XLA's CPU pool, one thread (as wbc-jax balance)
     _cpu = sys.argv[sys.argv.index("--cpu") + 1] if "--cpu" in sys.argv else None
     if _cpu is not None:
         os.sched_setaffinity(0, {int(_cpu)})
