@@ -111,10 +111,19 @@ def _info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _one_thread_pool() -> None:
+    """One robot: XLA's CPU thread pool of one thread (``PJRT_NPROC``, read when JAX starts its
+    CPU client; left alone if set, or if JAX has started already, e.g. ``main`` called from a
+    notebook). The tick's kernels are small: spread over two cores they cost about 40 % more CPU
+    time (BENCHMARKS.md)."""
+    from jax._src import xla_bridge
+
+    if not xla_bridge.backends_are_initialized():
+        os.environ.setdefault("PJRT_NPROC", "1")
+
+
 def _balance(args: argparse.Namespace) -> int:
-    # One robot: XLA's CPU thread pool of one thread (read when JAX starts its CPU client). The
-    # tick's kernels are small; spread over cores they cost about 40 % more CPU time (BENCHMARKS.md).
-    os.environ.setdefault("PJRT_NPROC", "1")
+    _one_thread_pool()
     from wbc_jax.jobs import balance
     from wbc_jax.sim import runner
 
