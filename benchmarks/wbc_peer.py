@@ -65,7 +65,8 @@ def _summary(metrics) -> dict:
     from wbc_jax.sim import metrics as metrics_lib
 
     s = metrics_lib.summarize(jax.tree_util.tree_map(lambda x: x[0], metrics))
-    return {k: (round(float(v), 9) if isinstance(v, float) else v) for k, v in s.items()}
+    s = {k: v.item() if hasattr(v, "item") else v for k, v in s.items()}  # numpy scalars
+    return {k: (round(v, 9) if isinstance(v, float) else v) for k, v in s.items()}
 
 
 def timing(gains: str, repeats: int) -> dict:
