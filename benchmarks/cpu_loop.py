@@ -10,8 +10,9 @@
   step) and the controller's tick alone in a ``lax.scan`` (no physics, no calls between ticks);
   wall and CPU microseconds per tick, the fastest of ``--repeats``.
 * ``sinusoid``: ``wbc-jax balance --task sinusoid --duration 20`` with ``--host-loop compiled`` and
-  ``python``, each in its own process with a warm compilation cache (run once before): loop time,
-  real-time factor, CoM RMSE (targets: loop <= 1 s, i.e. 20x real time; RMSE 1.00 mm).
+  ``python``, and the compiled loop with XLA's CPU pool of a thread per core, each in its own
+  process with a warm compilation cache (run once before): loop time, real-time factor, CoM RMSE
+  (targets: loop <= 1 s, i.e. 20x real time; RMSE 1.00 mm).
 * ``rerun``: ``wbc-jax balance``, ``wbc-jax push-sweep`` (the README's main job) and a small
   ``wbc-jax envelope``, each twice with an empty compilation cache: seconds from the process's start
   to its first tick (``started_s``; target for the second run: <= 3 s) and the command's wall time
@@ -158,8 +159,12 @@ def profile(repeats: int, ticks: int) -> dict:
 
     alone = jax.jit(ticks_alone).lower(q0).compile()
     wall, cpu, _ = _best(lambda: jax.block_until_ready(alone(q0)), repeats)
+    hlo = alone.as_text()  # what XLA runs: many small kernels, each a call of the CPU runtime
     out["controller_alone"] = {"per_tick_wall_us": us(wall), "per_tick_cpu_us": us(cpu),
-                               "what": "loop.control at the standing state in a lax.scan, records kept"}  # fmt: skip
+                               "what": "loop.control at the standing state in a lax.scan, records kept",
+                               "program": {"fusions": hlo.count(" fusion("), "dots": hlo.count(" dot("),
+                                           "library_calls": hlo.count(" custom-call("),
+                                           "while_loops": hlo.count(" while(")}}  # fmt: skip
     return out
 
 
@@ -179,17 +184,20 @@ def _env(cache: pathlib.Path) -> dict:
 
 
 def sinusoid(work: pathlib.Path) -> dict:
-    """The ``sinusoid`` part: both loops, each after a warm-up run that fills the cache."""
+    """The ``sinusoid`` part: each loop after a warm-up run that fills the cache; the compiled loop
+    also with XLA's CPU pool of one thread per core (``PJRT_NPROC`` = the core count)."""
     out = {}
-    for driver in ("compiled", "python"):
+    variants = {"compiled": ("compiled", "1"), "python": ("python", "1"),
+                "compiled, a pool thread per core": ("compiled", str(os.cpu_count() or 1))}  # fmt: skip
+    for name, (driver, threads) in variants.items():
         args = ["balance", "--task", "sinusoid", "--duration", "20", "--host-loop", driver, "--no-plots", "--quiet"]
-        env = _env(work / "xla")
-        _cli([*args, "--out", str(work / f"sin_{driver}_0")], env)
-        wall, s = _cli([*args, "--out", str(work / f"sin_{driver}_1")], env)
-        out[driver] = {"command": "wbc-jax " + " ".join(args), "loop_s": s["loop_s"],
-                       "real_time_factor": s["real_time_factor"], "com_rmse_mm": round(1e3 * s["com_rmse_m"], 5),
-                       "compile_s": s["compile_s"], "started_s": s["started_s"], "wall_s": round(wall, 2),
-                       "host_loop": s["host_loop"]}  # fmt: skip
+        env = {**_env(work / "xla"), "PJRT_NPROC": threads}
+        _cli([*args, "--out", str(work / f"sin_{driver}_{threads}_0")], env)
+        wall, s = _cli([*args, "--out", str(work / f"sin_{driver}_{threads}_1")], env)
+        out[name] = {"command": f"PJRT_NPROC={threads} wbc-jax " + " ".join(args), "loop_s": s["loop_s"],
+                     "real_time_factor": s["real_time_factor"], "com_rmse_mm": round(1e3 * s["com_rmse_m"], 5),
+                     "compile_s": s["compile_s"], "started_s": s["started_s"], "wall_s": round(wall, 2),
+                     "host_loop": s["host_loop"]}  # fmt: skip
     c = out["compiled"]
     out["target"] = "compiled loop <= 1 s (20x real time), CoM RMSE 1.00 mm"
     out["met"] = bool(c["loop_s"] <= 1.0 and abs(c["com_rmse_mm"] - 1.00) < 0.01)
