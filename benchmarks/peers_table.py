@@ -78,15 +78,27 @@ def summary_table(cols: dict) -> str:
 
 
 def direction_table(cols: dict) -> str:
-    """Per azimuth: each controller's strict envelope (bisection) as a fraction of the LIP bound."""
+    """Per azimuth: each controller's strict envelope (bisection) as a fraction of the LIP bound, the
+    controller that holds the largest push, and TSID against our first gain set (the defaults)."""
     names = list(cols)
+    ours = names[1] if len(names) > 1 else None
     azimuths = sorted({float(a) for c in cols.values() for a in c["envelope"].get("directions", {})})
-    lines = ["| azimuth (deg) | " + " | ".join(names) + " | largest |", "|---:|" + "---:|" * len(names) + "---|"]
+    pair = f" TSID vs {ours} |" if ours else ""
+    lines = ["| azimuth (deg) | " + " | ".join(names) + " | largest |" + pair,
+             "|---:|" + "---:|" * len(names) + "---|" + ("---|" if ours else "")]  # fmt: skip
     for az in azimuths:
         values = [_get(c["envelope"], "directions", f"{az:g}", "fraction_of_bound") for c in cols.values()]
         known = [(v, n) for v, n in zip(values, names, strict=True) if v is not None]
         best = max(known)[1] if known else "—"
-        lines.append(f"| {az:g} | " + " | ".join(_fmt(v, ".3f") for v in values) + f" | {best} |")
+        row = f"| {az:g} | " + " | ".join(_fmt(v, ".3f") for v in values) + f" | {best} |"
+        if ours:
+            t, w = values[0], values[1]
+            row += (
+                " — |"
+                if t is None or w is None
+                else f" {'tie' if abs(t - w) < 1e-9 else ('TSID' if t > w else ours)} |"
+            )
+        lines.append(row)
     return "\n".join(lines)
 
 

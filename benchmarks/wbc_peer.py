@@ -276,12 +276,12 @@ def main(argv=None) -> dict:
                 raise SystemExit(f"error: the timing of {gains} failed:\n{proc.stderr[-3000:]}")
             part = json.loads([line for line in proc.stdout.splitlines() if line.startswith("{")][-1])
             for key in ("timing", "sinusoid", "stand"):
-                entry[key] = {"command": command, **part[key]}
+                entry[key] = {"command": command, "code": result["code"], **part[key]}
             entry["timing"]["affinity"] = part["affinity"]
             save()
             print(json.dumps({gain_label(gains): entry["timing"]}), flush=True)
         if "envelope" in args.parts:
-            entry["envelope"] = {"command": command, **envelope_part(gains)}
+            entry["envelope"] = {"command": command, "code": result["code"], **envelope_part(gains)}
             save()
             e = entry["envelope"]
             print(json.dumps({gain_label(gains): {k: e[k] for k in ("fraction_of_bound_median", "fraction_of_bound_min")}}),
