@@ -19,6 +19,10 @@
   (target for the main job's second run: <= 10 s).
 * ``notebook`` (in this process): ``wbc_jax.run`` again with new gains, as a notebook cell re-run:
   seconds compiling (target 0).
+* ``acceptance``: ``experiments/balance_acceptance.py`` (every scenario, now the compiled loop) into a
+  new summary (or ``--acceptance-summary``, one made before), each figure against
+  ``--acceptance-baseline`` (docs/balance_acceptance.json as committed): the largest relative
+  differences per scenario (target: float noise).
 
 One robot runs with XLA's CPU thread pool of one thread (``PJRT_NPROC=1`` unless set, as
 ``wbc-jax balance`` does). Writes ``--out`` (merged by part) with each figure's command, the machine, its load average and the
@@ -44,7 +48,9 @@ import time
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
-PARTS = ("profile", "sinusoid", "rerun", "notebook")
+PARTS = ("profile", "sinusoid", "rerun", "notebook", "acceptance")
+# not figures of the controller: timings, and labels whose format or meaning changed (device, driver)
+TIMINGS = {"compile_s", "loop_s", "real_time_factor", "wall_time_s", "started_s", "command", "device", "host_loop"}
 
 
 class Timers:
@@ -250,6 +256,44 @@ def notebook() -> dict:
             "target": "no compilation (compile_s 0)", "met": again.compile_s == 0.0}  # fmt: skip
 
 
+def _differences(a, b, path: list) -> list:
+    """(relative difference, figure, a, b) of every figure two summaries share (timings and labels
+    left out; a changed flag or string counts as 1)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return [row for k in sorted(set(a) & set(b) - TIMINGS) for row in _differences(a[k], b[k], [*path, k])]
+    if isinstance(a, (bool, str)) or isinstance(b, (bool, str)):
+        return [] if a == b else [(1.0, ".".join(path), a, b)]
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        return [(abs(a - b) / max(abs(a), 1e-12), ".".join(path), a, b)]
+    return []
+
+
+def compare_figures(old: dict, new: dict, top: int = 3) -> dict:
+    """Per scenario of two acceptance summaries: the ``top`` figures that differ most, relatively."""
+    out = {}
+    for name in sorted(set(old) & set(new)):
+        rows = sorted(_differences(old[name], new[name], []), key=lambda r: r[0], reverse=True)
+        out[name] = [
+            {"figure": p, "relative": float(f"{r:.3g}"), "committed": a, "now": b} for r, p, a, b in rows[:top]
+        ]
+    return out
+
+
+def acceptance(work: pathlib.Path, baseline: pathlib.Path, summary: pathlib.Path | None) -> dict:
+    """The ``acceptance`` part."""
+    if summary is None:
+        summary = work / "balance_acceptance.json"
+        cmd = [sys.executable, str(ROOT / "experiments" / "balance_acceptance.py"), "--out", str(work / "acceptance"),
+               "--summary", str(summary)]  # fmt: skip
+        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=7200, env=_env(work / "xla"))
+        if proc.returncode != 0:
+            raise RuntimeError(f"balance_acceptance.py failed:\n{proc.stderr[-3000:]}")
+    old, new = json.loads(baseline.read_text()), json.loads(summary.read_text())
+    return {"command": "python experiments/balance_acceptance.py (every scenario), compared with " + str(baseline),
+            "largest_differences": compare_figures(old, new),
+            "drivers": sorted({v.get("host_loop") for v in new.values() if isinstance(v, dict) and "task" in v})}  # fmt: skip
+
+
 def main(argv=None) -> dict:
     argv = list(sys.argv[1:] if argv is None else argv)
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -257,6 +301,8 @@ def main(argv=None) -> dict:
     p.add_argument("--parts", nargs="+", default=list(PARTS), choices=PARTS)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--ticks", type=int, default=2000, help="ticks of the profiled sinusoid")
+    p.add_argument("--acceptance-baseline", default=str(ROOT / "docs" / "balance_acceptance.json"))
+    p.add_argument("--acceptance-summary", default=None, help="compare this summary instead of running the scenarios")
     args = p.parse_args(argv)
     if args.repeats < 1 or args.ticks < 1:
         p.error("--repeats and --ticks must be >= 1")
@@ -272,6 +318,9 @@ def main(argv=None) -> dict:
 
         result[part] = value
         result["machine"]["cpu"] = provenance.device_label()
+        result["provenance"] = provenance.record(
+            {"acceptance baseline": args.acceptance_baseline}, argv=[__file__, *argv]
+        )
         result.setdefault("load_average", {})[part] = [round(x, 2) for x in os.getloadavg()]
         io.atomic_write_json(out, result)
         print(json.dumps({part: value}), flush=True)
@@ -284,6 +333,9 @@ def main(argv=None) -> dict:
         save("rerun", rerun(work))
     if "notebook" in args.parts:
         save("notebook", notebook())
+    if "acceptance" in args.parts:
+        made = None if args.acceptance_summary is None else pathlib.Path(args.acceptance_summary)
+        save("acceptance", acceptance(work, pathlib.Path(args.acceptance_baseline), made))
     return result
 
 

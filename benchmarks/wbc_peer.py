@@ -241,13 +241,16 @@ def main(argv=None) -> dict:
     if args.timing_worker:  # the child of the timing part: one gain set, JSON on stdout
         print(json.dumps(timing(args.gains[0], args.timing_repeats)), flush=True)
         return {}
+    from wbc_jax.core import provenance
+
     out = pathlib.Path(args.out)
     command = "python benchmarks/wbc_peer.py " + " ".join(shlex.quote(a) for a in argv)
     result = json.loads(out.read_text()) if out.exists() else {}
     result.update({
         "peer": "wbc_jax: the momentum-based whole-body controller (JAX, compiled by XLA) on C MuJoCo",
         "command": command, "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "cpu": __import__("wbc_jax.core.provenance", fromlist=["x"])._cpu_name(), "cpu_count": os.cpu_count(),
+        "cpu": provenance.device_label(), "cpu_count": os.cpu_count(),
+        "provenance": provenance.record({f"gains {gain_label(g)}": g for g in args.gains if g != "default"}, argv=[__file__, *argv]),
         "threads": {"OMP_NUM_THREADS": "1 (timing)", "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")},
         "versions": _versions(), "code": _code(),
         "definitions": {"magnitudes_n": list(MAGNITUDES), "directions": DIRECTIONS, "push_onset_s": PUSH_ONSET,
