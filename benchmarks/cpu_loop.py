@@ -19,7 +19,7 @@
   (target for the main job's second run: <= 10 s).
 * ``notebook`` (in this process): ``wbc_jax.run`` again with new gains, as a notebook cell re-run:
   seconds compiling (target 0).
-* ``acceptance``: ``experiments/balance_acceptance.py`` (every scenario, now the compiled loop) into a
+* ``acceptance``: ``experiments/acceptance/balance_acceptance.py`` (every scenario, now the compiled loop) into a
   new summary (or ``--acceptance-summary``, one made before), each figure against
   ``--acceptance-baseline`` (docs/balance_acceptance.json as committed): the largest relative
   differences per scenario (target: float noise).
@@ -289,7 +289,7 @@ def acceptance(work: pathlib.Path, baseline: pathlib.Path, summary: pathlib.Path
         if proc.returncode != 0:
             raise RuntimeError(f"balance_acceptance.py failed:\n{proc.stderr[-3000:]}")
     old, new = json.loads(baseline.read_text()), json.loads(summary.read_text())
-    return {"command": "python experiments/balance_acceptance.py (every scenario), compared with " + str(baseline),
+    return {"command": "python experiments/acceptance/balance_acceptance.py (every scenario), compared with " + str(baseline),
             "largest_differences": compare_figures(old, new),
             "drivers": sorted({v.get("host_loop") for v in new.values() if isinstance(v, dict) and "task" in v})}  # fmt: skip
 

@@ -57,7 +57,7 @@ class ClosedLoop:
         self.n_ticks = int(round(cfg.duration / cfg.control_dt))
         if self.n_ticks < 1:
             raise ValueError(f"duration {cfg.duration} s is shorter than one control tick ({cfg.control_dt} s)")
-        self.push_body = idx.body_id(cfg.push_body)
+        self.push_body = idx.pushable_body_id(cfg.push_body)
         # Bodies that must stay off the floor: all but the feet and the ankle links above them.
         feet_and_ankles = set(idx.foot_bodies.tolist()) | set(robot.mj_model.body_parentid[idx.foot_bodies].tolist())
         self.non_foot_bodies = np.array([b for b in range(1, robot.mj_model.nbody) if b not in feet_and_ankles])
