@@ -46,8 +46,6 @@ import tempfile
 import time
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
 PARTS = ("profile", "sinusoid", "rerun", "notebook", "acceptance")
 # not figures of the controller: timings, and labels whose format or meaning changed (device, driver)
 TIMINGS = {"compile_s", "loop_s", "real_time_factor", "wall_time_s", "started_s", "command", "device", "host_loop"}

@@ -47,8 +47,6 @@ import subprocess
 import time
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
 
 PARTS = ("timing", "envelope", "grid")
 MAGNITUDES = (10.0, 400.0, 64)  # N: the grid of wbc_jax.jobs.envelope and tsid_peer.py
