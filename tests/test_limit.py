@@ -5,6 +5,7 @@ recovering a push that the controller alone cannot."""
 import dataclasses
 import json
 import re
+from types import SimpleNamespace
 
 import jax
 import jax.numpy as jnp
@@ -14,7 +15,7 @@ import pytest
 from wbc_jax import cli
 from wbc_jax.core import constants
 from wbc_jax.jobs import limit, limit_rounds, trajopt
-from wbc_jax.sim import runner
+from wbc_jax.sim import host_loop, runner
 from wbc_jax.sim.state import Feedforward, feedforward_torque
 
 
@@ -29,6 +30,15 @@ def test_feedforward_torque_adds_in_its_window_and_saturates():
     # The gradient reaches u inside the window, not where the saturation holds the torque.
     g = jax.grad(lambda u: jnp.sum(feedforward_torque(ff.replace(torque=u), 5, tau, 60.0)))(ff.torque)
     np.testing.assert_array_equal(g, [[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+
+
+def test_feedforward_runs_on_the_python_host_loop():
+    """The compiled one-robot C MuJoCo driver takes no feedforward torques: 'auto' picks the Python
+    loop for them, 'compiled' refuses them in one line."""
+    auto, compiled = (SimpleNamespace(cfg=SimpleNamespace(host_loop=c)) for c in ("auto", "compiled"))
+    assert host_loop.driver(auto, 1, feedforward=True) == "python"
+    with pytest.raises(ValueError, match="host_loop='compiled' takes no feedforward torques"):
+        host_loop.driver(compiled, 1, feedforward=True)
 
 
 def test_bracket_and_next_impulses():
