@@ -13,17 +13,27 @@ import pytest
 from wbc_jax import cli
 from wbc_jax.control.gains import default_gains, gains_to_dict
 from wbc_jax.jobs import balance, sweep_config
-from wbc_jax.tuning import tune
+from wbc_jax.tuning import config as tune_config
 
 
 def test_flags_are_generated_from_the_configs(capsys):
-    for command, config in (("balance", balance.default_config()), ("push-sweep", sweep_config.default_config()),
-                            ("tune", tune.default_config())):  # fmt: skip
+    heldout = tune_config.heldout_default_config()
+    for command, configs in (("balance", [balance.default_config()]), ("push-sweep", [sweep_config.default_config()]),
+                             ("tune", [tune_config.default_config(), heldout]), ("heldout", [heldout])):  # fmt: skip
         with pytest.raises(SystemExit):
             cli.main([command, "--help"])
         text = capsys.readouterr().out
-        for field in config.__dataclass_fields__:
-            assert f"--{field.replace('_', '-')}" in text, (command, field)
+        for config in configs:
+            for field in config.__dataclass_fields__:
+                assert f"--{field.replace('_', '-')}" in text, (command, field)
+    # tune and heldout: the held-out flags from one config, with the same names and defaults.
+    parser = cli.build_parser()
+    for command in ("tune", "heldout"):
+        hc = cli.config_from_args(parser.parse_args([command, "--grid-magnitudes", "10", "30", "3",
+                                                     "--grid-directions", "4", "--chunk-size", "7"]), heldout)  # fmt: skip
+        assert hc.grid_magnitudes == (10.0, 20.0, 30.0) and hc.grid_directions == (0.0, 90.0, 180.0, 270.0)
+        assert hc.chunk_size == 7 and hc.sinusoid_s == heldout.sinusoid_s
+    assert cli.config_from_args(parser.parse_args(["tune", "--tasks", "t.yaml"]), heldout).tasks == "t.yaml"
     # Defaults shown as they are given on the command line; values parsed into the config.
     parser = cli.build_parser()
     args = parser.parse_args(["push-sweep", "--magnitudes", "10", "30", "3", "--directions", "8"])
@@ -131,10 +141,20 @@ def _cases(tmp):
         (["tune", "--batch", "0"], r"--batch must be a whole number >= 1"),
         (["tune", "--horizon", "0.1"], r"--horizon 0.1 s must end after the push"),
         (["tune", "--lr", "nan"], r"--lr must be positive and finite"),
+        (
+            ["tune", "--estimator", "smoothed", "--batch", "3", "--quality-pushes", "3"],
+            r"--estimator smoothed pairs antithetic rollouts: --batch must be even",
+        ),
+        (["tune", "--window-s", "5"], r"--window-s 5 must be at least one tick \(0.01 s\) and shorter than --horizon"),
+        (["tune", "--phases", "train", "sweep"], r"invalid choice: 'sweep'"),
+        (["tune", "--sets", "mine=/nowhere.json"], r"--sets mine=/nowhere.json: /nowhere.json is not a file"),
+        (["heldout", "--sets", "bogus"], r"--sets entries are 'default', 'critical' or NAME=FILE"),
+        (["heldout", "--grid-horizon", "0.5"], r"held-out horizon 0.5 s ends before the pushes"),
+        (["heldout", "--out", a_file], r"is a file"),
     ]
 
 
-CASE_COUNT = 39
+CASE_COUNT = 46
 
 
 def test_every_bad_input_case_is_listed(tmp_path):

@@ -164,20 +164,33 @@ def _view(args: argparse.Namespace) -> int:
 
 def _tune(args: argparse.Namespace) -> int:
     from wbc_jax.sim import runner
-    from wbc_jax.tuning import tune
+    from wbc_jax.tuning import campaign, config
 
-    cfg = config_from_args(args, tune.default_config())
+    cfg = config_from_args(args, config.default_config())
+    cfg.check()
+    # The held-out fields shared with the tuning run (tasks, angular_weight_soft) are the run's.
+    hc = config_from_args(args, config.heldout_default_config())
+    runner.enable_compilation_cache()
+    summary = campaign.run(cfg, hc, progress=not args.quiet)
+    print(json.dumps(summary, separators=(",", ":"), default=str))
+    return 0
+
+
+def _heldout(args: argparse.Namespace) -> int:
+    from wbc_jax.sim import runner
+    from wbc_jax.tuning import config, heldout
+
+    cfg = config_from_args(args, config.heldout_default_config())
     cfg.check()
     runner.enable_compilation_cache()
-    report = tune.run(cfg, progress=not args.quiet)
-    print(json.dumps(tune.report_line(report), separators=(",", ":")))
+    print(json.dumps(heldout.run(cfg, progress=not args.quiet), separators=(",", ":")))
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
     from wbc_jax.jobs import balance, sweep_config
     from wbc_jax.jobs.envelope import default_config as envelope_default
-    from wbc_jax.tuning import tune
+    from wbc_jax.tuning import config as tune_config
 
     parser = _Parser(prog="wbc-jax", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -208,10 +221,16 @@ def build_parser() -> argparse.ArgumentParser:
     vw.add_argument("--spawn", action="store_true", help="open a rerun viewer instead of a file")
     vw.set_defaults(func=_view)
 
-    tn = sub.add_parser("tune", help="gradient-based gain tuning + baselines + held-out comparison")
-    add_config_arguments(tn, tune.default_config())
+    tn = sub.add_parser("tune", help="gain tuning in phases: gradient, CMA-ES, random search, held-out evaluation")
+    add_config_arguments(tn, tune_config.default_config())
+    add_config_arguments(tn, tune_config.heldout_default_config(), skip=("out", "tasks", "angular_weight_soft"))
     tn.add_argument("--quiet", action="store_true", help="no progress bar")
     tn.set_defaults(func=_tune)
+
+    ho = sub.add_parser("heldout", help="gain files on the held-out grid, variations, one-foot task and sinusoid")
+    add_config_arguments(ho, tune_config.heldout_default_config())
+    ho.add_argument("--quiet", action="store_true", help="no progress bar")
+    ho.set_defaults(func=_heldout)
     return parser
 
 

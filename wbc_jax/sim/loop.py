@@ -64,8 +64,9 @@ class ClosedLoop:
         # The controller's own model: MJX's JAX implementation, whatever steps the plant.
         self.mx = mjx.put_model(robot.mj_model)
         self._d_template = mjx.make_data(robot.mj_model)
-        # Gradients (a LossTrace) need MJX's JAX implementation.
-        self.backend = physics.resolve_backend(cfg.physics.backend, differentiable=cfg.loss_trace)
+        self.backend = physics.resolve_backend(cfg.physics.backend)
+        if cfg.loss_trace and self.backend == "mujoco":  # the host loop returns no per-tick LossTrace
+            raise ValueError("a loss trace (gain tuning) needs an MJX backend: 'jax' (gradients) or 'warp'")
         if self.backend == "warp" and controller.config.contact_detection:
             raise ValueError(
                 "contact detection reads the simulator's contact forces, which the 'warp' backend does not "

@@ -53,7 +53,10 @@ def chunk(loop, plant: mjx.Model, gains: Gains, push: Push, carry, k0, n_ticks: 
         return (d_new, state, finite), record
 
     if loop.cfg.checkpoint:
-        tick = jax.checkpoint(tick)
+        policy = loop.cfg.checkpoint
+        tick = jax.checkpoint(
+            tick, policy=getattr(jax.checkpoint_policies, policy) if isinstance(policy, str) else None
+        )
     return jax.lax.scan(tick, carry, k0 + jnp.arange(n_ticks))
 
 
