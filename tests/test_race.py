@@ -298,3 +298,99 @@ def test_data_parallel_programs_on_two_devices_match_one():
     np.testing.assert_allclose(two["values"], one["values"], rtol=1e-12)
     np.testing.assert_allclose(two["grad"], one["grad"], rtol=1e-10)
     assert two["alpha"] == pytest.approx(one["alpha"], rel=1e-10) and 0.0 <= one["alpha"] <= 1.0
+
+
+# ---------------------------------------------------------------------------------------------
+# The whole pipeline at tiny sizes (slow: compiles the gradient, window and population programs)
+
+TINY_RUN = ["--horizon", "0.3", "--push-onset", "0.05", "--duration-range", "0.05", "0.1", "--eval-horizon", "0.3",
+            "--batch", "4", "--steps", "2", "--population", "2", "--es-batch", "1", "--quality-pushes", "4",
+            "--quality-directions", "2", "--eval-pushes", "2", "--grid-magnitudes", "20", "200", "3",
+            "--grid-directions", "2", "--variation-magnitudes", "2", "--variation-directions", "2", "--variations",
+            "l_hand", "--grid-onset", "0.1", "--grid-horizon", "0.4", "--one-foot-onset", "7.5", "--one-foot-horizon",
+            "7.7", "--sinusoid-s", "0.3", "--quiet"]  # fmt: skip
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("extra", [["--parameterisation", "gains"],
+                                   ["--parameterisation", "scheduled", "--window-s", "0.1", "--windows", "2",
+                                    "--estimator", "interpolated"]], ids=["gains", "scheduled-windows"])  # fmt: skip
+def test_race_pipeline_end_to_end(tmp_path, extra):
+    """wbc-jax tune with a wall budget: every phase runs, each method's sets at the snapshot and at the
+    budget are written once and held out (with their sinusoid RMSE), race.json names a recommendation;
+    a second call resumes without redoing anything."""
+    out = tmp_path / "run"
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "WBC_JAX_CACHE": os.environ.get("WBC_JAX_CACHE", ""),
+           "XLA_FLAGS": "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true",
+           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}  # fmt: skip
+    cmd = [sys.executable, "-m", "wbc_jax.cli", "tune", "--out", str(out), *TINY_RUN, *extra, "--budget-s", "30",
+           "--snapshots-s", "5", "--phases", "train", "quality", "cmaes", "random", "heldout", "report"]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=3000, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    names = {f"{m}{t}" for m in race.METHODS for t in ("", "_t5")}
+    index = json.loads((out / "gains" / "provenance.json").read_text())
+    assert set(index) == names and all(len(e["sha256"]) == 64 for e in index.values())
+    held = json.loads((out / "heldout.json").read_text())
+    for name in names | {"default", "critical"}:
+        assert 0.0 <= held[name]["envelope_fraction_median"] and held[name]["sinusoid_com_rmse_m"] > 0, name
+    assert held["provenance"]["inputs"]["gradient"]["sha256"] == index["gradient"]["sha256"]
+    rc = json.loads((out / "race.json").read_text())
+    assert set(rc["methods"]) == set(race.METHODS) and rc["budgets_s"] == [5.0, 30.0]
+    assert rc["recommended"] in held and "30" in rc["verdict"]
+    q = json.loads((out / "quality.json").read_text())
+    assert set(q["estimates"]) >= {"first-order", "zeroth-order"} and q["parameters"] == (348 if "scheduled" in extra
+                                                                                          else 58)  # fmt: skip
+    assert (out / "race.png").stat().st_size > 0
+    # Resumed: nothing left to do, the same files.
+    before = (out / "heldout.json").read_text()
+    proc = subprocess.run(cmd[:-7] + ["--phases", "train", "cmaes", "random"], capture_output=True, text=True,
+                          timeout=1500, env=env)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads((out / "gains" / "provenance.json").read_text()).keys() == index.keys()
+    assert (out / "heldout.json").read_text() == before
+
+
+CLOSED_LOOP_SHARDED = r"""
+import json, jax, jax.numpy as jnp, numpy as np
+jax.config.update("jax_enable_x64", True)
+from jax.sharding import Mesh
+from wbc_jax.tuning import config, estimators, objectives, tune
+from wbc_jax.tuning import problem as tp
+
+tc = config.TuneConfig(horizon=0.05, push_onset=0.0, duration_range=(0.02, 0.04), eval_horizon=0.1, batch=2,
+                       quality_pushes=2, population=1, es_batch=1)
+problem = tp.make_problem(tc)
+params = problem.init_params()
+scen = objectives.cast_batch(tune.training_batch(problem, 0)[0], problem.setup.dtype)
+out = {}
+for n in (1, 2):  # one environment per device (XLA:CPU deadlocks with several: runner.batch_devices)
+    mesh = Mesh(np.asarray(jax.devices()[:n]), ("batch",))
+    values, grads, _, _ = jax.jit(objectives.make_rollout_grads(problem, mesh))(estimators.repeated(params, 2),
+                                                                               objectives.shard(scen, mesh))
+    grad, _ = estimators.robust_mean_gradient(grads, 3.0)
+    pop = jax.tree_util.tree_map(lambda x: jnp.stack([x, x + 0.2]), params)
+    obj, _, _ = jax.jit(objectives.make_population_objective(problem, 2, 1, mesh))(
+        pop, jax.tree_util.tree_map(lambda x: x[:1], scen))
+    out[n] = {"values": np.asarray(values).tolist(), "grad": np.asarray(estimators.rows(
+        jax.tree_util.tree_map(lambda x: x[None], grad))[0]).tolist(), "population": np.asarray(obj).tolist(),
+        "shards": len(values.sharding.device_set)}
+print(json.dumps(out))
+"""
+
+
+@pytest.mark.slow
+def test_closed_loop_gradient_and_population_on_two_devices_match_one():
+    """The tuning programs themselves (closed loop, 0.05 s, float64) on two host devices, one rollout each."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu",
+           "XLA_FLAGS": "--xla_force_host_platform_device_count=2 --xla_backend_optimization_level=0 "
+                        "--xla_llvm_disable_expensive_passes=true",
+           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}  # fmt: skip
+    proc = subprocess.run([sys.executable, "-c", CLOSED_LOOP_SHARDED], capture_output=True, text=True, timeout=2400,
+                          env=env)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert res["1"]["shards"] == 1 and res["2"]["shards"] == 2
+    np.testing.assert_allclose(res["2"]["values"], res["1"]["values"], rtol=1e-9)
+    np.testing.assert_allclose(res["2"]["grad"], res["1"]["grad"], rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(res["2"]["population"], res["1"]["population"], rtol=1e-9)
+    assert np.linalg.norm(res["1"]["grad"]) > 0

@@ -137,7 +137,7 @@ def test_out_of_bound_init_gains_are_a_clear_error_before_compiling(tmp_path):
     ({"estimator": "smoothed", "batch": 3, "quality_pushes": 3}, r"--batch must be even"),
     ({"window_s": 0.005}, r"--window-s 0.005 must be at least one tick"),
     ({"window_s": 0.05, "windows": 3}, r"--batch 4 must be a multiple of --windows 3"),
-    ({"quality_pushes": 6}, r"--quality-pushes 6 must be a multiple of --batch 4"),
+    ({"quality_pushes": 6}, r"--quality-pushes 6 must be a multiple of the 4 pushes of one gradient program call"),
     ({"snapshots_s": (-1.0,)}, r"--snapshots-s must be positive seconds"),
     ({"parameterisation": "scheduled", "tune_regularisation": True}, r"schedules the gains only"),
     ({"envelope": "/nonexistent.json"}, r"--envelope /nonexistent.json is not a file"),

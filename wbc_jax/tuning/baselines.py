@@ -221,7 +221,7 @@ def result(problem: tp.Problem, kind: str, out, budget: dict, times=()) -> dict:
     def entry(i: int, reached: bool = True) -> dict:
         params = unravel(jnp.asarray(snapshots[i], p0.dtype)) if i >= 0 else problem.init_params()
         controls, reg = problem.controls(params)
-        r = rows[i] if i >= 0 else {"sim_steps": 0, "wall_s": compile_s}
+        r = rows[i] if i >= 0 else {"sim_steps": 0, "wall_s": 0.0}  # -1: the start, before any generation
         return {"generation": i, "sim_steps": int(r["sim_steps"]), "wall_s": float(r["wall_s"]), "reached": reached,
                 "controls": (controls, problem.regularisation(reg))}  # fmt: skip
 

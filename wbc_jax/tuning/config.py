@@ -141,17 +141,19 @@ class TuneConfig:
     eval_horizon: float = option(3.0, "seconds per held-out rollout of phase predict")
     quality_pushes: int = option(32, "phase quality: fixed held-out pushes of the training distribution whose mean "
                                  "loss the gradients are checked on (a multiple of --batch)")  # fmt: skip
-    quality_directions: int = option(16, "phase quality: antithetic random directions of the zeroth-order estimate")
+    quality_directions: int = option(16, "phase quality: antithetic random directions of the zeroth-order estimate "
+                                     "on the quality pushes (0: from the antithetic pairs of the gradient program "
+                                     "instead, one push each; no population program, no descent check)")  # fmt: skip
 
     def __post_init__(self):
         self.check()
 
     def check(self) -> None:
         """Every check that needs no model or compilation."""
-        for name in ("steps", "batch", "population", "eval_pushes", "windows", "quality_pushes",
-                     "quality_directions"):  # fmt: skip
+        for name in ("steps", "batch", "population", "eval_pushes", "windows", "quality_pushes"):
             _whole(getattr(self, name), name.replace("_", "-"))
         _whole(self.es_batch, "es-batch", 0)
+        _whole(self.quality_directions, "quality-directions", 0)
         for name in ("horizon", "lr", "clip_norm", "eval_horizon", "es_sigma", "envelope_fraction",
                      "angular_weight_soft", "smoothing_sigma", "bias_factor"):  # fmt: skip
             _positive(getattr(self, name), name.replace("_", "-"))
@@ -185,8 +187,10 @@ class TuneConfig:
         if self.window_s and self.distinct_rollouts % self.windows:
             raise ValueError(f"--batch {self.batch} must be a multiple of --windows {self.windows}"
                              + (" x 2 (antithetic pairs)" if self.pairs else ""))  # fmt: skip
-        if self.quality_pushes % self.batch:
-            raise ValueError(f"--quality-pushes {self.quality_pushes} must be a multiple of --batch {self.batch}")
+        if self.quality_pushes % self.pushes_per_call:
+            raise ValueError(f"--quality-pushes {self.quality_pushes} must be a multiple of the {self.pushes_per_call} "
+                             "pushes of one gradient program call (--batch, halved for antithetic pairs, divided by "
+                             "--windows with --window-s)")  # fmt: skip
         if not self.train_bodies:
             raise ValueError("--train-bodies: give at least one body")
         for name, value, valid in (("phases", self.phases, PHASES), ("push-scale", (self.push_scale,), PUSH_SCALES),
@@ -220,6 +224,11 @@ class TuneConfig:
     def distinct_rollouts(self) -> int:
         """Distinct pushes (or window starts) of a gradient batch."""
         return self.batch // 2 if self.pairs else self.batch
+
+    @property
+    def pushes_per_call(self) -> int:
+        """Pushes (whole-horizon rollouts, or forward rollouts of the windows) of one gradient program call."""
+        return self.distinct_rollouts // (self.windows if self.window_s else 1)
 
     @property
     def searches(self) -> tuple[str, ...]:

@@ -17,7 +17,10 @@ with J(theta) the mean objective of the N rollouts (the training loss at the tra
   for a few steps h, against the first-order prediction -h |g . u|.
 
 Everything forward runs in one population program on ``--search-backend`` (Warp on a GPU); the
-gradients in the training program (no other compilation).
+gradients in the training program (no other compilation). With ``--quality-directions 0`` the
+zeroth-order estimate comes from the antithetic pairs of the training program instead (one push or
+window per direction: noisier, and of the window objective in window mode) and nothing else is
+compiled: what fits a short GPU call.
 """
 
 from __future__ import annotations
@@ -138,47 +141,54 @@ def measure(problem: tp.Problem, out, *, mesh=None, progress: bool = True, step=
         per_batch_means["smoothed"], per_batch_means["interpolated"] = np.stack(sm_batches), np.stack(ip_batches)
         estimates["smoothed"], estimates["interpolated"] = np.mean(sm_batches, 0), np.mean(ip_batches, 0)
 
-    # Zeroth order on the population program: theta, then theta +- sigma e_m.
-    if progress:
-        print(json.dumps({"quality": "zeroth-order", "candidates": 2 * M + 1, "pushes": N}), flush=True)
-    P = 2 * M + 1
-    fwd = tp.with_backend(problem, tuning._forward_backend(tc))
-    pop = jax.jit(objectives.make_population_objective(fwd, P, N, mesh))
-    e = np.asarray(jax.random.normal(jax.random.key(tc.seed * 1000 + 13), (M, D), flat0.dtype))
-    cands = np.concatenate([np.asarray(flat0)[None], np.asarray(flat0) + sigma * e, np.asarray(flat0) - sigma * e])
-    t0 = time.perf_counter()
-    J, _, _ = pop(jax.vmap(unravel)(jnp.asarray(cands, flat0.dtype)), scen_all)
-    J = np.asarray(J, float)
-    pop_s = time.perf_counter() - t0
-    J0, Jp, Jm = J[0], J[1 : M + 1], J[M + 1 :]
-    zo_terms = ((Jp - Jm) / (2 * sigma))[:, None] * e
-    ok = np.isfinite(zo_terms).all(1)
-    g_zo = zo_terms[ok].mean(0)
-    half = max(1, ok.sum() // 2)
+    if M > 0:  # zeroth order on the population program: theta, then theta +- sigma e_m, the same N pushes
+        if progress:
+            print(json.dumps({"quality": "zeroth-order", "candidates": 2 * M + 1, "pushes": N}), flush=True)
+        P = 2 * M + 1
+        fwd = tp.with_backend(problem, tuning._forward_backend(tc))
+        pop = jax.jit(objectives.make_population_objective(fwd, P, N, mesh))
+        e = np.asarray(jax.random.normal(jax.random.key(tc.seed * 1000 + 13), (M, D), flat0.dtype))
+        cands = np.concatenate([np.asarray(flat0)[None], np.asarray(flat0) + sigma * e, np.asarray(flat0) - sigma * e])
+        t0 = time.perf_counter()
+        J = np.asarray(pop(jax.vmap(unravel)(jnp.asarray(cands, flat0.dtype)), scen_all)[0], float)
+        pop_s = time.perf_counter() - t0
+        J0, Jp, Jm = J[0], J[1 : M + 1], J[M + 1 :]
+        zo_terms = ((Jp - Jm) / (2 * sigma))[:, None] * e
+    else:  # zeroth order from the antithetic pairs of the program's calls: one push (or window) per direction
+        pop, pop_s = None, 0.0
+        J0 = float(np.nanmean(np.concatenate(v_fo)))
+        zo_terms = np.concatenate([np.asarray(estimators.zeroth_order_rows(jnp.asarray(v), jnp.asarray(e), sigma)[0])
+                                   for v, e in zip(v_sm or [], e_sm or [])] or [np.zeros((0, D))])  # fmt: skip
+    ok = np.isfinite(zo_terms).all(1) & np.any(zo_terms != 0, 1)
+    g_zo = zo_terms[ok].mean(0) if ok.any() else np.full(D, np.nan)
+    half = max(1, int(ok.sum()) // 2)
     zo_a, zo_b = zo_terms[ok][:half].mean(0), zo_terms[ok][half:].mean(0)
 
-    # Descent along each unit direction: J(theta - h u) for the steps of LINE_STEPS.
+    # Descent along each unit direction: J(theta - h u) for the steps of LINE_STEPS (population program).
     dirs = {**estimates, "zeroth-order": g_zo}
     line = [(name, h) for name in dirs for h in LINE_STEPS]
-    pts = [np.asarray(flat0) - h * dirs[name] / max(np.linalg.norm(dirs[name]), 1e-30) for name, h in line]
-    pts += [np.asarray(flat0)] * (P - len(pts) % P if len(pts) % P else 0)
     J_line = []
-    for i in range(0, len(pts), P):
-        J_line += np.asarray(pop(jax.vmap(unravel)(jnp.asarray(np.stack(pts[i : i + P]), flat0.dtype)), scen_all)[0],
-                             float).tolist()  # fmt: skip
+    if pop is not None:
+        pts = [np.asarray(flat0) - h * dirs[name] / max(np.linalg.norm(dirs[name]), 1e-30) for name, h in line]
+        pts += [np.asarray(flat0)] * (P - len(pts) % P if len(pts) % P else 0)
+        for i in range(0, len(pts), P):
+            batch = jax.vmap(unravel)(jnp.asarray(np.stack(pts[i : i + P]), flat0.dtype))
+            J_line += np.asarray(pop(batch, scen_all)[0], float).tolist()
     result = {"device": provenance.device_label(), "parameters": D, "pushes": N, "batch": tc.batch,
               "directions": M, "sigma": sigma, "estimator_program": "window" if step.windowed else "whole horizon",
               "window_s": tc.window_s, "horizon_s": tc.horizon, "objective": float(J0),
               "zeroth_order": {"norm": float(np.linalg.norm(g_zo)), "halves_cosine": cosine(zo_a, zo_b),
-                               "finite_directions": int(ok.sum())},
+                               "finite_directions": int(ok.sum()),
+                               "source": "population program" if M > 0 else "antithetic pairs of the program"},
               "estimates": {}, "timing": {"grad_compile_s": round(compile_s, 1), "population_s": round(pop_s, 1),
                                           "total_s": round(time.perf_counter() - t_start, 1)}}  # fmt: skip
     fo_rows = np.concatenate(g_fo)
     for name, g in dirs.items():
-        entry = {"norm": float(np.linalg.norm(g)), "cosine_zeroth_order": cosine(g, g_zo),
-                 "descent": {f"{h:g}": float(J_line[line.index((name, h))] - J0) for h in LINE_STEPS},
-                 "predicted_first_order": {f"{h:g}": float(-h * abs(g @ g_zo) / max(np.linalg.norm(g), 1e-30))
-                                           for h in LINE_STEPS}}  # fmt: skip
+        entry = {"norm": float(np.linalg.norm(g)), "cosine_zeroth_order": cosine(g, g_zo)}
+        if J_line:  # J(theta - h u) - J(theta), and what the zeroth-order gradient predicts: -h g_ZO . u
+            u = g / max(np.linalg.norm(g), 1e-30)
+            entry["descent"] = {f"{h:g}": float(J_line[line.index((name, h))] - J0) for h in LINE_STEPS}
+            entry["predicted_by_zeroth_order"] = {f"{h:g}": float(-h * (g_zo @ u)) for h in LINE_STEPS}
         if name in per_batch_means:
             entry["batch_consistency"] = batch_consistency(per_batch_means[name])
         if name == "first-order":

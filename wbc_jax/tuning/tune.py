@@ -70,7 +70,7 @@ def training_batch(problem: Problem, k: int, size: int | None = None):
     distinct rollouts (whole-horizon mode) or forward rollouts (window mode)."""
     tc = problem.tc
     if size is None:
-        size = tc.distinct_rollouts // (tc.windows if tc.window_s else 1)
+        size = tc.pushes_per_call
     return tp.sample_pushes(tc, problem.robot, problem.table, tp.batch_rng(tc.seed, 0, k), size, problem.setup.dtype)
 
 
