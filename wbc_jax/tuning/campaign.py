@@ -1,9 +1,9 @@
 """The ``wbc-jax tune`` job: one tuning pipeline, run in phases (``--phases``), each resumable in ``--out``.
 
     predict   prediction.json, survival_vs_loss.png   does the loss rank held-out survival
-    profile   profile.json                           where a gradient step's time goes
-    quality   quality.json                           the gradient against zeroth-order estimates
     train     gradient/                              gradient tuning (history, checkpoint, train_info.json)
+    quality   quality.json                           the gradient against zeroth-order estimates
+    profile   profile.json                           where a gradient step's time goes
     cmaes     cmaes/                                 CMA-ES (evosax) on --search-backend
     random    random/                                random search on --search-backend
     heldout   heldout/, heldout_raw.json             every gain set on the held-out evaluation
@@ -175,16 +175,16 @@ def run(cfg: TuneConfig | None = None, hc: HeldoutConfig | None = None, *, lc: L
                                                                step_fn=step))  # fmt: skip
         _gradient_sets(problem, out, rows)
         summary["train"] = {k: info.get(k) for k in ("compile_s", "step_s_median", "gradient_physics_steps_per_s")}
-    if "profile" in tc.phases:
-        from wbc_jax.tuning import profile
-
-        summary["profile"] = timed("profile", lambda: profile.measure(problem, out, mesh=mesh))["summary"]
     if "quality" in tc.phases:
         from wbc_jax.tuning import quality
 
         q = timed("quality", lambda: quality.measure(problem, out, mesh=mesh, progress=progress, step=step))
         summary["quality"] = {k: {m: e[m] for m in ("cosine_zeroth_order", "batch_consistency") if m in e}
                               for k, e in q["estimates"].items()}  # fmt: skip
+    if "profile" in tc.phases:
+        from wbc_jax.tuning import profile
+
+        summary["profile"] = timed("profile", lambda: profile.measure(problem, out, mesh=mesh))["summary"]
     for kind in tc.searches:
         budget = {"sim_steps": 0, "wall_s": 0.0} if tc.budget_s > 0 else _gradient_budget(out)
         res = timed(

@@ -23,7 +23,7 @@ CHECKPOINTS = ("tick", "none", "dots")
 PUSH_SCALES = ("envelope", "lip")
 ENVELOPE_FILE = ROOT / "docs" / "tuning" / "default_envelope.json"
 # The phases of a tuning run, in the order they run (each resumable).
-PHASES = ("predict", "train", "profile", "quality", "cmaes", "random", "heldout", "report")
+PHASES = ("predict", "train", "quality", "profile", "cmaes", "random", "heldout", "report")
 SEARCHES = ("cmaes", "random")
 SEARCH_BACKENDS = ("auto", "jax", "warp")
 ESTIMATORS = ("first-order", "smoothed", "interpolated")
@@ -58,8 +58,8 @@ class TuneConfig:
     out: str = option("runs/tune", "output folder (resumes a run there)")
     phases: tuple[str, ...] = option(("train", "cmaes", "random", "heldout", "report"), "what to run, in this "
                                      "order: predict (does the loss rank held-out survival), train (gradient "
-                                     "tuning), profile (where a gradient step's time goes), quality (the "
-                                     "gradient against zeroth-order estimates), cmaes and random (gradient-free "
+                                     "tuning), quality (the gradient against zeroth-order estimates), profile "
+                                     "(where a gradient step's time goes), cmaes and random (gradient-free "
                                      "searches), heldout (every gain set on the held-out grid, variations, "
                                      "one-foot task and sinusoid), report (heldout.json, race.json, figures)",
                                      nargs="+", choices=PHASES)  # fmt: skip

@@ -104,15 +104,21 @@ class GradientStep:
         else:
             self.grads = jax.jit(objectives.make_rollout_grads(problem, mesh))
         self.update = jax.jit(self._update)
+        self.perturb = jax.jit(estimators.antithetic, static_argnums=(2, 3))
         self.compiled = False
 
-    def _update(self, params, opt_state, values, grads, eps):
+    def _update(self, params, opt_state, values, grads, eps, terms):
+        """The optimiser step and the step's summary {loss, term means, grad_norm, finite, skipped_total,
+        estimator stats}: one program, one transfer to the host."""
         tc = self.problem.tc
         grad, stats = estimators.combine(tc.estimator, values, grads, eps, sigma=tc.smoothing_sigma,
                                          clip_factor=tc.env_clip, bias_factor=tc.bias_factor)  # fmt: skip
         finite = jnp.all(jnp.asarray([jnp.all(jnp.isfinite(g)) for g in jax.tree_util.tree_leaves(grad)]))
         updates, opt_state = self.optimizer.update(grad, opt_state, params)
-        return optax.apply_updates(params, updates), opt_state, optax.global_norm(grad), finite, stats
+        summary = {"loss": jnp.nanmean(jnp.where(jnp.isfinite(values), values, jnp.nan)),
+                   **{n: jnp.mean(terms[n]) for n in TERMS}, "grad_norm": optax.global_norm(grad), "finite": finite,
+                   "skipped_total": opt_state.total_notfinite, **stats}  # fmt: skip
+        return optax.apply_updates(params, updates), opt_state, summary
 
     def rows_of(self, params, k: int):
         """(per-rollout params (B, ...), eps (B / 2, D) or None, the step's rollouts (Scenario or
@@ -120,7 +126,7 @@ class GradientStep:
         tc, problem = self.problem.tc, self.problem
         if tc.pairs:
             key = jax.random.fold_in(jax.random.key(tc.seed * 1000 + 7), k)
-            params_b, eps = estimators.antithetic(params, key, tc.batch // 2, tc.smoothing_sigma)
+            params_b, eps = self.perturb(params, key, tc.batch // 2, tc.smoothing_sigma)
         else:
             params_b, eps = estimators.repeated(params, tc.batch), None
         scen = objectives.cast_batch(training_batch(problem, k)[0], problem.setup.dtype)
@@ -141,7 +147,7 @@ class GradientStep:
         params_b, eps, rollouts, _, _ = self.rows_of(params, 0)
         out = jax.eval_shape(self.grads, params_b, rollouts)
         self.grads = self.grads.lower(params_b, rollouts).compile()
-        self.update = self.update.lower(params, opt_state, out[0], out[1], eps).compile()
+        self.update = self.update.lower(params, opt_state, out[0], out[1], eps, out[2]).compile()
         return time.perf_counter() - t0
 
     def memory_mb(self):
@@ -153,19 +159,17 @@ class GradientStep:
         problem = self.problem
         params_b, eps, rollouts, forward, fwd_steps = self.rows_of(params, k)
         values, grads, terms, metrics = self.grads(params_b, rollouts)
-        params, opt_state, gnorm, finite, stats = self.update(params, opt_state, values, grads, eps)
-        jax.block_until_ready(params)
-        grad_steps = problem.tc.batch * (self.W if self.windowed else problem.loop.n_ticks) * problem.loop.n_sub
-        row = {"loss": float(jnp.nanmean(jnp.where(jnp.isfinite(values), values, jnp.nan))),
-               **{n: float(jnp.mean(terms[n])) for n in TERMS}, "grad_norm": float(gnorm), "finite": bool(finite),
-               "skipped_total": skipped_count(opt_state), "grad_sim_steps": grad_steps,
-               "sim_steps_delta": grad_steps + fwd_steps, **{n: float(stats[n]) for n in ESTIMATOR_STATS}}  # fmt: skip
+        params, opt_state, summary = self.update(params, opt_state, values, grads, eps, terms)
         if forward is not None:  # the whole-horizon rollouts of the window starts: their loss and outcomes
-            f_terms, metrics = forward
-            row["rollout_loss"] = float(jnp.mean(jnp.log1p(f_terms["total"])))
-        else:
-            row["rollout_loss"] = row["loss"]
-        row.update(tp.survival_stats(metrics))
+            metrics = forward[1]
+        summary, metrics, forward = jax.device_get((summary, metrics, forward))  # the step's one transfer
+        grad_steps = problem.tc.batch * (self.W if self.windowed else problem.loop.n_ticks) * problem.loop.n_sub
+        row = {k_: (bool(v) if k_ == "finite" else int(v) if k_ == "skipped_total" else float(v))
+               for k_, v in summary.items()}  # fmt: skip
+        total = np.asarray(forward[0]["total"]) if forward is not None else None
+        row["rollout_loss"] = row["loss"] if total is None else float(np.mean(np.log1p(total) if problem.lc.robust
+                                                                                   else total))  # fmt: skip
+        row.update(grad_sim_steps=grad_steps, sim_steps_delta=grad_steps + fwd_steps, **tp.survival_stats(metrics))
         return params, opt_state, row
 
 
