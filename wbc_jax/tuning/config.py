@@ -120,6 +120,11 @@ class TuneConfig:
     envelope_fraction: float = option(0.5, "without --envelope: the default envelope as this fraction of the LIP bound")
     solver_iterations: int | None = option(None, "contact-solver Newton iterations in training (default: the model's)")
     ls_iterations: int | None = option(None, "contact-solver line-search iterations in training (default: the model's)")
+    solver_gradient: str = option("implicit", "how reverse mode passes MJX's contact solver: 'implicit' (the "
+                                  "implicit-function derivative at the converged solution: one Cholesky solve per "
+                                  "physics step) or 'unrolled' (through every Newton and line-search iteration, "
+                                  "run as a fixed-length scan); the same gradient, measured in docs/tuning/README.md",
+                                  choices=physics.SOLVER_GRADIENTS)  # fmt: skip
     checkpoint: str = option("tick", "rematerialisation in the backward pass: 'tick' (each 10 ms tick recomputed), "
                              "'dots' (the same, keeping its matrix products), 'none' (everything stored)",
                              choices=CHECKPOINTS)  # fmt: skip
@@ -195,6 +200,7 @@ class TuneConfig:
             raise ValueError("--train-bodies: give at least one body")
         for name, value, valid in (("phases", self.phases, PHASES), ("push-scale", (self.push_scale,), PUSH_SCALES),
                                    ("checkpoint", (self.checkpoint,), CHECKPOINTS),
+                                   ("solver-gradient", (self.solver_gradient,), physics.SOLVER_GRADIENTS),
                                    ("search-backend", (self.search_backend,), SEARCH_BACKENDS),
                                    ("estimator", (self.estimator,), ESTIMATORS),
                                    ("parameterisation", (self.parameterisation,), PARAMETERISATIONS)):  # fmt: skip

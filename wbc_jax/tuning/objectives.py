@@ -64,11 +64,11 @@ def shard(tree, mesh: Mesh | None = None):
 def make_rollout_grads(problem: tp.Problem, mesh: Mesh | None = None):
     """Per-rollout value and gradient, unjitted: ``fn(params_b {group: (B, ...)}, scen (B,)) ->
     (values (B,), grads {group: (B, ...)}, terms {name: (B,)}, Metrics (B,))``; data-parallel over
-    the mesh; MJX's solver loop as a fixed-length scan while it is traced (reverse mode)."""
+    the mesh; MJX's solver differentiated as ``--solver-gradient`` says while it is traced."""
     env_objective = tp.make_env_objective(problem)
 
     def fn(params_b, scen):
-        with physics.fixed_iteration_solver(problem.iterations):
+        with physics.gradient_solver(problem.tc.solver_gradient, problem.iterations):
             per_env = jax.vmap(jax.value_and_grad(env_objective, has_aux=True))
             (values, (terms, metrics)), grads = per_env(params_b, scen)
         return values, grads, terms, metrics

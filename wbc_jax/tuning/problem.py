@@ -320,15 +320,15 @@ def make_batched_loss(problem: Problem, *, n_ticks: int | None = None, fixed_sol
     """Batched objective of one gain set (unjitted; jit / differentiate it):
     ``fn(gains, reg, scen) -> (objective (), terms {name: (B,)}, Metrics (B,))``; ``reg``:
     {"pinv_damping": (), "kp_postural_reg": ()} or None (the controller's). ``fixed_solver``: MJX's
-    solver loop as a fixed-length scan (reverse mode; same values). ``n_ticks``: the loss on the
-    first ticks only (prediction checks)."""
+    solver made reverse-differentiable as ``tc.solver_gradient`` says (False: its own loop, forward
+    only). ``n_ticks``: the loss on the first ticks only (prediction checks)."""
     env = rollout_fn(problem, n_ticks)
     dtype = problem.setup.dtype
 
     def fn(gains, reg, scen):
         gains, reg = cast(dtype, gains), None if reg is None else cast(dtype, reg)
         if fixed_solver:
-            with physics.fixed_iteration_solver(problem.iterations):
+            with physics.gradient_solver(problem.tc.solver_gradient, problem.iterations):
                 terms, metrics = jax.vmap(env, in_axes=(None, None, 0))(gains, reg, scen)
         else:
             terms, metrics = jax.vmap(env, in_axes=(None, None, 0))(gains, reg, scen)
@@ -349,7 +349,7 @@ def make_env_objective(problem: Problem):
     """Objective of one push as a function of the unconstrained parameters (unjitted; the training
     step vmaps its gradient over the batch, so that each rollout's gradient can be checked and
     clipped on its own): ``fn(params {group: (k,)}, scen) -> (objective (), (terms {name: ()},
-    Metrics))``. Trace it inside :func:`wbc_jax.sim.physics.fixed_iteration_solver` for reverse mode."""
+    Metrics))``. Trace it inside :func:`wbc_jax.sim.physics.gradient_solver` for reverse mode."""
     env = rollout_fn(problem, None)
 
     def fn(params, scen):

@@ -4,9 +4,10 @@ One control tick of the training closed loop at the training batch B (standing r
 training's joint noise, the training's solver settings), split into the parts of its forward and
 backward passes, each compiled on its own and timed (median of repeats, blocking on the outputs):
 
-* physics: the tick's n_sub MJX steps, with MJX's solver ``while_loop`` (what a forward run does) and
-  as the fixed-iteration scan the gradient program runs (every Newton and line-search iteration, also
-  after convergence), and the reverse pass (VJP) of the latter;
+* physics: the tick's n_sub MJX steps, with MJX's solver ``while_loop`` (what a forward run, and the
+  implicit gradient's forward, does) and as the fixed-iteration scan of the unrolled gradient (every
+  Newton and line-search iteration, also after convergence), and the reverse pass (VJP) of each solver
+  gradient (``implicit``, ``unrolled``);
 * controller: one control tick (dynamics terms, momentum task, the force QP with its implicit
   derivative, torques) and its VJP with respect to the gains and the state;
 * a host round trip (a tiny program and the transfer of its result).
@@ -85,7 +86,9 @@ def measure(problem: tp.Problem, out, *, mesh=None) -> dict:
     res["physics_forward_while"] = _time(lambda q, v, c: phys_sum(q, v, c), qpos, d0.qvel, ctrl)
     with physics.fixed_iteration_solver(problem.iterations):
         res["physics_forward_fixed"] = _time(lambda q, v, c: phys_sum(q, v, c), qpos, d0.qvel, ctrl)
-        res["physics_vjp_fixed"] = _time(jax.grad(phys_sum, argnums=(0, 1, 2)), qpos, d0.qvel, ctrl)
+        res["physics_vjp_unrolled"] = _time(jax.grad(phys_sum, argnums=(0, 1, 2)), qpos, d0.qvel, ctrl)
+    with physics.implicit_solver():
+        res["physics_vjp_implicit"] = _time(jax.grad(phys_sum, argnums=(0, 1, 2)), qpos, d0.qvel, ctrl)
 
     def ctrl_sum(g, q, v):
         return jnp.sum(jax.vmap(control, in_axes=(None, 0, 0, 0, 0))(g, state, q, v, push))
@@ -98,8 +101,11 @@ def measure(problem: tp.Problem, out, *, mesh=None) -> dict:
         np.asarray(jax.jit(lambda x: x + 1)(tiny))
     host_ms = (time.perf_counter() - t0) / 20 * 1e3
     run = {name: v[1] for name, v in res.items()}
-    fwd_tick = run["controller_forward"] + run["physics_forward_fixed"]
-    bwd_tick = run["controller_vjp"] + run["physics_vjp_fixed"]
+    implicit = tc.solver_gradient == "implicit"
+    phys_fwd = run["physics_forward_while" if implicit else "physics_forward_fixed"]
+    phys_vjp = run["physics_vjp_implicit" if implicit else "physics_vjp_unrolled"]
+    fwd_tick = run["controller_forward"] + phys_fwd
+    bwd_tick = run["controller_vjp"] + phys_vjp
     T = loop.n_ticks
     remat = fwd_tick if tc.checkpoint != "none" else 0.0
     estimate = T * (fwd_tick + remat + bwd_tick)
@@ -107,12 +113,14 @@ def measure(problem: tp.Problem, out, *, mesh=None) -> dict:
         "batch": B, "ticks": T, "n_sub": loop.n_sub, "solver_iterations": problem.iterations,
         "per_tick_ms": {name: round(v * 1e3, 3) for name, v in run.items()},
         "fixed_over_while_loop": run["physics_forward_fixed"] / run["physics_forward_while"],
+        "unrolled_over_implicit_vjp": run["physics_vjp_unrolled"] / run["physics_vjp_implicit"],
+        "solver_gradient": tc.solver_gradient,
         "share_of_estimated_step": {
             "controller_forward": T * run["controller_forward"] / estimate,
-            "physics_forward_fixed": T * run["physics_forward_fixed"] / estimate,
+            "physics_forward": T * phys_fwd / estimate,
             "rematerialisation": T * remat / estimate,
             "controller_vjp": T * run["controller_vjp"] / estimate,
-            "physics_vjp_fixed": T * run["physics_vjp_fixed"] / estimate},
+            "physics_vjp": T * phys_vjp / estimate},
         "estimated_step_s": estimate, "host_round_trip_ms": round(host_ms, 3),
         "forward_physics_steps_per_s_while": B * loop.n_sub / (run["controller_forward"] + run["physics_forward_while"]),
     }  # fmt: skip

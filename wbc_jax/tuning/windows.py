@@ -155,7 +155,7 @@ def make_window_grads(problem: tp.Problem, mesh=None):
         return tuning_loss.env_objective(total, lc), (terms, metrics_lib.final(state.metrics, ok))
 
     def fn(params_b, starts):
-        with physics.fixed_iteration_solver(problem.iterations):
+        with physics.gradient_solver(tc.solver_gradient, problem.iterations):
             per_env = jax.vmap(jax.value_and_grad(objective, has_aux=True))
             (values, (terms, metrics)), grads = per_env(params_b, starts)
         return values, grads, terms, metrics
