@@ -179,7 +179,7 @@ def run(cfg: TuneConfig | None = None, hc: HeldoutConfig | None = None, *, lc: L
         from wbc_jax.tuning import quality
 
         q = timed("quality", lambda: quality.measure(problem, out, mesh=mesh, progress=progress, step=step))
-        summary["quality"] = {k: {m: e[m] for m in ("cosine_zeroth_order", "batch_consistency") if m in e}
+        summary["quality"] = {k: {m: e[m] for m in ("cosine_zeroth_order", "directional_correlation") if m in e}
                               for k, e in q["estimates"].items()}  # fmt: skip
     if "profile" in tc.phases:
         from wbc_jax.tuning import profile

@@ -11,7 +11,10 @@ with J(theta) the mean objective of the N rollouts (the training loss at the tra
   directions on the same N pushes (common random numbers), g_ZO = mean_m (J(theta + sigma e_m) -
   J(theta - sigma e_m)) / (2 sigma) e_m, and its two halves (their cosine is the ceiling any estimate
   can reach against it with this M);
-* for each estimate: its cosine with g_ZO; its consistency over batches (the mean cosine between
+* for each estimate: its cosine with g_ZO (against the exact gradient of a smooth loss that cosine is
+  about 1 / sqrt(1 + (D + 1) / M): ``exact_gradient_cosine``); the correlation of its directional
+  derivatives e_m . g with the measured ones (J(theta + sigma e_m) - J(theta - sigma e_m)) / (2 sigma)
+  and the slope between them (1: the right size); its consistency over batches (the mean cosine between
   one batch's estimate and the mean of the others; the signal-to-noise ratio |g|^2 / (tr Cov / n) of
   the per-rollout rows); and whether it descends: J(theta - h u) - J(theta) along its unit direction u
   for a few steps h, against the first-order prediction -h |g . u|.
@@ -153,9 +156,10 @@ def measure(problem: tp.Problem, out, *, mesh=None, progress: bool = True, step=
         J = np.asarray(pop(jax.vmap(unravel)(jnp.asarray(cands, flat0.dtype)), scen_all)[0], float)
         pop_s = time.perf_counter() - t0
         J0, Jp, Jm = J[0], J[1 : M + 1], J[M + 1 :]
-        zo_terms = ((Jp - Jm) / (2 * sigma))[:, None] * e
+        directional = (Jp - Jm) / (2 * sigma)  # (M,) the smoothed loss's derivative along each e_m
+        zo_terms = directional[:, None] * e
     else:  # zeroth order from the antithetic pairs of the program's calls: one push (or window) per direction
-        pop, pop_s = None, 0.0
+        pop, pop_s, directional, e = None, 0.0, None, None
         J0 = float(np.nanmean(np.concatenate(v_fo)))
         zo_terms = np.concatenate([np.asarray(estimators.zeroth_order_rows(jnp.asarray(v), jnp.asarray(e), sigma)[0])
                                    for v, e in zip(v_sm or [], e_sm or [])] or [np.zeros((0, D))])  # fmt: skip
@@ -179,12 +183,19 @@ def measure(problem: tp.Problem, out, *, mesh=None, progress: bool = True, step=
               "window_s": tc.window_s, "horizon_s": tc.horizon, "objective": float(J0),
               "zeroth_order": {"norm": float(np.linalg.norm(g_zo)), "halves_cosine": cosine(zo_a, zo_b),
                                "finite_directions": int(ok.sum()),
+                               # E cos(grad, g_ZO) for the exact gradient of a smooth loss, M Gaussian directions
+                               "exact_gradient_cosine": float(1 / np.sqrt(1 + (D + 1) / max(int(ok.sum()), 1))),
                                "source": "population program" if M > 0 else "antithetic pairs of the program"},
               "estimates": {}, "timing": {"grad_compile_s": round(compile_s, 1), "population_s": round(pop_s, 1),
                                           "total_s": round(time.perf_counter() - t_start, 1)}}  # fmt: skip
     fo_rows = np.concatenate(g_fo)
     for name, g in dirs.items():
         entry = {"norm": float(np.linalg.norm(g)), "cosine_zeroth_order": cosine(g, g_zo)}
+        if directional is not None and name != "zeroth-order":  # the estimate's e_m . g against the measured ones
+            pred, good = e @ g, np.isfinite(directional)
+            if np.all(np.isfinite(pred)) and good.sum() > 2:
+                entry["directional_correlation"] = float(np.corrcoef(pred[good], directional[good])[0, 1])
+                entry["directional_slope"] = float(pred[good] @ directional[good] / max(pred[good] @ pred[good], 1e-30))
         if J_line:  # J(theta - h u) - J(theta), and what the zeroth-order gradient predicts: -h g_ZO . u
             u = g / max(np.linalg.norm(g), 1e-30)
             entry["descent"] = {f"{h:g}": float(J_line[line.index((name, h))] - J0) for h in LINE_STEPS}
