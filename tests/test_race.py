@@ -208,6 +208,22 @@ def test_terminal_cost_is_the_capture_point_outside_the_feet_and_tilt_is_measure
     assert float(tuning_loss.loss_terms(tilted, lc, reference=flat)["tilt"]) == pytest.approx(1.0, rel=1e-6)
 
 
+def test_seeded_carry_keeps_a_non_finite_cotangent_of_the_initial_state_out_of_the_gradient():
+    """The initial carry is made to depend on the parameters (``problem._touch``) only to shorten the
+    trace; its derivative must be a true zero, or an infinite cotangent of a state entry (sqrt at 0)
+    reaches the gradient as inf x 0 = NaN."""
+    from wbc_jax.tuning import problem
+
+    def f(p):
+        x = problem._touch({"a": jnp.zeros(2), "n": jnp.arange(2)}, jnp.sum(p))
+        return jnp.sum(jnp.sqrt(x["a"])) + jnp.sum(p**2) + jnp.sum(x["n"])
+
+    p = jnp.asarray([1.0, -2.0])
+    np.testing.assert_array_equal(np.asarray(jax.grad(f)(p)), [2.0, -4.0])
+    batched = jax.vmap(jax.grad(f))(jnp.stack([p, 2 * p]))
+    np.testing.assert_array_equal(np.asarray(batched), [[2.0, -4.0], [4.0, -8.0]])
+
+
 # ---------------------------------------------------------------------------------------------
 # The race's verdict and files
 

@@ -255,9 +255,24 @@ def with_backend(problem: Problem, backend: str) -> Problem:
                         backend=backend)  # fmt: skip
 
 
+@jax.custom_jvp
+def _dependency(seed):
+    """0 that depends on ``seed`` (batched with it, carrying a tangent), whose derivative is a constant
+    zero: in reverse mode no cotangent flows back through it, so a non-finite cotangent of a quantity
+    that does not truly depend on the parameters (the initial state) cannot reach the gradient as
+    NaN x 0."""
+    return seed * 0
+
+
+@_dependency.defjvp
+def _dependency_jvp(primals, tangents):
+    zero = primals[0] * 0
+    return zero, jnp.zeros_like(zero)
+
+
 def _touch(tree, seed):
-    """Every leaf of ``tree`` made to depend on the scalar ``seed`` (adding seed * 0)."""
-    zero = seed * 0
+    """Every leaf of ``tree`` made to depend on the scalar ``seed`` (adding :func:`_dependency`)."""
+    zero = _dependency(seed)
 
     def touch(x):
         x = jnp.asarray(x)
