@@ -877,7 +877,13 @@ def _batch_size(gains, push) -> int:
 
 def support_corners(spec: BaselineSpec, W_p_feet: np.ndarray, W_R_feet: np.ndarray) -> np.ndarray:
     """(B, 8, 3) corners of the soles' CoP rectangles, world axes (wbc_jax.sim.metrics.support_corners)."""
-    (x0, x1), (y0, y1) = spec.foot_size
+    return rectangle_corners(spec.foot_size, W_p_feet, W_R_feet)
+
+
+def rectangle_corners(foot_size, W_p_feet: np.ndarray, W_R_feet: np.ndarray) -> np.ndarray:
+    """(B, 8, 3) corners of the CoP rectangles ``foot_size`` ((x_min, x_max), (y_min, y_max)) m of
+    the soles at W_p_feet (B, 2, 3), W_R_feet (B, 2, 3, 3), world axes."""
+    (x0, x1), (y0, y1) = foot_size
     local = np.array([[x, y, 0.0] for x in (x0, x1) for y in (y0, y1)])  # (4, 3)
     corners = W_p_feet[:, :, None, :] + np.einsum("cj,bkij->bkci", local, W_R_feet)
     return corners.reshape(W_p_feet.shape[0], -1, 3)
@@ -896,6 +902,92 @@ def polygon_margin(points: np.ndarray, p: np.ndarray) -> np.ndarray:
     is_edge = (length > 1e-9) & np.all(side >= -1e-9, axis=-1)
     dist = np.einsum("bijk,bk->bij", normal, p) - offset
     return np.min(np.where(is_edge, dist, np.inf), axis=(1, 2))
+
+
+class LoopMetrics:
+    """The metrics of ``wbc_jax.sim.loop.ClosedLoop._metrics``, accumulated tick by tick for B environments.
+
+    One implementation for every C MuJoCo closed loop of ``benchmarks/`` (:func:`simulate` here,
+    the TSID peer of ``benchmarks/tsid_baseline.py``): build it at the initial state, call
+    :meth:`update` once per control tick with the quantities at the tick's state, then read
+    ``metrics`` (the dict :func:`simulate` returns as ``"metrics"``, named by
+    :func:`summary_columns` / :func:`summarize` as ``constants.METRIC_NAMES``).
+
+    Args:
+      foot_size: ((x_min, x_max), (y_min, y_max)) m, the soles' CoP rectangle (support margin).
+      W_p_feet (B, 2, 3), W_R_feet (B, 2, 3, 3): the sole frames at the initial state (the slip and
+        tilt anchors).
+      com0_height (B,): the initial CoM height (m; the fall threshold is a fraction of it).
+    """
+
+    def __init__(self, foot_size, W_p_feet: np.ndarray, W_R_feet: np.ndarray, com0_height: np.ndarray):
+        self.foot_size = foot_size
+        self.anchors = np.array(W_p_feet, float)
+        self.anchor_normals = np.array(W_R_feet, float)[..., :, 2]  # (B, 2, 3)
+        self.com0_height = np.array(com0_height, float)
+        B = self.com0_height.shape[0]
+        self.metrics = {
+            "com_sq_err_sum": np.zeros(B), "com_max_err": np.zeros(B), "max_abs_torque": np.zeros(B),
+            "max_violation": np.zeros(B), "max_slip": np.zeros(B), "max_tilt": np.zeros(B),
+            "qp_infeasible_ticks": np.zeros(B, np.int64), "fell": np.zeros(B, bool),
+            "nan": np.zeros(B, bool), "last_time_off": np.zeros(B),
+            "min_com_height": self.com0_height.copy(), "end_com_speed": np.zeros(B),
+            "end_support_margin": np.zeros(B), "ticks": np.zeros(B, np.int64),
+        }  # fmt: skip
+
+    def update(
+        self,
+        t_now: float,
+        ref_com: np.ndarray,
+        activation: np.ndarray,
+        com: np.ndarray,
+        com_vel: np.ndarray,
+        W_p_feet: np.ndarray,
+        W_R_feet: np.ndarray,
+        tau: np.ndarray,
+        violation: np.ndarray,
+        infeasible: np.ndarray,
+        finite: np.ndarray,
+        body_low: np.ndarray,
+    ) -> None:
+        """Add one tick (wbc_jax.sim.loop.ClosedLoop._metrics).
+
+        Args:
+          t_now: the tick's time (s). ref_com (3,): the CoM reference; activation (2,): the feet's.
+          com, com_vel (B, 3): CoM position and velocity at the tick's state (world).
+          W_p_feet (B, 2, 3), W_R_feet (B, 2, 3, 3): the sole frames at the tick's state.
+          tau (B, n): the applied (saturated) torques; violation (B,): the contact-constraint
+            violation of the commanded wrenches; infeasible (B,) bool: the QP failed this tick.
+          finite (B,) bool: the physics stayed finite over the tick (False: a NaN run).
+          body_low (B,) bool: a body other than the feet/ankles below ``BODY_FLOOR_HEIGHT``.
+        """
+        met = self.metrics
+        com_err = np.linalg.norm(com - ref_com, axis=1)
+        pos, normal = W_p_feet, W_R_feet[..., :, 2]  # (B, 2, 3)
+        fully_active = np.clip(activation, 0.0, 1.0) >= 1.0  # (2,)
+        self.anchors = np.where(fully_active[None, :, None], self.anchors, pos)
+        self.anchor_normals = np.where(fully_active[None, :, None], self.anchor_normals, normal)
+        dp = pos - self.anchors  # slip: tangential to the contact surface
+        dp = dp - np.sum(dp * normal, -1, keepdims=True) * normal
+        slip = np.max(np.where(fully_active[None], np.linalg.norm(dp, axis=-1), 0.0), axis=1)
+        cos = np.sum(normal * self.anchor_normals, -1)
+        sin = np.linalg.norm(np.cross(normal, self.anchor_normals), axis=-1)
+        tilt = np.max(np.where(fully_active[None], np.arctan2(sin, cos), 0.0), axis=1)
+        corners = rectangle_corners(self.foot_size, pos, W_R_feet)
+        met["fell"] |= (com[:, 2] < constants.FALL_COM_HEIGHT * self.com0_height) | body_low
+        met["com_sq_err_sum"] += com_err**2
+        met["com_max_err"] = np.maximum(met["com_max_err"], com_err)
+        met["max_abs_torque"] = np.maximum(met["max_abs_torque"], np.max(np.abs(tau), axis=1))
+        met["max_violation"] = np.maximum(met["max_violation"], violation)
+        met["max_slip"] = np.maximum(met["max_slip"], slip)
+        met["max_tilt"] = np.maximum(met["max_tilt"], tilt)
+        met["qp_infeasible_ticks"] += infeasible
+        met["nan"] |= ~finite | ~np.all(np.isfinite(tau), axis=1)
+        met["last_time_off"] = np.where(com_err > RECOVERY_THRESHOLD, t_now, met["last_time_off"])
+        met["min_com_height"] = np.minimum(met["min_com_height"], com[:, 2])
+        met["end_com_speed"] = np.linalg.norm(com_vel, axis=1)
+        met["end_support_margin"] = polygon_margin(corners[:, :, :2], com[:, :2])
+        met["ticks"] += 1
 
 
 def simulate(
@@ -947,17 +1039,7 @@ def simulate(
     for d in datas:
         mujoco.mj_forward(m, d)
     t0 = ctrl.terms(datas)
-    anchors = t0.W_p_feet.copy()
-    anchor_normals = t0.W_R_feet[..., :, 2].copy()  # (B, 2, 3)
-    com0_height = t0.W_p_CoM[:, 2].copy()
-    met = {
-        "com_sq_err_sum": np.zeros(B), "com_max_err": np.zeros(B), "max_abs_torque": np.zeros(B),
-        "max_violation": np.zeros(B), "max_slip": np.zeros(B), "max_tilt": np.zeros(B),
-        "qp_infeasible_ticks": np.zeros(B, np.int64), "fell": np.zeros(B, bool),
-        "nan": np.zeros(B, bool), "last_time_off": np.zeros(B),
-        "min_com_height": com0_height.copy(), "end_com_speed": np.zeros(B),
-        "end_support_margin": np.zeros(B), "ticks": np.zeros(B, np.int64),
-    }  # fmt: skip
+    tracker = LoopMetrics(sp.foot_size, t0.W_p_feet, t0.W_R_feet, t0.W_p_CoM[:, 2])
     rec = None
     if record:
         rec = {"com": np.zeros((B, T, 3)), "tau": np.zeros((B, T, sp.n)),
@@ -1011,33 +1093,11 @@ def simulate(
                 finite[i] = False
 
         # Metrics (wbc_jax.sim.loop.ClosedLoop._metrics), at the tick's state.
+        tracker.update(
+            t_now, ref["com_pos"], ref["activation"], terms.W_p_CoM, terms.W_v_CoM, terms.W_p_feet,
+            terms.W_R_feet, tau, out["qp_violation"], out["qp_infeasible"], finite, body_low,
+        )  # fmt: skip
         com = terms.W_p_CoM
-        com_err = np.linalg.norm(com - ref["com_pos"], axis=1)
-        pos, normal = terms.W_p_feet, terms.W_R_feet[..., :, 2]  # (B, 2, 3)
-        fully_active = np.clip(ref["activation"], 0.0, 1.0) >= 1.0  # (2,)
-        anchors = np.where(fully_active[None, :, None], anchors, pos)
-        anchor_normals = np.where(fully_active[None, :, None], anchor_normals, normal)
-        dp = pos - anchors  # slip: tangential to the contact surface
-        dp = dp - np.sum(dp * normal, -1, keepdims=True) * normal
-        slip = np.max(np.where(fully_active[None], np.linalg.norm(dp, axis=-1), 0.0), axis=1)
-        cos = np.sum(normal * anchor_normals, -1)
-        sin = np.linalg.norm(np.cross(normal, anchor_normals), axis=-1)
-        tilt = np.max(np.where(fully_active[None], np.arctan2(sin, cos), 0.0), axis=1)
-        corners = support_corners(sp, pos, terms.W_R_feet)
-        met["fell"] |= (com[:, 2] < constants.FALL_COM_HEIGHT * com0_height) | body_low
-        met["com_sq_err_sum"] += com_err**2
-        met["com_max_err"] = np.maximum(met["com_max_err"], com_err)
-        met["max_abs_torque"] = np.maximum(met["max_abs_torque"], np.max(np.abs(tau), axis=1))
-        met["max_violation"] = np.maximum(met["max_violation"], out["qp_violation"])
-        met["max_slip"] = np.maximum(met["max_slip"], slip)
-        met["max_tilt"] = np.maximum(met["max_tilt"], tilt)
-        met["qp_infeasible_ticks"] += out["qp_infeasible"]
-        met["nan"] |= ~finite | ~np.all(np.isfinite(tau), axis=1)
-        met["last_time_off"] = np.where(com_err > RECOVERY_THRESHOLD, t_now, met["last_time_off"])
-        met["min_com_height"] = np.minimum(met["min_com_height"], com[:, 2])
-        met["end_com_speed"] = np.linalg.norm(terms.W_v_CoM, axis=1)
-        met["end_support_margin"] = polygon_margin(corners[:, :, :2], com[:, :2])
-        met["ticks"] += 1
         if record:
             rec["com"][:, k] = com
             rec["tau"][:, k] = tau
@@ -1046,7 +1106,7 @@ def simulate(
     result = {
         "t": np.arange(T) * sp.control_dt,
         "com_ref": sp.ref_com_pos[:T].copy(),
-        "metrics": met,
+        "metrics": tracker.metrics,
         "n_envs": B,
         "n_ticks": T,
         "physics_steps": B * T * sp.n_sub,

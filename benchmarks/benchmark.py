@@ -16,6 +16,9 @@ the baseline on one 1 s stand with a 40 N lateral chest push, CoM difference.
 
 Writes bench.json (everything) into --out and prints it; ``--json FILE`` also appends/updates one
 row per measured setting (backend, iterations, batch, device) in FILE (docs/benchmarks.json).
+The check (:func:`failures`): the trajectory check's CoM within ``EQUIVALENCE_BAR_M`` (1 mm) over
+the second at every iteration count measured (none with --skip-equivalence); exit status 1
+otherwise, after bench.json is written.
 
 Heavy imports (JAX, wbc_jax) stay inside functions: run_parallel's worker processes (``spawn``)
 re-import this script, and stay JAX-free that way.
@@ -27,18 +30,18 @@ import argparse
 import json
 import os
 import pathlib
-import shlex
 import sys
 import time
 import traceback
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-HERE = pathlib.Path(__file__).resolve().parent
-for _path in (str(ROOT), str(HERE)):  # wbc_jax; baseline_cpu next to this script
-    if _path not in sys.path:
-        sys.path.insert(0, _path)
+# baseline_cpu is imported from this script's folder: Python puts it first on sys.path when the
+# script runs (and spawn's workers inherit that path).
 
 BACKENDS = ("jax", "warp", "mujoco")
+EQUIVALENCE_BAR_M = 1e-3  # the MJX closed loop against the C MuJoCo + NumPy baseline, CoM over 1 s
+BAR = (f"the MJX closed loop's CoM within {EQUIVALENCE_BAR_M * 1e3:g} mm of the C MuJoCo + NumPy baseline's over "
+       "1 s (the trajectory check; skipped with --skip-equivalence)")  # fmt: skip
 PUSH_MAGNITUDE = 40.0  # N, horizontal, azimuths spread over 360 deg
 JSON_KEYS = ("device", "date", "backend", "solver_iterations", "batch", "closed_loop_steps_per_s",
              "physics_only_steps_per_s", "cpu_baseline_steps_per_s", "cpu_baseline_workers", "ratio",
@@ -207,8 +210,15 @@ def equivalence_check(horizon: float = 1.0, iterations: int | None = None) -> di
         "solver_iterations": int(spec.mj_model.opt.iterations),
         "com_max_diff_m": float(diff.max()),
         "com_excursion_m": float(np.abs(com_cpu - com_cpu[0]).max()),
-        "same_within_1mm": bool(diff.max() < 1e-3),
+        "same_within_1mm": bool(diff.max() < EQUIVALENCE_BAR_M),
     }  # fmt: skip
+
+
+def failures(result: dict) -> list[str]:
+    """The trajectory checks whose CoM differs by EQUIVALENCE_BAR_M or more (or not finitely)."""
+    return [f"trajectory check at {eq['solver_iterations']} solver iterations: the CoM differs by "
+            f"{eq['com_max_diff_m']:.3g} m from the baseline's (bar {EQUIVALENCE_BAR_M:g} m)"
+            for eq in result.get("equivalence", []) if not eq["com_max_diff_m"] < EQUIVALENCE_BAR_M]  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------------
@@ -216,17 +226,14 @@ def equivalence_check(horizon: float = 1.0, iterations: int | None = None) -> di
 
 
 def device_description(backend: str) -> str:
-    """What ran the closed loop: the accelerator's kind, or the host CPU's model (C MuJoCo: the
-    host CPU, with the accelerator that ran the controller if any)."""
-    import baseline_cpu
-    import jax
+    """What ran the closed loop (``provenance.device_label``): JAX's device; for C MuJoCo the host's
+    CPU, with the accelerator that ran the controller if any."""
+    from wbc_jax.core import provenance
 
-    dev = jax.devices()[0]
-    cpu = f"{baseline_cpu.cpu_name()} ({os.cpu_count()} cores)"
-    accel = None if dev.platform == "cpu" else dev.device_kind
-    if backend == "mujoco":
-        return cpu if accel is None else f"{cpu} + {accel}"
-    return accel or cpu
+    info = provenance.device()
+    if backend != "mujoco" or info["platform"] == "cpu":
+        return provenance.device_label(info)
+    return f"{provenance.device_label(dict(info, platform='cpu', kind=provenance.cpu_name()))} + {provenance.device_label(info)}"
 
 
 def json_rows(result: dict) -> list[dict]:
@@ -266,7 +273,8 @@ def update_json_rows(path: pathlib.Path, rows: list[dict]) -> list[dict]:
 
 
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog=f"Check: {BAR}; exit status 1 otherwise.")  # fmt: skip
     parser.add_argument("--out", default=str(ROOT / "runs" / "bench"), help="folder of bench.json")
     parser.add_argument(
         "--json",
@@ -332,12 +340,11 @@ def parse_args(argv=None):
 
 def main(argv=None) -> dict:
     args = parse_args(argv)
-    command = "python " + shlex.join(sys.argv if argv is None else [sys.argv[0], *argv])
 
     import baseline_cpu
     import jax
 
-    from wbc_jax.core import io
+    from wbc_jax.core import checks, io, provenance
     from wbc_jax.sim import physics
 
     backends = args.backends or ["warp" if physics.has_cuda() and physics.has_warp() else "jax"]
@@ -345,8 +352,10 @@ def main(argv=None) -> dict:
         physics.resolve_backend(b)  # a clear error (no GPU, no warp-lang) before any work
     out = pathlib.Path(args.out)
     push_end = args.push_onset + args.push_duration
+    record = provenance.record(argv=provenance.script_argv(__file__, argv))
     result = {
-        "command": command, "date": time.strftime("%Y-%m-%d"), "jax": jax.__version__,
+        "command": record["command"], "date": record["date"], "device": record["device"]["label"],
+        "provenance": record, "jax": jax.__version__,
         "jax_devices": [str(d) for d in jax.devices()], "n_devices": len(jax.devices()),
         "host_cpu": baseline_cpu.cpu_name(), "cpu_count": os.cpu_count(),
         "push": {"magnitude_n": PUSH_MAGNITUDE, "onset_s": args.push_onset, "duration_s": args.push_duration,
@@ -434,10 +443,13 @@ def main(argv=None) -> dict:
         rows = json_rows(result)
         update_json_rows(pathlib.Path(args.json), rows)
         result["json_rows"] = rows
+    result["check"] = checks.verdict(failures(result), BAR)
     save()
     print(json.dumps(result, indent=1, default=str), flush=True)
     return result
 
 
 if __name__ == "__main__":
-    main()
+    from wbc_jax.core import checks
+
+    sys.exit(checks.exit_status(main()))

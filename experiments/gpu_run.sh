@@ -5,21 +5,22 @@
 #
 #   bash experiments/gpu_run.sh setup check bench sweep agree envelope regrid queue soak
 #
-# Carried folders (git-ignored): .wheels/ (mujoco, mujoco-mjx, trimesh, quadprog, evosax, dotmap),
-# and warp-lang 1.18.0 (the extra of mujoco-mjx, 149 MB as a wheel) as an xz tar of the wheel's
-# contents (without its CPU compiler and examples) split over .wa/ .wb/ .wc/ (one per call, under
-# the 64 MiB a call carries), collected in ~/wp while the machine is held.
+# Carried folders (git-ignored, one per call, each under the 64 MiB a call carries; collected in ~/wp while the
+# machine is held): .wa/ holds site_small.tar.xz (the Python 3.12 wheels of mujoco 3.17.0 without its filament
+# renderer, mujoco-mjx, trimesh, quadprog, evosax, dotmap, unpacked) and wpart_00, .wb/ wpart_01: the two halves of
+# an xz tar of the warp-lang 1.18.0 wheel's contents (the extra of mujoco-mjx) without its CPU compiler, examples and
+# tests. Both unpack into /tmp/site, beside the machine's own jax (never replacing it).
 set -uo pipefail
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 exec > >(tee -a "$OUT/log.txt") 2>&1
 SITE=/tmp/site; mkdir -p "$SITE" ~/wp
 export PYTHONPATH=$SITE:$PWD PYTHONUNBUFFERED=1 TF_CPP_MIN_LOG_LEVEL=3 WBC_JAX_CACHE=/tmp/xla-cache
 for d in .wa .wb .wc; do [ -d $d ] && cp $d/* ~/wp/; done
-if [ -d .wheels ] && [ ! -d $SITE/mujoco ]; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target $SITE .wheels/*.whl 2>&1 | grep -v WARNING
+if [ ! -d $SITE/mujoco ] && [ -f ~/wp/site_small.tar.xz ]; then
+  xz -dc ~/wp/site_small.tar.xz | tar xf - -C $SITE && echo "wheels unpacked"
 fi
-if [ ! -d $SITE/warp ] && [ $(ls ~/wp/wpart_0* 2>/dev/null | wc -l) -eq 4 ]; then
-  cat ~/wp/wpart_0* | xz -d | tar xf - -C $SITE && echo "warp-lang unpacked"
+if [ ! -d $SITE/warp ] && [ -f ~/wp/wpart_00 ] && [ -f ~/wp/wpart_01 ]; then
+  cat ~/wp/wpart_00 ~/wp/wpart_01 | xz -dc | tar xf - -C $SITE && echo "warp-lang unpacked"
 fi
 run() {  # name, command...: time a job, keep its output
   local name=$1; shift
@@ -34,13 +35,13 @@ for job in "$@"; do
       nvidia-smi -L; python3 -c "import jax, mujoco; print(jax.__version__, mujoco.__version__, jax.devices())"
       python3 -c "import warp; print('warp', warp.__version__)" 2>&1 | tail -1 ;;
     check)  # same trajectory on warp, jax (GPU, float32) and C MuJoCo (host, float32)
-      run check python3 experiments/backend_check.py --backends warp jax mujoco --out "$OUT/check" ;;
+      run check python3 experiments/checks/backend_check.py --backends warp jax mujoco --out "$OUT/check" ;;
     bench)  # closed loop and physics only, warp and jax, against C MuJoCo + NumPy on all 16 cores
       run bench python3 benchmarks/benchmark.py --out "$OUT/bench" --json "$OUT/bench/benchmarks.json" \
         --backends warp jax --batches 16384 65536 --horizon 0.5 --cpu-baseline-envs 64 --cpu-workers 16 \
         --repeats 2 --skip-equivalence ;;
     sweep)  # the 64 x 32 x 8 sweep of docs/sweep_h100 on warp, twice in one process (first-run costs)
-      run sweep python3 experiments/sweep_timing.py --out "$OUT/sweep" --repeats 2 -- \
+      run sweep python3 experiments/benchmarks/sweep_timing.py --out "$OUT/sweep" --repeats 2 -- \
         --magnitudes 10 400 64 --directions 32 --gain-sets 8 --horizon 3 --chunk-size 16384 --backend warp ;;
     agree)  # default-gain grid (2,048 envs) on warp and on jax: outcomes outside the transition band
       mkdir -p "$OUT/agree"
@@ -50,17 +51,17 @@ for job in "$@"; do
         cp /tmp/sw/agree_$b/survival.png "$OUT/agree/survival_$b.png"
       done
       if [ -f /tmp/sw/agree_jax/summary.json ] && [ -f /tmp/sw/agree_warp/summary.json ]; then
-        run agree python3 experiments/island_check.py /tmp/sw/agree_jax /tmp/sw/agree_warp --out "$OUT/agree/islands.json"
+        run agree python3 experiments/checks/island_check.py /tmp/sw/agree_jax /tmp/sw/agree_warp --out "$OUT/agree/islands.json"
       fi ;;
     envelope)  # bisection envelope (32 directions, 8 rounds) against the grid of 'agree', per backend
       for b in ${ENVELOPE_BACKENDS:-warp}; do
-        run envelope_$b python3 experiments/envelope_check.py --grid /tmp/sw/agree_$b --out "$OUT/envelope_$b" -- \
+        run envelope_$b python3 experiments/checks/envelope_check.py --grid /tmp/sw/agree_$b --out "$OUT/envelope_$b" -- \
           --backend $b
       done ;;
     regrid)  # the grids of 'agree' run again (the engine's run-to-run floor) and kept with their tables
       for b in ${ENVELOPE_BACKENDS:-warp}; do
         run regrid_$b $SW --chunk-size 2048 --backend $b --out /tmp/sw/agree_${b}_2
-        run regrid_${b}_islands python3 experiments/island_check.py /tmp/sw/agree_$b /tmp/sw/agree_${b}_2 \
+        run regrid_${b}_islands python3 experiments/checks/island_check.py /tmp/sw/agree_$b /tmp/sw/agree_${b}_2 \
           --out "$OUT/regrid_$b/islands.json"
         for g in agree_$b agree_${b}_2; do
           mkdir -p "$OUT/grids/$g"; cp /tmp/sw/$g/summary.json /tmp/sw/$g/results.parquet "$OUT/grids/$g/"
@@ -69,16 +70,23 @@ for job in "$@"; do
     queue)  # the 64 x 32 x 8 sweep on warp: plain, with 2 and 4 scenarios per batch slot (fallen robots retired),
             # and plain at chunk 8192
       for q in ${QUEUES:-1 2 4}; do
-        run queue_$q python3 experiments/sweep_timing.py --out "$OUT/queue_$q" --repeats 2 -- --magnitudes 10 400 64 \
+        run queue_$q python3 experiments/benchmarks/sweep_timing.py --out "$OUT/queue_$q" --repeats 2 -- --magnitudes 10 400 64 \
           --directions 32 --gain-sets 8 --horizon 3 --chunk-size 16384 --backend ${QUEUE_BACKEND:-warp} --queue $q
       done
       # the control: the plain sweep compiled at another chunk size (float32 rounding alone)
-      run queue_1c python3 experiments/sweep_timing.py --out "$OUT/queue_1c" --repeats 1 -- --magnitudes 10 400 64 \
+      run queue_1c python3 experiments/benchmarks/sweep_timing.py --out "$OUT/queue_1c" --repeats 1 -- --magnitudes 10 400 64 \
         --directions 32 --gain-sets 8 --horizon 3 --chunk-size 8192 --backend ${QUEUE_BACKEND:-warp}
-      run queue_check python3 experiments/queue_check.py "$OUT/queue_1" "$OUT/queue_1c" \
+      run queue_check python3 experiments/checks/queue_check.py "$OUT/queue_1" "$OUT/queue_1c" \
         $(for q in ${QUEUES:-1 2 4}; do [ $q != 1 ] && echo "$OUT/queue_$q"; done) --out "$OUT/queue_check.json" ;;
+    scaling_jax|scaling_warp)  # issue 33: the 64 x 32 x 8 sweep on 1 and 2 GPUs, each twice (repeat floor)
+      b=${job#scaling_}
+      run $job python3 experiments/benchmarks/scaling.py --out "$OUT/$job" --gpus 1 2 --backends $b -- \
+        --magnitudes 10 400 64 --directions 32 --gain-sets 8 --horizon 3 --chunk-size 16384 --push-onset 0.5 \
+        --push-duration 0.1 ;;
+    gputests)  # the tests marked gpu (their log goes to docs/ with the device)
+      run gputests env JAX_PLATFORMS=cuda,cpu python3 -m pytest -q -n 0 -m gpu -p no:cacheprovider tests ;;
     soak)  # hostile scenarios on warp
-      run soak python3 experiments/soak.py --envs ${SOAK_ENVS:-1000000} --chunk 65536 --horizon ${SOAK_HORIZON:-0.5} \
+      run soak python3 experiments/checks/soak.py --envs ${SOAK_ENVS:-1000000} --chunk 65536 --horizon ${SOAK_HORIZON:-0.5} \
         --backend warp --out "$OUT/soak" ;;
   esac
 done

@@ -24,8 +24,8 @@ from wbc_jax.robot import model  # noqa: E402
 
 
 def pytest_configure(config):
-    config.addinivalue_line("markers", "gpu: needs a GPU (skipped on the CPU)")
-    config.addinivalue_line("markers", "slow: over the default suite's time; the nightly `pytest -m slow` runs it")
+    config.addinivalue_line("markers", "gpu: needs a GPU (skipped on the CPU); `.ci/nightly gpu` runs them on one")
+    config.addinivalue_line("markers", "slow: over the default suite's time; `.ci/nightly` runs it (`pytest -m slow`)")
 
 
 # pytest-xdist (`-n 2 --dist loadgroup`, pyproject's addopts): each test module is one unit of work,

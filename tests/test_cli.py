@@ -2,9 +2,13 @@
 anything is compiled or written (a tripwire on jax.jit fails any case that gets that far); run
 directories bound to their inputs (no mixed or dropped results)."""
 
+import dataclasses
+import importlib.util
 import json
+import math
 import os
-import re
+import pathlib
+import tempfile
 
 import jax
 import numpy as np
@@ -12,28 +16,25 @@ import pytest
 
 from wbc_jax import cli
 from wbc_jax.control.gains import default_gains, gains_to_dict
-from wbc_jax.jobs import balance, sweep_config
+from wbc_jax.core import options
+from wbc_jax.jobs import sweep_config
 from wbc_jax.tuning import config as tune_config
+from wbc_jax.tuning import tune  # noqa: F401  (before the tripwire: optax applies jax.jit when imported)
+
+_spec = importlib.util.spec_from_file_location(
+    "bad_input", pathlib.Path(__file__).resolve().parents[1] / "experiments" / "checks" / "bad_input.py"
+)
+bad_input = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(bad_input)
 
 
 def test_flags_are_generated_from_the_configs(capsys):
-    heldout = tune_config.heldout_default_config()
-    for command, configs in (("balance", [balance.default_config()]), ("push-sweep", [sweep_config.default_config()]),
-                             ("tune", [tune_config.default_config(), heldout]), ("heldout", [heldout])):  # fmt: skip
+    for command, (config, _) in cli.job_configs().items():
         with pytest.raises(SystemExit):
             cli.main([command, "--help"])
         text = capsys.readouterr().out
-        for config in configs:
-            for field in config.__dataclass_fields__:
-                assert f"--{field.replace('_', '-')}" in text, (command, field)
-    # tune and heldout: the held-out flags from one config, with the same names and defaults.
-    parser = cli.build_parser()
-    for command in ("tune", "heldout"):
-        hc = cli.config_from_args(parser.parse_args([command, "--grid-magnitudes", "10", "30", "3",
-                                                     "--grid-directions", "4", "--chunk-size", "7"]), heldout)  # fmt: skip
-        assert hc.grid_magnitudes == (10.0, 20.0, 30.0) and hc.grid_directions == (0.0, 90.0, 180.0, 270.0)
-        assert hc.chunk_size == 7 and hc.sinusoid_s == heldout.sinusoid_s
-    assert cli.config_from_args(parser.parse_args(["tune", "--tasks", "t.yaml"]), heldout).tasks == "t.yaml"
+        for field in dataclasses.fields(config):
+            assert options.flag_name(field) in text, (command, field.name)
     # Defaults shown as they are given on the command line; values parsed into the config.
     parser = cli.build_parser()
     args = parser.parse_args(["push-sweep", "--magnitudes", "10", "30", "3", "--directions", "8"])
@@ -43,6 +44,88 @@ def test_flags_are_generated_from_the_configs(capsys):
         cli.config_from_args(parser.parse_args(["push-sweep"]), sweep_config.default_config())
         == sweep_config.default_config()
     )
+
+
+def test_tune_and_heldout_share_the_held_out_flags(tmp_path):
+    """tune and heldout: the held-out flags from one config, with the same names and defaults; tune's
+    own --tasks is the held-out evaluation's."""
+    heldout = tune_config.heldout_default_config()
+    parser = cli.build_parser()
+    for command in ("tune", "heldout"):
+        hc = cli.config_from_args(parser.parse_args([command, "--grid-magnitudes", "10", "30", "3",
+                                                     "--grid-directions", "4", "--chunk-size", "7"]), heldout)  # fmt: skip
+        assert hc.grid_magnitudes == (10.0, 20.0, 30.0) and hc.grid_directions == (0.0, 90.0, 180.0, 270.0)
+        assert hc.chunk_size == 7 and hc.sinusoid_s == heldout.sinusoid_s
+    tasks = str(tmp_path / "t.yaml")
+    pathlib.Path(tasks).write_text("contacts: []\n")
+    assert cli.config_from_args(parser.parse_args(["tune", "--tasks", tasks]), heldout).tasks == tasks
+
+
+def _declared(config):
+    """(flag, Valid, scalar type) of each number field of a job config."""
+    for field in dataclasses.fields(config):
+        kind, _, _ = options.field_type(type(config), field)
+        valid = field.metadata["valid"]
+        if kind in (int, float) and valid.choices is None and "parse" not in field.metadata:
+            yield field, valid, kind
+
+
+def test_every_flag_has_a_declared_range():
+    """One mechanism: every number flag of every job declares both bounds; every file flag is an
+    input file; every other text flag has its choices or names (or is a path or a folder)."""
+    paths = {"out", "run_dir", "tasks", "gains", "init_gains", "envelope"}
+    for command, (config, _) in cli.job_configs().items():
+        for field in dataclasses.fields(config):
+            valid = field.metadata["valid"]
+            kind, _, _ = options.field_type(type(config), field)
+            if kind in (int, float):
+                bounded = (valid.ge, valid.gt) != (None, None) and (valid.le, valid.lt) != (None, None)
+                assert bounded or valid.choices is not None, (command, field.name)
+            elif kind is str:
+                # --sets: 'default', 'critical' or NAME=FILE (each FILE checked as an input file).
+                assert valid.choices or valid.names or field.name in paths | {"sets"}, (command, field.name)
+                assert valid.input_file == (field.name in paths - {"out", "run_dir"}), (command, field.name)
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "nan", "inf", "-inf", "1e30", "2.5"])
+def test_every_number_flag_is_refused_outside_its_range(value, tmp_path, monkeypatch):
+    """Each number flag of each job at 0, negative, NaN, inf, absurdly large, fractional: refused
+    in one line naming the flag and its range exactly when the value is outside the declaration
+    (or the job's cross-checks), never with another error."""
+    monkeypatch.chdir(tmp_path)  # the jobs' default --out folders
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "trajectory.npz").write_bytes(b"")
+    checked = 0
+    parser = cli.build_parser()
+    for command, (config, _) in cli.job_configs().items():
+        for field, valid, kind in _declared(config):
+            flag = options.flag_name(field)
+            nargs = field.metadata.get("nargs", 1)
+            if value == "-inf" and nargs != 1:
+                continue  # argparse takes "-inf" for a flag: "expected 2 arguments", its own one line
+            count = nargs if isinstance(nargs, int) else 1  # "*" / "+": one value
+            given = [f"{flag}={value}"] if nargs == 1 else [flag, *[value] * count]
+            argv = [command, *([str(run)] if command == "view" else []), *given]
+            try:
+                args = parser.parse_args(argv)
+            except SystemExit:  # argparse: not a whole number (its one line is tested below)
+                number = float(value)
+                assert kind is int and not (math.isfinite(number) and number == int(number)), (argv, value)
+                continue
+            inside = valid.contains(float(value)) and math.isfinite(float(value))
+            try:
+                cli.config_from_args(args, config).check()
+                refused = None
+            except (ValueError, FileNotFoundError) as err:
+                refused = str(err)
+            if not inside:
+                assert refused is not None and refused.startswith(flag) and "must be" in refused, (argv, refused)
+                assert valid.describe(kind is int) in refused, (argv, refused)
+                checked += 1
+            elif refused is not None:  # inside the range: only a cross-check may refuse it, naming it
+                assert flag in refused or field.name.replace("_", "-") in refused or "push" in refused, (argv, refused)
+    assert checked > 0
 
 
 @pytest.fixture
@@ -55,127 +138,26 @@ def tripwire(monkeypatch):
     monkeypatch.setattr(jax, "jit", late)
 
 
-def _write(path, text):
-    path.write_text(text)
-    return str(path)
+CASES = bad_input.cases(pathlib.Path(tempfile.mkdtemp()))
 
 
-def _cases(tmp):
-    gains_dir = tmp / "gains_dir"
-    gains_dir.mkdir()
-    huge = gains_to_dict(default_gains())
-    huge["kp_com"] = [1e30, 50.0, 10.0]
-    huge_gains = _write(tmp / "huge.json", json.dumps(huge))
-    task = "tasks: [{name: hand, kind: position, frame: r_hand, %s}, {name: posture, kind: postural}]\n"
-    a_file = _write(tmp / "a_file", "x")
-    sweep_run = tmp / "a_sweep"
-    sweep_run.mkdir()
-    (sweep_run / "run.json").write_text(json.dumps({"kind": "sweep", "fingerprint": {}}))
-    balance_run = tmp / "a_balance"
-    balance_run.mkdir()
-    (balance_run / "run.json").write_text(json.dumps({"kind": "balance", "fingerprint": {}}))
-    corrupt = tmp / "corrupt"
-    corrupt.mkdir()
-    (corrupt / "run.json").write_text("{\n")
-    out = str(tmp / "out")
-    return [
-        (["balance", "--push-force", "nan", "0", "0"], r"push force must be 3 finite numbers"),
-        (["balance", "--duration", "inf"], r"--duration must be a positive finite"),
-        (["balance", "--duration", "abc"], r"--duration expects a number, got 'abc'"),
-        (["balance", "--push-onset", "-1"], r"--push-onset must be a finite number of seconds >= 0"),
-        (["balance", "--solver-iterations", "0"], r"solver_iterations must be a positive integer"),
-        (["balance", "--solver-iterations", "1.5"], r"--solver-iterations expects a whole number"),
-        (["balance", "--control-dt", "0"], r"--control-dt must be a positive"),
-        (["balance", "--angular-weight-soft", "nan"], r"--angular-weight-soft must be positive and finite"),
-        (["balance", "--out", a_file], r"is a file"),
-        (["balance", "--out", str(sweep_run)], r"holds a sweep run"),
-        (["balance", "--out", str(corrupt)], r"run.json is unreadable"),
-        (["balance", "--gains", str(gains_dir)], r"is not a file"),
-        (["balance", "--gains", str(tmp / "missing.json")], r"does not exist"),
-        (["balance", "--gains", huge_gains], r"kp_com has entries above its range \[0, 10000\]"),
-        (["balance", "--duration", "0.001"], r"shorter than one control tick"),
-        (
-            ["balance", "--backend", "warp"]
-            if not any(d.platform == "gpu" for d in jax.devices())
-            else ["balance", "--backend", "nope"],
-            r"needs a CUDA GPU|invalid choice",
-        ),  # fmt: skip
-        (["balance", "--tasks", _write(tmp / "w.yaml", task % "weight: heavy")], r"weight must be a positive number"),
-        (
-            [
-                "balance",
-                "--tasks",
-                _write(tmp / "j.yaml", task.replace("kind: position, frame: r_hand", "kind: joints") % "joints: 5"),
-            ],
-            r"joints must be joint names",
-        ),  # fmt: skip
-        (["balance", "--tasks", _write(tmp / "p.yaml", task % "priority: high")], r"priority must be a whole number"),
-        (
-            [
-                "balance",
-                "--tasks",
-                _write(
-                    tmp / "q.yaml",
-                    "contacts: [{name: l, frame: l_sole, normal: [0, 0, 1]}, "
-                    "{name: r, frame: r_sole, normal: [0, 0, 1]}]\ninitial_posture_deg: {l_knee: 200}\n",
-                ),
-            ],
-            r"l_knee = 200 deg is outside its joint range",
-        ),  # fmt: skip
-        (["push-sweep", "--magnitudes", "20", "40", "2.9"], r"N must be a whole number >= 1, got 2.9"),
-        (["push-sweep", "--magnitudes", "20", "40", "nan"], r"--magnitudes LO HI N needs finite numbers"),
-        (["push-sweep", "--magnitudes", "0", "100", "100000", "--directions", "1000"], r"more than 10,000,000"),
-        (["push-sweep", "--directions", "0"], r"--directions must be a whole number >= 1"),
-        (["push-sweep", "--seed", "-1"], r"--seed must be a whole number >= 0"),
-        (["push-sweep", "--chunk-size", "0"], r"--chunk-size must be a whole number >= 1"),
-        (["push-sweep", "--horizon", "0.5"], r"--horizon 0.5 s must end after the push"),
-        (["push-sweep", "--friction", "1", "0.5"], r"--friction range must be positive and ordered"),
-        (["push-sweep", "--angular-weight-soft", "0"], r"--angular-weight-soft must be positive and finite"),
-        (["push-sweep", "--body", "nose", "--out", out], r"unknown body 'nose'; valid bodies"),
-        (["push-sweep", "--out", a_file], r"is a file"),
-        (["push-sweep", "--out", str(balance_run)], r"holds a balance run"),
-        (["push-sweep", "--gains", str(gains_dir)], r"is not a file"),
-        (["view", a_file], r"is a file"),
-        (["view", str(tmp / "nowhere")], r"does not exist"),
-        (["tune", "--out", a_file], r"is a file"),
-        (["tune", "--batch", "0"], r"--batch must be a whole number >= 1"),
-        (["tune", "--horizon", "0.1"], r"--horizon 0.1 s must end after the push"),
-        (["tune", "--lr", "nan"], r"--lr must be positive and finite"),
-        (
-            ["tune", "--estimator", "smoothed", "--batch", "3", "--quality-pushes", "3"],
-            r"--estimator smoothed pairs antithetic rollouts: --batch must be even",
-        ),
-        (["tune", "--window-s", "5"], r"--window-s 5 must be at least one tick \(0.01 s\) and shorter than --horizon"),
-        (["tune", "--phases", "train", "sweep"], r"invalid choice: 'sweep'"),
-        (["tune", "--sets", "mine=/nowhere.json"], r"--sets mine=/nowhere.json: /nowhere.json is not a file"),
-        (["heldout", "--sets", "bogus"], r"--sets entries are 'default', 'critical' or NAME=FILE"),
-        (["heldout", "--grid-horizon", "0.5"], r"held-out horizon 0.5 s ends before the pushes"),
-        (["heldout", "--out", a_file], r"is a file"),
-    ]
+def test_every_class_of_the_issue_has_cases():
+    assert {klass for klass, _, _ in CASES} == set(bad_input.CLASSES)
+    assert len(CASES) >= 80
 
 
-CASE_COUNT = 46
-
-
-def test_every_bad_input_case_is_listed(tmp_path):
-    assert len(_cases(tmp_path)) == CASE_COUNT
-
-
-@pytest.mark.parametrize("k", range(CASE_COUNT))
+@pytest.mark.parametrize("k", range(len(CASES)))
 def test_bad_input_is_one_clear_early_line(k, tmp_path, capsys, tripwire):
-    argv, message = _cases(tmp_path)[k]
-    argv = [*argv] if "--out" in argv or argv[0] == "view" else [*argv, "--out", str(tmp_path / "out")]
+    """experiments/checks/bad_input.py's cases in one process: exit 2, one line naming the problem, no
+    traceback, nothing written, before anything compiles (the tripwire)."""
+    klass, argv, message = bad_input.cases(tmp_path)[k]
+    argv = bad_input.argv_with_out(argv, tmp_path / "out")
     try:
         rc = cli.main(argv)
     except SystemExit as exc:  # argparse: usage + one error line
         rc = exc.code
     err = capsys.readouterr().err
-    assert rc == 2, (argv, err)
-    assert "Traceback" not in err, err
-    assert re.search(message, err), (argv, err)
-    lines = [line for line in err.splitlines() if line.strip() and not line.startswith("usage")]
-    assert len(lines) <= 2, err
-    assert not (tmp_path / "out").exists(), "nothing is written for bad input"
+    assert not bad_input.judge(rc, err, 0.0, message, (tmp_path / "out").exists(), 30.0), (klass, argv, err)
 
 
 def test_result_files_have_the_users_permissions(tmp_path):
@@ -210,6 +192,10 @@ def test_resume_binds_the_run_to_its_inputs(tmp_path, capsys):
     again = pd.read_parquet(out / "results.parquet")
     assert again["env"].tolist() == [0, 1]
     np.testing.assert_allclose(again["com_rmse_m"], first["com_rmse_m"], rtol=1e-6)
+    # The resumed run simulated one env; the summary counts both (5 ticks of 10 physics steps each).
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["resumed_envs"] == 1
+    assert summary["physics_steps_simulated"] == 2 * 5 * 10
     # Other gains in the same file: refused, naming the file.
     values = gains_to_dict(default_gains())
     values["kp_com"] = [60.0, 60.0, 10.0]
@@ -217,3 +203,21 @@ def test_resume_binds_the_run_to_its_inputs(tmp_path, capsys):
     assert cli.main(argv) == 2
     err = capsys.readouterr().err
     assert "made with other inputs" in err and "g.json" in err and "contents changed" in err
+
+
+def test_memory_is_estimated_before_a_chunk_is_allocated(tmp_path, capsys, tripwire, monkeypatch):
+    """A chunk that cannot fit is refused with the estimate and the largest chunk that fits, before
+    anything compiles; a chunk larger than the sweep is cut to the sweep (never padded beyond it)."""
+    from wbc_jax.sim import runner
+
+    assert sweep_config.SweepConfig(chunk_size=100_000, out=None).batch_size == 12
+    monkeypatch.setattr(runner, "available_memory", lambda: (200e6, "host"))
+    argv = ["push-sweep", "--magnitudes", "10", "100", "100", "--directions", "4", "--chunk-size", "400",
+            "--out", str(tmp_path / "out")]  # fmt: skip
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    per_env = runner.HOST_ENV_BYTES  # at least: C MuJoCo on the CPU
+    fits = int((200e6 - 400 * 400) // per_env)  # below it: the scenarios and MJX's share are counted too
+    assert "--chunk-size 400: a batch of 400 environments needs about" in err and "host has 0.2 GB free" in err, err
+    assert 0 < int(err.split("use --chunk-size ")[1].split()[0].replace(",", "")) <= fits, err
+    assert not (tmp_path / "out").exists()

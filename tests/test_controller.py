@@ -72,16 +72,24 @@ def test_postural_projector_equals_pinv_of_the_svd(state_terms, damping, active,
                                np.linalg.pinv(X, rcond=1e-5 / s[0]) @ X, atol=1e-10)  # fmt: skip
 
 
-def test_damped_pseudo_inverse_residual_is_small(state_terms):
-    """With the WBC simulation damping (lambda = 1) the law is only approximately exact; measure."""
+@pytest.mark.parametrize("damping", [1.0, 0.01])
+def test_damped_pseudo_inverse_residual_is_its_closed_form(state_terms, damping):
+    """With a damped pseudo-inverse (WBC simulation: lambda = 1) the law is exact only up to the
+    damping's residual. With tau = Lambda^+ b + N_Lambda tau_0, Lambda Lambda^+ = I - lambda G^-1
+    and Lambda N_Lambda = lambda G^-1 Lambda (G = Lambda Lambda^T + lambda I), so
+    Lambda tau - b = -lambda G^-1 (b - Lambda tau_0): the residual must be that, to rounding."""
     t = state_terms
-    tt = _torque_terms(t, 1.0)
+    tt = _torque_terms(t, damping)
     f = jnp.asarray(np.random.default_rng(1).normal(scale=50.0, size=12))
     tau = tt.tau_model + tt.Sigma @ f
-    rhs = tt.J_c @ jnp.linalg.solve(t.M, t.h - t.tau_passive - tt.J_c.T @ f) - tt.Jdot_nu_c
-    rel = float(jnp.linalg.norm(tt.Lambda @ tau - rhs) / jnp.linalg.norm(rhs))
-    print(f"relative residual of Lambda tau with lambda = 1: {rel:.2e}")
-    assert 1e-8 < rel < 0.05
+    b = tt.J_c @ jnp.linalg.solve(t.M, t.h - t.tau_passive - tt.J_c.T @ f) - tt.Jdot_nu_c
+    tau_0 = tt.Sigma_0 @ f + tt.tau_0
+    G = tt.Lambda @ tt.Lambda.T + damping * jnp.eye(12)
+    expected = -damping * jnp.linalg.solve(G, b - tt.Lambda @ tau_0)
+    residual = tt.Lambda @ tau - b
+    np.testing.assert_allclose(residual, expected, rtol=1e-7, atol=1e-9 * float(jnp.linalg.norm(b)))
+    # The damping matters: the residual is far above rounding and grows with lambda.
+    assert float(jnp.linalg.norm(residual) / jnp.linalg.norm(b)) > 1e-6
 
 
 @pytest.fixture(scope="module")

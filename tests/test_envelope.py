@@ -65,18 +65,23 @@ def test_bad_search_input():
         envelope.bisect(np.array([2.0, 1.0]), lambda k, i: i < 1, 1, 0.25)
     with pytest.raises(ValueError, match="resolution must be a positive"):
         envelope.bisect(GRID, lambda k, i: i < 1, 1, float("nan"))
-    with pytest.raises(ValueError, match="--magnitudes and --push-duration must be > 0"):
+    with pytest.raises(ValueError, match=r"--magnitudes must be a number in \(0, 5000\] N, got 0"):
         envelope.search(sweep_config.SweepConfig(magnitudes=(0.0, 50.0), out=None), progress=False)
-    with pytest.raises(ValueError, match="--resolution must be a positive"):
+    with pytest.raises(ValueError, match=r"--resolution must be a number in \[0.001, 1000\] N s, got 0"):
         envelope.search(sweep_config.SweepConfig(out=None), resolution=0.0, progress=False)
+    with pytest.raises(ValueError, match=r"--resolution 0.001 N s needs 22 bisection rounds inside a grid step"):
+        envelope.search(envelope.EnvelopeConfig(magnitudes=(5000.0,), push_duration=0.5, horizon=2.0, resolution=1e-3,
+                                                out=None), progress=False)  # fmt: skip
 
 
 def test_search_matches_a_grid_sweep_on_c_mujoco(tmp_path):
     """Two directions, pushes of 1-8 N s in 1 N s steps: the search's grid bracket is the grid's
-    monotone envelope, its answer within the step above it, in 5 rounds (10 rollouts, 16 for the grid)."""
-    common = dict(magnitudes=tuple(np.linspace(10.0, 80.0, 8)), directions=(0.0, 180.0), backend="mujoco")
-    grid = sweep.run_sweep(sweep_config.SweepConfig(**common, chunk_size=2, out=str(tmp_path / "grid")), progress=False)
-    found = envelope.search(sweep_config.SweepConfig(**common, out=str(tmp_path / "env")), progress=False)
+    monotone envelope, its answer within the step above it, in 5 rounds (10 rollouts, 16 for the grid);
+    each round's searches run in batches of --chunk-size 1 (one compiled shape for both)."""
+    common = dict(magnitudes=tuple(np.linspace(10.0, 80.0, 8)), directions=(0.0, 180.0), backend="mujoco",
+                  chunk_size=1)  # fmt: skip
+    grid = sweep.run_sweep(sweep_config.SweepConfig(**common, out=str(tmp_path / "grid")), progress=False)
+    found = envelope.search(envelope.EnvelopeConfig(**common, out=str(tmp_path / "env")), progress=False)
     table = pd.read_parquet(tmp_path / "grid" / "results.parquet")
     for az in (0.0, 180.0):
         rows = table[table["azimuth_deg"] == az].sort_values("impulse_ns")
@@ -89,3 +94,10 @@ def test_search_matches_a_grid_sweep_on_c_mujoco(tmp_path):
     assert found["rounds"] == 5 and found["rollouts"] == 10 and found["grid_rollouts"] == 16
     written = json.loads((tmp_path / "env" / "summary.json").read_text())
     assert written["rollouts"] == 10 and written["device"] == provenance.device_label()
+    # The same search again into its folder redoes it; with other settings it is refused, naming them.
+    again = envelope.search(envelope.EnvelopeConfig(**common, out=str(tmp_path / "env")), progress=False)
+    assert again["envelope"] == found["envelope"]
+    with pytest.raises(
+        ValueError, match=r"holds an envelope run made with other inputs \(config.resolution: 0.25 -> 0.5"
+    ):
+        envelope.search(envelope.EnvelopeConfig(**common, resolution=0.5, out=str(tmp_path / "env")), progress=False)

@@ -233,7 +233,7 @@ POSTURE = tasks.MotionTask("posture", "postural")
         ([tasks.MotionTask("h", "pose", frame="r_hand"), POSTURE], "unknown kind 'pose'"),
         ([tasks.MotionTask("j", "joints", joints=("r_elbow", "r_wrist")), POSTURE], "unknown joint 'r_wrist'"),
         ([tasks.MotionTask("h", "position", frame="r_hand", kp=-1.0), POSTURE], "task gain kp"),
-        ([tasks.MotionTask("h", "position", frame="r_hand", weight=0.0), POSTURE], "weight must be positive"),
+        ([tasks.MotionTask("h", "position", frame="r_hand", weight=0.0), POSTURE], "weight must be in (0, 1e+06], got 0.0"),
         ([tasks.MotionTask("h", "com", reference=tasks.TaskReference(kind="circle", radius=0.05, frequency=0.5, plane=("-y", "y"))),
           POSTURE], "circle plane must be two different axes"),
         ([tasks.MotionTask("h", "com", reference=tasks.TaskReference(kind="spiral")), POSTURE],

@@ -34,15 +34,17 @@ def test_controller_settings_of_a_sweep_and_a_held_out_evaluation_reach_the_loop
 
 
 def test_bad_sweep_input_is_rejected_before_compiling(robot, tmp_path):
-    with pytest.raises(ValueError, match="empty"):
+    with pytest.raises(ValueError, match="--magnitudes: give at least one value"):
         sweep_config.SweepConfig(magnitudes=()).check()
-    with pytest.raises(ValueError, match="push forces must be finite and >= 0"):
+    with pytest.raises(ValueError, match=r"--magnitudes must be a number in \[0, 5000\] N, got -5"):
         sweep_config.SweepConfig(magnitudes=(-5.0,)).check()
-    with pytest.raises(ValueError, match="push-duration"):
+    with pytest.raises(ValueError, match=r"--push-duration must be a number in \(0, 60\] s"):
         sweep_config.SweepConfig(push_duration=-0.1).check()
-    with pytest.raises(ValueError, match=r"unknown body 'nose'.*chest"):
+    with pytest.raises(ValueError, match=r"--body 'nose' is not a valid name here; valid: \['root_link'.*'chest'"):
         sweep.run_sweep(sweep_config.SweepConfig(body="nose", out=str(tmp_path / "s")), progress=False)
-    with pytest.raises(ValueError, match="--queue must be a whole number >= 1, got 0"):
+    with pytest.raises(ValueError, match=r"cannot push body 'world'"):  # the API below the configs refuses it too
+        robot.index.pushable_body_id("world")
+    with pytest.raises(ValueError, match=r"--queue must be a whole number in \[1, 1024\], got 0"):
         sweep_config.SweepConfig(queue=0).check()
     with pytest.raises(ValueError, match="needs an MJX backend: --backend jax or warp"):
         sweep.run_sweep(sweep_config.SweepConfig(queue=2, backend="mujoco", out=str(tmp_path / "s")), progress=False)
@@ -70,6 +72,11 @@ def test_lip_bound_is_omega_times_edge_distance(robot):
     # Forward: the toe spheres are ~0.13 m ahead of the sole origin, CoM ~0.014 m ahead of it.
     assert b[0.0]["edge_distance_m"] == pytest.approx(0.117, abs=0.005)
     assert b[90.0]["velocity_bound_mps"] == pytest.approx(omega * b[90.0]["edge_distance_m"], rel=1e-3)
+    # A push at 60 deg elevation has half its impulse horizontal: twice the bound; a vertical one none.
+    up = sweep_table.lip_bound(robot, [0.0, 90.0], elevation_deg=60.0)
+    assert up[0.0]["impulse_bound_ns"] == pytest.approx(2 * b[0.0]["impulse_bound_ns"], rel=1e-9)
+    assert sweep_table.lip_bound(robot, [0.0], elevation_deg=-90.0)[0.0]["impulse_bound_ns"] is None
+    assert sweep_table.fraction(3.0, None) is None and sweep_table.fraction(3.0, 6.0) == 0.5
 
 
 SHARDED = textwrap.dedent(
@@ -83,9 +90,9 @@ SHARDED = textwrap.dedent(
     if backend == "jax":
         assert len(jax.devices()) == 2, jax.devices()
     out = pathlib.Path(sys.argv[1])
-    # MJX, 8 per chunk: sharded over the two host devices (4 each) this deadlocked XLA:CPU (jax
+    # MJX, 8 per chunk (4: the sweep's size): sharded over the two host devices this deadlocked XLA:CPU (jax
     # 0.9.2); on the CPU the batch now runs on one device per process (runner.batch_devices).
-    cfg = sweep_config.SweepConfig(magnitudes=(20.0, 400.0), directions=(90.0,), horizon=0.8, push_onset=0.1,
+    cfg = sweep_config.SweepConfig(magnitudes=(20.0, 400.0), directions=(90.0, 270.0), horizon=0.8, push_onset=0.1,
                             push_duration=0.1, chunk_size=8 if backend == "jax" else 2, backend=backend,
                             out=str(out))
     s = sweep.run_sweep(cfg, progress=False)
@@ -98,8 +105,8 @@ SHARDED = textwrap.dedent(
     scen = jax.tree_util.tree_map(lambda x: np.asarray(x)[:2], scen)
     scen = scen.replace(joint_offset=scen.joint_offset.copy())
     scen.joint_offset[1] = np.nan
-    run = runner.run(st, scen, batch_size=cfg.chunk_size)  # the sweep's compiled program
-    again = runner.run(st, scen, batch_size=cfg.chunk_size)
+    run = runner.run(st, scen, batch_size=cfg.batch_size)  # the sweep's compiled program
+    again = runner.run(st, scen, batch_size=cfg.batch_size)
     m = run.metrics
     res = {"summary": {k: s[k] for k in ("n_envs", "upright_rate", "nan_envs", "n_devices", "backend")},
            "nan": np.asarray(m.nan).tolist(), "fell": np.asarray(m.fell).tolist(),
@@ -108,12 +115,12 @@ SHARDED = textwrap.dedent(
         # Two scenarios per batch slot: 1,600 N (falls), 20 N (survives), NaN joints (diverges), 10 N
         # (survives; it starts in the slot the fallen and the diverged robot left).
         four, _ = sweep.build_scenarios(cfg, default_gains(), 23, scenario.float_dtype())
-        four = jax.tree_util.tree_map(lambda x: np.asarray(x)[[1, 0, 0, 0]].copy(), four)
+        four = jax.tree_util.tree_map(lambda x: np.asarray(x)[[2, 0, 0, 0]].copy(), four)
         four.push.force[0] *= 4  # 1,600 N for 0.1 s: down well before the end
         four.joint_offset[2] = np.nan
         four.push.force[3] *= 0.5
-        plain = runner.run(st, four, batch_size=cfg.chunk_size).metrics
-        queued = runner.run(st, four, batch_size=cfg.chunk_size, queue=2).metrics
+        plain = runner.run(st, four, batch_size=cfg.batch_size).metrics
+        queued = runner.run(st, four, batch_size=cfg.batch_size, queue=2).metrics
         cols = [metrics.summarize(x) for x in (plain, queued)]
         res["queue"] = {
             "outcomes": [[c[k].tolist() for k in ("survived", "upright", "fell", "nan")] for c in cols],
@@ -140,11 +147,11 @@ def test_sweep_isolates_nan_and_resumes(tmp_path, backend):
     proc = run("nan")
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert res["summary"]["n_devices"] == 1 and res["summary"]["n_envs"] == 2  # one CPU device per process
+    assert res["summary"]["n_devices"] == 1 and res["summary"]["n_envs"] == 4  # one CPU device per process
     assert res["summary"]["backend"] == backend
     # 20 N survives; 400 N for 0.1 s (40 N s, over twice the LIP bound) does not.
     table = __import__("pandas").read_parquet(out / "results.parquet")
-    assert table.sort_values("magnitude_n")["upright"].tolist() == [True, False]
+    assert table.sort_values("magnitude_n")["upright"].tolist() == [True, True, False, False]
     assert res["nan"] == [False, True], "the NaN environment is flagged, the other is not"
     assert not res["fell"][0] and res["com_max"][0] < 0.05 and not res["recompiled"]
     if backend == "jax":  # a queue of 2 scenarios per slot: the fallen and the diverged robot retire early

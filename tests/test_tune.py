@@ -31,14 +31,14 @@ from wbc_jax.tuning import problem as tp
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 # One subprocess (float64, XLA backend optimisation lowered) holds the one gradient program:
-# experiments/grad_check.py, per-scenario gradients over N random push scenarios at a 0.1 s
+# experiments/checks/grad_check.py, per-scenario gradients over N random push scenarios at a 0.1 s
 # horizon, and central differences of the loss on the first of them. Compiling the reverse-mode
 # program through the whole closed loop takes 4-7 minutes on a 2-core CPU, most of the default
 # suite's time budget: these two tests are `slow` (the nightly `python3 -m pytest -m slow`). In the
 # default suite, gradients are checked piecewise: MJX physics through standing contact against a
 # central difference (tests/test_mjx_physics.py), the contact QP's implicit derivative against
 # finite differences (tests/test_forces.py), the dynamics terms (tests/test_dynamics.py).
-GRAD_CHECK = ROOT / "experiments" / "grad_check.py"
+GRAD_CHECK = ROOT / "experiments" / "checks" / "grad_check.py"
 TINY = dict(horizon=0.1, push_onset=0.0, duration_range=(0.02, 0.05), eval_horizon=0.1)
 
 
@@ -126,29 +126,30 @@ def test_out_of_bound_init_gains_are_a_clear_error_before_compiling(tmp_path):
 
 
 @pytest.mark.parametrize("kwargs, message", [
-    ({"batch": 0}, r"--batch must be a whole number >= 1"),
-    ({"population": 0}, r"--population must be a whole number >= 1"),
-    ({"steps": 0}, r"--steps must be a whole number >= 1"),
+    ({"batch": 0}, r"--batch must be a whole number in \[1, "),
+    ({"population": 0}, r"--population must be a whole number in \[2, "),
+    ({"steps": 0}, r"--steps must be a whole number in \[1, "),
     ({"horizon": 0.3}, r"--horizon 0.3 s must end after the push"),
     ({"eval_horizon": 0.4}, r"--eval-horizon 0.4 s must end after the push"),
-    ({"magnitude_range": (0.0, 1.4)}, r"--magnitude-range must be positive"),
-    ({"zeta_range": (2.0, 0.5)}, r"--zeta-range must be positive and ordered"),
-    ({"phases": ("train", "pso")}, r"--phases must be one of \['predict', 'train'"),
+    ({"magnitude_range": (0.0, 1.4)}, r"--magnitude-range must be a number in \(0, 100\], got 0"),
+    ({"zeta_range": (2.0, 0.5)}, r"--zeta-range LO HI must be ordered"),
+    ({"phases": ("train", "pso")}, r"--phases must be among \['predict', 'train'.*got 'pso'"),
     ({"estimator": "smoothed", "batch": 3, "quality_pushes": 3}, r"--batch must be even"),
     ({"window_s": 0.005}, r"--window-s 0.005 must be at least one tick"),
     ({"window_s": 0.05, "windows": 3}, r"--batch 4 must be a multiple of --windows 3"),
     ({"quality_pushes": 6}, r"--quality-pushes 6 must be a multiple of the 4 pushes of one gradient program call"),
-    ({"snapshots_s": (-1.0,)}, r"--snapshots-s must be positive seconds"),
+    ({"snapshots_s": (-1.0,)}, r"--snapshots-s must be a number in \(0, "),
     ({"parameterisation": "scheduled", "tune_regularisation": True}, r"schedules the gains only"),
-    ({"envelope": "/nonexistent.json"}, r"--envelope /nonexistent.json is not a file"),
-    ({"env_clip": float("nan")}, r"--env-clip must be finite and >= 0"),
-    ({"env_clip": -1.0}, r"--env-clip must be finite and >= 0"),
+    ({"envelope": "/nonexistent.json"}, r"--envelope file /nonexistent.json does not exist"),
+    ({"env_clip": float("nan")}, r"--env-clip must be a number in \[0, 1,000,000\], got nan"),
+    ({"env_clip": -1.0}, r"--env-clip must be a number in \[0, "),
     ({"push_scale": "lipp"}, r"--push-scale must be one of \['envelope', 'lip'\]"),
-    ({"angular_weight_soft": 0.0}, r"--angular-weight-soft must be positive and finite"),
-    ({"tasks": "/nonexistent.yaml"}, r"--tasks /nonexistent.yaml is not a file"),
+    ({"angular_weight_soft": 0.0}, r"--angular-weight-soft must be a number in \(0, 10000\]"),
+    ({"tasks": "/nonexistent.yaml"}, r"--tasks file /nonexistent.yaml does not exist"),
+    ({"train_bodies": ("world",)}, r"--train-bodies 'world' is not a valid name here"),
 ])  # fmt: skip
 def test_bad_tune_config_is_a_clear_error(kwargs, message):
-    with pytest.raises(ValueError, match=message):
+    with pytest.raises((ValueError, FileNotFoundError), match=message):
         config.TuneConfig(**kwargs)
 
 
@@ -195,7 +196,17 @@ def test_loss_terms_grow_with_each_failure_mode():
 def test_rank_statistics():
     loss = np.array([0.1, 0.2, 0.3, 5.0, 7.0, 9.0])
     survived = np.array([1, 1, 1, 0, 0, 0], bool)
-    assert tuning_loss.spearman(loss, survived) == pytest.approx(-np.sqrt(27 / 35 * 35 / 27), abs=0.2)
+    # Ranks 1..6 against tied ranks (2, 2, 2, 5, 5, 5) reversed: r = -13.5 / sqrt(17.5 x 13.5) = -sqrt(27/35).
+    assert tuning_loss.spearman(loss, survived) == pytest.approx(-np.sqrt(27 / 35), rel=1e-12)
+    # Against SciPy's Spearman (average ranks for ties) on data with ties in both.
+    from scipy import stats
+
+    rng = np.random.default_rng(0)
+    a, b = rng.integers(0, 5, 40).astype(float), rng.random(40) < 0.4
+    assert tuning_loss.spearman(a, b) == pytest.approx(stats.spearmanr(a, b).statistic, rel=1e-12)
+    # AUC = the Mann-Whitney U of the fallers' losses over the survivors' / (pairs), ties counting half.
+    u = stats.mannwhitneyu(a[~b], a[b]).statistic
+    assert tuning_loss.auc(a, b) == pytest.approx(u / (b.sum() * (~b).sum()), rel=1e-12)
     assert tuning_loss.auc(loss, survived) == 1.0
     assert tuning_loss.auc(loss[::-1], survived) == 0.0
     assert np.isnan(tuning_loss.auc(loss, np.ones(6, bool)))
@@ -457,10 +468,13 @@ def test_bad_gains_files_name_the_problem(tmp_path):
     cases = [
         ({**good, "kp_foo": [1.0]}, r"unknown keys \['kp_foo'\]"),
         ({k: v for k, v in good.items() if k != "kd_com"}, r"missing keys \['kd_com'\]"),
-        ({**good, "kp_postural": good["kp_postural"][:5]}, r"kp_postural must have 23 entries"),
+        (
+            {**good, "kp_postural": good["kp_postural"][:5]},
+            r"kp_postural must be a list of 23 numbers, got shape \(5,\)",
+        ),
         ({**good, "kp_com": [50.0, 0.0, 10.0]}, r"non-positive entries .*'kp_com': \[1\]"),
         ({**good, "kd_postural": [-1.0] * 23}, r"kd_postural has negative entries"),
-        ({**good, "ki_ang": ["a", "b", "c"]}, r"gain ki_ang must be a list of numbers"),
+        ({**good, "ki_ang": ["a", "b", "c"]}, r"gain ki_ang must be a list of 3 numbers"),
     ]
     for values, message in cases:
         path = tmp_path / "g.json"
@@ -495,11 +509,11 @@ def test_tuned_gains_file_runs_in_balance_and_push_sweep(tmp_path, capsys):
 
 
 def test_com_floor_raises_kp_com_in_x_y_and_keeps_each_damping_ratio():
-    """experiments/stiffen_com.py: K_P,CoM x, y raised to the floor (never lowered), z and every other gain
+    """experiments/campaigns/stiffen_com.py: K_P,CoM x, y raised to the floor (never lowered), z and every other gain
     unchanged, K_D,CoM = 2 zeta sqrt(K_P,CoM) with each axis's zeta of the input set."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location("stiffen_com", ROOT / "experiments" / "stiffen_com.py")
+    spec = importlib.util.spec_from_file_location("stiffen_com", ROOT / "experiments" / "campaigns" / "stiffen_com.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     g = C.load_gains(ROOT / "experiments" / "gains" / "tuned_gradient.json", 23)

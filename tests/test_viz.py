@@ -139,7 +139,7 @@ def test_view_errors_name_the_problem(sweep_dir, tmp_path, capsys):
         (["view", str(tmp_path)], "neither a balance run"),
         (["view", str(sweep_dir)], r"push sweep of 2 envs: choose one with --env I, I in 0..1"),
         (["view", str(sweep_dir), "--env", "2"], r"env 2 is out of range: this sweep has envs 0..1"),
-        (["view", str(sweep_dir), "--env", "-1"], r"out of range"),
+        (["view", str(sweep_dir), "--env", "-1"], r"--env must be a whole number in \[0, "),
     ]
     for argv, message in cases:
         assert cli.main(argv) == 2, argv

@@ -1,27 +1,18 @@
 """``wbc-jax`` command line: one subcommand per job; each job's flags and defaults are generated
-from its ``default_config()`` (a frozen dataclass whose fields carry their help)."""
+from its ``default_config()`` (a frozen dataclass whose fields carry their help and valid values,
+:mod:`wbc_jax.core.options`), and every job checks its config (``check()``: the declared ranges
+first) before it loads a program or writes a file."""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
 import json
+import math
 import os
 import sys
-import types
-import typing
 
-
-def _field_type(owner: type, field: dataclasses.Field) -> type:
-    """The scalar type of a config field (``float | None`` -> float, ``tuple[float, ...]`` -> float)."""
-    hint = typing.get_type_hints(owner)[field.name]
-    args = [a for a in typing.get_args(hint) if a is not type(None)]
-    if typing.get_origin(hint) in (typing.Union, types.UnionType):
-        hint = args[0]
-    if typing.get_origin(hint) is tuple:
-        inner = [a for a in typing.get_args(hint) if a is not Ellipsis]
-        return inner[0] if inner else float
-    return hint
+from wbc_jax.core.options import field_type, flag_name
 
 
 class _Parser(argparse.ArgumentParser):
@@ -44,7 +35,7 @@ def _number(kind: type, flag: str):
         except ValueError:
             raise argparse.ArgumentTypeError(f"{flag} expects a number, got {text!r}") from None
         if kind is int:
-            if value != int(value):
+            if not math.isfinite(value) or value != int(value):
                 raise argparse.ArgumentTypeError(f"{flag} expects a whole number, got {text!r}")
             return int(value)
         return value
@@ -53,17 +44,18 @@ def _number(kind: type, flag: str):
 
 
 def add_config_arguments(parser: argparse.ArgumentParser, config, skip=()) -> None:
-    """One flag per field of the dataclass ``config`` (its values are the defaults)."""
+    """One flag (or positional argument) per field of the dataclass ``config`` (its values are the
+    defaults; :func:`wbc_jax.core.options.option` declares them)."""
     for field in dataclasses.fields(config):
         if field.name in skip:
             continue
         meta = field.metadata
-        flag = meta.get("flag", "--" + field.name.replace("_", "-"))
+        flag = flag_name(field)
         default = getattr(config, field.name)
-        kind = _field_type(type(config), field)
-        kwargs = {"dest": field.name, "help": meta.get("help", "")}
+        kind, _, _ = field_type(type(config), field)
+        kwargs = {"help": meta.get("help", "")}
         if kind is bool:
-            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default, **kwargs)
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default, dest=field.name, **kwargs)
             continue
         if "choices" in meta:
             kwargs["choices"] = list(meta["choices"])
@@ -73,9 +65,12 @@ def add_config_arguments(parser: argparse.ArgumentParser, config, skip=()) -> No
             kwargs["nargs"] = meta["nargs"]
         # Values given to a parse hook are read as numbers (its own checks name the problem).
         kwargs["type"] = _number(float if "parse" in meta else kind, flag) if kind in (int, float) else kind
+        if meta.get("positional"):
+            parser.add_argument(field.name, **kwargs)
+            continue
         shown = meta["show"](default) if "show" in meta and default is not None else default
         kwargs["help"] += f" (default: {_show(shown)})"
-        parser.add_argument(flag, default=argparse.SUPPRESS, **kwargs)
+        parser.add_argument(flag, dest=field.name, default=argparse.SUPPRESS, **kwargs)
 
 
 def config_from_args(args: argparse.Namespace, config):
@@ -94,6 +89,75 @@ def config_from_args(args: argparse.Namespace, config):
     return dataclasses.replace(config, **changes)
 
 
+def job_configs() -> dict:
+    """Each job's (default config, help) by command name."""
+    from wbc_jax.jobs import balance, envelope, info, sweep_config, view
+    from wbc_jax.tuning import config as tune_config
+
+    return {
+        "info": (info.default_config(), "print the robot model summary as JSON"),
+        "balance": (balance.default_config(), "closed-loop balancing run: metrics, trajectory, plots"),
+        "push-sweep": (sweep_config.default_config(), "batched push-recovery sweep (the main job)"),
+        "envelope": (envelope.default_config(), "recovery envelope by batched bisection over the sweep's magnitudes"),
+        "view": (view.default_config(), "log a run (or one env of a push sweep) to rerun: .rrd or viewer"),
+        "tune": (
+            tune_config.default_config(),
+            "gain tuning in phases: gradient, CMA-ES, random search, held-out evaluation, the race's report",
+        ),
+        "heldout": (
+            tune_config.heldout_default_config(),
+            "gain files on the held-out grid, variations, one-foot task and sinusoid",
+        ),
+    }
+
+
+# Commands that also take another config's flags: command -> (config, fields left to the job's own).
+# ``tune`` holds out its gain sets with the held-out flags; its tasks and soft-QP weight are the run's.
+SHARED_CONFIGS = {"tune": ("heldout", ("out", "tasks", "angular_weight_soft"))}
+
+
+def _run_job(command: str, cfg, quiet: bool, shared=None) -> dict:
+    """Run a checked config (``shared``: the checked config of :data:`SHARED_CONFIGS`); returns the one
+    JSON line's dict."""
+    from wbc_jax.sim import runner
+
+    if command == "info":
+        from wbc_jax.jobs import info
+
+        return info.run(cfg)
+    if command == "view":
+        from wbc_jax.jobs import view
+
+        path = view.view(cfg.run_dir, cfg.env, out=cfg.out, spawn=cfg.spawn)
+        return {"rrd": None if path is None else str(path), "spawned": bool(cfg.spawn)}
+    runner.enable_compilation_cache()
+    if command == "balance":
+        from wbc_jax.jobs import balance
+
+        return balance.run(cfg, progress=not quiet)
+    if command == "push-sweep":
+        from wbc_jax.jobs import sweep
+
+        summary = sweep.run_sweep(cfg, progress=not quiet)
+        keys = ("n_envs", "survival_rate", "upright_rate", "nan_envs", "qp_infeasible_envs", "backend",
+                "physics_steps_per_s", "compile_s", "run_s", "n_devices")  # fmt: skip
+        return {k: summary[k] for k in keys}
+    if command == "envelope":
+        from wbc_jax.jobs import envelope
+
+        found = envelope.search(cfg, progress=not quiet)
+        return {"rollouts": found["rollouts"], "grid_rollouts": found["grid_rollouts"], "rounds": found["rounds"],
+                "backend": found["backend"], "run_s": found["run_s"], "compile_s": found["compile_s"],
+                "impulse_ns": {str(a): e["impulse_ns"] for a, e in found["envelope"][0].items()}}  # fmt: skip
+    if command == "heldout":
+        from wbc_jax.tuning import heldout
+
+        return heldout.run(cfg, progress=not quiet)
+    from wbc_jax.tuning import campaign
+
+    return json.loads(json.dumps(campaign.run(cfg, shared, progress=not quiet), default=str))
+
+
 def push_sweep_config(flags: list[str]):
     """The checked config that ``wbc-jax push-sweep FLAGS`` would run: for the scripts of
     experiments/ that take the job's flags after ``--``."""
@@ -104,133 +168,46 @@ def push_sweep_config(flags: list[str]):
     return cfg
 
 
-def _info(args: argparse.Namespace) -> int:
-    from wbc_jax.robot import model
+def _initialize_distributed(args: argparse.Namespace) -> None:
+    """``jax.distributed.initialize`` from the flags (or, where they are left out, from SLURM's or
+    Open MPI's environment): after it every process sees the global device list, the batch of a
+    run is sharded over all of them and process 0 writes the results."""
+    import jax
 
-    print(json.dumps(model.summary(model.load_robot(args.robot)), indent=2))
-    return 0
-
-
-def _balance(args: argparse.Namespace) -> int:
-    from wbc_jax.jobs import balance
-    from wbc_jax.sim import runner
-
-    cfg = config_from_args(args, balance.default_config())
-    cfg.check()
-    runner.enable_compilation_cache()
-    print(balance.main_json_line(balance.run(cfg, progress=not args.quiet)))
-    return 0
-
-
-def _push_sweep(args: argparse.Namespace) -> int:
-    from wbc_jax.jobs import sweep, sweep_config
-    from wbc_jax.sim import runner
-
-    cfg = config_from_args(args, sweep_config.default_config())
-    cfg.check()
-    runner.enable_compilation_cache()
-    summary = sweep.run_sweep(cfg, progress=not args.quiet)
-    keys = ("n_envs", "survival_rate", "upright_rate", "nan_envs", "qp_infeasible_envs", "backend",
-            "physics_steps_per_s", "compile_s", "run_s", "n_devices")  # fmt: skip
-    print(json.dumps({k: summary[k] for k in keys}, separators=(",", ":")))
-    return 0
-
-
-def _envelope(args: argparse.Namespace) -> int:
-    from wbc_jax.jobs import envelope
-    from wbc_jax.sim import runner
-
-    cfg = config_from_args(args, envelope.default_config())
-    cfg.check()
-    runner.enable_compilation_cache()
-    found = envelope.search(cfg, resolution=args.resolution, progress=not args.quiet)
-    line = {"rollouts": found["rollouts"], "grid_rollouts": found["grid_rollouts"], "rounds": found["rounds"],
-            "backend": found["backend"],
-            "run_s": found["run_s"], "compile_s": found["compile_s"],
-            "impulse_ns": {str(a): e["impulse_ns"] for a, e in found["envelope"][0].items()}}  # fmt: skip
-    print(json.dumps(line, separators=(",", ":")))
-    return 0
-
-
-def _view(args: argparse.Namespace) -> int:
-    from wbc_jax.jobs import view
-
-    if args.spawn and args.out is not None:
-        raise ValueError("--out and --spawn exclude each other: write a file or open a viewer")
-    path = view.view(args.run_dir, args.env, out=args.out, spawn=args.spawn)
-    print(json.dumps({"rrd": None if path is None else str(path), "spawned": bool(args.spawn)}))
-    return 0
-
-
-def _tune(args: argparse.Namespace) -> int:
-    from wbc_jax.sim import runner
-    from wbc_jax.tuning import campaign, config
-
-    cfg = config_from_args(args, config.default_config())
-    cfg.check()
-    # The held-out fields shared with the tuning run (tasks, angular_weight_soft) are the run's.
-    hc = config_from_args(args, config.heldout_default_config())
-    runner.enable_compilation_cache()
-    summary = campaign.run(cfg, hc, progress=not args.quiet)
-    print(json.dumps(summary, separators=(",", ":"), default=str))
-    return 0
-
-
-def _heldout(args: argparse.Namespace) -> int:
-    from wbc_jax.sim import runner
-    from wbc_jax.tuning import config, heldout
-
-    cfg = config_from_args(args, config.heldout_default_config())
-    cfg.check()
-    runner.enable_compilation_cache()
-    print(json.dumps(heldout.run(cfg, progress=not args.quiet), separators=(",", ":")))
-    return 0
+    given = {"coordinator_address": args.coordinator, "num_processes": args.num_processes,
+             "process_id": args.process_id}  # fmt: skip
+    if any(v is not None for v in given.values()) and any(v is None for v in given.values()):
+        raise ValueError("--coordinator, --num-processes and --process-id go together (or none: from SLURM/MPI)")
+    if args.num_processes is not None and args.num_processes < 1:
+        raise ValueError(f"--num-processes must be a whole number >= 1, got {args.num_processes}")
+    if args.num_processes is not None and not 0 <= args.process_id < args.num_processes:
+        raise ValueError(f"--process-id must be in 0..{args.num_processes - 1}, got {args.process_id}")
+    if os.environ.get("JAX_PLATFORMS", "").startswith("cpu"):
+        # CPU devices of several processes talk through Gloo (no NCCL there).
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(**{k: v for k, v in given.items() if v is not None})
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from wbc_jax.jobs import balance, sweep_config
-    from wbc_jax.jobs.envelope import default_config as envelope_default
-    from wbc_jax.tuning import config as tune_config
-
     parser = _Parser(prog="wbc-jax", description=__doc__)
+    dist = parser.add_argument_group(
+        "several processes (jax.distributed; one process per host or per GPU, the same command in each)"
+    )
+    dist.add_argument("--distributed", action="store_true",
+                      help="join the processes with jax.distributed.initialize() before the job (under SLURM or "
+                           "Open MPI the addresses and ranks are read from the environment)")  # fmt: skip
+    dist.add_argument("--coordinator", default=None, metavar="HOST:PORT", help="process 0's address")
+    dist.add_argument("--num-processes", type=int, default=None, help="processes in all")
+    dist.add_argument("--process-id", type=int, default=None, help="this process's rank, 0..N-1")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
-    info = sub.add_parser("info", help="print the robot model summary as JSON")
-    info.add_argument("--robot", default="icub")
-    info.set_defaults(func=_info)
-
-    bal = sub.add_parser("balance", help="closed-loop balancing run: metrics, trajectory, plots")
-    add_config_arguments(bal, balance.default_config())
-    bal.add_argument("--quiet", action="store_true", help="no progress bar")
-    bal.set_defaults(func=_balance)
-
-    sw = sub.add_parser("push-sweep", help="batched push-recovery sweep (the main job)")
-    add_config_arguments(sw, sweep_config.default_config())
-    sw.add_argument("--quiet", action="store_true", help="no progress bar")
-    sw.set_defaults(func=_push_sweep)
-
-    ev = sub.add_parser("envelope", help="recovery envelope by batched bisection over the sweep's magnitudes")
-    add_config_arguments(ev, envelope_default())
-    ev.add_argument("--resolution", type=float, default=0.25, help="bracket width to reach [N s] (default: 0.25)")
-    ev.add_argument("--quiet", action="store_true", help="no progress bar")
-    ev.set_defaults(func=_envelope)
-
-    vw = sub.add_parser("view", help="log a run (or one env of a push sweep) to rerun: .rrd or viewer")
-    vw.add_argument("run_dir", help="output folder of a balance run or a push sweep")
-    vw.add_argument("--env", type=int, default=None, help="sweep env to re-simulate and show")
-    vw.add_argument("--out", default=None, help=".rrd file (default RUN_DIR/rollout.rrd or env_I.rrd)")
-    vw.add_argument("--spawn", action="store_true", help="open a rerun viewer instead of a file")
-    vw.set_defaults(func=_view)
-
-    tn = sub.add_parser("tune", help="gain tuning in phases: gradient, CMA-ES, random search, held-out evaluation")
-    add_config_arguments(tn, tune_config.default_config())
-    add_config_arguments(tn, tune_config.heldout_default_config(), skip=("out", "tasks", "angular_weight_soft"))
-    tn.add_argument("--quiet", action="store_true", help="no progress bar")
-    tn.set_defaults(func=_tune)
-
-    ho = sub.add_parser("heldout", help="gain files on the held-out grid, variations, one-foot task and sinusoid")
-    add_config_arguments(ho, tune_config.heldout_default_config())
-    ho.add_argument("--quiet", action="store_true", help="no progress bar")
-    ho.set_defaults(func=_heldout)
+    for command, (config, help_text) in job_configs().items():
+        job = sub.add_parser(command, help=help_text)
+        add_config_arguments(job, config)
+        if command in SHARED_CONFIGS:
+            other, skip = SHARED_CONFIGS[command]
+            add_config_arguments(job, job_configs()[other][0], skip=skip)
+        if command not in ("info", "view"):
+            job.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
 
 
@@ -241,13 +218,24 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
     args = build_parser().parse_args(argv)
     try:
-        return args.func(args)
-    except (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError) as err:
+        if args.distributed or args.coordinator is not None:
+            _initialize_distributed(args)  # before JAX starts (the checks below list its devices)
+        # Every job: the declared ranges and the job's own checks (config.check) before anything
+        # loads a program or writes a file.
+        cfg = config_from_args(args, job_configs()[args.command][0])
+        cfg.check()
+        shared = None
+        if args.command in SHARED_CONFIGS:
+            shared = config_from_args(args, job_configs()[SHARED_CONFIGS[args.command][0]][0])
+            shared = dataclasses.replace(shared, tasks=cfg.tasks, angular_weight_soft=cfg.angular_weight_soft)
+            shared.check()
+        line = _run_job(args.command, cfg, getattr(args, "quiet", False), shared)
+    except (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError,
+            ImportError, MemoryError) as err:  # fmt: skip
         print(f"wbc-jax {args.command}: error: {err}", file=sys.stderr)
         return 2
-    except ImportError as err:
-        print(f"wbc-jax {args.command}: error: {err}", file=sys.stderr)
-        return 2
+    print(json.dumps(line, indent=2) if args.command == "info" else json.dumps(line, separators=(",", ":")))
+    return 0
 
 
 if __name__ == "__main__":

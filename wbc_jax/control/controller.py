@@ -54,7 +54,7 @@ class ControllerConfig:
         momentum QP (1: WBC; < 1: the CoM first where a push asks more than the feet can give).
       normal_force_weight: desired normal forces against the torques in the force QP.
       freeze_postural_projector: hold the postural projector constant in derivatives (the earlier,
-        inexact gradient; kept for experiments/grad_check_sources.py).
+        inexact gradient; kept for comparison: docs/tuning/grad_check_sources.json).
       solution_damping, projector_reg: of the motion-task hierarchy (None: by precision,
         :data:`wbc_jax.control.hierarchy.SOLUTION_DAMPING` / :data:`wbc_jax.control.hierarchy.PROJECTOR_REG`).
       effort_damping: mu >= 0 of the hierarchy's effort-bounded pseudo-inverses
@@ -138,11 +138,8 @@ class ControllerConfig:
 def with_job_settings(base: ControllerConfig | None, forces: str, postural: str,
                       angular_weight_soft: float) -> ControllerConfig:  # fmt: skip
     """``base`` (default: the defaults) with a job's controller flags (``--forces``, ``--postural``,
-    ``--angular-weight-soft`` of balance, push-sweep and envelope); a bad value names its flag."""
-    if isinstance(angular_weight_soft, bool) or not (
-        isinstance(angular_weight_soft, (int, float)) and math.isfinite(angular_weight_soft) and angular_weight_soft > 0
-    ):
-        raise ValueError(f"--angular-weight-soft must be positive and finite, got {angular_weight_soft!r}")
+    ``--angular-weight-soft`` of balance, push-sweep and envelope; the jobs' configs check their
+    declared ranges first, :class:`ControllerConfig` checks the values again)."""
     return dataclasses.replace(base or ControllerConfig(), forces=forces, postural=postural,
                                angular_weight_soft=angular_weight_soft)  # fmt: skip
 

@@ -3,13 +3,11 @@ their WBC defaults, checks and gains files."""
 
 from __future__ import annotations
 
-import json
-import pathlib
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wbc_jax.core import io
 from wbc_jax.core.constants import GAIN_FIELDS, GAIN_RANGES, NON_NEGATIVE_GAINS, default_gain_values
 from wbc_jax.core.types import Array, pytree_dataclass
 
@@ -73,10 +71,13 @@ def gains_from_dict(values: dict, n: int = 23, dtype=jnp.float32, source: str = 
         raise ValueError(f"{source}: unknown keys {unknown}, missing keys {missing}; expected {list(GAIN_FIELDS)}")
     arrays = {}
     for k in GAIN_FIELDS:
+        size = n if k.endswith("postural") else 3
         try:
             arrays[k] = np.asarray(values[k], dtype=float)
-        except (TypeError, ValueError) as err:
-            raise ValueError(f"{source}: gain {k} must be a list of numbers, got {values[k]!r}") from err
+        except (TypeError, ValueError):
+            raise ValueError(f"{source}: gain {k} must be a list of {size} numbers, got {values[k]!r}") from None
+        if arrays[k].shape != (size,):  # one gain set: a list, not a table
+            raise ValueError(f"{source}: gain {k} must be a list of {size} numbers, got shape {arrays[k].shape}")
     gains = Gains(**arrays)
     try:
         validate_gains(gains, n)
@@ -91,13 +92,5 @@ def gains_from_dict(values: dict, n: int = 23, dtype=jnp.float32, source: str = 
 
 def load_gains(path, n: int = 23, dtype=jnp.float32) -> Gains:
     """Read a gains JSON file (as written by ``wbc-jax tune`` or :func:`gains_to_dict`)."""
-    path = pathlib.Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"gains file {path} does not exist")
-    if not path.is_file():
-        raise ValueError(f"gains file {path} is not a file (a directory?); give a JSON file")
-    try:
-        values = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise ValueError(f"gains file {path} is not valid JSON: {err}") from err
+    values = io.read_json(path, "gains")
     return gains_from_dict(values, n, dtype, source=f"gains file {path}")

@@ -17,6 +17,8 @@ from wbc_jax.core.constants import min_jerk
 from wbc_jax.core.types import Array, pytree_dataclass
 
 TASKS = ("stand", "sinusoid", "one-foot")
+# Each task's length when none is given (s).
+DEFAULT_DURATIONS = {"stand": 10.0, "sinusoid": 20.0, "one-foot": 16.0}
 
 
 @pytree_dataclass
@@ -111,12 +113,12 @@ def make_schedule(
     if duration is not None and not (np.isfinite(duration) and duration > 0):
         raise ValueError(f"duration must be positive, got {duration}")
     if task == "stand":
-        return Schedule("stand", duration or 10.0, com0, s0)
+        return Schedule("stand", duration or DEFAULT_DURATIONS["stand"], com0, s0)
     if task == "sinusoid":
         if not (amplitude >= 0 and frequency > 0):
             raise ValueError("sinusoid amplitude must be >= 0 and frequency > 0")
         return Schedule(
-            "sinusoid", duration or 20.0, com0, s0,
+            "sinusoid", duration or DEFAULT_DURATIONS["sinusoid"], com0, s0,
             sine_amplitude=amplitude, sine_frequency=frequency,
         )  # fmt: skip
     # One-foot sequence (WBC YOGA state machine, simplified), seconds:
@@ -134,6 +136,6 @@ def make_schedule(
     post_seg = ((5.5, 9.0), (1.5, 2.0), np.stack([lift, -lift]))
     act_seg = ((4.0, 11.5), (1.0, 1.0), np.array([[0.0, -1.0], [0.0, 1.0]]))
     return Schedule(
-        "one-foot", duration or 16.0, com0, s0,
+        "one-foot", duration or DEFAULT_DURATIONS["one-foot"], com0, s0,
         com_segments=com_seg, posture_segments=post_seg, activation_segments=act_seg,
     )  # fmt: skip

@@ -4,11 +4,14 @@ the tasks against the robot; :mod:`wbc_jax.robot.scene` builds the contacts' sce
 
 from __future__ import annotations
 
+import json
 import math
+import pathlib
 
 import numpy as np
 
 from wbc_jax.control.tasks import MotionTask, task_from_dict
+from wbc_jax.core import io
 from wbc_jax.robot.model import Robot
 
 SPEC_KEYS = ("tasks", "contacts", "scene", "initial_posture_deg")
@@ -25,27 +28,24 @@ def load_spec_file(path) -> dict:
 
     Returns a dict with those keys (``tasks`` as :class:`MotionTask` list or None).
     """
-    import json
-    import pathlib
-
     path = pathlib.Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"task file {path} does not exist")
-    text = path.read_text()
+    if path.suffix not in (".json", ".yaml", ".yml"):
+        raise ValueError(f"task file {path}: unknown format {path.suffix!r}; valid: .json, .yaml, .yml")
+    text = io.read_text(path, "task")
     if path.suffix in (".yaml", ".yml"):
         import yaml
 
         try:
-            data = yaml.safe_load(text)
+            data = yaml.load(text, Loader=_yaml_loader())
         except yaml.YAMLError as err:
-            raise ValueError(f"task file {path} is not valid YAML: {err}") from err
-    elif path.suffix == ".json":
+            where = getattr(err, "problem_mark", None)
+            at = f" (line {where.line + 1}, column {where.column + 1})" if where is not None else ""
+            raise ValueError(f"task file {path} is not valid YAML{at}: {getattr(err, 'problem', err)}") from None
+    else:
         try:
             data = json.loads(text)
         except json.JSONDecodeError as err:
-            raise ValueError(f"task file {path} is not valid JSON: {err}") from err
-    else:
-        raise ValueError(f"task file {path}: unknown format {path.suffix!r}; valid: .json, .yaml, .yml")
+            raise ValueError(f"task file {path} is not valid JSON: {err}") from None
     if isinstance(data, list):
         data = {"tasks": data}
     if not isinstance(data, dict) or not set(data) & {"tasks", "contacts"}:
@@ -69,6 +69,21 @@ def load_spec_file(path) -> dict:
         "scene": data.get("scene") or [],
         "initial_posture_deg": posture,
     }
+
+
+def _yaml_loader():
+    """PyYAML's safe loader that also reads ``1e3`` as a number (YAML 1.1 wants ``1.0e+3``: its
+    plain ``1e3`` is a string, a trap for every number of a task file)."""
+    import re
+
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    exponent = re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$")
+    Loader.add_implicit_resolver("tag:yaml.org,2002:float", exponent, list("-+0123456789"))
+    return Loader
 
 
 def load_stack_file(path) -> list[MotionTask]:

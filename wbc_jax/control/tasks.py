@@ -29,6 +29,11 @@ TASK_KINDS = ("position", "orientation", "com", "base_orientation", "joints", "p
 REFERENCE_KINDS = ("constant", "circle")
 TASK_DIMENSIONS = {"position": 3, "orientation": 3, "com": 3, "base_orientation": 3}
 AXES = {"x": 0, "y": 1, "z": 2}
+# Ranges of a task file's numbers.
+MAX_TASK_GAIN = 1e6  # kp, kd, weight
+MAX_CIRCLE_RADIUS_M = 1.0  # beyond the arms' reach
+MAX_CIRCLE_FREQUENCY_HZ = 10.0
+MAX_RAMP_S = 600.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -176,8 +181,8 @@ def _per_row(name: str, value, rows: int) -> tuple[float, ...]:
     arr = np.atleast_1d(np.asarray(value, dtype=float))
     if arr.shape not in ((1,), (rows,)):
         raise ValueError(f"task gain {name} must be a number or have {rows} entries, got {arr.shape}")
-    if not np.all(np.isfinite(arr)) or np.any(arr < 0):
-        raise ValueError(f"task gain {name} must be finite and non-negative, got {arr.tolist()}")
+    if not np.all(np.isfinite(arr)) or np.any(arr < 0) or np.any(arr > MAX_TASK_GAIN):
+        raise ValueError(f"task gain {name} must be in [0, {MAX_TASK_GAIN:g}], got {arr.tolist()}")
     return tuple(float(x) for x in np.broadcast_to(arr, (rows,)))
 
 
@@ -254,8 +259,8 @@ def resolve(robot: Robot, stack, qpos: np.ndarray | None = None) -> TaskStack:
     for task, priority in zip(tasks[:-1], priorities[:-1], strict=True):
         if task.kind not in TASK_KINDS:
             raise ValueError(f"task {task.name!r}: unknown kind {task.kind!r}; valid kinds: {list(TASK_KINDS)}")
-        if not (math.isfinite(task.weight) and task.weight > 0):
-            raise ValueError(f"task {task.name!r}: weight must be positive, got {task.weight}")
+        if not (math.isfinite(task.weight) and 0 < task.weight <= MAX_TASK_GAIN):
+            raise ValueError(f"task {task.name!r}: weight must be in (0, {MAX_TASK_GAIN:g}], got {task.weight}")
         ref = task.reference
         if ref.kind not in REFERENCE_KINDS:
             raise ValueError(f"task {task.name!r}: unknown reference kind {ref.kind!r}; valid: {list(REFERENCE_KINDS)}")
@@ -281,8 +286,11 @@ def resolve(robot: Robot, stack, qpos: np.ndarray | None = None) -> TaskStack:
         if ref.kind == "circle":
             if task.kind not in ("position", "com"):
                 raise ValueError(f"task {task.name!r}: a circle reference needs a position or com task")
-            if not (ref.radius > 0 and ref.frequency > 0 and ref.ramp >= 0):
-                raise ValueError(f"task {task.name!r}: circle needs radius > 0, frequency > 0, ramp >= 0")
+            if not (0 < ref.radius <= MAX_CIRCLE_RADIUS_M and 0 < ref.frequency <= MAX_CIRCLE_FREQUENCY_HZ
+                    and 0 <= ref.ramp <= MAX_RAMP_S):  # fmt: skip
+                raise ValueError(f"task {task.name!r}: circle needs radius in (0, {MAX_CIRCLE_RADIUS_M:g}] m, "
+                                 f"frequency in (0, {MAX_CIRCLE_FREQUENCY_HZ:g}] Hz and ramp in [0, {MAX_RAMP_S:g}] "
+                                 f"s, got {ref.radius}, {ref.frequency}, {ref.ramp}")  # fmt: skip
             axes = [a.lstrip("+-") for a in ref.plane]
             if len(ref.plane) != 2 or any(a not in AXES for a in axes) or axes[0] == axes[1]:
                 raise ValueError(

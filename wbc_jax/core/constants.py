@@ -52,6 +52,20 @@ def default_gain_values(n: int = 23) -> dict[str, np.ndarray]:
 
 
 # ---------------------------------------------------------------------------------------------
+# Physical ranges of the jobs' flags (wbc_jax.core.options declarations; one place for all jobs)
+
+MAX_HORIZON_S = 600.0  # simulated seconds of one rollout: ten minutes of balancing
+MAX_PUSH_N = 5000.0  # 15 g on the 33 kg iCub for the push's length
+MAX_PUSH_DURATION_S = 60.0
+MAX_JOINT_NOISE_RAD = 0.5  # 29 deg std: beyond it the initial postures leave the joint ranges
+FRICTION_RANGE = (0.01, 10.0)  # floor friction of the plant
+MASS_SCALE_RANGE = (0.1, 10.0)  # plant mass scale
+GAIN_SCALE_RANGE = (0.01, 100.0)  # scalings of a gain set
+ANGULAR_WEIGHT_RANGE = (0.0, 1e4)  # the soft QP's angular weight: (open, closed]
+MAX_SOLVER_ITERATIONS = 1000
+MAX_SEED = 2**32 - 1
+
+# ---------------------------------------------------------------------------------------------
 # Closed loop and metrics
 
 CONTROL_DT = 0.01  # s: the controller at 100 Hz (physics at the model's 1 kHz)
@@ -70,7 +84,7 @@ SURVIVAL_MAX_TILT_DEG = 5.0
 SURVIVAL_END_COM_SPEED = 0.05  # m/s: CoM speed at the end
 # Tuned gains must keep the seed's task: CoM RMSE on the 20 s sinusoid (issue 20's bound).
 SINUSOID_MAX_COM_RMSE_M = 1.5e-3
-# Tuning bounds that keep that bound (docs/tuning/README.md "Keeping the seed's task", measured on
+# Tuning bounds that keep that bound (docs/tuning/HISTORY.md "Keeping the seed's task", measured on
 # the tuned sets of 2026-11-25): K_P,CoM in x and y at least this, and the yaw (z) entries of the
 # angular-momentum task, K_I,w and its damping ratio, at least this fraction of the WBC defaults.
 TRACKING_KP_COM_FLOOR = 30.0

@@ -1,4 +1,4 @@
-"""Results on disk: atomic writes, gains files."""
+"""Files: input text read with one-line errors naming the file; results written atomically."""
 
 from __future__ import annotations
 
@@ -44,7 +44,39 @@ _UMASK = _read_umask()
 
 
 def atomic_write_json(path: pathlib.Path, obj) -> None:
-    atomic_write_bytes(path, (json.dumps(obj, indent=2, default=_jsonable) + "\n").encode())
+    atomic_write_bytes(path, _json_bytes(obj))
+
+
+def write_new_json(path: pathlib.Path, obj) -> None:
+    """Write ``obj`` as JSON to a file that must not exist yet (or already hold exactly this): a
+    result names its gains file by path and sha256, so a gains file is never overwritten; a later
+    campaign writes a new, named file (experiments/gains/README.md)."""
+    path, data = pathlib.Path(path), _json_bytes(obj)
+    if path.exists():
+        if path.read_bytes() == data:
+            return
+        raise FileExistsError(f"{path} exists with other contents; results name it by its sha256, so it is never "
+                              "overwritten: write a new, named file")  # fmt: skip
+    atomic_write_bytes(path, data)
+
+
+def is_gains_file(path) -> bool:
+    """Is ``path`` a gains file: a JSON object whose keys are exactly the gain names
+    (constants.GAIN_FIELDS)? (Reading it as gains, with its values checked: control.gains.load_gains.)"""
+    from wbc_jax.core.constants import GAIN_FIELDS
+
+    path = pathlib.Path(path)
+    if path.suffix != ".json" or not path.is_file():
+        return False
+    try:
+        values = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        return False
+    return isinstance(values, dict) and set(values) == set(GAIN_FIELDS)
+
+
+def _json_bytes(obj) -> bytes:
+    return (json.dumps(obj, indent=2, default=_jsonable) + "\n").encode()
 
 
 def atomic_save_npz(path: pathlib.Path, **arrays) -> None:
@@ -73,3 +105,29 @@ def atomic_save_figure(path: pathlib.Path, fig, dpi: int = 110) -> None:
     buf = io.BytesIO()
     fig.savefig(buf, dpi=dpi, format="png")
     atomic_write_bytes(path, buf.getvalue())
+
+
+def read_text(path, what: str) -> str:
+    """The UTF-8 text of ``path``; one line naming ``what`` and the file when it cannot be read
+    (missing, a folder, not readable, not UTF-8)."""
+    path = pathlib.Path(path)
+    try:
+        return path.read_bytes().decode("utf-8")
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{what} file {path} does not exist") from None
+    except IsADirectoryError:
+        raise ValueError(f"{what} {path} is not a file (a directory?)") from None
+    except PermissionError:
+        raise ValueError(f"{what} file {path} is not readable (permission denied)") from None
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{what} file {path} is not UTF-8 text (byte {err.start}: {err.reason})") from None
+    except OSError as err:
+        raise ValueError(f"{what} file {path} cannot be read ({err.strerror})") from None
+
+
+def read_json(path, what: str):
+    """The JSON value of ``path`` (:func:`read_text`); one line naming the file when it is not JSON."""
+    try:
+        return json.loads(read_text(path, what))
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{what} file {path} is not valid JSON: {err}") from None

@@ -4,9 +4,11 @@ contents (sha256) of every input file, in one format for every job and script.
     record(inputs={"gains": "experiments/gains/x.json"}) -> {"command": ..., "device": ...,
         "version": ..., "date": ..., "inputs": {"gains": {"path": ..., "sha256": ...}}}
 
-:func:`check_inputs` reads such a record back and names every input whose file has changed since,
-so a figure whose gains file was later overwritten is caught (tests/test_provenance.py runs it over
-every result file in docs/).
+:func:`check_inputs` reads such a record back and names every input of the repository whose file
+has changed since, so a figure whose gains file was later overwritten is caught;
+:func:`mentioned_files` lists the repository files a result names anywhere (its command, config,
+notes), so a gains file named without its sha256 is caught too (tests/test_provenance.py runs both
+over every result file in docs/).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import datetime
 import hashlib
 import os
 import pathlib
+import re
 import shlex
 import sys
 
@@ -29,6 +32,11 @@ def sha256(path) -> str:
         for block in iter(lambda: fh.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
+
+
+def sha256_bytes(data: bytes) -> str:
+    """Hex sha256 of bytes (a file's contents at some commit)."""
+    return hashlib.sha256(data).hexdigest()
 
 
 def display_path(path) -> str:
@@ -56,7 +64,14 @@ def command(argv: list[str] | None = None) -> str:
     return shlex.join([*head, *argv[1:]])
 
 
-def _cpu_name() -> str:
+def script_argv(script, argv: list[str] | None = None) -> list[str]:
+    """The command line of a script's ``main(argv)``: ``sys.argv`` when it runs from the shell
+    (argv None), else the script's path and ``argv``; for :func:`command` and :func:`record`."""
+    return list(sys.argv) if argv is None else [str(script), *argv]
+
+
+def cpu_name() -> str:
+    """The host CPU's model name."""
     try:
         for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
@@ -75,7 +90,7 @@ def device() -> dict:
 
     devices = jax.devices()
     first = devices[0]
-    kind = _cpu_name() if first.platform == "cpu" else first.device_kind
+    kind = cpu_name() if first.platform == "cpu" else first.device_kind
     return {"platform": first.platform, "kind": kind, "count": len(devices),
             "processes": jax.process_count(), "host_cores": os.cpu_count()}  # fmt: skip
 
@@ -107,15 +122,58 @@ def record(inputs: dict | None = None, *, argv: list[str] | None = None, with_de
     return out
 
 
+def in_repository(path: str) -> bool:
+    """Is a recorded path one of the repository's files (relative, not under the ignored runs/)?"""
+    p = pathlib.PurePosixPath(path)
+    return not p.is_absolute() and p.parts[:1] != ("runs",)
+
+
 def check_inputs(result: dict, base: pathlib.Path = REPO_ROOT) -> list[str]:
-    """The inputs of a recorded result (its ``provenance.inputs``) whose files now differ or are
-    gone: one line each, empty when the record still reproduces."""
+    """The inputs of a recorded result (its ``provenance.inputs``) that the repository holds and
+    whose files now differ or are gone: one line each, empty when the record still reproduces.
+    (Inputs outside the repository, e.g. a run folder's gains, are named by sha256 only.)"""
     problems = []
     for name, entry in (result.get("provenance", {}).get("inputs") or {}).items():
-        path = pathlib.Path(entry["path"])
-        path = path if path.is_absolute() else base / path
+        if not in_repository(entry["path"]):
+            continue
+        path = base / entry["path"]
         if not path.is_file():
             problems.append(f"{name}: {entry['path']} is missing")
         elif sha256(path) != entry["sha256"]:
             problems.append(f"{name}: {entry['path']} has changed since (sha256 {entry['sha256'][:12]}...)")
     return problems
+
+
+# A repository file named in a result's text: experiments/... or docs/... (relative, or absolute with
+# the repository's folder before it), ending in .json, .yaml or .yml.
+_NAMED_FILE = re.compile(r"(?<![\w./-])((?:/[\w.-]+)*/?(?:experiments|docs)/[\w./-]*?\.(?:json|ya?ml))(?![\w-])")
+
+
+def _relative(token: str) -> str:
+    if not token.startswith("/"):
+        return token
+    return token[min(i for i in (token.find("/experiments/"), token.find("/docs/")) if i >= 0) + 1 :]
+
+
+def mentioned_files(result) -> set[str]:
+    """Repository paths (experiments/..., docs/...; .json, .yaml) named in any string of a result,
+    absolute spellings made relative: the files its command, config and notes refer to."""
+    found = set()
+
+    def walk(x):
+        if isinstance(x, dict):
+            for v in x.values():
+                walk(v)
+        elif isinstance(x, list):
+            for v in x:
+                walk(v)
+        elif isinstance(x, str):
+            found.update(_relative(t) for t in _NAMED_FILE.findall(x))
+
+    walk(result)
+    return found
+
+
+def spellings(text: str, path: str) -> set[str]:
+    """The substrings of ``text`` that name the repository file ``path`` (relative or absolute)."""
+    return {t for t in _NAMED_FILE.findall(text) if _relative(t) == path}

@@ -22,6 +22,8 @@ from typing import Any, TypeVar
 
 import jax
 
+from wbc_jax.core.options import option  # noqa: F401  (job-config fields, declared there)
+
 Array = jax.Array
 T = TypeVar("T")
 
@@ -43,12 +45,3 @@ def pytree_dataclass(cls: type[T]) -> type[T]:
     jax.tree_util.register_dataclass(cls, data_fields=data, meta_fields=meta)
     cls.replace = lambda self, **kw: dataclasses.replace(self, **kw)  # type: ignore[attr-defined]
     return cls
-
-
-def option(default: Any, help: str, **cli: Any) -> Any:
-    """A job-config field with its command-line help; ``cli`` entries shape the generated flag:
-    ``choices``, ``metavar``, ``nargs``, ``parse`` (the flag's values -> the field's value),
-    ``show`` (the field's default -> the flag's default), ``flag`` (another flag name)."""
-    if isinstance(default, (list, dict)):
-        raise TypeError("mutable defaults are not allowed; use a tuple")
-    return dataclasses.field(default=default, metadata={"help": help, **cli})

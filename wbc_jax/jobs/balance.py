@@ -4,7 +4,6 @@ trajectory and plots."""
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import pathlib
 import time
@@ -16,8 +15,9 @@ from wbc_jax.control import references
 from wbc_jax.control.controller import FORCE_MODES, ControllerConfig, with_job_settings
 from wbc_jax.control.gains import gains_to_dict, load_gains
 from wbc_jax.control.torques import POSTURAL_VARIANTS
+from wbc_jax.core import constants as limits
 from wbc_jax.core import io, provenance
-from wbc_jax.core.types import option
+from wbc_jax.core.options import check_options, option
 from wbc_jax.jobs import runs
 from wbc_jax.report import plots
 from wbc_jax.sim import metrics as metrics_lib
@@ -27,49 +27,52 @@ from wbc_jax.sim.state import SimConfig
 
 @dataclasses.dataclass(frozen=True)
 class BalanceConfig:
-    """A balance run (the CLI flags of ``wbc-jax balance`` are generated from these fields)."""
+    """A balance run (the CLI flags of ``wbc-jax balance`` are generated from these fields, and
+    their declared ranges are checked by :meth:`check`)."""
 
     task: str = option("stand", "balance task", choices=references.TASKS)
-    duration: float | None = option(None, "seconds (default: the task's: stand 10, sinusoid 20, one-foot 16)")
+    duration: float | None = option(None, "seconds (default: the task's: stand 10, sinusoid 20, one-foot 16)",
+                                    gt=0.0, le=limits.MAX_HORIZON_S, unit="s")  # fmt: skip
     forces: str = option("qp", "force distribution", choices=FORCE_MODES)
     postural: str = option("stable", "postural task variant", choices=POSTURAL_VARIANTS)
     angular_weight_soft: float = option(
         1.0, "soft momentum QP: weight of the angular-momentum rate against the linear one where a push asks for "
         "more than the feet can give (1: WBC; < 1: the CoM first, the upper body absorbs the rest)",
+        gt=limits.ANGULAR_WEIGHT_RANGE[0], le=limits.ANGULAR_WEIGHT_RANGE[1],
     )  # fmt: skip
-    gains: str | None = option(None, "gains JSON file (default: WBC iCubGazeboV2_5)", metavar="FILE")
+    gains: str | None = option(None, "gains JSON file (default: WBC iCubGazeboV2_5)", metavar="FILE", input_file=True)
     tasks: str | None = option(
         None, "task/contact file (JSON/YAML): motion tasks, contacts, scene objects, initial posture; "
         "e.g. experiments/tasks/reach_circle.yaml, experiments/tasks/hand_on_table.yaml", metavar="FILE",
+        input_file=True,
     )  # fmt: skip
     push_force: tuple[float, float, float] | None = option(
-        None, "push on the chest, world axes [N]", nargs=3, metavar=("FX", "FY", "FZ")
-    )
-    push_onset: float = option(1.0, "push start [s]")
-    push_duration: float = option(0.1, "push length [s]")
-    control_dt: float = option(0.01, "controller period [s], a multiple of the 1 ms physics step")
-    solver_iterations: int | None = option(None, "contact solver Newton iterations (default: the model's, 4)")
+        None, "push on the chest, world axes [N]", nargs=3, metavar=("FX", "FY", "FZ"),
+        ge=-limits.MAX_PUSH_N, le=limits.MAX_PUSH_N, unit="N",
+    )  # fmt: skip
+    push_onset: float = option(1.0, "push start [s]", ge=0.0, lt=limits.MAX_HORIZON_S, unit="s")
+    push_duration: float = option(0.1, "push length [s]", gt=0.0, le=limits.MAX_PUSH_DURATION_S, unit="s")
+    control_dt: float = option(0.01, "controller period [s], a multiple of the 1 ms physics step", ge=0.001, le=0.1,
+                               unit="s")  # fmt: skip
+    solver_iterations: int | None = option(None, "contact solver Newton iterations (default: the model's, 4)",
+                                           ge=1, le=limits.MAX_SOLVER_ITERATIONS)  # fmt: skip
     backend: str = option("auto", "physics engine (auto: C MuJoCo on a CPU, MJX on a GPU)", choices=physics.BACKENDS)
-    out: str = option("runs/balance", "output folder")
+    out: str | None = option("runs/balance", "output folder")
     plots: bool = option(True, "write PNG plots")
 
     def check(self) -> None:
-        """Every check that needs no model or compilation."""
-        if self.duration is not None and not (math.isfinite(self.duration) and self.duration > 0):
-            raise ValueError(f"--duration must be a positive finite number of seconds, got {self.duration}")
-        for name in ("push_onset", "push_duration"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"--{name.replace('_', '-')} must be a finite number of seconds >= 0, got {value}")
-        if self.push_force is not None:
-            scenario.make_push(self.push_force, self.push_onset, self.push_duration)
-        if not (math.isfinite(self.control_dt) and self.control_dt > 0):
-            raise ValueError(f"--control-dt must be a positive number of seconds, got {self.control_dt}")
-        physics.PhysicsConfig(backend=self.backend, solver_iterations=self.solver_iterations)
+        """Every check that compiles nothing: the declared ranges, then what ties the flags together."""
+        check_options(self)
+        duration = self.duration or references.DEFAULT_DURATIONS[self.task]
+        if self.push_force is not None and self.push_onset + self.push_duration >= duration:
+            raise ValueError(f"the push (--push-onset {self.push_onset:g} + --push-duration {self.push_duration:g} s) "
+                             f"must end inside the run (--duration {duration:g} s)")  # fmt: skip
+        physics.resolve_backend(self.backend)
         self.controller_config()
-        for name, path in (("gains", self.gains), ("tasks", self.tasks)):
-            runs.check_input_file(path, name)
-        runs.check_output_dir(self.out, "balance")
+        runs.check_output_dir(self.out, "balance", self.fingerprint())
+
+    def fingerprint(self) -> dict:
+        return runs.fingerprint(dataclasses.asdict(self), [self.gains, self.tasks])
 
     def controller_config(self, base: ControllerConfig | None = None) -> ControllerConfig:
         """``base`` (default: the defaults) with this run's controller settings."""
@@ -116,7 +119,7 @@ def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: 
     st = make_setup(cfg, robot_name, controller)
     out = None if cfg.out is None else pathlib.Path(cfg.out)
     if out is not None:
-        runs.claim_output_dir(out, "balance", runs.fingerprint(dataclasses.asdict(cfg), [cfg.gains, cfg.tasks]))
+        runs.claim_output_dir(out, "balance", cfg.fingerprint())
     push, push_end = None, 0.0
     if cfg.push_force is not None:
         push = scenario.make_push(cfg.push_force, cfg.push_onset, cfg.push_duration, st.dtype)
@@ -220,7 +223,3 @@ def contact_tracking(cset, traj: dict, after: float = 1.0) -> dict:
         entry["max_drift_m"] = float(np.max(np.linalg.norm(p - p[0], axis=1)))
         out[c.name] = entry
     return out
-
-
-def main_json_line(result: dict) -> str:
-    return json.dumps(result, separators=(",", ":"))

@@ -14,7 +14,7 @@ is the sweep's (strict) criterion. The search assumes it is monotone in the impu
 monotone envelope does; where it is, phase 1 brackets the grid's monotone envelope exactly when
 both see the same outcomes on the grid's impulses (a continuous bisection does not: it steps over
 grid impulses, and a boundary set by two thresholds crossed tangentially is not monotone between
-them, BENCHMARKS.md). Survival islands near the boundary (experiments/island_check.py) and
+them, BENCHMARKS.md). Survival islands near the boundary (experiments/checks/island_check.py) and
 run-to-run variation of the engine can still move it by a grid step.
 """
 
@@ -24,11 +24,14 @@ import dataclasses
 import math
 import pathlib
 from collections.abc import Callable
+from typing import ClassVar
 
+import jax
 import numpy as np
 
 from wbc_jax.control.gains import gains_to_dict
-from wbc_jax.core import io, provenance
+from wbc_jax.core import constants, io, provenance
+from wbc_jax.core.options import option
 from wbc_jax.jobs import runs, sweep, sweep_config, sweep_table
 from wbc_jax.robot import model
 from wbc_jax.sim import metrics as metrics_lib
@@ -36,11 +39,40 @@ from wbc_jax.sim import runner, scenario
 
 # The grid of the documented sweeps (docs/sweep_h100): 64 chest pushes of 10-400 N for 0.1 s.
 DEFAULT_MAGNITUDES = tuple(float(x) for x in np.linspace(10.0, 400.0, 64))
+# Bisection rounds inside one grid step at most: 2^-20 of a step is far below any engine's
+# run-to-run variation.
+MAX_REFINE_ROUNDS = 20
 
 
-def default_config() -> sweep_config.SweepConfig:
+@dataclasses.dataclass(frozen=True)
+class EnvelopeConfig(sweep_config.SweepConfig):
+    """An envelope search: the sweep's fields (its grid of impulses: magnitudes x push duration)
+    and the bracket width to reach. The CLI flags of ``wbc-jax envelope`` are generated from
+    these fields."""
+
+    magnitudes: tuple[float, ...] = option(
+        DEFAULT_MAGNITUDES, "push force grid [N]: LO HI N (the impulses searched: each x --push-duration)", nargs=3,
+        metavar=("LO", "HI", "N"), parse=sweep_config._grid, show=sweep_config._show_grid, gt=0.0,
+        le=constants.MAX_PUSH_N, unit="N", nonempty=True,
+    )  # fmt: skip
+    chunk_size: int = option(1024, "searches per compiled batch (at most the searches; its memory is estimated and "
+                             "checked before it is allocated)", ge=1, le=sweep_config.MAX_ENVS)  # fmt: skip
+    out: str | None = option("runs/envelope", "output folder")
+    KIND: ClassVar[str] = "envelope"
+    resolution: float = option(0.25, "bracket width to reach [N s]", ge=1e-3, le=1e3, unit="N s")
+
+    def check(self) -> None:
+        super().check()
+        impulses = np.unique(np.asarray(self.magnitudes, float)) * self.push_duration
+        _, refine = rounds_needed(impulses, self.resolution)
+        if refine > MAX_REFINE_ROUNDS:
+            raise ValueError(f"--resolution {self.resolution:g} N s needs {refine} bisection rounds inside a grid step "
+                             f"of this grid, more than {MAX_REFINE_ROUNDS}; use a coarser resolution")  # fmt: skip
+
+
+def default_config() -> EnvelopeConfig:
     """The sweep's defaults on the grid of the documented sweeps."""
-    return dataclasses.replace(sweep_config.default_config(), magnitudes=DEFAULT_MAGNITUDES, out="runs/envelope")
+    return EnvelopeConfig()
 
 
 def rounds_needed(impulses: np.ndarray, resolution: float) -> tuple[int, int]:
@@ -94,33 +126,31 @@ def bisect(impulses: np.ndarray, survives: Callable[[np.ndarray, np.ndarray], np
     return {"lo": lo, "hi": hi, "grid_lo": grid_lo, "at_cap": ~failed_in_grid, "rollouts": rollouts, "rounds": rounds}
 
 
-def search(cfg: sweep_config.SweepConfig, *, resolution: float = 0.25, robot_name: str = "icub",
+def search(cfg: sweep_config.SweepConfig, *, resolution: float | None = None, robot_name: str = "icub",
            progress: bool = True) -> dict:  # fmt: skip
-    """The largest survived impulse per direction (and gain set) of ``cfg`` to ``resolution`` N s,
-    by :func:`bisect` over the impulses of the sweep's grid (``cfg.magnitudes`` x
+    """The largest survived impulse per direction (and gain set) of ``cfg`` to its ``resolution``
+    N s (a :class:`~wbc_jax.jobs.sweep_config.SweepConfig` is searched at ``resolution``, default
+    0.25, in batches of the envelope's default chunk size), by :func:`bisect` over the impulses of the sweep's grid (``cfg.magnitudes`` x
     ``cfg.push_duration``). Each search keeps one draw of the plant and posture perturbations for
-    all its rounds.
+    all its rounds; each round runs the open searches in batches of ``cfg.chunk_size`` (and
+    ``cfg.queue`` scenarios per batch slot).
 
     Returns {"envelope": {gain set: {azimuth: {"impulse_ns", "bracket_ns", "grid_impulse_ns",
     "at_cap", "bound_impulse_ns", "fraction_of_bound"}}}, "rollouts", "rounds", "run_s",
     "compile_s", ...}; writes summary.json into ``cfg.out`` when set."""
     from tqdm.auto import tqdm
 
+    if not isinstance(cfg, EnvelopeConfig):  # a sweep's grid and settings; its chunk size is the grid's, not ours
+        cfg = EnvelopeConfig(**{**dataclasses.asdict(cfg), "chunk_size": EnvelopeConfig.chunk_size},
+                             resolution=0.25 if resolution is None else resolution)  # fmt: skip
+    elif resolution is not None:
+        cfg = dataclasses.replace(cfg, resolution=resolution)
     cfg.check()
-    if not (math.isfinite(resolution) and resolution > 0):
-        raise ValueError(f"--resolution must be a positive number of N s, got {resolution}")
+    resolution = cfg.resolution
     magnitudes = np.unique(np.asarray(cfg.magnitudes, float))
-    if magnitudes[0] <= 0 or cfg.push_duration <= 0:
-        raise ValueError(
-            f"the envelope searches over push impulses: --magnitudes and --push-duration must be > 0, got "
-            f"{list(cfg.magnitudes)} N for {cfg.push_duration} s"
-        )
-    if cfg.out is not None:
-        runs.check_output_dir(cfg.out, "envelope")
     dtype = scenario.float_dtype()
     robot = model.load_robot(robot_name)
     base = sweep.base_gains(cfg, robot.index.n, dtype)
-    robot.index.body_id(cfg.body)
     st = sweep.make_setup(cfg, base, robot_name=robot_name)
     rng = np.random.default_rng(cfg.seed)
     sets = sweep.gain_sets(base, cfg.gain_sets, cfg.gain_scale_range, rng)
@@ -128,6 +158,10 @@ def search(cfg: sweep_config.SweepConfig, *, resolution: float = 0.25, robot_nam
         a.ravel() for a in np.meshgrid(np.asarray(cfg.directions, float), np.arange(cfg.gain_sets), indexing="ij")
     )
     K = azi.size
+    batch = min(cfg.chunk_size, K)
+    runner.check_memory(st, batch, envs=K, queue=cfg.queue, flag="--chunk-size")
+    if cfg.out is not None:
+        runs.claim_output_dir(cfg.out, cfg.KIND, cfg.fingerprint())
     friction, mass_scale = rng.uniform(*cfg.friction, K), rng.uniform(*cfg.mass_scale, K)
     joint_offset = (
         rng.normal(scale=cfg.joint_noise, size=(K, robot.index.n)) if cfg.joint_noise else np.zeros((K, robot.index.n))
@@ -139,24 +173,28 @@ def search(cfg: sweep_config.SweepConfig, *, resolution: float = 0.25, robot_nam
     def survives(k: np.ndarray, impulse: np.ndarray) -> np.ndarray:
         scen, _ = sweep.scenarios_at(cfg, sets, impulse / cfg.push_duration, azi[k], gset[k], friction[k],
                                      mass_scale[k], joint_offset[k], dtype)  # fmt: skip
-        result = runner.run(st, scen, batch_size=K)  # one compiled shape for every round
-        timing["compile_s"] += result.compile_s
-        timing["run_s"] += result.run_s
-        return np.asarray(metrics_lib.summarize(result.metrics, push_end)["survived"])
+        alive = []
+        for lo in range(0, k.size, batch):  # one compiled shape for every round
+            part = jax.tree_util.tree_map(lambda x, lo=lo: np.asarray(x)[lo : lo + batch], scen)
+            result = runner.run(st, part, batch_size=batch, queue=cfg.queue)
+            timing["compile_s"] += result.compile_s
+            timing["run_s"] += result.run_s
+            alive.append(np.asarray(metrics_lib.summarize(result.metrics, push_end)["survived"]))
+        return np.concatenate(alive)
 
     bar = tqdm(total=sum(rounds_needed(impulses, resolution)), unit="round", disable=not progress,
                desc=f"envelope ({st.backend})")  # fmt: skip
     found = bisect(impulses, survives, K, resolution, on_round=lambda: bar.update(1))
     bar.close()
     support = "left-foot" if cfg.task == "one-foot" else "two-feet"
-    bound = sweep_table.lip_bound(st.robot, sorted(set(azi.tolist())), support)
+    bound = sweep_table.lip_bound(st.robot, sorted(set(azi.tolist())), support, cfg.elevation)
     envelope: dict = {}
     for k in range(K):
         b = bound[float(azi[k])]["impulse_bound_ns"]
         envelope.setdefault(int(gset[k]), {})[float(azi[k])] = {
             "impulse_ns": float(found["lo"][k]), "bracket_ns": [float(found["lo"][k]), float(found["hi"][k])],
             "grid_impulse_ns": float(found["grid_lo"][k]), "at_cap": bool(found["at_cap"][k]),
-            "bound_impulse_ns": b, "fraction_of_bound": float(found["lo"][k]) / b,
+            "bound_impulse_ns": b, "fraction_of_bound": sweep_table.fraction(float(found["lo"][k]), b),
         }  # fmt: skip
     summary = {
         "envelope": envelope, "rounds": found["rounds"], "rollouts": int(found["rollouts"]), "searches": K,
@@ -167,10 +205,7 @@ def search(cfg: sweep_config.SweepConfig, *, resolution: float = 0.25, robot_nam
         "provenance": provenance.record({"gains": cfg.gains, "tasks": cfg.tasks}),
     }  # fmt: skip
     if cfg.out is not None:
-        out = pathlib.Path(cfg.out)
-        runs.claim_output_dir(out, "envelope", runs.fingerprint({**dataclasses.asdict(cfg), "resolution": resolution},
-                                                                [cfg.gains, cfg.tasks]))  # fmt: skip
-        io.atomic_write_json(out / "summary.json", summary)
+        io.atomic_write_json(pathlib.Path(cfg.out) / "summary.json", summary)
     return summary
 
 

@@ -2,9 +2,10 @@
 
 Every job's output folder holds ``run.json``: the job kind and a fingerprint of everything that
 determines the results (the full config, a content hash of each input file and of the robot
-model, the package version). A job refuses a folder that is a file, is not writable, or holds a
-run of another kind, before anything is loaded or compiled; a resumable job (sweep, tune)
-refuses to resume a run whose fingerprint differs, naming the difference.
+model, the package version). A job refuses a folder that is a file, is not writable, holds a
+run of another kind, or holds a run of its kind made with other inputs (naming the difference),
+before anything is loaded or compiled: nothing is overwritten by a run with other settings. A
+resumable job (sweep, tune) continues a run of the same fingerprint; the others redo it.
 """
 
 from __future__ import annotations
@@ -39,20 +40,10 @@ def fingerprint(config: dict, files=(), robot: str = "icub") -> dict:
     }
 
 
-def check_input_file(path, flag: str) -> None:
-    """An input file named on the command line exists and is a file."""
-    if path is None:
-        return
-    path = pathlib.Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"--{flag} file {path} does not exist")
-    if not path.is_file():
-        raise ValueError(f"--{flag} {path} is not a file (a directory?)")
-
-
-def check_output_dir(path, kind: str) -> pathlib.Path:
+def check_output_dir(path, kind: str, fp: dict | None = None) -> pathlib.Path:
     """Fail early if ``path`` cannot hold a ``kind`` run: it is a file, it holds a run of another
-    kind (or files of something else), or it cannot be written."""
+    kind (or files of something else), a run of this kind whose fingerprint differs from ``fp``
+    (None: not compared), or it cannot be written."""
     if path is None:
         return None
     path = pathlib.Path(path)
@@ -65,7 +56,15 @@ def check_output_dir(path, kind: str) -> pathlib.Path:
         except (json.JSONDecodeError, UnicodeDecodeError, AttributeError) as err:
             raise ValueError(f"--out {path}: its {MANIFEST} is unreadable ({err}); use another folder") from None
         if found != kind:
-            raise ValueError(f"--out {path} holds a {found} run; a {kind} run needs its own folder")
+            raise ValueError(
+                f"--out {path} holds {with_article(found)} run; {with_article(kind)} run needs its own folder"
+            )
+        if fp is not None:
+            old = json.loads(manifest.read_text()).get("fingerprint")
+            diff = differences(old if isinstance(old, dict) else {}, fp)
+            if diff:
+                raise ValueError(f"--out {path} holds {with_article(kind)} run made with other inputs "
+                                 f"({'; '.join(diff)}); use another --out, or remove the folder to start over")  # fmt: skip
     elif path.is_dir():
         others = sorted(p.name for p in path.iterdir() if not p.name.startswith("."))
         if others:
@@ -87,6 +86,11 @@ def check_output_dir(path, kind: str) -> pathlib.Path:
     return path
 
 
+def with_article(kind) -> str:
+    """A run kind with its article: 'a sweep', 'an envelope'."""
+    return f"{'an' if str(kind)[:1] in 'aeiou' else 'a'} {kind}"
+
+
 def differences(old: dict, new: dict, prefix: str = "") -> list[str]:
     """Human-readable differences between two fingerprints."""
     out = []
@@ -104,20 +108,14 @@ def differences(old: dict, new: dict, prefix: str = "") -> list[str]:
 
 
 def claim_output_dir(path, kind: str, fp: dict, *, resume: bool = False) -> bool:
-    """Bind ``path`` to a ``kind`` run with fingerprint ``fp``. With ``resume``, an existing run of
-    the same fingerprint is continued (returns True) and a different one is refused, naming the
-    differences; without, the folder is (re)written by this run (returns False)."""
-    path = check_output_dir(path, kind)
+    """Bind ``path`` to a ``kind`` run with fingerprint ``fp``; a folder holding a run with
+    another fingerprint is refused, naming the differences (:func:`check_output_dir`). Returns
+    True when a run of the same fingerprint is there and ``resume`` (the job continues it), else
+    False (the job writes the folder afresh)."""
+    path = check_output_dir(path, kind, fp)
     manifest = path / MANIFEST
-    if manifest.exists() and resume:
-        old = json.loads(manifest.read_text())
-        diff = differences(old.get("fingerprint", {}), fp)
-        if diff:
-            raise ValueError(
-                f"--out {path} holds a {kind} run made with other inputs ({'; '.join(diff)}); "
-                "use another --out, or remove the folder to start over"
-            )
-        return True
+    if manifest.exists():
+        return resume
     path.mkdir(parents=True, exist_ok=True)
     io.atomic_write_json(manifest, {"kind": kind, "fingerprint": fp})
     return False

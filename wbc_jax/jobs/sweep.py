@@ -12,7 +12,6 @@ global mesh. C MuJoCo: the jitted controller and threaded C physics).
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import pathlib
 
@@ -36,9 +35,14 @@ def gain_sets(base: Gains, count: int, scale_range, rng: np.random.Generator) ->
     """``count`` gain sets: the base one, then per-group log-uniform scalings of it."""
     sets = [base]
     lo, hi = np.log(scale_range[0]), np.log(scale_range[1])
-    for _ in range(count - 1):
-        scaled = {name: np.asarray(getattr(base, name)) * np.exp(rng.uniform(lo, hi)) for name in constants.GAIN_FIELDS}
-        sets.append(Gains(**scaled))
+    for k in range(1, count):
+        scaled = Gains(**{name: np.asarray(getattr(base, name)) * np.exp(rng.uniform(lo, hi))
+                          for name in constants.GAIN_FIELDS})  # fmt: skip
+        try:  # a scaling can take a gain out of its range: named before anything compiles
+            validate_gains(scaled, np.asarray(base.kp_postural).shape[-1])
+        except ValueError as err:
+            raise ValueError(f"--gain-scale-range {list(scale_range)}: gain set {k}: {err}") from None
+        sets.append(scaled)
     return sets
 
 
@@ -119,7 +123,7 @@ def base_gains(cfg: SweepConfig, n: int, dtype) -> Gains:
 
 
 def fingerprint(cfg: SweepConfig) -> dict:
-    return runs.fingerprint({**dataclasses.asdict(cfg), "dtype": str(scenario.float_dtype())}, [cfg.gains, cfg.tasks])
+    return cfg.fingerprint()
 
 
 def _part_name(c: int) -> str:
@@ -141,6 +145,15 @@ def _read_part(path: pathlib.Path, lo: int, hi: int):
     return table
 
 
+def _agreed(flags: list[bool]) -> list[bool]:
+    """Process 0's list of flags on every process (the list as is in a one-process run)."""
+    if jax.process_count() == 1:
+        return list(flags)
+    from jax.experimental import multihost_utils
+
+    return [bool(f) for f in multihost_utils.broadcast_one_to_all(np.asarray(flags, bool))]
+
+
 def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_name: str = "icub", **overrides) -> dict:
     """Run (or resume) a sweep into ``cfg.out``: parts/*.parquet, results.parquet, summary.json, plots.
 
@@ -152,44 +165,47 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
 
     cfg = dataclasses.replace(default_config() if cfg is None else cfg, **overrides)
     cfg.check()
-    runs.check_output_dir(cfg.out, "sweep")
     out = pathlib.Path(cfg.out)
     dtype = scenario.float_dtype()
     robot = model_lib.load_robot(robot_name)
     base = base_gains(cfg, robot.index.n, dtype)
-    robot.index.body_id(cfg.body)
     st = make_setup(cfg, base, robot_name=robot_name)
-    runner.check_queue(cfg.queue, st.backend)
+    runner.check_memory(st, cfg.batch_size, envs=cfg.size, queue=cfg.queue, flag="--chunk-size")
     scen, columns = build_scenarios(cfg, base, robot.index.n, dtype)
     # With several processes (jax.distributed), each computes every chunk with its devices' share
     # and gathers the results; the first process writes them.
     writer = jax.process_index() == 0
     if writer:
-        runs.claim_output_dir(out, "sweep", fingerprint(cfg), resume=True)
+        runs.claim_output_dir(out, "sweep", cfg.fingerprint(), resume=True)
 
     push_end = cfg.push_onset + cfg.push_duration
-    n_chunks = math.ceil(cfg.size / cfg.chunk_size)
+    batch = cfg.batch_size
+    n_chunks = math.ceil(cfg.size / batch)
     parts = out / "parts"
     compile_s = run_s = 0.0
-    done_envs = simulated_ticks = 0
+    done_envs = 0
     tables = []
+    bounds = [(c * batch, min((c + 1) * batch, cfg.size)) for c in range(n_chunks)]
+    stored = [_read_part(parts / _part_name(c), lo, hi) for c, (lo, hi) in enumerate(bounds)]
+    # Every process must run the same chunks (each run is a collective): process 0's parts decide.
+    todo = _agreed([t is None for t in stored])
     with tqdm(total=cfg.size, unit="env", disable=not progress, desc=f"sweep ({st.backend})") as bar:
-        for c in range(n_chunks):
-            lo, hi = c * cfg.chunk_size, min((c + 1) * cfg.chunk_size, cfg.size)
+        for c, (lo, hi) in enumerate(bounds):
             part = parts / _part_name(c)
-            table = _read_part(part, lo, hi)
-            if table is None:
+            table = stored[c]
+            if todo[c]:
                 chunk = jax.tree_util.tree_map(lambda x, lo=lo, hi=hi: np.asarray(x)[lo:hi], scen)
-                result = runner.run(st, chunk, batch_size=cfg.chunk_size, queue=cfg.queue)
+                result = runner.run(st, chunk, batch_size=batch, queue=cfg.queue)
                 compile_s += result.compile_s
                 run_s += result.run_s
                 done_envs += hi - lo
-                simulated_ticks += int(np.sum(result.metrics.ticks))
                 cols = metrics_lib.summarize(result.metrics, push_end)
-                table = pd.DataFrame({"env": np.arange(lo, hi), **{k: v[lo:hi] for k, v in columns.items()}, **cols})
+                table = pd.DataFrame({"env": np.arange(lo, hi), **{k: v[lo:hi] for k, v in columns.items()}, **cols,
+                                      "ticks_simulated": np.asarray(result.metrics.ticks)})  # fmt: skip
                 if writer:
                     io.atomic_write_parquet(part, table)
-            tables.append(table)
+            if table is not None:  # None: a part only process 0 can read (no shared file system)
+                tables.append(table)
             bar.update(hi - lo)
     table = pd.concat(tables, ignore_index=True)
     if writer:
@@ -207,9 +223,11 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
                      "wbc_jax": __import__("wbc_jax").__version__},
         "compile_s": round(compile_s, 2),
         "run_s": round(run_s, 2),
-        # Steps of the whole grid per second of run (with a queue, fewer were simulated).
+        # Steps of the grid run now per second of run (with a queue, fewer were simulated).
         "physics_steps_per_s": (done_envs * steps_per_env / run_s) if run_s > 0 else None,
-        "physics_steps_simulated": simulated_ticks * st.loop.n_sub,
+        # Over every part, those of an earlier (interrupted) run included; resumed_envs came from there.
+        "physics_steps_simulated": int(table["ticks_simulated"].sum()) * st.loop.n_sub,
+        "resumed_envs": int(cfg.size - done_envs),
         "gains": gains_to_dict(base),
         "provenance": provenance.record({"gains": cfg.gains, "tasks": cfg.tasks}),
     })  # fmt: skip
@@ -230,10 +248,9 @@ def load_sweep(run_dir) -> tuple[SweepConfig, dict]:
     path = run_dir / "summary.json"
     if not path.exists():
         raise FileNotFoundError(f"{path} is missing: the sweep has not finished; rerun it with the same --out")
-    try:
-        summary = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise ValueError(f"{path} is not valid JSON ({err})") from None
+    summary = io.read_json(path, "sweep summary")
+    if not isinstance(summary, dict):
+        raise ValueError(f"{path} is not a sweep summary (a JSON object)")
     values = {k: tuple(v) if isinstance(v, list) else v for k, v in summary.get("config", {}).items()}
     known = {f.name for f in dataclasses.fields(SweepConfig)}
     return SweepConfig(**{k: v for k, v in values.items() if k in known}), summary

@@ -7,31 +7,94 @@ A ``balance`` run (``trajectory.npz``) is logged as is; env I of a push sweep (`
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import pathlib
 import zipfile
 
 import numpy as np
 
+from wbc_jax.core import io
+from wbc_jax.core.options import check_options, option
+from wbc_jax.jobs import runs
+from wbc_jax.jobs.sweep_config import MAX_ENVS
 from wbc_jax.report.recording import check_trajectory, log_trajectory, scene_boxes
 from wbc_jax.robot import model as model_lib
 
 
+@dataclasses.dataclass(frozen=True)
+class ViewConfig:
+    """What ``wbc-jax view`` shows (its CLI flags are generated from these fields)."""
+
+    run_dir: str = option("", "output folder of a balance run or a push sweep", positional=True)
+    env: int | None = option(None, "sweep env to re-simulate and show", ge=0, le=MAX_ENVS)
+    out: str | None = option(None, ".rrd file (default RUN_DIR/rollout.rrd or env_I.rrd)")
+    spawn: bool = option(False, "open a rerun viewer instead of a file")
+
+    def check(self) -> None:
+        """The declared ranges, then the run folder: its kind, and ``env`` against it."""
+        check_options(self)
+        if self.spawn and self.out is not None:
+            raise ValueError("--out and --spawn exclude each other: write a file or open a viewer")
+        if self.out is not None and pathlib.Path(self.out).is_dir():
+            raise ValueError(f"--out {self.out} is a folder; give a .rrd file name")
+        kind = run_kind(self.run_dir)
+        if kind == "balance" and self.env is not None:
+            raise ValueError(f"{self.run_dir} is a balance run (one trajectory): --env applies to sweeps only")
+        if kind == "sweep":
+            size = _sweep_size(pathlib.Path(self.run_dir))
+            if self.env is None:
+                raise ValueError(f"{self.run_dir} is a push sweep of {size} envs: choose one with --env I, I in "
+                                 f"0..{size - 1}")  # fmt: skip
+            if self.env >= size:
+                raise ValueError(f"--env {self.env} is out of range: this sweep has envs 0..{size - 1}")
+
+
+def default_config() -> ViewConfig:
+    return ViewConfig()
+
+
 def run_kind(run_dir: str | pathlib.Path) -> str:
-    """``"balance"`` (trajectory.npz) or ``"sweep"`` (results.parquet + summary.json)."""
+    """``"balance"`` (trajectory.npz) or ``"sweep"`` (results.parquet + summary.json); the run
+    kind of the folder's run.json when it has one (an envelope or tuning run has no trajectory
+    to show: refused, naming it)."""
     run_dir = pathlib.Path(run_dir)
-    if not run_dir.exists():
+    if not str(run_dir) or not run_dir.exists():
         raise FileNotFoundError(f"run directory {run_dir} does not exist")
     if not run_dir.is_dir():
         raise ValueError(f"{run_dir} is a file; give the output folder of a balance run or a push sweep")
+    manifest = run_dir / runs.MANIFEST
+    if manifest.exists():
+        try:
+            kind = json.loads(io.read_text(manifest, "run manifest")).get("kind")
+        except (json.JSONDecodeError, AttributeError):
+            kind = None
+        if kind not in (None, "balance", "sweep"):
+            raise ValueError(f"{run_dir} holds {runs.with_article(kind)} run, which keeps no "
+                             "trajectories; view shows a balance run or one env of a push sweep (run wbc-jax balance "
+                             "or push-sweep with its settings)")  # fmt: skip
     if (run_dir / "trajectory.npz").exists():
         return "balance"
-    if (run_dir / "results.parquet").exists() or (run_dir / "summary.json").exists():
+    if (run_dir / "results.parquet").exists():
         return "sweep"
+    if (run_dir / "summary.json").exists() or (run_dir / "parts").exists():
+        raise FileNotFoundError(f"{run_dir / 'results.parquet'} is missing: the sweep has not finished; rerun it with "
+                                "the same --out")  # fmt: skip
     raise FileNotFoundError(
         f"{run_dir} is neither a balance run (no trajectory.npz) nor a finished push sweep "
-        f"(no results.parquet); found: {sorted(p.name for p in run_dir.iterdir())}"
+        f"(no results.parquet); found: {sorted(p.name for p in run_dir.iterdir())[:5]}"
     )
+
+
+def _sweep_size(run_dir: pathlib.Path) -> int:
+    import pandas as pd
+
+    try:
+        return len(pd.read_parquet(run_dir / "results.parquet", columns=["env"]))
+    except Exception as err:  # a truncated or foreign file: name it, whatever pyarrow raises
+        raise ValueError(
+            f"{run_dir / 'results.parquet'} is unreadable ({type(err).__name__}); rerun the sweep"
+        ) from None
 
 
 def _read_npz(path: pathlib.Path) -> dict:
@@ -66,18 +129,13 @@ def load_run(run_dir: str | pathlib.Path, env: int | None = None) -> tuple[dict,
         dims = [int(d) for d in traj.pop("contact_dims", [6] * len(names))]
         boxes = {}
         metrics = run_dir / "metrics.json"
-        tasks = json.loads(metrics.read_text()).get("config", {}).get("tasks") if metrics.exists() else None
+        tasks = io.read_json(metrics, "balance metrics").get("config", {}).get("tasks") if metrics.exists() else None
         if tasks:
             boxes = scene_boxes(scenario.load_scene("icub", tasks).robot)
         return traj, {"kind": kind, "push_body": "chest", "joints": joints, "name": "rollout",
                       "contacts": names, "dims": dims, "boxes": boxes}  # fmt: skip
     if env is None:
-        import pandas as pd
-
-        results = run_dir / "results.parquet"
-        if not results.exists():
-            raise FileNotFoundError(f"{results} is missing: the sweep has not finished")
-        size = len(pd.read_parquet(results))
+        size = _sweep_size(run_dir)
         raise ValueError(f"{run_dir} is a push sweep of {size} envs: choose one with --env I, I in 0..{size - 1}")
     st, traj, _, _ = sweep.replay_env(run_dir, env)
     cset = st.loop.contact_set

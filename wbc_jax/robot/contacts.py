@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.core import constants
+from wbc_jax.core.options import check_options, entry
 from wbc_jax.core.types import Array, pytree_dataclass
 from wbc_jax.robot import model as model_lib
 from wbc_jax.robot.dynamics import DynamicsTerms, Frames
@@ -37,6 +38,12 @@ CONTACT_TYPES = ("surface", "point")
 OBJECT_TYPES = ("box",)
 DIMENSION = {"surface": 6, "point": 3}
 FEET_FRAMES = {"l_sole": 0, "r_sole": 1}
+# Ranges of a contact file's numbers: a contact point within a metre of its frame, friction
+# coefficients up to 10, forces up to 10 kN, scene objects within 100 m.
+MAX_OFFSET_M = 1.0
+MAX_FRICTION = 10.0
+MAX_NORMAL_FORCE_N = 1e4
+MAX_OBJECT_M = 100.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -105,9 +112,9 @@ class ContactActivation:
     """a(t) = mj((t - start) / ramp) - mj((t - stop) / ramp), mj the minimum-jerk ramp (0 -> 1).
     (Not "on"/"off": YAML 1.1 reads those keys as booleans.)"""
 
-    start: float = 0.0
-    stop: float = math.inf
-    ramp: float = 0.0
+    start: float = entry(0.0, ge=0.0, le=constants.MAX_HORIZON_S, unit="s")
+    stop: float = entry(math.inf, gt=0.0, finite=False, unit="s")
+    ramp: float = entry(0.0, ge=0.0, le=constants.MAX_HORIZON_S, unit="s")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,19 +141,20 @@ class Contact:
         which follow the task's foot schedule.
     """
 
-    name: str
-    frame: str
-    normal: tuple[float, float, float] | None = None
-    type: str = "surface"
-    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    mu: float = 1.0 / 3.0
-    mu_t: float = 1.0 / 75.0
-    fz_min: float = 10.0
-    cop: tuple[tuple[float, float], tuple[float, float]] | None = None
-    normal_force: float | None = None
-    touches: str | None = None
-    activation: ContactActivation = ContactActivation()
-    detect: bool = False
+    name: str = entry()
+    frame: str = entry()
+    normal: tuple[float, float, float] | None = entry(None)
+    type: str = entry("surface", choices=CONTACT_TYPES)
+    offset: tuple[float, float, float] = entry((0.0, 0.0, 0.0), ge=-MAX_OFFSET_M, le=MAX_OFFSET_M, unit="m")
+    mu: float = entry(1.0 / 3.0, gt=0.0, le=MAX_FRICTION)
+    mu_t: float = entry(1.0 / 75.0, gt=0.0, le=MAX_FRICTION)
+    fz_min: float = entry(10.0, gt=0.0, le=MAX_NORMAL_FORCE_N, unit="N")
+    cop: tuple[tuple[float, float], tuple[float, float]] | None = entry(None, ge=-MAX_OFFSET_M, le=MAX_OFFSET_M,
+                                                                         unit="m")  # fmt: skip
+    normal_force: float | None = entry(None, gt=0.0, le=MAX_NORMAL_FORCE_N, unit="N")
+    touches: str | None = entry(None)
+    activation: ContactActivation = entry(ContactActivation())
+    detect: bool = entry(False)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -161,13 +169,13 @@ class SceneObject:
       friction: sliding friction of the contacts with this object (physics).
     """
 
-    name: str
-    type: str = "box"
-    size: tuple[float, float, float] = (0.1, 0.1, 0.1)
-    pos: tuple[float, float, float] | None = None
-    under: str | None = None
-    shift: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    friction: float = 1.0
+    name: str = entry()
+    type: str = entry("box", choices=OBJECT_TYPES)
+    size: tuple[float, float, float] = entry((0.1, 0.1, 0.1), gt=0.0, le=MAX_OBJECT_M, unit="m")
+    pos: tuple[float, float, float] | None = entry(None, ge=-MAX_OBJECT_M, le=MAX_OBJECT_M, unit="m")
+    under: str | None = entry(None)
+    shift: tuple[float, float, float] = entry((0.0, 0.0, 0.0), ge=-MAX_OBJECT_M, le=MAX_OBJECT_M, unit="m")
+    friction: float = entry(1.0, ge=constants.FRICTION_RANGE[0], le=constants.FRICTION_RANGE[1])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -258,7 +266,7 @@ def contact_from_dict(values: dict) -> Contact:
     if not isinstance(values, dict):
         raise ValueError(f"a contact must be a mapping, got {values!r}")
     fields = {f.name for f in dataclasses.fields(Contact)}
-    unknown = sorted(set(values) - fields)
+    unknown = sorted(map(str, set(values) - fields))
     if unknown or "name" not in values or "frame" not in values:
         raise ValueError(f"contact {values.get('name')!r}: unknown keys {unknown} (valid: {sorted(fields)}); "
                          "'name' and 'frame' are required")  # fmt: skip
@@ -273,8 +281,8 @@ def contact_from_dict(values: dict) -> Contact:
         raise ValueError(
             f"contact {values['name']!r}: activation must map {sorted(act_fields)} to numbers, got {act!r}"
         )
-    if "cop" in values and values["cop"] is not None:
-        values["cop"] = tuple(tuple(r) for r in values["cop"])
+    if isinstance(values.get("cop"), list):
+        values["cop"] = tuple(tuple(r) if isinstance(r, list) else r for r in values["cop"])
     values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
     return Contact(**values, activation=ContactActivation(**{k: float(v) for k, v in act.items()}))
 
@@ -284,7 +292,7 @@ def object_from_dict(values: dict) -> SceneObject:
     if not isinstance(values, dict):
         raise ValueError(f"a scene object must be a mapping, got {values!r}")
     fields = {f.name for f in dataclasses.fields(SceneObject)}
-    unknown = sorted(set(values) - fields)
+    unknown = sorted(map(str, set(values) - fields))
     if unknown or "name" not in values:
         raise ValueError(f"scene object {values.get('name')!r}: unknown keys {unknown} (valid: {sorted(fields)}); "
                          "'name' is required")  # fmt: skip
@@ -307,6 +315,11 @@ def check_spec(contacts, objects) -> tuple[tuple[Contact, ...], tuple[SceneObjec
     objects = tuple(object_from_dict(o) if isinstance(o, dict) else o for o in objects)
     if not contacts:
         raise ValueError("the contact set is empty; list at least one contact (e.g. the feet)")
+    for c in contacts:  # types and ranges first: the checks below assume them
+        check_options(c, owner=f"contact {c.name!r}")
+        check_options(c.activation, owner=f"contact {c.name!r}: activation")
+    for o in objects:
+        check_options(o, owner=f"scene object {o.name!r}")
     for kind, items in (("contact", contacts), ("scene object", objects)):
         names = [i.name for i in items]
         duplicates = sorted({n for n in names if names.count(n) > 1})

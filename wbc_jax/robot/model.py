@@ -13,6 +13,7 @@ import pathlib
 import mujoco
 import numpy as np
 
+from wbc_jax.core import mjx as mjx_device
 from wbc_jax.core.mjx import mjx
 
 ASSETS = pathlib.Path(__file__).resolve().parents[2] / "assets"
@@ -148,6 +149,19 @@ class RobotIndex:
         _check_name("body", name, list(self.body_names))
         return self.body_names.index(name)
 
+    @property
+    def pushable_bodies(self) -> tuple[str, ...]:
+        """The bodies a push can act on: the robot's, not the world (body 0, which never moves)."""
+        return self.body_names[1:]
+
+    def pushable_body_id(self, name: str) -> int:
+        """Body id of a body a push can act on; raises ValueError listing the valid names."""
+        if name in self.body_names and name not in self.pushable_bodies:
+            raise ValueError(f"cannot push body {name!r} (the world does not move); pushable bodies: "
+                             f"{sorted(self.pushable_bodies)}")  # fmt: skip
+        _check_name("body", name, list(self.pushable_bodies))
+        return self.body_names.index(name)
+
 
 def build_index(m: mujoco.MjModel, robot: str = "icub", joints=ICUB_JOINTS) -> RobotIndex:
     """Resolve joint, actuator, site and body names of ``m`` into a :class:`RobotIndex`.
@@ -232,7 +246,7 @@ class Robot:
 def load_robot(robot: str = "icub") -> Robot:
     """Load a robot by name: C model, MJX model (JAX backend) and index (cached)."""
     m = load_mj_model(robot)
-    return Robot(mj_model=m, mjx_model=mjx.put_model(m), index=build_index(m, robot))
+    return Robot(mj_model=m, mjx_model=mjx_device.put_model(m), index=build_index(m, robot))
 
 
 def summary(robot: Robot) -> dict:
@@ -254,3 +268,11 @@ def summary(robot: Robot) -> dict:
         "torque_limit_nm": float(idx.torque_limit.max()),
         "home_qpos": [round(float(x), 6) for x in robot.home_qpos()],
     }
+
+
+@functools.lru_cache(maxsize=8)
+def pushable_bodies(robot: str = "icub") -> tuple[str, ...]:
+    """The bodies of ``robot`` a push can act on (:attr:`RobotIndex.pushable_bodies`): the valid
+    values of the jobs' body flags. From the C model alone: checking a flag starts no JAX backend
+    (``jax.distributed.initialize`` must come before one)."""
+    return build_index(load_mj_model(robot), robot).pushable_bodies

@@ -16,7 +16,7 @@ import math
 import mujoco
 import numpy as np
 
-from wbc_jax.core.mjx import mjx
+from wbc_jax.core import mjx as mjx_device
 from wbc_jax.robot import model as model_lib
 from wbc_jax.robot.contacts import FEET_FRAMES, Contact, ContactParams, ContactSet, ResolvedContact, check_spec
 
@@ -58,19 +58,22 @@ def _box_distance(p: np.ndarray, centre: np.ndarray, half: np.ndarray) -> float:
     return float(np.linalg.norm(np.maximum(q, 0.0)) + min(q.max(), 0.0))
 
 
-def _check_touch(c: Contact, W_p: np.ndarray, normal: np.ndarray, centre: np.ndarray, half: np.ndarray) -> None:
+def _check_touch(c: Contact, W_p: np.ndarray, normal: np.ndarray, centre: np.ndarray, half: np.ndarray,
+                 reach: bool = True) -> None:  # fmt: skip
     """A contact's point must lie on the surface of what it touches (within REACH_TOL) at the
-    initial posture, and its normal must leave that surface (not point into the object)."""
+    initial posture (unless not ``reach``), and its normal must leave that surface (not point into
+    the object)."""
+    surface = c.touches or "floor"
     dist = _box_distance(W_p, centre, half)
-    if abs(dist) > REACH_TOL:
+    if reach and abs(dist) > REACH_TOL:
         raise ValueError(f"contact {c.name!r}: its point {W_p.round(3).tolist()} is {abs(dist) * 100:.1f} cm "
-                         f"{'inside' if dist < 0 else 'away from'} the surface of {c.touches!r} at the initial posture "
+                         f"{'inside' if dist < 0 else 'away from'} the surface of {surface!r} at the initial posture "
                          f"(at most {REACH_TOL * 1e3:.0f} mm: it must touch it); move the object (pos, shift) or "
                          "change the initial posture")  # fmt: skip
     rise = lambda e: (_box_distance(W_p + 0.01 * e, centre, half) - _box_distance(W_p - 0.01 * e, centre, half)) / 0.02  # noqa: E731
     n = normal / np.linalg.norm(normal)
     if rise(n) < 0.5:  # more than 60 deg from the surface's outward normal
-        raise ValueError(f"contact {c.name!r}: normal {np.round(n, 3).tolist()} points into {c.touches!r} or along its "
+        raise ValueError(f"contact {c.name!r}: normal {np.round(n, 3).tolist()} points into {surface!r} or along its "
                          f"surface (the surface faces {np.round([rise(e) for e in np.eye(3)], 3).tolist()}); the "
                          "normal points out of the touched surface, towards the robot")  # fmt: skip
 
@@ -148,8 +151,10 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
     friction["floor"] = 1.0
     placed["floor"] = (np.array([0.0, 0.0, d.geom_xpos[base.geom("floor").id][2] - 1e3]), np.full(3, 1e3))
     for c in contacts:
-        if c.touches is not None:
-            _check_touch(c, frames[c.name][3], frames[c.name][4][:, 2], *placed[c.touches])
+        # Contacts through the robot's own geoms (the soles) touch the floor: their normal is
+        # checked against it too (a sole whose normal points down is refused).
+        _check_touch(c, frames[c.name][3], frames[c.name][4][:, 2], *placed[c.touches or "floor"],
+                     reach=c.touches is not None)  # fmt: skip
     added: dict[str, list[str]] = {}
     for c in contacts:
         if c.touches is None:
@@ -177,7 +182,7 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
             names.append(name)
         added[c.name] = names
     m = spec.compile()
-    scene_robot = model_lib.Robot(mj_model=m, mjx_model=mjx.put_model(m), index=model_lib.build_index(m, robot))
+    scene_robot = model_lib.Robot(mj_model=m, mjx_model=mjx_device.put_model(m), index=model_lib.build_index(m, robot))
 
     resolved = []
     for c in contacts:

@@ -28,7 +28,7 @@ from wbc_jax.control import constraints
 from wbc_jax.control.controller import Controller
 from wbc_jax.control.gains import Gains
 from wbc_jax.control.references import Schedule
-from wbc_jax.core.mjx import mjx
+from wbc_jax.core import mjx as mjx_device
 from wbc_jax.core.types import Array
 from wbc_jax.robot import dynamics
 from wbc_jax.robot.model import Robot
@@ -57,16 +57,17 @@ class ClosedLoop:
         self.n_ticks = int(round(cfg.duration / cfg.control_dt))
         if self.n_ticks < 1:
             raise ValueError(f"duration {cfg.duration} s is shorter than one control tick ({cfg.control_dt} s)")
-        self.push_body = idx.body_id(cfg.push_body)
+        self.push_body = idx.pushable_body_id(cfg.push_body)
         # Bodies that must stay off the floor: all but the feet and the ankle links above them.
         feet_and_ankles = set(idx.foot_bodies.tolist()) | set(robot.mj_model.body_parentid[idx.foot_bodies].tolist())
         self.non_foot_bodies = np.array([b for b in range(1, robot.mj_model.nbody) if b not in feet_and_ankles])
         # The controller's own model: MJX's JAX implementation, whatever steps the plant.
-        self.mx = mjx.put_model(robot.mj_model)
-        self._d_template = mjx.make_data(robot.mj_model)
-        self.backend = physics.resolve_backend(cfg.physics.backend)
-        if cfg.loss_trace and self.backend == "mujoco":  # the host loop returns no per-tick LossTrace
-            raise ValueError("a loss trace (gain tuning) needs an MJX backend: 'jax' (gradients) or 'warp'")
+        self.mx = mjx_device.put_model(robot.mj_model)
+        self._d_template = mjx_device.make_data(robot.mj_model)
+        # A loss trace (gain tuning) is computed in MJX: on 'jax' (gradients) or on 'warp' (the
+        # gradient-free searches' forward rollouts); 'auto' then means 'jax'.
+        requested = cfg.physics.backend
+        self.backend = physics.resolve_backend(requested, differentiable=cfg.loss_trace and requested != "warp")
         if self.backend == "warp" and controller.config.contact_detection:
             raise ValueError(
                 "contact detection reads the simulator's contact forces, which the 'warp' backend does not "

@@ -5,7 +5,7 @@ Three engines step the same MuJoCo model:
 * ``jax``: MJX's JAX implementation. Differentiable; the engine of gradient tuning and the
   reference the others are checked against (tests/test_physics.py).
 * ``warp``: MJX's Warp implementation (``impl='warp'``, CUDA GPUs, warp-lang installed:
-  ``pip install -e ".[gpu]"``). Not differentiable; fast batched forward runs on a GPU.
+  ``pip install -e ".[cuda]"``). Not differentiable; fast batched forward runs on a GPU.
 * ``mujoco``: C MuJoCo (``mujoco.mj_step``) on the host CPU, one ``MjData`` per environment,
   environments stepped in threads. The controller stays the jitted JAX function; only the
   physics leaves XLA. The forward engine on a CPU (laptops, Jupyter, CI).
@@ -32,13 +32,14 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from wbc_jax.core import mjx as mjx_device
 from wbc_jax.core.constants import DIVERGED_SPEED
 from wbc_jax.core.mjx import mjx
 from wbc_jax.core.types import Array
 
 BACKENDS = ("auto", "jax", "warp", "mujoco")
 FLOOR_GEOM = 0  # the floor is the model's first geom (assets/build_icub_mjcf.py; tested)
-_WARP_INSTALL = 'pip install -e ".[gpu]" (warp-lang, the extra of mujoco-mjx)'
+_WARP_INSTALL = 'pip install -e ".[cuda]" (warp-lang, the extra of mujoco-mjx)'
 
 
 @dataclasses.dataclass(frozen=True)
@@ -166,13 +167,13 @@ def device_model(robot_mj: mujoco.MjModel, backend: str, cfg: PhysicsConfig) -> 
     if backend == "warp":
         from mujoco.mjx.third_party.mujoco_warp._src.types import OverflowType
 
-        mx = solver_model(mjx.put_model(robot_mj, impl="warp"), cfg)
+        mx = solver_model(mjx_device.put_model(robot_mj, impl="warp"), cfg)
         # Buffer overflows are reported (they would drop contacts or constraints); reaching the
         # solver's iteration cap is normal for fallen robots (as in C MuJoCo) and is not.
         quiet = ~(OverflowType.ITERATIONS | OverflowType.LS_ITERATIONS)
         impl = mx.opt._impl.replace(warn_overflow=int(mx.opt._impl.warn_overflow) & int(quiet))
         return mx.replace(opt=mx.opt.replace(_impl=impl))
-    return solver_model(mjx.put_model(robot_mj), cfg)
+    return solver_model(mjx_device.put_model(robot_mj), cfg)
 
 
 def constraint_rows_bound(m: mujoco.MjModel) -> int:
@@ -191,10 +192,10 @@ def device_data(robot_mj: mujoco.MjModel, backend: str, cfg: PhysicsConfig, qpos
     contact pair of every environment (each pair of spheres and planes/boxes makes one contact at
     most), and the constraint rows per environment likewise, so neither can overflow."""
     if backend == "warp":
-        d = mjx.make_data(robot_mj, impl="warp", naconmax=batch * max_contacts(robot_mj),
+        d = mjx_device.make_data(robot_mj, impl="warp", naconmax=batch * max_contacts(robot_mj),
                           njmax=constraint_rows_bound(robot_mj))  # fmt: skip
     else:
-        d = mjx.make_data(robot_mj)
+        d = mjx_device.make_data(robot_mj)
     return d.replace(qpos=jnp.asarray(qpos, d.qpos.dtype if dtype is None else dtype))
 
 

@@ -27,11 +27,19 @@ from wbc_jax.sim import host_loop, mjx_loop, physics
 from wbc_jax.sim import loop as loop_lib
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim.scenario import Setup
+from wbc_jax.sim.scenario import single as single_scenario
 from wbc_jax.sim.state import Scenario
 
 # A queued run (scenarios per batch slot) checks which robots are decided every this many ticks
 # at most (the largest divisor of the horizon's ticks up to it): 0.25 s at 100 Hz.
 QUEUE_CHECK_TICKS = 25
+# Memory of one environment of a batch, as a multiple of its MJX Data (the physics state): 4x
+# covers what was measured (BENCHMARKS.md, the iCub's 31.6 kB Data in float32: 30-36 kB per env
+# on an H100 with MJX-JAX, 117 kB on an H200 with Warp; experiments/checks/memory_estimate.py on the CPU).
+MJX_ENV_FACTOR = 4
+# C MuJoCo: one MjData per environment, resident after stepping (0.56 MB for the iCub,
+# experiments/checks/memory_estimate.py), doubled for contact-rich states.
+HOST_ENV_BYTES = 1_200_000
 
 
 def enable_compilation_cache(path: str | os.PathLike | None = None) -> pathlib.Path:
@@ -79,6 +87,53 @@ def pad_batch(tree, size: int):
     return jax.tree_util.tree_map(
         lambda x: np.concatenate([np.asarray(x), np.repeat(np.asarray(x)[-1:], size - n, 0)]), tree
     )
+
+
+def memory_estimate(setup_: Setup, batch: int, envs: int | None = None, queue: int = 1) -> dict:
+    """Bytes a run of ``batch`` environments at once holds (``envs`` scenarios in all, default
+    ``batch``; ``queue`` scenarios per batch slot), before it is allocated: {"bytes", "per_env",
+    "scenario_bytes"}. Records (balance, view: one environment) are not counted."""
+    envs = batch if envs is None else envs
+    robot_mj = setup_.robot.mj_model
+    data = jax.eval_shape(lambda: physics.device_data(robot_mj, "jax", setup_.loop.cfg.physics, setup_.qpos0))
+    per_env = MJX_ENV_FACTOR * sum(x.size * x.dtype.itemsize for x in jax.tree_util.tree_leaves(data))
+    if setup_.backend == "mujoco":
+        per_env += HOST_ENV_BYTES
+    one = jax.tree_util.tree_map(lambda x: np.asarray(x)[:1], single_scenario(setup_))
+    scenario_bytes = sum(np.asarray(x).nbytes for x in jax.tree_util.tree_leaves(one)) + 64  # + the table's columns
+    slots = math.ceil(batch / queue)
+    return {"bytes": slots * per_env + envs * scenario_bytes, "per_env": per_env, "scenario_bytes": scenario_bytes}
+
+
+def available_memory() -> tuple[int, str]:
+    """(bytes free, where) on the batch's first device: GPU memory, or the host's available memory."""
+    device = batch_devices()[0]
+    stats = device.memory_stats() if device.platform != "cpu" else None
+    if stats and "bytes_limit" in stats:
+        return int(stats["bytes_limit"] - stats.get("bytes_in_use", 0)) * len(batch_devices()), str(device.platform)
+    try:
+        for line in pathlib.Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024, "host"
+    except OSError:
+        pass
+    return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"), "host"
+
+
+def check_memory(setup_: Setup, batch: int, *, envs: int | None = None, queue: int = 1,
+                 flag: str = "--chunk-size") -> dict:  # fmt: skip
+    """Refuse a batch whose estimated memory (:func:`memory_estimate`) exceeds what is free, in
+    one line naming ``flag``, the estimate and the largest batch that fits. Returns the estimate."""
+    est = memory_estimate(setup_, batch, envs, queue)
+    free, where = available_memory()
+    if est["bytes"] > free:
+        fixed = (envs or batch) * est["scenario_bytes"]
+        fits = max(0, int((free - fixed) // est["per_env"]) * queue)
+        hint = f"use {flag} {fits:,} or less" if fits >= 1 else "use a smaller grid"
+        raise ValueError(f"{flag} {batch:,}: a batch of {batch:,} environments needs about "
+                         f"{est['bytes'] / 1e9:,.1f} GB ({est['per_env'] / 1e3:,.0f} kB each and {fixed / 1e9:,.2f} GB "
+                         f"of scenarios, estimated) and the {where} has {free / 1e9:,.1f} GB free; {hint}")  # fmt: skip
+    return est
 
 
 @dataclasses.dataclass
@@ -145,19 +200,92 @@ def _global_batch(tree, sharding: NamedSharding, dtype):
     )
 
 
+class PerDevice:
+    """``fn`` compiled once for each of this process's devices of ``mesh``; a call runs each device's
+    shard of the batch axis on that device (asynchronously, side by side) and returns global arrays
+    sharded along the batch axis, as ``jit(shard_map(fn))`` would, with no communication between
+    devices. Single-device programs, because (i) MJX-Warp's step is a foreign call with no
+    partitioning rule: under ``jit`` with sharded inputs XLA ran it over the whole batch on every
+    device (its contact buffer sized for one device's share), which made two GPUs slower than one
+    and changed outcomes, and (ii) XLA (jax 0.11.2, CUDA) crashed compiling the closed loop as one
+    two-GPU ``shard_map`` program.
+
+    Args:
+      fn: the per-device function of its arguments' local shards.
+      mesh: the 1-D batch mesh (:func:`device_mesh`).
+      batched: per positional argument, True if it is sharded along the batch axis (a global
+        array), False if every device takes it whole (a host value).
+    """
+
+    def __init__(self, fn, mesh: Mesh, batched: tuple[bool, ...]):
+        self.fn, self.mesh, self.batched = fn, mesh, batched
+        self.devices = [d for d in mesh.devices.flat if d.process_index == jax.process_index()]
+        self.compiled: dict = {}
+
+    def _local(self, args, device):
+        """The arguments as ``device`` sees them: its shard of each batched global array."""
+
+        def shard(x):
+            return next(s.data for s in x.addressable_shards if s.device == device)
+
+        return [jax.tree_util.tree_map(shard, a) if b else a for a, b in zip(args, self.batched, strict=True)]
+
+    def compile(self, *args) -> float:
+        """Compile for every local device; returns the seconds spent. Tracing happens here, in the
+        caller's thread (JAX's settings such as ``enable_x64`` are thread-local); only XLA's compile
+        of several devices runs in parallel threads."""
+        t0 = time.perf_counter()
+        lowered = []
+        for device in self.devices:
+            on = jax.sharding.SingleDeviceSharding(device)
+            lowered.append(jax.jit(self.fn, in_shardings=on, out_shardings=on).lower(*self._local(args, device)))
+        if len(lowered) == 1:
+            compiled = [lowered[0].compile()]
+        else:
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(max_workers=len(lowered)) as pool:
+                compiled = list(pool.map(lambda low: low.compile(), lowered))
+        self.compiled = dict(zip(self.devices, compiled, strict=True))
+        return time.perf_counter() - t0
+
+    def __call__(self, *args):
+        # One host thread per device: an XLA:GPU program with while loops (the QP, the physics' solver)
+        # runs its loop control on the thread that launched it, so launching the devices one after the
+        # other from one thread ran them one after the other.
+        run = lambda d: self.compiled[d](*self._local(args, d))  # noqa: E731
+        if len(self.devices) == 1:
+            outs = [run(self.devices[0])]
+        else:
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(max_workers=len(self.devices)) as pool:
+                outs = list(pool.map(run, self.devices))
+        sharding = NamedSharding(self.mesh, PartitionSpec("batch"))
+        n_dev = self.mesh.devices.size
+
+        def assemble(*leaves):
+            shape = (leaves[0].shape[0] * n_dev, *leaves[0].shape[1:])
+            return jax.make_array_from_single_device_arrays(shape, sharding, list(leaves))
+
+        return jax.tree_util.tree_map(assemble, *outs)
+
+
 def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
-    """MJX backends: jit(vmap(closed loop)) over the batch, sharded along it. A run without
-    records is one program (Warp's data never leaves it: its contact buffer is shared by the
-    batch); a recorded run (``jax`` only) goes in chunks of ticks, for progress."""
+    """MJX backends: vmap(closed loop) per device (:class:`PerDevice`) over the batch, sharded
+    along it over the device mesh. A run without records is one program (Warp's data never leaves
+    it: its contact buffer is shared by a device's environments); a recorded run (``jax`` only)
+    goes in chunks of ticks, for progress. Every array the programs close over lives on this
+    process's own device (:mod:`wbc_jax.core.mjx`), so the same code runs in several processes."""
     loop, dtype = setup_.loop, setup_.dtype
     mesh = device_mesh()
     n_dev = mesh.devices.size
     padded = pad_batch(scen, size + (-size) % n_dev)
     batch = int(padded.friction.shape[0])
-    sharding = NamedSharding(mesh, PartitionSpec("batch"))
-    replicated = NamedSharding(mesh, PartitionSpec())
-    scen_dev = _global_batch(padded, sharding, dtype)
-    qpos0 = jnp.asarray(setup_.qpos0, dtype)
+    local = batch // n_dev  # environments per device
+    batched = PartitionSpec("batch")
+    scen_dev = _global_batch(padded, NamedSharding(mesh, batched), dtype)
+    qpos0 = np.asarray(setup_.qpos0, dtype)
     nominal = physics.device_model(setup_.robot.mj_model, loop.backend, loop.cfg.physics)
     perturb = loop.cfg.perturb_plant
 
@@ -173,14 +301,12 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
     if not loop.cfg.record or loop.backend == "warp":
         if key not in cache:
 
-            def whole(s):
-                return mjx_loop.rollout(loop, plant(s), loop.initial_qpos(qpos0, s.joint_offset), s.gains, s.push,
-                                    batch=batch // n_dev)  # fmt: skip
+            def one(s):
+                return mjx_loop.rollout(loop, plant(s), loop.initial_qpos(jnp.asarray(qpos0), s.joint_offset),
+                                        s.gains, s.push, batch=local)  # fmt: skip
 
-            cache[key] = (
-                jax.jit(jax.vmap(whole), in_shardings=sharding, out_shardings=sharding).lower(scen_dev).compile()
-            )
-            compile_s = time.perf_counter() - t0
+            cache[key] = PerDevice(jax.vmap(one), mesh, (True,))
+            compile_s = cache[key].compile(scen_dev)
         t0 = time.perf_counter()
         metrics, records = jax.tree_util.tree_map(_to_host, cache[key](scen_dev))
         if on_tick is not None:
@@ -190,26 +316,24 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
     chunk = _tick_chunk(loop.n_ticks)
 
     def start(s):
-        return mjx_loop.start(loop, loop.initial_qpos(qpos0, s.joint_offset))
+        return jax.vmap(lambda x: mjx_loop.start(loop, loop.initial_qpos(jnp.asarray(qpos0), x.joint_offset)))(s)
 
     def advance(s, carry, k0):
-        return mjx_loop.chunk(loop, plant(s), s.gains, s.push, carry, k0, chunk)
+        step = lambda x, c: mjx_loop.chunk(loop, plant(x), x.gains, x.push, c, k0, chunk)  # noqa: E731
+        return jax.vmap(step)(s, carry)
 
     if key not in cache:
-        start_fn = jax.jit(jax.vmap(start), in_shardings=sharding, out_shardings=sharding).lower(scen_dev).compile()
-        carry_shape = jax.eval_shape(jax.vmap(start), scen_dev)
-        advance_fn = jax.jit(
-            jax.vmap(advance, in_axes=(0, 0, None)), in_shardings=(sharding, sharding, replicated),
-            out_shardings=sharding,
-        ).lower(scen_dev, carry_shape, jnp.int32(0)).compile()  # fmt: skip
+        start_fn = PerDevice(start, mesh, (True,))
+        compile_s = start_fn.compile(scen_dev)
+        advance_fn = PerDevice(advance, mesh, (True, True, False))
+        compile_s += advance_fn.compile(scen_dev, start_fn(scen_dev), np.int32(0))
         cache[key] = (start_fn, advance_fn)
-        compile_s = time.perf_counter() - t0
     start_fn, advance_fn = cache[key]
     t0 = time.perf_counter()
     carry = start_fn(scen_dev)
     pieces = []
     for k0 in range(0, loop.n_ticks, chunk):
-        carry, records = advance_fn(scen_dev, carry, jnp.int32(k0))
+        carry, records = advance_fn(scen_dev, carry, np.int32(k0))
         pieces.append(jax.tree_util.tree_map(_to_host, records))
         if on_tick is not None:
             on_tick(min(k0 + chunk, loop.n_ticks))
@@ -219,20 +343,22 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick) -> Run:
 
 
 def _run_mjx_queue(setup_: Setup, scen: Scenario, queue: int, check_ticks: int = QUEUE_CHECK_TICKS) -> Run:
-    """MJX backends, a shared queue: S = ceil(size / queue) batch slots (a multiple of the device
-    count) work through the batch's scenarios in order (:meth:`ClosedLoop.rollout_queue`), jit(vmap)
-    over the slots, sharded along them; the scenarios and results are replicated. ``check_ticks``:
-    the most ticks between hand-ins (``experiments/queue_overhead.py`` varies it)."""
+    """MJX backends, a queue of scenarios per batch slot: each device takes its share of the
+    batch's scenarios and works through them in order with ceil(share / queue) slots
+    (:func:`wbc_jax.sim.mjx_loop.rollout_queue`, vmap over its slots; :class:`PerDevice`). A
+    scenario's outcome does not depend on the slot that runs it, so the results equal the plain
+    run's on any number of devices. ``check_ticks``: the most ticks between hand-ins
+    (``experiments/benchmarks/queue_overhead.py`` varies it)."""
     loop, dtype = setup_.loop, setup_.dtype
     mesh = device_mesh()
     n_dev = mesh.devices.size
     size = int(scen.friction.shape[0])
-    slots = min(math.ceil(math.ceil(size / queue) / n_dev) * n_dev, size + (-size) % n_dev)
-    padded = pad_batch(scen, max(size, slots))
-    replicated = NamedSharding(mesh, PartitionSpec())
-    scen_dev = _global_batch(padded, replicated, dtype)
-    slot_ids = _global_batch(np.arange(slots, dtype=np.int32), NamedSharding(mesh, PartitionSpec("batch")), dtype)
-    qpos0 = jnp.asarray(setup_.qpos0, dtype)
+    padded = pad_batch(scen, size + (-size) % n_dev)
+    share = int(padded.friction.shape[0]) // n_dev  # scenarios per device
+    slots = min(math.ceil(share / queue), share)  # slots per device
+    batched = PartitionSpec("batch")
+    scen_dev = _global_batch(padded, NamedSharding(mesh, batched), dtype)
+    qpos0 = np.asarray(setup_.qpos0, dtype)
     nominal = physics.device_model(setup_.robot.mj_model, loop.backend, loop.cfg.physics)
     perturb = loop.cfg.perturb_plant
     segment = _tick_chunk(loop.n_ticks, target=check_ticks)
@@ -245,14 +371,16 @@ def _run_mjx_queue(setup_: Setup, scen: Scenario, queue: int, check_ticks: int =
         def plant_of(x):
             return physics.plant_model(nominal, x.friction, x.mass_scale) if perturb else nominal
 
-        def slot(i, s):
-            return mjx_loop.rollout_queue(loop, plant_of, qpos0, s, i, segment, "slots", batch=slots // n_dev)
+        def on_device(s):
+            def slot(i):
+                return mjx_loop.rollout_queue(loop, plant_of, jnp.asarray(qpos0), s, i, segment, "slots", batch=slots)
 
-        program = jax.vmap(slot, in_axes=(0, None), out_axes=None, axis_name="slots")
-        cache[key] = jax.jit(program, out_shardings=replicated).lower(slot_ids, scen_dev).compile()
-        compile_s = time.perf_counter() - t0
+            return jax.vmap(slot, out_axes=None, axis_name="slots")(jnp.arange(slots, dtype=jnp.int32))
+
+        cache[key] = PerDevice(on_device, mesh, (True,))
+        compile_s = cache[key].compile(scen_dev)
     t0 = time.perf_counter()
-    metrics = jax.tree_util.tree_map(lambda x: _to_host(x)[:size], cache[key](slot_ids, scen_dev))
+    metrics = jax.tree_util.tree_map(lambda x: _to_host(x)[:size], cache[key](scen_dev))
     return Run(metrics, None, compile_s, time.perf_counter() - t0)
 
 

@@ -48,13 +48,16 @@ def load_scene(robot_name: str = "icub", tasks_file=None) -> Scene:
     robot = model_lib.load_robot(robot_name)
     if not tasks_file:
         return Scene(robot, None, contacts_lib.feet_contact_set(robot), robot.home_qpos())
-    spec = task_files.load_spec_file(tasks_file)
-    qpos = task_files.initial_qpos(robot, spec["initial_posture_deg"])
-    contact_set = contacts_lib.feet_contact_set(robot)
-    if spec["contacts"] is not None:
-        robot, contact_set = contact_scene.build_scene(robot_name, spec["contacts"], spec["scene"], qpos)
-    elif spec["scene"]:
-        raise ValueError(f"{tasks_file}: scene objects need a 'contacts' list (what touches them)")
+    try:
+        spec = task_files.load_spec_file(tasks_file)
+        qpos = task_files.initial_qpos(robot, spec["initial_posture_deg"])
+        contact_set = contacts_lib.feet_contact_set(robot)
+        if spec["contacts"] is not None:
+            robot, contact_set = contact_scene.build_scene(robot_name, spec["contacts"], spec["scene"], qpos)
+        elif spec["scene"]:
+            raise ValueError("scene objects need a 'contacts' list (what touches them)")
+    except ValueError as err:  # every problem of the file names the file
+        raise ValueError(str(err) if str(tasks_file) in str(err) else f"task file {tasks_file}: {err}") from None
     return Scene(robot, spec["tasks"], contact_set, qpos, str(tasks_file))
 
 
@@ -115,7 +118,7 @@ def setup(
     dtype = float_dtype()
     gains = default_gains(robot.index.n, dtype) if gains is None else gains
     validate_gains(gains, robot.index.n)
-    robot.index.body_id(sim.push_body)  # unknown body: the valid names, before compiling
+    robot.index.pushable_body_id(sim.push_body)  # unknown body: the valid names, before compiling
     stack = None if scene.tasks is None else tasks_lib.resolve(robot, scene.tasks, scene.qpos)
     # References from the initial posture (C MuJoCo: no compilation).
     m = robot.mj_model

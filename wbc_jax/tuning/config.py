@@ -7,21 +7,21 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import math
 import pathlib
 
 import numpy as np
 
-from wbc_jax.control.controller import ControllerConfig
 from wbc_jax.core import constants
-from wbc_jax.core.types import option
-from wbc_jax.jobs.sweep_config import ONE_FOOT_WINDOW, _azimuths, _grid, _show_grid
+from wbc_jax.core.options import check_input_file, check_options, option
+from wbc_jax.jobs.sweep_config import MAX_GRID_AXIS, ONE_FOOT_WINDOW, _azimuths, _grid, _show_grid
+from wbc_jax.robot import model
 from wbc_jax.sim import physics
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 CHECKPOINTS = ("tick", "none", "dots")
 PUSH_SCALES = ("envelope", "lip")
 ENVELOPE_FILE = ROOT / "docs" / "tuning" / "default_envelope.json"
+MAX_BATCH = 10_000_000  # pushes of one step, candidates, held-out pushes: beyond it a typo
 # The phases of a tuning run, in the order they run (each resumable).
 PHASES = ("predict", "train", "quality", "profile", "cmaes", "random", "heldout", "report")
 SEARCHES = ("cmaes", "random")
@@ -40,20 +40,11 @@ VARIATIONS = {
 }
 
 
-def _whole(value, flag: str, low: int = 1) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value < low:
-        raise ValueError(f"--{flag} must be a whole number >= {low}, got {value!r}")
-
-
-def _positive(value, flag: str) -> None:
-    if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-        raise ValueError(f"--{flag} must be positive and finite, got {value!r}")
-
-
 @dataclasses.dataclass(frozen=True)
 class TuneConfig:
     """A tuning run (the defaults are small, for a CPU; the GPU sizes come as flags, e.g.
-    ``--batch 1024``). The CLI flags of ``wbc-jax tune`` are generated from these fields."""
+    ``--batch 1024``). The CLI flags of ``wbc-jax tune`` are generated from these fields, and
+    their declared ranges are checked by :meth:`check`."""
 
     out: str = option("runs/tune", "output folder (resumes a run there)")
     phases: tuple[str, ...] = option(("train", "cmaes", "random", "heldout", "report"), "what to run, in this "
@@ -62,18 +53,21 @@ class TuneConfig:
                                      "(where a gradient step's time goes), cmaes and random (gradient-free "
                                      "searches), heldout (every gain set on the held-out grid, variations, "
                                      "one-foot task and sinusoid), report (heldout.json, race.json, figures)",
-                                     nargs="+", choices=PHASES)  # fmt: skip
-    steps: int = option(8, "gradient steps (an upper bound with --budget-s)")
-    batch: int = option(4, "rollouts per gradient step (sampled afresh each step)")
-    horizon: float = option(2.0, "seconds per training rollout")
-    seed: int = option(0, "seed of the sampled pushes, the searches and the held-out pushes")
-    lr: float = option(0.05, "adam learning rate (on the unconstrained parameters)")
-    clip_norm: float = option(1.0, "global-norm gradient clipping")
+                                     nargs="+", choices=PHASES, nonempty=True)  # fmt: skip
+    steps: int = option(8, "gradient steps (an upper bound with --budget-s)", ge=1, le=1_000_000)
+    batch: int = option(4, "rollouts per gradient step (sampled afresh each step)", ge=1, le=MAX_BATCH)
+    horizon: float = option(2.0, "seconds per training rollout", gt=0.0, le=constants.MAX_HORIZON_S, unit="s")
+    seed: int = option(
+        0, "seed of the sampled pushes, the searches and the held-out pushes", ge=0, le=constants.MAX_SEED
+    )
+    lr: float = option(0.05, "adam learning rate (on the unconstrained parameters)", gt=0.0, le=10.0)
+    clip_norm: float = option(1.0, "global-norm gradient clipping", gt=0.0, le=1e6)
     budget_s: float = option(0.0, "wall-time budget of every method in seconds, compilation included (the race); "
                              "0: the gradient runs --steps and the searches its simulated steps (and, with "
-                             "--wall-budget, its wall time)")  # fmt: skip
+                             "--wall-budget, its wall time)", ge=0.0, le=1e7, unit="s")  # fmt: skip
     snapshots_s: tuple[float, ...] = option((120.0, 300.0), "with --budget-s: wall times [s] at which each "
-                                            "method's current gain set is also kept and held out", nargs="*")  # fmt: skip
+                                            "method's current gain set is also kept and held out", nargs="*",
+                                            gt=0.0, le=1e7, unit="s")  # fmt: skip
     parameterisation: str = option("gains", "what is tuned: 'gains' (58 gains, 60 with --tune-regularisation) or "
                                    "'scheduled' (the same gains scheduled on the push state: 348 entries, "
                                    "wbc_jax/tuning/schedule.py)", choices=PARAMETERISATIONS)  # fmt: skip
@@ -83,43 +77,60 @@ class TuneConfig:
                             "estimates of the smoothed loss mixed by their variances, Suh et al. 2022)",
                             choices=ESTIMATORS)  # fmt: skip
     smoothing_sigma: float = option(0.1, "std of the parameter perturbations (unconstrained units) of the smoothed "
-                                    "and interpolated estimators and of the zeroth-order estimates")  # fmt: skip
+                                    "and interpolated estimators and of the zeroth-order estimates", gt=0.0,
+                                    le=100.0)  # fmt: skip
     bias_factor: float = option(2.0, "interpolated: the first-order share is cut where the first- and zeroth-order "
-                                "means differ by more than this many standard errors of the zeroth-order one")  # fmt: skip
+                                "means differ by more than this many standard errors of the zeroth-order one",
+                                gt=0.0, le=1e6)  # fmt: skip
     window_s: float = option(0.0, "> 0: differentiate short windows of this length started from states along "
                              "forward rollouts, with a terminal capturability cost (short-horizon gradients); "
-                             "0: the whole horizon")  # fmt: skip
-    windows: int = option(4, "windows per forward rollout (with --window-s): --batch = rollouts x windows")
+                             "0: the whole horizon", ge=0.0, le=constants.MAX_HORIZON_S, unit="s")  # fmt: skip
+    windows: int = option(4, "windows per forward rollout (with --window-s): --batch = rollouts x windows", ge=1,
+                          le=MAX_BATCH)  # fmt: skip
     terminal_weight: float = option(4.0, "weight of a window's terminal capturability cost (capture point and "
-                                    "CoM speed at its last tick)")  # fmt: skip
-    bound_factor: float = option(10.0, "gains (and regularisation) stay within [default / f, default * f]")
+                                    "CoM speed at its last tick)", ge=0.0, le=1e6)  # fmt: skip
+    bound_factor: float = option(10.0, "gains (and regularisation) stay within [default / f, default * f]",
+                                 gt=1.0, le=1e3)  # fmt: skip
     zeta_range: tuple[float, float] = option((0.02, 2.0), "damping ratios of the CoM, angular-momentum and "
-                                             "postural error dynamics stay in this range", nargs=2)  # fmt: skip
+                                             "postural error dynamics stay in this range", nargs=2, gt=0.0, le=100.0,
+                                             ordered=True)  # fmt: skip
     tune_regularisation: bool = option(False, "also tune Reg.pinvDamp and Reg.KP_postural (not storable in a "
                                        "gains file; the evaluation then compiles per gain set)")  # fmt: skip
     init_gains: str | None = option(None, "start from this gains file (inside the bounds; default: WBC's)",
-                                    metavar="FILE")  # fmt: skip
+                                    metavar="FILE", input_file=True)  # fmt: skip
     magnitude_range: tuple[float, float] = option((0.6, 1.4), "push impulses as multiples of --push-scale in the "
-                                                  "push's direction", nargs=2)  # fmt: skip
+                                                  "push's direction", nargs=2, gt=0.0, le=100.0,
+                                                  ordered=True)  # fmt: skip
     push_scale: str = option("envelope", "what push impulses are multiples of, per direction: 'envelope' (the default "
                              "gains' strict envelope, --envelope) or 'lip' (the feet-in-place LIP bound m omega d)",
                              choices=PUSH_SCALES)  # fmt: skip
-    train_bodies: tuple[str, ...] = option(("chest", "root_link"), "pushed bodies", nargs="+")
+    train_bodies: tuple[str, ...] = option(("chest", "root_link"), "pushed bodies", nargs="+", nonempty=True,
+                                           names=model.pushable_bodies)  # fmt: skip
     tasks: str | None = option(None, "contact file of the two feet (JSON/YAML), as push-sweep --tasks: e.g. "
                                "experiments/tasks/feet_sole95.yaml (the CoP rectangles of the model's soles)",
-                               metavar="FILE")  # fmt: skip
-    angular_weight_soft: float = option(1.0, "the controller's angular_weight_soft, as push-sweep's (1: WBC)")
-    duration_range: tuple[float, float] = option((0.05, 0.3), "push durations [s]", nargs=2)
-    push_onset: float = option(0.2, "push start [s]")
-    friction_range: tuple[float, float] = option((0.6, 1.2), "floor friction", nargs=2)
-    mass_range: tuple[float, float] = option((0.9, 1.1), "plant mass scale", nargs=2)
-    joint_noise: float = option(0.01, "initial joint noise std [rad]")
+                               metavar="FILE", input_file=True)  # fmt: skip
+    angular_weight_soft: float = option(
+        1.0, "the controller's angular_weight_soft, as push-sweep's (1: WBC)", gt=constants.ANGULAR_WEIGHT_RANGE[0],
+        le=constants.ANGULAR_WEIGHT_RANGE[1],
+    )  # fmt: skip
+    duration_range: tuple[float, float] = option((0.05, 0.3), "push durations [s]", nargs=2, gt=0.0,
+                                                 le=constants.MAX_PUSH_DURATION_S, unit="s", ordered=True)  # fmt: skip
+    push_onset: float = option(0.2, "push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
+    friction_range: tuple[float, float] = option((0.6, 1.2), "floor friction", nargs=2, ge=constants.FRICTION_RANGE[0],
+                                                 le=constants.FRICTION_RANGE[1], ordered=True)  # fmt: skip
+    mass_range: tuple[float, float] = option((0.9, 1.1), "plant mass scale", nargs=2, ge=constants.MASS_SCALE_RANGE[0],
+                                             le=constants.MASS_SCALE_RANGE[1], ordered=True)  # fmt: skip
+    joint_noise: float = option(0.01, "initial joint noise std [rad]", ge=0.0, le=constants.MAX_JOINT_NOISE_RAD,
+                                unit="rad")  # fmt: skip
     envelope: str | None = option(None, "the default gains' envelope per direction, JSON (default: "
                                   "docs/tuning/default_envelope.json of this checkout if there, else "
-                                  "--envelope-fraction x the LIP bound)", metavar="FILE")  # fmt: skip
-    envelope_fraction: float = option(0.5, "without --envelope: the default envelope as this fraction of the LIP bound")
-    solver_iterations: int | None = option(None, "contact-solver Newton iterations in training (default: the model's)")
-    ls_iterations: int | None = option(None, "contact-solver line-search iterations in training (default: the model's)")
+                                  "--envelope-fraction x the LIP bound)", metavar="FILE", input_file=True)  # fmt: skip
+    envelope_fraction: float = option(0.5, "without --envelope: the default envelope as this fraction of the LIP bound",
+                                      gt=0.0, le=10.0)  # fmt: skip
+    solver_iterations: int | None = option(None, "contact-solver Newton iterations in training (default: the model's)",
+                                           ge=1, le=constants.MAX_SOLVER_ITERATIONS)  # fmt: skip
+    ls_iterations: int | None = option(None, "contact-solver line-search iterations in training (default: the "
+                                       "model's)", ge=1, le=constants.MAX_SOLVER_ITERATIONS)  # fmt: skip
     solver_gradient: str = option("implicit", "how reverse mode passes MJX's contact solver: 'implicit' (the "
                                   "implicit-function derivative at the converged solution: one Cholesky solve per "
                                   "physics step) or 'unrolled' (through every Newton and line-search iteration, "
@@ -130,54 +141,37 @@ class TuneConfig:
                              choices=CHECKPOINTS)  # fmt: skip
     env_clip: float = option(3.0, "each rollout's gradient is clipped to this multiple of the batch's median "
                              "per-rollout gradient norm before the batch mean (0: no per-rollout clipping); "
-                             "rollouts with a non-finite gradient are left out of the mean")  # fmt: skip
+                             "rollouts with a non-finite gradient are left out of the mean", ge=0.0,
+                             le=1e6)  # fmt: skip
     keep_tracking: bool = option(False, "bounds that keep the seed's CoM sinusoid tracked: K_P,CoM x, y >= "
                                  f"{constants.TRACKING_KP_COM_FLOOR:g}, the yaw entries of K_I,w and of the "
                                  f"angular damping ratio >= {constants.TRACKING_YAW_FRACTION:g} x the WBC "
                                  "defaults (docs/tuning/README.md)")  # fmt: skip
     search_backend: str = option("auto", "physics engine of the gradient-free searches (auto: warp where available, "
                                  "else jax; the gradient always runs on jax)", choices=SEARCH_BACKENDS)  # fmt: skip
-    population: int = option(8, "CMA-ES / random-search candidates per generation")
-    es_batch: int = option(0, "pushes per candidate (0: batch // (population + 1), at least 1)")
-    es_sigma: float = option(0.5, "CMA-ES initial step / random-search spread (unconstrained units)")
+    population: int = option(8, "CMA-ES / random-search candidates per generation (CMA-ES recombines the better "
+                             "half: at least 2)", ge=2, le=MAX_BATCH)  # fmt: skip
+    es_batch: int = option(0, "pushes per candidate (0: batch // (population + 1), at least 1)", ge=0, le=MAX_BATCH)
+    es_sigma: float = option(0.5, "CMA-ES initial step / random-search spread (unconstrained units)", gt=0.0, le=100.0)
     wall_budget: bool = option(True, "without --budget-s: the searches also run until the gradient run's wall "
                                "time is spent")  # fmt: skip
-    eval_pushes: int = option(16, "held-out pushes of the training distribution (phase predict)")
-    eval_horizon: float = option(3.0, "seconds per held-out rollout of phase predict")
+    eval_pushes: int = option(16, "held-out pushes of the training distribution (phase predict)", ge=1, le=MAX_BATCH)
+    eval_horizon: float = option(3.0, "seconds per held-out rollout of phase predict", gt=0.0,
+                                 le=constants.MAX_HORIZON_S, unit="s")  # fmt: skip
     quality_pushes: int = option(32, "phase quality: fixed held-out pushes of the training distribution whose mean "
-                                 "loss the gradients are checked on (a multiple of --batch)")  # fmt: skip
+                                 "loss the gradients are checked on (a multiple of --batch)", ge=1,
+                                 le=MAX_BATCH)  # fmt: skip
     quality_directions: int = option(16, "phase quality: antithetic random directions of the zeroth-order estimate "
                                      "on the quality pushes (0: from the antithetic pairs of the gradient program "
-                                     "instead, one push each; no population program, no descent check)")  # fmt: skip
+                                     "instead, one push each; no population program, no descent check)", ge=0,
+                                     le=MAX_BATCH)  # fmt: skip
 
     def __post_init__(self):
         self.check()
 
     def check(self) -> None:
-        """Every check that needs no model or compilation."""
-        for name in ("steps", "batch", "population", "eval_pushes", "windows", "quality_pushes"):
-            _whole(getattr(self, name), name.replace("_", "-"))
-        _whole(self.es_batch, "es-batch", 0)
-        _whole(self.quality_directions, "quality-directions", 0)
-        for name in ("horizon", "lr", "clip_norm", "eval_horizon", "es_sigma", "envelope_fraction",
-                     "angular_weight_soft", "smoothing_sigma", "bias_factor"):  # fmt: skip
-            _positive(getattr(self, name), name.replace("_", "-"))
-        for name in ("env_clip", "budget_s", "window_s", "terminal_weight"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"--{name.replace('_', '-')} must be finite and >= 0, got {v!r}")
-        if any(not (math.isfinite(s) and s > 0) for s in self.snapshots_s):
-            raise ValueError(f"--snapshots-s must be positive seconds, got {list(self.snapshots_s)}")
-        if not (math.isfinite(self.bound_factor) and self.bound_factor > 1.0):
-            raise ValueError(f"--bound-factor must be > 1, got {self.bound_factor}")
-        for name in ("zeta_range", "magnitude_range", "duration_range", "friction_range", "mass_range"):
-            lo, hi = getattr(self, name)
-            if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
-                raise ValueError(f"--{name.replace('_', '-')} must be positive and ordered, got {(lo, hi)}")
-        if not (math.isfinite(self.push_onset) and self.push_onset >= 0):
-            raise ValueError(f"--push-onset must be >= 0, got {self.push_onset}")
-        if not (math.isfinite(self.joint_noise) and self.joint_noise >= 0):
-            raise ValueError(f"--joint-noise must be >= 0, got {self.joint_noise}")
+        """Every check that compiles nothing: the declared ranges, then what ties the flags together."""
+        check_options(self)
         push_end = self.push_onset + self.duration_range[1]
         for name in ("horizon", "eval_horizon"):
             if getattr(self, name) <= push_end:
@@ -196,25 +190,11 @@ class TuneConfig:
             raise ValueError(f"--quality-pushes {self.quality_pushes} must be a multiple of the {self.pushes_per_call} "
                              "pushes of one gradient program call (--batch, halved for antithetic pairs, divided by "
                              "--windows with --window-s)")  # fmt: skip
-        if not self.train_bodies:
-            raise ValueError("--train-bodies: give at least one body")
-        for name, value, valid in (("phases", self.phases, PHASES), ("push-scale", (self.push_scale,), PUSH_SCALES),
-                                   ("checkpoint", (self.checkpoint,), CHECKPOINTS),
-                                   ("solver-gradient", (self.solver_gradient,), physics.SOLVER_GRADIENTS),
-                                   ("search-backend", (self.search_backend,), SEARCH_BACKENDS),
-                                   ("estimator", (self.estimator,), ESTIMATORS),
-                                   ("parameterisation", (self.parameterisation,), PARAMETERISATIONS)):  # fmt: skip
-            unknown = [v for v in value if v not in valid]
-            if unknown or not value:
-                raise ValueError(f"--{name} must be one of {list(valid)}, got {list(value) if value else 'nothing'}")
         if self.parameterisation == "scheduled" and self.tune_regularisation:
             raise ValueError("--parameterisation scheduled schedules the gains only: drop --tune-regularisation")
+        if self.out is not None and pathlib.Path(self.out).exists() and not pathlib.Path(self.out).is_dir():
+            raise ValueError(f"--out {self.out} is a file; give a folder for the tune run")
         physics.PhysicsConfig(backend="jax", solver_iterations=self.solver_iterations, ls_iterations=self.ls_iterations)
-        for name, path in (("init-gains", self.init_gains), ("envelope", self.envelope), ("tasks", self.tasks)):
-            if path is not None:
-                p = pathlib.Path(path)
-                if not p.is_file():
-                    raise ValueError(f"--{name} {path} is not a file")
 
     @property
     def candidate_batch(self) -> int:
@@ -276,46 +256,41 @@ class HeldoutConfig:
                                    nargs="*")  # fmt: skip
     grid_magnitudes: tuple[float, ...] = option(_grid((10.0, 400.0, 64)), "held-out grid of chest push forces [N]: "
                                                 "LO HI N", nargs=3, metavar=("LO", "HI", "N"), parse=_grid,
-                                                show=_show_grid)  # fmt: skip
+                                                show=_show_grid, ge=0.0, le=constants.MAX_PUSH_N, unit="N",
+                                                nonempty=True)  # fmt: skip
     grid_directions: tuple[float, ...] = option(_azimuths(32), "held-out push azimuths over 360 deg",
-                                                metavar="N", parse=_azimuths, show=len)  # fmt: skip
-    grid_duration: float = option(0.1, "held-out push length [s]")
-    grid_onset: float = option(0.5, "held-out push start [s]")
-    grid_horizon: float = option(3.0, "seconds per held-out rollout")
+                                                metavar="N", parse=_azimuths, show=len, ge=-360.0, le=360.0,
+                                                unit="deg", nonempty=True)  # fmt: skip
+    grid_duration: float = option(0.1, "held-out push length [s]", gt=0.0, le=constants.MAX_PUSH_DURATION_S, unit="s")
+    grid_onset: float = option(0.5, "held-out push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
+    grid_horizon: float = option(3.0, "seconds per held-out rollout", gt=0.0, le=constants.MAX_HORIZON_S, unit="s")
     variations: tuple[str, ...] = option(tuple(VARIATIONS), "unseen variations of the grid's pushes",
                                          nargs="*", choices=tuple(VARIATIONS))  # fmt: skip
-    variation_magnitudes: int = option(16, "impulses per direction of each variation")
-    variation_directions: int = option(16, "directions of each variation and of the one-foot pushes")
+    variation_magnitudes: int = option(16, "impulses per direction of each variation", ge=1, le=MAX_GRID_AXIS)
+    variation_directions: int = option(16, "directions of each variation and of the one-foot pushes", ge=1,
+                                       le=MAX_GRID_AXIS)  # fmt: skip
     one_foot: bool = option(True, "also push during the one-foot task's single-support phase")
-    one_foot_onset: float = option(7.5, "one-foot push start [s]")
-    one_foot_horizon: float = option(9.0, "seconds per one-foot rollout")
-    sinusoid_s: float = option(20.0, "seconds of the seed's CoM sinusoid (its RMSE; 0: skip)")
+    one_foot_onset: float = option(7.5, "one-foot push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
+    one_foot_horizon: float = option(9.0, "seconds per one-foot rollout", gt=0.0, le=constants.MAX_HORIZON_S, unit="s")
+    sinusoid_s: float = option(20.0, "seconds of the seed's CoM sinusoid (its RMSE; 0: skip)", ge=0.0,
+                               le=constants.MAX_HORIZON_S, unit="s")  # fmt: skip
     sinusoid_backend: str = option("mujoco", "physics of the sinusoid", choices=physics.BACKENDS)
     heldout_backend: str = option("auto", "physics of the held-out pushes (auto: warp on a GPU, C MuJoCo on a CPU)",
                                   choices=physics.BACKENDS)  # fmt: skip
-    chunk_size: int = option(16384, "held-out environments per compiled batch")
-    tasks: str | None = option(None, "contact file of the feet (JSON/YAML), as push-sweep --tasks", metavar="FILE")
-    angular_weight_soft: float = option(1.0, "the controller's angular_weight_soft (1: WBC)")
+    chunk_size: int = option(16384, "held-out environments per compiled batch", ge=1, le=MAX_BATCH)
+    tasks: str | None = option(None, "contact file of the feet (JSON/YAML), as push-sweep --tasks", metavar="FILE",
+                               input_file=True)  # fmt: skip
+    angular_weight_soft: float = option(
+        1.0, "the controller's angular_weight_soft (1: WBC)", gt=constants.ANGULAR_WEIGHT_RANGE[0],
+        le=constants.ANGULAR_WEIGHT_RANGE[1],
+    )  # fmt: skip
 
     def __post_init__(self):
         self.check()
 
     def check(self) -> None:
-        if not self.grid_magnitudes or not self.grid_directions:
-            raise ValueError("the held-out grid is empty: give at least one magnitude and one direction")
-        if any(not (math.isfinite(m) and m >= 0) for m in self.grid_magnitudes):
-            raise ValueError(f"--grid-magnitudes must be finite and >= 0 N, got {list(self.grid_magnitudes)}")
-        for name in ("variation_magnitudes", "variation_directions", "chunk_size"):
-            _whole(getattr(self, name), name.replace("_", "-"))
-        for name in ("grid_duration", "grid_horizon", "one_foot_horizon"):
-            _positive(getattr(self, name), name.replace("_", "-"))
-        for name in ("grid_onset", "one_foot_onset", "sinusoid_s"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise ValueError(f"--{name.replace('_', '-')} must be finite and >= 0, got {v!r}")
-        unknown = sorted(set(self.variations) - set(VARIATIONS))
-        if unknown:
-            raise ValueError(f"unknown held-out variations {unknown}; valid: {list(VARIATIONS)}")
+        """Every check that compiles nothing: the declared ranges, then what ties the flags together."""
+        check_options(self)
         longest = max([self.grid_duration] + [VARIATIONS[v][1] for v in self.variations])
         if self.grid_horizon <= self.grid_onset + longest:
             raise ValueError(f"held-out horizon {self.grid_horizon} s ends before the pushes "
@@ -324,11 +299,6 @@ class HeldoutConfig:
         if self.one_foot and not (lo <= self.one_foot_onset and self.one_foot_onset + self.grid_duration <= hi
                                   and self.one_foot_horizon > self.one_foot_onset + self.grid_duration):  # fmt: skip
             raise ValueError(f"one-foot pushes must fall in the single-support phase {ONE_FOOT_WINDOW} s")
-        physics.PhysicsConfig(backend=self.heldout_backend)
-        physics.PhysicsConfig(backend=self.sinusoid_backend)
-        ControllerConfig(angular_weight_soft=self.angular_weight_soft)
-        if self.tasks is not None and not pathlib.Path(self.tasks).is_file():
-            raise ValueError(f"held-out tasks file {self.tasks} is not a file")
         seen = set()
         for spec in self.sets:
             name, _, path = spec.partition("=")
@@ -337,8 +307,8 @@ class HeldoutConfig:
             seen.add(name)
             if not path and name not in ("default", "critical"):
                 raise ValueError(f"--sets entries are 'default', 'critical' or NAME=FILE, got {spec!r}")
-            if path and not pathlib.Path(path).is_file():
-                raise ValueError(f"--sets {spec}: {path} is not a file")
+            if path:
+                check_input_file(path, f"--sets {name}")
 
     @property
     def grid_impulses(self) -> np.ndarray:

@@ -1,0 +1,434 @@
+"""[TSID peer] One-core measurement of the TSID balancing controller (``benchmarks/tsid_baseline.py``).
+
+In one run, on one core (BLAS/OpenMP threads set to 1 before numpy loads; TSID, Pinocchio and C
+MuJoCo step one robot in one thread; ``--cpu`` also pins the process to one core):
+
+1. the control tick's time: the state map, TSID (problem data + eiquadprog solve + torques), and
+   the physics (``mj_step1`` + ``mj_step2`` + 9 ``mj_step``) separately, over the 20 s sinusoid;
+2. the 20 s sinusoid's CoM tracking (``com_rmse_m`` and the other ``constants.METRIC_NAMES``) and
+   the 10 s stand task's;
+3. the strict recovery envelope over the chest-push grid of ``wbc_jax/jobs/envelope.py``
+   (``DEFAULT_MAGNITUDES``: 64 forces of 10-400 N for 0.1 s from 0.5 s, 32 azimuths, 3 s horizon):
+   per direction the largest impulse that survives the strict criterion, by the two-phase bisection
+   of ``wbc_jax.jobs.envelope.bisect`` (6 rounds over the 64 grid impulses, then 2 inside the bracketing
+   step, to 0.25 N s: 8 rollouts per direction instead of 64); as a fraction of the feet-in-place LIP
+   bound m omega d of ``wbc_jax.jobs.sweep_table.lip_bound``. ``--full-grid`` also runs all 64 x 32 pushes
+   (survival rate and the grid's monotone envelope, as ``wbc_jax.jobs.sweep_table.envelope_of``);
+4. ``--sensitivity``: the sinusoid and the envelope again with each setting that has no WBC
+   counterpart changed, one at a time (:data:`SENSITIVITY`).
+
+Writes a JSON file (default ``docs/peers/tsid.json``): every figure with the command that produced
+it, the CPU, the date, the load average, the package versions and the controller's settings.
+JAX-free, as the baseline.
+
+    python benchmarks/tsid_peer.py --cpu 1 --full-grid --sensitivity --out docs/peers/tsid.json
+"""
+
+from __future__ import annotations
+
+import os
+
+for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
+    os.environ[_name] = "1"  # before numpy's BLAS starts its threads
+
+import argparse  # noqa: E402
+import dataclasses  # noqa: E402
+import datetime  # noqa: E402
+import faulthandler  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+import pathlib  # noqa: E402
+import platform  # noqa: E402
+import shlex  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+
+HERE = pathlib.Path(__file__).resolve().parent
+# tsid_baseline is imported from this script's folder: Python puts it first on sys.path when the
+# script runs (python benchmarks/tsid_peer.py).
+import tsid_baseline as tb  # noqa: E402
+
+# The grid of wbc_jax/jobs/envelope.py (DEFAULT_MAGNITUDES) and of the documented 64 x 32 sweeps.
+MAGNITUDES = (10.0, 400.0, 64)  # N: LO, HI, count (np.linspace)
+DIRECTIONS = 32  # azimuths k 360 / N deg from 0 (forward; 90 = left)
+PUSH_ONSET, PUSH_DURATION, HORIZON = 0.5, 0.1, 3.0  # s
+RESOLUTION = 0.25  # N s: wbc_jax.jobs.envelope.search's default
+CODE = ("benchmarks", "assets", "wbc_jax/core/constants.py")  # what the measurement runs (code_version)
+PACKAGES = ("tsid", "libtsid", "pin", "libpinocchio", "eiquadprog", "mujoco", "numpy", "icub-models")
+
+
+def lip_bound(m: mujoco.MjModel, qpos: np.ndarray, directions_deg, mass: float | None = None) -> dict:
+    """Feet-in-place bound per azimuth (``wbc_jax.jobs.sweep_table.lip_bound``, two feet): the LIP with its
+    CoP on the edge of the hull of the soles' contact spheres survives a CoM velocity up to omega d
+    (omega = sqrt(g / z_CoM), d the distance from the CoM to the hull along the push); as an impulse
+    m omega d. qpos (nq,): the home state. Returns {azimuth: {edge_distance_m, velocity_bound_mps,
+    impulse_bound_ns}}."""
+    from scipy.spatial import ConvexHull
+
+    d = mujoco.MjData(m)
+    d.qpos[:] = qpos
+    mujoco.mj_forward(m, d)
+    geoms = [
+        g for g in range(m.ngeom) if (mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g) or "").count("_foot_contact_")
+    ]
+    if not geoms:
+        raise ValueError("the model has no foot contact geoms (names '*_foot_contact_*')")
+    hull = ConvexHull(d.geom_xpos[geoms, :2])
+    base = 1  # the free-floating root body
+    com = d.subtree_com[base]
+    mass = float(m.body_subtreemass[base]) if mass is None else float(mass)
+    omega = math.sqrt(tb.constants.GRAVITY / com[2])
+    out = {}
+    for az in directions_deg:
+        u = np.array([math.cos(math.radians(az)), math.sin(math.radians(az))])
+        dist = min((-(eq[:2] @ com[:2] + eq[2]) / (eq[:2] @ u)) for eq in hull.equations if eq[:2] @ u > 1e-12)
+        out[float(az)] = {"edge_distance_m": dist, "velocity_bound_mps": omega * dist,
+                          "impulse_bound_ns": mass * omega * dist}  # fmt: skip
+    return out
+
+
+def bisect(impulses: np.ndarray, survives: Callable[[np.ndarray, np.ndarray], np.ndarray], searches: int,
+           resolution: float) -> dict:  # fmt: skip
+    """The two-phase search of ``wbc_jax.jobs.envelope.bisect``: per search, the bracket of grid indices
+    [lo, hi] starts at (-1: no push, M - 1: taken as a fall) and is halved until adjacent over the
+    sorted distinct ``impulses`` (M,) N s, then the bracket inside that grid step is halved until at
+    most ``resolution`` N s wide. ``survives(k, impulse)`` -> bool (len(k),) for the open searches k.
+
+    Returns numpy arrays over the searches: lo (largest impulse seen to survive, 0 if none), hi,
+    grid_lo (largest grid impulse seen to survive), at_cap (no grid impulse failed); rollouts, rounds."""
+    impulses = np.asarray(impulses, float)
+    if impulses.ndim != 1 or impulses.size == 0 or np.any(np.diff(impulses) <= 0) or impulses[0] <= 0:
+        raise ValueError(f"impulses must be a sorted 1-D array of distinct positive values, got {impulses}")
+    if not (math.isfinite(resolution) and resolution > 0):
+        raise ValueError(f"resolution must be a positive number of N s, got {resolution}")
+    at = np.concatenate([[0.0], impulses])
+    lo_i, hi_i = np.full(searches, -1), np.full(searches, impulses.size - 1)
+    failed = np.zeros(searches, bool)
+    rollouts = rounds = 0
+    while np.any(hi_i - lo_i > 1):
+        k = np.flatnonzero(hi_i - lo_i > 1)
+        mid = (lo_i[k] + hi_i[k]) // 2
+        ok = np.asarray(survives(k, at[mid + 1]), bool)
+        lo_i[k], hi_i[k] = np.where(ok, mid, lo_i[k]), np.where(ok, hi_i[k], mid)
+        failed[k] |= ~ok
+        rollouts, rounds = rollouts + k.size, rounds + 1
+    lo, hi = at[lo_i + 1], at[hi_i + 1]
+    grid_lo = lo.copy()
+    while np.any(hi - lo > resolution * (1 + 1e-9)):
+        k = np.flatnonzero(hi - lo > resolution * (1 + 1e-9))
+        mid = 0.5 * (lo[k] + hi[k])
+        ok = np.asarray(survives(k, mid), bool)
+        lo[k], hi[k] = np.where(ok, mid, lo[k]), np.where(ok, hi[k], mid)
+        rollouts, rounds = rollouts + k.size, rounds + 1
+    return {"lo": lo, "hi": hi, "grid_lo": grid_lo, "at_cap": ~failed, "rollouts": rollouts, "rounds": rounds}
+
+
+def push_of(magnitude: float, azimuth_deg: float, onset: float, duration: float) -> dict:
+    """A horizontal push of ``magnitude`` N toward ``azimuth_deg`` (0 = forward = world +x, 90 =
+    left), from ``onset`` for ``duration`` s (``TsidPeer.simulate``'s push dict)."""
+    a = math.radians(azimuth_deg)
+    return {"force": magnitude * np.array([math.cos(a), math.sin(a), 0.0]), "onset": onset, "duration": duration}
+
+
+def _survived(peer: tb.TsidPeer, config, magnitude, azimuth, args) -> tuple[bool, dict]:
+    """One push rollout of the stand task: (strict survival, the summary). A rollout that runs
+    longer than ``args.rollout_timeout`` s ends the process with a traceback (faulthandler: a C++
+    solver that never returns holds the GIL, so no Python-level timer could stop it)."""
+    faulthandler.dump_traceback_later(args.rollout_timeout, exit=True)
+    try:
+        r = peer.simulate("stand", duration=args.horizon, push=push_of(magnitude, azimuth, args.push_onset,
+                          args.push_duration), push_body=args.body, config=config, record=False)  # fmt: skip
+    finally:
+        faulthandler.cancel_dump_traceback_later()
+    return bool(r["summary"]["survived"]), r["summary"]
+
+
+def envelope(peer: tb.TsidPeer, config, args, log=print) -> dict:
+    """The strict envelope by :func:`bisect` over the grid's impulses, per azimuth, with the LIP bound."""
+    magnitudes = np.unique(np.linspace(*args.magnitudes[:2], int(args.magnitudes[2])))
+    impulses = magnitudes * args.push_duration
+    azimuths = np.arange(args.directions) * 360.0 / args.directions
+    start = time.perf_counter()
+
+    def survives(k: np.ndarray, impulse: np.ndarray) -> np.ndarray:
+        out = np.array(
+            [_survived(peer, config, imp / args.push_duration, azimuths[j], args)[0] for j, imp in zip(k, impulse)]
+        )
+        log(f"  round: {k.size} rollouts, {int(out.sum())} survived ({time.perf_counter() - start:.0f} s)")
+        return out
+
+    found = bisect(impulses, survives, azimuths.size, args.resolution)
+    run_s = time.perf_counter() - start
+    bound = lip_bound(peer.mj_model, peer.qpos0, azimuths.tolist(), peer.mass)
+    rows = {}
+    for j, az in enumerate(azimuths.tolist()):
+        b = bound[az]["impulse_bound_ns"]
+        rows[f"{az:g}"] = {
+            "impulse_ns": float(found["lo"][j]), "bracket_ns": [float(found["lo"][j]), float(found["hi"][j])],
+            "grid_impulse_ns": float(found["grid_lo"][j]), "at_cap": bool(found["at_cap"][j]),
+            "bound_impulse_ns": b, "fraction_of_bound": float(found["lo"][j]) / b,
+        }  # fmt: skip
+    frac = np.array([r["fraction_of_bound"] for r in rows.values()])
+    imp = np.array([r["impulse_ns"] for r in rows.values()])
+    return {
+        "fraction_of_bound_median": float(np.median(frac)), "fraction_of_bound_min": float(np.min(frac)),
+        "impulse_ns_median": float(np.median(imp)), "impulse_ns_min": float(np.min(imp)),
+        "min_at_azimuth_deg": float(azimuths[int(np.argmin(frac))]),
+        "rollouts": int(found["rollouts"]), "rounds": int(found["rounds"]),
+        "grid_rollouts": int(impulses.size * azimuths.size),
+        "run_s": round(run_s, 2), "grid_impulses": int(impulses.size), "resolution_ns": args.resolution,
+        "directions": rows,
+    }  # fmt: skip
+
+
+def full_grid(peer: tb.TsidPeer, config, args, log=print) -> dict:
+    """Every push of the grid: strict and lax survival rates, the grid's envelope per azimuth
+    (largest survived impulse; monotone: the largest below the first failure, as
+    ``wbc_jax.jobs.sweep_table.envelope_of``), with the LIP bound."""
+    magnitudes = np.unique(np.linspace(*args.magnitudes[:2], int(args.magnitudes[2])))
+    azimuths = np.arange(args.directions) * 360.0 / args.directions
+    start = time.perf_counter()
+    survived = np.zeros((magnitudes.size, azimuths.size), bool)
+    upright = np.zeros_like(survived)
+    for i, mag in enumerate(magnitudes):
+        for j, az in enumerate(azimuths):
+            survived[i, j], s = _survived(peer, config, mag, az, args)
+            upright[i, j] = s["upright"]
+        log(f"  grid: {i + 1} of {magnitudes.size} magnitudes ({time.perf_counter() - start:.0f} s)")
+    run_s = time.perf_counter() - start
+    bound = lip_bound(peer.mj_model, peer.qpos0, azimuths.tolist(), peer.mass)
+    impulses = magnitudes * args.push_duration
+    rows = {}
+    for j, az in enumerate(azimuths.tolist()):
+        alive = survived[:, j]
+        first_fail = int(np.argmin(alive)) if not alive.all() else impulses.size
+        monotone = float(impulses[first_fail - 1]) if first_fail > 0 else 0.0
+        b = bound[az]["impulse_bound_ns"]
+        rows[f"{az:g}"] = {
+            "largest_survived_impulse_ns": float(impulses[alive].max()) if alive.any() else 0.0,
+            "monotone_impulse_ns": monotone, "islands": int(alive[first_fail:].sum()),
+            "bound_impulse_ns": b, "monotone_fraction_of_bound": monotone / b,
+        }  # fmt: skip
+    frac = np.array([r["monotone_fraction_of_bound"] for r in rows.values()])
+    return {
+        "survival_rate": float(survived.mean()), "upright_rate": float(upright.mean()),
+        "monotone_fraction_of_bound_median": float(np.median(frac)),
+        "monotone_fraction_of_bound_min": float(np.min(frac)),
+        "rollouts": int(survived.size), "run_s": round(run_s, 2), "directions": rows,
+        "survived": survived.astype(int).tolist(), "magnitudes_n": magnitudes.tolist(),
+        "azimuths_deg": azimuths.tolist(),
+    }  # fmt: skip
+
+
+# Settings without a WBC counterpart (and the posture's damping), one at a time against the
+# defaults: how far the envelope moves with them (``--sensitivity``).
+SENSITIVITY = {
+    "w_am=1e-2": {"w_am": 1e-2},
+    "w_am=1e-4": {"w_am": 1e-4},
+    "w_posture=1e-4": {"w_posture": 1e-4},
+    "w_posture=1e-2": {"w_posture": 1e-2},
+    "contact_kp=10": {"contact_kp": 10.0},
+    "kd_com=2sqrt(kp_com) (TSID's critical damping)": {"kd_com": tuple(2 * np.sqrt(tb.constants.WBC_KP_COM))},
+    "foot_size=the soles' contact spheres": {"foot_size": "contact spheres"},  # tb.sole_contact_rectangle
+}
+
+
+def sensitivity(peer: tb.TsidPeer, args, log=print) -> dict:
+    """The sinusoid's CoM RMSE and the bisection envelope of each :data:`SENSITIVITY` variant."""
+    out = {}
+    for name, change in SENSITIVITY.items():
+        log(f"sensitivity: {name}")
+        if change.get("foot_size") == "contact spheres":
+            change = {**change, "foot_size": tb.sole_contact_rectangle(peer.mj_model)}
+        config = tb.TsidConfig(**change)
+        sin = peer.simulate("sinusoid", duration=args.sinusoid_duration, config=config, record=False)["summary"]
+        e = envelope(peer, config, args, log=lambda _: None)
+        out[name] = {
+            "change": {k: list(v) if isinstance(v, tuple) else v for k, v in change.items()},
+            "sinusoid_com_rmse_m": sin["com_rmse_m"], "sinusoid_survived": sin["survived"],
+            "fraction_of_bound_median": e["fraction_of_bound_median"],
+            "fraction_of_bound_min": e["fraction_of_bound_min"],
+            "fraction_of_bound": {az: round(r["fraction_of_bound"], 4) for az, r in e["directions"].items()},
+            "rollouts": e["rollouts"], "run_s": e["run_s"],
+        }  # fmt: skip
+    return out
+
+
+def versions() -> dict:
+    """Versions of the packages of the measurement (None: not installed)."""
+    from importlib import metadata
+
+    out = {"python": platform.python_version()}
+    for name in PACKAGES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def code_version() -> dict:
+    """The repository's commit and whether the measurement's code (benchmarks/, assets/,
+    wbc_jax/core/constants.py) differs from it in the working tree (None outside git)."""
+    import subprocess
+
+    def git(*cmd):
+        return subprocess.run(["git", *cmd], cwd=HERE.parent, capture_output=True, text=True, check=True).stdout.strip()
+
+    try:
+        return {"commit": git("rev-parse", "HEAD"), "dirty": bool(git("status", "--porcelain", "--", *CODE))}
+    except (OSError, subprocess.CalledProcessError):
+        return {"commit": None, "dirty": None}
+
+
+def _rounded(summary: dict) -> dict:
+    return {k: (round(v, 9) if isinstance(v, float) else v) for k, v in summary.items()}
+
+
+def measure(args, log=print) -> dict:
+    """Everything of the module docstring, as a JSON-ready dict."""
+    command = "python benchmarks/tsid_peer.py " + " ".join(shlex.quote(a) for a in args.argv)
+    load_start = os.getloadavg()
+    peer = tb.TsidPeer()
+    config = tb.TsidConfig()
+    log(f"sinusoid x {args.timing_repeats} (timing)")
+    runs = [peer.simulate("sinusoid", duration=args.sinusoid_duration, timing=True, record=False, config=config)
+            for _ in range(args.timing_repeats)]  # fmt: skip
+    sin = runs[0]
+    if any(r["summary"] != sin["summary"] for r in runs[1:]):
+        raise RuntimeError("the sinusoid's repeats differ: the closed loop is not deterministic")
+    log("stand")
+    stand = peer.simulate("stand", duration=args.stand_duration, record=True, config=config)
+    drift = float(np.linalg.norm(stand["com"][-1] - stand["com_ref"][-1]))
+    # The median repeat per quantity (a shared machine's other load only adds time), and each repeat's.
+    per_tick = [k for k in sin["timing"] if k.endswith(("_per_tick", "_per_mj_step"))]
+    timing = {k: round(float(np.median([r["timing"][k] for r in runs])), 3) for k in per_tick}
+    timing["repeats"] = {k: [round(r["timing"][k], 3) for r in runs] for k in per_tick}
+    timing["ticks"] = sin["n_ticks"]
+    for kind in ("", "cpu_"):  # simulated seconds per second of the loop (controller + physics)
+        loop_s = [sum(r["timing"][f"{part}_{kind}s"] for part in ("state_map", "tsid", "physics")) for r in runs]
+        timing[f"real_time_factor{'_cpu' if kind else ''}"] = round(
+            sin["n_ticks"] * peer.control_dt / float(np.median(loop_s)), 2
+        )
+    out = {
+        "peer": "TSID (Pinocchio + eiquadprog) on C MuJoCo, benchmarks/tsid_baseline.py",
+        "command": command,
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "cpu": tb.bc.cpu_name(),
+        "cpu_count": os.cpu_count(),
+        "affinity": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        "threads": {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")},
+        "versions": versions(),
+        "code": code_version(),
+        "controller": {
+            **{k: v for k, v in dataclasses.asdict(config).items() if not k.startswith(("kp_", "kd_"))},
+            "gains": {k: v.tolist() for k, v in config.gains(len(tb.DRIVEN_JOINTS)).items()},
+            "mu": tb.floor_friction(peer.mj_model) if config.mu is None else config.mu,
+            "solver": "tsid.SolverHQuadProgFast (eiquadprog), one solve per 10 ms tick",
+        },
+        "timing": {"command": command, "task": f"sinusoid, {args.sinusoid_duration} s, one robot, one thread, "
+                   f"median of {args.timing_repeats} runs (microseconds per 10 ms tick)", **timing},
+        "sinusoid": {"command": command, "duration_s": args.sinusoid_duration, **_rounded(sin["summary"])},
+        "stand": {"command": command, "duration_s": args.stand_duration, "com_drift_m": drift,
+                  **_rounded(stand["summary"])},
+    }  # fmt: skip
+    log("envelope (bisection)")
+    grid_def = {"magnitudes_n": list(args.magnitudes), "directions": args.directions, "push_onset_s": args.push_onset,
+                "push_duration_s": args.push_duration, "horizon_s": args.horizon, "body": args.body,
+                "survival": "strict (constants.SURVIVAL_CRITERION)"}  # fmt: skip
+    out["envelope"] = {"command": command, **grid_def, **envelope(peer, config, args, log)}
+    if args.full_grid:
+        log("full grid")
+        out["grid"] = {"command": command, **grid_def, **full_grid(peer, config, args, log)}
+    if args.sensitivity:
+        out["sensitivity"] = {"command": command, "what": "one setting changed from the defaults; the envelope "
+                              "by the same bisection and grid", **sensitivity(peer, args, log)}  # fmt: skip
+    out["load_average"] = {"start": [round(x, 2) for x in load_start], "end": [round(x, 2) for x in os.getloadavg()]}
+    return out
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument("--out", default=str(HERE.parent / "docs" / "peers" / "tsid.json"), help="JSON file to write")
+    p.add_argument("--cpu", type=int, default=None, help="pin the process to this core (default: no pinning)")
+    p.add_argument("--magnitudes", type=float, nargs=3, default=MAGNITUDES, metavar=("LO", "HI", "N"),
+                   help="push force grid [N]")  # fmt: skip
+    p.add_argument("--directions", type=int, default=DIRECTIONS, help="azimuths over 360 deg")
+    p.add_argument("--push-onset", type=float, default=PUSH_ONSET)
+    p.add_argument("--push-duration", type=float, default=PUSH_DURATION)
+    p.add_argument("--horizon", type=float, default=HORIZON, help="seconds per push rollout")
+    p.add_argument("--body", default="chest", help="pushed body")
+    p.add_argument("--resolution", type=float, default=RESOLUTION, help="envelope bracket [N s]")
+    p.add_argument("--sinusoid-duration", type=float, default=tb.TASK_DURATION["sinusoid"])
+    p.add_argument("--stand-duration", type=float, default=tb.TASK_DURATION["stand"])
+    p.add_argument("--timing-repeats", type=int, default=5, help="sinusoid runs for the tick timing (median)")
+    p.add_argument("--full-grid", action="store_true", help="also run every push of the grid")
+    p.add_argument("--sensitivity", action="store_true", help="also the envelope of each SENSITIVITY variant")
+    p.add_argument("--rollout-timeout", type=float, default=120.0,
+                   help="seconds one push rollout may take before the process ends with a traceback")  # fmt: skip
+    args = p.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
+    lo, hi, n = args.magnitudes
+    if not (0 < lo < hi and n == int(n) and n >= 2):
+        p.error(f"--magnitudes needs 0 < LO < HI and a whole N >= 2, got {args.magnitudes}")
+    for name in ("directions", "timing_repeats"):
+        if getattr(args, name) < 1:
+            p.error(f"--{name.replace('_', '-')} must be >= 1")
+    for name in (
+        "push_onset",
+        "push_duration",
+        "horizon",
+        "resolution",
+        "sinusoid_duration",
+        "stand_duration",
+        "rollout_timeout",
+    ):
+        value = getattr(args, name)
+        if not (math.isfinite(value) and value > 0):
+            p.error(f"--{name.replace('_', '-')} must be a positive number, got {value}")
+    if args.horizon <= args.push_onset + args.push_duration:
+        p.error(f"--horizon {args.horizon} s must end after the push ({args.push_onset} + {args.push_duration} s)")
+    return args
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    problem = tb.tsid_problem()
+    if problem is not None:
+        raise SystemExit(f"error: {problem}")
+    try:
+        tb._body_id(tb.load_mj_model(), args.body)
+    except ValueError as err:
+        raise SystemExit(f"error: --body: {err}") from None
+    if args.cpu is not None:
+        if not hasattr(os, "sched_setaffinity"):
+            raise SystemExit("error: --cpu needs os.sched_setaffinity (Linux)")
+        if args.cpu not in os.sched_getaffinity(0):
+            raise SystemExit(
+                f"error: --cpu {args.cpu} is not one of this process's cores {sorted(os.sched_getaffinity(0))}"
+            )
+        os.sched_setaffinity(0, {args.cpu})
+    result = measure(args, log=lambda s: print(s, flush=True))
+    out = pathlib.Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(out.suffix + ".tmp")
+    tmp.write_text(json.dumps(result, indent=1) + "\n")
+    tmp.replace(out)
+    e = result["envelope"]
+    t = result["timing"]
+    print(f"wrote {out}: tick {t['controller_us_per_tick']:.0f} us controller + {t['physics_us_per_tick']:.0f} us "
+          f"physics (CPU time {t['controller_cpu_us_per_tick']:.0f} + {t['physics_cpu_us_per_tick']:.0f}); "
+          "sinusoid CoM RMSE "
+          f"{result['sinusoid']['com_rmse_m'] * 1e3:.3f} mm; envelope {e['fraction_of_bound_median']:.3f} "
+          f"({e['fraction_of_bound_min']:.3f}) of the LIP bound")  # fmt: skip
+    return result
+
+
+if __name__ == "__main__":
+    main()

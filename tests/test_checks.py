@@ -1,0 +1,271 @@
+"""The check scripts (experiments/checks/, benchmarks/benchmark.py, experiments/acceptance/cpu_targets.py): each
+states its bar in ``--help``, and its ``failures(result)`` passes a result within the bar and fails one outside it.
+Recorded results of docs/ serve as inputs where they exist: some pass, and some (TensorFloat-32 on the GPU, the soak
+before the margin fix) are known failures that the bar must catch. No JAX compile: the functions read dicts."""
+
+import ast
+import copy
+import importlib.util
+import json
+import pathlib
+import sys
+
+import pandas as pd
+import pytest
+
+from wbc_jax.core import checks
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+SCRIPTS = {
+    "backend_check": "experiments/checks/backend_check.py",
+    "envelope_check": "experiments/checks/envelope_check.py",
+    "island_check": "experiments/checks/island_check.py",
+    "queue_check": "experiments/checks/queue_check.py",
+    "margin_precision_check": "experiments/checks/margin_precision_check.py",
+    "kill_trials": "experiments/checks/kill_trials.py",
+    "soak": "experiments/checks/soak.py",
+    "grad_check": "experiments/checks/grad_check.py",
+    "bad_input": "experiments/checks/bad_input.py",
+    "memory_estimate": "experiments/checks/memory_estimate.py",
+    "benchmark": "benchmarks/benchmark.py",
+    "cpu_targets": "experiments/acceptance/cpu_targets.py",
+}
+
+
+def script(name: str):
+    """A script of SCRIPTS loaded from its file (scripts are not a package), once."""
+    key = f"check_script_{name}"
+    if key not in sys.modules:
+        spec = importlib.util.spec_from_file_location(key, ROOT / SCRIPTS[name])
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[key] = module
+        spec.loader.exec_module(module)
+    return sys.modules[key]
+
+
+def doc(path: str) -> dict:
+    return json.loads((ROOT / path).read_text())
+
+
+@pytest.mark.parametrize("name", sorted(SCRIPTS))
+def test_help_states_the_bar_and_the_exit_status(name, capsys):
+    with pytest.raises(SystemExit) as stop:
+        script(name).main(["--help"])
+    assert stop.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "Check:" in text and "exit status 1" in text, text[-600:]
+
+
+def _calls(node) -> set[str]:
+    return {ast.unparse(n.func) for n in ast.walk(node) if isinstance(n, ast.Call)}
+
+
+@pytest.mark.parametrize("name", sorted(SCRIPTS))
+def test_script_applies_its_check_and_exits_with_it(name):
+    """The script records checks.verdict(failures(...)) and its __main__ exits with checks.exit_status."""
+    tree = ast.parse((ROOT / SCRIPTS[name]).read_text())
+    verdicts = [n for n in ast.walk(tree) if isinstance(n, ast.Call) and ast.unparse(n.func) == "checks.verdict"]
+    assert verdicts and all(_calls(v.args[0]) & {"failures"} for v in verdicts), "no checks.verdict(failures(...))"
+    mains = [n for n in tree.body if isinstance(n, ast.If) and "__main__" in ast.unparse(n.test)]
+    assert mains and "sys.exit" in _calls(mains[0]) and "checks.exit_status" in _calls(mains[0])
+
+
+def test_exit_status_follows_the_verdict(capsys):
+    assert checks.exit_status({"check": checks.verdict([], "bar")}) == 0
+    assert checks.exit_status({"check": checks.verdict(["a is 2 > 1"], "bar")}) == 1
+    assert "check failed: a is 2 > 1" in capsys.readouterr().err
+    assert checks.exit_status({}) == 1  # no verdict: nothing was checked
+
+
+def test_backend_check_bar_is_one_millimetre():
+    bc = script("backend_check")
+    ok = doc("docs/gpu_h200/check/backend_check.json")  # H200: Warp, JAX, C MuJoCo within 4e-6 m
+    assert bc.failures(ok) == []
+    bad = copy.deepcopy(ok)
+    bad["max_com_difference_m"]["warp-jax"] = 1.5e-3
+    assert len(bc.failures(bad)) == 1 and "warp-jax" in bc.failures(bad)[0]
+    bad["max_com_difference_m"]["jax-mujoco"] = float("nan")
+    assert len(bc.failures(bad)) == 2
+    assert bc.failures({"max_com_difference_m": {}}) != []  # one backend: nothing compared
+
+
+def test_envelope_check_bar_is_one_grid_step_in_every_direction():
+    ec = script("envelope_check")
+    assert ec.failures(doc("docs/envelope/cpu_mujoco/envelope_check.json")) == []
+    assert ec.failures(doc("docs/envelope/h100_warp_highest/envelope_check.json")) == []  # exactly one step
+    # TensorFloat-32 products on the H100 (before SimConfig.matmul_precision): 0.77 N s > the 0.62 N s step.
+    tf32 = ec.failures(doc("docs/envelope/h100_jax_tf32/envelope_check.json"))
+    assert len(tf32) >= 1 and all("grid step" in line for line in tf32)
+    # The verdict is recomputed from the directions, not read from the recorded flag.
+    forged = doc("docs/envelope/h100_jax_tf32/envelope_check.json")
+    forged["within_one_grid_step"] = True
+    assert ec.failures(forged) == tf32
+
+
+def _grid(survived: dict) -> pd.DataFrame:
+    """A sweep table (gain set 0): {azimuth: [survived at 10, 20, ..., 100 N]}."""
+    rows = [{"gain_set": 0, "azimuth_deg": az, "magnitude_n": 10.0 * (k + 1), "survived": bool(v)}
+            for az, outcome in survived.items() for k, v in enumerate(outcome)]  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+# Direction 0 survives to 50 N; direction 90 to 30 N, with an island at 50 N.
+REFERENCE = {0.0: [1, 1, 1, 1, 1, 0, 0, 0, 0, 0], 90.0: [1, 1, 1, 0, 1, 0, 0, 0, 0, 0]}
+NEAR = {0.0: [1, 1, 1, 1, 0, 0, 0, 0, 0, 0], 90.0: [1, 1, 1, 1, 0, 1, 0, 0, 0, 0]}  # the boundary moved a step
+FAR = {0.0: [1, 0, 1, 1, 1, 0, 0, 0, 0, 0], 90.0: REFERENCE[90.0]}  # a fall at 20 N: 3 steps below the band
+
+
+def test_island_check_passes_flips_near_the_boundary_and_fails_far_ones():
+    ic = script("island_check")
+    ref = _grid(REFERENCE)
+    band, stats = ic.transition(ref, 10.0)
+    assert band == {0.0: (60.0, 50.0), 90.0: (40.0, 50.0)} and stats["island_cells"] == 1
+    near = ic.compare(ref, _grid(NEAR), band, 10.0)
+    assert near == {
+        "cells_differing": 4,
+        "outside_the_first_sweeps_band": 1,
+        "max_steps_from_the_first_sweeps_band": 1.0,
+    }  # fmt: skip  (90 deg at 60 N: one step above)
+    far = ic.compare(ref, _grid(FAR), band, 10.0)
+    assert far["cells_differing"] == 1 and far["max_steps_from_the_first_sweeps_band"] == 3.0
+    assert ic.failures({"flips": {"near": near}}) == []
+    assert ic.failures({"flips": {"near": near}}, max_steps=0.5) != []
+    assert len(ic.failures({"flips": {"near": near, "far": far}})) == 1
+    assert ic.failures({"flips": {}}) != []  # one sweep: nothing compared
+
+
+def test_island_check_script_exits_1_on_a_far_flip(tmp_path):
+    """The script end to end (pandas only): exit status 0 near the boundary, 1 with a far flip."""
+    import subprocess
+
+    for name, grid in (("ref", REFERENCE), ("near", NEAR), ("far", FAR)):
+        (tmp_path / name).mkdir()
+        _grid(grid).to_parquet(tmp_path / name / "results.parquet")
+    run = [sys.executable, str(ROOT / SCRIPTS["island_check"]), str(tmp_path / "ref")]
+    ok = subprocess.run(
+        [*run, str(tmp_path / "near"), "--out", str(tmp_path / "ok.json")], capture_output=True, text=True
+    )
+    assert ok.returncode == 0, ok.stderr[-2000:]
+    assert json.loads((tmp_path / "ok.json").read_text())["check"]["passed"]
+    bad = subprocess.run([*run, str(tmp_path / "near"), str(tmp_path / "far"), "--out", str(tmp_path / "bad.json")],
+                         capture_output=True, text=True)  # fmt: skip
+    assert bad.returncode == 1 and "check failed: far:" in bad.stderr
+    written = json.loads((tmp_path / "bad.json").read_text())
+    assert not written["check"]["passed"] and written["provenance"]["inputs"]["sweep:far"]["sha256"]
+
+
+@pytest.mark.parametrize("path", ["docs/gpu_h200/queue/queue_check.json",
+                                  "docs/gpu_h200/queue/constant_activation/queue_check_32.json"])  # fmt: skip
+def test_queue_check_passes_the_measured_floor(path):
+    assert script("queue_check").failures(doc(path)) == []
+
+
+def test_queue_check_fails_over_the_bar_and_any_nan_difference():
+    qc = script("queue_check")
+    ok = doc("docs/gpu_h200/queue/queue_check.json")
+    n = ok["plain"]["n_envs"]
+    bad = copy.deepcopy(ok)
+    bad["queued"][1]["outcomes"]["survived"]["differ"] = int(0.02 * n)  # 2 % > 1.5 %
+    assert len(qc.failures(bad)) == 1 and "survived" in qc.failures(bad)[0]
+    assert qc.failures(bad, max_differ=0.025) == []
+    bad = copy.deepcopy(ok)
+    bad["plain"]["repeat_outcomes"]["nan"]["differ"] = 1
+    assert len(qc.failures(bad)) == 1 and "repeat" in qc.failures(bad)[0]
+
+
+def test_margin_precision_check_bar():
+    mp = script("margin_precision_check")
+    exact = {"max_abs_err_m": 1.19e-7, "sign_flips": 0}  # the H200 after the fix (tf32_check.json: new_default)
+    ok = {"n": 256, "current_default": exact, "current_highest": exact,
+          "old_default": {"max_abs_err_m": 0.267, "sign_flips": 32}}  # fmt: skip
+    assert mp.failures(ok) == []  # the old function is shown, not checked
+    tf32 = dict(ok, current_default=doc("docs/gpu_h200/margin_fix/tf32_check.json")["old_default"])
+    assert len(mp.failures(tf32)) == 2  # 32 sign flips, 0.27 m off
+    assert mp.failures({"n": 256, "current_default": exact}) == ["current_highest: not measured"]
+
+
+def test_kill_trials_bar():
+    kt = script("kill_trials")
+    reliability = doc("docs/reliability.json")  # counts only (recorded before the trials were kept)
+    assert kt.failures(reliability["kill_sweep"]) == []
+    assert kt.failures(reliability["kill_tune"]) == []  # 8 of 10 killed, none differs
+    assert len(kt.failures(dict(reliability["kill_sweep"], kill_mismatches=2))) == 1
+    trials = [{"trial": k, "killed": k != 1, "differences": []} for k in range(4)]
+    result = {"kill_trials": 4, "kill_killed": 3, "kill_mismatches": 0, "trials": trials}
+    assert kt.failures(result) == []
+    result["trials"][3]["differences"] = ["survived"]
+    assert kt.failures(result) == ["trial 3: differs from the reference in ['survived']"]
+    never = {**result, "trials": [dict(t, killed=False, differences=[]) for t in trials]}
+    assert len(kt.failures(never)) == 1 and "killed" in kt.failures(never)[0]
+
+
+def test_soak_bar():
+    soak = script("soak")
+    reliability = doc("docs/reliability.json")
+    assert soak.failures(reliability["soak_jax_h200_1m"]) == []  # 592 divergences flagged: outcomes, not failures
+    leaky = soak.failures(reliability["soak_warp_h200"])  # before the margin fix: 170,317 NaN leaks
+    assert len(leaky) == 1 and "NaN leaks" in leaky[0]
+    hung = dict(reliability["soak_jax_h200_1m"], soak_hangs=1)
+    assert len(soak.failures(hung)) == 1 and "hung" in soak.failures(hung)[0]
+    short = dict(reliability["soak_jax_h200_1m"], soak_envs_requested=2_000_000)
+    assert len(soak.failures(short)) == 1
+
+
+def test_grad_check_bar():
+    gc = script("grad_check")
+    ok = doc("docs/tuning/grad_check_100.json")  # H100, N = 100
+    assert gc.failures(ok) == []
+    off = copy.deepcopy(ok)
+    off["fd"]["kd_postural"][0]["rel_err"] = 0.09  # the frozen projector's 9 % (docs/tuning/grad_check_sources.json)
+    assert len(gc.failures(off)) == 1 and "kd_postural" in gc.failures(off)[0]
+    rough = copy.deepcopy(ok)
+    for row in rough["fd"]["kp_com"]:
+        row["smooth"] = False
+    assert len(gc.failures(rough)) == 1 and "kp_com" in gc.failures(rough)[0]
+    nan = dict(ok, nonfinite=2, loss=[*ok["loss"][:-1], float("nan")])
+    assert len(gc.failures(nan)) == 2
+
+
+def test_benchmark_trajectory_check_bar():
+    bm = script("benchmark")
+    eq = {"solver_iterations": 4, "com_max_diff_m": 2.1e-5, "same_within_1mm": True}
+    assert bm.failures({"equivalence": [eq]}) == []
+    assert bm.failures({}) == []  # --skip-equivalence: nothing to check
+    off = dict(eq, com_max_diff_m=1.2e-3)
+    assert len(bm.failures({"equivalence": [eq, off]})) == 1
+    assert len(bm.failures({"equivalence": [dict(eq, com_max_diff_m=float("nan"))]})) == 1
+
+
+def test_cpu_targets_bar():
+    ct = script("cpu_targets")
+    ok = doc("docs/cpu_targets/cpu_targets.json")
+    assert ct.failures(ok) == []
+    slow = copy.deepcopy(ok)
+    slow["main_job"]["met"] = False
+    assert ct.failures(slow) == [f"main_job: {ok['main_job']['target']} not met"]
+
+
+def test_bad_input_bar_is_every_case_failing_fast_and_clearly():
+    bi = script("bad_input")
+    ok = doc("docs/reliability.json")["bad_input_pass2"]  # 96 cases on the 2-core CPU, all passed
+    assert ok["cases"] >= 90 and bi.failures(ok) == []
+    bad = copy.deepcopy(ok)
+    bad["cases_run"][0].update(ok=False, problems=["exit code 0", "wrote --out"])
+    assert bi.failures(bad) == [f"{ok['cases_run'][0]['command']}: exit code 0, wrote --out"]
+    assert bi.failures({"cases_run": []}) == ["no case was run"]
+    # The judge of one case: each way of misbehaving is named.
+    assert bi.judge(2, "wbc-jax x: error: --a must be 1\n", 1.0, "--a must", False, 30.0) == []
+    assert bi.judge(0, "", 1.0, "--a", True, 30.0) == ["exit code 0", "0 error lines", "message does not match",
+                                                        "wrote --out"]  # fmt: skip
+    assert bi.judge(2, "Traceback\n  x\nValueError: --a\n", 40.0, "--a", False, 30.0) == [
+        "traceback", "3 error lines", "40.0 s > 30 s"]  # fmt: skip
+
+
+def test_memory_estimate_bar_is_no_measurement_above_the_estimate():
+    me = script("memory_estimate")
+    ok = doc("docs/memory_estimate/memory_estimate.json")  # the 2-core CPU: at most 0.66 of the estimate
+    assert me.failures(ok) == [] and all(r["measured_over_estimate"] <= 1.0 for r in ok["rows"])
+    bad = copy.deepcopy(ok)
+    bad["rows"][-1]["measured_over_estimate"] = 1.2
+    assert len(me.failures(bad)) == 1 and "1.2 x the estimate" in me.failures(bad)[0]
+    assert me.failures({"rows": []}) == ["nothing was measured"]
