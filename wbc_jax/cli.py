@@ -111,6 +111,17 @@ def job_configs() -> dict:
     }
 
 
+def _one_thread_pool() -> None:
+    """One robot: XLA's CPU thread pool of one thread (``PJRT_NPROC``, read when JAX starts its
+    CPU client; left alone if set, or if JAX has started already, e.g. ``main`` called from a
+    notebook). The tick's kernels are small: spread over two cores they cost about 40 % more CPU
+    time (BENCHMARKS.md)."""
+    from jax._src import xla_bridge
+
+    if not xla_bridge.backends_are_initialized():
+        os.environ.setdefault("PJRT_NPROC", "1")
+
+
 # Commands that also take another config's flags: command -> (config, fields left to the job's own).
 # ``tune`` holds out its gain sets with the held-out flags; its tasks and soft-QP weight are the run's.
 SHARED_CONFIGS = {"tune": ("heldout", ("out", "tasks", "angular_weight_soft"))}
@@ -140,7 +151,7 @@ def _run_job(command: str, cfg, quiet: bool, shared=None) -> dict:
 
         summary = sweep.run_sweep(cfg, progress=not quiet)
         keys = ("n_envs", "survival_rate", "upright_rate", "nan_envs", "qp_infeasible_envs", "backend",
-                "physics_steps_per_s", "compile_s", "run_s", "n_devices")  # fmt: skip
+                "physics_steps_per_s", "compile_s", "run_s", "started_s", "n_devices")  # fmt: skip
         return {k: summary[k] for k in keys}
     if command == "envelope":
         from wbc_jax.jobs import envelope
@@ -148,6 +159,7 @@ def _run_job(command: str, cfg, quiet: bool, shared=None) -> dict:
         found = envelope.search(cfg, progress=not quiet)
         return {"rollouts": found["rollouts"], "grid_rollouts": found["grid_rollouts"], "rounds": found["rounds"],
                 "backend": found["backend"], "run_s": found["run_s"], "compile_s": found["compile_s"],
+                "started_s": found["started_s"],
                 "impulse_ns": {str(a): e["impulse_ns"] for a, e in found["envelope"][0].items()}}  # fmt: skip
     if command == "heldout":
         from wbc_jax.tuning import heldout
@@ -217,6 +229,8 @@ def main(argv: list[str] | None = None) -> int:
     # would bury the commands' output; the programs run correctly.
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
     args = build_parser().parse_args(argv)
+    if args.command == "balance" and not args.distributed:
+        _one_thread_pool()  # before JAX starts (the checks below list its devices)
     try:
         if args.distributed or args.coordinator is not None:
             _initialize_distributed(args)  # before JAX starts (the checks below list its devices)

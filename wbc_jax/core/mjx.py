@@ -1,4 +1,9 @@
-"""MJX, imported once with stdout kept clean, and put on this process's own device.
+"""MJX, imported on first use with stdout kept clean, and put on this process's own device.
+
+``mjx`` below stands for ``mujoco.mjx``: the module is imported when one of its names is first
+used (tracing a program that uses MJX), not when the package is imported. A run whose compiled
+programs load from disk (:mod:`wbc_jax.sim.executables`) never imports it, which saves a second
+of start-up (MJX imports trimesh and networkx).
 
 mujoco-mjx prints "Failed to import warp" to stdout when the optional Warp backend is absent,
 which would corrupt the JSON our commands print. MJX's ``put_model``/``make_data`` place their
@@ -9,10 +14,26 @@ first local device instead (the same device in a one-process run).
 """
 
 import contextlib
+import functools
+import importlib
 import io
 
-with contextlib.redirect_stdout(io.StringIO()):
-    from mujoco import mjx
+
+@functools.cache
+def module():
+    """``mujoco.mjx``, imported once with stdout captured."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        return importlib.import_module("mujoco.mjx")
+
+
+class _Module:
+    """``mujoco.mjx`` imported on first attribute access."""
+
+    def __getattr__(self, name):
+        return getattr(module(), name)
+
+
+mjx = _Module()
 
 
 def local_device():

@@ -20,9 +20,22 @@ import pathlib
 import re
 import shlex
 import sys
+import time
 
 # The repository's top folder (the package lives in REPO_ROOT / "wbc_jax").
 REPO_ROOT = pathlib.Path(__file__).resolve().parents[2]
+_IMPORTED = time.time()
+
+
+def process_started() -> float:
+    """When this process started (``time.time()`` seconds): from /proc on Linux (10 ms ticks),
+    elsewhere when this module was imported. Jobs report the seconds from it to their first tick."""
+    try:
+        fields = pathlib.Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()
+        uptime = float(pathlib.Path("/proc/uptime").read_text().split()[0])
+        return time.time() - (uptime - int(fields[19]) / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError, AttributeError):
+        return _IMPORTED
 
 
 def sha256(path) -> str:

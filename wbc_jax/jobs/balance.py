@@ -19,10 +19,9 @@ from wbc_jax.core import constants as limits
 from wbc_jax.core import io, provenance
 from wbc_jax.core.options import check_options, option
 from wbc_jax.jobs import runs
-from wbc_jax.report import plots
+from wbc_jax.sim import host_loop, physics, runner, scenario
 from wbc_jax.sim import metrics as metrics_lib
-from wbc_jax.sim import physics, runner, scenario
-from wbc_jax.sim.state import SimConfig
+from wbc_jax.sim.state import HOST_LOOPS, SimConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,6 +56,10 @@ class BalanceConfig:
     solver_iterations: int | None = option(None, "contact solver Newton iterations (default: the model's, 4)",
                                            ge=1, le=limits.MAX_SOLVER_ITERATIONS)  # fmt: skip
     backend: str = option("auto", "physics engine (auto: C MuJoCo on a CPU, MJX on a GPU)", choices=physics.BACKENDS)
+    host_loop: str = option(
+        "auto", "C MuJoCo engine: the horizon as one compiled program, or a Python loop of ticks (auto: compiled "
+        "where the native step builds)", choices=HOST_LOOPS,
+    )  # fmt: skip
     out: str | None = option("runs/balance", "output folder")
     plots: bool = option(True, "write PNG plots")
 
@@ -93,7 +96,7 @@ def make_setup(
     dtype = scenario.float_dtype()
     gains = load_gains(cfg.gains, scene.robot.index.n, dtype) if cfg.gains else None
     sim = SimConfig(
-        control_dt=cfg.control_dt, record=True,
+        control_dt=cfg.control_dt, record=True, host_loop=cfg.host_loop,
         physics=physics.PhysicsConfig(backend=cfg.backend, solver_iterations=cfg.solver_iterations),
     )  # fmt: skip
     return scenario.setup(
@@ -133,7 +136,8 @@ def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: 
     traj = {name: np.asarray(v)[0] for name, v in dataclasses.asdict(result_run.records).items()}
     result = {"task": cfg.task, "forces": cfg.forces, "postural": cfg.postural, "duration_s": loop.cfg.duration,
               "solver_iterations": int(cfg.solver_iterations or st.robot.mj_model.opt.iterations),
-              "control_dt_s": loop.cfg.control_dt, "backend": st.backend}  # fmt: skip
+              "control_dt_s": loop.cfg.control_dt, "backend": st.backend,
+              "host_loop": host_loop.driver(loop, 1) if st.backend == "mujoco" else None}  # fmt: skip
     result.update(metrics_lib.summarize(metrics, push_end))
     result.update(force_task_error(traj))
     if loop.controller.stack is not None:
@@ -141,6 +145,7 @@ def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: 
     if st.scene.tasks_file is not None:
         result["contacts"] = contact_tracking(loop.contact_set, traj)
     result["compile_s"] = round(result_run.compile_s, 2)
+    result["started_s"] = round(result_run.started - provenance.process_started(), 2)  # process start to first tick
     result["loop_s"] = round(result_run.run_s, 2)
     result["real_time_factor"] = round(loop.cfg.duration / result_run.run_s, 3) if result_run.run_s > 0 else None
     result["wall_time_s"] = round(wall, 2)
@@ -156,6 +161,8 @@ def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: 
                            contact_names=np.array(loop.contact_set.names),
                            contact_dims=np.array([c.dim for c in loop.contact_set.contacts]), **traj)  # fmt: skip
         if cfg.plots:
+            from wbc_jax.report import plots  # matplotlib: imported after the simulation
+
             title = f"{cfg.task}, forces={cfg.forces}, postural={cfg.postural}"
             plots.com_tracking(traj, out / "com.png", title)
             plots.contact_forces(traj, list(loop.contact_set.names), [c.dim for c in loop.contact_set.contacts],

@@ -168,7 +168,7 @@ def search(cfg: sweep_config.SweepConfig, *, resolution: float | None = None, ro
     )
     push_end = cfg.push_onset + cfg.push_duration
     impulses = magnitudes * cfg.push_duration
-    timing = {"compile_s": 0.0, "run_s": 0.0}
+    timing = {"compile_s": 0.0, "run_s": 0.0, "started": None}
 
     def survives(k: np.ndarray, impulse: np.ndarray) -> np.ndarray:
         scen, _ = sweep.scenarios_at(cfg, sets, impulse / cfg.push_duration, azi[k], gset[k], friction[k],
@@ -178,6 +178,7 @@ def search(cfg: sweep_config.SweepConfig, *, resolution: float | None = None, ro
             part = jax.tree_util.tree_map(lambda x, lo=lo: np.asarray(x)[lo : lo + batch], scen)
             result = runner.run(st, part, batch_size=batch, queue=cfg.queue)
             timing["compile_s"] += result.compile_s
+            timing["started"] = timing["started"] or result.started
             timing["run_s"] += result.run_s
             alive.append(np.asarray(metrics_lib.summarize(result.metrics, push_end)["survived"]))
         return np.concatenate(alive)
@@ -201,6 +202,7 @@ def search(cfg: sweep_config.SweepConfig, *, resolution: float | None = None, ro
         "grid_impulses": int(impulses.size), "grid_rollouts": int(K * impulses.size),
         "resolution_ns": resolution, "backend": st.backend, "device": provenance.device_label(),
         "compile_s": round(timing["compile_s"], 2), "run_s": round(timing["run_s"], 2),
+        "started_s": round(timing["started"] - provenance.process_started(), 2),
         "config": dataclasses.asdict(cfg), "gains": gains_to_dict(base),
         "provenance": provenance.record({"gains": cfg.gains, "tasks": cfg.tasks}),
     }  # fmt: skip

@@ -24,7 +24,6 @@ from wbc_jax.core import constants, io, provenance
 from wbc_jax.jobs import runs
 from wbc_jax.jobs.sweep_config import SweepConfig, default_config
 from wbc_jax.jobs.sweep_table import summarize_table
-from wbc_jax.report import sweep_plots
 from wbc_jax.robot import model as model_lib
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import physics, runner, scenario
@@ -183,6 +182,7 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
     n_chunks = math.ceil(cfg.size / batch)
     parts = out / "parts"
     compile_s = run_s = 0.0
+    started = None  # when the first chunk started simulating
     done_envs = 0
     tables = []
     bounds = [(c * batch, min((c + 1) * batch, cfg.size)) for c in range(n_chunks)]
@@ -197,6 +197,7 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
                 chunk = jax.tree_util.tree_map(lambda x, lo=lo, hi=hi: np.asarray(x)[lo:hi], scen)
                 result = runner.run(st, chunk, batch_size=batch, queue=cfg.queue)
                 compile_s += result.compile_s
+                started = started or result.started
                 run_s += result.run_s
                 done_envs += hi - lo
                 cols = metrics_lib.summarize(result.metrics, push_end)
@@ -222,6 +223,8 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
         "versions": {"jax": jax.__version__, "mujoco": __import__("mujoco").__version__,
                      "wbc_jax": __import__("wbc_jax").__version__},
         "compile_s": round(compile_s, 2),
+        # from the process's start to the first chunk's first tick (None: every chunk was on disk)
+        "started_s": None if started is None else round(started - provenance.process_started(), 2),
         "run_s": round(run_s, 2),
         # Steps of the grid run now per second of run (with a queue, fewer were simulated).
         "physics_steps_per_s": (done_envs * steps_per_env / run_s) if run_s > 0 else None,
@@ -233,6 +236,8 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
     })  # fmt: skip
     if writer:
         io.atomic_write_json(out / "summary.json", summary)
+        from wbc_jax.report import sweep_plots  # matplotlib: imported after the simulation
+
         sweep_plots.survival_map(table, out / "survival.png", summary["envelope"])
         sweep_plots.envelope(table, summary["envelope"], out / "envelope.png")
     return summary

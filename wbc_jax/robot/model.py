@@ -10,6 +10,7 @@ import dataclasses
 import functools
 import pathlib
 
+import jax
 import mujoco
 import numpy as np
 
@@ -231,11 +232,17 @@ def build_index(m: mujoco.MjModel, robot: str = "icub", joints=ICUB_JOINTS) -> R
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Robot:
-    """C model, MJX model and static index of one robot."""
+    """C model, MJX model (built on first use) and static index of one robot."""
 
     mj_model: mujoco.MjModel
-    mjx_model: mjx.Model
     index: RobotIndex
+
+    @functools.cached_property
+    def mjx_model(self) -> mjx.Model:
+        """The MJX model (JAX implementation) on this process's device (concrete arrays, even when
+        first asked for while tracing)."""
+        with jax.ensure_compile_time_eval():
+            return mjx_device.put_model(self.mj_model)
 
     def home_qpos(self) -> np.ndarray:
         """qpos of the ``home`` keyframe (WBC simulator posture, soles on the floor)."""
@@ -244,9 +251,9 @@ class Robot:
 
 @functools.lru_cache(maxsize=8)
 def load_robot(robot: str = "icub") -> Robot:
-    """Load a robot by name: C model, MJX model (JAX backend) and index (cached)."""
+    """Load a robot by name: C model, MJX model (JAX backend, on first use) and index (cached)."""
     m = load_mj_model(robot)
-    return Robot(mj_model=m, mjx_model=mjx_device.put_model(m), index=build_index(m, robot))
+    return Robot(mj_model=m, index=build_index(m, robot))
 
 
 def summary(robot: Robot) -> dict:

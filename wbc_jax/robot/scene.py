@@ -16,7 +16,6 @@ import math
 import mujoco
 import numpy as np
 
-from wbc_jax.core import mjx as mjx_device
 from wbc_jax.robot import model as model_lib
 from wbc_jax.robot.contacts import FEET_FRAMES, Contact, ContactParams, ContactSet, ResolvedContact, check_spec
 
@@ -182,7 +181,7 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
             names.append(name)
         added[c.name] = names
     m = spec.compile()
-    scene_robot = model_lib.Robot(mj_model=m, mjx_model=mjx_device.put_model(m), index=model_lib.build_index(m, robot))
+    scene_robot = model_lib.Robot(mj_model=m, index=model_lib.build_index(m, robot))
 
     resolved = []
     for c in contacts:

@@ -1,8 +1,10 @@
-"""The closed loop over a horizon on C MuJoCo (``mujoco``): ticks in a Python loop.
+"""The closed loop over a horizon on C MuJoCo (``mujoco``): ticks in a Python loop, or one program.
 
-The jitted, vmapped tick of a :class:`wbc_jax.sim.loop.ClosedLoop` (its controller and metrics,
+:func:`run_host` picks the driver (``SimConfig.host_loop``): one robot runs the whole horizon as
+one compiled program (:mod:`wbc_jax.sim.host_scan`: C MuJoCo called from inside XLA); otherwise
+the jitted, vmapped tick of a :class:`wbc_jax.sim.loop.ClosedLoop` (its controller and metrics,
 the same code as on MJX) alternates with C MuJoCo's ``mj_step`` in threads
-(:class:`wbc_jax.sim.physics.HostBatch`).
+(:class:`wbc_jax.sim.physics.HostBatch`) in a Python loop.
 """
 
 from __future__ import annotations
@@ -15,15 +17,43 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.sim import physics
+from wbc_jax.sim import executables, host_scan, native, physics
 from wbc_jax.sim.loop import PROGRAMS
 from wbc_jax.sim.state import Scenario
+
+
+def host_models(loop, scen: Scenario) -> list:
+    """The B C models of a batch: the nominal one with the solver settings, or each scenario's
+    plant (friction, masses) when ``perturb_plant``."""
+    base = physics.solver_mj_model(loop.robot.mj_model, loop.cfg.physics)
+    if not loop.cfg.perturb_plant:
+        return [base] * int(np.asarray(scen.friction).shape[0])
+    return [
+        physics.plant_mj_model(base, float(f), float(s)) for f, s in zip(scen.friction, scen.mass_scale, strict=True)
+    ]
+
+
+def driver(loop, batch: int) -> str:
+    """The driver of a batch of ``batch`` environments: "compiled" (one program,
+    :mod:`wbc_jax.sim.host_scan`) or "python" (a Python loop of ticks). ``SimConfig.host_loop``
+    "auto" compiles one robot where the native step builds; "compiled" asked for where it cannot
+    build is an error."""
+    choice = loop.cfg.host_loop
+    if choice == "python" or (choice == "auto" and batch != 1):
+        return "python"
+    problem = native.available()
+    if problem is None:
+        return "compiled"
+    if choice == "compiled":
+        raise ValueError(f"host_loop='compiled' cannot run here: {problem}; use host_loop='python'")
+    return "python"
 
 
 def run_host(loop, scen: Scenario, qpos0: np.ndarray, dtype, *, on_tick=None, threads: int | None = None):
     """Every tick of a batch of B environments on C MuJoCo (``mujoco`` backend).
 
-    An even batch of 2 or more without records runs as two halves in a pipeline: while XLA
+    One robot runs as one compiled program (:func:`driver`, :mod:`wbc_jax.sim.host_scan`).
+    In the Python loop, an even batch of 2 or more without records runs as two halves in a pipeline: while XLA
     computes one half's controller (one core), C MuJoCo steps the other half (the other
     cores), so the controller and the physics overlap; one XLA execution at a time.
 
@@ -39,16 +69,11 @@ def run_host(loop, scen: Scenario, qpos0: np.ndarray, dtype, *, on_tick=None, th
     """
     scen = jax.tree_util.tree_map(np.asarray, scen)
     B = int(scen.friction.shape[0])
-    base = physics.solver_mj_model(loop.robot.mj_model, loop.cfg.physics)
-    if loop.cfg.perturb_plant:
-        models = [
-            physics.plant_mj_model(base, float(f), float(s))
-            for f, s in zip(scen.friction, scen.mass_scale, strict=True)
-        ]
-    else:
-        models = [base] * B
+    models = host_models(loop, scen)
     qpos = np.asarray(qpos0, float)[None].repeat(B, 0)
     qpos[:, loop.idx.qpos_joints] += scen.joint_offset
+    if driver(loop, B) == "compiled":
+        return host_scan.run_scan(loop, scen, models, qpos, dtype, on_tick=on_tick)
     cast = lambda x: jnp.asarray(x, dtype if np.asarray(x).dtype.kind == "f" else None)  # noqa: E731
     pipelined = B >= 2 and B % 2 == 0 and not (loop.cfg.record or loop.observes_contacts)
     parts = [slice(0, B // 2), slice(B // 2, B)] if pipelined else [slice(0, B)]
@@ -131,7 +156,8 @@ def control_host(loop, gains, state, qpos, qvel, k, physics_ok, push):
 
 def _host_programs(loop, gains, qpos, push):
     """The compiled, vmapped init, control and measure of the host loop for this batch shape
-    (compiled once per loop and shape): (programs, seconds spent compiling now)."""
+    (compiled once per loop and shape, kept on disk by :mod:`wbc_jax.sim.executables`):
+    (programs, seconds spent compiling or loading them now)."""
     cache = PROGRAMS
     key = ("host", loop.structure_key, qpos.shape, str(qpos.dtype))
     if key in cache:
@@ -139,19 +165,30 @@ def _host_programs(loop, gains, qpos, push):
     t0 = time.perf_counter()
     B = qpos.shape[0]
     init = jax.jit(jax.vmap(loop.init))
-    state = jax.eval_shape(init, qpos)
     control = jax.jit(jax.vmap(functools.partial(control_host, loop), in_axes=(0, 0, 0, 0, None, 0, 0)))
     ok = np.ones(B, bool)
-    programs = {
-        "init": init.lower(qpos).compile(),
-        "control": control.lower(gains, state, qpos, qpos[:, : loop.idx.nv], np.int32(0), ok, push).compile(),
-    }
     n_con = physics.max_contacts(loop.robot.mj_model)
     slots = (np.zeros((B, n_con, 3)), np.zeros((B, n_con, 3)), np.zeros((B, n_con, 2), np.int64))
+
+    def state():  # traces init: only when a program must be compiled
+        return jax.eval_shape(init, qpos)
+
+    def control_args():
+        return gains, state(), qpos, qpos[:, : loop.idx.nv], np.int32(0), ok, push
+
+    def compiled(name, args, lower):
+        return executables.compiled(f"host_{name}", loop.structure_key, args, lower)
+
+    programs = {
+        "init": compiled("init", qpos, lambda: init.lower(qpos)),
+        "control": compiled("control", (gains, qpos, push), lambda: control.lower(*control_args())),
+    }
     if loop.cfg.record:
-        record = jax.eval_shape(control, gains, state, qpos, qpos[:, : loop.idx.nv], np.int32(0), ok, push)[2]
-        programs["measure"] = jax.jit(jax.vmap(loop.measure)).lower(record, *slots).compile()
+        measure = jax.jit(jax.vmap(loop.measure))
+        programs["measure"] = compiled("measure", (gains, qpos, push, slots), lambda: measure.lower(
+            jax.eval_shape(control, *control_args())[2], *slots))  # fmt: skip
     if loop.observes_contacts:
-        programs["observe"] = jax.jit(jax.vmap(loop.observe)).lower(state, *slots).compile()
+        observe = jax.jit(jax.vmap(loop.observe))
+        programs["observe"] = compiled("observe", (qpos, slots), lambda: observe.lower(state(), *slots))
     cache[key] = programs
     return programs, time.perf_counter() - t0

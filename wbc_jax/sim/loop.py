@@ -61,9 +61,6 @@ class ClosedLoop:
         # Bodies that must stay off the floor: all but the feet and the ankle links above them.
         feet_and_ankles = set(idx.foot_bodies.tolist()) | set(robot.mj_model.body_parentid[idx.foot_bodies].tolist())
         self.non_foot_bodies = np.array([b for b in range(1, robot.mj_model.nbody) if b not in feet_and_ankles])
-        # The controller's own model: MJX's JAX implementation, whatever steps the plant.
-        self.mx = mjx_device.put_model(robot.mj_model)
-        self._d_template = mjx_device.make_data(robot.mj_model)
         # A loss trace (gain tuning) is computed in MJX: on 'jax' (gradients) or on 'warp' (the
         # gradient-free searches' forward rollouts); 'auto' then means 'jax'.
         requested = cfg.physics.backend
@@ -73,6 +70,18 @@ class ClosedLoop:
                 "contact detection reads the simulator's contact forces, which the 'warp' backend does not "
                 "expose per environment; use --backend jax or mujoco"
             )
+
+    @functools.cached_property
+    def mx(self):
+        """The controller's own model: MJX's JAX implementation, whatever steps the plant (built
+        when a program is first traced, as concrete arrays)."""
+        with jax.ensure_compile_time_eval():
+            return mjx_device.put_model(self.robot.mj_model)
+
+    @functools.cached_property
+    def _d_template(self):
+        with jax.ensure_compile_time_eval():
+            return mjx_device.make_data(self.robot.mj_model)
 
     @property
     def contact_set(self):

@@ -138,12 +138,15 @@ def check_memory(setup_: Setup, batch: int, *, envs: int | None = None, queue: i
 
 @dataclasses.dataclass
 class Run:
-    """Result of :func:`run`: metrics (batch axis), records (B, T, ...) or None, seconds spent."""
+    """Result of :func:`run`: metrics (batch axis), records (B, T, ...) or None, seconds spent
+    compiling (or loading) and running, and when the simulation started (``time.time()``: the
+    call plus its compile time)."""
 
     metrics: metrics_lib.Metrics
     records: object
     compile_s: float
     run_s: float
+    started: float = 0.0
 
 
 def check_queue(queue, backend: str, record: bool = False) -> None:
@@ -169,6 +172,7 @@ def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
     retirement (``ticks``)."""
     loop = setup_.loop
     check_queue(queue, loop.backend, loop.cfg.record)
+    called = time.time()
     B = int(np.asarray(scen.friction).shape[0])
     size = B if batch_size is None else max(batch_size, B)
     padded = pad_batch(jax.tree_util.tree_map(np.asarray, scen), size)
@@ -184,6 +188,7 @@ def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
         out = Run(metrics, records, compile_s, time.perf_counter() - t0 - compile_s)
     else:
         out = _run_mjx(setup_, padded, size, on_tick)
+    out.started = called + out.compile_s
     out.metrics = jax.tree_util.tree_map(lambda x: np.asarray(x)[:B], out.metrics)
     if out.records is not None:
         out.records = jax.tree_util.tree_map(lambda x: np.asarray(x)[:B], out.records)

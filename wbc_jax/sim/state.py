@@ -23,6 +23,7 @@ from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import physics
 
 MATMUL_PRECISIONS = ("highest", "default")
+HOST_LOOPS = ("auto", "compiled", "python")
 
 
 def traced_at_matmul_precision(fn):
@@ -59,6 +60,11 @@ class SimConfig:
         physics): "highest" (full float32), or "default" (XLA's choice: TensorFloat-32, a 10-bit
         mantissa, on recent NVIDIA GPUs). Survival near a push's fall boundary hangs on it
         (BENCHMARKS.md); CPUs compute both in full float32.
+      host_loop: how the C MuJoCo engine (``mujoco``) runs the ticks: "compiled" (the whole
+        horizon as one XLA program calling C MuJoCo, :mod:`wbc_jax.sim.host_scan`), "python" (a
+        Python loop of jitted ticks and threaded physics, :mod:`wbc_jax.sim.host_loop`; batches
+        run in two pipelined halves), "auto" (compiled for one robot where the native step
+        builds, python otherwise).
     """
 
     control_dt: float = constants.CONTROL_DT
@@ -70,6 +76,7 @@ class SimConfig:
     physics: physics.PhysicsConfig = physics.PhysicsConfig()
     perturb_plant: bool = False
     matmul_precision: str = "highest"
+    host_loop: str = "auto"
 
     def __post_init__(self):
         for name in ("control_dt", "duration"):
@@ -86,6 +93,8 @@ class SimConfig:
             raise ValueError(f"checkpoint {self.checkpoint!r} is not a policy of jax.checkpoint_policies")
         if self.matmul_precision not in MATMUL_PRECISIONS:
             raise ValueError(f"unknown matmul_precision {self.matmul_precision!r}; valid: {list(MATMUL_PRECISIONS)}")
+        if self.host_loop not in HOST_LOOPS:
+            raise ValueError(f"unknown host_loop {self.host_loop!r}; valid: {list(HOST_LOOPS)}")
 
 
 @pytree_dataclass

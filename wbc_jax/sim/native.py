@@ -1,0 +1,158 @@
+"""C MuJoCo inside XLA programs: the physics of a tick as an XLA FFI call (``mujoco_ffi.cc``).
+
+    available()                          -> None, or why the native step cannot be used here
+    step(handles, ctrl, xfrc, ok)        -> (qpos (B, nq), qvel (B, nv), ok (B,))   one tick's physics
+    contacts(handles, after, C, dtype)   -> contact slots (B, C, ...) after it
+    handles(models, datas)               -> (B, 4) uint32: each environment's model and data
+    physics_cpu(reset=False)             -> (CPU seconds inside the physics, ticks) so far
+
+``mujoco_ffi.cc`` is compiled at first use with the system's C++ compiler (``$CXX``, ``c++``,
+``g++`` or ``clang++``) against the FFI headers jaxlib ships and the MuJoCo library the
+``mujoco`` package ships, into a folder beside JAX's compilation cache (a temporary folder without
+one), keyed by the source, the compiler and both versions; later processes load it from there.
+The two handlers are registered with :func:`jax.ffi.register_ffi_target` by name, so programs that
+call them are ordinary XLA programs: JAX's persistent cache and serialised executables work
+(programs with Python callbacks get neither). Without a compiler, :func:`available` says so and
+the C MuJoCo engine runs its ticks in Python (:mod:`wbc_jax.sim.host_loop`).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import os
+import pathlib
+import shutil
+import subprocess
+import tempfile
+from importlib import metadata
+
+import jax
+import mujoco
+import numpy as np
+
+from wbc_jax.core.constants import DIVERGED_SPEED
+
+SOURCE = pathlib.Path(__file__).with_name("mujoco_ffi.cc")
+TARGETS = {"wbc_mujoco_step": "WbcMujocoStep", "wbc_mujoco_contacts": "WbcMujocoContacts"}
+BUILD_TIMEOUT_S = 300
+
+
+def compiler() -> str | None:
+    """The C++ compiler: ``$CXX``, else the first of c++, g++, clang++ on the PATH."""
+    if os.environ.get("CXX"):
+        return shutil.which(os.environ["CXX"]) or os.environ["CXX"]
+    return next((path for name in ("c++", "g++", "clang++") if (path := shutil.which(name))), None)
+
+
+def mujoco_library() -> pathlib.Path:
+    """The MuJoCo shared library of the ``mujoco`` package (the one its Python bindings load)."""
+    folder = pathlib.Path(mujoco.__file__).parent
+    found = sorted(
+        p for p in folder.iterdir() if p.name.startswith("libmujoco") and (".so" in p.name or p.suffix == ".dylib")
+    )
+    if not found:
+        raise FileNotFoundError(f"no libmujoco shared library in {folder}")
+    return found[0]
+
+
+def build_dir() -> pathlib.Path:
+    """Where built libraries go: beside JAX's compilation cache, or a temporary folder."""
+    cache = jax.config.jax_compilation_cache_dir
+    if cache:
+        return pathlib.Path(cache) / "wbc_native"
+    return pathlib.Path(tempfile.gettempdir()) / f"wbc_jax_native_{os.getuid() if hasattr(os, 'getuid') else 0}"
+
+
+def _build(cxx: str) -> pathlib.Path:
+    """Compile the handlers (once per source, compiler and versions); the library's path."""
+    lib = mujoco_library()
+    include = [jax.ffi.include_dir(), str(pathlib.Path(mujoco.__file__).parent / "include")]
+    source = SOURCE.read_bytes()
+    key = hashlib.sha256(b"\0".join([source, cxx.encode(), metadata.version("jaxlib").encode(),
+                                     mujoco.__version__.encode(), str(lib).encode()])).hexdigest()[:16]  # fmt: skip
+    out = build_dir() / f"libwbc_mujoco_ffi_{key}.so"
+    if out.exists():
+        return out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(f".{os.getpid()}.tmp")
+    cmd = [cxx, "-O2", "-std=c++17", "-shared", "-fPIC", *(f"-I{d}" for d in include), str(SOURCE), "-o", str(tmp),
+           str(lib), f"-Wl,-rpath,{lib.parent}"]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
+    if proc.returncode != 0:
+        tmp.unlink(missing_ok=True)
+        raise RuntimeError(f"{' '.join(cmd)} failed: {proc.stderr.strip()[-2000:]}")
+    os.replace(tmp, out)  # atomic: processes building at once each install a whole library
+    return out
+
+
+_LIBRARY: list = []  # the loaded library, once registered
+
+
+@functools.cache
+def _register() -> str | None:
+    """Build, load and register the handlers once per process: None, or why not."""
+    if jax.default_backend() != "cpu":
+        return f"the native step runs in CPU programs (JAX's default device here: {jax.default_backend()})"
+    cxx = compiler()
+    if cxx is None:
+        return "no C++ compiler found (set $CXX or install g++/clang++)"
+    try:
+        library = ctypes.CDLL(str(_build(cxx)))
+    except (OSError, RuntimeError, FileNotFoundError, subprocess.TimeoutExpired) as err:
+        return f"building the native C MuJoCo step failed: {err}"
+    for name, symbol in TARGETS.items():
+        jax.ffi.register_ffi_target(name, jax.ffi.pycapsule(getattr(library, symbol)), platform="cpu")
+    library.WbcMujocoPhysicsNs.restype = library.WbcMujocoPhysicsTicks.restype = ctypes.c_int64
+    _LIBRARY.append(library)
+    return None
+
+
+def available() -> str | None:
+    """None when the native step is registered in this process; otherwise the reason it is not."""
+    return _register()
+
+
+def physics_cpu(reset: bool = False) -> tuple[float, int]:
+    """(CPU seconds the programs' threads spent in the physics of :func:`step`, ticks stepped)
+    since the last reset (``reset``: then start again from zero); for timing the closed loop."""
+    problem = available()
+    if problem is not None:
+        raise RuntimeError(problem)
+    lib = _LIBRARY[0]
+    out = (lib.WbcMujocoPhysicsNs() * 1e-9, int(lib.WbcMujocoPhysicsTicks()))
+    if reset:
+        lib.WbcMujocoResetCounters()
+    return out
+
+
+def handles(models, datas) -> np.ndarray:
+    """(B, 4) uint32: the 32-bit halves of each environment's ``mjModel*`` and ``mjData*``."""
+    out = np.zeros((len(datas), 4), np.uint32)
+    for i, (m, d) in enumerate(zip(models, datas, strict=True)):
+        for j, address in enumerate((m._address, d._address)):
+            out[i, 2 * j], out[i, 2 * j + 1] = address & 0xFFFFFFFF, address >> 32
+    return out
+
+
+def step(handles, ctrl, xfrc, ok, nq: int, nv: int):
+    """One tick's physics of B environments (``HostBatch.step``): ``ctrl`` (B, nu) held over the
+    ``xfrc`` (B, n_sub, nbody, 6) body wrenches of each step, environments with ``ok`` (B,) False
+    left frozen. Returns (qpos (B, nq), qvel (B, nv)) in ctrl's dtype and ok (B,) (False where the
+    tick diverged: the state is restored to the tick's start)."""
+    B, dtype = ctrl.shape[0], ctrl.dtype
+    out = (jax.ShapeDtypeStruct((B, nq), dtype), jax.ShapeDtypeStruct((B, nv), dtype),
+           jax.ShapeDtypeStruct((B,), np.bool_))  # fmt: skip
+    call = jax.ffi.ffi_call("wbc_mujoco_step", out, has_side_effect=True)
+    return call(handles, ctrl, xfrc.astype(dtype), ok, max_speed=np.float64(DIVERGED_SPEED))
+
+
+def contacts(handles, after, max_contacts: int, dtype):
+    """The contact slots of B environments (``HostBatch.contacts``) once ``after`` (an output of
+    :func:`step`) exists: points (B, C, 3), world-axes forces on geom 2 (B, C, 3), geom ids
+    (B, C, 2) int32."""
+    B = handles.shape[0]
+    out = (jax.ShapeDtypeStruct((B, max_contacts, 3), dtype), jax.ShapeDtypeStruct((B, max_contacts, 3), dtype),
+           jax.ShapeDtypeStruct((B, max_contacts, 2), np.int32))  # fmt: skip
+    return jax.ffi.ffi_call("wbc_mujoco_contacts", out, has_side_effect=True)(handles, after)
