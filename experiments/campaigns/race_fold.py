@@ -16,7 +16,8 @@
 
 with the provenance of each file read (sha256) and this command. ``--docs DIR`` also copies the run
 files (train_info, history, quality, profile; race.json, race.png, heldout.json) into ``DIR`` under
-flat names, and race.json to docs/tuning/race.json. Exits 1 when no figure was found.
+flat names, and race.json beside ``DIR`` (docs/tuning/race.json for ``--docs docs/tuning/race_h100``).
+Exits 1 when no figure was found.
 """
 
 from __future__ import annotations
@@ -100,7 +101,7 @@ def summarize(runs: pathlib.Path) -> dict:
 
 
 def fold(runs: pathlib.Path, docs: pathlib.Path) -> None:
-    """Copy the run files into ``docs`` (flat names) and race.json to docs/tuning/race.json."""
+    """Copy the run files into ``docs`` (flat names) and race.json beside it (``docs/../race.json``)."""
     docs.mkdir(parents=True, exist_ok=True)
     for run in ("new", "old", "race"):
         for rel in ("gradient/train_info.json", "gradient/history.csv", "quality.json", "profile.json", "race.json",
@@ -109,7 +110,7 @@ def fold(runs: pathlib.Path, docs: pathlib.Path) -> None:
             if src.is_file():
                 shutil.copyfile(src, docs / f"{run}_{pathlib.Path(rel).name}")
     if (runs / "race" / "race.json").is_file():
-        shutil.copyfile(runs / "race" / "race.json", ROOT / "docs" / "tuning" / "race.json")
+        shutil.copyfile(runs / "race" / "race.json", docs.parent / "race.json")
 
 
 def main(argv=None) -> int:

@@ -77,7 +77,10 @@ def write(out, problem: tp.Problem, rep: dict, index: dict, histories: dict) -> 
     pts = points(rep, index)
     info_path = out / "gradient" / "train_info.json"
     info = json.loads(info_path.read_text()) if info_path.exists() else {}
-    engines = {"gradient": "jax", "cmaes": tc.search_backend, "random": tc.search_backend}
+    from wbc_jax.tuning.tune import _forward_backend
+
+    search = _forward_backend(tc)  # the engine the searches ran on (--search-backend auto resolved)
+    engines = {"gradient": "jax", "cmaes": search, "random": search}
     result = {
         "parameterisation": tc.parameterisation, "parameters": info.get("parameters"), "budget_s": tc.budget_s,
         "budgets_s": sorted({p["budget_s"] for v in pts.values() for p in v}),
