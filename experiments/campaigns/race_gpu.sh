@@ -3,7 +3,7 @@
 # each part under its own time cap so that a call cut short still returns what finished:
 #
 #   a. gradient throughput at the new settings (--solver-gradient implicit, --checkpoint tick, batch
-#      $RACE_BATCH): `wbc-jax tune --phases train` (compile + $RACE_STEPS steps: train_info.json,
+#      $RACE_BATCH, 2,048): `wbc-jax tune --phases train` (compile + $RACE_STEPS (2) steps: train_info.json,
 #      history.csv with each step's time), then at the old settings (--solver-gradient unrolled,
 #      batch 1,024) when $RACE_OLD_NEED seconds are left (else the before is docs/tuning/train_info.json);
 #   b. gradient quality on the same program (phase quality, --quality-directions 0: no other compile),
@@ -12,7 +12,7 @@
 #      --search-backend auto: Warp where installed) with the held-out evaluation and race.json / race.png,
 #      when $RACE_C_NEED seconds are left (a later call with the same $RACE_RUNS resumes it).
 #
-#   bash experiments/campaigns/race_gpu.sh OUT_DIR          # TINY=1: the same at tiny sizes (CPU check)
+#   bash experiments/campaigns/race_gpu.sh OUT_DIR   # TINY=1: tiny sizes (CPU check); RACE_PARTS="new profile old race"
 #
 # Writes OUT_DIR/summary.json (experiments/campaigns/race_fold.py: the figures and their provenance) and
 # OUT_DIR/race_gpu.tgz (every run folder, less checkpoints' caches). Fold into docs with
@@ -21,7 +21,7 @@ set -uo pipefail
 OUT_DIR=${1:?usage: race_gpu.sh OUT_DIR}
 mkdir -p "$OUT_DIR"
 RUNS=${RACE_RUNS:-/tmp/race_runs}
-LIMIT=${RACE_LIMIT:-460}
+LIMIT=${RACE_LIMIT:-450}
 T0=$SECONDS
 left() { echo $((LIMIT - (SECONDS - T0))); }
 TUNE=(python3 -m wbc_jax.cli tune --quiet)
@@ -35,7 +35,7 @@ if [ -n "${TINY:-}" ]; then
         --sinusoid-s 0.3)
   OLD_B=4
 else
-  B=${RACE_BATCH:-2048} STEPS=${RACE_STEPS:-3} BUDGET=${RACE_BUDGET:-120}
+  B=${RACE_BATCH:-2048} STEPS=${RACE_STEPS:-2} BUDGET=${RACE_BUDGET:-120}
   COMMON=(--horizon 2 --lr 0.1 --push-scale lip --magnitude-range 0.3 1.0
           --init-gains experiments/gains/com_critical_100.json --population 16 --es-batch 60)
   HELD=(--chunk-size 16384)
@@ -44,8 +44,10 @@ fi
 cap() {  # seconds for a part: its cap, or what is left less a margin to pack, whichever is smaller
   local want=$1 l; l=$(( $(left) - 25 )); echo $(( want < l ? want : l ))
 }
+PARTS=" ${RACE_PARTS:-new profile old race} "  # e.g. RACE_PARTS=race: the race alone, in a call of its own
 part() {  # name, cap seconds, command...: run under timeout (SIGINT: files already written stay whole)
   local name=$1 secs=$2; shift 2
+  if [[ "$PARTS" != *" $name "* ]]; then echo "part $name: not asked for (RACE_PARTS)"; return; fi
   if [ "$secs" -lt 20 ]; then echo "part $name: skipped (${secs}s left)"; return; fi
   local t=$SECONDS
   timeout --signal=INT --kill-after=15 "$secs" "$@"
@@ -56,7 +58,7 @@ python3 -c "import jax, mujoco; print('jax', jax.__version__, jax.devices(), 'mu
 python3 -c "import warp; print('warp', warp.__version__)" 2>/dev/null || echo "no warp: searches on MJX-JAX"
 NEW=(--batch "$B" --quality-pushes "$B" --quality-directions 0 --solver-gradient implicit --checkpoint tick)
 # a + b: one compile of the gradient program for training steps and the quality figures.
-part new "$(cap ${RACE_NEW_CAP:-300})" "${TUNE[@]}" --out "$RUNS/new" --phases train quality --steps "$STEPS" \
+part new "$(cap ${RACE_NEW_CAP:-330})" "${TUNE[@]}" --out "$RUNS/new" --phases train quality --steps "$STEPS" \
   "${NEW[@]}" "${COMMON[@]}"
 part profile "$(cap ${RACE_PROFILE_CAP:-120})" "${TUNE[@]}" --out "$RUNS/new" --phases profile --steps "$STEPS" \
   "${NEW[@]}" "${COMMON[@]}"
