@@ -3,7 +3,7 @@
 # machine's own jax (never replacing it), then run the jobs named as arguments. Results go to
 # $OUT (one folder per job, log.txt), so a call that runs past its limit still returns what finished.
 #
-#   bash experiments/gpu_run.sh setup check bench sweep agree envelope regrid queue soak limit limit_root
+#   bash experiments/gpu_run.sh setup check bench sweep agree envelope regrid queue soak race limit limit_root
 #
 # Carried folders (git-ignored, one per call, each under the 64 MiB a call carries; collected in ~/wp while the
 # machine is held): .wa/ holds site_small.tar.xz (the Python 3.12 wheels of mujoco 3.17.0 without its filament
@@ -95,6 +95,10 @@ for job in "$@"; do
         --time-limit ${LIMIT_TIME:-390} --out "$OUT/limit_$body" ${LIMIT_FLAGS:-} ;;
     gputests)  # the tests marked gpu (their log goes to docs/ with the device)
       run gputests env JAX_PLATFORMS=cuda,cpu python3 -m pytest -q -n 0 -m gpu -p no:cacheprovider tests ;;
+    race)  # issue 35 in about 8 minutes: gradient throughput (new, old settings), gradient quality, the race if
+           # time is left; everything in $OUT/race (summary.json, race_gpu.tgz): experiments/campaigns/race_gpu.sh
+      run race env XLA_FLAGS="${RACE_XLA_FLAGS---xla_gpu_autotune_level=0}" \
+        bash experiments/campaigns/race_gpu.sh "$OUT/race" ;;
     soak)  # hostile scenarios on warp
       run soak python3 experiments/checks/soak.py --envs ${SOAK_ENVS:-1000000} --chunk 65536 --horizon ${SOAK_HORIZON:-0.5} \
         --backend warp --out "$OUT/soak" ;;

@@ -18,6 +18,7 @@ from wbc_jax import cli
 from wbc_jax.control.gains import default_gains, gains_to_dict
 from wbc_jax.core import options
 from wbc_jax.jobs import sweep_config
+from wbc_jax.tuning import config as tune_config
 from wbc_jax.tuning import tune  # noqa: F401  (before the tripwire: optax applies jax.jit when imported)
 
 _spec = importlib.util.spec_from_file_location(
@@ -45,6 +46,21 @@ def test_flags_are_generated_from_the_configs(capsys):
     )
 
 
+def test_tune_and_heldout_share_the_held_out_flags(tmp_path):
+    """tune and heldout: the held-out flags from one config, with the same names and defaults; tune's
+    own --tasks is the held-out evaluation's."""
+    heldout = tune_config.heldout_default_config()
+    parser = cli.build_parser()
+    for command in ("tune", "heldout"):
+        hc = cli.config_from_args(parser.parse_args([command, "--grid-magnitudes", "10", "30", "3",
+                                                     "--grid-directions", "4", "--chunk-size", "7"]), heldout)  # fmt: skip
+        assert hc.grid_magnitudes == (10.0, 20.0, 30.0) and hc.grid_directions == (0.0, 90.0, 180.0, 270.0)
+        assert hc.chunk_size == 7 and hc.sinusoid_s == heldout.sinusoid_s
+    tasks = str(tmp_path / "t.yaml")
+    pathlib.Path(tasks).write_text("contacts: []\n")
+    assert cli.config_from_args(parser.parse_args(["tune", "--tasks", tasks]), heldout).tasks == tasks
+
+
 def _declared(config):
     """(flag, Valid, scalar type) of each number field of a job config."""
     for field in dataclasses.fields(config):
@@ -66,7 +82,8 @@ def test_every_flag_has_a_declared_range():
                 bounded = (valid.ge, valid.gt) != (None, None) and (valid.le, valid.lt) != (None, None)
                 assert bounded or valid.choices is not None, (command, field.name)
             elif kind is str:
-                assert valid.choices or valid.names or field.name in paths, (command, field.name)
+                # --sets: 'default', 'critical' or NAME=FILE (each FILE checked as an input file).
+                assert valid.choices or valid.names or field.name in paths | {"sets"}, (command, field.name)
                 assert valid.input_file == (field.name in paths - {"out", "run_dir"}), (command, field.name)
 
 
@@ -87,7 +104,8 @@ def test_every_number_flag_is_refused_outside_its_range(value, tmp_path, monkeyp
             nargs = field.metadata.get("nargs", 1)
             if value == "-inf" and nargs != 1:
                 continue  # argparse takes "-inf" for a flag: "expected 2 arguments", its own one line
-            given = [f"{flag}={value}"] if nargs == 1 else [flag, *[value] * nargs]
+            count = nargs if isinstance(nargs, int) else 1  # "*" / "+": one value
+            given = [f"{flag}={value}"] if nargs == 1 else [flag, *[value] * count]
             argv = [command, *([str(run)] if command == "view" else []), *given]
             try:
                 args = parser.parse_args(argv)

@@ -23,7 +23,7 @@ from wbc_jax.jobs import sweep_table
 from wbc_jax.report import tuning_plots
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim.state import LossTrace
-from wbc_jax.tuning import baselines, config, tune
+from wbc_jax.tuning import baselines, config, store, tune
 from wbc_jax.tuning import heldout as tuning_eval
 from wbc_jax.tuning import loss as tuning_loss
 from wbc_jax.tuning import params as tuning_params
@@ -133,7 +133,13 @@ def test_out_of_bound_init_gains_are_a_clear_error_before_compiling(tmp_path):
     ({"eval_horizon": 0.4}, r"--eval-horizon 0.4 s must end after the push"),
     ({"magnitude_range": (0.0, 1.4)}, r"--magnitude-range must be a number in \(0, 100\], got 0"),
     ({"zeta_range": (2.0, 0.5)}, r"--zeta-range LO HI must be ordered"),
-    ({"baselines": ("pso",)}, r"--baselines must be among \['cmaes', 'random'\], got 'pso'"),
+    ({"phases": ("train", "pso")}, r"--phases must be among \['predict', 'train'.*got 'pso'"),
+    ({"estimator": "smoothed", "batch": 3, "quality_pushes": 3}, r"--batch must be even"),
+    ({"window_s": 0.005}, r"--window-s 0.005 must be at least one tick"),
+    ({"window_s": 0.05, "windows": 3}, r"--batch 4 must be a multiple of --windows 3"),
+    ({"quality_pushes": 6}, r"--quality-pushes 6 must be a multiple of the 4 pushes of one gradient program call"),
+    ({"snapshots_s": (-1.0,)}, r"--snapshots-s must be a number in \(0, "),
+    ({"parameterisation": "scheduled", "tune_regularisation": True}, r"schedules the gains only"),
     ({"envelope": "/nonexistent.json"}, r"--envelope file /nonexistent.json does not exist"),
     ({"env_clip": float("nan")}, r"--env-clip must be a number in \[0, 1,000,000\], got nan"),
     ({"env_clip": -1.0}, r"--env-clip must be a number in \[0, "),
@@ -260,36 +266,31 @@ def _target_loss(problem, target):
     return loss
 
 
-def _fake_step(problem, optimizer, target, stop_at=None, nan_at=()):
-    """A train step on a known quadratic (log-gain distance to ``target``), the real optimiser;
-    a NaN gradient at the steps in ``nan_at``; raises at ``stop_at`` (a killed run)."""
+def _fake_step(problem, optimizer, target, stop_at=None, nan_at=(), sleep=0.0):
+    """A train step (:class:`tune.GradientStep`'s signature) on a known quadratic (log-gain distance to
+    ``target``), the real optimiser; a NaN gradient at the steps in ``nan_at``; raises at ``stop_at`` (a
+    killed run); ``sleep`` seconds per step (wall budgets)."""
+    import time
+
     import optax
 
-    calls = {"k": 0}
-    loss = _target_loss(problem, target)
+    value_and_grad = jax.jit(jax.value_and_grad(_target_loss(problem, target)))
+    per_step = problem.tc.batch * problem.steps_per_rollout
 
-    def step(params, opt_state, scen):
-        k = calls["k"]
-        calls["k"] += 1
+    def step(params, opt_state, k):
         if k == stop_at:
             raise _Interrupt
-        value, grad = jax.value_and_grad(loss)(params)
+        time.sleep(sleep)
+        value, grad = value_and_grad(params)
         if k in nan_at:
             grad = jax.tree_util.tree_map(lambda x: x * jnp.nan, grad)
         updates, opt_state = optimizer.update(grad, opt_state, params)
-        terms = {n: value for n in tuning_loss.TERMS}
         finite = all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree_util.tree_leaves(grad))
-        B = int(np.asarray(scen.friction).shape[0])
-        return (
-            optax.apply_updates(params, updates),
-            opt_state,
-            value,
-            terms,
-            _metrics(B),
-            optax.global_norm(grad),
-            finite,
-            {"nonfinite_envs": 0, "clipped_envs": 0, "env_grad_norm_median": optax.global_norm(grad)},
-        )
+        row = {"loss": float(value), "rollout_loss": float(value), **{n: float(value) for n in tuning_loss.TERMS},
+               "grad_norm": float(optax.global_norm(grad)), "finite": finite,
+               "skipped_total": tune.skipped_count(opt_state), "grad_sim_steps": per_step, "sim_steps_delta": per_step,
+               **{n: 0.0 for n in tune.ESTIMATOR_STATS}, **tp.survival_stats(_metrics(problem.tc.batch))}  # fmt: skip
+        return optax.apply_updates(params, updates), opt_state, row
 
     return step
 
@@ -356,12 +357,37 @@ def test_training_loop_guard_resume_and_gains_file(small_problem, tmp_path):
     other = tp.make_problem(config.TuneConfig(steps=7, batch=2, lr=0.2, clip_norm=10.0, **TINY))
     with pytest.raises(ValueError, match="another tuning config"):
         tune.train(other, tmp_path / "b", progress=False, step_fn=_fake_step(other, opt, target))
-    # tuned_gains.json has gains_to_dict's format and loads back.
-    saved = json.loads((tmp_path / "a" / "tuned_gains.json").read_text())
-    assert saved == C.gains_to_dict(full)
-    loaded = C.load_gains(tmp_path / "a" / "tuned_gains.json")
+    # Every step's parameters are kept: the last is the result, -1 the start.
+    last, _ = tune.snapshot_controls(problem, tmp_path / "a", 5)
+    start, _ = tune.snapshot_controls(problem, tmp_path / "a", -1)
+    for k in GAIN_FIELDS:
+        np.testing.assert_allclose(getattr(last, k), getattr(full, k), rtol=1e-6)
+        np.testing.assert_allclose(getattr(start, k), getattr(problem.init, k), rtol=1e-4)
+    # A gains file of the result, written once: the same again is accepted, another set refused.
+    store.write_controls(tmp_path / "gains", "gradient", full, None, {"method": "gradient"}, regularisation=False)
+    store.write_controls(tmp_path / "gains", "gradient", full, None, {"method": "gradient"}, regularisation=False)
+    loaded = C.load_gains(tmp_path / "gains" / "gradient.json")
     np.testing.assert_allclose(loaded.kp_com, full.kp_com, rtol=1e-6)
-    assert (tmp_path / "a" / "history.csv").read_text().splitlines()[0].startswith("step,loss,capture")
+    with pytest.raises(ValueError, match="never overwrites a gain file"):
+        store.write_controls(tmp_path / "gains", "gradient", start, None, {}, regularisation=False)
+    index = json.loads((tmp_path / "gains" / "provenance.json").read_text())
+    assert index["gradient"]["method"] == "gradient" and len(index["gradient"]["sha256"]) == 64
+    assert index["gradient"]["provenance"]["version"] and "command" in index["gradient"]["provenance"]
+    assert (tmp_path / "a" / "history.csv").read_text().splitlines()[0].startswith("step,loss,rollout_loss,capture")
+
+
+def test_training_stops_when_its_wall_budget_is_spent(tmp_path):
+    """--budget-s: steps until the wall time (compile + steps) reaches the budget; tune.at_time picks the
+    last step within a time (-1 before the first)."""
+    problem = tp.make_problem(config.TuneConfig(steps=1000, batch=2, budget_s=1.0, **TINY))
+    opt = tune.make_optimizer(0.1, 1.0)
+    p0 = problem.init_params()
+    step = _fake_step(problem, opt, problem.base, sleep=0.1)
+    step(p0, opt.init(p0), 0)  # warm: its first call compiles
+    _, _, rows, _ = tune.train(problem, tmp_path, progress=False, step_fn=step)
+    walls = [float(r["wall_s"]) for r in rows]
+    assert walls[-1] >= 1.0 and all(w < 1.0 for w in walls[:-1]) and 2 <= len(rows) <= 11
+    assert tune.at_time(rows, walls[1] + 1e-6) == 1 and tune.at_time(rows, walls[0] / 2) == -1
 
 
 def _fake_population(problem, target):

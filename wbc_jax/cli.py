@@ -92,7 +92,7 @@ def config_from_args(args: argparse.Namespace, config):
 def job_configs() -> dict:
     """Each job's (default config, help) by command name."""
     from wbc_jax.jobs import balance, envelope, info, limit, sweep_config, view
-    from wbc_jax.tuning import tune
+    from wbc_jax.tuning import config as tune_config
 
     return {
         "info": (info.default_config(), "print the robot model summary as JSON"),
@@ -105,7 +105,14 @@ def job_configs() -> dict:
             "bisection over the impulse, every limit replayed in C MuJoCo",
         ),
         "view": (view.default_config(), "log a run (or one env of a push sweep) to rerun: .rrd or viewer"),
-        "tune": (tune.default_config(), "gradient-based gain tuning + baselines + held-out comparison"),
+        "tune": (
+            tune_config.default_config(),
+            "gain tuning in phases: gradient, CMA-ES, random search, held-out evaluation, the race's report",
+        ),
+        "heldout": (
+            tune_config.heldout_default_config(),
+            "gain files on the held-out grid, variations, one-foot task and sinusoid",
+        ),
     }
 
 
@@ -120,8 +127,14 @@ def _one_thread_pool() -> None:
         os.environ.setdefault("PJRT_NPROC", "1")
 
 
-def _run_job(command: str, cfg, quiet: bool) -> dict:
-    """Run a checked config; returns the one JSON line's dict."""
+# Commands that also take another config's flags: command -> (config, fields left to the job's own).
+# ``tune`` holds out its gain sets with the held-out flags; its tasks and soft-QP weight are the run's.
+SHARED_CONFIGS = {"tune": ("heldout", ("out", "tasks", "angular_weight_soft"))}
+
+
+def _run_job(command: str, cfg, quiet: bool, shared=None) -> dict:
+    """Run a checked config (``shared``: the checked config of :data:`SHARED_CONFIGS`); returns the one
+    JSON line's dict."""
     from wbc_jax.sim import runner
 
     if command == "info":
@@ -160,9 +173,13 @@ def _run_job(command: str, cfg, quiet: bool) -> dict:
         return {"body": cfg.body, "median_fraction_of_lip": summary["median_fraction_of_lip"],
                 "targets": summary["targets"], "wall_s": summary["wall_s"], "device": summary["device"],
                 "limit_ns": {str(a): r["limit_ns"] for a, r in summary["directions"].items()}}  # fmt: skip
-    from wbc_jax.tuning import tune
+    if command == "heldout":
+        from wbc_jax.tuning import heldout
 
-    return tune.report_line(tune.run(cfg, progress=not quiet))
+        return heldout.run(cfg, progress=not quiet)
+    from wbc_jax.tuning import campaign
+
+    return json.loads(json.dumps(campaign.run(cfg, shared, progress=not quiet), default=str))
 
 
 def push_sweep_config(flags: list[str]):
@@ -210,6 +227,9 @@ def build_parser() -> argparse.ArgumentParser:
     for command, (config, help_text) in job_configs().items():
         job = sub.add_parser(command, help=help_text)
         add_config_arguments(job, config)
+        if command in SHARED_CONFIGS:
+            other, skip = SHARED_CONFIGS[command]
+            add_config_arguments(job, job_configs()[other][0], skip=skip)
         if command not in ("info", "view"):
             job.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
@@ -230,7 +250,12 @@ def main(argv: list[str] | None = None) -> int:
         # loads a program or writes a file.
         cfg = config_from_args(args, job_configs()[args.command][0])
         cfg.check()
-        line = _run_job(args.command, cfg, getattr(args, "quiet", False))
+        shared = None
+        if args.command in SHARED_CONFIGS:
+            shared = config_from_args(args, job_configs()[SHARED_CONFIGS[args.command][0]][0])
+            shared = dataclasses.replace(shared, tasks=cfg.tasks, angular_weight_soft=cfg.angular_weight_soft)
+            shared.check()
+        line = _run_job(args.command, cfg, getattr(args, "quiet", False), shared)
     except (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError,
             ImportError, MemoryError) as err:  # fmt: skip
         print(f"wbc-jax {args.command}: error: {err}", file=sys.stderr)

@@ -7,7 +7,7 @@ closed loop))), lowering (StableHLO) and XLA compilation, then two timed steps.
 Prints one JSON line (appended to --out): trace_s, lower_s, stablehlo_lines, compile_s, hlo_lines,
 hlo_while_loops, step1_s, step2_s, physics_steps_per_s (with gradient, second step), the machine
 load. On a 2-core CPU, run it with XLA_FLAGS="--xla_backend_optimization_level=0
---xla_llvm_disable_expensive_passes=true" as experiments/campaigns/tune_eval.sh does.
+--xla_llvm_disable_expensive_passes=true".
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ def main() -> None:
 
     from wbc_jax.core import provenance
     from wbc_jax.sim import runner
-    from wbc_jax.tuning import config, tune
+    from wbc_jax.tuning import config, estimators, objectives, tune
     from wbc_jax.tuning import problem as tp
 
     if args.cache:
@@ -46,12 +46,10 @@ def main() -> None:
                        duration_range=(0.02, 0.05) if short else (0.05, 0.3), eval_horizon=max(args.horizon, 0.6),
                        checkpoint=args.checkpoint, solver_iterations=args.solver_iterations)  # fmt: skip
     problem = tp.make_problem(tc)
-    opt = tune.make_optimizer(tc.lr, tc.clip_norm)
     p0 = problem.init_params()
-    o0 = opt.init(p0)
-    scen = tp.shard_batch(tune.training_batch(problem, 0)[0])
-    if args.mode == "grad":
-        f, fargs = tune.make_train_step(problem, opt), (p0, o0, scen)
+    scen = objectives.shard(objectives.cast_batch(tune.training_batch(problem, 0)[0], problem.setup.dtype))
+    if args.mode == "grad":  # the training's gradient program: per-rollout value and gradient
+        f, fargs = jax.jit(objectives.make_rollout_grads(problem)), (estimators.repeated(p0, tc.batch), scen)
     else:
         loss = tp.make_batched_loss(problem, fixed_solver=False)
         f, fargs = jax.jit(lambda q, s: loss(*problem.controls(q), s)[0]), (p0, scen)

@@ -3,9 +3,9 @@
     python experiments/campaigns/heldout_reeval.py --out runs/heldout_reeval [--previous docs/tuning/heldout.json]
         [--sets default gradient=experiments/gains/tuned_gradient.json ...] [--sinusoid-s 0]
 
-The held-out evaluation of ``experiments/campaigns/tune_gpu.py`` needs the tuning run's folder; this runs the
-same ``wbc_jax.tuning.heldout.heldout`` on gains files alone (the sets of docs/tuning by default), and
-writes heldout.json and envelope_polar.png as ``tune_gpu.py``'s report does. What a gains file does
+``wbc-jax heldout --sets NAME=FILE ...`` evaluates any gains files; this script is that job with the
+budgets and sinusoid figures of an earlier heldout.json kept (the sets of docs/tuning by default), and
+writes heldout.json and envelope_polar.png as ``wbc-jax tune``'s report does. What a gains file does
 not hold is taken from ``--previous`` (a heldout.json): each set's tuning budget (sim_steps, wall_s)
 and, with ``--sinusoid-s 0``, its 20 s sinusoid RMSE (run on C MuJoCo on the host).
 """
@@ -35,13 +35,13 @@ def parse(argv=None):
     p.add_argument("--sets", nargs="+", default=list(DEFAULT_SETS), help="NAME=GAINS.json, or 'default'")
     p.add_argument("--sinusoid-s", type=float, default=hc0.sinusoid_s, help="0: keep --previous's RMSE")
     p.add_argument("--no-one-foot", action="store_true")
-    p.add_argument("--backend", default=hc0.backend)
+    p.add_argument("--backend", default=hc0.heldout_backend)
     p.add_argument("--chunk-size", type=int, default=8320)
-    p.add_argument("--magnitudes", type=float, nargs=3, default=hc0.magnitudes, metavar=("LO", "HI", "N"))
-    p.add_argument("--directions", type=int, default=hc0.directions)
+    p.add_argument("--magnitudes", type=float, nargs=3, default=(10.0, 400.0, 64), metavar=("LO", "HI", "N"))
+    p.add_argument("--directions", type=int, default=len(hc0.grid_directions))
     p.add_argument("--variation-magnitudes", type=int, default=hc0.variation_magnitudes)
     p.add_argument("--variation-directions", type=int, default=hc0.variation_directions)
-    p.add_argument("--horizon", type=float, default=hc0.horizon, help="s, of the stand task's pushes")
+    p.add_argument("--horizon", type=float, default=hc0.grid_horizon, help="s, of the stand task's pushes")
     return p.parse_args(argv)
 
 
@@ -67,6 +67,7 @@ def load_sets(specs: list, n: int, dtype) -> dict:
 
 def main(argv=None) -> int:
     from wbc_jax.core import provenance
+    from wbc_jax.jobs import sweep_config
     from wbc_jax.report import tuning_plots
     from wbc_jax.robot.model import load_robot
     from wbc_jax.sim import scenario
@@ -75,14 +76,14 @@ def main(argv=None) -> int:
     args = parse(argv)
     prev = json.loads(pathlib.Path(args.previous).read_text()) if args.previous else {}
     hc = tuning_eval.HeldoutConfig(
-        magnitudes=(args.magnitudes[0], args.magnitudes[1], int(args.magnitudes[2])),
-        directions=args.directions,
-        horizon=args.horizon,
+        grid_magnitudes=sweep_config._grid(args.magnitudes),
+        grid_directions=sweep_config._azimuths(args.directions),
+        grid_horizon=args.horizon,
         variation_magnitudes=args.variation_magnitudes,
         variation_directions=args.variation_directions,
         sinusoid_s=args.sinusoid_s,
         one_foot=not args.no_one_foot,
-        backend=args.backend,
+        heldout_backend=args.backend,
         chunk_size=args.chunk_size,
     )  # checks the sizes before anything compiles
     robot = load_robot("icub")

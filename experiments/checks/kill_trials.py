@@ -7,8 +7,8 @@ an uninterrupted run's (issue: reliability).
 Each trial starts the job in a subprocess on the same --out, sends SIGKILL after a random delay
 (uniform in --kill-after), and starts it again until it exits 0; then the result files are
 compared with a reference run that was never interrupted: the sweep's results.parquet (every
-column, every env, exactly), the tuning run's history.csv (losses and gradient norms) and
-tuned_gains.json. Writes kill_<job>.json into --out (and the kill keys of docs/reliability.json
+column, every env, exactly), the tuning run's gradient/history.csv (losses and gradient norms) and
+gains/gradient.json. Writes kill_<job>.json into --out (and the kill keys of docs/reliability.json
 with --record).
 
 The check (:func:`failures`): every trial's resumed results equal the reference's, and at least
@@ -39,8 +39,8 @@ JOBS = {
     "sweep": ["push-sweep", "--magnitudes", "20", "120", "6", "--directions", "8", "--horizon", "1.0",
               "--push-onset", "0.3", "--chunk-size", "4", "--joint-noise", "0.01", "--friction", "0.7", "1.0",
               "--quiet"],
-    "tune": ["tune", "--steps", "6", "--batch", "2", "--horizon", "0.4", "--push-onset", "0.1", "--duration-range",
-             "0.05", "0.1", "--baselines", "--eval-pushes", "2", "--eval-horizon", "0.4", "--quiet"],
+    "tune": ["tune", "--phases", "train", "--steps", "6", "--batch", "2", "--horizon", "0.4", "--push-onset", "0.1",
+             "--duration-range", "0.05", "0.1", "--quality-pushes", "2", "--eval-horizon", "0.4", "--quiet"],
 }  # fmt: skip
 
 
@@ -74,9 +74,9 @@ def compare(job: str, ref: pathlib.Path, got: pathlib.Path) -> list[str]:
             return [f"shape {a.shape} vs {b.shape}"]
         return [c for c in a.columns if not a[c].equals(b[c])]
     diffs = []
-    for name in ("history.csv", "tuned_gains.json"):
+    for name in ("gradient/history.csv", "gains/gradient.json"):
         ra, rb = (ref / name).read_text(), (got / name).read_text()
-        if name == "history.csv":  # the per-step wall time and memory columns differ by nature
+        if name.endswith("history.csv"):  # the per-step wall time and memory columns differ by nature
             ra, rb = _deterministic_columns(ra), _deterministic_columns(rb)
         if ra != rb:
             diffs.append(name)
@@ -113,7 +113,7 @@ def main(argv=None) -> dict:
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     rng = random.Random(args.seed)
     ref = out / "reference"
-    if not (ref / ("results.parquet" if args.job == "sweep" else "tuned_gains.json")).exists():
+    if not (ref / ("results.parquet" if args.job == "sweep" else "gains/gradient.json")).exists():
         shutil.rmtree(ref, ignore_errors=True)
         code, secs = run_job(args.job, ref, None, env)
         if code != 0:

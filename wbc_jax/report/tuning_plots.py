@@ -91,3 +91,34 @@ def survival_vs_loss(loss, survived, stats: dict, path) -> None:
     ax.set_title(f"held-out pushes: Spearman {stats.get('spearman_train_horizon', float('nan')):.2f}, "
                  f"ROC area {stats.get('auc_train_horizon', float('nan')):.2f} (n = {loss.size})")  # fmt: skip
     _save(fig, path)
+
+
+def race_curves(points: dict, path, reference: dict | None = None) -> None:
+    """The race: held-out envelope / LIP bound (median solid, min dashed) of each method's gain set at
+    each budget, against wall time and against simulated physics steps ({method: [{wall_s, sim_steps,
+    budget_s, envelope_fraction_median, envelope_fraction_min}, ...]}); ``reference`` rows
+    ({name: {...}}, e.g. the default and hand-set gains) as horizontal lines."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(10, 3.8))
+    axes = fig.subplots(1, 2)
+    for i, (method, pts) in enumerate(points.items()):
+        if not pts:
+            continue
+        for ax, col in zip(axes, ("budget_s", "sim_steps"), strict=True):
+            x = [float(p[col]) for p in pts]
+            ax.plot(x, [p["envelope_fraction_median"] for p in pts], "o-", color=f"C{i}", label=f"{method} median")
+            ax.plot(
+                x, [p["envelope_fraction_min"] for p in pts], "x--", color=f"C{i}", alpha=0.6, label=f"{method} min"
+            )
+    for ax in axes:
+        for name, r in (reference or {}).items():
+            ax.axhline(r["envelope_fraction_median"], color="gray", ls=":", lw=1)
+            ax.annotate(f"{name} median", (0.01, r["envelope_fraction_median"]), xycoords=("axes fraction", "data"),
+                        fontsize=7, color="gray")  # fmt: skip
+        ax.set_ylabel("held-out envelope / LIP bound")
+        ax.legend(fontsize=7)
+    axes[0].set_xlabel("wall-time budget [s] (compilation included)")
+    axes[1].set_xlabel("simulated physics steps")
+    axes[1].set_xscale("symlog", linthresh=1e5)  # a set held at the start has 0 simulated steps
+    _save(fig, path)

@@ -62,8 +62,10 @@ class ClosedLoop:
         # Bodies that must stay off the floor: all but the feet and the ankle links above them.
         feet_and_ankles = set(idx.foot_bodies.tolist()) | set(robot.mj_model.body_parentid[idx.foot_bodies].tolist())
         self.non_foot_bodies = np.array([b for b in range(1, robot.mj_model.nbody) if b not in feet_and_ankles])
-        # Gradients (a LossTrace) need MJX's JAX implementation.
-        self.backend = physics.resolve_backend(cfg.physics.backend, differentiable=cfg.loss_trace)
+        # A loss trace (gain tuning) is computed in MJX: on 'jax' (gradients) or on 'warp' (the
+        # gradient-free searches' forward rollouts); 'auto' then means 'jax'.
+        requested = cfg.physics.backend
+        self.backend = physics.resolve_backend(requested, differentiable=cfg.loss_trace and requested != "warp")
         if self.backend == "warp" and controller.config.contact_detection:
             raise ValueError(
                 "contact detection reads the simulator's contact forces, which the 'warp' backend does not "

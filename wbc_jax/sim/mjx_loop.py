@@ -21,15 +21,30 @@ from wbc_jax.sim import physics
 from wbc_jax.sim.state import Feedforward, Push, Scenario, traced_at_matmul_precision
 
 
+@jax.custom_jvp
+def _dependency(seed):
+    """0 that depends on ``seed`` (batched with it, carrying a tangent), whose derivative is a constant
+    zero: in reverse mode no cotangent flows back through it, so a non-finite cotangent of a quantity
+    that does not truly depend on the parameters (the initial state) cannot reach the gradient as
+    NaN x 0."""
+    return seed * 0
+
+
+@_dependency.defjvp
+def _dependency_jvp(primals, tangents):
+    zero = primals[0] * 0
+    return zero, jnp.zeros_like(zero)
+
+
 def touch(tree, seed):
-    """Every leaf of ``tree`` made to depend on the scalar ``seed`` (adding seed * 0).
+    """Every leaf of ``tree`` made to depend on the scalar ``seed`` (adding :func:`_dependency`).
 
     Give it a carry and a seed that varies along the vmapped batch and depends on the
     differentiated parameters: the batching (vmap) and linearisation (grad) rules of ``lax.scan``
     then find which carry entries are batched / have tangents in one pass over the body instead
     of several, and the nested scans (ticks, physics steps, solver iterations, line search) no
     longer multiply those passes: the values are the same, the trace is shorter."""
-    zero = seed * 0
+    zero = _dependency(seed)
 
     def one(x):
         x = jnp.asarray(x)
@@ -76,7 +91,10 @@ def chunk(loop, plant: mjx.Model, gains: Gains, push: Push, carry, k0, n_ticks: 
         return (d_new, state, finite), record
 
     if loop.cfg.checkpoint:
-        tick = jax.checkpoint(tick)
+        policy = loop.cfg.checkpoint
+        tick = jax.checkpoint(
+            tick, policy=getattr(jax.checkpoint_policies, policy) if isinstance(policy, str) else None
+        )
     return jax.lax.scan(tick, carry, k0 + jnp.arange(n_ticks))
 
 

@@ -251,6 +251,65 @@ def fixed_iteration_solver(max_iter: int):
         solver.jax = original
 
 
+SOLVER_GRADIENTS = ("implicit", "unrolled")
+
+
+@contextlib.contextmanager
+def implicit_solver():
+    """While tracing inside this context, MJX's constraint solver (JAX implementation, Newton, pyramidal
+    cones) is differentiated implicitly instead of through its iterations.
+
+    The solver minimises the convex cost of MuJoCo's soft constraints over the acceleration a,
+    ``C(a) = 1/2 (M a - f_smooth) . (a - a_smooth) + 1/2 sum_active D_i (J_i a - aref_i)^2``; at its
+    minimum a*, g(a*) = M a* - f_smooth + J^T D_act (J a* - aref) = 0. Here the solver runs on
+    stop-gradient inputs (its early-exiting ``while_loop``, no tangents), and the result is
+    ``a = a* - H^-1 g(a*)`` with H = M + J^T D_act J and the active set held fixed: one more Newton step
+    of the same cost, whose value is a* to the solver's tolerance and whose derivative is the
+    implicit-function theorem's, da/dtheta = -H^-1 dg/dtheta (M, f_smooth, J, D and aref all depend on
+    the state and the torques). The backward pass is then two Cholesky solves with H and products with
+    M and J per physics step, instead of the reverse pass of every Newton and line-search iteration.
+    The constraint forces follow from a with the same active set."""
+    from mujoco.mjx._src import solver, support
+
+    original = solver.solve
+
+    def solve(m, d):
+        impl = d._impl
+        if m.opt.cone != mujoco.mjtCone.mjCONE_PYRAMIDAL or np.any(np.asarray(m._impl.dof_hasfrictionloss)):
+            raise ValueError("the implicit solver gradient needs pyramidal cones and no friction loss")
+        sg = lambda t: jax.tree_util.tree_map(jax.lax.stop_gradient, t)  # noqa: E731
+        a_star = jax.lax.stop_gradient(original(m, sg(d)).qacc)  # the plant model carries no tangents here
+        J, aref = impl.efc_J, impl.efc_aref
+        active = (jax.lax.stop_gradient(J @ a_star - aref) < 0).at[: impl.ne + impl.nf].set(True)
+        w = impl.efc_D * active
+
+        def force(a):
+            return -w * (J @ a - aref)
+
+        g = support.mul_m(m, d, a_star) - d.qfrc_smooth - J.T @ force(a_star)
+        H = jax.lax.stop_gradient(support.full_m(m, d) + (J.T * w) @ J)
+        factor = jax.scipy.linalg.cho_factor(0.5 * (H + H.T))
+        a = a_star - jax.scipy.linalg.cho_solve(factor, g)
+        f = force(a)
+        return d.tree_replace({"qacc": a, "qfrc_constraint": J.T @ f, "_impl.efc_force": f})
+
+    solver.solve = solve
+    try:
+        yield
+    finally:
+        solver.solve = original
+
+
+def gradient_solver(kind: str, iterations: int):
+    """The context that makes MJX's solver reverse-differentiable while a program is traced: ``implicit``
+    (:func:`implicit_solver`) or ``unrolled`` (:func:`fixed_iteration_solver` with ``iterations``)."""
+    if kind == "implicit":
+        return implicit_solver()
+    if kind == "unrolled":
+        return fixed_iteration_solver(iterations)
+    raise ValueError(f"unknown solver gradient {kind!r}; valid: {list(SOLVER_GRADIENTS)}")
+
+
 # ---------------------------------------------------------------------------------------------
 # C MuJoCo on the host
 

@@ -52,7 +52,8 @@ class SimConfig:
       loss_trace: per tick, emit a small :class:`LossTrace` (smooth, differentiable losses; gain
         tuning) instead of a Trajectory; exclusive with ``record``.
       checkpoint: wrap the tick in ``jax.checkpoint`` (reverse mode: the residuals of one tick are
-        recomputed instead of stored for the whole horizon; same values).
+        recomputed instead of stored for the whole horizon; same values); a name of
+        ``jax.checkpoint_policies`` (e.g. "checkpoint_dots") keeps what that policy saves.
       physics: the physics backend and its solver settings.
       perturb_plant: the plant's friction and masses differ per environment (sweeps); False: the
         nominal model is simulated.
@@ -72,7 +73,7 @@ class SimConfig:
     push_body: str = "chest"
     record: bool = True
     loss_trace: bool = False
-    checkpoint: bool = False
+    checkpoint: bool | str = False
     physics: physics.PhysicsConfig = physics.PhysicsConfig()
     perturb_plant: bool = False
     matmul_precision: str = "highest"
@@ -89,6 +90,8 @@ class SimConfig:
                 raise ValueError(f"{name} must be a positive finite number of seconds, got {value!r}")
         if self.loss_trace and self.record:
             raise ValueError("loss_trace and record are exclusive (set record=False)")
+        if isinstance(self.checkpoint, str) and not hasattr(jax.checkpoint_policies, self.checkpoint):
+            raise ValueError(f"checkpoint {self.checkpoint!r} is not a policy of jax.checkpoint_policies")
         if self.matmul_precision not in MATMUL_PRECISIONS:
             raise ValueError(f"unknown matmul_precision {self.matmul_precision!r}; valid: {list(MATMUL_PRECISIONS)}")
         if self.host_loop not in HOST_LOOPS:

@@ -1,11 +1,12 @@
-"""Gradient-free baselines of gain tuning: CMA-ES (evosax) and random search, given
-the gradient's budget of simulated physics steps, and of wall time.
+"""Gradient-free baselines of gain tuning: CMA-ES (evosax) and random search, given the gradient's
+budget of simulated physics steps and of wall time, or (``--budget-s``) a wall-time budget of their own.
 
-Both search the unconstrained parameters of :mod:`wbc_jax.tuning.params` (same groups, bounds and
-stability conditions as the gradient) on the same loss (:mod:`wbc_jax.tuning.loss`). A
-generation draws b fresh pushes of the training distribution and evaluates P candidates plus the
-current solution on them (common random numbers), in one program vmapped over the P + 1 gain
-sets (:func:`wbc_jax.tuning.problem.make_population_loss`, forward only):
+Both search the unconstrained parameters of the gradient (:mod:`wbc_jax.tuning.params`, or the gain
+schedule of :mod:`wbc_jax.tuning.schedule`: same groups, bounds and stability conditions) on the same
+loss (:mod:`wbc_jax.tuning.loss`), on their fastest engine (``--search-backend``: MJX-Warp on a GPU,
+MJX-JAX elsewhere). A generation draws b fresh pushes of the training distribution and evaluates P
+candidates plus the current solution on them (common random numbers), in one forward program of
+(P + 1) b rollouts (:func:`wbc_jax.tuning.objectives.make_population_objective`):
 
 * ``cmaes``: evosax's CMA-ES (population P, initial step ``es_sigma``); the current solution is
   its mean, told nothing (only the P asked candidates are told);
@@ -14,9 +15,9 @@ sets (:func:`wbc_jax.tuning.problem.make_population_loss`, forward only):
 
 A generation costs (P + 1) b rollouts of the horizon's physics steps. The run goes on until both
 budgets of the gradient run (simulated steps, and, with ``wall_budget``, wall time including
-compilation) are spent; the
-current solution after each generation is kept, so that the gain sets at equal simulated steps
-and at equal wall time are both read from one run. Resumable (checkpoint.npz, history.csv).
+compilation) are spent, or until ``budget_s`` seconds; the current solution after each generation is
+kept, so that the gain sets at equal simulated steps, at equal wall time and at each snapshot time
+are all read from one run. Resumable (checkpoint.npz, history.csv).
 """
 
 from __future__ import annotations
@@ -30,8 +31,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from wbc_jax.tuning import config
+from wbc_jax.tuning import config, objectives, store
 from wbc_jax.tuning import problem as tp
+from wbc_jax.tuning.tune import _forward_backend, at_time
 
 KINDS = ("cmaes", "random")
 STREAMS = {"cmaes": 1, "random": 2}  # tuning_problem.batch_rng streams
@@ -105,12 +107,17 @@ def budget_generations(problem: tp.Problem, sim_steps: int) -> int:
     return max(1, math.ceil(sim_steps / per_gen))
 
 
+NOT_SEARCH = ("out", "phases", "steps", "wall_budget", "eval_pushes", "eval_horizon", "snapshots_s", "lr",
+              "clip_norm", "estimator", "smoothing_sigma", "bias_factor", "window_s", "windows", "terminal_weight",
+              "checkpoint", "env_clip", "quality_pushes", "quality_directions")  # fmt: skip
+
+
 def search(problem: tp.Problem, kind: str, out, *, budget: dict, progress: bool = True,
-           max_generations: int | None = None, evaluate_fn=None) -> dict:  # fmt: skip
+           max_generations: int | None = None, evaluate_fn=None, mesh=None, times=()) -> dict:  # fmt: skip
     """Run (or resume) a gradient-free search into ``out`` until ``budget`` {"sim_steps",
-    "wall_s"} is spent (or ``max_generations``). ``evaluate_fn``: an objective with
-    :func:`~wbc_jax.tuning.problem.make_population_loss`'s signature (tests); default: that one,
-    compiled here.
+    "wall_s"} is spent, or with ``tc.budget_s`` until that wall time (or ``max_generations``).
+    ``evaluate_fn``: an objective with :func:`~wbc_jax.tuning.objectives.make_population_objective`'s
+    signature (tests); default: that one on ``--search-backend``, compiled here.
 
     Returns {"history": rows, "equal_steps": {...}, "equal_wall": {...}, "compile_s"}; each
     "equal_*" entry holds the generation, its sim_steps and wall_s, and "controls": (Gains,
@@ -127,27 +134,33 @@ def search(problem: tp.Problem, kind: str, out, *, budget: dict, progress: bool 
     strategy = (_CMAES if kind == "cmaes" else _RandomSearch)(p0, tc.population, tc.es_sigma)
     key0 = jax.random.key(tc.seed * 1000 + STREAMS[kind])
     state = strategy.init(key0)
-    not_search = ("out", "steps", "baselines", "wall_budget", "eval_pushes", "eval_horizon")
-    key = f"{problem.key}-{kind}-{config.config_key(tc, exclude=not_search)}"
+    key = f"{problem.key}-{kind}-{config.config_key(tc, exclude=NOT_SEARCH)}"
     ckpt, hist_path = out / "checkpoint.npz", out / "history.csv"
     start, rows, snapshots, compile_s = 0, [], np.zeros((0, p0.size)), None
     if ckpt.exists():
-        state, start, extra = tp.load_checkpoint(ckpt, state, key)
-        rows = tp.read_csv(hist_path)[:start]
+        state, start, extra = store.load_checkpoint(ckpt, state, key)
+        rows = store.read_csv(hist_path)[:start]
         snapshots = extra["snapshots"][:start]
         compile_s = float(extra["compile_s"])
     b = tc.candidate_batch
     per_gen = (tc.population + 1) * b * problem.steps_per_rollout
-    evaluate = evaluate_fn or jax.jit(tp.make_population_loss(problem))
+    if evaluate_fn is None:
+        fwd = tp.with_backend(problem, _forward_backend(tc))
+        evaluate = jax.jit(objectives.make_population_objective(fwd, tc.population + 1, b, mesh))
+    else:
+        evaluate = evaluate_fn
 
     def batch(g):
         scen, _ = tp.sample_pushes(tc, problem.robot, problem.table, tp.batch_rng(tc.seed, STREAMS[kind], g), b,
                                    problem.setup.dtype)  # fmt: skip
-        return scen
+        return objectives.cast_batch(scen, problem.setup.dtype)
 
     def done(g):
-        wall_spent = not tc.wall_budget or not rows or float(rows[-1]["wall_s"]) >= budget["wall_s"]
-        spent = g * per_gen >= budget["sim_steps"] and wall_spent
+        if tc.budget_s > 0:
+            spent = bool(rows) and float(rows[-1]["wall_s"]) >= tc.budget_s
+        else:
+            wall_spent = not tc.wall_budget or not rows or float(rows[-1]["wall_s"]) >= budget["wall_s"]
+            spent = g * per_gen >= budget["sim_steps"] and wall_spent
         return spent or (max_generations is not None and g >= max_generations)
 
     if not done(start) and hasattr(evaluate, "lower"):  # ahead of time: the compile timed apart
@@ -158,7 +171,8 @@ def search(problem: tp.Problem, kind: str, out, *, budget: dict, progress: bool 
     compile_s = compile_s or 0.0
     wall = float(rows[-1]["wall_s"]) if rows else compile_s
     g = start
-    with tqdm(total=max_generations or budget_generations(problem, budget["sim_steps"]), initial=start,
+    total = max_generations or (None if tc.budget_s > 0 else budget_generations(problem, budget["sim_steps"]))
+    with tqdm(total=total, initial=start,
               unit="gen", disable=not progress, desc=kind) as bar:  # fmt: skip
         while not done(g):
             t0 = time.perf_counter()
@@ -183,34 +197,42 @@ def search(problem: tp.Problem, kind: str, out, *, budget: dict, progress: bool 
                          "gen_s": round(dt, 3), "sim_steps": (g + 1) * per_gen, "wall_s": round(wall, 3)})  # fmt: skip
             snapshots = np.concatenate([snapshots, np.asarray(strategy.current(state))[None]])
             g += 1
-            tp.save_checkpoint(ckpt, state, g, key, snapshots=snapshots, compile_s=compile_s)
-            tp.write_csv(hist_path, rows, HISTORY_COLUMNS)
+            store.save_checkpoint(ckpt, state, g, key, snapshots=snapshots, compile_s=compile_s)
+            store.write_csv(hist_path, rows, HISTORY_COLUMNS)
             bar.set_postfix(loss=f"{float(obj[0]):.4g}")
             bar.update(1)
 
-    return result(problem, kind, out, budget)
+    return result(problem, kind, out, budget, times)
 
 
-def result(problem: tp.Problem, kind: str, out, budget: dict) -> dict:
+def result(problem: tp.Problem, kind: str, out, budget: dict, times=()) -> dict:
     """The outcome of a (finished or stopped) search in ``out``, read back without compiling:
-    {"history", "equal_steps", "equal_wall", "compile_s", "sim_steps_per_generation"} (see
-    :func:`search`)."""
+    {"history", "equal_steps", "equal_wall", "at": {seconds: ...}, "final", "compile_s",
+    "sim_steps_per_generation"}; each entry holds the generation (-1: none yet, the start), its sim_steps
+    and wall_s, and "controls": (controls, regularisation (2,)) of the current solution after it."""
     out = pathlib.Path(out)
     p0, unravel = ravel_pytree(problem.init_params())
     with np.load(out / "checkpoint.npz") as z:
         snapshots, compile_s = z["extra_snapshots"], float(z["extra_compile_s"])
-    rows = tp.read_csv(out / "history.csv")[: len(snapshots)]
+    rows = store.read_csv(out / "history.csv")[: len(snapshots)]
     if not rows:
         raise ValueError(f"{out}: the {kind} search has no finished generation yet")
+
+    def entry(i: int, reached: bool = True) -> dict:
+        params = unravel(jnp.asarray(snapshots[i], p0.dtype)) if i >= 0 else problem.init_params()
+        controls, reg = problem.controls(params)
+        r = rows[i] if i >= 0 else {"sim_steps": 0, "wall_s": 0.0}  # -1: the start, before any generation
+        return {"generation": i, "sim_steps": int(r["sim_steps"]), "wall_s": float(r["wall_s"]), "reached": reached,
+                "controls": (controls, problem.regularisation(reg))}  # fmt: skip
 
     def pick(column: str, target: float) -> dict:
         values = [float(r[column]) for r in rows]
         i = next((j for j, v in enumerate(values) if v >= target), len(rows) - 1)
-        gains, reg = problem.controls(unravel(jnp.asarray(snapshots[i], p0.dtype)))
-        return {"generation": i, "sim_steps": int(rows[i]["sim_steps"]), "wall_s": float(rows[i]["wall_s"]),
-                "reached": bool(values[i] >= target), "controls": (gains, problem.regularisation(reg))}  # fmt: skip
+        return entry(i, bool(values[i] >= target))
 
     tc = problem.tc
     return {"history": rows, "equal_steps": pick("sim_steps", budget["sim_steps"]),
-            "equal_wall": pick("wall_s", budget["wall_s"]), "compile_s": round(compile_s, 2),
+            "equal_wall": pick("wall_s", budget["wall_s"]), "final": entry(len(rows) - 1),
+            "at": {float(t): entry(at_time(rows, t), float(rows[-1]["wall_s"]) >= t) for t in times},
+            "compile_s": round(compile_s, 2),
             "sim_steps_per_generation": (tc.population + 1) * tc.candidate_batch * problem.steps_per_rollout}  # fmt: skip

@@ -1,19 +1,20 @@
-"""Held-out evaluation of tuned gain sets, and the tuning figures.
+"""Held-out evaluation of tuned gain sets (``wbc-jax heldout``, the phase ``heldout`` of ``wbc-jax tune``).
 
-What a gain set is judged on, none of which the tuning loss saw (S gain sets):
+What a gain set is judged on, none of which the tuning loss saw (S gain sets; :class:`HeldoutConfig`):
 
 * the push grid of ``docs/sweep_h100`` (chest, 0.1 s at 0.5 s, M magnitudes x D directions, 3 s),
-  on the sweep's backend: strict survival rate, envelope (largest survived impulse per direction)
+  on the held-out backend: strict survival rate, envelope (largest survived impulse per direction)
   as a fraction of the feet-in-place LIP bound, min / median over directions;
-* unseen variations (:data:`VARIATIONS`): pushes on the left hand (the forearm body ``l_elbow_1``,
-  which carries the hand) and the right thigh, durations 0.02 s and 0.5 s, floor friction 0.5, and
-  pushes during the single-support phase of the one-foot task;
+* unseen variations (:data:`wbc_jax.tuning.config.VARIATIONS`): pushes on the left hand (the forearm
+  body ``l_elbow_1``, which carries the hand) and the right thigh, durations 0.02 s and 0.5 s, floor
+  friction 0.5, and pushes during the single-support phase of the one-foot task;
 * the 20 s CoM sinusoid of the seed (``balance``'s task): CoM RMSE (<= 1.5 mm to keep the seed's
   task), on C MuJoCo by default.
 
-All gain sets of one controller setting run as one batch (one compiled program per task; gains
-are data), in chunks written as Parquet parts (resumable). :func:`write_heldout` writes
-heldout.json; the figures are the polar envelope, learning curves and survival against loss.
+A gain set is a Gains or a :class:`~wbc_jax.tuning.schedule.GainSchedule` with its regularisation;
+all sets of one kind and regularisation run as one batch (one compiled program per task; gains are
+data), in chunks written as Parquet parts (resumable). :func:`write_heldout` writes heldout.json
+with its provenance; :func:`run` is the ``wbc-jax heldout`` job on gains files.
 """
 
 from __future__ import annotations
@@ -28,83 +29,63 @@ import jax
 import numpy as np
 
 from wbc_jax.control.controller import ControllerConfig
-from wbc_jax.control.gains import Gains
+from wbc_jax.control.gains import Gains, default_gains, load_gains
 from wbc_jax.core import constants, io, provenance
-from wbc_jax.jobs import sweep, sweep_config, sweep_table
+from wbc_jax.jobs import runs, sweep, sweep_config, sweep_table
+from wbc_jax.report import tuning_plots
 from wbc_jax.report.tuning_plots import survival_vs_loss
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import mjx_loop, physics, runner, scenario
 from wbc_jax.sim.state import Push, Scenario, SimConfig
 from wbc_jax.tuning import loss as tuning_loss
+from wbc_jax.tuning import params as tuning_params
 from wbc_jax.tuning import problem as tp
-
-# name: (pushed body, push duration s, floor friction); magnitudes keep the grid's impulses.
-VARIATIONS = {
-    "l_hand": ("l_elbow_1", 0.1, 1.0),
-    "r_upper_leg": ("r_upper_leg", 0.1, 1.0),
-    "duration_0.02s": ("chest", 0.02, 1.0),
-    "duration_0.5s": ("chest", 0.5, 1.0),
-    "friction_0.5": ("chest", 0.1, 0.5),
-}
+from wbc_jax.tuning import schedule as gain_schedule
+from wbc_jax.tuning import store
+from wbc_jax.tuning.config import HAND_SET_GAINS, VARIATIONS, HeldoutConfig, heldout_default_config
 
 
-@dataclasses.dataclass(frozen=True)
-class HeldoutConfig:
-    """Sizes of the held-out evaluation (defaults: the issue's; tiny ones for CPU checks).
+def load_sets(specs, n: int, dtype, regularisation=None) -> dict:
+    """{name: (Gains or GainSchedule, regularisation (2,))} of ``--sets`` entries: 'default' (WBC),
+    'critical' (the hand-set row) or NAME=FILE (a gains file or a gain-schedule file); checked before
+    anything compiles."""
+    reg0 = tuning_params.default_regularisation() if regularisation is None else np.asarray(regularisation, float)
+    sets = {}
+    for spec in specs:
+        name, _, path = spec.partition("=")
+        if name in sets:
+            raise ValueError(f"gain set {name!r} given twice")
+        if not path and name == "default":
+            sets[name] = (default_gains(n, dtype), reg0)
+        elif not path and name == "critical":
+            sets[name] = (load_gains(HAND_SET_GAINS, n, dtype), reg0)
+        elif not path:
+            raise ValueError(f"--sets entries are 'default', 'critical' or NAME=FILE, got {spec!r}")
+        elif gain_schedule.is_schedule_file(path):
+            sets[name] = (gain_schedule.load_schedule(path, dtype), reg0)
+        else:
+            sets[name] = (load_gains(path, n, dtype), reg0)  # load_gains checks the file and its values
+    return sets
 
-    grid: (LO N, HI N, M magnitudes) x ``directions`` azimuths, chest pushes of ``duration`` s at
-    ``onset`` s, ``horizon`` s. variations: ``variation_magnitudes`` x ``variation_directions``
-    over the same impulse range. one_foot: pushes at ``one_foot_onset`` s of the one-foot task
-    (horizon ``one_foot_horizon``). sinusoid_s: seconds of the CoM sinusoid (0: skip).
-    tasks, angular_weight_soft: the contact file and soft-QP weight of every closed loop (as the
-    tuning run's: :class:`wbc_jax.tuning.config.TuneConfig`)."""
 
-    magnitudes: tuple[float, float, int] = (10.0, 400.0, 64)
-    directions: int = 32
-    duration: float = 0.1
-    onset: float = 0.5
-    horizon: float = 3.0
-    variations: tuple[str, ...] = tuple(VARIATIONS)
-    variation_magnitudes: int = 16
-    variation_directions: int = 16
-    one_foot: bool = True
-    one_foot_onset: float = 7.5
-    one_foot_horizon: float = 9.0
-    sinusoid_s: float = 20.0
-    sinusoid_backend: str = "mujoco"
-    backend: str = "auto"
-    chunk_size: int = 16384
-    tasks: str | None = None
-    angular_weight_soft: float = 1.0
+def set_files(specs) -> dict:
+    """{name: path} of the files among ``--sets`` entries (for provenance)."""
+    files = {name: path for name, _, path in (s.partition("=") for s in specs) if path}
+    if any(s == "critical" for s in specs):
+        files["critical"] = str(HAND_SET_GAINS)
+    return files
 
-    def __post_init__(self):
-        lo, hi, m = self.magnitudes
-        if not (0 <= lo <= hi and int(m) == m and m >= 1):
-            raise ValueError(f"held-out magnitudes must be LO <= HI and a count >= 1, got {self.magnitudes}")
-        for name in ("directions", "variation_magnitudes", "variation_directions", "chunk_size"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"held-out {name} must be >= 1, got {getattr(self, name)}")
-        unknown = sorted(set(self.variations) - set(VARIATIONS))
-        if unknown:
-            raise ValueError(f"unknown held-out variations {unknown}; valid: {list(VARIATIONS)}")
-        if self.horizon <= self.onset + max([self.duration] + [VARIATIONS[v][1] for v in self.variations]):
-            raise ValueError(f"held-out horizon {self.horizon} s ends before the pushes")
-        lo_of, hi_of = sweep_config.ONE_FOOT_WINDOW
-        if self.one_foot and not (lo_of <= self.one_foot_onset and self.one_foot_onset + self.duration <= hi_of
-                                  and self.one_foot_horizon > self.one_foot_onset + self.duration):  # fmt: skip
-            raise ValueError(f"one-foot pushes must fall in the single-support phase {sweep_config.ONE_FOOT_WINDOW} s")
-        physics.PhysicsConfig(backend=self.backend)
-        physics.PhysicsConfig(backend=self.sinusoid_backend)
-        ControllerConfig(angular_weight_soft=self.angular_weight_soft)
-        if self.tasks is not None and not pathlib.Path(self.tasks).is_file():
-            raise ValueError(f"held-out tasks file {self.tasks} is not a file")
+
+def _kind(controls) -> str:
+    return "gains" if isinstance(controls, Gains) else "schedule"
 
 
 def _groups(sets: dict) -> dict:
-    """Gain sets grouped by their regularisation: {(pinv_damping, kp_postural_reg): [names]}."""
+    """Gain sets grouped by kind and regularisation: {(kind, pinv_damping, kp_postural_reg): [names]}."""
     groups: dict = {}
-    for name, (_, reg) in sets.items():
-        groups.setdefault(tuple(np.round(np.asarray(reg, float), 12).tolist()), []).append(name)
+    for name, (controls, reg) in sets.items():
+        key = (_kind(controls), *np.round(np.asarray(reg, float), 12).tolist())
+        groups.setdefault(key, []).append(name)
     return groups
 
 
@@ -113,9 +94,26 @@ def _controller(reg, hc: HeldoutConfig) -> ControllerConfig:
                             angular_weight_soft=hc.angular_weight_soft)  # fmt: skip
 
 
-def _scenarios(robot, rows: dict, gains: list, dtype) -> Scenario:
+def _stack(controls: list, dtype):
+    """(S, ...) the gain sets of one kind stacked (numpy, floats in ``dtype``)."""
+    return jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x, dtype) for x in xs]), *controls)
+
+
+def _nominal(controls, dtype) -> Gains:
+    """The plain gains of a set (a schedule's at rest), numpy: the set-up's nominal gains."""
+    g = controls if isinstance(controls, Gains) else controls.at_rest()
+    return jax.tree_util.tree_map(lambda x: np.asarray(x, dtype), g)
+
+
+def _with_kind(st: scenario.Setup, kind: str) -> scenario.Setup:
+    """The set-up whose loop takes this kind of gain set (a schedule: evaluated at every tick)."""
+    return dataclasses.replace(st, loop=gain_schedule.scheduled_loop(st.loop)) if kind == "schedule" else st
+
+
+def _scenarios(robot, rows: dict, stacked, dtype) -> Scenario:
     """Scenarios (B,) from columns: azimuth_deg, magnitude_n, duration_s, body (ids), friction,
-    gain_set (index into ``gains``); no joint noise, nominal masses, onset in ``rows['onset']``."""
+    gain_set (index into ``stacked``, the sets (S, ...)); no joint noise, nominal masses, onset in
+    ``rows['onset']``."""
     az = np.asarray(rows["azimuth_deg"], float)
     B = az.size
     u = np.stack([np.cos(np.deg2rad(az)), np.sin(np.deg2rad(az)), np.zeros(B)], 1)
@@ -124,8 +122,7 @@ def _scenarios(robot, rows: dict, gains: list, dtype) -> Scenario:
         push=Push(force=(np.asarray(rows["magnitude_n"])[:, None] * u)[:, None, :].astype(dtype),
                   onset=np.full((B, 1), rows["onset"], dtype), duration=np.asarray(rows["duration_s"], dtype)[:, None],
                   body=np.asarray(rows["body"], np.int32)[:, None]),
-        gains=Gains(**{k: np.stack([np.asarray(getattr(gains[i], k), dtype) for i in g]) for k in
-                       ("kp_com", "kd_com", "ki_com", "kp_ang", "ki_ang", "kp_postural", "kd_postural")}),
+        gains=jax.tree_util.tree_map(lambda x: x[g], stacked),
         joint_offset=np.zeros((B, robot.index.n), dtype), friction=np.asarray(rows["friction"], dtype),
         mass_scale=np.ones(B, dtype),
     )  # fmt: skip
@@ -181,36 +178,38 @@ def _envelope(table, cfg: sweep_config.SweepConfig, robot) -> dict:
 
 
 def heldout(sets: dict, hc: HeldoutConfig, out, *, progress: bool = True, robot_name: str = "icub") -> dict:
-    """Evaluate gain sets {name: (Gains, regularisation (2,))} on the held-out grid, variations,
-    one-foot task and sinusoid (module docstring), into ``out`` (resumable). Returns
+    """Evaluate gain sets {name: (Gains or GainSchedule, regularisation (2,))} on the held-out grid,
+    variations, one-foot task and sinusoid (module docstring), into ``out`` (resumable). Returns
     {name: {"grid": {...}, "variations": {name: {...}}, "one_foot": {...}, "sinusoid_com_rmse_m"}},
     plus "_timing"."""
     out = pathlib.Path(out)
     dtype = scenario.float_dtype()
-    mags = np.linspace(hc.magnitudes[0], hc.magnitudes[1], int(hc.magnitudes[2]))
-    impulses = mags * hc.duration
+    impulses = hc.grid_impulses
     result: dict = {name: {"variations": {}} for name in sets}
     timing: dict = {}
-    for gi, (reg, names) in enumerate(_groups(sets).items()):
-        gains = [sets[n][0] for n in names]
-        tag = hashlib.sha256(json.dumps([dataclasses.asdict(hc), [_gains_list(g) for g in gains], reg],
-                                        sort_keys=True).encode()).hexdigest()[:10]  # fmt: skip
+    for gi, ((kind, *reg), names) in enumerate(_groups(sets).items()):
+        controls = [sets[n][0] for n in names]
+        stacked = _stack(controls, dtype)
+        tag = hashlib.sha256(json.dumps([dataclasses.asdict(hc), [store.controls_dict(c) for c in controls], reg],
+                                        sort_keys=True, default=io._jsonable).encode()).hexdigest()[:10]  # fmt: skip
         # Stand: the grid and the variations, one program (per-env plant: friction varies).
-        cfg = sweep_config.SweepConfig(magnitudes=tuple(mags), directions=sweep_config._azimuths(hc.directions),
-                                push_duration=hc.duration, push_onset=hc.onset, horizon=hc.horizon,
-                                friction=(0.5, 1.0), backend=hc.backend, out=None, tasks=hc.tasks,
-                                angular_weight_soft=hc.angular_weight_soft)  # fmt: skip
-        st = sweep.make_setup(cfg, gains[0], robot_name=robot_name, controller=_controller(reg, hc))
+        cfg = sweep_config.SweepConfig(magnitudes=tuple(hc.grid_magnitudes), directions=tuple(hc.grid_directions),
+                                       push_duration=hc.grid_duration, push_onset=hc.grid_onset,
+                                       horizon=hc.grid_horizon, friction=(0.5, 1.0), backend=hc.heldout_backend,
+                                       out=None, tasks=hc.tasks, angular_weight_soft=hc.angular_weight_soft)  # fmt: skip
+        nominal = _nominal(controls[0], dtype)
+        st = _with_kind(sweep.make_setup(cfg, nominal, robot_name=robot_name, controller=_controller(reg, hc)), kind)
         robot = st.robot
-        blocks = [("grid", "chest", hc.duration, 1.0, impulses, sweep_config._azimuths(hc.directions))]
+        vdirs = sweep_config._azimuths(hc.variation_directions)
+        blocks = [("grid", "chest", hc.grid_duration, 1.0, impulses, np.asarray(hc.grid_directions))]
         vimp = np.linspace(impulses[0], impulses[-1], hc.variation_magnitudes)
         for v in hc.variations:
             body, dur, fr = VARIATIONS[v]
-            blocks.append((v, body, dur, fr, vimp, sweep_config._azimuths(hc.variation_directions)))
-        cols = _block_columns(robot, blocks, len(gains), hc.onset)
-        table, timing[f"stand_{gi}"] = _run_table(st, _scenarios(robot, cols, gains, dtype), cols,
+            blocks.append((v, body, dur, fr, vimp, vdirs))
+        cols = _block_columns(robot, blocks, len(controls), hc.grid_onset)
+        table, timing[f"stand_{gi}"] = _run_table(st, _scenarios(robot, cols, stacked, dtype), cols,
                                                   out / f"stand_{gi}", hc.chunk_size, tag, progress,
-                                                  hc.onset + hc.duration)  # fmt: skip
+                                                  hc.grid_onset + hc.grid_duration)  # fmt: skip
         for s, name in enumerate(names):
             mine = table[table["gain_set"] == s]
             result[name]["grid"] = _envelope(mine[mine["block"] == "grid"], cfg, robot)
@@ -219,24 +218,21 @@ def heldout(sets: dict, hc: HeldoutConfig, out, *, progress: bool = True, robot_
         if hc.one_foot:
             of = dataclasses.replace(cfg, task="one-foot", push_onset=hc.one_foot_onset, horizon=hc.one_foot_horizon,
                                      friction=(1.0, 1.0))  # fmt: skip
-            st1 = sweep.make_setup(of, gains[0], robot_name=robot_name, controller=_controller(reg, hc))
-            blocks = [("one_foot", "chest", hc.duration, 1.0, vimp, sweep_config._azimuths(hc.variation_directions))]
-            cols = _block_columns(robot, blocks, len(gains), hc.one_foot_onset)
-            table1, timing[f"one_foot_{gi}"] = _run_table(st1, _scenarios(robot, cols, gains, dtype), cols,
+            st1 = _with_kind(sweep.make_setup(of, nominal, robot_name=robot_name, controller=_controller(reg, hc)),
+                             kind)  # fmt: skip
+            blocks = [("one_foot", "chest", hc.grid_duration, 1.0, vimp, vdirs)]
+            cols = _block_columns(robot, blocks, len(controls), hc.one_foot_onset)
+            table1, timing[f"one_foot_{gi}"] = _run_table(st1, _scenarios(robot, cols, stacked, dtype), cols,
                                                           out / f"one_foot_{gi}", hc.chunk_size, tag, progress,
-                                                          hc.one_foot_onset + hc.duration)  # fmt: skip
+                                                          hc.one_foot_onset + hc.grid_duration)  # fmt: skip
             for s, name in enumerate(names):
                 result[name]["one_foot"] = _envelope(table1[table1["gain_set"] == s], of, robot)
         if hc.sinusoid_s > 0:
-            rmse, timing[f"sinusoid_{gi}"] = sinusoid(gains, reg, hc, robot_name)
+            rmse, timing[f"sinusoid_{gi}"] = sinusoid(controls, reg, hc, robot_name)
             for s, name in enumerate(names):
                 result[name]["sinusoid_com_rmse_m"] = rmse[s]
     result["_timing"] = timing
     return result
-
-
-def _gains_list(g: Gains) -> list:
-    return [np.asarray(getattr(g, k), float).round(9).tolist() for k in constants.GAIN_FIELDS]
 
 
 def _block_columns(robot, blocks, n_sets: int, onset: float) -> dict:
@@ -259,16 +255,18 @@ def _block_columns(robot, blocks, n_sets: int, onset: float) -> dict:
     return out
 
 
-def sinusoid(gains: list, reg, hc: HeldoutConfig, robot_name: str = "icub") -> tuple[list, dict]:
-    """CoM RMSE (m) of each gain set on the seed's CoM sinusoid (``hc.sinusoid_s`` s, no push),
-    the closed loop of ``wbc-jax balance --task sinusoid`` (metrics only), all sets as one batch."""
+def sinusoid(controls: list, reg, hc: HeldoutConfig, robot_name: str = "icub") -> tuple[list, dict]:
+    """CoM RMSE (m) of each gain set (all Gains or all GainSchedules) on the seed's CoM sinusoid
+    (``hc.sinusoid_s`` s, no push), the closed loop of ``wbc-jax balance --task sinusoid`` (metrics
+    only), all sets as one batch."""
     sim = SimConfig(record=False, physics=physics.PhysicsConfig(backend=hc.sinusoid_backend))
-    st = scenario.setup("sinusoid", duration=hc.sinusoid_s, controller=_controller(reg, hc), sim=sim, gains=gains[0],
-                        scene=scenario.load_scene(robot_name, hc.tasks))  # fmt: skip
+    dtype = scenario.float_dtype()
+    st = scenario.setup("sinusoid", duration=hc.sinusoid_s, controller=_controller(reg, hc), sim=sim,
+                        gains=_nominal(controls[0], dtype), scene=scenario.load_scene(robot_name, hc.tasks))  # fmt: skip
+    st = _with_kind(st, _kind(controls[0]))
     one = scenario.single(st)
-    scen = jax.tree_util.tree_map(lambda x: np.repeat(np.asarray(x), len(gains), 0), one)
-    scen = scen.replace(gains=Gains(**{k: np.stack([np.asarray(getattr(g, k), st.dtype) for g in gains])
-                                       for k in constants.GAIN_FIELDS}))  # fmt: skip
+    scen = jax.tree_util.tree_map(lambda x: np.repeat(np.asarray(x), len(controls), 0), one)
+    scen = scen.replace(gains=_stack(controls, st.dtype))
     res = runner.run(st, scen)
     cols = metrics_lib.summarize(res.metrics)
     return [float(x) for x in cols["com_rmse_m"]], {"compile_s": round(res.compile_s, 2), "run_s": round(res.run_s, 2),
@@ -276,31 +274,7 @@ def sinusoid(gains: list, reg, hc: HeldoutConfig, robot_name: str = "icub") -> t
 
 
 # ---------------------------------------------------------------------------------------------
-# Held-out pushes of the training distribution, and whether the loss predicts survival
-
-
-def evaluate_pushes(problem: tp.Problem, sets: dict, *, n: int | None = None, stream: int = 3,
-                    progress: bool = True) -> dict:  # fmt: skip
-    """Each gain set on ``n`` (default ``eval_pushes``) held-out pushes of the training distribution
-    at ``eval_horizon``: loss, strict survival, CoM RMSE, torque RMS (MJX JAX physics)."""
-    tc = problem.tc
-    ev = tp.make_problem(tc, problem.lc, horizon=tc.eval_horizon, checkpoint=False)
-    scen, _ = tp.sample_pushes(
-        tc, ev.robot, ev.table, tp.batch_rng(tc.seed, stream, 0), n or tc.eval_pushes, ev.setup.dtype
-    )
-    fn = jax.jit(tp.make_batched_loss(ev, fixed_solver=False))
-    results = {}
-    for name, (gains, reg) in sets.items():
-        regd = dict(zip(("pinv_damping", "kp_postural_reg"), np.asarray(reg, float)))
-        t0 = time.perf_counter()
-        obj, terms, metrics = fn(gains, regd, scen)
-        cols = metrics_lib.summarize(metrics)
-        results[name] = {"objective": float(obj), "survival_rate": float(np.mean(cols["survived"])),
-                         "upright_rate": float(np.mean(cols["upright"])), "com_rmse_m": float(np.mean(cols["com_rmse_m"])),
-                         "torque_rms_nm": float(np.sqrt(np.mean(terms["effort"]))) * problem.lc.torque_scale,
-                         **{f"loss_{k}": float(np.mean(v)) for k, v in terms.items()},
-                         "wall_s": round(time.perf_counter() - t0, 2)}  # fmt: skip
-    return results
+# Does the loss predict survival? (held-out pushes of the training distribution)
 
 
 def survival_prediction(problem: tp.Problem, n: int, *, gains=None, reg=None, out=None) -> dict:
@@ -312,7 +286,8 @@ def survival_prediction(problem: tp.Problem, n: int, *, gains=None, reg=None, ou
     tc = problem.tc
     ev = tp.make_problem(tc, problem.lc, horizon=tc.eval_horizon, checkpoint=False)
     scen, cols = tp.sample_pushes(tc, ev.robot, ev.table, tp.batch_rng(tc.seed, 4, 0), n, ev.setup.dtype)
-    gains = problem.init if gains is None else gains
+    if gains is None:  # the start of the search (a schedule's at W = 0 with --parameterisation scheduled)
+        gains = ev.controls(ev.init_params())[0]
     regd = dict(zip(("pinv_damping", "kp_postural_reg"), np.asarray(problem.reg0 if reg is None else reg, float)))
     n_train = problem.loop.n_ticks
 
@@ -351,6 +326,7 @@ def survival_prediction(problem: tp.Problem, n: int, *, gains=None, reg=None, ou
            "failure_rates": {k: float(np.mean(v)) for k, v in metrics_lib.failed_tests(outcome).items()}}  # fmt: skip
     if out is not None:
         out = pathlib.Path(out)
+        res["provenance"] = provenance.record({"init_gains": tc.init_gains, "envelope": tc.envelope, "tasks": tc.tasks})
         io.atomic_write_json(out / "prediction.json", res)
         survival_vs_loss(train_loss, survived, res, out / "survival_vs_loss.png")
     return res
@@ -390,10 +366,11 @@ def targets(summary: dict) -> dict:
     return out
 
 
-def write_heldout(path, results: dict, budgets: dict, *, extra: dict | None = None) -> dict:
+def write_heldout(path, results: dict, budgets: dict, *, extra: dict | None = None, inputs: dict | None = None) -> dict:
     """heldout.json: one object per gain set (envelope_fraction_median/_min, survival_rate,
     sinusoid_com_rmse_m, sim_steps, wall_s, device, the per-direction envelope, the unseen
-    variations and the one-foot task), the targets, and the survival criterion used.
+    variations and the one-foot task), the targets, the survival criterion used and the provenance
+    (``inputs``: {name: file} of the gain sets and other input files).
     ``budgets``: {name: {"sim_steps", "wall_s"}} of the tuning runs (0 for hand-set rows)."""
     device = provenance.device_label()
     summary = {}
@@ -418,6 +395,31 @@ def write_heldout(path, results: dict, budgets: dict, *, extra: dict | None = No
                        for v, e in {**r["variations"], **({"one_foot": r["one_foot"]} if "one_foot" in r else {})}.items()},
         }  # fmt: skip
     report = {**summary, "targets": targets(summary), "survival_criterion": dict(constants.SURVIVAL_CRITERION),
-              "timing": results.get("_timing", {}), **(extra or {})}  # fmt: skip
+              "timing": results.get("_timing", {}), **(extra or {}),
+              "provenance": provenance.record(inputs)}  # fmt: skip
     io.atomic_write_json(pathlib.Path(path), report)
     return report
+
+
+SUMMARY_KEYS = ("envelope_fraction_median", "envelope_fraction_min", "survival_rate", "sinusoid_com_rmse_m",
+                "sim_steps", "wall_s")  # fmt: skip
+
+
+def run(hc: HeldoutConfig | None = None, *, progress: bool = True, robot_name: str = "icub") -> dict:
+    """The ``wbc-jax heldout`` job: the gain sets of ``hc.sets`` held out into ``hc.out`` (resumable):
+    heldout.json, envelope_polar.png. Returns {name: the summary row}."""
+    from wbc_jax.robot import model as model_lib
+
+    hc = heldout_default_config() if hc is None else hc
+    out = pathlib.Path(hc.out)
+    runs.check_output_dir(out, "heldout")
+    files = set_files(hc.sets)
+    sets = load_sets(hc.sets, model_lib.load_robot(robot_name).index.n, scenario.float_dtype())
+    fp = runs.fingerprint({"heldout": dataclasses.asdict(hc), "dtype": str(scenario.float_dtype())},
+                          [*files.values(), hc.tasks])  # fmt: skip
+    runs.claim_output_dir(out, "heldout", fp, resume=True)
+    results = heldout(sets, hc, out / "parts", progress=progress, robot_name=robot_name)
+    rep = write_heldout(out / "heldout.json", results, {}, extra={"config": dataclasses.asdict(hc)},
+                        inputs={**files, "tasks": hc.tasks})  # fmt: skip
+    tuning_plots.envelope_polar(rep, out / "envelope_polar.png")
+    return {n: {k: rep[n][k] for k in SUMMARY_KEYS} for n in sets}

@@ -20,7 +20,7 @@ T ticks of a rollout (B rollouts, F = 8 sole corners, n = 23 joints):
 The total per rollout is the weighted sum; training minimises the mean over the batch of
 log(1 + total) (``robust``): a rollout that falls far saturates instead of dominating the batch's
 gradient. Rank statistics (:func:`spearman`, :func:`auc`) measure how well the total predicts
-strict survival on held-out pushes (``experiments/tune_gpu.py --phases predict``).
+strict survival on held-out pushes (``wbc-jax tune --phases predict``).
 
 :class:`TuningLoop` is the closed loop of :mod:`wbc_jax.sim.rollout` with a richer per-tick record
 (:class:`TuneTrace`: the LossTrace plus the soles' normals and the QP-infeasibility flag), read
@@ -119,23 +119,23 @@ def _margins(points: Array, p: Array) -> Array:
 
 
 def loss_terms(trace: TuneTrace, lc: LossConfig, n_ticks: int | None = None,
-               control_dt: float = constants.CONTROL_DT) -> dict:  # fmt: skip
+               control_dt: float = constants.CONTROL_DT, reference=None) -> dict:  # fmt: skip
     """Per-rollout loss terms (each (), a mean over ticks) of one trace, on its first ``n_ticks``
-    ticks (None: all; a prefix equals the loss of a rollout of that horizon).
+    ticks (None: all; a prefix equals the loss of a rollout of that horizon). ``reference``: (foot
+    normals (2, 3), support corners (F, 2)) that tilt and slip are measured from (default: the
+    trace's first tick; a window of a rollout passes the rollout's).
 
     Returns {term: ()} for :data:`TERMS` and ``total`` (the weighted sum)."""
     tr = jax.tree_util.tree_map(lambda x: x[:n_ticks], trace) if n_ticks is not None else trace
     b = tr.base
     T = b.com.shape[0]
-    omega = jnp.sqrt(constants.GRAVITY / b.com_height0)[:, None]  # (T, 1)
-    xi = b.com[:, :2] + b.com_vel[:, :2] / omega
-    m_xi = _margins(b.support_xy, xi)
+    m_xi = _margins(b.support_xy, capture_point(b))
     capture = jnp.mean(jax.nn.relu(lc.capture_margin - m_xi) ** 2) / lc.capture_scale**2
-    n0 = tr.foot_normal[0]
+    n0, support0 = (tr.foot_normal[0], b.support_xy[0]) if reference is None else reference
     cos_tilt = jnp.einsum("tfi,fi->tf", tr.foot_normal, n0)
     tilt = jnp.mean(jnp.sum(1.0 - cos_tilt, -1)) / (1.0 - math.cos(math.radians(lc.tilt_scale_deg)))
     F = b.support_xy.shape[1]
-    d = b.support_xy - b.support_xy[0]  # (T, F, 2)
+    d = b.support_xy - support0  # (T, F, 2)
     per_foot = jnp.mean(jnp.sum(d**2, -1).reshape(T, 2, F // 2), -1)  # (T, 2)
     slip = jnp.mean(jnp.sum(per_foot, -1)) / lc.slip_scale**2
     w = max(1, min(T, int(round(lc.settle_s / control_dt))))
@@ -152,6 +152,23 @@ def loss_terms(trace: TuneTrace, lc: LossConfig, n_ticks: int | None = None,
     return terms
 
 
+def capture_point(b: LossTrace) -> Array:
+    """(T, 2) the instantaneous capture point c + v / omega of a trace, omega = sqrt(g / h0)."""
+    omega = jnp.sqrt(constants.GRAVITY / b.com_height0)[:, None]  # (T, 1)
+    return b.com[:, :2] + b.com_vel[:, :2] / omega
+
+
+def terminal_cost(trace: TuneTrace, lc: LossConfig) -> Array:
+    """() the capturability of a window's last state: the capture term and the CoM-height term of
+    :func:`loss_terms` at the last tick alone (a robot whose capture point is inside its support
+    polygon, standing at height, can still stop on its feet)."""
+    b = jax.tree_util.tree_map(lambda x: x[-1:], trace.base)
+    m_xi = _margins(b.support_xy, capture_point(b))[0]
+    capture = jax.nn.relu(lc.capture_margin - m_xi) ** 2 / lc.capture_scale**2
+    height = jax.nn.relu(lc.height_frac * b.com_height0[0] - b.com[0, 2]) ** 2 / lc.capture_scale**2
+    return lc.w_capture * capture + lc.w_height * height
+
+
 def env_objective(total: Array, lc: LossConfig) -> Array:
     """Per-rollout objective of totals (any shape): log1p (``robust``) or the total itself."""
     return jnp.log1p(total) if lc.robust else total
@@ -160,6 +177,11 @@ def env_objective(total: Array, lc: LossConfig) -> Array:
 def batch_objective(total: Array, lc: LossConfig) -> Array:
     """() the training objective of per-rollout totals (B,): the mean of :func:`env_objective`."""
     return jnp.mean(env_objective(total, lc))
+
+
+def batch_objective_rows(total: Array, lc: LossConfig) -> Array:
+    """(P,) the objective of each row of per-rollout totals (P, b): the mean of :func:`env_objective`."""
+    return jnp.mean(env_objective(total, lc), axis=-1)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -7,23 +7,22 @@
   LIP bound (``push_scale``) in that direction, pushed body among ``train_bodies``, duration
   uniform in ``duration_range``, floor friction, plant mass scale and initial joint noise; batch k of a stream is drawn from ``default_rng([seed, stream,
   k])``, so a resumed run draws the same pushes;
-* the objectives on MJX's JAX implementation (:func:`make_batched_loss`: one gain set over B
-  pushes, differentiable; :func:`make_population_loss`: P gain sets over the same b pushes,
-  forward, vmapped over the population), with the loss of :mod:`wbc_jax.tuning.loss`;
-* checkpoint and history files (atomic, keyed to the config).
+* the tuned parameters and their controls (:class:`Problem`: plain gains, or a
+  :class:`~wbc_jax.tuning.schedule.GainSchedule` with ``parameterisation == "scheduled"``);
+* the differentiable objectives on MJX's JAX implementation (:func:`make_batched_loss`: one gain
+  set over B pushes; :func:`make_env_objective`: one push), with the loss of
+  :mod:`wbc_jax.tuning.loss`. The forward objectives of the searches, on any MJX engine, and the
+  sharded gradient programs are in :mod:`wbc_jax.tuning.objectives`.
 
 Shapes: ``B`` pushes, ``P`` candidates, ``n = 23`` joints, T ticks.
 """
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import hashlib
-import io as _io
 import json
 import pathlib
-import zipfile
 
 import jax
 import jax.numpy as jnp
@@ -31,15 +30,16 @@ import numpy as np
 
 from wbc_jax.control.controller import ControllerConfig
 from wbc_jax.control.gains import Gains, default_gains, load_gains
-from wbc_jax.core import constants, io
+from wbc_jax.core import constants
 from wbc_jax.jobs import sweep_table
 from wbc_jax.robot import model as model_lib
 from wbc_jax.sim import loop as loop_lib
 from wbc_jax.sim import metrics as metrics_lib
-from wbc_jax.sim import mjx_loop, physics, runner, scenario
+from wbc_jax.sim import mjx_loop, physics, scenario
 from wbc_jax.sim.state import Push, Scenario, SimConfig
 from wbc_jax.tuning import loss as tuning_loss
 from wbc_jax.tuning import params as tuning_params
+from wbc_jax.tuning import schedule as gain_schedule
 from wbc_jax.tuning.config import ENVELOPE_FILE, NOT_TRAINING, TuneConfig, config_key
 
 # ---------------------------------------------------------------------------------------------
@@ -169,10 +169,16 @@ class Problem:
         """Physics steps of one rollout (the unit of the simulation budget)."""
         return self.loop.n_ticks * self.loop.n_sub
 
+    @property
+    def scheduled(self) -> bool:
+        return self.tc.parameterisation == "scheduled"
+
     def init_params(self) -> dict:
-        """The unconstrained start of the search {group: (k,)}."""
-        return tuning_params.controls_to_params(self.init, self.reg0, self.bounds,
-                                                regularisation=self.tc.tune_regularisation)  # fmt: skip
+        """The unconstrained start of the search: {group: (k,)}, or for a schedule {"base": {group:
+        (k,)}, "weights": {group: (k, F)}} (weights 0: the plain start)."""
+        plain = tuning_params.controls_to_params(self.init, self.reg0, self.bounds,
+                                                 regularisation=self.tc.tune_regularisation)  # fmt: skip
+        return gain_schedule.init_params(plain) if self.scheduled else plain
 
     @property
     def key(self) -> str:
@@ -187,16 +193,26 @@ class Problem:
         return np.array([float(reg[k]) for k in tuning_params.REGULARISATION])
 
     def controls(self, params: dict):
-        """(Gains, regularisation dict) of unconstrained params."""
+        """(Gains or GainSchedule, regularisation dict or None) of unconstrained params (differentiable)."""
+        if self.scheduled:
+            origin = np.asarray(self.setup.qpos0[:2], float)
+            return gain_schedule.from_params(params, self.bounds, self.base.ki_com, origin), None
         return tuning_params.params_to_controls(params, self.bounds, self.base)
 
 
+def checkpoint_setting(name: str):
+    """SimConfig.checkpoint of a ``--checkpoint`` choice."""
+    return {"tick": True, "none": False, "dots": "checkpoint_dots"}[name]
+
+
 def make_problem(tc: TuneConfig, lc: tuning_loss.LossConfig | None = None, *, robot_name: str = "icub",
-                 horizon: float | None = None, checkpoint: bool | None = None) -> Problem:  # fmt: skip
+                 horizon: float | None = None, checkpoint: bool | str | None = None,
+                 backend: str = "jax") -> Problem:  # fmt: skip
     """Check the inputs (gains file inside the bounds, bodies) and build the tuning closed loop
-    (stand task, perturbed plant, MJX JAX physics, a :class:`~wbc_jax.tuning.loss.TuneTrace` per
-    tick). ``horizon``: seconds (default ``tc.horizon``); ``checkpoint``: per-tick
-    rematerialisation (default ``tc.checkpoint == "tick"``)."""
+    (stand task, perturbed plant, a :class:`~wbc_jax.tuning.loss.TuneTrace` per tick, the gain
+    schedule evaluated at each tick with ``parameterisation == "scheduled"``). ``horizon``: seconds
+    (default ``tc.horizon``); ``checkpoint``: a SimConfig.checkpoint (default from
+    ``tc.checkpoint``); ``backend``: the physics engine (gradients need ``jax``)."""
     lc = tuning_loss.LossConfig() if lc is None else lc
     dtype = scenario.float_dtype()
     robot = model_lib.load_robot(robot_name)
@@ -214,17 +230,33 @@ def make_problem(tc: TuneConfig, lc: tuning_loss.LossConfig | None = None, *, ro
         tuning_params.check_in_bounds(init, reg0, bounds, source=f"--init-gains {tc.init_gains}")
     table = envelope_table(tc, robot)
     sim = SimConfig(
-        record=False, loss_trace=True, checkpoint=(tc.checkpoint == "tick") if checkpoint is None else checkpoint,
+        record=False, loss_trace=True,
+        checkpoint=checkpoint_setting(tc.checkpoint) if checkpoint is None else checkpoint,
         push_body=tc.train_bodies[0], perturb_plant=True,
-        physics=physics.PhysicsConfig(backend="jax", solver_iterations=tc.solver_iterations,
+        physics=physics.PhysicsConfig(backend=backend, solver_iterations=tc.solver_iterations,
                                       ls_iterations=tc.ls_iterations),
     )  # fmt: skip
     st = scenario.setup("stand", duration=tc.horizon if horizon is None else horizon, sim=sim, gains=base,
                         controller=ControllerConfig(angular_weight_soft=tc.angular_weight_soft),
                         scene=scenario.load_scene(robot_name, tc.tasks))  # fmt: skip
+    loop = tuning_loss.tuning_loop(st.loop)
+    if tc.parameterisation == "scheduled":
+        loop = gain_schedule.scheduled_loop(loop)
     iterations = tc.solver_iterations or int(robot.mj_model.opt.iterations)
-    return Problem(tc=tc, lc=lc, setup=st, loop=tuning_loss.tuning_loop(st.loop), base=base, reg0=reg0, init=init,
+    return Problem(tc=tc, lc=lc, setup=st, loop=loop, base=base, reg0=reg0, init=init,
                    bounds=bounds, table=table, iterations=iterations)  # fmt: skip
+
+
+def with_backend(problem: Problem, backend: str) -> Problem:
+    """The same problem on another physics engine (forward objectives: searches, window starts)."""
+    if problem.loop.backend == backend:
+        return problem
+    return make_problem(problem.tc, problem.lc, horizon=problem.setup.loop.cfg.duration, checkpoint=False,
+                        backend=backend)  # fmt: skip
+
+
+# The carry seeding of :func:`rollout` (one implementation, shared with the limit job's optimiser).
+_touch = mjx_loop.touch
 
 
 def rollout(loop: loop_lib.ClosedLoop, plant, qpos, gains, push, reg=None, seed=None):
@@ -244,26 +276,30 @@ def rollout(loop: loop_lib.ClosedLoop, plant, qpos, gains, push, reg=None, seed=
 SEED_CARRY = True  # see :func:`rollout`; False: the closed loop's own rollout (measurements)
 
 
-def _rollout_fn(problem: Problem, n_ticks: int | None):
-    """env(gains, reg, scen) -> (loss terms {name: ()}, Metrics) of one push."""
+def rollout_fn(problem: Problem, n_ticks: int | None = None, *, batch: int = 1):
+    """env(gains, reg, scen) -> (loss terms {name: ()}, Metrics) of one push on the problem's engine
+    (``gains``: a Gains or a GainSchedule; ``batch``: the environments run together, Warp's contact
+    buffer). On ``jax`` the carry is seeded (:func:`rollout`, :data:`SEED_CARRY`)."""
     loop, st = problem.loop, problem.setup
     qpos0 = jnp.asarray(st.qpos0, st.dtype)
-    nominal = physics.device_model(st.robot.mj_model, "jax", loop.cfg.physics)
+    nominal = physics.device_model(st.robot.mj_model, loop.backend, loop.cfg.physics)
+    seeded = SEED_CARRY and loop.backend == "jax"
 
     def env(gains, reg, scen):
         plant = physics.plant_model(nominal, scen.friction, scen.mass_scale)
         qpos = loop.initial_qpos(qpos0, scen.joint_offset)
-        if SEED_CARRY:
+        if seeded:
             seed = scen.friction + sum(jnp.sum(x) for x in jax.tree_util.tree_leaves((gains, reg)))
             metrics, trace = rollout(loop, plant, qpos, gains, scen.push, reg, seed)
         else:
-            metrics, trace = mjx_loop.rollout(loop, plant, qpos, gains, scen.push, controller_overrides=reg)
+            metrics, trace = mjx_loop.rollout(loop, plant, qpos, gains, scen.push, controller_overrides=reg,
+                                              batch=batch)  # fmt: skip
         return tuning_loss.loss_terms(trace, problem.lc, n_ticks, loop.cfg.control_dt), metrics
 
     return env
 
 
-def _cast(dtype, tree):
+def cast(dtype, tree):
     return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), tree)
 
 
@@ -271,15 +307,15 @@ def make_batched_loss(problem: Problem, *, n_ticks: int | None = None, fixed_sol
     """Batched objective of one gain set (unjitted; jit / differentiate it):
     ``fn(gains, reg, scen) -> (objective (), terms {name: (B,)}, Metrics (B,))``; ``reg``:
     {"pinv_damping": (), "kp_postural_reg": ()} or None (the controller's). ``fixed_solver``: MJX's
-    solver loop as a fixed-length scan (reverse mode; same values). ``n_ticks``: the loss on the
-    first ticks only (prediction checks)."""
-    env = _rollout_fn(problem, n_ticks)
+    solver made reverse-differentiable as ``tc.solver_gradient`` says (False: its own loop, forward
+    only). ``n_ticks``: the loss on the first ticks only (prediction checks)."""
+    env = rollout_fn(problem, n_ticks)
     dtype = problem.setup.dtype
 
     def fn(gains, reg, scen):
-        gains, reg = _cast(dtype, gains), None if reg is None else _cast(dtype, reg)
+        gains, reg = cast(dtype, gains), None if reg is None else cast(dtype, reg)
         if fixed_solver:
-            with physics.fixed_iteration_solver(problem.iterations):
+            with physics.gradient_solver(problem.tc.solver_gradient, problem.iterations):
                 terms, metrics = jax.vmap(env, in_axes=(None, None, 0))(gains, reg, scen)
         else:
             terms, metrics = jax.vmap(env, in_axes=(None, None, 0))(gains, reg, scen)
@@ -288,48 +324,26 @@ def make_batched_loss(problem: Problem, *, n_ticks: int | None = None, fixed_sol
     return fn
 
 
-def _controls_cast(problem: Problem, params: dict):
-    """(Gains, regularisation dict or None) of unconstrained params, in the closed loop's dtype."""
+def controls_cast(problem: Problem, params: dict):
+    """(Gains or GainSchedule, regularisation dict or None) of unconstrained params, in the closed
+    loop's dtype."""
     dtype = problem.setup.dtype
     gains, reg = problem.controls(params)
-    return _cast(dtype, gains), None if reg is None else _cast(dtype, reg)
+    return cast(dtype, gains), None if reg is None else cast(dtype, reg)
 
 
 def make_env_objective(problem: Problem):
     """Objective of one push as a function of the unconstrained parameters (unjitted; the training
     step vmaps its gradient over the batch, so that each rollout's gradient can be checked and
     clipped on its own): ``fn(params {group: (k,)}, scen) -> (objective (), (terms {name: ()},
-    Metrics))``. Trace it inside :func:`wbc_jax.sim.physics.fixed_iteration_solver` for reverse mode."""
-    env = _rollout_fn(problem, None)
+    Metrics))``. Trace it inside :func:`wbc_jax.sim.physics.gradient_solver` for reverse mode."""
+    env = rollout_fn(problem, None)
 
     def fn(params, scen):
-        terms, metrics = env(*_controls_cast(problem, params), scen)
+        terms, metrics = env(*controls_cast(problem, params), scen)
         return tuning_loss.env_objective(terms["total"], problem.lc), (terms, metrics)
 
     return fn
-
-
-def make_population_loss(problem: Problem):
-    """Forward objective of P gain sets on the same b pushes, vmapped over the population:
-    ``fn(params {group: (P, k)}, scen (b,)) -> (objective (P,), terms {name: (P, b)}, Metrics (P, b))``."""
-    env = _rollout_fn(problem, None)
-
-    def one(params, scen):
-        terms, metrics = jax.vmap(env, in_axes=(None, None, 0))(*_controls_cast(problem, params), scen)
-        return tuning_loss.batch_objective(terms["total"], problem.lc), terms, metrics
-
-    return jax.vmap(one, in_axes=(0, None))
-
-
-def shard_batch(tree):
-    """Put a batch (leading axis) on the devices: sharded along the batch over all devices when
-    it divides evenly, else on the default device."""
-    mesh = runner.device_mesh()
-    B = int(jax.tree_util.tree_leaves(tree)[0].shape[0])
-    if mesh.devices.size > 1 and B % mesh.devices.size == 0:
-        sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
-        return jax.device_put(tree, sharding)
-    return jax.device_put(tree)
 
 
 def survival_stats(metrics) -> dict:
@@ -337,56 +351,6 @@ def survival_stats(metrics) -> dict:
     cols = metrics_lib.summarize(jax.tree_util.tree_map(lambda x: np.asarray(x).reshape(-1), metrics))
     return {"survival_rate": float(np.mean(cols["survived"])), "upright_rate": float(np.mean(cols["upright"])),
             "qp_infeasible_rate": float(np.mean(np.asarray(cols["qp_infeasible_ticks"]) > 0))}  # fmt: skip
-
-
-# ---------------------------------------------------------------------------------------------
-# Checkpoints and history files
-
-
-def save_checkpoint(path: pathlib.Path, state, step: int, key: str, **extra) -> None:
-    """state (a pytree) + step + config key (+ extra arrays), atomically."""
-    leaves = jax.tree_util.tree_leaves(state)
-    io.atomic_save_npz(path, step=np.asarray(step), key=np.asarray(key),
-                       **{f"leaf_{i:04d}": np.asarray(x) for i, x in enumerate(leaves)},
-                       **{f"extra_{k}": np.asarray(v) for k, v in extra.items()})  # fmt: skip
-
-
-def load_checkpoint(path: pathlib.Path, like, key: str):
-    """(state shaped like ``like``, step, extra {name: array}) of a checkpoint of config ``key``."""
-    try:
-        with np.load(path) as z:
-            stored = {k: z[k] for k in z.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
-        raise ValueError(f"{path} is unreadable ({err}); remove it to restart") from None
-    if "key" not in stored or str(stored["key"]) != key:
-        raise ValueError(f"{path} belongs to another tuning config; use another --out")
-    treedef = jax.tree_util.tree_structure(like)
-    like_leaves = jax.tree_util.tree_leaves(like)
-    try:
-        leaves = [jnp.asarray(stored[f"leaf_{i:04d}"], dtype=jnp.asarray(x).dtype) for i, x in enumerate(like_leaves)]
-    except KeyError as err:
-        raise ValueError(f"{path} lacks {err}; remove it to restart") from None
-    extra = {k[len("extra_") :]: v for k, v in stored.items() if k.startswith("extra_")}
-    return jax.tree_util.tree_unflatten(treedef, leaves), int(stored["step"]), extra
-
-
-def write_csv(path: pathlib.Path, rows: list, columns) -> None:
-    buf = _io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=list(columns))
-    w.writeheader()
-    w.writerows(rows)
-    io.atomic_write_bytes(path, buf.getvalue().encode())
-
-
-def read_csv(path: pathlib.Path) -> list:
-    with open(path) as fh:
-        return list(csv.DictReader(fh))
-
-
-def rss_mb() -> float:
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
 
 
 def constants_used() -> dict:

@@ -1,35 +1,31 @@
-"""Gradient-based gain tuning through the differentiable closed loop (issues 5, 20).
+"""Gradient-based gain tuning through the differentiable closed loop (issues 5, 20, 35).
 
 The pipeline (brax-APG shape)::
 
-    params --(bounded, stable map: tuning_params)--> gains (+ regularisation)
-           --vmap(closed loop with a TuneTrace over B sampled pushes: tuning_problem)--> loss
-           <--(adam, clipped, NaN-guarded)-- grad                       (tuning_loss)
+    params --(bounded, stable map: params / schedule)--> gains (+ regularisation)
+           --vmap(closed loop with a TuneTrace over B rollouts: objectives)--> per-rollout values, grads
+           --(estimator: robust mean, smoothed, alpha-order mix: estimators)--> gradient
+           <--(adam, clipped, NaN-guarded)--
 
-Differentiation: reverse mode (``jax.value_and_grad``) through the whole ``lax.scan`` of the
-closed loop: MJX physics with the model's contact solver (Newton, 4 iterations), 4 corner spheres
-per foot (foot boxes gave NaN gradients), the contact QP through its implicit
-(custom_jvp, transposed) derivative, and ``jax.checkpoint`` on each 10 ms control tick
-(``--checkpoint tick``), so memory grows with the horizon only by one carry per tick. Reverse
-mode costs one backward pass for all 58 (60 with the regularisation) parameters.
+Differentiation: reverse mode through the closed loop's ``lax.scan``: MJX physics with the model's
+contact solver (Newton, 4 iterations), differentiated implicitly at its solution
+(:func:`wbc_jax.sim.physics.implicit_solver`; ``--solver-gradient unrolled``: through every iteration,
+run as a fixed-length scan, :func:`~wbc_jax.sim.physics.fixed_iteration_solver`; the same gradient, the
+implicit one 3.8x cheaper), 4 corner spheres per foot (foot boxes gave NaN gradients), the contact QP
+through its implicit derivative, and ``jax.checkpoint`` on each 10 ms tick (``--checkpoint``). Each rollout has its own parameters and gradient (vmap of value_and_grad), so a
+rollout that diverges is dropped from the step instead of poisoning it. The rollouts are whole
+horizons from the sampled pushes, or (``--window-s``) short windows started from states along
+forward rollouts (:mod:`wbc_jax.tuning.windows`).
 
-MJX's Newton loop is a ``lax.while_loop`` (not reverse-differentiable) unless iterations == 1.
-With iterations = 1 the closed loop is chaotic (float64, 0.35 s after a 50 N push: the loss
-went 50.2 -> 1.2 when kp_com changed by 1e-6 relative), with 4 it is smooth. While the tuning
-program is traced, :func:`wbc_jax.sim.physics.fixed_iteration_solver` swaps that one ``while_loop``
-for MJX's own scan-based ``_while_loop_scan`` with the same bound: identical values (the scan
-does no-ops once the loop condition is false), reverse-differentiable.
-
-Each step draws a fresh batch of B pushes from the training distribution
-(:func:`wbc_jax.tuning.problem.sample_pushes`); the loss (:mod:`wbc_jax.tuning.loss`) is a smooth
-surrogate of strict survival. The run is resumable (checkpoint.npz, history.csv) and its
-history counts the simulated physics steps and the wall time, against which the gradient-free
-baselines (:mod:`wbc_jax.tuning.baselines`) get the same budget.
+Each step draws a fresh batch (:func:`wbc_jax.tuning.problem.sample_pushes`, reproducible by step);
+the run is resumable (checkpoint.npz with every step's parameters, history.csv), and its history
+counts simulated physics steps (the forward rollouts of the windows included) and wall time
+(compilation included), against which the gradient-free searches get the same budgets. With
+``--budget-s`` the run stops when its wall time is spent.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import pathlib
 import time
@@ -38,25 +34,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.flatten_util import ravel_pytree
 
-from wbc_jax.control.gains import Gains, default_gains, gains_to_dict
 from wbc_jax.core import io, provenance
-from wbc_jax.jobs import runs
-from wbc_jax.report import tuning_plots
-from wbc_jax.sim import physics, runner, scenario
-from wbc_jax.tuning import baselines
-from wbc_jax.tuning import heldout as tuning_eval
+from wbc_jax.tuning import estimators, objectives, store
 from wbc_jax.tuning import problem as tp
-from wbc_jax.tuning.config import TuneConfig, default_config
-from wbc_jax.tuning.loss import TERMS, LossConfig
-from wbc_jax.tuning.params import (
-    nava_conditions,
-)
-from wbc_jax.tuning.problem import Problem, make_problem, sample_pushes
+from wbc_jax.tuning import windows as tw
+from wbc_jax.tuning.config import TuneConfig, default_config  # noqa: F401  (the job's config)
+from wbc_jax.tuning.estimators import ESTIMATOR_STATS, robust_mean_gradient  # noqa: F401
+from wbc_jax.tuning.loss import TERMS
+from wbc_jax.tuning.problem import Problem
 
-ENV_STATS = ("nonfinite_envs", "clipped_envs", "env_grad_norm_median")  # robust_mean_gradient's counts
-HISTORY_COLUMNS = ("step", "loss", *TERMS, "survival_rate", "upright_rate", "qp_infeasible_rate", "grad_norm",
-                   "finite", "skipped_total", "step_s", "sim_steps", "wall_s", "rss_mb", *ENV_STATS)  # fmt: skip
+HISTORY_COLUMNS = ("step", "loss", "rollout_loss", *TERMS, "survival_rate", "upright_rate", "qp_infeasible_rate",
+                   "grad_norm", "finite", "skipped_total", "step_s", "sim_steps", "grad_sim_steps", "wall_s",
+                   "rss_mb", *ESTIMATOR_STATS)  # fmt: skip
 
 
 def make_optimizer(lr: float, clip_norm: float):
@@ -74,190 +65,209 @@ def skipped_count(opt_state) -> int:
     return int(opt_state.total_notfinite)
 
 
-def robust_mean_gradient(grads, clip_factor: float):
-    """The batch mean of per-rollout gradients, robust to rollouts that diverge.
-
-    grads: a pytree whose leaves have a leading batch axis B (one gradient per rollout). A rollout
-    whose gradient has a non-finite entry is left out; with ``clip_factor`` > 0 each remaining
-    gradient is scaled down to at most ``clip_factor`` x the median norm of the remaining ones
-    (a falling robot's gradient can be 1e14 times a standing one's and would otherwise set the
-    direction of the whole batch's step). Elementwise products only (no matrix products, which
-    run in reduced precision on some GPUs).
-
-    Returns (mean gradient (the leaves without the batch axis; NaN if no rollout is finite, so
-    that the optimiser's guard skips the step), stats {"nonfinite_envs": (), "clipped_envs": (),
-    "env_grad_norm_median": ()})."""
-    leaves = jax.tree_util.tree_leaves(grads)
-    B = leaves[0].shape[0]
-    flat = jnp.concatenate([jnp.reshape(x, (B, -1)) for x in leaves], axis=1)
-    finite = jnp.all(jnp.isfinite(flat), axis=1)  # (B,)
-    norms = jnp.sqrt(jnp.sum(jnp.where(jnp.isfinite(flat), flat, 0.0) ** 2, axis=1))
-    n_ok = jnp.sum(finite)
-    median = jnp.nanmedian(jnp.where(finite, norms, jnp.nan))
-    if clip_factor > 0:
-        cap = clip_factor * median
-        clipped = finite & (norms > cap)
-        scale = jnp.where(clipped, cap / jnp.where(norms > 0, norms, 1.0), 1.0)
-    else:
-        clipped = jnp.zeros_like(finite)
-        scale = jnp.ones_like(norms)
-    weight = jnp.where(finite, scale, 0.0) / jnp.maximum(n_ok, 1) * jnp.where(n_ok > 0, 1.0, jnp.nan)
-
-    def mean(x):
-        x = jnp.where(jnp.reshape(finite, (B,) + (1,) * (x.ndim - 1)), x, 0.0)
-        return jnp.sum(jnp.reshape(weight, (B,) + (1,) * (x.ndim - 1)).astype(x.dtype) * x, axis=0)
-
-    stats = {"nonfinite_envs": B - n_ok, "clipped_envs": jnp.sum(clipped), "env_grad_norm_median": median}
-    return jax.tree_util.tree_map(mean, grads), stats
-
-
-def make_train_step(problem: Problem, optimizer):
-    """One optimiser step, jitted: ``(params, opt_state, scen) -> (params, opt_state, loss (),
-    terms {name: ()}, Metrics (B,), grad_norm (), finite (), env_stats {name: ()})``.
-
-    Each push's gradient is taken on its own (vmap of value_and_grad: the same backward pass as
-    the batch mean's) and combined by :func:`robust_mean_gradient` (``tc.env_clip``), so a
-    rollout that diverges neither poisons nor steers the step; ``env_stats`` counts them."""
-    env_objective = tp.make_env_objective(problem)
-    clip_factor = float(problem.tc.env_clip)
-
-    @jax.jit
-    def step(params, opt_state, scen):
-        with physics.fixed_iteration_solver(problem.iterations):
-            per_env = jax.vmap(jax.value_and_grad(env_objective, has_aux=True), in_axes=(None, 0))
-            (values, (terms, metrics)), grads = per_env(params, scen)
-        grad, env_stats = robust_mean_gradient(grads, clip_factor)
-        finite = jnp.all(jnp.asarray([jnp.all(jnp.isfinite(g)) for g in jax.tree_util.tree_leaves(grad)]))
-        updates, opt_state = optimizer.update(grad, opt_state, params)
-        params = optax.apply_updates(params, updates)
-        terms = jax.tree_util.tree_map(jnp.mean, terms)
-        return params, opt_state, jnp.mean(values), terms, metrics, optax.global_norm(grad), finite, env_stats
-
-    return step
-
-
-def training_batch(problem: Problem, k: int):
-    """The pushes of gradient step k: (Scenario (B,), columns)."""
+def training_batch(problem: Problem, k: int, size: int | None = None):
+    """The pushes of gradient step k: (Scenario (size,), columns); ``size`` default: the step's
+    distinct rollouts (whole-horizon mode) or forward rollouts (window mode)."""
     tc = problem.tc
-    return sample_pushes(tc, problem.robot, problem.table, tp.batch_rng(tc.seed, 0, k), tc.batch, problem.setup.dtype)
+    if size is None:
+        size = tc.pushes_per_call
+    return tp.sample_pushes(tc, problem.robot, problem.table, tp.batch_rng(tc.seed, 0, k), size, problem.setup.dtype)
 
 
-def train(problem: Problem, out, *, progress: bool = True, step_fn=None):
-    """Gradient tuning into ``out``: checkpoint.npz (resumable), history.csv, train_info.json,
-    tuned_gains.json (+ tuned_regularisation.json with ``tune_regularisation``).
+def pair_rows(tree, pairs: bool):
+    """Each row twice (rows 2j, 2j + 1 share it) for antithetic pairs."""
+    return jax.tree_util.tree_map(lambda x: jnp.repeat(jnp.asarray(x), 2, axis=0), tree) if pairs else tree
 
-    ``step_fn``: a step with :func:`make_train_step`'s signature (tests); default: compiled here,
-    ahead of time (its compile time and XLA memory analysis go to train_info.json).
-    Returns (tuned Gains, regularisation (2,), history rows, info dict)."""
+
+class GradientStep:
+    """One optimiser step of gradient tuning: ``step(params, opt_state, k) -> (params, opt_state,
+    row)``, ``row`` the step's history entries (loss, terms, survival, gradient statistics,
+    simulated steps). :meth:`compile` builds its programs ahead of time (seconds returned)."""
+
+    def __init__(self, problem: Problem, optimizer, mesh=None):
+        tc = problem.tc
+        self.problem, self.optimizer, self.mesh = problem, optimizer, mesh
+        n_dev = int(objectives.mesh_of(mesh).devices.size)
+        if tc.batch % n_dev:
+            raise ValueError(f"--batch {tc.batch} must be a multiple of the {n_dev} devices")
+        self.windowed = tc.window_s > 0
+        if self.windowed:
+            self.fwd = tp.with_backend(problem, _forward_backend(tc))
+            self.rollouts = tc.distinct_rollouts // tc.windows
+            if self.rollouts % n_dev:
+                raise ValueError(
+                    f"window mode: {self.rollouts} forward rollouts per step must divide by {n_dev} devices"
+                )
+            self.sampler = jax.jit(tw.make_sampler(self.fwd, self.rollouts, tc.windows, mesh))
+            self.grads = jax.jit(tw.make_window_grads(problem, mesh))
+            self.W = tw.window_ticks(problem)
+        else:
+            self.grads = jax.jit(objectives.make_rollout_grads(problem, mesh))
+        self.update = jax.jit(self._update)
+        self.perturb = jax.jit(estimators.antithetic, static_argnums=(2, 3))
+        self.compiled = False
+
+    def _update(self, params, opt_state, values, grads, eps, terms):
+        """The optimiser step and the step's summary {loss, term means, grad_norm, finite, skipped_total,
+        estimator stats}: one program, one transfer to the host."""
+        tc = self.problem.tc
+        grad, stats = estimators.combine(tc.estimator, values, grads, eps, sigma=tc.smoothing_sigma,
+                                         clip_factor=tc.env_clip, bias_factor=tc.bias_factor)  # fmt: skip
+        finite = jnp.all(jnp.asarray([jnp.all(jnp.isfinite(g)) for g in jax.tree_util.tree_leaves(grad)]))
+        updates, opt_state = self.optimizer.update(grad, opt_state, params)
+        summary = {"loss": jnp.nanmean(jnp.where(jnp.isfinite(values), values, jnp.nan)),
+                   **{n: jnp.mean(terms[n]) for n in TERMS}, "grad_norm": optax.global_norm(grad), "finite": finite,
+                   "skipped_total": opt_state.total_notfinite, **stats}  # fmt: skip
+        return optax.apply_updates(params, updates), opt_state, summary
+
+    def rows_of(self, params, k: int):
+        """(per-rollout params (B, ...), eps (B / 2, D) or None, the step's rollouts (Scenario or
+        WindowStart (B,)), forward terms and metrics or None, simulated forward steps)."""
+        tc, problem = self.problem.tc, self.problem
+        if tc.pairs:
+            key = jax.random.fold_in(jax.random.key(tc.seed * 1000 + 7), k)
+            params_b, eps = self.perturb(params, key, tc.batch // 2, tc.smoothing_sigma)
+        else:
+            params_b, eps = estimators.repeated(params, tc.batch), None
+        scen = objectives.cast_batch(training_batch(problem, k)[0], problem.setup.dtype)
+        if not self.windowed:
+            return params_b, eps, objectives.shard(pair_rows(scen, tc.pairs), self.mesh), None, 0
+        rng = tp.batch_rng(tc.seed, 5, k)
+        ticks = tw.sample_starts(rng, self.rollouts, tc.windows, problem.loop.n_ticks, self.W)
+        starts, terms, metrics = self.sampler(params, objectives.shard(scen, self.mesh), ticks)
+        fwd_steps = self.rollouts * problem.steps_per_rollout
+        return params_b, eps, pair_rows(starts, tc.pairs), (terms, metrics), fwd_steps
+
+    def compile(self, params, opt_state) -> float:
+        """Build the step's programs ahead of time; returns the seconds spent (0 when already built)."""
+        if self.compiled:
+            return 0.0
+        self.compiled = True
+        t0 = time.perf_counter()
+        params_b, eps, rollouts, _, _ = self.rows_of(params, 0)
+        out = jax.eval_shape(self.grads, params_b, rollouts)
+        self.grads = self.grads.lower(params_b, rollouts).compile()
+        self.update = self.update.lower(params, opt_state, out[0], out[1], eps, out[2]).compile()
+        return time.perf_counter() - t0
+
+    def memory_mb(self):
+        ma = self.grads.memory_analysis() if hasattr(self.grads, "memory_analysis") else None
+        return None if ma is None else {"temp_mb": ma.temp_size_in_bytes / 2**20,
+                                        "argument_mb": ma.argument_size_in_bytes / 2**20}  # fmt: skip
+
+    def __call__(self, params, opt_state, k: int):
+        problem = self.problem
+        params_b, eps, rollouts, forward, fwd_steps = self.rows_of(params, k)
+        values, grads, terms, metrics = self.grads(params_b, rollouts)
+        params, opt_state, summary = self.update(params, opt_state, values, grads, eps, terms)
+        if forward is not None:  # the whole-horizon rollouts of the window starts: their loss and outcomes
+            metrics = forward[1]
+        summary, metrics, forward = jax.device_get((summary, metrics, forward))  # the step's one transfer
+        grad_steps = problem.tc.batch * (self.W if self.windowed else problem.loop.n_ticks) * problem.loop.n_sub
+        row = {k_: (bool(v) if k_ == "finite" else int(v) if k_ == "skipped_total" else float(v))
+               for k_, v in summary.items()}  # fmt: skip
+        total = np.asarray(forward[0]["total"]) if forward is not None else None
+        row["rollout_loss"] = row["loss"] if total is None else float(np.mean(np.log1p(total) if problem.lc.robust
+                                                                                   else total))  # fmt: skip
+        row.update(grad_sim_steps=grad_steps, sim_steps_delta=grad_steps + fwd_steps, **tp.survival_stats(metrics))
+        return params, opt_state, row
+
+
+def _forward_backend(tc: TuneConfig) -> str:
+    """The engine of forward rollouts: ``--search-backend`` resolved (auto: warp where available)."""
+    from wbc_jax.sim import physics
+
+    if tc.search_backend == "auto":
+        return "warp" if physics.has_cuda() and physics.has_warp() else "jax"
+    return physics.resolve_backend(tc.search_backend)
+
+
+def at_time(rows: list, seconds: float) -> int:
+    """Index of the last history row whose wall time is within ``seconds`` (-1: none: the start)."""
+    idx = [i for i, r in enumerate(rows) if float(r["wall_s"]) <= seconds]
+    return idx[-1] if idx else -1
+
+
+def train(problem: Problem, out, *, progress: bool = True, step_fn=None, mesh=None):
+    """Gradient tuning into ``out``: checkpoint.npz (resumable; every step's parameters), history.csv,
+    train_info.json. Stops after ``tc.steps`` steps, or when ``tc.budget_s`` (> 0) of wall time is spent.
+
+    ``step_fn``: a callable with :class:`GradientStep`'s signature (tests); default: a GradientStep,
+    compiled here (its compile time, counted in the wall time, and memory go to train_info.json).
+    Returns (tuned controls, regularisation (2,), history rows, info dict)."""
     from tqdm.auto import tqdm
 
     tc = problem.tc
     out = pathlib.Path(out)
+    out.mkdir(parents=True, exist_ok=True)
     optimizer = make_optimizer(tc.lr, tc.clip_norm)
     params = problem.init_params()
+    flat0, unravel = ravel_pytree(params)
     state = (params, optimizer.init(params))
     ckpt, hist_path, info_path = out / "checkpoint.npz", out / "history.csv", out / "train_info.json"
-    start, rows, info = 0, [], {}
+    start, rows, info, snapshots = 0, [], {}, np.zeros((0, flat0.size))
     if ckpt.exists():
-        state, start, _ = tp.load_checkpoint(ckpt, state, problem.key)
-        rows = tp.read_csv(hist_path)[:start] if hist_path.exists() else []
+        state, start, extra = store.load_checkpoint(ckpt, state, problem.key)
+        rows = store.read_csv(hist_path)[:start] if hist_path.exists() else []
+        snapshots = extra.get("snapshots", snapshots)[:start]
         info = json.loads(info_path.read_text()) if info_path.exists() else {}
-    if step_fn is None:
-        step_fn = make_train_step(problem, optimizer)
-    if start < tc.steps and hasattr(step_fn, "lower"):  # ahead of time: the compile timed apart
-        t0 = time.perf_counter()
-        step_fn = step_fn.lower(*state, tp.shard_batch(training_batch(problem, start)[0])).compile()
-        compile_s = time.perf_counter() - t0
+    wall = float(rows[-1]["wall_s"]) if rows else 0.0
+
+    def spent(k: int) -> bool:
+        return k >= tc.steps or (tc.budget_s > 0 and wall >= tc.budget_s)
+
+    if not spent(start) and (step_fn is None or isinstance(step_fn, GradientStep)):
+        step_fn = GradientStep(problem, optimizer, mesh) if step_fn is None else step_fn
+        compile_s = step_fn.compile(*state)
         info.setdefault("compile_s", round(compile_s, 2))  # the first compile counts in the wall budget
-        info["last_compile_s"] = round(compile_s, 2)
-        ma = step_fn.memory_analysis()
-        if ma is not None:
-            info.update(temp_mb=ma.temp_size_in_bytes / 2**20, argument_mb=ma.argument_size_in_bytes / 2**20)
-        info.update(device=provenance.device_label(), n_devices=len(runner.batch_devices()), batch=tc.batch, horizon_s=tc.horizon,
-                    steps_per_rollout=problem.steps_per_rollout)  # fmt: skip
+        info.update(last_compile_s=round(compile_s, 2), device=provenance.device_label(),
+                    n_devices=int(objectives.mesh_of(mesh).devices.size), batch=tc.batch, horizon_s=tc.horizon,
+                    steps_per_rollout=problem.steps_per_rollout, estimator=tc.estimator, window_s=tc.window_s,
+                    checkpoint=tc.checkpoint, parameterisation=tc.parameterisation,
+                    parameters=int(flat0.size), **(step_fn.memory_mb() or {}))  # fmt: skip
+        info["provenance"] = provenance.record(
+            {"init_gains": tc.init_gains, "envelope": tc.envelope, "tasks": tc.tasks}
+        )
         io.atomic_write_json(info_path, info)
-    wall = float(rows[-1]["wall_s"]) if rows else float(info.get("compile_s", 0.0))
-    per_step = tc.batch * problem.steps_per_rollout
+    if not rows:
+        wall = float(info.get("compile_s", 0.0))
+    sim_steps = int(rows[-1]["sim_steps"]) if rows else 0
+    k = start
     with tqdm(total=tc.steps, initial=start, unit="step", disable=not progress, desc="gradient") as bar:
-        for k in range(start, tc.steps):
-            scen = tp.shard_batch(training_batch(problem, k)[0])
+        while not spent(k):
             t0 = time.perf_counter()
-            params, opt_state, loss, terms, metrics, gnorm, finite, env_stats = step_fn(*state, scen)
-            jax.block_until_ready(params)
+            params, opt_state, row = step_fn(*state, k)
             dt = time.perf_counter() - t0
             wall += dt
+            sim_steps += int(row.pop("sim_steps_delta"))
             state = (params, opt_state)
-            rows.append({"step": k, "loss": float(loss), **{n: float(terms[n]) for n in TERMS},
-                         **tp.survival_stats(metrics), "grad_norm": float(gnorm), "finite": bool(finite),
-                         "skipped_total": skipped_count(opt_state), "step_s": round(dt, 3),
-                         "sim_steps": (k + 1) * per_step, "wall_s": round(wall, 3), "rss_mb": round(tp.rss_mb(), 1),
-                         **{n: float(env_stats[n]) for n in ENV_STATS}})  # fmt: skip
-            tp.save_checkpoint(ckpt, state, k + 1, problem.key)
-            tp.write_csv(hist_path, rows, HISTORY_COLUMNS)
-            bar.set_postfix(loss=f"{float(loss):.4g}", surv=f"{rows[-1]['survival_rate']:.2f}",
-                            skipped=skipped_count(opt_state), dropped=int(env_stats["nonfinite_envs"]))  # fmt: skip
+            rows.append({"step": k, **row, "step_s": round(dt, 3), "sim_steps": sim_steps, "wall_s": round(wall, 3),
+                         "rss_mb": round(store.rss_mb(), 1)})  # fmt: skip
+            snapshots = np.concatenate([snapshots, np.asarray(ravel_pytree(params)[0])[None]])
+            k += 1
+            store.save_checkpoint(ckpt, state, k, problem.key, snapshots=snapshots)
+            store.write_csv(hist_path, rows, HISTORY_COLUMNS)
+            bar.set_postfix(loss=f"{row['loss']:.4g}", surv=f"{row['survival_rate']:.2f}",
+                            skipped=row["skipped_total"], dropped=int(row["nonfinite_envs"]))  # fmt: skip
             bar.update(1)
-    gains, reg = problem.controls(state[0])
-    reg = problem.regularisation(reg)
-    save_controls(out, "tuned", gains, reg, problem)
+    controls, reg = problem.controls(state[0])
     steady = [float(r["step_s"]) for r in rows[1:]] or [float(r["step_s"]) for r in rows]
-    if steady:
+    if steady and rows:
         info["step_s_median"] = float(np.median(steady))
-        info["gradient_physics_steps_per_s"] = per_step / info["step_s_median"]
+        info["gradient_physics_steps_per_s"] = float(rows[-1]["grad_sim_steps"]) / info["step_s_median"]
+        info["physics_steps_per_s"] = (int(rows[-1]["sim_steps"]) / len(rows)) / info["step_s_median"]
         io.atomic_write_json(info_path, info)
-    return gains, reg, rows, info
+    return controls, problem.regularisation(reg), rows, info
 
 
-def save_controls(out: pathlib.Path, name: str, gains: Gains, reg, problem: Problem) -> None:
-    """``{name}_gains.json`` (a gains file) and, when the regularisation is tuned,
-    ``{name}_regularisation.json``."""
-    io.atomic_write_json(out / f"{name}_gains.json", gains_to_dict(gains))
-    if problem.tc.tune_regularisation:
-        io.atomic_write_json(
-            out / f"{name}_regularisation.json",
-            dict(zip(("pinv_damping", "kp_postural_reg"), np.asarray(reg, float).tolist())),
-        )
-
-
-# ---------------------------------------------------------------------------------------------
-# The `wbc-jax tune` job
-
-
-def run(cfg: TuneConfig | None = None, *, lc: LossConfig | None = None, progress: bool = True,
-        robot_name: str = "icub", **overrides) -> dict:  # fmt: skip
-    """The ``tune`` job: gradient training, the gradient-free baselines at equal simulated steps
-    (``cfg.baselines``), and the held-out pushes (the training distribution, another seed,
-    ``eval_horizon``): strict survival and loss per gain set. Writes into ``cfg.out``:
-    tuned_gains.json, history.csv, {cmaes,random}_gains.json and _history.csv, learning.png,
-    eval.json. Returns eval.json's dict. ``overrides``: fields of :class:`TuneConfig`."""
-    tc = dataclasses.replace(default_config() if cfg is None else cfg, **overrides)
-    lc = LossConfig() if lc is None else lc
-    out = pathlib.Path(tc.out)
-    runs.check_output_dir(out, "tune")
-    problem = make_problem(tc, lc, robot_name=robot_name)
-    runs.claim_output_dir(out, "tune", runs.fingerprint({"tune": dataclasses.asdict(tc), "loss": dataclasses.asdict(lc),
-                                                         "dtype": str(scenario.float_dtype())}, [tc.init_gains, tc.envelope, tc.tasks]),
-                          resume=True)  # fmt: skip
-    gains, reg, rows, info = train(problem, out, progress=progress)
-    sets = {"default": (default_gains(problem.robot.index.n), problem.reg0), "gradient": (gains, reg)}
-    histories = {"gradient": rows}
-    budget = {"sim_steps": int(rows[-1]["sim_steps"]), "wall_s": float(rows[-1]["wall_s"])}
-    for kind in tc.baselines:
-        res = baselines.search(problem, kind, out / kind, budget=budget, progress=progress)
-        sets[kind] = res["equal_steps"]["controls"]
-        histories[kind] = res["history"]
-        save_controls(out, kind, *sets[kind], problem)
-    tuning_plots.learning_curves(histories, out / "learning.png", budget)
-    held = tuning_eval.evaluate_pushes(problem, sets, progress=progress)
-    report = {"held_out": held, "budget": budget, "train": info, "config": dataclasses.asdict(tc),
-              "loss": dataclasses.asdict(lc), "nava_2016": {k: nava_conditions(*v) for k, v in sets.items()},
-              "survival_criterion": tp.constants_used(), "device": provenance.device_label(),
-              "versions": {"jax": jax.__version__, "mujoco": __import__("mujoco").__version__}}  # fmt: skip
-    io.atomic_write_json(out / "eval.json", report)
-    return report
-
-
-def report_line(report: dict) -> dict:
-    """The one-line JSON summary of a tuning report (the CLI prints it)."""
-    keys = ("objective", "survival_rate", "upright_rate", "com_rmse_m")
-    return {name: {k: r.get(k) for k in keys} for name, r in report["held_out"].items()}
+def snapshot_controls(problem: Problem, out, index: int):
+    """(controls, regularisation (2,)) after history row ``index`` of a training run in ``out`` (-1: the start)."""
+    params0 = problem.init_params()
+    if index < 0:
+        controls, reg = problem.controls(params0)
+        return controls, problem.regularisation(reg)
+    flat0, unravel = ravel_pytree(params0)
+    with np.load(pathlib.Path(out) / "checkpoint.npz") as z:
+        snap = z["extra_snapshots"][index]
+    controls, reg = problem.controls(unravel(jnp.asarray(snap, flat0.dtype)))
+    return controls, problem.regularisation(reg)

@@ -1,0 +1,412 @@
+"""Issue 35's pieces without compiling the closed loop: the gradient estimators against known gradients,
+the gain schedule (bounds, stability, files), the window loss, the race's verdict and files, the
+campaign's gain files, and data-parallel programs on two host devices against one. The closed-loop
+runs of all of it (gradient, windows, searches, held-out, report) are the slow end-to-end test at the
+end (`pytest -m slow`)."""
+
+import json
+import os
+import pathlib
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from wbc_jax.control import gains as C
+from wbc_jax.core import constants
+from wbc_jax.core.constants import GAIN_FIELDS
+from wbc_jax.tuning import estimators, race, store
+from wbc_jax.tuning import loss as tuning_loss
+from wbc_jax.tuning import params as tuning_params
+from wbc_jax.tuning import schedule as gs
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+
+
+# ---------------------------------------------------------------------------------------------
+# Estimators
+
+
+def _quadratic():
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(5, 5))
+    A = A @ A.T / 5 + np.eye(5)
+    b = rng.normal(size=5)
+    theta = rng.normal(size=5)
+    return (lambda x: 0.5 * x @ A @ x + b @ x), A @ theta + b, theta
+
+
+def test_antithetic_pairs_and_zeroth_order_estimate_of_a_quadratic_gradient():
+    """Antithetic differences of a quadratic are exact directional derivatives, so the zeroth-order
+    estimate is unbiased with the sampling error of E[eps eps^T] = I alone: within 5 % at 20,000 pairs."""
+    f, grad, theta = _quadratic()
+    params = {"x": jnp.asarray(theta)}
+    pb, eps = estimators.antithetic(params, jax.random.key(1), 20000, 0.1)
+    np.testing.assert_allclose(pb["x"][0::2], theta + 0.1 * eps, rtol=1e-12)
+    np.testing.assert_allclose(pb["x"][1::2], theta - 0.1 * eps, rtol=1e-12)
+    values = jax.vmap(f)(pb["x"])
+    z, ok = estimators.zeroth_order_rows(values, eps, 0.1)
+    assert bool(jnp.all(ok))
+    np.testing.assert_allclose(z[0], (grad @ eps[0]) * eps[0], rtol=1e-8)  # one pair, exactly
+    assert np.linalg.norm(np.asarray(z.mean(0)) - grad) < 0.05 * np.linalg.norm(grad)
+    # A non-finite value drops its pair only.
+    values = values.at[3].set(jnp.nan)
+    z, ok = estimators.zeroth_order_rows(values, eps, 0.1)
+    assert int(jnp.sum(~ok)) == 1 and not bool(ok[1]) and bool(jnp.all(jnp.isfinite(z)))
+
+
+def test_interpolation_weights_by_variance_and_falls_back_on_bias():
+    """alpha = var_ZO / (var_FO + var_ZO) of the means; where the first-order mean is biased beyond
+    bias_factor standard errors, alpha is cut so that the mix lies within that bound of the
+    zeroth-order mean."""
+    rng = np.random.default_rng(2)
+    g = np.array([1.0, -2.0, 0.5])
+    fo = g + 0.01 * rng.normal(size=(64, 3))
+    zo = g + 1.0 * rng.normal(size=(32, 3))
+    ok_fo, ok_zo = np.ones(64, bool), np.ones(32, bool)
+    mix, st = estimators.interpolate(jnp.asarray(fo), jnp.asarray(ok_fo), jnp.asarray(zo), jnp.asarray(ok_zo), 2.0)
+    v1 = np.sum(fo.var(0, ddof=1)) / 64
+    v0 = np.sum(zo.var(0, ddof=1)) / 32
+    assert float(st["fo_var"]) == pytest.approx(v1, rel=1e-6) and float(st["zo_var"]) == pytest.approx(v0, rel=1e-6)
+    assert float(st["alpha"]) == pytest.approx(v0 / (v0 + v1), rel=1e-6) and float(st["alpha"]) > 0.99
+    np.testing.assert_allclose(mix, st["alpha"] * fo.mean(0) + (1 - st["alpha"]) * zo.mean(0), rtol=1e-6)
+    # A biased first-order estimate (contact): its share shrinks to gamma / |bias|.
+    biased = fo + np.array([5.0, 0.0, 0.0])
+    mix, st = estimators.interpolate(jnp.asarray(biased), jnp.asarray(ok_fo), jnp.asarray(zo), jnp.asarray(ok_zo), 2.0)
+    gamma = 2.0 * np.sqrt(v0 + np.sum(biased.var(0, ddof=1)) / 64)
+    bias = np.linalg.norm(biased.mean(0) - zo.mean(0))
+    assert float(st["alpha"]) == pytest.approx(gamma / bias, rel=1e-5)
+    assert np.linalg.norm(np.asarray(mix) - zo.mean(0)) == pytest.approx(gamma, rel=1e-5)
+
+
+def test_combine_first_order_is_the_robust_mean_and_interpolated_the_mix():
+    rng = np.random.default_rng(3)
+    grads = {"a": jnp.asarray(rng.normal(size=(8, 2))), "b": jnp.asarray(rng.normal(size=(8, 3)))}
+    values = jnp.asarray(rng.normal(size=8))
+    eps = jnp.asarray(rng.normal(size=(4, 5)))
+    kw = dict(sigma=0.1, clip_factor=3.0, bias_factor=2.0)
+    fo, stats = estimators.combine("first-order", values, grads, None, **kw)
+    ref, _ = estimators.robust_mean_gradient(grads, 3.0)
+    for k in grads:
+        np.testing.assert_allclose(fo[k], ref[k], rtol=1e-12)
+    assert float(stats["alpha"]) == 1.0
+    mixed, stats = estimators.combine("interpolated", values, grads, eps, **kw)
+    flat = np.concatenate([np.asarray(mixed["a"]), np.asarray(mixed["b"])])
+    zo = np.asarray(estimators.zeroth_order_rows(values, eps, 0.1)[0]).mean(0)
+    a = float(stats["alpha"])
+    np.testing.assert_allclose(flat, a * np.concatenate([ref["a"], ref["b"]]) + (1 - a) * zo, rtol=1e-6, atol=1e-12)
+    with pytest.raises(ValueError, match="unknown estimator"):
+        estimators.combine("adjoint", values, grads, eps, **kw)
+
+
+# ---------------------------------------------------------------------------------------------
+# The gain schedule
+
+
+@pytest.fixture(scope="module")
+def bounds():
+    return tuning_params.default_bounds(C.default_gains(), 10.0, (0.02, 2.0), tuning_params.default_regularisation())
+
+
+def _schedule(bounds, scale):
+    base = C.default_gains()
+    plain = tuning_params.controls_to_params(base, tuning_params.default_regularisation(), bounds,
+                                             regularisation=False)  # fmt: skip
+    p = gs.init_params(plain)
+    rng = np.random.default_rng(4)
+    p["weights"] = {k: jnp.asarray(scale * rng.normal(size=v.shape)) for k, v in p["weights"].items()}
+    return gs.from_params(p, bounds, base.ki_com, np.array([0.01, -0.02])), p, base
+
+
+def test_schedule_has_348_entries_starts_at_the_plain_gains_and_stays_bounded(bounds):
+    sched, p, base = _schedule(bounds, 0.0)
+    assert gs.size(p) == 58 * 6 == 348
+    still = sched.gains_at(jnp.zeros(30).at[:2].set(sched.origin), jnp.zeros(29))
+    for k in GAIN_FIELDS:  # W = 0: the plain parameterisation's gains, whatever the state
+        np.testing.assert_allclose(getattr(still, k), getattr(base, k), rtol=1e-4)
+    sched, _, _ = _schedule(bounds, 30.0)  # large weights: the sigmoid saturates, the bounds hold
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        q, v = jnp.asarray(rng.normal(scale=0.3, size=30)), jnp.asarray(rng.normal(scale=2.0, size=29))
+        g = sched.gains_at(q, v)
+        tuning_params.check_in_bounds(g, tuning_params.default_regularisation(), bounds)
+        assert tuning_params.nava_conditions(g, tuning_params.default_regularisation())["holds"]
+
+
+def test_schedule_follows_its_features(bounds):
+    """A positive weight of kp_com[0] on the feature vx raises K_P,CoM x with the base's forward speed, as
+    sigmoid(b + w tanh(vx / V)) says, and leaves the other entries alone."""
+    sched, p, base = _schedule(bounds, 0.0)
+    w = {k: jnp.zeros_like(v) for k, v in p["weights"].items()}
+    w["kp_com"] = w["kp_com"].at[0, gs.FEATURES.index("vx")].set(1.5)
+    sched = sched.replace(weights=w)
+    q = jnp.zeros(30).at[:2].set(sched.origin)
+    kp = [float(sched.gains_at(q, jnp.zeros(29).at[0].set(vx)).kp_com[0]) for vx in (-0.4, 0.0, 0.4)]
+    assert kp[0] < kp[1] < kp[2]
+    lo, hi = float(bounds.lo["kp_com"][0]), float(bounds.hi["kp_com"][0])
+    z = float(p["base"]["kp_com"][0]) + 1.5 * np.tanh(0.4 / gs.SPEED_SCALE_MPS)
+    assert kp[2] == pytest.approx(np.exp(np.log(lo) + (np.log(hi) - np.log(lo)) / (1 + np.exp(-z))), rel=1e-5)
+    other = sched.gains_at(q, jnp.zeros(29).at[0].set(0.4))
+    np.testing.assert_allclose(other.kp_com[1:], base.kp_com[1:], rtol=1e-4)
+
+
+def test_schedule_file_round_trip_and_bad_files(bounds, tmp_path):
+    sched, _, _ = _schedule(bounds, 0.7)
+    path = tmp_path / "s.json"
+    store.write_once(path, store.controls_dict(sched))
+    assert gs.is_schedule_file(path) and not gs.is_schedule_file(
+        ROOT / "experiments" / "gains" / "com_critical_100.json"
+    )
+    back = gs.load_schedule(path, np.float64)
+    q, v = jnp.asarray(np.linspace(-0.1, 0.1, 30)), jnp.asarray(np.linspace(-1, 1, 29))
+    for k in GAIN_FIELDS:
+        np.testing.assert_allclose(getattr(back.gains_at(q, v), k), getattr(sched.gains_at(q, v), k), rtol=1e-6)
+    data = json.loads(path.read_text())
+    data["weights"]["kp_com"] = [[0.0] * 4] * 3
+    path.write_text(json.dumps(data))
+    with pytest.raises(ValueError, match="kp_com has inconsistent shapes"):
+        gs.load_schedule(path)
+    data["weights"]["kp_com"] = [[0.0] * 5] * 3
+    data["lo"]["ki_ang"] = [1.0, -1.0, 1.0]
+    path.write_text(json.dumps(data))
+    with pytest.raises(ValueError, match="ki_ang has non-finite values or bounds"):
+        gs.load_schedule(path)
+
+
+# ---------------------------------------------------------------------------------------------
+# The window loss
+
+
+def _trace(T=20, com_x=0.0, vx=0.0, tilt=0.0):
+    corners = np.array([[x, y] for y0 in (0.07, -0.07) for x in (-0.05, 0.1) for y in (y0 - 0.03, y0 + 0.03)])
+    base = tuning_loss.LossTrace(
+        com=jnp.asarray(np.tile([com_x, 0.0, 0.5], (T, 1))), com_ref=jnp.zeros((T, 3)).at[:, 2].set(0.5),
+        com_vel=jnp.asarray(np.tile([vx, 0.0, 0.0], (T, 1))), tau=jnp.zeros((T, 23)),
+        support_xy=jnp.asarray(np.repeat(corners[None], T, 0)), com_height0=jnp.full(T, 0.5),
+    )  # fmt: skip
+    n = np.array([np.sin(tilt), 0.0, np.cos(tilt)])
+    normals = np.repeat(np.stack([[0, 0, 1.0], n])[None], T, 0)
+    return tuning_loss.TuneTrace(base=base, foot_normal=jnp.asarray(normals), qp_infeasible=jnp.zeros(T, bool))
+
+
+def test_terminal_cost_is_the_capture_point_outside_the_feet_and_tilt_is_measured_from_the_reference():
+    lc = tuning_loss.LossConfig()
+    assert float(tuning_loss.terminal_cost(_trace(), lc)) == 0.0  # capture point at the centre
+    omega = np.sqrt(constants.GRAVITY / 0.5)
+    # Moving forward at 0.5 m/s from x = 0: capture point at 0.5 / omega, beyond the toes at 0.1 m.
+    xi = 0.5 / omega
+    expected = (lc.capture_margin + xi - 0.1) ** 2 / lc.capture_scale**2
+    assert float(tuning_loss.terminal_cost(_trace(vx=0.5), lc)) == pytest.approx(expected, rel=1e-6)
+    # A window whose feet are tilted all along shows no tilt against its own first tick, the full tilt
+    # against the rollout's first tick.
+    tilted = _trace(tilt=np.deg2rad(5.0))
+    assert float(tuning_loss.loss_terms(tilted, lc)["tilt"]) == pytest.approx(0.0, abs=1e-12)
+    flat = (jnp.asarray([[0, 0, 1.0], [0, 0, 1.0]]), tilted.base.support_xy[0])
+    assert float(tuning_loss.loss_terms(tilted, lc, reference=flat)["tilt"]) == pytest.approx(1.0, rel=1e-6)
+
+
+def test_seeded_carry_keeps_a_non_finite_cotangent_of_the_initial_state_out_of_the_gradient():
+    """The initial carry is made to depend on the parameters (``problem._touch``) only to shorten the
+    trace; its derivative must be a true zero, or an infinite cotangent of a state entry (sqrt at 0)
+    reaches the gradient as inf x 0 = NaN."""
+    from wbc_jax.tuning import problem
+
+    def f(p):
+        x = problem._touch({"a": jnp.zeros(2), "n": jnp.arange(2)}, jnp.sum(p))
+        return jnp.sum(jnp.sqrt(x["a"])) + jnp.sum(p**2) + jnp.sum(x["n"])
+
+    p = jnp.asarray([1.0, -2.0])
+    np.testing.assert_array_equal(np.asarray(jax.grad(f)(p)), [2.0, -4.0])
+    batched = jax.vmap(jax.grad(f))(jnp.stack([p, 2 * p]))
+    np.testing.assert_array_equal(np.asarray(batched), [[2.0, -4.0], [4.0, -8.0]])
+
+
+# ---------------------------------------------------------------------------------------------
+# The race's verdict and files
+
+
+def _rep(entries):
+    rep = {}
+    for name, (med, mn, rmse) in entries.items():
+        env = {"0.0": {"impulse_ns": 10 * med, "fraction": med, "bound_impulse_ns": 10.0},
+               "90.0": {"impulse_ns": 10 * mn, "fraction": mn, "bound_impulse_ns": 10.0}}  # fmt: skip
+        rep[name] = {"envelope_fraction_median": med, "envelope_fraction_min": mn, "survival_rate": med / 3,
+                     "sinusoid_com_rmse_m": rmse, "grid_envelope": env}  # fmt: skip
+    return rep
+
+
+def test_race_verdict_recommendation_and_files(tmp_path):
+    rep = _rep({"gradient_t120": (0.40, 0.30, 1.0e-3), "gradient": (0.60, 0.42, 1.2e-3),
+                "cmaes_t120": (0.50, 0.35, 1.0e-3), "cmaes": (0.52, 0.40, 1.0e-3),
+                "random_t120": (0.45, 0.31, 1.0e-3), "random": (0.62, 0.45, 2.0e-3),
+                "default": (0.25, 0.17, 1.0e-3), "critical": (0.41, 0.29, 0.3e-3)})  # fmt: skip
+    index = {n: {"method": n.split("_")[0], "budget_s": 120.0 if n.endswith("t120") else 300.0, "wall_s": 100.0,
+                 "sim_steps": 1000} for n in rep if n.split("_")[0] in race.METHODS}  # fmt: skip
+    pts = race.points(rep, index)
+    assert [p["budget_s"] for p in pts["gradient"]] == [120.0, 300.0]
+    v = race.verdict(pts)
+    assert v["120"]["gradient_minus_cmaes_median"] == pytest.approx(-0.10) and not v["120"]["target_met"]
+    assert v["300"]["gradient_minus_cmaes_median"] == pytest.approx(0.08)
+    assert v["300"]["gradient_min_ge_cmaes_min"] and v["300"]["gradient_sinusoid_ok"] and v["300"]["target_met"]
+    # random search has the best median but breaks the sinusoid bound: the gradient set is recommended.
+    assert race.recommended(rep, list(rep)) == "gradient"
+    rep["gradient"]["sinusoid_com_rmse_m"] = 1.6e-3
+    assert not race.verdict(race.points(rep, index))["300"]["target_met"]
+    assert race.recommended(rep, list(rep)) == "cmaes"
+    from wbc_jax.report import tuning_plots
+
+    tuning_plots.race_curves(pts, tmp_path / "race.png", reference={"default": rep["default"]})
+    assert (tmp_path / "race.png").stat().st_size > 0
+
+
+def test_write_once_refuses_other_contents(tmp_path):
+    path = tmp_path / "a.json"
+    assert store.write_once(path, {"x": [1.0, 2.0]})
+    assert not store.write_once(path, {"x": np.array([1.0, 2.0])})  # the same again: accepted
+    with pytest.raises(ValueError, match="never overwrites"):
+        store.write_once(path, {"x": [1.0, 2.5]})
+
+
+# ---------------------------------------------------------------------------------------------
+# Several devices: the same result as one within float noise (two host CPU devices, a subprocess)
+
+SHARDED = r"""
+import json, jax, jax.numpy as jnp, numpy as np
+jax.config.update("jax_enable_x64", True)
+from jax.sharding import Mesh
+from wbc_jax.tuning import estimators, objectives
+
+def env_objective(p, x):  # a nonlinear per-rollout objective with a rollout that diverges
+    return jnp.log1p(jnp.sum((p["a"] * x) ** 2) + jnp.sum(jnp.sin(p["b"] * x[:2]))) / jnp.where(x[0] > 1.95, 0.0, 1.0)
+
+def fn(params_b, xs):
+    return jax.vmap(jax.value_and_grad(env_objective))(params_b, xs)
+
+devices = jax.devices()
+out = {"devices": len(devices)}
+params = {"a": jnp.linspace(0.1, 1.0, 3), "b": jnp.array([0.3, -0.2])}
+for n in (1, 2):
+    mesh = Mesh(np.asarray(devices[:n]), ("batch",))
+    pb, eps = estimators.antithetic(params, jax.random.key(0), 4, 0.1)
+    xs = objectives.shard(jnp.arange(24.0).reshape(8, 3) / 10, mesh)
+    values, grads = jax.jit(objectives.data_parallel(fn, mesh))(pb, xs)
+    grad, stats = jax.jit(lambda v, g, e: estimators.combine("interpolated", v, g, e, sigma=0.1, clip_factor=3.0,
+                                                             bias_factor=2.0))(values, grads, eps)
+    out[n] = {"values": np.asarray(values).tolist(), "grad": np.asarray(estimators.rows(
+        jax.tree_util.tree_map(lambda x: x[None], grad))[0]).tolist(), "alpha": float(stats["alpha"]),
+        "nonfinite": int(stats["nonfinite_envs"]), "shards": len(values.sharding.device_set)}
+print(json.dumps(out))
+"""
+
+
+def test_data_parallel_programs_on_two_devices_match_one():
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
+           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}  # fmt: skip
+    proc = subprocess.run([sys.executable, "-c", SHARDED], capture_output=True, text=True, timeout=240, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = json.loads(proc.stdout.strip().splitlines()[-1])
+    one, two = res["1"], res["2"]
+    assert res["devices"] == 2 and one["shards"] == 1 and two["shards"] == 2  # the batch did split
+    assert one["nonfinite"] == two["nonfinite"] == 1
+    np.testing.assert_allclose(two["values"], one["values"], rtol=1e-12)
+    np.testing.assert_allclose(two["grad"], one["grad"], rtol=1e-10)
+    assert two["alpha"] == pytest.approx(one["alpha"], rel=1e-10) and 0.0 <= one["alpha"] <= 1.0
+
+
+# ---------------------------------------------------------------------------------------------
+# The whole pipeline at tiny sizes (slow: compiles the gradient, window and population programs)
+
+TINY_RUN = ["--horizon", "0.3", "--push-onset", "0.05", "--duration-range", "0.05", "0.1", "--eval-horizon", "0.3",
+            "--batch", "4", "--steps", "2", "--population", "2", "--es-batch", "1", "--quality-pushes", "4",
+            "--quality-directions", "2", "--eval-pushes", "2", "--grid-magnitudes", "20", "200", "3",
+            "--grid-directions", "2", "--variation-magnitudes", "2", "--variation-directions", "2", "--variations",
+            "l_hand", "--grid-onset", "0.1", "--grid-horizon", "0.4", "--one-foot-onset", "7.5", "--one-foot-horizon",
+            "7.7", "--sinusoid-s", "0.3", "--quiet"]  # fmt: skip
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("extra", [["--parameterisation", "gains"],
+                                   ["--parameterisation", "scheduled", "--window-s", "0.1", "--windows", "2",
+                                    "--estimator", "interpolated"]], ids=["gains", "scheduled-windows"])  # fmt: skip
+def test_race_pipeline_end_to_end(tmp_path, extra):
+    """wbc-jax tune with a wall budget: every phase runs, each method's sets at the snapshot and at the
+    budget are written once and held out (with their sinusoid RMSE), race.json names a recommendation;
+    a second call resumes without redoing anything."""
+    out = tmp_path / "run"
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "WBC_JAX_CACHE": os.environ.get("WBC_JAX_CACHE", ""),
+           "XLA_FLAGS": "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true",
+           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}  # fmt: skip
+    cmd = [sys.executable, "-m", "wbc_jax.cli", "tune", "--out", str(out), *TINY_RUN, *extra, "--budget-s", "30",
+           "--snapshots-s", "5", "--phases", "train", "quality", "cmaes", "random", "heldout", "report"]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=3000, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    names = {f"{m}{t}" for m in race.METHODS for t in ("", "_t5")}
+    index = json.loads((out / "gains" / "provenance.json").read_text())
+    assert set(index) == names and all(len(e["sha256"]) == 64 for e in index.values())
+    held = json.loads((out / "heldout.json").read_text())
+    for name in names | {"default", "critical"}:
+        assert 0.0 <= held[name]["envelope_fraction_median"] and held[name]["sinusoid_com_rmse_m"] > 0, name
+    assert held["provenance"]["inputs"]["gradient"]["sha256"] == index["gradient"]["sha256"]
+    rc = json.loads((out / "race.json").read_text())
+    assert set(rc["methods"]) == set(race.METHODS) and rc["budgets_s"] == [5.0, 30.0]
+    assert rc["recommended"] in held and "30" in rc["verdict"]
+    q = json.loads((out / "quality.json").read_text())
+    assert set(q["estimates"]) >= {"first-order", "zeroth-order"} and q["parameters"] == (348 if "scheduled" in extra
+                                                                                          else 58)  # fmt: skip
+    assert (out / "race.png").stat().st_size > 0
+    # Resumed: nothing left to do, the same files.
+    before = (out / "heldout.json").read_text()
+    proc = subprocess.run(cmd[:-7] + ["--phases", "train", "cmaes", "random"], capture_output=True, text=True,
+                          timeout=1500, env=env)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads((out / "gains" / "provenance.json").read_text()).keys() == index.keys()
+    assert (out / "heldout.json").read_text() == before
+
+
+CLOSED_LOOP_SHARDED = r"""
+import json, jax, jax.numpy as jnp, numpy as np
+jax.config.update("jax_enable_x64", True)
+from jax.sharding import Mesh
+from wbc_jax.tuning import config, estimators, objectives, tune
+from wbc_jax.tuning import problem as tp
+
+tc = config.TuneConfig(horizon=0.05, push_onset=0.0, duration_range=(0.02, 0.04), eval_horizon=0.1, batch=2,
+                       quality_pushes=2, population=1, es_batch=1)
+problem = tp.make_problem(tc)
+params = problem.init_params()
+scen = objectives.cast_batch(tune.training_batch(problem, 0)[0], problem.setup.dtype)
+out = {}
+for n in (1, 2):  # one environment per device (XLA:CPU deadlocks with several: runner.batch_devices)
+    mesh = Mesh(np.asarray(jax.devices()[:n]), ("batch",))
+    values, grads, _, _ = jax.jit(objectives.make_rollout_grads(problem, mesh))(estimators.repeated(params, 2),
+                                                                               objectives.shard(scen, mesh))
+    grad, _ = estimators.robust_mean_gradient(grads, 3.0)
+    pop = jax.tree_util.tree_map(lambda x: jnp.stack([x, x + 0.2]), params)
+    obj, _, _ = jax.jit(objectives.make_population_objective(problem, 2, 1, mesh))(
+        pop, jax.tree_util.tree_map(lambda x: x[:1], scen))
+    out[n] = {"values": np.asarray(values).tolist(), "grad": np.asarray(estimators.rows(
+        jax.tree_util.tree_map(lambda x: x[None], grad))[0]).tolist(), "population": np.asarray(obj).tolist(),
+        "shards": len(values.sharding.device_set)}
+print(json.dumps(out))
+"""
+
+
+@pytest.mark.slow
+def test_closed_loop_gradient_and_population_on_two_devices_match_one():
+    """The tuning programs themselves (closed loop, 0.05 s, float64) on two host devices, one rollout each."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu",
+           "XLA_FLAGS": "--xla_force_host_platform_device_count=2 --xla_backend_optimization_level=0 "
+                        "--xla_llvm_disable_expensive_passes=true",
+           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}  # fmt: skip
+    proc = subprocess.run([sys.executable, "-c", CLOSED_LOOP_SHARDED], capture_output=True, text=True, timeout=2400,
+                          env=env)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert res["1"]["shards"] == 1 and res["2"]["shards"] == 2
+    np.testing.assert_allclose(res["2"]["values"], res["1"]["values"], rtol=1e-9)
+    np.testing.assert_allclose(res["2"]["grad"], res["1"]["grad"], rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(res["2"]["population"], res["1"]["population"], rtol=1e-9)
+    assert np.linalg.norm(res["1"]["grad"]) > 0
