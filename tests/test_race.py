@@ -182,13 +182,14 @@ def test_schedule_file_round_trip_and_bad_files(bounds, tmp_path):
 
 def _trace(T=20, com_x=0.0, vx=0.0, tilt=0.0):
     corners = np.array([[x, y] for y0 in (0.07, -0.07) for x in (-0.05, 0.1) for y in (y0 - 0.03, y0 + 0.03)])
+    n = np.array([np.sin(tilt), 0.0, np.cos(tilt)])
+    normals = np.repeat(np.stack([[0, 0, 1.0], n])[None], T, 0)
     base = tuning_loss.LossTrace(
         com=jnp.asarray(np.tile([com_x, 0.0, 0.5], (T, 1))), com_ref=jnp.zeros((T, 3)).at[:, 2].set(0.5),
         com_vel=jnp.asarray(np.tile([vx, 0.0, 0.0], (T, 1))), tau=jnp.zeros((T, 23)),
         support_xy=jnp.asarray(np.repeat(corners[None], T, 0)), com_height0=jnp.full(T, 0.5),
+        foot_normal=jnp.asarray(normals),
     )  # fmt: skip
-    n = np.array([np.sin(tilt), 0.0, np.cos(tilt)])
-    normals = np.repeat(np.stack([[0, 0, 1.0], n])[None], T, 0)
     return tuning_loss.TuneTrace(base=base, foot_normal=jnp.asarray(normals), qp_infeasible=jnp.zeros(T, bool))
 
 
