@@ -89,7 +89,8 @@ for job in "$@"; do
             # so a cut-off call returns the rounds finished; the same command with the same --out resumes.
             # LIMIT_FLAGS: extra flags (later ones win), e.g. a tiny CPU test.
       body=chest; [ "$job" = limit_root ] && body=root_link
-      run $job timeout ${LIMIT_WALL:-510} python3 -m wbc_jax.cli limit --quiet --body $body --directions 32 \
+      run $job env XLA_FLAGS="${LIMIT_XLA_FLAGS---xla_gpu_autotune_level=0}" timeout ${LIMIT_WALL:-510} \
+        python3 -m wbc_jax.cli limit --quiet --body $body --directions 32 \
         --gains experiments/gains/tuned_gradient.json --envelopes docs/limit/envelopes/*_$body/summary.json \
         --candidates 3 --rounds 3 --iterations 30 --judge-every 5 --es-pairs 8 --window 0.5 --tail 0.2 \
         --time-limit ${LIMIT_TIME:-390} --out "$OUT/limit_$body" ${LIMIT_FLAGS:-} ;;
