@@ -29,7 +29,7 @@ def test_controller_settings_of_a_sweep_and_a_held_out_evaluation_reach_the_loop
     hc = tuning_eval.HeldoutConfig(angular_weight_soft=0.1, tasks=tasks)
     assert tuning_eval._controller((1.0, 0.1), hc).angular_weight_soft == 0.1
     assert sweep.make_setup(sweep_config.SweepConfig()).loop.controller.config.angular_weight_soft == 1.0
-    with pytest.raises(ValueError, match="held-out tasks file /nowhere.yaml is not a file"):
+    with pytest.raises(FileNotFoundError, match="--tasks file /nowhere.yaml does not exist"):
         tuning_eval.HeldoutConfig(tasks="/nowhere.yaml")
 
 
