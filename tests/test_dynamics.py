@@ -195,6 +195,7 @@ def test_equation_of_motion_holds_with_mujoco_contact_forces(robot, mx, terms_fn
     assert wrench[:, 2].min() > 30.0
 
 
+@pytest.mark.slow  # compiles the terms under vmap and under grad (minutes on the 2-core CPU): nightly
 def test_batched_and_differentiable(robot, mx):
     idx = robot.index
     states = [random_state(robot, s) for s in range(64)]

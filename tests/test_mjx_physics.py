@@ -50,6 +50,7 @@ def test_vmapped_rollout_of_256_envs_completes_on_cpu():
     assert "finite True" in proc.stdout
 
 
+@pytest.mark.slow  # the unrolled solver's derivative; the default suite checks the implicit one (below): nightly
 def test_reverse_mode_gradient_through_standing_contact_is_the_derivative(robot, mx):
     """Reverse mode through 100 steps of MJX with both feet on the floor equals the central difference
     of the loss, in magnitude (float64).

@@ -132,7 +132,8 @@ SHARDED = textwrap.dedent(
 )
 
 
-@pytest.mark.parametrize("backend", ["jax", "mujoco"])
+# The MJX variant compiles the sweep's chunk program on MJX (minutes on the 2-core CPU): nightly (`slow`).
+@pytest.mark.parametrize("backend", [pytest.param("jax", marks=pytest.mark.slow), "mujoco"])
 def test_sweep_isolates_nan_and_resumes(tmp_path, backend):
     """MJX with two host devices present, and C MuJoCo: the run finishes (a chunk of 8 sharded over
     two CPU devices used to hang), one env from NaN joints is flagged, the other is not; a finished
