@@ -336,6 +336,12 @@ def measure(args, log=print) -> dict:
         "stand": {"command": command, "duration_s": args.stand_duration, "com_drift_m": drift,
                   **_rounded(stand["summary"])},
     }  # fmt: skip
+    if args.no_envelope:
+        out["load_average"] = {
+            "start": [round(x, 2) for x in load_start],
+            "end": [round(x, 2) for x in os.getloadavg()],
+        }
+        return out
     log("envelope (bisection)")
     grid_def = {"magnitudes_n": list(args.magnitudes), "directions": args.directions, "push_onset_s": args.push_onset,
                 "push_duration_s": args.push_duration, "horizon_s": args.horizon, "body": args.body,
@@ -368,6 +374,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--sinusoid-duration", type=float, default=tb.TASK_DURATION["sinusoid"])
     p.add_argument("--stand-duration", type=float, default=tb.TASK_DURATION["stand"])
     p.add_argument("--timing-repeats", type=int, default=5, help="sinusoid runs for the tick timing (median)")
+    p.add_argument("--no-envelope", action="store_true",
+                   help="timing, sinusoid and stand only (no pushes): the tick beside benchmarks/cpu_loop.py's")  # fmt: skip
     p.add_argument("--full-grid", action="store_true", help="also run every push of the grid")
     p.add_argument("--sensitivity", action="store_true", help="also the envelope of each SENSITIVITY variant")
     p.add_argument("--rollout-timeout", type=float, default=120.0,
@@ -420,13 +428,16 @@ def main(argv=None) -> dict:
     tmp = out.with_suffix(out.suffix + ".tmp")
     tmp.write_text(json.dumps(result, indent=1) + "\n")
     tmp.replace(out)
-    e = result["envelope"]
     t = result["timing"]
-    print(f"wrote {out}: tick {t['controller_us_per_tick']:.0f} us controller + {t['physics_us_per_tick']:.0f} us "
-          f"physics (CPU time {t['controller_cpu_us_per_tick']:.0f} + {t['physics_cpu_us_per_tick']:.0f}); "
-          "sinusoid CoM RMSE "
-          f"{result['sinusoid']['com_rmse_m'] * 1e3:.3f} mm; envelope {e['fraction_of_bound_median']:.3f} "
-          f"({e['fraction_of_bound_min']:.3f}) of the LIP bound")  # fmt: skip
+    print(
+        f"wrote {out}: tick {t['controller_us_per_tick']:.0f} us controller + {t['physics_us_per_tick']:.0f} us "
+        f"physics (CPU time {t['controller_cpu_us_per_tick']:.0f} + {t['physics_cpu_us_per_tick']:.0f}); "
+        "sinusoid CoM RMSE "
+        f"{result['sinusoid']['com_rmse_m'] * 1e3:.3f} mm"
+    )
+    if "envelope" in result:
+        e = result["envelope"]
+        print(f"envelope {e['fraction_of_bound_median']:.3f} ({e['fraction_of_bound_min']:.3f}) of the LIP bound")
     return result
 
 

@@ -256,3 +256,13 @@ def test_measurement_script_writes_its_json(tmp_path):
         assert row["impulse_ns"] in (0.0, 1.0, 14.0, 27.0) and 10.0 < row["bound_impulse_ns"] < 25.0
     with pytest.raises(SystemExit):
         tp.main(["--out", str(out), "--body", "torso"])
+
+
+def test_measurement_script_without_pushes_writes_the_tick_only(tmp_path):
+    out = tmp_path / "tsid_timing.json"
+    tp.main(["--out", str(out), "--no-envelope", "--sinusoid-duration", "1", "--stand-duration", "0.5",
+             "--timing-repeats", "2"])  # fmt: skip
+    saved = json.loads(out.read_text())
+    assert "envelope" not in saved and "grid" not in saved
+    assert len(saved["timing"]["repeats"]["controller_us_per_tick"]) == 2
+    assert saved["timing"]["ticks"] == 100 and saved["timing"]["controller_cpu_us_per_tick"] > 0
