@@ -254,10 +254,10 @@ def _float32_com(backend: str, platforms: str, out: pathlib.Path) -> np.ndarray:
     """The benchmark scenario's CoM (T, 3) in float32 on ``backend``, in a process of its own: a
     float32 program traced in this float64 session mixes int64 index constants with int32 sizes,
     which JAX 0.11 refuses (docs/nightly/gpu_before_fix.log)."""
-    code = ("import numpy as np, sys; sys.path[:0] = [sys.argv[3]]; from tests.test_rollout import _run; "
+    code = ("import numpy as np, sys; from tests.test_rollout import _run; "  # `python -c` puts its cwd first on sys.path
             "np.save(sys.argv[2], np.asarray(_run(sys.argv[1])[1].records.com[0], np.float64))")  # fmt: skip
     env = {**os.environ, "JAX_ENABLE_X64": "0", "JAX_PLATFORMS": platforms}
-    subprocess.run([sys.executable, "-c", code, backend, str(out), str(ROOT)], env=env, check=True, timeout=900)
+    subprocess.run([sys.executable, "-c", code, backend, str(out)], cwd=ROOT, env=env, check=True, timeout=900)
     return np.load(out)
 
 
