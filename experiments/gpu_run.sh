@@ -5,23 +5,25 @@
 #
 #   bash experiments/gpu_run.sh setup check bench sweep agree envelope regrid queue soak race limit limit_root
 #
-# Carried folders (git-ignored, one per call, each under the 64 MiB a call carries; collected in ~/wp while the
-# machine is held): .wa/ holds site_small.tar.xz (the Python 3.12 wheels of mujoco 3.17.0 without its filament
-# renderer, mujoco-mjx, trimesh, quadprog, evosax, dotmap, unpacked) and wpart_00, .wb/ wpart_01: the two halves of
-# an xz tar of the warp-lang 1.18.0 wheel's contents (the extra of mujoco-mjx) without its CPU compiler, examples and
-# tests. Both unpack into /tmp/site, beside the machine's own jax (never replacing it).
+# Carried folders (git-ignored, built by experiments/gpu_wheels.sh; collected in ~/wp while the machine is held):
+# .wa/ holds site_small.tar.xz (the Python 3.12 wheels of mujoco 3.17.0 without its filament renderer, mujoco-mjx,
+# trimesh, quadprog, evosax, dotmap, unpacked; carry it in every call to a fresh machine), .wb/ .wc/ .wd/ wpart_00..02:
+# the three thirds of an xz tar of the warp-lang 1.18.0 wheel's contents (the extra of mujoco-mjx) without its CPU
+# compiler, examples and tests (27 MB each: one a call, beside the working tree and a race's state in .ws/). All
+# unpack into /tmp/site, beside the machine's own jax (never replacing it).
 set -uo pipefail
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 exec > >(tee -a "$OUT/log.txt") 2>&1
 SITE=/tmp/site; mkdir -p "$SITE" ~/wp
 export PYTHONPATH=$SITE:$PWD PYTHONUNBUFFERED=1 TF_CPP_MIN_LOG_LEVEL=3 WBC_JAX_CACHE=/tmp/xla-cache
-for d in .wa .wb .wc; do [ -d $d ] && cp $d/* ~/wp/; done
+for d in .wa .wb .wc .wd; do [ -d $d ] && cp $d/* ~/wp/; done
 if [ ! -d $SITE/mujoco ] && [ -f ~/wp/site_small.tar.xz ]; then
   xz -dc ~/wp/site_small.tar.xz | tar xf - -C $SITE && echo "wheels unpacked"
 fi
-if [ ! -d $SITE/warp ] && [ -f ~/wp/wpart_00 ] && [ -f ~/wp/wpart_01 ]; then
-  cat ~/wp/wpart_00 ~/wp/wpart_01 | xz -dc | tar xf - -C $SITE && echo "warp-lang unpacked"
+if [ ! -d $SITE/warp ] && [ -f ~/wp/wpart_00 ] && [ -f ~/wp/wpart_01 ] && [ -f ~/wp/wpart_02 ]; then
+  cat ~/wp/wpart_00 ~/wp/wpart_01 ~/wp/wpart_02 | xz -dc | tar xf - -C $SITE && echo "warp-lang unpacked"
 fi
+echo "carried so far: $(ls ~/wp | tr '\n' ' ')"; [ -d $SITE/warp ] || echo "no warp yet (needs wpart_00..02)"
 run() {  # name, command...: time a job, keep its output
   local name=$1; shift
   mkdir -p "$OUT/$name"; SECONDS=0
@@ -88,12 +90,16 @@ for job in "$@"; do
             # in flight stops at its next judge, its C MuJoCo replays still run) and written into $OUT round by round,
             # so a cut-off call returns the rounds finished; the same command with the same --out resumes.
             # LIMIT_FLAGS: extra flags (later ones win), e.g. a tiny CPU test.
+      # The run folder lives in /tmp/limit_<body> (restored from .ws/limit_<body>.tgz, carried from the last call)
+      # and comes back packed as $OUT/limit_<body>.tgz (a call returns at most 8 files).
       body=chest; [ "$job" = limit_root ] && body=root_link
+      if [ ! -d /tmp/limit_$body ] && [ -f .ws/limit_$body.tgz ]; then tar -xzf .ws/limit_$body.tgz -C /tmp; fi
       run $job env XLA_FLAGS="${LIMIT_XLA_FLAGS---xla_gpu_autotune_level=0}" timeout ${LIMIT_WALL:-510} \
         python3 -m wbc_jax.cli limit --quiet --body $body --directions 32 \
         --gains experiments/gains/tuned_gradient.json --envelopes docs/limit/envelopes/*_$body/summary.json \
         --candidates 3 --rounds 3 --iterations 30 --judge-every 5 --es-pairs 8 --window 0.5 --tail 0.2 \
-        --time-limit ${LIMIT_TIME:-390} --out "$OUT/limit_$body" ${LIMIT_FLAGS:-} ;;
+        --time-limit ${LIMIT_TIME:-390} --out /tmp/limit_$body ${LIMIT_FLAGS:-}
+      tar -czf "$OUT/limit_$body.tgz" -C /tmp limit_$body ;;
     gputests)  # the tests marked gpu (their log goes to docs/ with the device)
       run gputests env JAX_PLATFORMS=cuda,cpu python3 -m pytest -q -n 0 -m gpu -p no:cacheprovider tests ;;
     race)  # issue 35 in about 8 minutes: gradient throughput (new, old settings), gradient quality, the race if

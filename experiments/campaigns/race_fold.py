@@ -1,6 +1,10 @@
 """Issue 35's GPU figures in one file, and into docs: what experiments/campaigns/race_gpu.sh ran.
 
     python experiments/campaigns/race_fold.py --from RUNS [--summary FILE] [--docs DIR]
+    python experiments/campaigns/race_fold.py --from RUN --docs DIR --table docs/tuning/race.json
+
+The second form folds one race run folder of experiments/campaigns/race_piece.sh (its ``race_<param>.tgz``
+unpacked): its results and gain files into DIR, its rows (one per method x budget) into the table.
 
 ``--from``: the folder of race_gpu.sh's run folders (``new/``, ``old/``, ``race/``), or the returned
 ``race_gpu.tgz``. ``summary.json`` (``--summary``, default ``DIR/summary.json``) holds
@@ -113,13 +117,77 @@ def fold(runs: pathlib.Path, docs: pathlib.Path) -> None:
         shutil.copyfile(runs / "race" / "race.json", docs.parent / "race.json")
 
 
+PIECE_FILES = ("race.json", "race.png", "heldout.json", "summary.json", "timings.json", "learning_curves.png",
+               "envelope_polar.png", "config.json", "gradient/train_info.json", "gradient/history.csv",
+               "cmaes/history.csv", "random/history.csv", "hybrid/history.csv")  # fmt: skip
+
+
+def race_rows(run: pathlib.Path) -> list[dict]:
+    """One row per (method, parameterisation, budget_s) of a race run folder (race_piece.sh's ``RUNS/<param>``):
+    engine, device, held-out median / min, survival, sinusoid RMSE, simulated steps, the gain file and its sha256."""
+    race = _json(run / "race.json")
+    gains = _json(run / "gains" / "provenance.json") or {}
+    device = race["provenance"]["device"]["label"]
+    rate = race["gradient"].get("gradient_physics_steps_per_s")
+    rows = []
+    for method, m in race["methods"].items():
+        for pt in m["points"]:
+            origin = gains.get(pt["name"], {})
+            rows.append({"method": method, "parameterisation": race["parameterisation"], "budget_s": pt["budget_s"],
+                         "engine": m["engine"], "device": device, "name": pt["name"],
+                         "envelope_fraction_median": pt["envelope_fraction_median"],
+                         "envelope_fraction_min": pt["envelope_fraction_min"], "survival": pt["survival_rate"],
+                         "sinusoid_com_rmse_m": pt["sinusoid_com_rmse_m"], "physics_steps": pt["sim_steps"],
+                         "wall_s": pt["wall_s"], "gradient_physics_steps_per_s": rate if method != "cmaes" and
+                         method != "random" else None, "gains_sha256": origin.get("sha256")})  # fmt: skip
+    return rows
+
+
+def fold_piece(run: pathlib.Path, docs: pathlib.Path, table: pathlib.Path) -> dict:
+    """Copy a race run folder's results and gain files into ``docs`` and merge its rows into ``table``
+    (docs/tuning/race.json: the rows of every parameterisation raced so far, one GPU kind)."""
+    from wbc_jax.core import io
+
+    for rel in PIECE_FILES:
+        if (run / rel).is_file():
+            (docs / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(run / rel, docs / rel)
+    if (run / "gains").is_dir():
+        shutil.copytree(run / "gains", docs / "gains", dirs_exist_ok=True)
+    rows = race_rows(run)
+    old = _json(table) or {"rows": []}
+    param = rows[0]["parameterisation"]
+    kept = [r for r in old["rows"] if r["parameterisation"] != param]
+    devices = sorted({r["device"] for r in kept + rows})
+    out = {
+        "rows": kept + rows,
+        "devices": devices,
+        "one_gpu_kind": len(devices) == 1,
+        "folders": {**old.get("folders", {}), param: str(docs)},
+        "verdict": {**old.get("verdict", {}), param: _json(run / "race.json")["verdict"]},
+    }
+    io.atomic_write_json(table, out)
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--from", dest="src", required=True, help="race_gpu.sh's run folder or race_gpu.tgz")
     p.add_argument("--summary", default=None, help="summary.json to write (default: DOCS/summary.json)")
     p.add_argument("--docs", default=None, help="docs folder to fold the files into, e.g. docs/tuning/race_h100")
+    p.add_argument(
+        "--table",
+        default=None,
+        help="with --docs: --from is a race run folder of race_piece.sh "
+        "(RUNS/<param>); fold it into DOCS and merge its rows into TABLE (docs/tuning/race.json)",
+    )
     args = p.parse_args(argv)
     from wbc_jax.core import io
+
+    if args.table:
+        out = fold_piece(pathlib.Path(args.src), pathlib.Path(args.docs), pathlib.Path(args.table))
+        print(json.dumps({"table": args.table, "rows": len(out["rows"]), "devices": out["devices"]}))
+        return 0
 
     src = pathlib.Path(args.src)
     if not src.exists():

@@ -121,4 +121,5 @@ def race_curves(points: dict, path, reference: dict | None = None) -> None:
     axes[0].set_xlabel("wall-time budget [s] (compilation included)")
     axes[1].set_xlabel("simulated physics steps")
     axes[1].set_xscale("symlog", linthresh=1e5)  # a set held at the start has 0 simulated steps
+    axes[1].set_xlim(left=0)  # no negative decades
     _save(fig, path)
