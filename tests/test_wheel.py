@@ -14,6 +14,7 @@ import zipfile
 
 import pytest
 
+from wbc_jax.core import provenance
 from wbc_jax.core.assets import ASSETS
 from wbc_jax.robot.model import ROBOTS
 from wbc_jax.tuning.config import ENVELOPE_FILE, HAND_SET_GAINS
@@ -90,13 +91,23 @@ def test_installed_package_runs_info_and_balance_from_another_folder(installed):
     # The native C MuJoCo step built from the installed source into a fresh cache folder (the user's cache in a job).
     native_cache = work.parent / "native_cache"
     where = (f"import json, jax, wbc_jax; jax.config.update('jax_compilation_cache_dir', {str(native_cache)!r}); "
-             "from wbc_jax.core import assets; from wbc_jax.sim import native; why_not = native.available(); "
-             "print(json.dumps([why_not, wbc_jax.__file__, str(assets.ASSETS), str(native.SOURCE)]))")  # fmt: skip
-    why_not, *paths = json.loads(_run([sys.executable, "-c", where], cwd=work, env=env).stdout)
+             "from wbc_jax.core import assets, provenance; from wbc_jax.sim import native; "
+             "from wbc_jax.tuning.config import HAND_SET_GAINS as g; why_not = native.available(); "
+             "record = {'provenance': provenance.record({'gains': g}, with_device=False)}; "
+             "print(json.dumps([why_not, record, sorted(provenance.mentioned_files(str(g))), "
+             "provenance.check_inputs(record), wbc_jax.__file__, str(assets.ASSETS), str(native.SOURCE)]))")  # fmt: skip
+    why_not, record, mentioned, changed, *paths = json.loads(_run([sys.executable, "-c", where], cwd=work,
+                                                                  env=env).stdout)  # fmt: skip
     for path in map(pathlib.Path, paths):
         assert path.is_relative_to(site), f"{path} is not the installed copy under {site}"
     assert why_not is None, why_not
     assert len(list((native_cache / "wbc_native").glob("libwbc_mujoco_ffi_*.so"))) == 1
+    # Results name package data as in a checkout (assets/...), and the installed copy checks against the record.
+    gains = "assets/gains/com_critical_100.json"
+    assert record["provenance"]["inputs"]["gains"]["path"] == gains and mentioned == [gains] and changed == []
+    assert provenance.check_inputs(record) == []  # and the checkout's copy: the same file
+    record["provenance"]["inputs"]["gains"]["sha256"] = "0" * 64
+    assert [line.split(" since")[0] for line in provenance.check_inputs(record)] == [f"gains: {gains} has changed"]
 
     info = json.loads(_run([str(installed["script"]), "info"], cwd=work, env=env).stdout)
     assert (info["nq"], info["nv"], info["nu"]) == (30, 29, 23)
