@@ -98,7 +98,7 @@ def _index() -> dict:
 
 
 def _repository_gains_files() -> set[str]:
-    return {provenance.display_path(p) for folder in ("experiments", "docs")
+    return {provenance.display_path(p) for folder in ("experiments", "docs", "assets")
             for p in (ROOT / folder).rglob("*.json") if io.is_gains_file(p)}  # fmt: skip
 
 

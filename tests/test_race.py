@@ -157,9 +157,7 @@ def test_schedule_file_round_trip_and_bad_files(bounds, tmp_path):
     sched, _, _ = _schedule(bounds, 0.7)
     path = tmp_path / "s.json"
     store.write_once(path, store.controls_dict(sched))
-    assert gs.is_schedule_file(path) and not gs.is_schedule_file(
-        ROOT / "experiments" / "gains" / "com_critical_100.json"
-    )
+    assert gs.is_schedule_file(path) and not gs.is_schedule_file(ROOT / "assets" / "gains" / "com_critical_100.json")
     back = gs.load_schedule(path, np.float64)
     q, v = jnp.asarray(np.linspace(-0.1, 0.1, 30)), jnp.asarray(np.linspace(-1, 1, 29))
     for k in GAIN_FIELDS:

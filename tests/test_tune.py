@@ -103,7 +103,7 @@ def test_parameters_round_trip_stay_in_bounds_and_keep_nava_conditions():
 
 
 def test_hand_set_critical_gains_are_inside_the_bounds_and_stable():
-    crit = C.load_gains(ROOT / "experiments" / "gains" / "com_critical_100.json")
+    crit = C.load_gains(ROOT / "assets" / "gains" / "com_critical_100.json")
     reg0 = tuning_params.default_regularisation()
     bounds = tuning_params.default_bounds(C.default_gains(), 10.0, (0.02, 2.0), reg0)
     tuning_params.check_in_bounds(crit, reg0, bounds)
@@ -551,7 +551,7 @@ def test_keep_tracking_bounds_hold_kp_com_and_the_yaw_gains_up():
     assert np.all(np.asarray(gains.kp_com)[:2] >= constants.TRACKING_KP_COM_FLOOR * (1 - 1e-5))
     assert float(gains.ki_ang[2]) >= 0.9 * 0.25 * (1 - 1e-5)
     assert float(gains.kp_ang[2]) >= 2 * 0.9 * np.sqrt(0.9 * 0.25) * (1 - 1e-5)
-    critical = C.load_gains(ROOT / "experiments" / "gains" / "com_critical_100.json", 23)
+    critical = C.load_gains(ROOT / "assets" / "gains" / "com_critical_100.json", 23)
     tuning_params.check_in_bounds(critical, problem.reg0, problem.bounds)
     free = C.load_gains(ROOT / "experiments" / "gains" / "tuned_gradient.json", 23)
     with pytest.raises(ValueError, match="kp_com is outside its bounds"):

@@ -76,9 +76,9 @@ def writing_commit(path: str) -> str:
 
 
 def gains_files() -> dict[str, str]:
-    """{sha256: path} of every gains file of the repository (experiments/, docs/)."""
+    """{sha256: path} of every gains file of the repository (experiments/, docs/, assets/)."""
     out = {}
-    for folder in ("experiments", "docs"):
+    for folder in ("experiments", "docs", "assets"):
         for p in sorted((ROOT / folder).rglob("*.json")):
             if io.is_gains_file(p):
                 out.setdefault(provenance.sha256(p), provenance.display_path(p))

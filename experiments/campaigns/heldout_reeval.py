@@ -21,7 +21,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 GAINS = ROOT / "experiments" / "gains"
 DEFAULT_SETS = ("default", f"gradient={GAINS / 'tuned_gradient.json'}", f"cmaes={GAINS / 'tuned_cmaes.json'}",
-                f"random={GAINS / 'tuned_random.json'}", f"critical={GAINS / 'com_critical_100.json'}")  # fmt: skip
+                f"random={GAINS / 'tuned_random.json'}", f"critical={ROOT / 'assets' / 'gains' / 'com_critical_100.json'}")  # fmt: skip
 
 
 def parse(argv=None):

@@ -37,7 +37,7 @@ if [ -n "${TINY:-}" ]; then
 else
   B=${RACE_BATCH:-2048} STEPS=${RACE_STEPS:-2} BUDGET=${RACE_BUDGET:-120}
   COMMON=(--horizon 2 --lr 0.1 --push-scale lip --magnitude-range 0.3 1.0
-          --init-gains experiments/gains/com_critical_100.json --population 16 --es-batch 60)
+          --init-gains assets/gains/com_critical_100.json --population 16 --es-batch 60)
   HELD=(--chunk-size 16384)
   OLD_B=1024
 fi

@@ -20,6 +20,14 @@ import numpy as np
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 GAINS = ROOT / "experiments" / "gains"
+HAND_SET = ROOT / "assets" / "gains" / "com_critical_100.json"  # package data, not in GAINS
+
+
+def gains_file(name: str) -> pathlib.Path:
+    """The gains file of a set's name: experiments/gains/{name}.json, or the hand-set package data."""
+    return HAND_SET if name == HAND_SET.stem else GAINS / f"{name}.json"
+
+
 SETS = ("com_critical_100", "tuned_gradient", "tuned_cmaes", "tuned_random", "tuned_gradient_stiff_com",
         "tuned_cmaes_stiff_com", "tuned_random_stiff_com")  # fmt: skip
 WINDOWS = ((0.0, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 15.0), (15.0, 20.0))
@@ -50,13 +58,18 @@ def main(argv=None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default="runs/sinusoid_drift.json")
-    p.add_argument("--sets", nargs="+", default=list(SETS), help="experiments/gains/{name}.json, or 'default'")
+    p.add_argument(
+        "--sets",
+        nargs="+",
+        default=list(SETS),
+        help="experiments/gains/{name}.json, com_critical_100 (assets/gains) or 'default'",
+    )
     p.add_argument("--durations", type=float, nargs="+", default=[2.0, 5.0, 10.0, 20.0])
     p.add_argument("--windowed", nargs="*", default=["com_critical_100", "tuned_gradient", "tuned_cmaes"])
     args = p.parse_args(argv)
     names = ["default", *[s for s in args.sets if s != "default"]]
-    gains = [default_gains(23) if n == "default" else load_gains(GAINS / f"{n}.json", 23) for n in names]
-    files = {f"gains:{n}": GAINS / f"{n}.json" for n in {*names, *args.windowed} if n != "default"}
+    gains = [default_gains(23) if n == "default" else load_gains(gains_file(n), 23) for n in names]
+    files = {f"gains:{n}": gains_file(n) for n in {*names, *args.windowed} if n != "default"}
     prov = provenance.record(files, argv=provenance.script_argv(__file__, argv))  # the files as they are read
     rmse = {n: {} for n in names}
     for dur in args.durations:
@@ -67,7 +80,7 @@ def main(argv=None) -> int:
     drift = {}
     for n in args.windowed:
         with tempfile.TemporaryDirectory() as tmp:
-            balance.run(task="sinusoid", duration=20.0, gains=str(GAINS / f"{n}.json"), out=tmp, plots=False,
+            balance.run(task="sinusoid", duration=20.0, gains=str(gains_file(n)), out=tmp, plots=False,
                         progress=False)  # fmt: skip
             drift[n] = windowed(dict(np.load(pathlib.Path(tmp) / "trajectory.npz")))
     report = {"sinusoid_com_rmse_m_by_duration": rmse, "drift_20s": drift, "backend": "mujoco",

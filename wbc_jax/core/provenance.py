@@ -22,6 +22,8 @@ import shlex
 import sys
 import time
 
+from wbc_jax.core.assets import ASSETS
+
 # The repository's top folder (the package lives in REPO_ROOT / "wbc_jax").
 REPO_ROOT = pathlib.Path(__file__).resolve().parents[2]
 _IMPORTED = time.time()
@@ -53,12 +55,22 @@ def sha256_bytes(data: bytes) -> str:
 
 
 def display_path(path) -> str:
-    """A path as results name it: relative to the repository when inside it, else absolute."""
+    """A path as results name it: relative to the repository when inside it, else absolute. The
+    package data is ``assets/...`` wherever it is installed (a wheel's copy or the checkout's)."""
     p = pathlib.Path(path).resolve()
-    try:
-        return p.relative_to(REPO_ROOT).as_posix()
-    except ValueError:
-        return p.as_posix()
+    for root, prefix in ((ASSETS.resolve(), "assets/"), (REPO_ROOT, "")):
+        try:
+            return prefix + p.relative_to(root).as_posix()
+        except ValueError:
+            pass
+    return p.as_posix()
+
+
+def _repository_file(base: pathlib.Path, relative: str) -> pathlib.Path:
+    """The file of a recorded relative path: ``assets/...`` is the package data when ``base`` is this
+    package's repository (an installed wheel has no repository around its data)."""
+    head, _, rest = relative.partition("/")
+    return ASSETS / rest if head == "assets" and base == REPO_ROOT else base / relative
 
 
 def command(argv: list[str] | None = None) -> str:
@@ -149,7 +161,7 @@ def check_inputs(result: dict, base: pathlib.Path = REPO_ROOT) -> list[str]:
     for name, entry in (result.get("provenance", {}).get("inputs") or {}).items():
         if not in_repository(entry["path"]):
             continue
-        path = base / entry["path"]
+        path = _repository_file(base, entry["path"])
         if not path.is_file():
             problems.append(f"{name}: {entry['path']} is missing")
         elif sha256(path) != entry["sha256"]:
@@ -157,19 +169,20 @@ def check_inputs(result: dict, base: pathlib.Path = REPO_ROOT) -> list[str]:
     return problems
 
 
-# A repository file named in a result's text: experiments/... or docs/... (relative, or absolute with
-# the repository's folder before it), ending in .json, .yaml or .yml.
-_NAMED_FILE = re.compile(r"(?<![\w./-])((?:/[\w.-]+)*/?(?:experiments|docs)/[\w./-]*?\.(?:json|ya?ml))(?![\w-])")
+# A repository file named in a result's text: experiments/..., docs/... or assets/... (relative, or
+# absolute with the repository's folder before it), ending in .json, .yaml or .yml.
+_FOLDERS = ("experiments", "docs", "assets")
+_NAMED_FILE = re.compile(r"(?<![\w./-])((?:/[\w.-]+)*/?(?:experiments|docs|assets)/[\w./-]*?\.(?:json|ya?ml))(?![\w-])")
 
 
 def _relative(token: str) -> str:
     if not token.startswith("/"):
         return token
-    return token[min(i for i in (token.find("/experiments/"), token.find("/docs/")) if i >= 0) + 1 :]
+    return token[min(i for i in (token.find(f"/{f}/") for f in _FOLDERS) if i >= 0) + 1 :]
 
 
 def mentioned_files(result) -> set[str]:
-    """Repository paths (experiments/..., docs/...; .json, .yaml) named in any string of a result,
+    """Repository paths (experiments/..., docs/..., assets/...; .json, .yaml) named in any string of a result,
     absolute spellings made relative: the files its command, config and notes refer to."""
     found = set()
 

@@ -15,10 +15,10 @@ import mujoco
 import numpy as np
 
 from wbc_jax.core import mjx as mjx_device
+from wbc_jax.core.assets import asset
 from wbc_jax.core.mjx import mjx
 
-ASSETS = pathlib.Path(__file__).resolve().parents[2] / "assets"
-ROBOTS = {"icub": ASSETS / "icub" / "icub_23dof.xml"}
+ROBOTS = {"icub": asset("icub/icub_23dof.xml")}  # package data (wbc_jax.core.assets)
 MESHDIR_PLACEHOLDER = "ICUB_MODELS_MESHES"
 
 # The 23 joints of the WBC balancing controllers (configRobot.m, ROBOT_DOF = 23), in order.
@@ -81,7 +81,10 @@ def load_mj_model(robot: str = "icub", *, visual: bool = False) -> mujoco.MjMode
     _check_name("robot", robot, list(ROBOTS))
     path = ROBOTS[robot]
     if not path.exists():
-        raise FileNotFoundError(f"model file {path} is missing; regenerate it with 'python assets/build_icub_mjcf.py'")
+        raise FileNotFoundError(
+            f"model file {path} is missing; reinstall wbc_jax (it is package data), or in a "
+            f"checkout regenerate it with 'python assets/build_icub_mjcf.py'"
+        )
     spec = mujoco.MjSpec.from_file(str(path))
     if visual:
         spec.meshdir = str(icub_mesh_dir())

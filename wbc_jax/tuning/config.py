@@ -12,15 +12,15 @@ import pathlib
 import numpy as np
 
 from wbc_jax.core import constants
+from wbc_jax.core.assets import asset
 from wbc_jax.core.options import check_input_file, check_options, option
 from wbc_jax.jobs.sweep_config import MAX_GRID_AXIS, ONE_FOOT_WINDOW, _azimuths, _grid, _show_grid
 from wbc_jax.robot import model
 from wbc_jax.sim import physics
 
-ROOT = pathlib.Path(__file__).resolve().parents[2]
 CHECKPOINTS = ("tick", "none", "dots")
 PUSH_SCALES = ("envelope", "lip")
-ENVELOPE_FILE = ROOT / "docs" / "tuning" / "default_envelope.json"
+ENVELOPE_FILE = asset("tuning/default_envelope.json")  # package data, made by docs/tuning/README.md's bisection
 MAX_BATCH = 10_000_000  # pushes of one step, candidates, held-out pushes: beyond it a typo
 # The phases of a tuning run, in the order they run (each resumable).
 PHASES = ("predict", "train", "quality", "profile", "cmaes", "random", "heldout", "report")
@@ -29,7 +29,7 @@ SEARCH_BACKENDS = ("auto", "jax", "warp")
 ESTIMATORS = ("first-order", "smoothed", "interpolated")
 PARAMETERISATIONS = ("gains", "scheduled")
 # The hand-set row of every comparison: the WBC gains with a critically damped CoM loop.
-HAND_SET_GAINS = ROOT / "experiments" / "gains" / "com_critical_100.json"
+HAND_SET_GAINS = asset("gains/com_critical_100.json")  # package data
 # Held-out variations, name: (pushed body, push duration s, floor friction); magnitudes keep the grid's impulses.
 VARIATIONS = {
     "l_hand": ("l_elbow_1", 0.1, 1.0),
@@ -123,8 +123,8 @@ class TuneConfig:
     joint_noise: float = option(0.01, "initial joint noise std [rad]", ge=0.0, le=constants.MAX_JOINT_NOISE_RAD,
                                 unit="rad")  # fmt: skip
     envelope: str | None = option(None, "the default gains' envelope per direction, JSON (default: "
-                                  "docs/tuning/default_envelope.json of this checkout if there, else "
-                                  "--envelope-fraction x the LIP bound)", metavar="FILE", input_file=True)  # fmt: skip
+                                  "the package's assets/tuning/default_envelope.json; where that file "
+                                  "is absent, --envelope-fraction x the LIP bound)", metavar="FILE", input_file=True)  # fmt: skip
     envelope_fraction: float = option(0.5, "without --envelope: the default envelope as this fraction of the LIP bound",
                                       gt=0.0, le=10.0)  # fmt: skip
     solver_iterations: int | None = option(None, "contact-solver Newton iterations in training (default: the model's)",
@@ -251,7 +251,7 @@ class HeldoutConfig:
 
     out: str = option("runs/heldout", "output folder (resumes a run there)")
     sets: tuple[str, ...] = option(("default", "critical"), "gain sets held out: 'default' (the WBC gains), "
-                                   "'critical' (the hand-set row: experiments/gains/com_critical_100.json) or "
+                                   "'critical' (the hand-set row: assets/gains/com_critical_100.json) or "
                                    "NAME=FILE (a gains file or a gain-schedule file); wbc-jax tune adds its own",
                                    nargs="*")  # fmt: skip
     grid_magnitudes: tuple[float, ...] = option(_grid((10.0, 400.0, 64)), "held-out grid of chest push forces [N]: "
