@@ -63,25 +63,6 @@ def test_processes_whose_peers_never_come_exit_within_the_timeout_naming_the_coo
         assert timeout_s <= seconds < timeout_s + 60, seconds
 
 
-@pytest.mark.parametrize(
-    "kwargs, message",
-    [
-        (dict(num_processes=2), r"^--num-processes needs --distributed"),
-        (
-            dict(coordinator="h:1", num_processes=2, process_id=0),
-            r"^--coordinator --num-processes --process-id need --",
-        ),
-        (dict(distributed=True, coordinator="h:1", num_processes=2), r"go together .* got only --coordinator --num-"),
-        (dict(distributed=True, coordinator="h:99999", num_processes=2, process_id=0), r"port in 1\.\.65535"),
-        (dict(distributed=True, coordinator="h:1", num_processes=2, process_id=2), r"--process-id must be in 0\.\.1"),
-        (dict(distributed=True, initialization_timeout=0.0), r"--initialization-timeout must be a number in \(0, 3600"),
-    ],
-)
-def test_flags_that_cannot_join_processes_are_refused_in_one_line(kwargs, message):
-    with pytest.raises(ValueError, match=message):
-        processes.DistributedConfig(**kwargs).check()
-
-
 # ---------------------------------------------------------------------------------------------
 # Class 10: the loops of tune --window-s and of held-out gain schedules, composed, not subclassed
 
