@@ -18,13 +18,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from wbc_jax.control.controller import ControllerConfig
 from wbc_jax.core import processes
 from wbc_jax.jobs import distributed
-from wbc_jax.sim import host_loop, mjx_loop, physics
-from wbc_jax.sim.state import Feedforward
+from wbc_jax.sim import host_loop, mjx_loop, physics, scenario
+from wbc_jax.sim.state import Feedforward, SimConfig
 from wbc_jax.tuning import config, objectives, tune
 from wbc_jax.tuning import loss as tuning_loss
 from wbc_jax.tuning import problem as tp
+from wbc_jax.tuning import schedule as gain_schedule
 from wbc_jax.tuning import windows as tw
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
@@ -109,8 +111,6 @@ def test_a_gain_schedule_traces_in_every_driver_with_a_feedforward(window_proble
     MuJoCo (host_loop's tick); both drivers pass a feedforward (wbc-jax limit's)."""
     problem = window_problem
     st = problem.setup
-    from wbc_jax.tuning import schedule as gain_schedule
-
     loop = gain_schedule.scheduled_loop(st.loop)
     assert gain_schedule.scheduled_loop(loop) is loop and loop.structure_key != st.loop.structure_key
     sched = _varying_schedule(problem)
@@ -128,14 +128,20 @@ def test_a_gain_schedule_traces_in_every_driver_with_a_feedforward(window_proble
 
 def test_the_window_loop_with_a_schedule_computes_the_plain_loops_tick(window_problem):
     """One tick, compiled once: the loop tune --window-s builds (schedule -> gains, TuneTrace, window
-    start recorder), given a feedforward, gives the plain tuning loop's torques and trace at the
+    start recorder; here on the analytic force distribution), given a feedforward, gives the plain tuning loop's torques and trace at the
     schedule's gains of the state (which differ from its gains at rest) plus the feedforward, and its
     record holds the state it started from."""
     problem = window_problem
-    st = problem.setup
-    loop = tw.recording_loop(problem.loop)
+    built = tw.recording_loop(problem.loop)  # as tune builds it
+    assert built.gains_at is gain_schedule.gains_of_schedule
+    assert built.recorders == (tuning_loss.tune_trace, tw.record_start)
+    # The same composition on the analytic force distribution: it compiles in a fraction of the QP's time.
+    sim = SimConfig(record=False, loss_trace=True)
+    st = scenario.setup("stand", duration=0.1, sim=sim, controller=ControllerConfig(forces="analytic"))
+    loop = tw.recording_loop(gain_schedule.scheduled_loop(tuning_loss.tuning_loop(st.loop)))
+    assert (loop.gains_at, loop.recorders) == (built.gains_at, built.recorders)
     plain = tuning_loss.tuning_loop(st.loop)
-    assert loop.recorders == (tuning_loss.tune_trace, tw.record_start) and plain.gains_at is None
+    assert plain.gains_at is None and plain.recorders == (tuning_loss.tune_trace,)
     sched = _varying_schedule(problem)
     qpos = jnp.asarray(st.qpos0, st.dtype)
     qvel = jnp.zeros(st.robot.mj_model.nv, st.dtype).at[0].set(0.15)  # the base moves: the schedule's gains vary
