@@ -37,7 +37,7 @@ class DistributedConfig:
     num_processes: int | None = option(None, "processes in all (with --distributed)", ge=1)
     process_id: int | None = option(None, "this process's rank, 0..N-1 (with --distributed)", ge=0)
     initialization_timeout: float = option(
-        120.0, "how long each process waits for all of them to join the coordinator before it exits with one "
+        120.0, "seconds each process waits for all of them to join the coordinator before it exits with one "
         "line naming it (with --distributed)", gt=0, le=3600, unit="s",
     )  # fmt: skip
 

@@ -7,7 +7,8 @@ A tick is two pure JAX functions around the physics:
     measure(record, contact slots) -> record                           # measured wrenches
 
 :class:`ClosedLoop` holds them with the static structure (robot, schedule, controller, settings)
-closed over. Two drivers run ticks over a horizon with the same code: :mod:`wbc_jax.sim.mjx_loop`
+closed over; what a use varies (the gains as a function of the state, a richer per-tick record) it
+is given as values by :func:`compose`, never by a subclass. Two drivers run ticks over a horizon with the same code: :mod:`wbc_jax.sim.mjx_loop`
 (MJX engines: a ``lax.scan`` of ticks to jit, vmap and differentiate) and
 :mod:`wbc_jax.sim.host_loop` (C MuJoCo: the jitted, vmapped tick and the threaded C physics
 alternate in a Python loop). A diverged environment (NaN) is frozen at its last finite state and
