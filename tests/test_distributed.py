@@ -19,6 +19,9 @@ def test_two_processes_give_the_one_process_table(tmp_path):
     result = distributed.compare_processes(SWEEP, tmp_path, processes=2, env=FAST_COMPILE, timeout_s=900)
     assert result["failures"] == [], result
     assert result["envs"] == 8 and [p["rc"] for p in result["many"]] == [0, 0]
+    # The distributed run spanned both processes' devices (one each); the reference ran alone.
+    assert result["many_ran_on"] == {"n_devices": 2, "processes": 2}, result
+    assert result["one_ran_on"] == {"n_devices": 1, "processes": 1}, result
 
 
 def test_a_failing_process_fails_the_comparison(tmp_path):

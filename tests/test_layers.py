@@ -66,3 +66,26 @@ def test_no_import_cycle():
     for m in sorted(graph):
         if m not in state:
             visit(m, [m])
+
+
+def _closed_loop_subclasses(path: pathlib.Path) -> list[str]:
+    """Classes of a file built on ClosedLoop (a base named ClosedLoop, or any class made by a
+    three-argument ``type()``, which is how a subclass of a loop's own class was made)."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ClassDef) and any("ClosedLoop" in ast.unparse(base) for base in node.bases):
+            found.append(f"class {node.name}")
+        elif isinstance(node, ast.Call) and ast.unparse(node.func) == "type" and len(node.args) == 3:
+            found.append(f"type({ast.unparse(node.args[0])}, ...)")
+    return found
+
+
+def test_no_subclass_of_the_closed_loop():
+    """Issue 44: what a use of the closed loop varies (gains function, recorder, feedforward) is
+    given as values (``wbc_jax.sim.loop.compose``); no module overrides the loop's methods."""
+    found = {_module_name(p): _closed_loop_subclasses(p) for p in sorted(PACKAGE.rglob("*.py"))}
+    assert not {m: c for m, c in found.items() if c}, found
+    from wbc_jax.sim.loop import ClosedLoop
+    from wbc_jax.tuning import heldout, schedule, tune, windows  # noqa: F401  (the former subclasses' modules)
+
+    assert ClosedLoop.__subclasses__() == []

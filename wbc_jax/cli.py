@@ -12,7 +12,9 @@ import math
 import os
 import sys
 
+from wbc_jax.core import processes
 from wbc_jax.core.options import field_type, flag_name
+from wbc_jax.core.processes import DistributedConfig
 
 
 class _Parser(argparse.ArgumentParser):
@@ -192,37 +194,12 @@ def push_sweep_config(flags: list[str]):
     return cfg
 
 
-def _initialize_distributed(args: argparse.Namespace) -> None:
-    """``jax.distributed.initialize`` from the flags (or, where they are left out, from SLURM's or
-    Open MPI's environment): after it every process sees the global device list, the batch of a
-    run is sharded over all of them and process 0 writes the results."""
-    import jax
-
-    given = {"coordinator_address": args.coordinator, "num_processes": args.num_processes,
-             "process_id": args.process_id}  # fmt: skip
-    if any(v is not None for v in given.values()) and any(v is None for v in given.values()):
-        raise ValueError("--coordinator, --num-processes and --process-id go together (or none: from SLURM/MPI)")
-    if args.num_processes is not None and args.num_processes < 1:
-        raise ValueError(f"--num-processes must be a whole number >= 1, got {args.num_processes}")
-    if args.num_processes is not None and not 0 <= args.process_id < args.num_processes:
-        raise ValueError(f"--process-id must be in 0..{args.num_processes - 1}, got {args.process_id}")
-    if os.environ.get("JAX_PLATFORMS", "").startswith("cpu"):
-        # CPU devices of several processes talk through Gloo (no NCCL there).
-        jax.config.update("jax_cpu_collectives_implementation", "gloo")
-    jax.distributed.initialize(**{k: v for k, v in given.items() if v is not None})
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="wbc-jax", description=__doc__)
     dist = parser.add_argument_group(
         "several processes (jax.distributed; one process per host or per GPU, the same command in each)"
     )
-    dist.add_argument("--distributed", action="store_true",
-                      help="join the processes with jax.distributed.initialize() before the job (under SLURM or "
-                           "Open MPI the addresses and ranks are read from the environment)")  # fmt: skip
-    dist.add_argument("--coordinator", default=None, metavar="HOST:PORT", help="process 0's address")
-    dist.add_argument("--num-processes", type=int, default=None, help="processes in all")
-    dist.add_argument("--process-id", type=int, default=None, help="this process's rank, 0..N-1")
+    add_config_arguments(dist, DistributedConfig())
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for command, (config, help_text) in job_configs().items():
         job = sub.add_parser(command, help=help_text)
@@ -244,8 +221,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "balance" and not args.distributed:
         _one_thread_pool()  # before JAX starts (the checks below list its devices)
     try:
-        if args.distributed or args.coordinator is not None:
-            _initialize_distributed(args)  # before JAX starts (the checks below list its devices)
+        dist = config_from_args(args, DistributedConfig())
+        dist.check()
+        if dist.distributed:  # before JAX starts (the checks below list its devices)
+            processes.initialize(dist, f"wbc-jax {args.command}")
         # Every job: the declared ranges and the job's own checks (config.check) before anything
         # loads a program or writes a file.
         cfg = config_from_args(args, job_configs()[args.command][0])

@@ -33,7 +33,7 @@ from wbc_jax.core import checks, io, provenance
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 CLASSES = ("nonsense accepted", "contact geometry", "silent overwrite", "memory", "traceback or late failure",
-           "reporting")  # fmt: skip
+           "reporting", "several processes")  # fmt: skip
 
 
 def _write(path: pathlib.Path, data) -> str:
@@ -111,7 +111,7 @@ def cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
     }
     runs_["corrupt"].mkdir()
     (runs_["corrupt"] / "run.json").write_text("{\n")
-    N, C, W, M, T, R = CLASSES
+    N, C, W, M, T, R = CLASSES[:6]
     grid = ["--magnitudes", "10", "20", "2", "--directions", "1"]
     return [
         # Nonsense accepted: every value outside its physical range, the same in every job.
@@ -233,6 +233,34 @@ def cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
         (R, ["push-sweep", "--elevation", "90", "--directions", "8"], r"--elevation 90 is a vertical push, the same at "
          r"every azimuth: use --directions 1 \(got 8\)"),
         (R, ["envelope", "--elevation", "-90"], r"--elevation -90 is a vertical push"),
+    ] + several_processes_cases()  # fmt: skip
+
+
+# ---- Issue 41, class 9: several processes (jax.distributed) ------------------------------------
+# Flags that cannot join processes, refused before JAX starts. (A process whose peers never come
+# is tests/test_reliability_paths.py's: it exits within --initialization-timeout naming the
+# coordinator.)
+
+
+def several_processes_cases() -> list[tuple[str, list[str], str]]:
+    """(class, argv, pattern) of the flags of several processes."""
+    P = CLASSES[6]
+    join = ["--distributed", "--coordinator", "localhost:4321", "--num-processes", "2", "--process-id"]
+    return [
+        (P, ["--num-processes", "2", "push-sweep"], r"--num-processes needs --distributed \(they say how processes "
+         r"join; without it the job runs in this process alone\)"),
+        (P, ["--coordinator", "localhost:4321", "--num-processes", "2", "--process-id", "1", "push-sweep"],
+         r"--coordinator --num-processes --process-id need --distributed"),
+        (P, ["--distributed", "--num-processes", "2", "push-sweep"], r"--coordinator, --num-processes and "
+         r"--process-id go together \(or none: from SLURM/MPI\); got only --num-processes"),
+        (P, [*join[:2], "localhost", *join[3:], "0", "push-sweep"], r"--coordinator must be HOST:PORT with a port "
+         r"in 1\.\.65535, got 'localhost'"),
+        (P, [*join, "2", "push-sweep"], r"--process-id must be in 0\.\.1, got 2"),
+        (P, [*join[:4], "0", "--process-id", "0", "push-sweep"], r"--num-processes must be a whole number in \[1, "),
+        (P, ["--distributed", "--initialization-timeout", "-1", "push-sweep"],
+         r"--initialization-timeout must be a number in \(0, 3600\] s, got -1"),
+        (P, ["--distributed", "--initialization-timeout", "inf", "push-sweep"],
+         r"--initialization-timeout must be a number in \(0, 3600\] s, got inf"),
     ]  # fmt: skip
 
 

@@ -13,6 +13,7 @@ or a time-out, is a failure of the comparison, with the process's last lines of 
 
 from __future__ import annotations
 
+import json
 import os
 import pathlib
 import shutil
@@ -80,7 +81,8 @@ def compare_processes(sweep_flags: list[str], out, *, processes: int = 2, timeou
       env: extra environment of the runs (e.g. ``JAX_ENABLE_X64``).
 
     Returns:
-      ``{"failures": [...], "one": {rc, stderr}, "many": [{rc, stderr}...], "envs": n}``; no
+      ``{"failures": [...], "one": {rc, stderr}, "many": [{rc, stderr}...], "envs": n, "one_ran_on",
+      "many_ran_on": {n_devices, processes}}`` (the last three when both runs finished); no
       failures means equal tables.
     """
     import pandas as pd
@@ -97,7 +99,8 @@ def compare_processes(sweep_flags: list[str], out, *, processes: int = 2, timeou
     port = free_port()
     procs = []
     for rank in range(processes):
-        dist = ["--coordinator", f"localhost:{port}", "--num-processes", str(processes), "--process-id", str(rank)]
+        dist = ["--distributed", "--coordinator", f"localhost:{port}", "--num-processes", str(processes),
+                "--process-id", str(rank)]  # fmt: skip
         procs.append(subprocess.Popen(_command(sweep_flags, out / "many", dist), env=_env(env), text=True,
                                       stdout=subprocess.PIPE, stderr=subprocess.PIPE))  # fmt: skip
     many = []
@@ -118,5 +121,10 @@ def compare_processes(sweep_flags: list[str], out, *, processes: int = 2, timeou
         b = pd.read_parquet(out / "many" / "results.parquet")
         result["envs"] = len(a)
         failures += compare_tables(a, b, rtol, atol)
+        # What each run says it ran on: the distributed one must span every process's device.
+        for name in ("one", "many"):
+            summary = json.loads((out / name / "summary.json").read_text())
+            device = summary["provenance"]["device"]
+            result[f"{name}_ran_on"] = {"n_devices": summary["n_devices"], "processes": device["processes"]}
     result["failures"] = failures
     return result

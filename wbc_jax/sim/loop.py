@@ -7,7 +7,8 @@ A tick is two pure JAX functions around the physics:
     measure(record, contact slots) -> record                           # measured wrenches
 
 :class:`ClosedLoop` holds them with the static structure (robot, schedule, controller, settings)
-closed over. Two drivers run ticks over a horizon with the same code: :mod:`wbc_jax.sim.mjx_loop`
+closed over; what a use varies (the gains as a function of the state, a richer per-tick record) it
+is given as values by :func:`compose`, never by a subclass. Two drivers run ticks over a horizon with the same code: :mod:`wbc_jax.sim.mjx_loop`
 (MJX engines: a ``lax.scan`` of ticks to jit, vmap and differentiate) and
 :mod:`wbc_jax.sim.host_loop` (C MuJoCo: the jitted, vmapped tick and the threaded C physics
 alternate in a Python loop). A diverged environment (NaN) is frozen at its last finite state and
@@ -18,6 +19,8 @@ from __future__ import annotations
 
 import functools
 import hashlib
+from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -43,16 +46,29 @@ from wbc_jax.sim.state import traced_at_matmul_precision as _traced_at_matmul_pr
 PROGRAMS: dict = {}
 
 
-class ClosedLoop:
-    """The closed loop of one environment, built by :func:`make_closed_loop`.
+# What a use of the loop varies is given as values, never by overriding its methods (a subclass
+# silently missed the feedforward argument when the drivers began passing it):
+#   gains_at(gains_arg, qpos, qvel) -> Gains: the tick's gains from the loop's gains argument (e.g. a
+#     gain schedule evaluated at the state); None: the argument is the gains.
+#   recorder(record, new_state, state, qpos, qvel) -> record: a richer per-tick record, from the
+#     tick's record, the loop state after and before the tick and the physics state it started at.
+GainsAt = Callable[[Any, Array, Array], Gains]
+Recorder = Callable[[Any, LoopState, LoopState, Array, Array], Any]
 
-    Static structure (robot, schedule, controller, settings) is closed over; every method is pure
-    in its array arguments.
+
+class ClosedLoop:
+    """The closed loop of one environment, built by :func:`make_closed_loop` (and varied by
+    :func:`compose`, never by subclassing).
+
+    Static structure (robot, schedule, controller, settings, the gains function and recorders) is
+    closed over; every method is pure in its array arguments.
     """
 
-    def __init__(self, robot: Robot, schedule: Schedule, controller: Controller, cfg: SimConfig):
+    def __init__(self, robot: Robot, schedule: Schedule, controller: Controller, cfg: SimConfig,
+                 gains_at: GainsAt | None = None, recorders: tuple[Recorder, ...] = ()):  # fmt: skip
         idx = robot.index
         self.robot, self.idx, self.schedule, self.controller, self.cfg = robot, idx, schedule, controller, cfg
+        self.gains_at, self.recorders = gains_at, tuple(recorders)
         self.physics_dt = float(robot.mj_model.opt.timestep)
         self.n_sub = physics.steps_per_tick(cfg.control_dt, self.physics_dt)
         self.n_ticks = int(round(cfg.duration / cfg.control_dt))
@@ -98,6 +114,8 @@ class ClosedLoop:
                  for k, v in vars(self.schedule).items()}  # fmt: skip
         parts = (buf.tobytes(), repr(sched), repr(self.controller.config), repr(self.contact_set),
                  repr(self.controller.stack), repr(self.cfg))  # fmt: skip
+        if self.gains_at is not None or self.recorders:  # a plain loop's key is as it always was
+            parts += (repr([_qualified_name(f) for f in (self.gains_at, *self.recorders)]),)
         return hashlib.sha256(b"".join(p if isinstance(p, bytes) else p.encode() for p in parts)).hexdigest()
 
     # -- the controller side ------------------------------------------------------------------
@@ -137,14 +155,16 @@ class ClosedLoop:
         t_now = k * cfg.control_dt
         terms = self.terms(qpos, qvel)
         ref = self.schedule.at(t_now, dtype)
+        if self.gains_at is not None:
+            gains = self.gains_at(gains, qpos, qvel)
         out, cstate = self.controller.step(gains, state.controller, terms, ref, t_now, state.measured_normal)
         if feedforward is not None:
             limit = self.controller.config.torque_limit
             out = out.replace(tau=state_lib.feedforward_torque(feedforward, k, out.tau, limit))
         ctrl = jnp.zeros(self.robot.mj_model.nu, dtype).at[idx.actuators].set(out.tau)
         metrics, anchors, normals = self._metrics(state, terms, ref, out, t_now, physics_ok)
-        state = state.replace(controller=cstate, metrics=metrics, anchors=anchors, anchor_normals=normals,
-                              contact_normals=out.contact_R[:, :, 2])  # fmt: skip
+        new_state = state.replace(controller=cstate, metrics=metrics, anchors=anchors, anchor_normals=normals,
+                                  contact_normals=out.contact_R[:, :, 2])  # fmt: skip
         record = None
         if cfg.record:
             record = Trajectory(
@@ -161,7 +181,9 @@ class ClosedLoop:
                 support_xy=metrics_lib.support_corners(self.contact_set, out.contact_pos, out.contact_R)[:, :2],
                 com_height0=state.com0_height, foot_normal=out.contact_R[jnp.asarray(self.contact_set.feet), :, 2],
             )  # fmt: skip
-        return state, ctrl, record
+        for recorder in self.recorders:
+            record = recorder(record, new_state, state, qpos, qvel)
+        return new_state, ctrl, record
 
     def _metrics(self, state: LoopState, terms, ref, out, t_now, physics_ok):
         """The running metrics after this tick, and the contacts' anchors (where and at what normal
@@ -236,3 +258,17 @@ class ClosedLoop:
 def make_closed_loop(robot: Robot, schedule: Schedule, controller: Controller, cfg: SimConfig) -> ClosedLoop:
     """Build the :class:`ClosedLoop` of one environment (see its docstring)."""
     return ClosedLoop(robot, schedule, controller, cfg)
+
+
+def compose(loop: ClosedLoop, *, gains_at: GainsAt | None = None, recorder: Recorder | None = None) -> ClosedLoop:
+    """A copy of ``loop`` (same robot, schedule, controller, settings) whose gains argument goes
+    through ``gains_at`` (where given: it replaces the loop's) and whose per-tick record then goes
+    through ``recorder`` (where given: after the loop's own recorders)."""
+    return ClosedLoop(loop.robot, loop.schedule, loop.controller, loop.cfg,
+                      gains_at=loop.gains_at if gains_at is None else gains_at,
+                      recorders=loop.recorders + (() if recorder is None else (recorder,)))  # fmt: skip
+
+
+def _qualified_name(fn) -> str:
+    """A function's stable name (its module and qualified name): it goes into compiled programs' keys."""
+    return f"{fn.__module__}.{fn.__qualname__}"

@@ -22,9 +22,10 @@ log(1 + total) (``robust``): a rollout that falls far saturates instead of domin
 gradient. Rank statistics (:func:`spearman`, :func:`auc`) measure how well the total predicts
 strict survival on held-out pushes (``wbc-jax tune --phases predict``).
 
-:class:`TuningLoop` is the closed loop of :mod:`wbc_jax.sim.rollout` with a richer per-tick record
-(:class:`TuneTrace`: the LossTrace plus the soles' normals and the QP-infeasibility flag), read
-from the loop state the controller returns; nothing of the closed loop itself changes.
+:func:`tuning_loop` is the closed loop of :mod:`wbc_jax.sim.loop` with a richer per-tick record
+(:class:`TuneTrace`: the LossTrace plus the soles' normals and the QP-infeasibility flag, from
+:func:`tune_trace`, the loop's recorder), read from the loop state the controller returns; nothing
+of the closed loop itself changes.
 """
 
 from __future__ import annotations
@@ -57,20 +58,17 @@ class TuneTrace:
     qp_infeasible: Array
 
 
-class TuningLoop(loop_lib.ClosedLoop):
-    """The closed loop with a :class:`TuneTrace` per tick (``cfg.loss_trace``)."""
-
-    def control(self, gains, state, qpos, qvel, k, physics_ok, push, feedforward=None):
-        new_state, ctrl, record = super().control(gains, state, qpos, qvel, k, physics_ok, push, feedforward)
-        if self.cfg.loss_trace:
-            infeasible = new_state.metrics.qp_infeasible_ticks > state.metrics.qp_infeasible_ticks
-            record = TuneTrace(base=record, foot_normal=record.foot_normal, qp_infeasible=infeasible)
-        return new_state, ctrl, record
+def tune_trace(record: LossTrace, new_state, state, qpos: Array, qvel: Array) -> TuneTrace:
+    """The recorder of :func:`tuning_loop` (:data:`wbc_jax.sim.loop.Recorder`): the tick's
+    :class:`LossTrace` with the soles' normals and whether the force QP was infeasible this tick."""
+    infeasible = new_state.metrics.qp_infeasible_ticks > state.metrics.qp_infeasible_ticks
+    return TuneTrace(base=record, foot_normal=record.foot_normal, qp_infeasible=infeasible)
 
 
-def tuning_loop(loop: loop_lib.ClosedLoop) -> TuningLoop:
-    """The :class:`TuningLoop` of an existing closed loop (same robot, schedule, controller, settings)."""
-    return TuningLoop(loop.robot, loop.schedule, loop.controller, loop.cfg)
+def tuning_loop(loop: loop_lib.ClosedLoop) -> loop_lib.ClosedLoop:
+    """The closed loop whose per-tick record is a :class:`TuneTrace` (with ``cfg.loss_trace``;
+    otherwise the loop as it is)."""
+    return loop_lib.compose(loop, recorder=tune_trace) if loop.cfg.loss_trace else loop
 
 
 TERMS = ("capture", "tilt", "slip", "settle", "height", "com", "effort", "saturation")

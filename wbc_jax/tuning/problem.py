@@ -152,7 +152,7 @@ class Problem:
     tc: TuneConfig
     lc: tuning_loss.LossConfig
     setup: scenario.Setup
-    loop: tuning_loss.TuningLoop
+    loop: loop_lib.ClosedLoop
     base: Gains
     reg0: np.ndarray
     init: Gains

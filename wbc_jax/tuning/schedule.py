@@ -25,7 +25,6 @@ written as JSON of its own (``kind: gain_schedule``, :func:`load_schedule`).
 
 from __future__ import annotations
 
-import functools
 import json
 import pathlib
 
@@ -35,6 +34,7 @@ import numpy as np
 
 from wbc_jax.control.gains import Gains
 from wbc_jax.core.types import Array, pytree_dataclass
+from wbc_jax.sim import loop as loop_lib
 
 FEATURES = ("dx", "dy", "vx", "vy", "speed")
 POSITION_SCALE_M = 0.05
@@ -151,25 +151,15 @@ def load_schedule(path, dtype=np.float32) -> GainSchedule:
     return GainSchedule(**t, ki_com=ki_com, origin=origin)
 
 
-class _Scheduled:
-    """Mixin of :func:`scheduled_loop`: the loop's gains argument is a :class:`GainSchedule`."""
-
-    def control(self, gains, state, qpos, qvel, k, physics_ok, push):
-        return super().control(gains.gains_at(qpos, qvel), state, qpos, qvel, k, physics_ok, push)
-
-    @functools.cached_property
-    def structure_key(self) -> str:
-        return "scheduled-" + super().structure_key
+def gains_of_schedule(schedule: GainSchedule, qpos: Array, qvel: Array) -> Gains:
+    """The gains function of :func:`scheduled_loop` (:data:`wbc_jax.sim.loop.GainsAt`): the
+    schedule's gains at the state."""
+    return schedule.gains_at(qpos, qvel)
 
 
-@functools.cache
-def _scheduled_class(cls: type) -> type:
-    return type(f"Scheduled{cls.__name__}", (_Scheduled, cls), {})
-
-
-def scheduled_loop(loop):
-    """A copy of a closed loop (:class:`wbc_jax.sim.loop.ClosedLoop` or a subclass) that takes a
-    :class:`GainSchedule` where it took gains and evaluates it at every tick."""
-    if isinstance(loop, _Scheduled):
+def scheduled_loop(loop: loop_lib.ClosedLoop) -> loop_lib.ClosedLoop:
+    """A copy of a closed loop that takes a :class:`GainSchedule` where it took gains and evaluates
+    it at every tick (its recorders kept)."""
+    if loop.gains_at is gains_of_schedule:
         return loop
-    return _scheduled_class(type(loop))(loop.robot, loop.schedule, loop.controller, loop.cfg)
+    return loop_lib.compose(loop, gains_at=gains_of_schedule)

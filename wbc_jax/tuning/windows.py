@@ -25,13 +25,12 @@ windows (2 R K with antithetic pairs), W ticks per window, T ticks per rollout.
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.core.types import Array, pytree_dataclass
+from wbc_jax.sim import loop as loop_lib
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import mjx_loop, physics
 from wbc_jax.sim.state import LoopState, Scenario
@@ -61,26 +60,15 @@ class WindowStart:
     support0: Array
 
 
-class _Recording:
-    """Mixin of :func:`recording_loop`: each tick's record also holds (qpos, qvel, loop state) at its start."""
-
-    def control(self, gains, state, qpos, qvel, k, physics_ok, push):
-        new_state, ctrl, record = super().control(gains, state, qpos, qvel, k, physics_ok, push)
-        return new_state, ctrl, (record, (qpos, qvel, state))
-
-    @functools.cached_property
-    def structure_key(self) -> str:
-        return "recording-" + super().structure_key
+def record_start(record, new_state: LoopState, state: LoopState, qpos: Array, qvel: Array):
+    """The recorder of :func:`recording_loop` (:data:`wbc_jax.sim.loop.Recorder`): the tick's record
+    with the physics and loop state it started from."""
+    return record, (qpos, qvel, state)
 
 
-@functools.cache
-def _recording_class(cls: type) -> type:
-    return type(f"Recording{cls.__name__}", (_Recording, cls), {})
-
-
-def recording_loop(loop):
+def recording_loop(loop: loop_lib.ClosedLoop) -> loop_lib.ClosedLoop:
     """A copy of a tuning loop whose per-tick record is (TuneTrace, (qpos, qvel, LoopState))."""
-    return _recording_class(type(loop))(loop.robot, loop.schedule, loop.controller, loop.cfg)
+    return loop_lib.compose(loop, recorder=record_start)
 
 
 def window_ticks(problem: tp.Problem) -> int:
