@@ -132,6 +132,10 @@ def _one_thread_pool() -> None:
 SHARED_CONFIGS = {"tune": ("heldout", ("out", "tasks", "angular_weight_soft"))}
 
 
+# Jobs that keep what they finished and go on from it with the same command (the others start over).
+RESUMABLE = ("push-sweep", "limit", "tune", "heldout")
+
+
 def _run_job(command: str, cfg, quiet: bool, shared=None) -> dict:
     """Run a checked config (``shared``: the checked config of :data:`SHARED_CONFIGS`); returns the one
     JSON line's dict."""
@@ -260,6 +264,14 @@ def main(argv: list[str] | None = None) -> int:
             ImportError, MemoryError) as err:  # fmt: skip
         print(f"wbc-jax {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except OSError as err:  # the file system refused a write (full disk, a name too long, ...)
+        where = f" ({err.filename})" if err.filename else ""
+        print(f"wbc-jax {args.command}: error: {err.strerror or err}{where}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        again = "resume with the same command" if args.command in RESUMABLE else "run the same command again"
+        print(f"wbc-jax {args.command}: interrupted; {again}", file=sys.stderr)
+        return 130
     print(json.dumps(line, indent=2) if args.command == "info" else json.dumps(line, separators=(",", ":")))
     return 0
 

@@ -160,6 +160,8 @@ def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: 
         io.atomic_save_npz(out / "trajectory.npz", joints=np.array(st.robot.index.joints),
                            contact_names=np.array(loop.contact_set.names),
                            contact_dims=np.array([c.dim for c in loop.contact_set.contacts]), **traj)  # fmt: skip
+        for name in ("metrics.json", "trajectory.npz"):
+            runs.record_output(out / name)
         if cfg.plots:
             from wbc_jax.report import plots  # matplotlib: imported after the simulation
 
