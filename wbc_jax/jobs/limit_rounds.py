@@ -288,10 +288,11 @@ def run(cfg: limit.LimitConfig, *, progress: bool = True, robot_name: str = "icu
     if not records:  # no round finished: nothing was measured, so no limit is claimed
         raise ValueError(f"--time-limit {cfg.time_limit:g} s ran out before round 1 finished: nothing was measured; "
                          "give a longer --time-limit (a rerun resumes)")  # fmt: skip
-    if done >= cfg.rounds and runs.output_changed(out / "summary.json") is None:
-        # A re-run of a finished search: its summary (the timings measured when it ran) stays as it is.
-        return io.read_json(out / "summary.json", "limit summary")
     summary = summarize(cfg, search, records, time.perf_counter() - t_start)
+    if done >= cfg.rounds and runs.output_changed(out / "summary.json") is None:
+        # A re-run of a finished search: its summary.json (the timings measured when it ran) stays as it
+        # is; the caller gets this process's (no optimiser step).
+        return summary
     io.atomic_write_json(out / "summary.json", summary)
     runs.record_output(out / "summary.json")
     from wbc_jax.report import limit_plots

@@ -36,7 +36,7 @@ class ViewConfig:
         check_options(self)
         if self.spawn and self.out is not None:
             raise ValueError("--out and --spawn exclude each other: write a file or open a viewer")
-        if self.out is not None and pathlib.Path(self.out).is_dir():
+        if self.out is not None and runs.check_out_path(self.out) and pathlib.Path(self.out).is_dir():
             raise ValueError(f"--out {self.out} is a folder; give a .rrd file name")
         if self.out is not None and not self.out.endswith(".rrd"):
             raise ValueError(f"--out {self.out}: give a .rrd file name (view writes a rerun recording, never a run's "
