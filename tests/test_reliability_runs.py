@@ -114,13 +114,14 @@ def test_a_finished_rerun_leaves_its_summary_alone(finished, tmp_path, monkeypat
     of the folder: nothing compiles (the tripwire), summary.json keeps its bytes (its timings)."""
     out, gains = _copy(finished, tmp_path)
     before = (out / "summary.json").read_bytes()
-    assert json.loads(before)["compile_s"] > 0
+    measured = {k: json.loads(before)[k] for k in ("compile_s", "run_s", "started_s", "physics_steps_per_s")}
+    assert None not in measured.values() and measured["physics_steps_per_s"] > 0, measured
     assert cli.main([*SWEEP, "--gains", str(gains), "--out", f"{out}/"]) == 0, capsys.readouterr().err
     monkeypatch.chdir(tmp_path)
     assert cli.main([*SWEEP, "--gains", "g.json", "--out", "sw"]) == 0, capsys.readouterr().err
     assert (out / "summary.json").read_bytes() == before
     printed = json.loads(capsys.readouterr().out.splitlines()[-1])
-    assert printed["compile_s"] == json.loads(before)["compile_s"]
+    assert {k: printed[k] for k in measured} == measured
 
 
 def test_view_refuses_a_changed_run_and_writes_none_of_its_files(finished, tmp_path, capsys):
@@ -302,4 +303,6 @@ def test_fingerprints_compare_inputs_by_content_not_by_spelling(tmp_path, capsys
     (tmp_path / "other.json").write_text(json.dumps({**values, "kp_com": [60.0, 60.0, 10.0]}))
     assert cli.main(["balance", "--duration", "0.1", "--gains", str(tmp_path / "other.json"), "--out",
                      str(tmp_path / "b")]) == 2  # fmt: skip
-    assert "made with other inputs (config.gains: contents changed)" in _error(capsys)
+    assert f"made with other inputs (config.gains ({(tmp_path / 'other.json').resolve()}): contents changed)" in _error(
+        capsys
+    )

@@ -123,7 +123,8 @@ def check_output_dir(path, kind: str, fp: dict | None = None) -> pathlib.Path:
             )
         if fp is not None:
             old = record.get("fingerprint")
-            diff = differences(_compared(old if isinstance(old, dict) else {}), _compared(fp))
+            names = {sha: where for where, sha in (fp.get(WHERE) or {}).items()}
+            diff = differences(_compared(old if isinstance(old, dict) else {}), _compared(fp), names=names)
             if diff:
                 raise ValueError(f"--out {path} holds {with_article(kind)} run made with other inputs "
                                  f"({'; '.join(diff)}); use another --out, or remove the folder to start over")  # fmt: skip
@@ -156,17 +157,19 @@ def with_article(kind) -> str:
     return f"{'an' if str(kind)[:1] in 'aeiou' else 'a'} {kind}"
 
 
-def differences(old: dict, new: dict, prefix: str = "") -> list[str]:
-    """Human-readable differences between two fingerprints."""
+def differences(old: dict, new: dict, prefix: str = "", names: dict | None = None) -> list[str]:
+    """Human-readable differences between two fingerprints (``names``: an input file's path by its
+    contents' entry, to name a file whose contents changed)."""
     out = []
     for key in sorted(set(old) | set(new)):
         a, b = old.get(key, "<absent>"), new.get(key, "<absent>")
         name = f"{prefix}{key}"
         if isinstance(a, dict) and isinstance(b, dict):
-            out += differences(a, b, name + ".")
+            out += differences(a, b, name + ".", names)
         elif a != b:
             if key == "model" or all(str(x).startswith(("sha256:", "missing:")) for x in (a, b)):
-                out.append(f"{name}: contents changed")
+                where = (names or {}).get(b)
+                out.append(f"{name}{f' ({where})' if where else ''}: contents changed")
             else:
                 out.append(f"{name}: {a!r} -> {b!r}")
     return out
