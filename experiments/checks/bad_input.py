@@ -34,7 +34,7 @@ from wbc_jax.core import checks, io, provenance
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 # Issue 41, classes 3, 4 and 7 (their cases: integrity_cases, at the end of the file).
-INTEGRITY_CLASSES = ("results changed after written", "claims not measured", "broken paths")
+INTEGRITY_CLASSES = ("results changed after written", "claims not measured", "broken paths, foreign files")
 CLASSES = ("nonsense accepted", "contact geometry", "silent overwrite", "memory", "traceback or late failure",
            "reporting", *INTEGRITY_CLASSES)  # fmt: skip
 
@@ -264,6 +264,15 @@ def _fake_sweep(path: pathlib.Path, outputs: dict | None = None, inputs: dict | 
     return str(path)
 
 
+def _fake_envelope_run(path: pathlib.Path, summary: dict) -> str:
+    """An envelope run folder whose summary.json was edited after the run recorded it."""
+    path.mkdir()
+    _write(path / "summary.json", json.dumps(summary))
+    manifest = {"kind": "envelope", "fingerprint": {}, "outputs": {"summary.json": "0" * 64}}
+    (path / "run.json").write_text(json.dumps(manifest))
+    return str(path / "summary.json")
+
+
 def integrity_cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
     """(class, argv, pattern) of issue 41's classes 3, 4 and 7."""
     D, U, P = INTEGRITY_CLASSES
@@ -292,6 +301,8 @@ def integrity_cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
         (D, ["view", _fake_sweep(tmp / "int_inputs", inputs={gains: "sha256:" + "0" * 64}), "--env", "1"],
          r"its input files changed since it ran \(.*int_gains.json has changed since the run\)"),
         (D, ["view", good, "--env", "0", "--out", f"{good}/summary.json"], r"give a .rrd file name \(view writes"),
+        (D, ["limit", "--envelopes", _fake_envelope_run(tmp / "int_envelope", envelope)],
+         r"--envelopes .*int_envelope/summary.json changed since the run wrote it .*; rerun that envelope"),
         # Claims of what was not measured: no round, envelopes that are no impulse, no gain set.
         (U, ["limit", "--time-limit", "0"], r"--time-limit 0 summarises the rounds on disk, and --out .* holds none"),
         (U, ["limit", "--envelopes", bad_envelopes["nan"]], r"envelope at azimuth 90 deg is nan N s; an envelope is "
@@ -308,6 +319,11 @@ def integrity_cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
         (P, ["view", good, "--env", "0", "--out", "/proc/e.rrd"], r"--out /proc/e.rrd: cannot write in /proc"),
         (P, ["view", good, "--env", "0", "--out", f"{regular}/e.rrd"], r"int_regular is a file, not a folder"),
         (P, ["view", str(foreign), "--env", "0"], r"summary.json is not the summary of a push sweep"),
+        (P, ["tune", "--envelope", f"{foreign}/summary.json"], r"envelope file .*int_foreign/summary.json: needs "
+         r"matching azimuth_deg and positive impulse_ns lists, or the summary.json of wbc-jax envelope"),
+        (P, ["tune", "--envelope", _write(tmp / "int_list.json", "[1, 2]")], r"envelope file .*int_list.json: needs"),
+        (P, ["limit", "--envelopes", _write(tmp / "int_ints.json", json.dumps({**envelope, "envelope": {"0": {"0": 5}}}))],
+         r"--envelopes .*int_ints.json: not the summary.json of wbc-jax envelope"),
     ]  # fmt: skip
 
 

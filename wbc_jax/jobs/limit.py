@@ -161,6 +161,9 @@ def load_envelopes(cfg: LimitConfig) -> dict:
     out = {}
     for path in cfg.envelopes:
         path = pathlib.Path(path)
+        changed = runs.output_changed(path)  # a summary in a run folder: only as its run wrote it
+        if changed is not None and runs.run_root(path) is not None:
+            raise ValueError(f"--envelopes {changed}; rerun that envelope")
         try:
             data = json.loads(path.read_text())
             env = data["envelope"].get("0", data["envelope"].get(0))

@@ -424,5 +424,6 @@ def run(hc: HeldoutConfig | None = None, *, progress: bool = True, robot_name: s
     results = heldout(sets, hc, out / "parts", progress=progress, robot_name=robot_name)
     rep = write_heldout(out / "heldout.json", results, {}, extra={"config": dataclasses.asdict(hc)},
                         inputs={**files, "tasks": hc.tasks})  # fmt: skip
+    runs.record_output(out / "heldout.json")
     tuning_plots.envelope_polar(rep, out / "envelope_polar.png")
     return {n: {k: rep[n][k] for k in SUMMARY_KEYS} for n in sets}
