@@ -25,6 +25,7 @@ import pytest
 from wbc_jax import cli
 from wbc_jax.control.gains import default_gains, gains_to_dict
 from wbc_jax.jobs import balance, limit, limit_rounds, runs, sweep_config
+from wbc_jax.sim import physics
 from wbc_jax.tuning import tune  # noqa: F401  (before a tripwire: optax applies jax.jit when imported)
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -283,8 +284,9 @@ def test_sigint_prints_one_line_and_the_same_command_resumes(finished, tmp_path)
 
 def test_fingerprints_compare_inputs_by_content_not_by_spelling(tmp_path, capsys, tripwire):
     """A balance folder is bound to its run whatever the --out spelling (trailing slash, relative,
-    a copy), --plots/--no-plots, or the path of its gains file (another name, a symlink, ../): the
-    same fingerprint; other gains contents are still refused, named."""
+    a copy), --plots/--no-plots, --backend auto or the engine it resolves to, or the path of its
+    gains file (another name, a symlink, ../): the same fingerprint; other gains contents are still
+    refused, named."""
     gains = tmp_path / "g.json"
     gains.write_text(json.dumps(gains_to_dict(default_gains())))
     (tmp_path / "d").mkdir()
@@ -292,6 +294,7 @@ def test_fingerprints_compare_inputs_by_content_not_by_spelling(tmp_path, capsys
     first = balance.BalanceConfig(duration=0.1, gains=str(gains), out=str(tmp_path / "b"))
     runs.claim_output_dir(first.out, "balance", first.fingerprint())
     same = [dataclasses.replace(first, out=f"{first.out}/", plots=False),
+            dataclasses.replace(first, backend=physics.resolve_backend("auto")),  # what auto runs here
             dataclasses.replace(first, gains=str(tmp_path / "d" / ".." / "g.json")),
             dataclasses.replace(first, gains=str(tmp_path / "link.json"))]  # fmt: skip
     for cfg in same:

@@ -75,7 +75,9 @@ class BalanceConfig:
         runs.check_output_dir(self.out, "balance", self.fingerprint())
 
     def fingerprint(self) -> dict:
-        return runs.fingerprint(dataclasses.asdict(self), [self.gains, self.tasks])
+        # The engine as it resolves here (auto on a CPU is mujoco): the same run whichever was named.
+        return runs.fingerprint({**dataclasses.asdict(self), "backend": physics.resolve_backend(self.backend)},
+                                [self.gains, self.tasks])  # fmt: skip
 
     def controller_config(self, base: ControllerConfig | None = None) -> ControllerConfig:
         """``base`` (default: the defaults) with this run's controller settings."""
