@@ -6,6 +6,14 @@ model, the package version). A job refuses a folder that is a file, is not writa
 run of another kind, or holds a run of its kind made with other inputs (naming the difference),
 before anything is loaded or compiled: nothing is overwritten by a run with other settings. A
 resumable job (sweep, tune) continues a run of the same fingerprint; the others redo it.
+
+Inputs are compared by content (an input file by its sha256 wherever the config names it) and
+outputs by what they change: the folder's own path and whether plots are drawn are no part of a
+fingerprint, so a run resumes from a copy of its folder, under another spelling of --out or with
+its input files by other paths. Each result file a run writes (sweep parts, tables, summaries, a
+limit search's checkpoint) has its sha256 recorded in ``run.json`` (``outputs``): a file edited,
+or copied in from another run, is not the run's own (:func:`output_changed`) and is recomputed or
+refused, never merged nor shown.
 """
 
 from __future__ import annotations
@@ -25,7 +33,7 @@ MANIFEST = "run.json"
 OUTPUT_ONLY = ("out", "plots")
 # A fingerprint's record of where its input files were: written to the manifest, never compared (the
 # same file by another path, or a copied folder, is the same input).
-WHERE = "inputs"
+INPUT_PATHS = "inputs"
 NAME_MAX = 255  # bytes of one path component on Linux file systems (ENAMETOOLONG beyond)
 
 
@@ -56,7 +64,7 @@ def fingerprint(config: dict, files=(), robot: str = "icub") -> dict:
         "config": canonical(json.loads(json.dumps(config, default=str))),
         "model": provenance.sha256(model) if model is not None and model.exists() else None,
         "version": __version__,
-        WHERE: {_resolved(f): contents[str(f)] for f in files if f},
+        INPUT_PATHS: {_resolved(f): contents[str(f)] for f in files if f},
     }
 
 
@@ -74,8 +82,8 @@ def _resolved(path) -> str:
 
 def check_out_path(path, flag: str = "--out") -> pathlib.Path:
     """``path`` as a place to write, each problem in one line naming ``flag``: a name component
-    longer than the file system takes, a symlink to nothing or in a loop, a parent that is a file
-    or cannot be written (checked by writing there: ``os.access`` says yes to root everywhere)."""
+    longer than the file system takes, a symlink to nothing or in a loop, a parent that is a file.
+    Returns the nearest folder that exists (where :func:`probe_writable` writes)."""
     path = pathlib.Path(path)
     for part in path.parts:
         if len(os.fsencode(part)) > NAME_MAX:
@@ -96,6 +104,8 @@ def check_out_path(path, flag: str = "--out") -> pathlib.Path:
 
 
 def probe_writable(path: pathlib.Path, probe: pathlib.Path, flag: str) -> None:
+    """A file can be made in the folder ``probe`` (on the way to ``path``): checked by making one, as
+    ``os.access`` says yes to root everywhere (a read-only mount, /proc)."""
     try:
         with tempfile.TemporaryFile(dir=probe):
             pass
@@ -123,7 +133,7 @@ def check_output_dir(path, kind: str, fp: dict | None = None) -> pathlib.Path:
             )
         if fp is not None:
             old = record.get("fingerprint")
-            names = {sha: where for where, sha in (fp.get(WHERE) or {}).items()}
+            names = {sha: where for where, sha in (fp.get(INPUT_PATHS) or {}).items()}
             diff = differences(_compared(old if isinstance(old, dict) else {}), _compared(fp), names=names)
             if diff:
                 raise ValueError(f"--out {path} holds {with_article(kind)} run made with other inputs "
@@ -149,7 +159,7 @@ def _read_manifest(run_dir: pathlib.Path) -> dict:
 
 
 def _compared(fp: dict) -> dict:
-    return {k: v for k, v in fp.items() if k != WHERE}
+    return {k: v for k, v in fp.items() if k != INPUT_PATHS}
 
 
 def with_article(kind) -> str:
@@ -184,7 +194,7 @@ def claim_output_dir(path, kind: str, fp: dict, *, resume: bool = False) -> bool
     path = check_output_dir(path, kind, fp)
     if (path / MANIFEST).exists() and resume:
         record = _read_manifest(path)
-        if record.get("fingerprint", {}).get(WHERE) != fp.get(WHERE):  # a moved input or a copied folder
+        if record.get("fingerprint", {}).get(INPUT_PATHS) != fp.get(INPUT_PATHS):  # a moved input or a copied folder
             io.atomic_write_json(path / MANIFEST, {**record, "fingerprint": fp})
         return True
     path.mkdir(parents=True, exist_ok=True)
@@ -244,7 +254,7 @@ def changed_inputs(run_dir) -> list[str]:
     """The input files of the run in ``run_dir`` that are gone or changed since it ran, one line each."""
     fp = _read_manifest(pathlib.Path(run_dir)).get("fingerprint", {})
     problems = []
-    for where, content in (fp.get(WHERE) or {}).items():
+    for where, content in (fp.get(INPUT_PATHS) or {}).items():
         now = _content(where)
         if now != content:
             problems.append(f"{where} {'is gone' if now.startswith('missing:') else 'has changed'} since the run")
