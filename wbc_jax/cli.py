@@ -239,6 +239,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _leave(status: int) -> None:
+    """Exit without the interpreter's shutdown: interrupted mid-tick, the C physics' worker threads
+    may still run, and finalising under them crashed the process (SIGSEGV in 1 of 4 interrupted sweeps here)."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
+
+
 def main(argv: list[str] | None = None) -> int:
     # Before JAX starts: XLA:CPU logs an error line for each program read back from the persistent
     # compilation cache (its tuning flags "prefer-no-gather/scatter" are not host CPU features), which
@@ -271,6 +279,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         again = "resume with the same command" if args.command in RESUMABLE else "run the same command again"
         print(f"wbc-jax {args.command}: interrupted; {again}", file=sys.stderr)
+        if argv is None:  # the command line: leave now (every result file is written atomically)
+            _leave(130)
         return 130
     print(json.dumps(line, indent=2) if args.command == "info" else json.dumps(line, separators=(",", ":")))
     return 0
