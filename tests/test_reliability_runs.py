@@ -123,6 +123,13 @@ def test_a_finished_rerun_leaves_its_summary_alone(finished, tmp_path, monkeypat
     assert (out / "summary.json").read_bytes() == before
     printed = json.loads(capsys.readouterr().out.splitlines()[-1])
     assert {k: printed[k] for k in measured} == measured
+    # From Python too: the summary as the run wrote it, its envelope keyed by azimuth (a float) as a fresh run's.
+    from wbc_jax.jobs import sweep
+
+    cfg = cli.config_from_args(cli.build_parser().parse_args([*SWEEP, "--gains", "g.json", "--out", "sw"]),
+                               sweep_config.default_config())  # fmt: skip
+    again = sweep.run_sweep(cfg, progress=False)
+    assert list(again["envelope"]) == [0.0] and again["run_s"] == measured["run_s"]
 
 
 def test_view_refuses_a_changed_run_and_writes_none_of_its_files(finished, tmp_path, capsys):

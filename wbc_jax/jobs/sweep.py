@@ -219,7 +219,9 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
             bar.update(hi - lo)
     if writer and done_envs == 0 and _finished(out):
         # A re-run of a finished run: its summary (the timings measured when it ran) stays as it is.
-        return io.read_json(out / "summary.json", "sweep summary")
+        stored = io.read_json(out / "summary.json", "sweep summary")
+        stored["envelope"] = {float(az): e for az, e in stored["envelope"].items()}  # keyed as summarize_table keys it
+        return stored
     table = pd.concat(tables, ignore_index=True)
     if writer:
         io.atomic_write_parquet(out / "results.parquet", table)
