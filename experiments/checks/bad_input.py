@@ -20,6 +20,7 @@ comes after a compilation fails there), from :func:`cases`.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import pathlib
@@ -32,8 +33,10 @@ import time
 from wbc_jax.core import checks, io, provenance
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
+# Issue 41, classes 3, 4 and 7 (their cases: integrity_cases, at the end of the file).
+INTEGRITY_CLASSES = ("results changed after written", "claims not measured", "broken paths, foreign files")
 CLASSES = ("nonsense accepted", "contact geometry", "silent overwrite", "memory", "traceback or late failure",
-           "reporting", "several processes")  # fmt: skip
+           "reporting", "several processes", *INTEGRITY_CLASSES)  # fmt: skip
 
 
 def _write(path: pathlib.Path, data) -> str:
@@ -233,7 +236,7 @@ def cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
         (R, ["push-sweep", "--elevation", "90", "--directions", "8"], r"--elevation 90 is a vertical push, the same at "
          r"every azimuth: use --directions 1 \(got 8\)"),
         (R, ["envelope", "--elevation", "-90"], r"--elevation -90 is a vertical push"),
-    ] + several_processes_cases()  # fmt: skip
+    ] + several_processes_cases() + integrity_cases(tmp)  # fmt: skip
 
 
 # ---- Issue 41, class 9: several processes (jax.distributed) ------------------------------------
@@ -261,6 +264,93 @@ def several_processes_cases() -> list[tuple[str, list[str], str]]:
          r"--initialization-timeout must be a number in \(0, 3600\] s, got -1"),
         (P, ["--distributed", "--initialization-timeout", "inf", "push-sweep"],
          r"--initialization-timeout must be a number in \(0, 3600\] s, got inf"),
+    ]  # fmt: skip
+
+
+# ---- issue 41, classes 3, 4 and 7: results changed after they were written, claims of what was not
+# measured, broken paths (each refused in one line before anything compiles) -----------------------
+
+
+def _fake_sweep(path: pathlib.Path, outputs: dict | None = None, inputs: dict | None = None) -> str:
+    """A finished-looking sweep folder (results.parquet of envs 0..1, a sweep's summary.json) whose
+    run.json records the sha256 ``outputs`` (default: the files' own) and input files ``inputs``."""
+    import pandas as pd
+
+    from wbc_jax.control.gains import default_gains, gains_to_dict
+    from wbc_jax.jobs import sweep_config
+
+    path.mkdir()
+    pd.DataFrame({"env": [0, 1], "survived": [True, False]}).to_parquet(path / "results.parquet", index=False)
+    config = {k: list(v) if isinstance(v, tuple) else v
+              for k, v in dataclasses.asdict(sweep_config.SweepConfig(out=None)).items()}  # fmt: skip
+    _write(path / "summary.json", json.dumps({"config": config, "gains": gains_to_dict(default_gains()),
+                                              "backend": "mujoco"}))  # fmt: skip
+    own = {name: provenance.sha256(path / name) for name in ("results.parquet", "summary.json")}
+    manifest = {"kind": "sweep", "fingerprint": {"inputs": inputs or {}}, "outputs": {**own, **(outputs or {})}}
+    (path / "run.json").write_text(json.dumps(manifest))
+    return str(path)
+
+
+def _fake_envelope_run(path: pathlib.Path, summary: dict) -> str:
+    """An envelope run folder whose summary.json was edited after the run recorded it."""
+    path.mkdir()
+    _write(path / "summary.json", json.dumps(summary))
+    manifest = {"kind": "envelope", "fingerprint": {}, "outputs": {"summary.json": "0" * 64}}
+    (path / "run.json").write_text(json.dumps(manifest))
+    return str(path / "summary.json")
+
+
+def integrity_cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
+    """(class, argv, pattern) of issue 41's classes 3, 4 and 7."""
+    D, U, P = INTEGRITY_CLASSES
+    gains = _write(tmp / "int_gains.json", "{}")
+    envelope = {"config": {"body": "chest", "push_duration": 0.1, "push_onset": 0.5, "elevation": 0.0},
+                "envelope": {"0": {str(a): {"impulse_ns": 10.0} for a in (0.0, 90.0, 180.0, 270.0)}}}  # fmt: skip
+    bad_envelopes = {}
+    for name, value in (("nan", float("nan")), ("inf", float("inf")), ("neg", -3.0)):
+        doc = json.loads(json.dumps(envelope))
+        doc["envelope"]["0"]["90.0"]["impulse_ns"] = value
+        bad_envelopes[name] = _write(tmp / f"env_{name}.json", json.dumps(doc))
+    (tmp / "int_dangling").symlink_to(tmp / "int_nowhere" / "x")
+    (tmp / "int_loop").symlink_to(tmp / "int_loop")
+    regular = _write(tmp / "int_regular", "x")
+    foreign = tmp / "int_foreign"
+    _fake_sweep(foreign)
+    (foreign / "summary.json").write_text(json.dumps({"envelope": {"0": {}}, "config": {}}))
+    (foreign / "run.json").unlink()
+    good = _fake_sweep(tmp / "int_good")
+    return [
+        # Results changed after they were written: a table edited, an input file changed since the run.
+        (D, ["view", _fake_sweep(tmp / "int_edited", {"results.parquet": "0" * 64}), "--env", "0"],
+         r"results.parquet changed since the run wrote it \(its sha256 differs from .*run.json\); rerun the sweep"),
+        (D, ["view", _fake_sweep(tmp / "int_unrecorded", {"summary.json": None}), "--env", "0"],
+         r"summary.json is not recorded in .*run.json \(copied in"),
+        (D, ["view", _fake_sweep(tmp / "int_inputs", inputs={gains: "sha256:" + "0" * 64}), "--env", "1"],
+         r"its input files changed since it ran \(.*int_gains.json has changed since the run\)"),
+        (D, ["view", good, "--env", "0", "--out", f"{good}/summary.json"], r"give a .rrd file name \(view writes"),
+        (D, ["limit", "--envelopes", _fake_envelope_run(tmp / "int_envelope", envelope)],
+         r"--envelopes .*int_envelope/summary.json changed since the run wrote it .*; rerun that envelope"),
+        # Claims of what was not measured: no round, envelopes that are no impulse, no gain set.
+        (U, ["limit", "--time-limit", "0"], r"--time-limit 0 summarises the rounds on disk, and --out .* holds none"),
+        (U, ["limit", "--envelopes", bad_envelopes["nan"]], r"envelope at azimuth 90 deg is nan N s; an envelope is "
+         r"a finite impulse >= 0 N s"),
+        (U, ["limit", "--envelopes", bad_envelopes["inf"]], r"azimuth 90 deg is inf N s; an envelope is a finite"),
+        (U, ["limit", "--envelopes", bad_envelopes["neg"]], r"azimuth 90 deg is -3.0 N s; an envelope is a finite"),
+        (U, ["heldout", "--sets"], r"--sets: give at least one gain set \('default', 'critical' or NAME=FILE\)"),
+        # Broken paths: --out through a symlink to nothing or a loop, too long a name, under a file.
+        (P, ["push-sweep", "--out", str(tmp / "int_dangling")], r"--out .*int_dangling is a symlink to a missing"),
+        (P, ["balance", "--out", str(tmp / "int_loop" / "x")], r"int_loop is a symlink to a missing target or in a "
+         r"loop"),
+        (P, ["envelope", "--out", str(tmp / ("n" * 300))], r"a name of 300 bytes; names are at most 255 bytes"),
+        (P, ["tune", "--out", f"{regular}/run"], r"--out .*int_regular/run: .*int_regular is a file, not a folder"),
+        (P, ["view", good, "--env", "0", "--out", "/proc/e.rrd"], r"--out /proc/e.rrd: cannot write in /proc"),
+        (P, ["view", good, "--env", "0", "--out", f"{regular}/e.rrd"], r"int_regular is a file, not a folder"),
+        (P, ["view", str(foreign), "--env", "0"], r"summary.json is not the summary of a push sweep"),
+        (P, ["tune", "--envelope", f"{foreign}/summary.json"], r"envelope file .*int_foreign/summary.json: needs "
+         r"matching azimuth_deg and positive impulse_ns lists, or the summary.json of wbc-jax envelope"),
+        (P, ["tune", "--envelope", _write(tmp / "int_list.json", "[1, 2]")], r"envelope file .*int_list.json: needs"),
+        (P, ["limit", "--envelopes", _write(tmp / "int_ints.json", json.dumps({**envelope, "envelope": {"0": {"0": 5}}}))],
+         r"--envelopes .*int_ints.json: not the summary.json of wbc-jax envelope"),
     ]  # fmt: skip
 
 

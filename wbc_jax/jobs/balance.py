@@ -75,7 +75,9 @@ class BalanceConfig:
         runs.check_output_dir(self.out, "balance", self.fingerprint())
 
     def fingerprint(self) -> dict:
-        return runs.fingerprint(dataclasses.asdict(self), [self.gains, self.tasks])
+        # The engine as it resolves here (auto on a CPU is mujoco): the same run whichever was named.
+        return runs.fingerprint({**dataclasses.asdict(self), "backend": physics.resolve_backend(self.backend)},
+                                [self.gains, self.tasks])  # fmt: skip
 
     def controller_config(self, base: ControllerConfig | None = None) -> ControllerConfig:
         """``base`` (default: the defaults) with this run's controller settings."""
@@ -160,6 +162,8 @@ def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: 
         io.atomic_save_npz(out / "trajectory.npz", joints=np.array(st.robot.index.joints),
                            contact_names=np.array(loop.contact_set.names),
                            contact_dims=np.array([c.dim for c in loop.contact_set.contacts]), **traj)  # fmt: skip
+        for name in ("metrics.json", "trajectory.npz"):
+            runs.record_output(out / name)
         if cfg.plots:
             from wbc_jax.report import plots  # matplotlib: imported after the simulation
 

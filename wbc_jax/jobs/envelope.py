@@ -208,6 +208,7 @@ def search(cfg: sweep_config.SweepConfig, *, resolution: float | None = None, ro
     }  # fmt: skip
     if cfg.out is not None:
         io.atomic_write_json(pathlib.Path(cfg.out) / "summary.json", summary)
+        runs.record_output(pathlib.Path(cfg.out) / "summary.json")
     return summary
 
 

@@ -119,6 +119,9 @@ class LimitConfig:
         self.sweep("mujoco").check()
         load_envelopes(self)
         runs.check_output_dir(self.out, "limit", fingerprint(self))
+        if self.time_limit == 0 and not (pathlib.Path(self.out) / "state.json").exists():
+            raise ValueError(f"--time-limit 0 summarises the rounds on disk, and --out {self.out} holds none: nothing "
+                             "was measured; give --time-limit > 0 (or none) to run a round")  # fmt: skip
 
     def sweep(self, backend: str, body: str | None = None) -> sweep_config.SweepConfig:
         """The sweep config that pushes and simulates alike (its setups and scenarios)."""
@@ -158,6 +161,9 @@ def load_envelopes(cfg: LimitConfig) -> dict:
     out = {}
     for path in cfg.envelopes:
         path = pathlib.Path(path)
+        changed = runs.output_changed(path)  # a summary in a run folder: only as its run wrote it
+        if changed is not None and runs.run_root(path) is not None:
+            raise ValueError(f"--envelopes {changed}; rerun that envelope")
         try:
             data = json.loads(path.read_text())
             env = data["envelope"].get("0", data["envelope"].get(0))
@@ -168,7 +174,15 @@ def load_envelopes(cfg: LimitConfig) -> dict:
             if pushed.get(key) != getattr(cfg, key):
                 raise ValueError(f"--envelopes {path}: its pushes have {key} {pushed.get(key)!r}, the search "
                                  f"{getattr(cfg, key)!r}")  # fmt: skip
-        table = {float(a): float(e["impulse_ns"]) for a, e in env.items()}
+        try:
+            table = {float(a): float(e["impulse_ns"]) for a, e in env.items()}
+        except (KeyError, TypeError, ValueError) as err:
+            raise ValueError(f"--envelopes {path}: not the summary.json of wbc-jax envelope ({err})") from None
+        bad = {a: j for a, j in table.items() if not (math.isfinite(j) and j >= 0.0)}
+        if bad:
+            a, j = next(iter(bad.items()))
+            raise ValueError(f"--envelopes {path}: the envelope at azimuth {a:g} deg is {j!r} N s; an envelope is a "
+                             "finite impulse >= 0 N s")  # fmt: skip
         missing = [a for a in cfg.directions if float(a) not in table]
         if missing:
             raise ValueError(f"--envelopes {path}: no envelope at azimuths {missing[:4]} of the search "

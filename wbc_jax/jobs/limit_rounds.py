@@ -219,6 +219,10 @@ def _load_state(out: pathlib.Path):
     path, npz = out / "state.json", out / "witness.npz"
     if not path.exists():
         return [], {}
+    for name in (path, npz):  # the search goes on from its checkpoint only as it wrote it
+        why = runs.output_changed(name)
+        if why is not None:
+            raise ValueError(f"--out {out}: {why}; remove the folder to start over")
     try:
         records = json.loads(path.read_text())["candidates"]
         with np.load(npz) as f:
@@ -237,7 +241,9 @@ def _save_state(out: pathlib.Path, search: Search, records: list, witnesses: dic
     z = np.array([witnesses[k] for k in keys]).reshape(len(keys), search.Kn, search.n)
     io.atomic_save_npz(out / "witness.npz", z=z, u=search.opt.torques(z), direction=np.array([k[0] for k in keys], int),
                        impulse_ns=np.array([k[1] for k in keys]), onset_tick=np.asarray(search.k0))  # fmt: skip
+    runs.record_output(out / "witness.npz")
     io.atomic_write_json(out / "state.json", {"candidates": records})
+    runs.record_output(out / "state.json")
 
 
 def run(cfg: limit.LimitConfig, *, progress: bool = True, robot_name: str = "icub") -> dict:
@@ -279,8 +285,16 @@ def run(cfg: limit.LimitConfig, *, progress: bool = True, robot_name: str = "icu
         records += _records(columns, r)
         _save_state(out, search, records, witnesses)
     bar.close()
+    if not records:  # no round finished: nothing was measured, so no limit is claimed
+        raise ValueError(f"--time-limit {cfg.time_limit:g} s ran out before round 1 finished: nothing was measured; "
+                         "give a longer --time-limit (a rerun resumes)")  # fmt: skip
     summary = summarize(cfg, search, records, time.perf_counter() - t_start)
+    if done >= cfg.rounds and runs.output_changed(out / "summary.json") is None:
+        # A re-run of a finished search: its summary.json (the timings measured when it ran) stays as it
+        # is; the caller gets this process's (no optimiser step).
+        return summary
     io.atomic_write_json(out / "summary.json", summary)
+    runs.record_output(out / "summary.json")
     from wbc_jax.report import limit_plots
 
     limit_plots.polar(summary, out / "limit.png")
@@ -300,26 +314,35 @@ def summarize(cfg: limit.LimitConfig, search: Search, records: list, wall_s: flo
     directions = {}
     for d, az in enumerate(search.azimuths):
         mine = [x for x in records if x["direction"] == d]
-        lo, hi = limit.bracket(_tested(records, d))
+        evidence = _tested(records, d)
+        if not evidence:  # every candidate's optimisation was cut by the time limit: nothing measured
+            directions[az] = {"limit_ns": None, "bracket_ns": [None, None], "at_cap": False, "measured": False,
+                              "lip_bound_ns": search.lip[az]["impulse_bound_ns"], "fraction_of_lip": None,
+                              "limit_at_least_envelopes": False, "witness": None,
+                              "envelopes": {k: {"impulse_ns": e[az], "fraction_of_limit": None}
+                                            for k, e in search.envelopes.items()}}  # fmt: skip
+            continue
+        lo, hi = limit.bracket(evidence)
         bound = search.lip[az]["impulse_bound_ns"]
         witness = max((x for x in mine if x["verified"]), key=lambda x: x["impulse_ns"], default=None)
         envs = {k: {"impulse_ns": e[az], "fraction_of_limit": e[az] / lo if lo > 0 else None}
                 for k, e in search.envelopes.items()}  # fmt: skip
         directions[az] = {
             "limit_ns": lo, "bracket_ns": [lo, None if np.isinf(hi) else hi], "at_cap": bool(np.isinf(hi)),
-            "lip_bound_ns": bound, "fraction_of_lip": lo / bound, "envelopes": envs,
+            "lip_bound_ns": bound, "fraction_of_lip": lo / bound, "envelopes": envs, "measured": True,
             "limit_at_least_envelopes": all(e[az] <= lo + 1e-9 for e in search.envelopes.values()),
             "witness": None if witness is None else {k: witness[k] for k in witness if k.startswith("replay_")
                                                      or k in ("round", "passed_step", "impulse_ns")},
         }  # fmt: skip
-    limits = np.array([v["limit_ns"] for v in directions.values()])
+    fractions = [v["fraction_of_lip"] for v in directions.values() if v["measured"]]
     B = len(search.azimuths) * cfg.candidates
     return {
         "directions": directions,
-        "median_fraction_of_lip": float(np.median(limits / [v["lip_bound_ns"] for v in directions.values()])),
+        "median_fraction_of_lip": float(np.median(fractions)) if fractions else None,
+        # A target is met only where every direction was measured.
         "targets": {
             "limit_at_least_every_envelope": all(v["limit_at_least_envelopes"] for v in directions.values()),
-            "every_limit_replayed_in_c_mujoco": all(v["witness"] is not None or v["limit_ns"] == 0
+            "every_limit_replayed_in_c_mujoco": all(v["measured"] and (v["witness"] is not None or v["limit_ns"] == 0)
                                                     for v in directions.values()),
         },  # fmt: skip
         "rounds": cfg.rounds, "rounds_done": 1 + max((x["round"] for x in records), default=-1),

@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import pathlib
+import sys
 
 import jax
 import numpy as np
@@ -21,6 +22,7 @@ import numpy as np
 from wbc_jax.control.controller import ControllerConfig
 from wbc_jax.control.gains import Gains, default_gains, gains_from_dict, gains_to_dict, load_gains, validate_gains
 from wbc_jax.core import constants, io, provenance
+from wbc_jax.core.options import check_options
 from wbc_jax.jobs import runs
 from wbc_jax.jobs.sweep_config import SweepConfig, default_config
 from wbc_jax.jobs.sweep_table import summarize_table
@@ -130,10 +132,12 @@ def _part_name(c: int) -> str:
 
 
 def _read_part(path: pathlib.Path, lo: int, hi: int):
-    """A part file if it holds exactly envs lo..hi-1, else None (missing, unreadable or wrong)."""
+    """A part file if it is the run's own (its sha256 the one the manifest recorded when the run
+    wrote it) and holds exactly envs lo..hi-1, else None (missing, changed, copied in, unreadable
+    or wrong: recomputed)."""
     import pandas as pd
 
-    if not path.exists():
+    if not path.exists() or runs.output_changed(path) is not None:
         return None
     try:
         table = pd.read_parquet(path)
@@ -187,6 +191,10 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
     tables = []
     bounds = [(c * batch, min((c + 1) * batch, cfg.size)) for c in range(n_chunks)]
     stored = [_read_part(parts / _part_name(c), lo, hi) for c, (lo, hi) in enumerate(bounds)]
+    replaced = [_part_name(c) for c, t in enumerate(stored) if t is None and (parts / _part_name(c)).exists()]
+    if replaced and writer:
+        print(f"sweep --out {out}: {len(replaced)} part file(s) not the run's own (changed or copied in), recomputed: "
+              f"{replaced[:3]}", file=sys.stderr)  # fmt: skip
     # Every process must run the same chunks (each run is a collective): process 0's parts decide.
     todo = _agreed([t is None for t in stored])
     with tqdm(total=cfg.size, unit="env", disable=not progress, desc=f"sweep ({st.backend})") as bar:
@@ -205,12 +213,19 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
                                       "ticks_simulated": np.asarray(result.metrics.ticks)})  # fmt: skip
                 if writer:
                     io.atomic_write_parquet(part, table)
+                    runs.record_output(part)
             if table is not None:  # None: a part only process 0 can read (no shared file system)
                 tables.append(table)
             bar.update(hi - lo)
+    if writer and done_envs == 0 and _finished(out):
+        # A re-run of a finished run: its summary (the timings measured when it ran) stays as it is.
+        stored = io.read_json(out / "summary.json", "sweep summary")
+        stored["envelope"] = {float(az): e for az, e in stored["envelope"].items()}  # keyed as summarize_table keys it
+        return stored
     table = pd.concat(tables, ignore_index=True)
     if writer:
         io.atomic_write_parquet(out / "results.parquet", table)
+        runs.record_output(out / "results.parquet")
     steps_per_env = st.loop.n_ticks * st.loop.n_sub
     summary = summarize_table(table, cfg, st.robot)
     devices = runner.batch_devices() if st.backend != "mujoco" else jax.devices()[:1]  # C MuJoCo: host only
@@ -222,25 +237,36 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
         "n_devices": len(devices),
         "versions": {"jax": jax.__version__, "mujoco": __import__("mujoco").__version__,
                      "wbc_jax": __import__("wbc_jax").__version__},
-        "compile_s": round(compile_s, 2),
+        # Seconds of this process's simulation (None: nothing was simulated, every part was on disk).
+        "compile_s": round(compile_s, 2) if done_envs else None,
         # from the process's start to the first chunk's first tick (None: every chunk was on disk)
         "started_s": None if started is None else round(started - provenance.process_started(), 2),
-        "run_s": round(run_s, 2),
+        "run_s": round(run_s, 2) if done_envs else None,
         # Steps of the grid run now per second of run (with a queue, fewer were simulated).
         "physics_steps_per_s": (done_envs * steps_per_env / run_s) if run_s > 0 else None,
         # Over every part, those of an earlier (interrupted) run included; resumed_envs came from there.
         "physics_steps_simulated": int(table["ticks_simulated"].sum()) * st.loop.n_sub,
         "resumed_envs": int(cfg.size - done_envs),
+        "recomputed_parts": replaced,
         "gains": gains_to_dict(base),
         "provenance": provenance.record({"gains": cfg.gains, "tasks": cfg.tasks}),
     })  # fmt: skip
     if writer:
         io.atomic_write_json(out / "summary.json", summary)
+        runs.record_output(out / "summary.json")
         from wbc_jax.report import sweep_plots  # matplotlib: imported after the simulation
 
         sweep_plots.survival_map(table, out / "survival.png", summary["envelope"])
         sweep_plots.envelope(table, summary["envelope"], out / "envelope.png")
     return summary
+
+
+def _finished(out: pathlib.Path) -> bool:
+    """Are the run's table and summary on disk, as it wrote them (and its plots)?"""
+    tables = ("results.parquet", "summary.json")
+    return all(runs.output_changed(out / name) is None for name in tables) and all(
+        (out / name).exists() for name in ("survival.png", "envelope.png")
+    )
 
 
 def load_sweep(run_dir) -> tuple[SweepConfig, dict]:
@@ -254,11 +280,18 @@ def load_sweep(run_dir) -> tuple[SweepConfig, dict]:
     if not path.exists():
         raise FileNotFoundError(f"{path} is missing: the sweep has not finished; rerun it with the same --out")
     summary = io.read_json(path, "sweep summary")
-    if not isinstance(summary, dict):
-        raise ValueError(f"{path} is not a sweep summary (a JSON object)")
-    values = {k: tuple(v) if isinstance(v, list) else v for k, v in summary.get("config", {}).items()}
+    foreign = f"{path} is not the summary of a push sweep (wbc-jax push-sweep writes it)"
+    if not (isinstance(summary, dict) and isinstance(summary.get("config"), dict)
+            and isinstance(summary.get("gains"), dict) and summary.get("backend") in physics.BACKENDS):  # fmt: skip
+        raise ValueError(f"{foreign}: it lacks the sweep's config, gains or backend")
+    values = {k: tuple(v) if isinstance(v, list) else v for k, v in summary["config"].items()}
     known = {f.name for f in dataclasses.fields(SweepConfig)}
-    return SweepConfig(**{k: v for k, v in values.items() if k in known}), summary
+    try:
+        cfg = SweepConfig(**{k: v for k, v in values.items() if k in known})
+        check_options(dataclasses.replace(cfg, out=None, gains=None, tasks=None))  # files: checked by the replay
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{foreign}: its config does not hold ({err})") from None
+    return cfg, summary
 
 
 def replay_env(run_dir, env: int, *, robot_name: str = "icub", backend: str | None = None):

@@ -144,9 +144,10 @@ class SweepConfig:
         runs.check_output_dir(self.out, self.KIND, self.fingerprint())
 
     def fingerprint(self) -> dict:
-        """What determines the results (:func:`wbc_jax.jobs.runs.fingerprint`)."""
-        return runs.fingerprint({**dataclasses.asdict(self), "dtype": str(scenario.float_dtype())},
-                                [self.gains, self.tasks])  # fmt: skip
+        """What determines the results (:func:`wbc_jax.jobs.runs.fingerprint`): the engine as it resolves
+        here (``auto`` on a CPU is ``mujoco``)."""
+        return runs.fingerprint({**dataclasses.asdict(self), "backend": physics.resolve_backend(self.backend),
+                                 "dtype": str(scenario.float_dtype())}, [self.gains, self.tasks])  # fmt: skip
 
     def controller_config(self, base: ControllerConfig | None = None) -> ControllerConfig:
         """``base`` (default: the defaults) with this sweep's controller settings."""

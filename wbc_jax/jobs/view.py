@@ -36,8 +36,11 @@ class ViewConfig:
         check_options(self)
         if self.spawn and self.out is not None:
             raise ValueError("--out and --spawn exclude each other: write a file or open a viewer")
-        if self.out is not None and pathlib.Path(self.out).is_dir():
+        if self.out is not None and runs.check_out_path(self.out) and pathlib.Path(self.out).is_dir():
             raise ValueError(f"--out {self.out} is a folder; give a .rrd file name")
+        if self.out is not None and not self.out.endswith(".rrd"):
+            raise ValueError(f"--out {self.out}: give a .rrd file name (view writes a rerun recording, never a run's "
+                             "own files)")  # fmt: skip
         kind = run_kind(self.run_dir)
         if kind == "balance" and self.env is not None:
             raise ValueError(f"{self.run_dir} is a balance run (one trajectory): --env applies to sweeps only")
@@ -48,10 +51,46 @@ class ViewConfig:
                                  f"0..{size - 1}")  # fmt: skip
             if self.env >= size:
                 raise ValueError(f"--env {self.env} is out of range: this sweep has envs 0..{size - 1}")
+            from wbc_jax.jobs.sweep import load_sweep
+
+            load_sweep(self.run_dir)  # a summary.json of something else: named before anything compiles
+        check_untouched(pathlib.Path(self.run_dir), kind)
+        if not self.spawn:
+            check_recording_path(recording_path(self.run_dir, self.out, kind, self.env), self.out is not None)
 
 
 def default_config() -> ViewConfig:
     return ViewConfig()
+
+
+def recording_path(run_dir, out: str | None, kind: str, env: int | None) -> pathlib.Path:
+    """Where the recording goes: ``out``, or RUN_DIR/rollout.rrd (a balance run), RUN_DIR/env_I.rrd."""
+    if out is not None:
+        return pathlib.Path(out)
+    return pathlib.Path(run_dir) / ("rollout.rrd" if kind == "balance" else f"env_{env}.rrd")
+
+
+def check_recording_path(path: pathlib.Path, given: bool = True) -> None:
+    """The recording can be written at ``path`` (``given``: by --out, else the default in the run's
+    folder): one line naming it and the problem otherwise."""
+    flag = "--out" if given else "the recording (give --out FILE.rrd elsewhere)"
+    runs.probe_writable(path, runs.check_out_path(path, flag), flag)
+
+
+def check_untouched(run_dir: pathlib.Path, kind: str) -> None:
+    """A run is shown only as it was written: its result files as the run recorded them (sha256 in
+    run.json), and for a sweep (re-simulated from its config) its input files as they were."""
+    if not (run_dir / runs.MANIFEST).exists():
+        return
+    own = ("trajectory.npz",) if kind == "balance" else ("results.parquet", "summary.json")
+    for name in own:
+        why = runs.output_changed(run_dir / name)
+        if why is not None:
+            raise ValueError(f"view {run_dir}: {why}; rerun the {kind} with the same --out")
+    changed = runs.changed_inputs(run_dir) if kind == "sweep" else []
+    if changed:
+        raise ValueError(f"view {run_dir}: its input files changed since it ran ({'; '.join(changed)}): a replay "
+                         "would not show that run; rerun the sweep")  # fmt: skip
 
 
 def run_kind(run_dir: str | pathlib.Path) -> str:
@@ -120,6 +159,7 @@ def load_run(run_dir: str | pathlib.Path, env: int | None = None) -> tuple[dict,
 
     run_dir = pathlib.Path(run_dir)
     kind = run_kind(run_dir)
+    check_untouched(run_dir, kind)
     if kind == "balance":
         if env is not None:
             raise ValueError(f"{run_dir} is a balance run (one trajectory): --env applies to sweeps only")
@@ -161,9 +201,10 @@ def view(run_dir: str | pathlib.Path, env: int | None = None, *, out: str | path
         rec.spawn()
         path = None
     else:
-        path = pathlib.Path(out) if out is not None else run_dir / f"{info['name']}.rrd"
+        path = recording_path(run_dir, out, info["kind"], env)
         if path.exists() and path.is_dir():
             raise ValueError(f"--out {path} is a folder; give a .rrd file name")
+        check_recording_path(path, out is not None)
         path.parent.mkdir(parents=True, exist_ok=True)
         rec.save(str(path))
     log_trajectory(rec, traj, push_body=info["push_body"], joints=info["joints"], contacts=info["contacts"],

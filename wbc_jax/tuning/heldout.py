@@ -142,7 +142,7 @@ def _run_table(st: scenario.Setup, scen: Scenario, cols: dict, folder: pathlib.P
         for c, lo in enumerate(range(0, B, chunk)):
             hi = min(lo + chunk, B)
             part = folder / f"part-{c:05d}-{tag}.parquet"
-            if part.exists():
+            if part.exists() and runs.output_changed(part) is None:  # the run's own part (else recomputed)
                 table = pd.read_parquet(part)
             else:
                 res = runner.run(
@@ -154,6 +154,7 @@ def _run_table(st: scenario.Setup, scen: Scenario, cols: dict, folder: pathlib.P
                 metrics = metrics_lib.summarize(res.metrics, push_end)
                 table = pd.DataFrame({**{k: np.asarray(v)[lo:hi] for k, v in cols.items() if k != "onset"}, **metrics})
                 io.atomic_write_parquet(part, table)
+                runs.record_output(part)
             tables.append(table)
             bar.update(hi - lo)
     steps = st.loop.n_ticks * st.loop.n_sub
@@ -412,6 +413,8 @@ def run(hc: HeldoutConfig | None = None, *, progress: bool = True, robot_name: s
 
     hc = heldout_default_config() if hc is None else hc
     out = pathlib.Path(hc.out)
+    if not hc.sets:  # (wbc-jax tune adds its own sets; the heldout job has only these)
+        raise ValueError("--sets: give at least one gain set ('default', 'critical' or NAME=FILE)")
     runs.check_output_dir(out, "heldout")
     files = set_files(hc.sets)
     sets = load_sets(hc.sets, model_lib.load_robot(robot_name).index.n, scenario.float_dtype())
@@ -421,5 +424,6 @@ def run(hc: HeldoutConfig | None = None, *, progress: bool = True, robot_name: s
     results = heldout(sets, hc, out / "parts", progress=progress, robot_name=robot_name)
     rep = write_heldout(out / "heldout.json", results, {}, extra={"config": dataclasses.asdict(hc)},
                         inputs={**files, "tasks": hc.tasks})  # fmt: skip
+    runs.record_output(out / "heldout.json")
     tuning_plots.envelope_polar(rep, out / "envelope_polar.png")
     return {n: {k: rep[n][k] for k in SUMMARY_KEYS} for n in sets}

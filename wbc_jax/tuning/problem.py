@@ -53,14 +53,18 @@ def load_envelope(path) -> tuple[np.ndarray, np.ndarray]:
         data = json.loads(pathlib.Path(path).read_text())
     except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
         raise ValueError(f"envelope file {path} is unreadable: {err}") from None
-    if "envelope" in data and "azimuth_deg" not in data:
-        env = data["envelope"].get("0", data["envelope"].get(0, {}))
-        az = np.array([float(a) for a in env], float)
-        imp = np.array([e["impulse_ns"] for e in env.values()], float)
-    else:
-        az, imp = np.asarray(data.get("azimuth_deg", []), float), np.asarray(data.get("impulse_ns", []), float)
+    try:  # a summary.json of another job, or any other JSON: named, never a traceback
+        if "envelope" in data and "azimuth_deg" not in data:
+            env = data["envelope"].get("0", data["envelope"].get(0, {}))
+            az = np.array([float(a) for a in env], float)
+            imp = np.array([e["impulse_ns"] for e in env.values()], float)
+        else:
+            az, imp = np.asarray(data.get("azimuth_deg", []), float), np.asarray(data.get("impulse_ns", []), float)
+    except (AttributeError, KeyError, TypeError, ValueError):
+        az = imp = np.zeros(0)
     if az.size == 0 or az.shape != imp.shape or not np.all(np.isfinite(imp)) or np.any(imp <= 0):
-        raise ValueError(f"envelope file {path}: needs matching azimuth_deg and positive impulse_ns lists")
+        raise ValueError(f"envelope file {path}: needs matching azimuth_deg and positive impulse_ns lists, "
+                         "or the summary.json of wbc-jax envelope")  # fmt: skip
     order = np.argsort(az % 360.0)
     return az[order] % 360.0, imp[order]
 

@@ -1,0 +1,328 @@
+"""Run folders under hostile use (issue 41, classes 3, 4, 7 and 8): results changed after they were
+written are never merged nor shown, jobs claim nothing they did not measure, broken output paths and
+SIGINT end in one line, and a run is resumed wherever its inputs and outputs are the same.
+
+One finished push sweep (module scope, the C MuJoCo engine, two envs of five ticks: the shape
+tests/test_cli.py compiles) serves every resume and tamper test; each works on a copy of it."""
+
+import dataclasses
+import json
+import os
+import pathlib
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import types
+
+import jax
+import numpy as np
+import pandas as pd
+import pytest
+
+from wbc_jax import cli
+from wbc_jax.control.gains import default_gains, gains_to_dict
+from wbc_jax.jobs import balance, limit, limit_rounds, runs, sweep_config
+from wbc_jax.sim import physics
+from wbc_jax.tuning import tune  # noqa: F401  (before a tripwire: optax applies jax.jit when imported)
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SWEEP = ["push-sweep", "--magnitudes", "20", "40", "2", "--directions", "1", "--horizon", "0.05", "--push-onset",
+         "0", "--push-duration", "0.02", "--chunk-size", "1", "--quiet"]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    """(folder of a finished sweep run with --gains GAINS, the gains file)."""
+    base = tmp_path_factory.mktemp("finished")
+    gains = base / "g.json"
+    gains.write_text(json.dumps(gains_to_dict(default_gains())))
+    out = base / "sw"
+    assert cli.main([*SWEEP, "--gains", str(gains), "--out", str(out)]) == 0
+    return out, gains
+
+
+@pytest.fixture
+def tripwire(monkeypatch):
+    """Any jax.jit after this point: something was (re)computed that should not have been."""
+
+    def late(*args, **kwargs):
+        raise AssertionError("reached jax.jit (compilation)")
+
+    monkeypatch.setattr(jax, "jit", late)
+
+
+def _copy(finished, tmp_path) -> tuple[pathlib.Path, pathlib.Path]:
+    out, gains = finished
+    shutil.copytree(out, tmp_path / "sw")
+    shutil.copy(gains, tmp_path / "g.json")
+    return tmp_path / "sw", tmp_path / "g.json"
+
+
+def _error(capsys) -> str:
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+# ---- class 3: results changed after they were written ------------------------------------------
+
+
+def test_an_edited_part_is_recomputed_never_merged(finished, tmp_path, capsys):
+    """A part whose values were edited is not the run's own (its sha256 differs from run.json): the
+    resumed run (in a copied folder, the gains file under another name) recomputes it, names it, and
+    the table holds the simulated values again."""
+    out, gains = _copy(finished, tmp_path)
+    first = pd.read_parquet(out / "results.parquet")
+    part = out / "parts" / "part-00001.parquet"
+    edited = pd.read_parquet(part)
+    edited["survived"], edited["com_rmse_m"] = ~edited["survived"], 99.0
+    edited.to_parquet(part, index=False)
+    assert runs.output_changed(part) is not None
+    assert cli.main([*SWEEP, "--gains", str(gains), "--out", str(out)]) == 0
+    assert "1 part file(s) not the run's own" in capsys.readouterr().err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["recomputed_parts"] == ["part-00001.parquet"] and summary["resumed_envs"] == 1
+    again = pd.read_parquet(out / "results.parquet")
+    assert again["survived"].tolist() == first["survived"].tolist()
+    np.testing.assert_allclose(again["com_rmse_m"], first["com_rmse_m"], rtol=1e-9)
+    assert runs.output_changed(part) is None and runs.output_changed(out / "results.parquet") is None
+
+
+def test_a_part_copied_from_another_run_is_not_its_own(tmp_path):
+    """Two runs of the same kind: a file of one copied into the other is refused whether the other
+    recorded a file there (sha256 differs) or not (never recorded); the same bytes written by the run
+    itself are its own."""
+    fp = sweep_config.SweepConfig(out=None).fingerprint()
+    a, b = tmp_path / "a", tmp_path / "b"
+    for run, value in ((a, 1.0), (b, 2.0)):
+        runs.claim_output_dir(run, "sweep", fp, resume=True)
+        (run / "parts").mkdir()
+        pd.DataFrame({"env": [0], "x": [value]}).to_parquet(run / "parts" / "part-00000.parquet", index=False)
+        runs.record_output(run / "parts" / "part-00000.parquet")
+    shutil.copy(a / "parts" / "part-00000.parquet", b / "parts" / "part-00000.parquet")
+    assert "changed since the run wrote it" in runs.output_changed(b / "parts" / "part-00000.parquet")
+    shutil.copy(a / "parts" / "part-00000.parquet", b / "parts" / "part-00001.parquet")
+    assert "is not recorded" in runs.output_changed(b / "parts" / "part-00001.parquet")
+    assert runs.output_changed(a / "parts" / "part-00000.parquet") is None
+
+
+def test_a_finished_rerun_leaves_its_summary_alone(finished, tmp_path, monkeypatch, capsys, tripwire):
+    """The same command again, spelt with a trailing slash and then as a relative path, from a copy
+    of the folder: nothing compiles (the tripwire), summary.json keeps its bytes (its timings)."""
+    out, gains = _copy(finished, tmp_path)
+    before = (out / "summary.json").read_bytes()
+    measured = {k: json.loads(before)[k] for k in ("compile_s", "run_s", "started_s", "physics_steps_per_s")}
+    assert None not in measured.values() and measured["physics_steps_per_s"] > 0, measured
+    assert cli.main([*SWEEP, "--gains", str(gains), "--out", f"{out}/"]) == 0, capsys.readouterr().err
+    monkeypatch.chdir(tmp_path)
+    assert cli.main([*SWEEP, "--gains", "g.json", "--out", "sw"]) == 0, capsys.readouterr().err
+    assert (out / "summary.json").read_bytes() == before
+    printed = json.loads(capsys.readouterr().out.splitlines()[-1])
+    assert {k: printed[k] for k in measured} == measured
+    # From Python too: the summary as the run wrote it, its envelope keyed by azimuth (a float) as a fresh run's.
+    from wbc_jax.jobs import sweep
+
+    cfg = cli.config_from_args(cli.build_parser().parse_args([*SWEEP, "--gains", "g.json", "--out", "sw"]),
+                               sweep_config.default_config())  # fmt: skip
+    again = sweep.run_sweep(cfg, progress=False)
+    assert list(again["envelope"]) == [0.0] and again["run_s"] == measured["run_s"]
+
+
+def test_view_refuses_a_changed_run_and_writes_none_of_its_files(finished, tmp_path, capsys):
+    """view reads a sweep only as it was written: an edited results table or summary, or a gains file
+    changed since the run, is refused in one line; --out naming one of the run's files is refused
+    (view writes .rrd files only); the folder is left as it was."""
+    out, gains = _copy(finished, tmp_path)
+    for target in ("summary.json", "results.parquet", "run.json"):
+        assert cli.main(["view", str(out), "--env", "0", "--out", str(out / target)]) == 2
+        assert "give a .rrd file name" in _error(capsys)
+    # Resumed with the copy's gains file (nothing to compute), the run now names that file as its input.
+    assert cli.main([*SWEEP, "--gains", str(gains), "--out", str(out)]) == 0
+    capsys.readouterr()
+    values = json.loads(gains.read_text())
+    gains.write_text(json.dumps({**values, "kp_com": [60.0, 60.0, 10.0]}))
+    assert cli.main(["view", str(out), "--env", "0", "--out", str(tmp_path / "e.rrd")]) == 2
+    line = _error(capsys)
+    assert "its input files changed since it ran" in line and f"{gains.resolve()} has changed" in line, line
+    gains.write_text(json.dumps(values))
+    listing = sorted((p.name, p.stat().st_mtime_ns) for p in out.iterdir())
+    table = pd.read_parquet(out / "results.parquet")
+    table.loc[0, "survived"] = not table.loc[0, "survived"]
+    table.to_parquet(out / "results.parquet", index=False)
+    assert cli.main(["view", str(out), "--env", "0", "--out", str(tmp_path / "e.rrd")]) == 2
+    assert "results.parquet changed since the run wrote it" in _error(capsys)
+    assert sorted((p.name, p.stat().st_mtime_ns) for p in out.iterdir() if p.name != "results.parquet") == [
+        x for x in listing if x[0] != "results.parquet"
+    ]
+    assert not (tmp_path / "e.rrd").exists()
+
+
+# ---- class 4: jobs that claim what they did not measure ----------------------------------------
+
+
+def _envelope_summary(path: pathlib.Path, impulse) -> str:
+    """An envelope summary.json of the default limit search's push (chest, 0.1 s at 0.5 s)."""
+    path.write_text(json.dumps({"config": {"body": "chest", "push_duration": 0.1, "push_onset": 0.5, "elevation": 0.0},
+                                "envelope": {"0": {str(a): {"impulse_ns": impulse} for a in (0.0, 90.0, 180.0,
+                                                                                             270.0)}}},
+                               allow_nan=True))  # fmt: skip
+    return str(path)
+
+
+@pytest.mark.parametrize("impulse", [float("nan"), float("inf"), -float("inf"), -1.0])
+def test_limit_refuses_envelopes_that_are_not_finite_impulses(impulse, tmp_path, capsys, tripwire):
+    path = _envelope_summary(tmp_path / "summary.json", impulse)
+    assert cli.main(["limit", "--envelopes", path, "--out", str(tmp_path / "lim")]) == 2
+    line = _error(capsys)
+    assert f"--envelopes {path}: the envelope at azimuth 0 deg is {impulse!r} N s" in line
+    assert "a finite impulse >= 0 N s" in line and not (tmp_path / "lim").exists()
+
+
+def test_limit_with_no_round_claims_nothing(tmp_path, capsys, tripwire, monkeypatch):
+    """--time-limit 0 on a folder with no round is refused before anything compiles; a time limit that
+    runs out before round 1 ends without a summary; a direction whose every candidate was cut by the
+    time limit has no limit and fails the targets (no 0 N s 'limit' with its targets met)."""
+    out = tmp_path / "lim"
+    assert cli.main(["limit", "--time-limit", "0", "--out", str(out)]) == 2
+    assert "--time-limit 0 summarises the rounds on disk" in _error(capsys) and not out.exists()
+
+    lip = {0.0: {"impulse_bound_ns": 20.0}, 90.0: {"impulse_bound_ns": 15.0}}
+    fake = types.SimpleNamespace(azimuths=[0.0, 90.0], lip=lip, envelopes={}, base=default_gains(), steps=0,
+                                 timing={}, dtype=np.float32, physics_steps_per_candidate_step=1)  # fmt: skip
+    monkeypatch.setattr(limit_rounds, "Search", lambda cfg, robot_name: fake)
+    cfg = limit.LimitConfig(directions=(0.0, 90.0), time_limit=1e-9, out=str(out))
+    with pytest.raises(ValueError, match=r"ran out before round 1 finished: nothing was measured"):
+        limit_rounds.run(cfg, progress=False)
+    assert not (out / "summary.json").exists()
+
+    cut = {"round": 0, "verified": False, "time_cut": True}
+    records = [{**cut, "direction": 0, "impulse_ns": 5.0},
+               {**cut, "direction": 1, "impulse_ns": 5.0, "verified": True, "time_cut": True}]  # fmt: skip
+    summary = limit_rounds.summarize(dataclasses.replace(cfg, time_limit=None), fake, records, 1.0)
+    assert summary["directions"][0.0]["limit_ns"] is None and not summary["directions"][0.0]["measured"]
+    assert summary["directions"][90.0]["limit_ns"] == 5.0
+    assert summary["median_fraction_of_lip"] == pytest.approx(5.0 / 15.0)
+    assert summary["targets"] == {"limit_at_least_every_envelope": False, "every_limit_replayed_in_c_mujoco": False}
+
+
+def test_heldout_with_no_sets_writes_nothing(tmp_path, capsys, tripwire):
+    out = tmp_path / "held"
+    assert cli.main(["heldout", "--sets", "--out", str(out)]) == 2
+    assert _error(capsys) == ("wbc-jax heldout: error: --sets: give at least one gain set ('default', 'critical' "
+                              "or NAME=FILE)")  # fmt: skip
+    assert not out.exists()
+
+
+# ---- class 7: one line where a traceback was ---------------------------------------------------
+
+
+def test_broken_out_paths_fail_in_one_line(tmp_path, capsys, tripwire):
+    """--out through a symlink to nothing, a symlink loop (itself or a folder above), a 300-character
+    name, under a regular file or under /proc (not writable, even for root: os.access says yes there
+    to root, so the check writes): one line naming --out, nothing written."""
+    (tmp_path / "dangling").symlink_to(tmp_path / "nowhere" / "x")
+    (tmp_path / "loop").symlink_to(tmp_path / "loop")
+    (tmp_path / "file").write_text("x")
+    cases = [
+        (tmp_path / "dangling", "is a symlink to a missing target or in a loop"),
+        (tmp_path / "loop", "is a symlink to a missing target or in a loop"),
+        (tmp_path / "loop" / "sub", "is a symlink to a missing target or in a loop"),
+        (tmp_path / ("n" * 300), "a name of 300 bytes; names are at most 255 bytes"),
+        (tmp_path / "file" / "sub", "is a file, not a folder"),
+        (pathlib.Path("/proc/wbc_jax_run"), "cannot write in /proc"),
+    ]
+    for out, message in cases:
+        for job in (SWEEP, ["balance", "--duration", "0.1"]):
+            assert cli.main([*job, "--out", str(out)]) == 2
+            line = _error(capsys)
+            assert line.startswith(f"wbc-jax {job[0]}: error: --out ") and message in line, (out, line)
+    assert not (tmp_path / "nowhere").exists()
+
+
+def test_view_into_an_unwritable_place_or_of_a_foreign_summary(finished, tmp_path, capsys):
+    out, _ = finished
+    (tmp_path / "file").write_text("x")
+    for rrd, message in ((tmp_path / "file" / "e.rrd", "is a file, not a folder"),
+                         (pathlib.Path("/proc/e.rrd"), "cannot write in /proc"),
+                         (tmp_path / ("n" * 300 + ".rrd"), "names are at most 255 bytes")):  # fmt: skip
+        assert cli.main(["view", str(out), "--env", "1", "--out", str(rrd)]) == 2
+        assert message in _error(capsys)
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    shutil.copy(out / "results.parquet", foreign / "results.parquet")
+    for text in ('{"envelope": {}}', "[1, 2]", json.dumps({"config": {"horizon": "long"}, "gains": {},
+                                                          "backend": "mujoco"})):  # fmt: skip
+        (foreign / "summary.json").write_text(text)
+        assert cli.main(["view", str(foreign), "--env", "0", "--out", str(tmp_path / "f.rrd")]) == 2
+        assert f"{foreign / 'summary.json'} is not the summary of a push sweep" in _error(capsys)
+
+
+def test_sigint_prints_one_line_and_the_same_command_resumes(finished, tmp_path):
+    """SIGINT while a sweep runs (after its first part): one line, exit status 130, the parts done
+    kept; the same command then finishes the run from them."""
+    out = tmp_path / "sw"
+    cmd = [sys.executable, "-m", "wbc_jax.cli", *SWEEP[:2], "10", "60", "40", *SWEEP[5:], "--out", str(out)]
+    env = {**os.environ, "JAX_ENABLE_X64": "1", "PYTHONPATH": str(ROOT)}  # the float64 program the fixture compiled
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+    deadline = time.time() + 300
+    while "parts/part-00000.parquet" not in _recorded(out):  # the first part written and recorded
+        assert proc.poll() is None and time.time() < deadline, proc.communicate()
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    # XLA's own log lines (absl: "E1126 02:29:16.75 ...", on loading cached programs) are not the job's.
+    lines = [line for line in err.splitlines() if line.strip() and not re.match(r"[IWEF]\d{4} ", line)]
+    assert lines == ["wbc-jax push-sweep: interrupted; resume with the same command"] and "Traceback" not in err, err
+    # The parts kept: written and recorded (a part written as the signal came, before its record, is
+    # not the run's own yet: recomputed).
+    kept = [name for name in _recorded(out) if runs.output_changed(out / name) is None]
+    assert 1 <= len(kept) < 40 and not (out / "results.parquet").exists()
+    done = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["n_envs"] == 40 and summary["resumed_envs"] == len(kept)
+
+
+def _recorded(out: pathlib.Path) -> list[str]:
+    """The result files a run's manifest records (none before it exists)."""
+    try:
+        return list(json.loads((out / runs.MANIFEST).read_text()).get(runs.OUTPUTS, {}))
+    except (OSError, ValueError):
+        return []
+
+
+# ---- class 8: resume wherever inputs and outputs are the same ----------------------------------
+
+
+def test_fingerprints_compare_inputs_by_content_not_by_spelling(tmp_path, capsys, tripwire):
+    """A balance folder is bound to its run whatever the --out spelling (trailing slash, relative,
+    a copy), --plots/--no-plots, --backend auto or the engine it resolves to, or the path of its
+    gains file (another name, a symlink, ../): the same fingerprint; other gains contents are still
+    refused, named."""
+    gains = tmp_path / "g.json"
+    gains.write_text(json.dumps(gains_to_dict(default_gains())))
+    (tmp_path / "d").mkdir()
+    (tmp_path / "link.json").symlink_to(gains)
+    first = balance.BalanceConfig(duration=0.1, gains=str(gains), out=str(tmp_path / "b"))
+    runs.claim_output_dir(first.out, "balance", first.fingerprint())
+    same = [dataclasses.replace(first, out=f"{first.out}/", plots=False),
+            dataclasses.replace(first, backend=physics.resolve_backend("auto")),  # what auto runs here
+            dataclasses.replace(first, gains=str(tmp_path / "d" / ".." / "g.json")),
+            dataclasses.replace(first, gains=str(tmp_path / "link.json"))]  # fmt: skip
+    for cfg in same:
+        assert runs.differences(runs._compared(first.fingerprint()), runs._compared(cfg.fingerprint())) == []
+        cfg.check()  # the folder is accepted
+    shutil.copytree(tmp_path / "b", tmp_path / "copy")
+    dataclasses.replace(first, out=str(tmp_path / "copy")).check()
+    values = gains_to_dict(default_gains())
+    (tmp_path / "other.json").write_text(json.dumps({**values, "kp_com": [60.0, 60.0, 10.0]}))
+    assert cli.main(["balance", "--duration", "0.1", "--gains", str(tmp_path / "other.json"), "--out",
+                     str(tmp_path / "b")]) == 2  # fmt: skip
+    assert f"made with other inputs (config.gains ({(tmp_path / 'other.json').resolve()}): contents changed)" in _error(
+        capsys
+    )
