@@ -1066,6 +1066,8 @@ def simulate(
         tau = out["tau"]
         c2 = clock()
         body_low = np.array([d.xpos[nfb, 2].min() for d in datas]) < constants.BODY_FLOOR_HEIGHT
+        # A fall as wbc_jax.sim.metrics counts it: the trunk (root body, id 1) tilted past the threshold.
+        body_low |= ~(np.array([d.xmat[1, 8] for d in datas]) >= np.cos(np.radians(constants.FALL_TRUNK_TILT_DEG)))
         c2b = clock()
         for j in range(sp.n_sub):
             for i in np.flatnonzero(np.any(F_all[j] != F_cur, axis=1)).tolist():

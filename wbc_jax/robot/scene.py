@@ -16,6 +16,7 @@ import math
 import mujoco
 import numpy as np
 
+from wbc_jax.core.loader import echo
 from wbc_jax.robot import model as model_lib
 from wbc_jax.robot.contacts import FEET_FRAMES, Contact, ContactParams, ContactSet, ResolvedContact, check_spec
 
@@ -36,7 +37,7 @@ def _frame_point(m: mujoco.MjModel, idx: model_lib.RobotIndex, c: Contact):
     if c.frame and c.frame in idx.body_names:
         return idx.body_id(c.frame), offset, -1
     valid = sorted((set(idx.body_names) | set(idx.site_names) | set(model_lib.NAMED_POINTS)) - {""})
-    raise ValueError(f"contact {c.name!r}: unknown frame {c.frame!r}; valid frames: {valid}")
+    raise ValueError(f"contact {echo(c.name)}: unknown frame {echo(c.frame)}; valid frames: {valid}")
 
 
 def _contact_rotation(normal: np.ndarray, site_R: np.ndarray | None) -> np.ndarray:
@@ -65,14 +66,14 @@ def _check_touch(c: Contact, W_p: np.ndarray, normal: np.ndarray, centre: np.nda
     surface = c.touches or "floor"
     dist = _box_distance(W_p, centre, half)
     if reach and abs(dist) > REACH_TOL:
-        raise ValueError(f"contact {c.name!r}: its point {W_p.round(3).tolist()} is {abs(dist) * 100:.1f} cm "
-                         f"{'inside' if dist < 0 else 'away from'} the surface of {surface!r} at the initial posture "
+        raise ValueError(f"contact {echo(c.name)}: its point {W_p.round(3).tolist()} is {abs(dist) * 100:.1f} cm "
+                         f"{'inside' if dist < 0 else 'away from'} the surface of {echo(surface)} at the initial posture "
                          f"(at most {REACH_TOL * 1e3:.0f} mm: it must touch it); move the object (pos, shift) or "
                          "change the initial posture")  # fmt: skip
     rise = lambda e: (_box_distance(W_p + 0.01 * e, centre, half) - _box_distance(W_p - 0.01 * e, centre, half)) / 0.02  # noqa: E731
     n = normal / np.linalg.norm(normal)
     if rise(n) < 0.5:  # more than 60 deg from the surface's outward normal
-        raise ValueError(f"contact {c.name!r}: normal {np.round(n, 3).tolist()} points into {surface!r} or along its "
+        raise ValueError(f"contact {echo(c.name)}: normal {np.round(n, 3).tolist()} points into {echo(surface)} or along its "
                          f"surface (the surface faces {np.round([rise(e) for e in np.eye(3)], 3).tolist()}); the "
                          "normal points out of the touched surface, towards the robot")  # fmt: skip
 
@@ -136,8 +137,8 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
             _, _, _, W_p, W_R_c = frames[o.under]
             axis = int(np.argmax(np.abs(W_R_c[:, 2])))
             if abs(W_R_c[axis, 2]) < 1 - 1e-6 or W_R_c[2, 2] < -1e-6:
-                raise ValueError(f"scene object {o.name!r}: 'under' needs a contact with normal +z or horizontal "
-                                 f"along a world axis; {o.under!r} has normal {W_R_c[:, 2].round(3).tolist()}")  # fmt: skip
+                raise ValueError(f"scene object {echo(o.name)}: 'under' needs a contact with normal +z or horizontal "
+                                 f"along a world axis; {echo(o.under)} has normal {W_R_c[:, 2].round(3).tolist()}")  # fmt: skip
             pos = W_p - W_R_c[:, 2].round() * o.size[axis] + np.asarray(o.shift, float)
         else:
             pos = np.asarray(o.pos, float)
@@ -192,7 +193,7 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
             geoms = _pair_geoms(m, body)
             if not geoms:
                 raise ValueError(
-                    f"contact {c.name!r}: body {base.body(body).name!r} has no collision geoms; "
+                    f"contact {echo(c.name)}: body {echo(base.body(body).name)} has no collision geoms; "
                     f"give 'touches: <object>' (valid: {sorted(friction)})"
                 )
         cop = c.cop or ContactParams().foot_size
