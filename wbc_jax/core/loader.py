@@ -36,6 +36,10 @@ def echo(value: Any, limit: int = ECHO_CHARS) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
+def _cut(text: str, limit: int = ECHO_CHARS) -> str:
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def reprlib_repr(value: Any, limit: int) -> str:
     """A repr that stops early on long containers (never builds the full text of a huge value)."""
     import reprlib
@@ -79,7 +83,7 @@ def parse_json(text: str, path, what: str) -> Any:
     except json.JSONDecodeError as err:
         raise ValueError(f"{what} file {path} is not valid JSON: {err}") from None
     except (ValueError, RecursionError) as err:  # e.g. an integer of more than 4300 digits
-        raise ValueError(f"{what} file {path} is not valid JSON: {echo(str(err))}") from None
+        raise ValueError(f"{what} file {path} is not valid JSON: {_cut(str(err))}") from None
 
 
 def parse_yaml(text: str, path, what: str) -> Any:
@@ -92,7 +96,7 @@ def parse_yaml(text: str, path, what: str) -> Any:
         where = getattr(err, "problem_mark", None)
         at = f" (line {where.line + 1}, column {where.column + 1})" if where is not None else ""
         raise ValueError(
-            f"{what} file {path} is not valid YAML{at}: {echo(getattr(err, 'problem', None) or err)}"
+            f"{what} file {path} is not valid YAML{at}: {_cut(str(getattr(err, 'problem', None) or err))}"
         ) from None
     except RecursionError:
         raise _too_deep(what, path, MAX_DEPTH + 1) from None
