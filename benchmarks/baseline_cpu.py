@@ -469,6 +469,7 @@ def _push_force(push: dict, t, step: float | None = None) -> np.ndarray:
         t = np.asarray(t, float)
         covered = np.minimum(t + step, push["onset"] + push["duration"]) - np.maximum(t, push["onset"])
         share = np.clip(covered, 0.0, step) / step
+        share = np.where(share >= 1 - 1e-6, 1.0, np.where(share <= 1e-6, 0.0, share))  # as the package's
     return np.sum(push["force"] * share[..., None], axis=-2)
 
 

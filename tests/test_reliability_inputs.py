@@ -142,6 +142,10 @@ def test_each_physics_step_carries_its_share_of_the_push(onset, duration):
     np.testing.assert_allclose(_impulse(push, 0.001, 0.6, 0.001), [0.0, 250.0 * duration, 0.0], rtol=1e-9, atol=1e-12)
     if duration == 0.0015 and onset == 0.3:  # what a per-step on/off test simulated
         assert _impulse(push, 0.001, 0.6, None)[1] == pytest.approx(250.0 * 0.002)
+    if duration == 0.1 and onset == 0.3:  # edges on the step grid: whole steps, bit for bit (t = k 0.01 + j 0.001)
+        t = (0.01 * np.arange(60)[:, None] + 0.001 * np.arange(10)[None]).ravel()
+        forces = np.array([push_forces(push, s, 0.001)[0, 1] for s in t])
+        assert set(forces.tolist()) == {0.0, 250.0} and np.sum(forces == 250.0) == 100
 
 
 @pytest.fixture(scope="module")

@@ -228,12 +228,17 @@ def test_fall_thresholds_are_70_percent_of_the_com_height_and_5_cm():
                  fully_active=jax.numpy.ones(2, bool), support=jax.numpy.asarray([[0, 0], [1, 0], [0, 1.0]]),
                  com0_height=0.5, t_now=0.0, physics_ok=jax.numpy.asarray(True))  # fmt: skip
 
-    def fell(com_z, lowest_body):
+    def fell(com_z, lowest_body, trunk_deg=0.0):
         met = metrics_lib.initial(jax.numpy.asarray(0.5), jax.numpy.float64)
         heights = jax.numpy.asarray([0.3, lowest_body, 0.9])
-        return bool(metrics_lib.update(met, com=jax.numpy.asarray([0, 0, com_z]), body_heights=heights, **state).fell)
+        trunk = jax.numpy.asarray([np.sin(np.radians(trunk_deg)), 0.0, np.cos(np.radians(trunk_deg))])
+        return bool(metrics_lib.update(met, com=jax.numpy.asarray([0, 0, com_z]), body_heights=heights,
+                                       trunk_z=trunk, **state).fell)  # fmt: skip
 
     assert not fell(0.351, 0.051) and fell(0.349, 0.051) and fell(0.351, 0.049)
+    # The trunk (issue 41): tilted past FALL_TRUNK_TILT_DEG is a fall, however high the CoM.
+    tilt = constants.FALL_TRUNK_TILT_DEG
+    assert not fell(0.5, 0.3, tilt - 0.1) and fell(0.5, 0.3, tilt + 0.1) and fell(3.0, 2.0, 170.0)
     # Which bodies count: every body but the world, the feet and the links above the soles (ankles).
     st = scenario.setup("stand", duration=0.02, sim=SimConfig(physics=physics.PhysicsConfig(backend="mujoco")))
     m = st.robot.mj_model

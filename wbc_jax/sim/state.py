@@ -118,6 +118,9 @@ def no_push(dtype=jnp.float32) -> Push:
                 body=jnp.full(1, -1, jnp.int32))  # fmt: skip
 
 
+SHARE_SNAP = 1e-6
+
+
 def push_forces(push: Push, t, step: float | None = None):
     """Each push's force (..., P, 3) at time t (numpy or JAX arrays alike).
 
@@ -132,6 +135,10 @@ def push_forces(push: Push, t, step: float | None = None):
     lo = t if hasattr(t, "clip") else np.asarray(t)
     covered = (lo + step).clip(None, push.onset + push.duration) - lo.clip(push.onset, None)
     share = covered.clip(0.0, step) / step
+    # Within SHARE_SNAP of 0 or 1 (1 ns of a 1 ms step): exactly 0 or 1, so that a push edge on the
+    # step grid gives the same force in programs that round t differently (a compiled and a Python
+    # loop), bit for bit; pushes off the grid keep their exact share.
+    share = (share >= 1.0 - SHARE_SNAP) + (share > SHARE_SNAP) * (share < 1.0 - SHARE_SNAP) * share
     return push.force * share[..., None]
 
 
