@@ -459,11 +459,18 @@ def push_to_numpy(push, n_envs: int) -> dict:
     }
 
 
-def _push_force(push: dict, t) -> np.ndarray:
-    """Total push force (..., B, 3) at the time(s) t (as wbc_jax.sim.state.push_force); t: scalar or
-    (..., 1, 1) to broadcast against onset (B, P)."""
-    on = (t >= push["onset"]) & (t < push["onset"] + push["duration"])
-    return np.sum(push["force"] * on[..., None], axis=-2)
+def _push_force(push: dict, t, step: float | None = None) -> np.ndarray:
+    """Total push force (..., B, 3) at the time(s) t (as wbc_jax.sim.state.push_forces); t: scalar or
+    (..., 1, 1) to broadcast against onset (B, P). With ``step``: the mean force over [t, t + step),
+    so the physics steps carry exactly force x duration (as the package's engines)."""
+    if step is None:
+        share = (t >= push["onset"]) & (t < push["onset"] + push["duration"])
+    else:
+        t = np.asarray(t, float)
+        covered = np.minimum(t + step, push["onset"] + push["duration"]) - np.maximum(t, push["onset"])
+        share = np.clip(covered, 0.0, step) / step
+        share = np.where(share >= 1 - 1e-6, 1.0, np.where(share <= 1e-6, 0.0, share))  # as the package's
+    return np.sum(push["force"] * share[..., None], axis=-2)
 
 
 # --------------------------------------------------------------------------------------
@@ -959,7 +966,8 @@ class LoopMetrics:
           tau (B, n): the applied (saturated) torques; violation (B,): the contact-constraint
             violation of the commanded wrenches; infeasible (B,) bool: the QP failed this tick.
           finite (B,) bool: the physics stayed finite over the tick (False: a NaN run).
-          body_low (B,) bool: a body other than the feet/ankles below ``BODY_FLOOR_HEIGHT``.
+          body_low (B,) bool: a body other than the feet/ankles below ``BODY_FLOOR_HEIGHT``, or the trunk
+            tilted past ``FALL_TRUNK_TILT_DEG`` (a fall, as wbc_jax.sim.metrics counts it).
         """
         met = self.metrics
         com_err = np.linalg.norm(com - ref_com, axis=1)
@@ -1055,7 +1063,7 @@ def simulate(
         t_now = k * sp.control_dt
         for i, d in enumerate(datas):
             saved[i] = (d.qpos.copy(), d.qvel.copy(), d.qacc_warmstart.copy(), d.time)
-        F_all = _push_force(pu, (t_now + sub_times)[:, None, None])  # (n_sub, B, 3)
+        F_all = _push_force(pu, (t_now + sub_times)[:, None, None], sp.physics_dt)  # (n_sub, B, 3)
         c0 = clock()
         for d in datas:
             mujoco.mj_step1(m, d)
@@ -1066,6 +1074,8 @@ def simulate(
         tau = out["tau"]
         c2 = clock()
         body_low = np.array([d.xpos[nfb, 2].min() for d in datas]) < constants.BODY_FLOOR_HEIGHT
+        # A fall as wbc_jax.sim.metrics counts it: the trunk (root body, id 1) tilted past the threshold.
+        body_low |= ~(np.array([d.xmat[1, 8] for d in datas]) >= np.cos(np.radians(constants.FALL_TRUNK_TILT_DEG)))
         c2b = clock()
         for j in range(sp.n_sub):
             for i in np.flatnonzero(np.any(F_all[j] != F_cur, axis=1)).tolist():

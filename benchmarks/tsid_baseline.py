@@ -687,7 +687,7 @@ class TsidPeer:
         for k in range(T):
             t_now = k * self.control_dt
             saved = (d.qpos.copy(), d.qvel.copy(), d.qacc_warmstart.copy(), d.time)
-            F_all = bc._push_force(pu, (t_now + sub_times)[:, None, None])[:, 0]  # (n_sub, 3)
+            F_all = bc._push_force(pu, (t_now + sub_times)[:, None, None], dt)[:, 0]  # (n_sub, 3)
             c0 = (wall(), cpu())
             mujoco.mj_step1(m, d)
             c1 = (wall(), cpu())
@@ -702,6 +702,7 @@ class TsidPeer:
             com, com_vel = d.subtree_com[base].copy(), d.subtree_linvel[base].copy()
             W_p_feet, W_R_feet = d.site_xpos[sites].copy(), d.site_xmat[sites].reshape(2, 3, 3).copy()
             body_low = bool(d.xpos[nfb, 2].min() < constants.BODY_FLOOR_HEIGHT)
+            body_low |= not d.xmat[base, 8] >= np.cos(np.radians(constants.FALL_TRUNK_TILT_DEG))  # the trunk tipped
             violation = ctrl.violation(sol)
             c5 = (wall(), cpu())
             for j in range(n_sub):

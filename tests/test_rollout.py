@@ -49,6 +49,27 @@ def test_c_mujoco_backend_equals_the_mjx_closed_loop(runs):
     assert m_c["upright"] and not m_c["nan"]
 
 
+def test_a_robot_thrown_away_is_neither_upright_nor_survived(runs):
+    """Issue 41, class 5: a chest push of 5000 N up and sideways for 0.1 s throws the robot metres
+    away, upside down, its CoM never low and no body near the floor (the CoM and floor tests pass:
+    they alone called it upright). The trunk's tilt makes it a fall; every boolean of the summary
+    is checked, on the compiled C MuJoCo loop of ``runs`` (nothing compiles again)."""
+    st, standing = runs["mujoco"]
+    thrown = runner.run(st, scenario.single(st, scenario.make_push([0.0, 3000.0, 4000.0], 0.3, 0.1, st.dtype)))
+    m = metrics_lib.summarize(jax.tree_util.tree_map(lambda x: x[0], thrown.metrics))
+    com = thrown.records.com[0]
+    assert np.linalg.norm(com[-1, :2] - com[0, :2]) > 2.0 and com[-1, 2] > 2.0  # metres away, in the air
+    assert m["min_com_height_m"] > constants.FALL_COM_HEIGHT * com[0, 2]  # the CoM test never fired
+    assert np.degrees(float(thrown.metrics.max_trunk_tilt[0])) > 120.0
+    booleans = {k: bool(v) for k, v in m.items() if isinstance(v, (bool, np.bool_))}
+    assert booleans == {"survived": False, "upright": False, "fell": True, "nan": False}
+    assert np.isnan(m["time_to_recover_s"])
+    # The 40 N benchmark push of the same loop: the trunk stays within a few degrees, upright.
+    still = metrics_lib.summarize(jax.tree_util.tree_map(lambda x: x[0], standing.metrics))
+    assert still["upright"] and not still["fell"] and not still["nan"]
+    assert np.degrees(float(standing.metrics.max_trunk_tilt[0])) < 10.0
+
+
 def test_pipelined_host_batch_equals_environments_run_alone(runs):
     """An even batch without records runs as two halves in a pipeline (one half's controller beside
     the other half's physics): each environment's metrics equal those of the same environment run
@@ -207,12 +228,17 @@ def test_fall_thresholds_are_70_percent_of_the_com_height_and_5_cm():
                  fully_active=jax.numpy.ones(2, bool), support=jax.numpy.asarray([[0, 0], [1, 0], [0, 1.0]]),
                  com0_height=0.5, t_now=0.0, physics_ok=jax.numpy.asarray(True))  # fmt: skip
 
-    def fell(com_z, lowest_body):
+    def fell(com_z, lowest_body, trunk_deg=0.0):
         met = metrics_lib.initial(jax.numpy.asarray(0.5), jax.numpy.float64)
         heights = jax.numpy.asarray([0.3, lowest_body, 0.9])
-        return bool(metrics_lib.update(met, com=jax.numpy.asarray([0, 0, com_z]), body_heights=heights, **state).fell)
+        trunk = jax.numpy.asarray([np.sin(np.radians(trunk_deg)), 0.0, np.cos(np.radians(trunk_deg))])
+        return bool(metrics_lib.update(met, com=jax.numpy.asarray([0, 0, com_z]), body_heights=heights,
+                                       trunk_z=trunk, **state).fell)  # fmt: skip
 
     assert not fell(0.351, 0.051) and fell(0.349, 0.051) and fell(0.351, 0.049)
+    # The trunk (issue 41): tilted past FALL_TRUNK_TILT_DEG is a fall, however high the CoM.
+    tilt = constants.FALL_TRUNK_TILT_DEG
+    assert not fell(0.5, 0.3, tilt - 0.1) and fell(0.5, 0.3, tilt + 0.1) and fell(3.0, 2.0, 170.0)
     # Which bodies count: every body but the world, the feet and the links above the soles (ankles).
     st = scenario.setup("stand", duration=0.02, sim=SimConfig(physics=physics.PhysicsConfig(backend="mujoco")))
     m = st.robot.mj_model

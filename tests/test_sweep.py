@@ -38,7 +38,7 @@ def test_bad_sweep_input_is_rejected_before_compiling(robot, tmp_path):
         sweep_config.SweepConfig(magnitudes=()).check()
     with pytest.raises(ValueError, match=r"--magnitudes must be a number in \[0, 5000\] N, got -5"):
         sweep_config.SweepConfig(magnitudes=(-5.0,)).check()
-    with pytest.raises(ValueError, match=r"--push-duration must be a number in \(0, 60\] s"):
+    with pytest.raises(ValueError, match=r"--push-duration must be a number in \[0.001, 60\] s"):
         sweep_config.SweepConfig(push_duration=-0.1).check()
     with pytest.raises(ValueError, match=r"--body 'nose' is not a valid name here; valid: \['root_link'.*'chest'"):
         sweep.run_sweep(sweep_config.SweepConfig(body="nose", out=str(tmp_path / "s")), progress=False)

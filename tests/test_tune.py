@@ -248,7 +248,7 @@ def test_lip_push_scale_draws_impulses_as_fractions_of_m_omega_d(robot):
 def _metrics(B):
     z = np.zeros(B)
     return metrics_lib.Metrics(com_sq_err_sum=z, com_max_err=z, max_abs_torque=z, max_violation=z, max_slip=z,
-                               max_tilt=z, qp_infeasible_ticks=z.astype(int), fell=z.astype(bool),
+                               max_tilt=z, max_trunk_tilt=z, qp_infeasible_ticks=z.astype(int), fell=z.astype(bool),
                                nan=z.astype(bool), last_time_off=z, min_com_height=z + 0.5, end_com_speed=z,
                                end_support_margin=z + 0.01, ticks=z.astype(int) + 1)  # fmt: skip
 

@@ -37,6 +37,9 @@ ROOT = pathlib.Path(__file__).resolve().parents[2]
 INTEGRITY_CLASSES = ("results changed after written", "claims not measured", "broken paths, foreign files")
 CLASSES = ("nonsense accepted", "contact geometry", "silent overwrite", "memory", "traceback or late failure",
            "reporting", "several processes", *INTEGRITY_CLASSES)  # fmt: skip
+# Issue 41, classes 1, 2 and 6 (their cases: issue41_cases).
+INPUT_CLASSES = ("physical set-up", "push timing", "parser attack")
+CLASSES = (*CLASSES, *INPUT_CLASSES)
 
 
 def _write(path: pathlib.Path, data) -> str:
@@ -127,8 +130,8 @@ def cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
         (N, ["balance", "--push-force", "10", "0", "0", "--push-onset", "20", "--duration", "1"],
          r"the push \(--push-onset 20 \+ --push-duration 0.1 s\) must end inside the run \(--duration 1 s\)"),
         (N, ["balance", "--push-force", "10", "0", "0", "--push-onset", "9.95"], r"must end inside the run"),
-        (N, ["push-sweep", "--push-duration", "0"], r"--push-duration must be a number in \(0, 60\] s, got 0"),
-        (N, ["envelope", "--push-duration", "0"], r"--push-duration must be a number in \(0, 60\] s"),
+        (N, ["push-sweep", "--push-duration", "0"], r"--push-duration must be a number in \[0.001, 60\] s, got 0"),
+        (N, ["envelope", "--push-duration", "0"], r"--push-duration must be a number in \[0.001, 60\] s"),
         (N, ["balance", "--push-force", "10", "0", "0", "--push-duration", "0"], r"--push-duration must be"),
         (N, ["push-sweep", "--horizon", "1e7"], r"--horizon must be a number in \(0, 600\] s, got 1e\+07"),
         (N, ["envelope", "--horizon", "1e7"], r"--horizon must be a number in \(0, 600\] s"),
@@ -213,7 +216,7 @@ def cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
         (T, ["balance", "--tasks", f["latin1_yaml"]], r"--tasks file .*latin1.yaml is not UTF-8 text"),
         (T, ["push-sweep", "--gains", f["latin1_json"]], r"--gains file .*latin1.json is not UTF-8 text"),
         (T, ["tune", "--envelope", f["latin1_json"]], r"--envelope file .*latin1.json is not UTF-8 text"),
-        (T, ["balance", "--tasks", f["not_yaml"]], r"task file .*bad.yaml is not valid YAML \(line"),
+        (T, ["balance", "--tasks", f["not_yaml"]], r"--tasks file .*bad.yaml is not valid YAML \(line"),
         (T, ["balance", "--tasks", f["txt"]], r"unknown format '.txt'; valid: .json, .yaml, .yml"),
         (T, ["balance", "--gains", f["rank"]], r"gain kp_com must be a list of 3 numbers, got shape \(2, 3\)"),
         (T, ["push-sweep", "--gains", f["rank"]], r"gain kp_com must be a list of 3 numbers, got shape \(2, 3\)"),
@@ -236,7 +239,7 @@ def cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
         (R, ["push-sweep", "--elevation", "90", "--directions", "8"], r"--elevation 90 is a vertical push, the same at "
          r"every azimuth: use --directions 1 \(got 8\)"),
         (R, ["envelope", "--elevation", "-90"], r"--elevation -90 is a vertical push"),
-    ] + several_processes_cases() + integrity_cases(tmp)  # fmt: skip
+    ] + several_processes_cases() + integrity_cases(tmp) + issue41_cases(tmp)  # fmt: skip
 
 
 # ---- Issue 41, class 9: several processes (jax.distributed) ------------------------------------
@@ -351,6 +354,65 @@ def integrity_cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
         (P, ["tune", "--envelope", _write(tmp / "int_list.json", "[1, 2]")], r"envelope file .*int_list.json: needs"),
         (P, ["limit", "--envelopes", _write(tmp / "int_ints.json", json.dumps({**envelope, "envelope": {"0": {"0": 5}}}))],
          r"--envelopes .*int_ints.json: not the summary.json of wbc-jax envelope"),
+    ]  # fmt: skip
+
+
+# ---- Issue 41, classes 1, 2 and 6: physical set-ups, push timing, files that attack the parser ----------
+
+
+def issue41_cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
+    """Task files that cannot be physical (class 1: each refusal names the file, the contact and what
+    was measured), pushes shorter than one physics step in every job that takes one (class 2), and
+    files built to exhaust the parser (class 6: alias bombs, deep nesting, oversized)."""
+    feet = "contacts:\n  - {name: l, frame: l_sole, normal: [0, 0, 1]%s}\n  - {name: r, frame: r_sole, normal: [0, 0, 1]}\n"
+    laughs = ['a: &a ["lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol"]']
+    for prev, name in zip("abcdefgh", "bcdefghi"):
+        laughs.append(f"{name}: &{name} [{', '.join([f'*{prev}'] * 9)}]")
+    f = {
+        "lifted": _write(
+            tmp / "lifted.yaml", feet % "" + "initial_posture_deg: {l_hip_pitch: 36, l_knee: -46, l_ankle_pitch: -10}\n"
+        ),
+        "tilted": _write(tmp / "tilted.yaml", feet % "" + "initial_posture_deg: {l_ankle_roll: 8}\n"),
+        "normal": _write(
+            tmp / "normal.yaml", (feet % "").replace("[0, 0, 1]}\n  - {name: r", "[0, 0.1, 1]}\n  - {name: r")
+        ),
+        "cop": _write(tmp / "cop.yaml", feet % ", cop: [[-0.3, 0.3], [-0.1, 0.1]]"),
+        "crate": _write(
+            tmp / "crate.yaml", feet % "" + "scene:\n  - {name: crate, size: [0.1, 0.1, 0.1], pos: [0, 0, 0.5]}\n"
+        ),
+        "default_tilt": _write(
+            tmp / "default_tilt.yaml",
+            "tasks: [{name: posture, kind: postural}]\ninitial_posture_deg: {r_ankle_pitch: 15}\n",
+        ),
+        "bomb": _write(tmp / "bomb.yaml", "\n".join(laughs) + "\ncontacts: *i\n"),
+        "recursive": _write(tmp / "recursive.yaml", "contacts: &r [*r]\n"),
+        "deep_yaml": _write(tmp / "deep.yaml", "contacts: " + "[" * 50000 + "]" * 50000 + "\n"),
+        "deep_json": _write(tmp / "deep.json", '{"kp_com": ' + "[" * 100000 + "]" * 100000 + "}"),
+        "big_json": _write(tmp / "big.json", '{"kp_com": [' + "0, " * (2 * 2**20) + "0]}"),
+        "long_value": _write(tmp / "long.yaml", (feet % ", mu: [%s]") % ", ".join(["1"] * 5000)),
+    }
+    P, S, A = INPUT_CLASSES
+    push = ["--push-force", "10", "0", "0"]
+    step = r"must be a number in \[0.001, 60\] s, got 0.0005"  # at least one physics step (1 ms)
+    return [
+        (P, ["balance", "--tasks", f["lifted"]], r"lifted.yaml: contact 'l': sole l_sole is 4.1 cm above the floor"),
+        (P, ["push-sweep", "--tasks", f["tilted"]], r"tilted.yaml: contact 'l': sole l_sole is tilted 8.0 deg against"),
+        (P, ["balance", "--tasks", f["normal"]], r"normal.yaml: contact 'l': normal .* is 5.7 deg from the normal"),
+        (P, ["envelope", "--tasks", f["cop"]], r"cop.yaml: contact 'l': CoP rectangle .* is larger than the foot"),
+        (P, ["balance", "--tasks", f["crate"]], r"crate.yaml: scene object 'crate' intersects the robot .* cm inside"),
+        (P, ["tune", "--tasks", f["default_tilt"]], r"default_tilt.yaml: contact 'r_sole': sole r_sole is tilted 25.0"),
+        (S, ["balance", *push, "--push-duration", "0.0005"], r"--push-duration " + step),
+        (S, ["push-sweep", "--push-duration", "0.0005"], r"--push-duration " + step),
+        (S, ["envelope", "--push-duration", "0.0005"], r"--push-duration " + step),
+        (S, ["limit", "--push-duration", "0.0005"], r"--push-duration " + step),
+        (S, ["tune", "--duration-range", "0.0005", "0.1"], r"--duration-range " + step),
+        (S, ["heldout", "--grid-duration", "0.0005"], r"--grid-duration " + step),
+        (A, ["balance", "--tasks", f["bomb"]], r"bomb.yaml expands to more than 200,000 values"),
+        (A, ["push-sweep", "--tasks", f["recursive"]], r"recursive.yaml: a YAML alias refers to a value that contains"),
+        (A, ["balance", "--tasks", f["deep_yaml"]], r"deep.yaml nests 33 levels deep; at most 32 are read"),
+        (A, ["balance", "--gains", f["deep_json"]], r"--gains file .*deep.json nests 100001 levels deep; at most 32"),
+        (A, ["tune", "--init-gains", f["big_json"]], r"--init-gains file .*big.json is larger than 4 MiB"),
+        (A, ["balance", "--tasks", f["long_value"]], r"contact 'l': mu must be a number, got \(1, 1, 1, 1, 1, 1, 1, 1, \.\.\.\)$"),
     ]  # fmt: skip
 
 

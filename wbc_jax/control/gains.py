@@ -9,6 +9,7 @@ import numpy as np
 
 from wbc_jax.core import io
 from wbc_jax.core.constants import GAIN_FIELDS, GAIN_RANGES, NON_NEGATIVE_GAINS, default_gain_values
+from wbc_jax.core.loader import echo
 from wbc_jax.core.types import Array, pytree_dataclass
 
 
@@ -75,7 +76,7 @@ def gains_from_dict(values: dict, n: int = 23, dtype=jnp.float32, source: str = 
         try:
             arrays[k] = np.asarray(values[k], dtype=float)
         except (TypeError, ValueError):
-            raise ValueError(f"{source}: gain {k} must be a list of {size} numbers, got {values[k]!r}") from None
+            raise ValueError(f"{source}: gain {k} must be a list of {size} numbers, got {echo(values[k])}") from None
         if arrays[k].shape != (size,):  # one gain set: a list, not a table
             raise ValueError(f"{source}: gain {k} must be a list of {size} numbers, got shape {arrays[k].shape}")
     gains = Gains(**arrays)

@@ -4,14 +4,14 @@ the tasks against the robot; :mod:`wbc_jax.robot.scene` builds the contacts' sce
 
 from __future__ import annotations
 
-import json
 import math
 import pathlib
 
 import numpy as np
 
 from wbc_jax.control.tasks import MotionTask, task_from_dict
-from wbc_jax.core import io
+from wbc_jax.core import loader
+from wbc_jax.core.loader import echo
 from wbc_jax.robot.model import Robot
 
 SPEC_KEYS = ("tasks", "contacts", "scene", "initial_posture_deg")
@@ -29,23 +29,7 @@ def load_spec_file(path) -> dict:
     Returns a dict with those keys (``tasks`` as :class:`MotionTask` list or None).
     """
     path = pathlib.Path(path)
-    if path.suffix not in (".json", ".yaml", ".yml"):
-        raise ValueError(f"task file {path}: unknown format {path.suffix!r}; valid: .json, .yaml, .yml")
-    text = io.read_text(path, "task")
-    if path.suffix in (".yaml", ".yml"):
-        import yaml
-
-        try:
-            data = yaml.load(text, Loader=_yaml_loader())
-        except yaml.YAMLError as err:
-            where = getattr(err, "problem_mark", None)
-            at = f" (line {where.line + 1}, column {where.column + 1})" if where is not None else ""
-            raise ValueError(f"task file {path} is not valid YAML{at}: {getattr(err, 'problem', err)}") from None
-    else:
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as err:
-            raise ValueError(f"task file {path} is not valid JSON: {err}") from None
+    data = loader.read_data(path, "task")
     if isinstance(data, list):
         data = {"tasks": data}
     if not isinstance(data, dict) or not set(data) & {"tasks", "contacts"}:
@@ -71,21 +55,6 @@ def load_spec_file(path) -> dict:
     }
 
 
-def _yaml_loader():
-    """PyYAML's safe loader that also reads ``1e3`` as a number (YAML 1.1 wants ``1.0e+3``: its
-    plain ``1e3`` is a string, a trap for every number of a task file)."""
-    import re
-
-    import yaml
-
-    class Loader(yaml.SafeLoader):
-        pass
-
-    exponent = re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$")
-    Loader.add_implicit_resolver("tag:yaml.org,2002:float", exponent, list("-+0123456789"))
-    return Loader
-
-
 def load_stack_file(path) -> list[MotionTask]:
     """The task list of a specification file (:func:`load_spec_file`)."""
     tasks = load_spec_file(path)["tasks"]
@@ -99,9 +68,11 @@ def initial_qpos(robot: Robot, posture_deg: dict) -> np.ndarray:
     qpos = robot.home_qpos()
     for name, deg in posture_deg.items():
         if name not in robot.index.joints:
-            raise ValueError(f"initial_posture_deg: unknown joint {name!r}; valid joints: {list(robot.index.joints)}")
+            raise ValueError(
+                f"initial_posture_deg: unknown joint {echo(name)}; valid joints: {list(robot.index.joints)}"
+            )
         if isinstance(deg, bool) or not isinstance(deg, (int, float)) or not math.isfinite(deg):
-            raise ValueError(f"initial_posture_deg: {name} must be a finite number of degrees, got {deg!r}")
+            raise ValueError(f"initial_posture_deg: {name} must be a finite number of degrees, got {echo(deg)}")
         k = robot.index.joints.index(name)
         lo, hi = np.degrees(robot.mj_model.jnt_range[robot.mj_model.dof_jntid[robot.index.dof_joints[k]]])
         if not lo - 1e-9 <= deg <= hi + 1e-9:

@@ -22,6 +22,7 @@ import math
 import mujoco
 import numpy as np
 
+from wbc_jax.core.loader import echo
 from wbc_jax.robot.dynamics import Frames
 from wbc_jax.robot.model import NAMED_POINTS, Robot
 
@@ -141,7 +142,7 @@ def _numbers(x) -> bool:
 def check_types(task: MotionTask) -> None:
     """Each field of a task (and of its reference) has the type it must have: a clear error
     naming the task, the field, the value and what was expected."""
-    owner = f"task {task.name!r}"
+    owner = f"task {echo(task.name)}"
     expected = {
         "name": (lambda v: isinstance(v, str) and v, "a non-empty string"),
         "kind": (lambda v: isinstance(v, str), f"one of {list(TASK_KINDS)}"),
@@ -156,7 +157,7 @@ def check_types(task: MotionTask) -> None:
     for name, (ok, what) in expected.items():
         value = getattr(task, name)
         if not ok(value):
-            raise ValueError(f"{owner}: {name} must be {what}, got {value!r}")
+            raise ValueError(f"{owner}: {name} must be {what}, got {echo(value)}")
     ref = task.reference
     if not isinstance(ref, TaskReference):
         raise ValueError(
@@ -174,7 +175,7 @@ def check_types(task: MotionTask) -> None:
     for name, (ok, what) in ref_expected.items():
         value = getattr(ref, name)
         if not ok(value):
-            raise ValueError(f"{owner}: reference {name} must be {what}, got {value!r}")
+            raise ValueError(f"{owner}: reference {name} must be {what}, got {echo(value)}")
 
 
 def _per_row(name: str, value, rows: int) -> tuple[float, ...]:
@@ -190,7 +191,7 @@ def _resolve_frame(robot: Robot, task: MotionTask) -> tuple[int, tuple[float, fl
     m, idx = robot.mj_model, robot.index
     offset = np.asarray(task.offset, dtype=float)
     if offset.shape != (3,) or not np.all(np.isfinite(offset)):
-        raise ValueError(f"task {task.name!r}: offset must be 3 finite numbers, got {task.offset!r}")
+        raise ValueError(f"task {echo(task.name)}: offset must be 3 finite numbers, got {echo(task.offset)}")
     if task.frame in NAMED_POINTS:
         body, point = NAMED_POINTS[task.frame]
         return idx.body_id(body), tuple(float(x) for x in np.asarray(point) + offset)
@@ -200,7 +201,7 @@ def _resolve_frame(robot: Robot, task: MotionTask) -> tuple[int, tuple[float, fl
         sid = idx.site_id(task.frame)
         return int(m.site_bodyid[sid]), tuple(float(x) for x in m.site_pos[sid] + offset)
     valid = sorted(set(idx.body_names) | set(idx.site_names) | set(NAMED_POINTS) - {""})
-    raise ValueError(f"task {task.name!r}: unknown frame {task.frame!r}; valid frames: {valid}")
+    raise ValueError(f"task {echo(task.name)}: unknown frame {echo(task.frame)}; valid frames: {valid}")
 
 
 def _initial_values(robot: Robot, qpos: np.ndarray, body: int, offset) -> tuple[np.ndarray, np.ndarray]:
@@ -226,7 +227,7 @@ def resolve(robot: Robot, stack, qpos: np.ndarray | None = None) -> TaskStack:
     tasks = [task_from_dict(t) if isinstance(t, dict) else t for t in stack]
     for t in tasks:
         if not isinstance(t, MotionTask):
-            raise ValueError(f"a task must be a mapping or a MotionTask, got {t!r}")
+            raise ValueError(f"a task must be a mapping or a MotionTask, got {echo(t)}")
     # A bare string is one name ("all"), not a sequence of one-letter joint names.
     tasks = [dataclasses.replace(t, joints=(t.joints,)) if isinstance(t.joints, str) else t for t in tasks]
     # joints: ["all"] is every controlled joint, in the robot's order.
@@ -258,21 +259,23 @@ def resolve(robot: Robot, stack, qpos: np.ndarray | None = None) -> TaskStack:
     resolved = []
     for task, priority in zip(tasks[:-1], priorities[:-1], strict=True):
         if task.kind not in TASK_KINDS:
-            raise ValueError(f"task {task.name!r}: unknown kind {task.kind!r}; valid kinds: {list(TASK_KINDS)}")
+            raise ValueError(f"task {echo(task.name)}: unknown kind {echo(task.kind)}; valid kinds: {list(TASK_KINDS)}")
         if not (math.isfinite(task.weight) and 0 < task.weight <= MAX_TASK_GAIN):
-            raise ValueError(f"task {task.name!r}: weight must be in (0, {MAX_TASK_GAIN:g}], got {task.weight}")
+            raise ValueError(f"task {echo(task.name)}: weight must be in (0, {MAX_TASK_GAIN:g}], got {task.weight}")
         ref = task.reference
         if ref.kind not in REFERENCE_KINDS:
-            raise ValueError(f"task {task.name!r}: unknown reference kind {ref.kind!r}; valid: {list(REFERENCE_KINDS)}")
+            raise ValueError(
+                f"task {echo(task.name)}: unknown reference kind {echo(ref.kind)}; valid: {list(REFERENCE_KINDS)}"
+            )
         dofs: tuple[int, ...] = ()
         frame = -1
         if task.kind == "joints":
             if not task.joints:
-                raise ValueError(f"task {task.name!r}: a joints task needs joint names")
+                raise ValueError(f"task {echo(task.name)}: a joints task needs joint names")
             for j in task.joints:
                 if j not in robot.index.joints:
                     raise ValueError(
-                        f"task {task.name!r}: unknown joint {j!r}; valid joints: {list(robot.index.joints)}"
+                        f"task {echo(task.name)}: unknown joint {echo(j)}; valid joints: {list(robot.index.joints)}"
                     )
             dofs = tuple(robot.index.joints.index(j) for j in task.joints)
         if task.kind in ("position", "orientation"):
@@ -281,20 +284,20 @@ def resolve(robot: Robot, stack, qpos: np.ndarray | None = None) -> TaskStack:
                 frames.append((body, offset))
             frame = frames.index((body, offset))
         elif task.frame is not None:
-            raise ValueError(f"task {task.name!r}: a {task.kind} task takes no frame (got {task.frame!r})")
+            raise ValueError(f"task {echo(task.name)}: a {task.kind} task takes no frame (got {echo(task.frame)})")
         rows = task_dimension(task)
         if ref.kind == "circle":
             if task.kind not in ("position", "com"):
-                raise ValueError(f"task {task.name!r}: a circle reference needs a position or com task")
+                raise ValueError(f"task {echo(task.name)}: a circle reference needs a position or com task")
             if not (0 < ref.radius <= MAX_CIRCLE_RADIUS_M and 0 < ref.frequency <= MAX_CIRCLE_FREQUENCY_HZ
                     and 0 <= ref.ramp <= MAX_RAMP_S):  # fmt: skip
-                raise ValueError(f"task {task.name!r}: circle needs radius in (0, {MAX_CIRCLE_RADIUS_M:g}] m, "
+                raise ValueError(f"task {echo(task.name)}: circle needs radius in (0, {MAX_CIRCLE_RADIUS_M:g}] m, "
                                  f"frequency in (0, {MAX_CIRCLE_FREQUENCY_HZ:g}] Hz and ramp in [0, {MAX_RAMP_S:g}] "
                                  f"s, got {ref.radius}, {ref.frequency}, {ref.ramp}")  # fmt: skip
             axes = [a.lstrip("+-") for a in ref.plane]
             if len(ref.plane) != 2 or any(a not in AXES for a in axes) or axes[0] == axes[1]:
                 raise ValueError(
-                    f"task {task.name!r}: circle plane must be two different axes of {list(AXES)}, each "
+                    f"task {echo(task.name)}: circle plane must be two different axes of {list(AXES)}, each "
                     f"optionally signed ('-z'), got {list(ref.plane)}"
                 )
         target_len = 4 if task.kind in ("orientation", "base_orientation") else rows
@@ -302,7 +305,7 @@ def resolve(robot: Robot, stack, qpos: np.ndarray | None = None) -> TaskStack:
             target = np.asarray(ref.target, dtype=float)
             if target.shape != (target_len,) or not np.all(np.isfinite(target)):
                 raise ValueError(
-                    f"task {task.name!r}: reference target must have {target_len} finite entries "
+                    f"task {echo(task.name)}: reference target must have {target_len} finite entries "
                     f"({'a (w, x, y, z) quaternion' if target_len == 4 else 'the task dimension'}), "
                     f"got shape {target.shape}"
                 )
@@ -357,16 +360,16 @@ def task_from_dict(values: dict) -> MotionTask:
     """A :class:`MotionTask` from a JSON/YAML mapping (``reference`` as a nested mapping)."""
     fields = {f.name for f in dataclasses.fields(MotionTask)}
     if not isinstance(values, dict):
-        raise ValueError(f"a task must be a mapping, got {values!r}")
+        raise ValueError(f"a task must be a mapping, got {echo(values)}")
     unknown = sorted(map(str, set(values) - fields))
     if unknown or "name" not in values or "kind" not in values:
-        raise ValueError(f"task {values.get('name')!r}: unknown keys {unknown} (valid: {sorted(fields)}); "
+        raise ValueError(f"task {echo(values.get('name'))}: unknown keys {unknown} (valid: {sorted(fields)}); "
                          "'name' and 'kind' are required")  # fmt: skip
     values = dict(values)
     ref = values.pop("reference", {}) or {}
     ref_fields = {f.name for f in dataclasses.fields(TaskReference)}
     if not isinstance(ref, dict) or set(ref) - set(map(str, ref_fields)) or not all(isinstance(k, str) for k in ref):
-        raise ValueError(f"task {values['name']!r}: reference keys must be among {sorted(ref_fields)}")
+        raise ValueError(f"task {echo(values['name'])}: reference keys must be among {sorted(ref_fields)}")
     ref = {k: tuple(v) if isinstance(v, list) else v for k, v in ref.items()}
     values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
     if isinstance(values.get("joints"), str):

@@ -57,6 +57,9 @@ def default_gain_values(n: int = 23) -> dict[str, np.ndarray]:
 MAX_HORIZON_S = 600.0  # simulated seconds of one rollout: ten minutes of balancing
 MAX_PUSH_N = 5000.0  # 15 g on the 33 kg iCub for the push's length
 MAX_PUSH_DURATION_S = 60.0
+# One physics step of the model (1 kHz): a shorter push would be spread over the step (its impulse
+# kept, its force not); longer ones need not be whole steps (wbc_jax.sim.state.push_forces).
+MIN_PUSH_DURATION_S = 0.001
 MAX_JOINT_NOISE_RAD = 0.5  # 29 deg std: beyond it the initial postures leave the joint ranges
 FRICTION_RANGE = (0.01, 10.0)  # floor friction of the plant
 MASS_SCALE_RANGE = (0.1, 10.0)  # plant mass scale
@@ -72,6 +75,9 @@ CONTROL_DT = 0.01  # s: the controller at 100 Hz (physics at the model's 1 kHz)
 RECOVERY_THRESHOLD = 0.01  # m: "recovered" = CoM back within 1 cm of its reference
 FALL_COM_HEIGHT = 0.7  # a fall: CoM below this fraction of its initial height
 BODY_FLOOR_HEIGHT = 0.05  # m: a fall: a body other than the feet/ankles this close to the floor
+# deg: a fall: the trunk's (root body's) z axis this far from vertical at any tick. Balancing and
+# the one-foot task tilt it by a few degrees; 60 deg is a robot on its way to the floor.
+FALL_TRUNK_TILT_DEG = 60.0
 # A state with a speed above this (m/s or rad/s) has diverged even if finite: blown-up physics is
 # flagged and frozen like NaN instead of feeding overflowing numbers into the metrics.
 DIVERGED_SPEED = 1e4
@@ -94,7 +100,8 @@ SURVIVAL_CRITERION = {
     "max_foot_tilt_deg": SURVIVAL_MAX_TILT_DEG,
     "end_com_speed_mps": SURVIVAL_END_COM_SPEED,
     "end_com_over_support": True,
-    "no_fall": f"CoM above {FALL_COM_HEIGHT} x its initial height, no body but the feet below {BODY_FLOOR_HEIGHT} m",
+    "no_fall": f"CoM above {FALL_COM_HEIGHT} x its initial height, no body but the feet below {BODY_FLOOR_HEIGHT} m, "
+    f"the trunk within {FALL_TRUNK_TILT_DEG:g} deg of vertical",
 }
 
 # One set of metric names, for a balance run (scalars) and a sweep (one column per name).

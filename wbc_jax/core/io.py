@@ -69,8 +69,8 @@ def is_gains_file(path) -> bool:
     if path.suffix != ".json" or not path.is_file():
         return False
     try:
-        values = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError):
+        values = read_json(path, "gains")
+    except (ValueError, OSError):
         return False
     return isinstance(values, dict) and set(values) == set(GAIN_FIELDS)
 
@@ -107,12 +107,19 @@ def atomic_save_figure(path: pathlib.Path, fig, dpi: int = 110) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
-def read_text(path, what: str) -> str:
+def read_text(path, what: str, max_bytes: int | None = None) -> str:
     """The UTF-8 text of ``path``; one line naming ``what`` and the file when it cannot be read
-    (missing, a folder, not readable, not UTF-8)."""
-    path = pathlib.Path(path)
+    (missing, a folder, not readable, not UTF-8, longer than ``max_bytes``: None,
+    :data:`wbc_jax.core.loader.MAX_FILE_BYTES`; counted while reading, so a device never ends)."""
+    from wbc_jax.core.loader import MAX_FILE_BYTES
+
+    path, limit = pathlib.Path(path), MAX_FILE_BYTES if max_bytes is None else max_bytes
     try:
-        return path.read_bytes().decode("utf-8")
+        with path.open("rb") as fh:
+            data = fh.read(limit + 1)
+        if len(data) > limit:
+            raise ValueError(f"{what} file {path} is larger than {limit / 2**20:g} MiB, the limit of an input file")
+        return data.decode("utf-8")
     except FileNotFoundError:
         raise FileNotFoundError(f"{what} file {path} does not exist") from None
     except IsADirectoryError:
@@ -127,7 +134,6 @@ def read_text(path, what: str) -> str:
 
 def read_json(path, what: str):
     """The JSON value of ``path`` (:func:`read_text`); one line naming the file when it is not JSON."""
-    try:
-        return json.loads(read_text(path, what))
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{what} file {path} is not valid JSON: {err}") from None
+    from wbc_jax.core.loader import parse_json
+
+    return parse_json(read_text(path, what), path, what)

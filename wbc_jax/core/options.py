@@ -28,11 +28,8 @@ import typing
 from collections.abc import Callable
 from typing import Any
 
-from wbc_jax.core import io
-
-# An input file larger than this is not a task, gains or envelope file (and reading it would
-# hold it in memory).
-MAX_INPUT_FILE_BYTES = 16 * 1024 * 1024
+from wbc_jax.core import io, loader
+from wbc_jax.core.loader import echo
 
 
 @dataclasses.dataclass(frozen=True)
@@ -137,10 +134,10 @@ def check_options(obj, owner: str | None = None, robot: str = "icub") -> None:
         flag = flag_name(field) if owner is None else f"{owner}: {field.name}"
         if valid.choices is not None and not isinstance(value, tuple) and value is not None:
             if not isinstance(value, (str, int, float)) or value not in valid.choices:
-                raise ValueError(f"{flag} must be one of {list(valid.choices)}, got {value!r}")
+                raise ValueError(f"{flag} must be one of {list(valid.choices)}, got {echo(value)}")
             continue
         if not _type_ok(value, hint):
-            raise ValueError(f"{flag} must be {_type_words(hint)}, got {value!r}")
+            raise ValueError(f"{flag} must be {_type_words(hint)}, got {echo(value)}")
         if value is None:
             continue
         values = value if isinstance(value, tuple) else (value,)
@@ -148,11 +145,11 @@ def check_options(obj, owner: str | None = None, robot: str = "icub") -> None:
             raise ValueError(f"{flag}: give at least one value")
         for v in values if valid.choices is not None else ():
             if v not in valid.choices:
-                raise ValueError(f"{flag} must be among {list(valid.choices)}, got {v!r}")
+                raise ValueError(f"{flag} must be among {list(valid.choices)}, got {echo(v)}")
         integer = _only(hint, int)
         for v in _numbers(value):
             if math.isnan(v) or (valid.finite and math.isinf(v)) or not valid.contains(v):
-                shown = f"{v:g}" if isinstance(v, float) else repr(v)
+                shown = f"{v:g}" if isinstance(v, float) else echo(v)
                 raise ValueError(f"{flag} must be {valid.describe(integer)}, got {shown}")
         if valid.ordered and len(values) == 2 and values[0] > values[1]:
             raise ValueError(f"{flag} LO HI must be ordered (LO <= HI), got {list(values)}")
@@ -163,7 +160,7 @@ def check_options(obj, owner: str | None = None, robot: str = "icub") -> None:
             known = list(valid.names(robot))
             for v in values:
                 if v not in known:
-                    raise ValueError(f"{flag} {v!r} is not a valid name here; valid: {known}")
+                    raise ValueError(f"{flag} {echo(v)} is not a valid name here; valid: {known}")
 
 
 def check_input_file(path, flag: str) -> None:
@@ -176,11 +173,10 @@ def check_input_file(path, flag: str) -> None:
         raise FileNotFoundError(f"{flag} file {path} does not exist")
     if not path.is_file():
         raise ValueError(f"{flag} {path} is not a file (a directory?)")
-    size = path.stat().st_size
-    if size > MAX_INPUT_FILE_BYTES:
-        raise ValueError(f"{flag} {path} is {size / 2**20:.0f} MiB, larger than an input file can be "
-                         f"({MAX_INPUT_FILE_BYTES // 2**20} MiB)")  # fmt: skip
-    io.read_text(path, flag)
+    if path.suffix in (".json", ".yaml", ".yml"):  # read as the job will: within the loader's limits
+        loader.read_data(path, flag)
+    else:
+        io.read_text(path, flag)
 
 
 # ---- types from annotations ------------------------------------------------------------------

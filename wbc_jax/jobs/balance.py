@@ -50,7 +50,9 @@ class BalanceConfig:
         ge=-limits.MAX_PUSH_N, le=limits.MAX_PUSH_N, unit="N",
     )  # fmt: skip
     push_onset: float = option(1.0, "push start [s]", ge=0.0, lt=limits.MAX_HORIZON_S, unit="s")
-    push_duration: float = option(0.1, "push length [s]", gt=0.0, le=limits.MAX_PUSH_DURATION_S, unit="s")
+    push_duration: float = option(
+        0.1, "push length [s]", ge=limits.MIN_PUSH_DURATION_S, le=limits.MAX_PUSH_DURATION_S, unit="s"
+    )
     control_dt: float = option(0.01, "controller period [s], a multiple of the 1 ms physics step", ge=0.001, le=0.1,
                                unit="s")  # fmt: skip
     solver_iterations: int | None = option(None, "contact solver Newton iterations (default: the model's, 4)",

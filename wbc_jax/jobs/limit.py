@@ -36,7 +36,7 @@ import pathlib
 
 import numpy as np
 
-from wbc_jax.core import constants
+from wbc_jax.core import constants, io
 from wbc_jax.core.options import check_options, option
 from wbc_jax.jobs import runs, sweep_config, trajopt
 from wbc_jax.robot import model
@@ -60,7 +60,9 @@ class LimitConfig:
         metavar="N", parse=sweep_config._azimuths, show=len, ge=-360.0, le=360.0, unit="deg", nonempty=True,
     )  # fmt: skip
     elevation: float = option(0.0, "push elevation [deg]", ge=-90.0, le=90.0, unit="deg")
-    push_duration: float = option(0.1, "push length [s]", gt=0.0, le=constants.MAX_PUSH_DURATION_S, unit="s")
+    push_duration: float = option(
+        0.1, "push length [s]", ge=constants.MIN_PUSH_DURATION_S, le=constants.MAX_PUSH_DURATION_S, unit="s"
+    )
     push_onset: float = option(0.5, "push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
     body: str = option("chest", "pushed body", names=model.pushable_bodies)
     gains: str | None = option(None, "gains JSON file of the balancing controller around which torques are optimised",
@@ -165,7 +167,7 @@ def load_envelopes(cfg: LimitConfig) -> dict:
         if changed is not None and runs.run_root(path) is not None:
             raise ValueError(f"--envelopes {changed}; rerun that envelope")
         try:
-            data = json.loads(path.read_text())
+            data = io.read_json(path, "--envelopes")
             env = data["envelope"].get("0", data["envelope"].get(0))
             pushed = data["config"]
         except (OSError, json.JSONDecodeError, UnicodeDecodeError, KeyError, AttributeError, TypeError) as err:

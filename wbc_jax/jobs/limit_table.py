@@ -8,7 +8,6 @@ bound and envelopes, its limit columns are None and ``missing`` names the comman
 
 from __future__ import annotations
 
-import json
 import pathlib
 
 import numpy as np
@@ -21,8 +20,8 @@ from wbc_jax.robot import model as model_lib
 def _read(path) -> dict:
     path = pathlib.Path(path)
     try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
+        return io.read_json(path, "limit table input")
+    except OSError as err:
         raise ValueError(f"{path} is unreadable: {err}") from None
 
 

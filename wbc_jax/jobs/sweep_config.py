@@ -66,7 +66,9 @@ class SweepConfig:
         metavar="N", parse=_azimuths, show=len, ge=-360.0, le=360.0, unit="deg", nonempty=True,
     )  # fmt: skip
     elevation: float = option(0.0, "push elevation [deg] (+90: straight up)", ge=-90.0, le=90.0, unit="deg")
-    push_duration: float = option(0.1, "push length [s]", gt=0.0, le=limits.MAX_PUSH_DURATION_S, unit="s")
+    push_duration: float = option(
+        0.1, "push length [s]", ge=limits.MIN_PUSH_DURATION_S, le=limits.MAX_PUSH_DURATION_S, unit="s"
+    )
     push_onset: float = option(0.5, "push start [s]", ge=0.0, lt=limits.MAX_HORIZON_S, unit="s")
     body: str = option("chest", "pushed body", names=model.pushable_bodies)
     gains: str | None = option(None, "gains JSON file (the first gain set)", metavar="FILE", input_file=True)

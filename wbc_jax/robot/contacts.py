@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.core import constants
+from wbc_jax.core.loader import echo
 from wbc_jax.core.options import check_options, entry
 from wbc_jax.core.types import Array, pytree_dataclass
 from wbc_jax.robot import model as model_lib
@@ -77,24 +78,26 @@ class ContactParams:
         for name in ("mu", "mu_t", "fz_min"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ValueError(f"ContactParams.{name} must be a real number, got {value!r}")
+                raise ValueError(f"ContactParams.{name} must be a real number, got {echo(value)}")
             if not math.isfinite(value) or value <= 0.0:
-                raise ValueError(f"ContactParams.{name} must be positive and finite, got {value!r}")
+                raise ValueError(f"ContactParams.{name} must be positive and finite, got {echo(value)}")
             object.__setattr__(self, name, float(value))
         n = self.n_points
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2:
-            raise ValueError(f"ContactParams.n_points must be an integer >= 2, got {n!r}")
+            raise ValueError(f"ContactParams.n_points must be an integer >= 2, got {echo(n)}")
         object.__setattr__(self, "n_points", int(n))
         try:
             (x_min, x_max), (y_min, y_max) = ((float(a), float(b)) for a, b in self.foot_size)
         except (TypeError, ValueError) as err:
             raise ValueError(
-                f"ContactParams.foot_size must be ((x_min, x_max), (y_min, y_max)), got {self.foot_size!r}"
+                f"ContactParams.foot_size must be ((x_min, x_max), (y_min, y_max)), got {echo(self.foot_size)}"
             ) from err
         if not all(math.isfinite(v) for v in (x_min, x_max, y_min, y_max)):
-            raise ValueError(f"ContactParams.foot_size must be finite, got {self.foot_size!r}")
+            raise ValueError(f"ContactParams.foot_size must be finite, got {echo(self.foot_size)}")
         if not (x_min < x_max and y_min < y_max):
-            raise ValueError(f"ContactParams.foot_size needs x_min < x_max and y_min < y_max, got {self.foot_size!r}")
+            raise ValueError(
+                f"ContactParams.foot_size needs x_min < x_max and y_min < y_max, got {echo(self.foot_size)}"
+            )
         # A CoP rectangle that excludes the sole origin is legal (the rows stay
         # meaningful), so only the ordering is checked.
         object.__setattr__(self, "foot_size", ((x_min, x_max), (y_min, y_max)))
@@ -264,11 +267,11 @@ def feet_contact_set(robot: model_lib.Robot, params: ContactParams | None = None
 def contact_from_dict(values: dict) -> Contact:
     """A :class:`Contact` from a JSON/YAML mapping (``activation`` as a nested mapping)."""
     if not isinstance(values, dict):
-        raise ValueError(f"a contact must be a mapping, got {values!r}")
+        raise ValueError(f"a contact must be a mapping, got {echo(values)}")
     fields = {f.name for f in dataclasses.fields(Contact)}
     unknown = sorted(map(str, set(values) - fields))
     if unknown or "name" not in values or "frame" not in values:
-        raise ValueError(f"contact {values.get('name')!r}: unknown keys {unknown} (valid: {sorted(fields)}); "
+        raise ValueError(f"contact {echo(values.get('name'))}: unknown keys {unknown} (valid: {sorted(fields)}); "
                          "'name' and 'frame' are required")  # fmt: skip
     values = dict(values)
     act = values.pop("activation", {}) or {}
@@ -279,7 +282,7 @@ def contact_from_dict(values: dict) -> Contact:
         or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in act.values())
     ):
         raise ValueError(
-            f"contact {values['name']!r}: activation must map {sorted(act_fields)} to numbers, got {act!r}"
+            f"contact {echo(values['name'])}: activation must map {sorted(act_fields)} to numbers, got {echo(act)}"
         )
     if isinstance(values.get("cop"), list):
         values["cop"] = tuple(tuple(r) if isinstance(r, list) else r for r in values["cop"])
@@ -290,11 +293,11 @@ def contact_from_dict(values: dict) -> Contact:
 def object_from_dict(values: dict) -> SceneObject:
     """A :class:`SceneObject` from a JSON/YAML mapping."""
     if not isinstance(values, dict):
-        raise ValueError(f"a scene object must be a mapping, got {values!r}")
+        raise ValueError(f"a scene object must be a mapping, got {echo(values)}")
     fields = {f.name for f in dataclasses.fields(SceneObject)}
     unknown = sorted(map(str, set(values) - fields))
     if unknown or "name" not in values:
-        raise ValueError(f"scene object {values.get('name')!r}: unknown keys {unknown} (valid: {sorted(fields)}); "
+        raise ValueError(f"scene object {echo(values.get('name'))}: unknown keys {unknown} (valid: {sorted(fields)}); "
                          "'name' is required")  # fmt: skip
     return SceneObject(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
 
@@ -303,9 +306,9 @@ def _vector(owner: str, name: str, value, size: int = 3) -> np.ndarray:
     try:
         arr = np.asarray(value, dtype=float)
     except (TypeError, ValueError) as err:
-        raise ValueError(f"{owner}: {name} must be {size} numbers, got {value!r}") from err
+        raise ValueError(f"{owner}: {name} must be {size} numbers, got {echo(value)}") from err
     if arr.shape != (size,) or not np.all(np.isfinite(arr)):
-        raise ValueError(f"{owner}: {name} must be {size} finite numbers, got {value!r}")
+        raise ValueError(f"{owner}: {name} must be {size} finite numbers, got {echo(value)}")
     return arr
 
 
@@ -316,10 +319,10 @@ def check_spec(contacts, objects) -> tuple[tuple[Contact, ...], tuple[SceneObjec
     if not contacts:
         raise ValueError("the contact set is empty; list at least one contact (e.g. the feet)")
     for c in contacts:  # types and ranges first: the checks below assume them
-        check_options(c, owner=f"contact {c.name!r}")
-        check_options(c.activation, owner=f"contact {c.name!r}: activation")
+        check_options(c, owner=f"contact {echo(c.name)}")
+        check_options(c.activation, owner=f"contact {echo(c.name)}: activation")
     for o in objects:
-        check_options(o, owner=f"scene object {o.name!r}")
+        check_options(o, owner=f"scene object {echo(o.name)}")
     for kind, items in (("contact", contacts), ("scene object", objects)):
         names = [i.name for i in items]
         duplicates = sorted({n for n in names if names.count(n) > 1})
@@ -327,9 +330,9 @@ def check_spec(contacts, objects) -> tuple[tuple[Contact, ...], tuple[SceneObjec
             raise ValueError(f"duplicate {kind} names {duplicates}; each needs its own name")
     object_names = [o.name for o in objects]
     for c in contacts:
-        owner = f"contact {c.name!r}"
+        owner = f"contact {echo(c.name)}"
         if c.type not in CONTACT_TYPES:
-            raise ValueError(f"{owner}: unknown type {c.type!r}; valid types: {list(CONTACT_TYPES)}")
+            raise ValueError(f"{owner}: unknown type {echo(c.type)}; valid types: {list(CONTACT_TYPES)}")
         if c.normal is None:
             raise ValueError(f"{owner}: no normal direction; give 'normal: [nx, ny, nz]' (world axes, "
                              "pointing out of the touched surface)")  # fmt: skip
@@ -340,13 +343,13 @@ def check_spec(contacts, objects) -> tuple[tuple[Contact, ...], tuple[SceneObjec
         for name in ("mu", "mu_t", "fz_min"):
             value = getattr(c, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"{owner}: {name} must be positive and finite, got {value!r}")
+                raise ValueError(f"{owner}: {name} must be positive and finite, got {echo(value)}")
         if c.normal_force is not None and not (math.isfinite(c.normal_force) and c.normal_force >= c.fz_min):
             raise ValueError(f"{owner}: normal_force must be finite and >= fz_min ({c.fz_min}), got {c.normal_force}")
         if c.type == "point" and c.cop is not None:
             raise ValueError(f"{owner}: a point contact has no CoP rectangle (got cop {c.cop}); use type 'surface'")
         if not isinstance(c.detect, bool):
-            raise ValueError(f"{owner}: detect must be true or false, got {c.detect!r}")
+            raise ValueError(f"{owner}: detect must be true or false, got {echo(c.detect)}")
         if c.detect and c.frame in FEET_FRAMES and not np.any(_vector(owner, "offset", c.offset)):
             raise ValueError(f"{owner}: the soles follow the task's foot schedule; contact detection (detect) is for "
                              "the other contacts")  # fmt: skip
@@ -354,12 +357,12 @@ def check_spec(contacts, objects) -> tuple[tuple[Contact, ...], tuple[SceneObjec
         if not (math.isfinite(a.start) and a.ramp >= 0 and math.isfinite(a.ramp) and a.stop > a.start + a.ramp):
             raise ValueError(f"{owner}: activation needs finite start, ramp >= 0 and stop > start + ramp, got {a}")
         if c.touches is not None and c.touches not in object_names + ["floor"]:
-            raise ValueError(f"{owner}: touches unknown object {c.touches!r}; valid: {object_names + ['floor']}")
+            raise ValueError(f"{owner}: touches unknown object {echo(c.touches)}; valid: {object_names + ['floor']}")
     contact_names = [c.name for c in contacts]
     for o in objects:
-        owner = f"scene object {o.name!r}"
+        owner = f"scene object {echo(o.name)}"
         if o.type not in OBJECT_TYPES:
-            raise ValueError(f"{owner}: unknown type {o.type!r}; valid types: {list(OBJECT_TYPES)}")
+            raise ValueError(f"{owner}: unknown type {echo(o.type)}; valid types: {list(OBJECT_TYPES)}")
         if np.any(_vector(owner, "size", o.size) <= 0):
             raise ValueError(f"{owner}: size (half sizes) must be positive, got {list(o.size)}")
         _vector(owner, "shift", o.shift)
@@ -368,7 +371,7 @@ def check_spec(contacts, objects) -> tuple[tuple[Contact, ...], tuple[SceneObjec
         if o.pos is not None:
             _vector(owner, "pos", o.pos)
         if o.under is not None and o.under not in contact_names:
-            raise ValueError(f"{owner}: under unknown contact {o.under!r}; valid: {contact_names}")
+            raise ValueError(f"{owner}: under unknown contact {echo(o.under)}; valid: {contact_names}")
         if not (math.isfinite(o.friction) and o.friction > 0):
             raise ValueError(f"{owner}: friction must be positive, got {o.friction}")
     return contacts, objects

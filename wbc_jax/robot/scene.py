@@ -16,12 +16,13 @@ import math
 import mujoco
 import numpy as np
 
+from wbc_jax.core.loader import echo
 from wbc_jax.robot import model as model_lib
+from wbc_jax.robot import placement
 from wbc_jax.robot.contacts import FEET_FRAMES, Contact, ContactParams, ContactSet, ResolvedContact, check_spec
 
 SPHERE_RADIUS = 0.005  # m, as the feet's corner spheres (assets/build_icub_mjcf.py)
 CONTACT_SOLREF = (0.004, 1.0)  # as the feet
-REACH_TOL = 0.005  # m: a contact's point must be this close to the surface it touches (initial posture)
 
 
 def _frame_point(m: mujoco.MjModel, idx: model_lib.RobotIndex, c: Contact):
@@ -36,7 +37,7 @@ def _frame_point(m: mujoco.MjModel, idx: model_lib.RobotIndex, c: Contact):
     if c.frame and c.frame in idx.body_names:
         return idx.body_id(c.frame), offset, -1
     valid = sorted((set(idx.body_names) | set(idx.site_names) | set(model_lib.NAMED_POINTS)) - {""})
-    raise ValueError(f"contact {c.name!r}: unknown frame {c.frame!r}; valid frames: {valid}")
+    raise ValueError(f"contact {echo(c.name)}: unknown frame {echo(c.frame)}; valid frames: {valid}")
 
 
 def _contact_rotation(normal: np.ndarray, site_R: np.ndarray | None) -> np.ndarray:
@@ -51,30 +52,44 @@ def _contact_rotation(normal: np.ndarray, site_R: np.ndarray | None) -> np.ndarr
     return np.stack([x, np.cross(z, x), z], axis=1)
 
 
-def _box_distance(p: np.ndarray, centre: np.ndarray, half: np.ndarray) -> float:
-    """Signed distance of p (3,) to an axis-aligned box (negative inside)."""
-    q = np.abs(p - centre) - half
-    return float(np.linalg.norm(np.maximum(q, 0.0)) + min(q.max(), 0.0))
+def _check_placement(m: mujoco.MjModel, d: mujoco.MjData, c: Contact, frame: tuple, placed: dict) -> None:
+    """Does contact ``c`` touch what it names at the initial posture (``d``, after mj_forward)?
+    Contacts through the robot's own geoms (the soles) touch the floor: a sole must stand flat on it
+    with its CoP rectangle inside the foot; others must reach their object, normal along its
+    surface's, CoP rectangle on it (:mod:`wbc_jax.robot.placement`)."""
+    body, _, _, W_p, W_R_c = frame
+    surface, cop = c.touches or "floor", c.cop or ContactParams().foot_size
+    if c.touches is None:
+        geoms = _own_geoms(m, c, body, sorted(placed))
+        if c.frame in FEET_FRAMES and not np.any(c.offset):
+            placement.check_normal(c.name, W_R_c[:, 2], W_p, placed[surface], surface)
+            placement.check_sole(m, d, c.name, m.site(c.frame).id, geoms, cop)
+            return
+    placement.check_reach(c.name, W_p, placed[surface], surface)  # first: the normal is the nearest face's
+    placement.check_normal(c.name, W_R_c[:, 2], W_p, placed[surface], surface)
+    if c.type == "surface":
+        placement.check_cop_on_surface(c.name, W_p, W_R_c, cop, placed[surface], surface)
 
 
-def _check_touch(c: Contact, W_p: np.ndarray, normal: np.ndarray, centre: np.ndarray, half: np.ndarray,
-                 reach: bool = True) -> None:  # fmt: skip
-    """A contact's point must lie on the surface of what it touches (within REACH_TOL) at the
-    initial posture (unless not ``reach``), and its normal must leave that surface (not point into
-    the object)."""
-    surface = c.touches or "floor"
-    dist = _box_distance(W_p, centre, half)
-    if reach and abs(dist) > REACH_TOL:
-        raise ValueError(f"contact {c.name!r}: its point {W_p.round(3).tolist()} is {abs(dist) * 100:.1f} cm "
-                         f"{'inside' if dist < 0 else 'away from'} the surface of {surface!r} at the initial posture "
-                         f"(at most {REACH_TOL * 1e3:.0f} mm: it must touch it); move the object (pos, shift) or "
-                         "change the initial posture")  # fmt: skip
-    rise = lambda e: (_box_distance(W_p + 0.01 * e, centre, half) - _box_distance(W_p - 0.01 * e, centre, half)) / 0.02  # noqa: E731
-    n = normal / np.linalg.norm(normal)
-    if rise(n) < 0.5:  # more than 60 deg from the surface's outward normal
-        raise ValueError(f"contact {c.name!r}: normal {np.round(n, 3).tolist()} points into {surface!r} or along its "
-                         f"surface (the surface faces {np.round([rise(e) for e in np.eye(3)], 3).tolist()}); the "
-                         "normal points out of the touched surface, towards the robot")  # fmt: skip
+def check_feet(robot: model_lib.Robot, qpos: np.ndarray) -> None:
+    """The default contact set (both soles, the WBC CoP rectangle) at the initial posture ``qpos``
+    (nq,): each sole flat on the floor (:func:`wbc_jax.robot.placement.check_sole`)."""
+    m = robot.mj_model
+    d = mujoco.MjData(m)
+    d.qpos[:] = qpos
+    mujoco.mj_forward(m, d)
+    for frame in FEET_FRAMES:
+        site = m.site(frame).id
+        placement.check_sole(m, d, frame, site, _pair_geoms(m, int(m.site_bodyid[site])), ContactParams().foot_size)
+
+
+def _own_geoms(m: mujoco.MjModel, c: Contact, body: int, surfaces: list[str]) -> list[int]:
+    """The collision geoms through which a contact without ``touches`` acts (its body's)."""
+    geoms = _pair_geoms(m, body)
+    if not geoms:
+        raise ValueError(f"contact {echo(c.name)}: body {echo(m.body(body).name)} has no collision geoms; "
+                         f"give 'touches: <object>' (valid: {surfaces})")  # fmt: skip
+    return geoms
 
 
 def _pair_geoms(m: mujoco.MjModel, body: int) -> list[int]:
@@ -136,8 +151,8 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
             _, _, _, W_p, W_R_c = frames[o.under]
             axis = int(np.argmax(np.abs(W_R_c[:, 2])))
             if abs(W_R_c[axis, 2]) < 1 - 1e-6 or W_R_c[2, 2] < -1e-6:
-                raise ValueError(f"scene object {o.name!r}: 'under' needs a contact with normal +z or horizontal "
-                                 f"along a world axis; {o.under!r} has normal {W_R_c[:, 2].round(3).tolist()}")  # fmt: skip
+                raise ValueError(f"scene object {echo(o.name)}: 'under' needs a contact with normal +z or horizontal "
+                                 f"along a world axis; {echo(o.under)} has normal {W_R_c[:, 2].round(3).tolist()}")  # fmt: skip
             pos = W_p - W_R_c[:, 2].round() * o.size[axis] + np.asarray(o.shift, float)
         else:
             pos = np.asarray(o.pos, float)
@@ -150,10 +165,9 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
     friction["floor"] = 1.0
     placed["floor"] = (np.array([0.0, 0.0, d.geom_xpos[base.geom("floor").id][2] - 1e3]), np.full(3, 1e3))
     for c in contacts:
-        # Contacts through the robot's own geoms (the soles) touch the floor: their normal is
-        # checked against it too (a sole whose normal points down is refused).
-        _check_touch(c, frames[c.name][3], frames[c.name][4][:, 2], *placed[c.touches or "floor"],
-                     reach=c.touches is not None)  # fmt: skip
+        _check_placement(base, d, c, frames[c.name], placed)
+    placement.check_objects_clear(base, d, {o.name: placed[o.name] for o in objects},
+                                  [(frames[c.name][0], frames[c.name][3]) for c in contacts])  # fmt: skip
     added: dict[str, list[str]] = {}
     for c in contacts:
         if c.touches is None:
@@ -189,12 +203,7 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
         if c.touches is not None:
             geoms = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, g) for g in added[c.name]]
         else:
-            geoms = _pair_geoms(m, body)
-            if not geoms:
-                raise ValueError(
-                    f"contact {c.name!r}: body {base.body(body).name!r} has no collision geoms; "
-                    f"give 'touches: <object>' (valid: {sorted(friction)})"
-                )
+            geoms = _own_geoms(m, c, body, sorted(friction))
         cop = c.cop or ContactParams().foot_size
         params = ContactParams(mu=c.mu, mu_t=c.mu_t, fz_min=c.fz_min, foot_size=cop)
         resolved.append(

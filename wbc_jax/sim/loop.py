@@ -198,7 +198,7 @@ class ClosedLoop:
             state.metrics, com=terms.W_p_CoM, com_ref=ref.com_pos, com_vel=terms.W_v_CoM, tau=out.tau,
             violation=out.qp_violation, infeasible=out.qp_infeasible, contact_pos=out.contact_pos,
             normals=normal, anchors=anchors, anchor_normals=anchor_normals, fully_active=fully_active,
-            body_heights=terms.xpos[self.non_foot_bodies, 2], support=corners[:, :2],
+            body_heights=terms.xpos[self.non_foot_bodies, 2], trunk_z=terms.W_R_B[:, 2], support=corners[:, :2],
             com0_height=state.com0_height, t_now=t_now, physics_ok=physics_ok,
         )  # fmt: skip
         return new, anchors, anchor_normals
@@ -207,7 +207,7 @@ class ClosedLoop:
         """(n_sub, P, 3) each push's force during the physics steps of tick k: the one place push
         timing is computed (the host loop scatters these, so every backend pushes alike)."""
         t = k * self.cfg.control_dt + self.physics_dt * jnp.arange(self.n_sub)
-        return jax.vmap(lambda s: push_forces(push, s))(t)
+        return jax.vmap(lambda s: push_forces(push, s, self.physics_dt))(t)
 
     def push_bodies(self, push: Push):
         """(P,) the body id of each push."""

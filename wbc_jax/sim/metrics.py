@@ -26,6 +26,7 @@ class Metrics:
     max_violation: Array
     max_slip: Array
     max_tilt: Array  # rad, of a fully active contact's normal from where it was set down
+    max_trunk_tilt: Array  # rad, of the trunk's (root body's) z axis from world z
     qp_infeasible_ticks: Array
     fell: Array
     nan: Array
@@ -41,7 +42,7 @@ def initial(com_height: Array, dtype) -> Metrics:
     zero = jnp.zeros((), dtype)
     return Metrics(
         com_sq_err_sum=zero, com_max_err=zero, max_abs_torque=zero, max_violation=zero,
-        max_slip=zero, max_tilt=zero, qp_infeasible_ticks=jnp.zeros((), jnp.int32),
+        max_slip=zero, max_tilt=zero, max_trunk_tilt=zero, qp_infeasible_ticks=jnp.zeros((), jnp.int32),
         fell=jnp.zeros((), bool), nan=jnp.zeros((), bool), last_time_off=zero,
         min_com_height=com_height, end_com_speed=zero, end_support_margin=zero,
         ticks=jnp.zeros((), jnp.int32),
@@ -49,13 +50,15 @@ def initial(com_height: Array, dtype) -> Metrics:
 
 
 def update(met: Metrics, *, com, com_ref, com_vel, tau, violation, infeasible, contact_pos, normals, anchors,
-           anchor_normals, fully_active, body_heights, support, com0_height, t_now, physics_ok) -> Metrics:  # fmt: skip
+           anchor_normals, fully_active, body_heights, trunk_z, support, com0_height, t_now,
+           physics_ok) -> Metrics:  # fmt: skip
     """The metrics after one tick at this state (K contacts).
 
     Args: com, com_ref, com_vel (3,); tau (n,); violation (), infeasible () of the force QP;
     contact_pos, normals (K, 3) now; anchors, anchor_normals (K, 3) where and with what normal each
     fully active contact was set down; fully_active (K,); body_heights (b,) of the bodies that must
-    stay off the floor; support (F, 2) the soles' corners; com0_height (); t_now (); physics_ok ().
+    stay off the floor; trunk_z (3,) the root body's z axis (world); support (F, 2) the soles'
+    corners; com0_height (); t_now (); physics_ok ().
     """
     com_err = jnp.linalg.norm(com - com_ref)
     # Slip: displacement of each fully active contact, tangential to its surface; tilt: the
@@ -66,7 +69,11 @@ def update(met: Metrics, *, com, com_ref, com_vel, tau, violation, infeasible, c
     tilt_k = jnp.arctan2(safe_norm(jnp.cross(normals, anchor_normals)), jnp.sum(normals * anchor_normals, -1))
     tilt = jnp.max(jnp.where(fully_active, tilt_k, 0.0))
     body_low = jnp.min(body_heights) < constants.BODY_FLOOR_HEIGHT
-    fell = met.fell | (com[2] < constants.FALL_COM_HEIGHT * com0_height) | body_low
+    trunk_tilt = trunk_tilt_angle(trunk_z)
+    # A trunk tilted past the threshold is a fall wherever the CoM is: a robot thrown through the air
+    # upside down keeps its CoM high and every body off the floor.
+    tipped = ~(trunk_tilt <= np.radians(constants.FALL_TRUNK_TILT_DEG))  # NaN: tipped
+    fell = met.fell | (com[2] < constants.FALL_COM_HEIGHT * com0_height) | body_low | tipped
     finite = jnp.all(jnp.isfinite(tau)) & physics_ok
     return Metrics(
         com_sq_err_sum=met.com_sq_err_sum + com_err**2,
@@ -75,6 +82,7 @@ def update(met: Metrics, *, com, com_ref, com_vel, tau, violation, infeasible, c
         max_violation=jnp.maximum(met.max_violation, violation),
         max_slip=jnp.maximum(met.max_slip, slip),
         max_tilt=jnp.maximum(met.max_tilt, tilt),
+        max_trunk_tilt=jnp.maximum(met.max_trunk_tilt, trunk_tilt),
         qp_infeasible_ticks=met.qp_infeasible_ticks + infeasible.astype(jnp.int32),
         fell=fell,
         nan=met.nan | ~finite,
@@ -84,6 +92,11 @@ def update(met: Metrics, *, com, com_ref, com_vel, tau, violation, infeasible, c
         end_support_margin=polygon_margin(support, com[:2]),
         ticks=met.ticks + 1,
     )
+
+
+def trunk_tilt_angle(trunk_z: Array) -> Array:
+    """The angle () rad between the trunk's z axis (..., 3) (world axes) and world z, in [0, pi]."""
+    return jnp.arctan2(safe_norm(trunk_z[..., :2]), trunk_z[..., 2])
 
 
 def final(met: Metrics, physics_ok) -> Metrics:
@@ -141,7 +154,9 @@ def failed_tests(cols: dict) -> dict:
 def summarize(metrics: Metrics, push_end: float = 0.0) -> dict:
     """Host-side summary of metrics under :data:`wbc_jax.core.constants.METRIC_NAMES`: plain numbers
     for one environment, numpy columns for a batch. ``survived`` is the strict criterion of
-    :data:`wbc_jax.core.constants.SURVIVAL_CRITERION`; ``upright`` the lax one (no fall, no NaN)."""
+    :data:`wbc_jax.core.constants.SURVIVAL_CRITERION`; ``upright`` the lax one: no fall (the CoM
+    high, no body but the feet on the floor, the trunk within ``FALL_TRUNK_TILT_DEG`` of vertical at
+    every tick), no NaN."""
     m = jax.tree_util.tree_map(np.asarray, metrics)
     ticks = np.maximum(m.ticks, 1)
     upright = ~m.fell & ~m.nan

@@ -56,6 +56,8 @@ def load_scene(robot_name: str = "icub", tasks_file=None) -> Scene:
             robot, contact_set = contact_scene.build_scene(robot_name, spec["contacts"], spec["scene"], qpos)
         elif spec["scene"]:
             raise ValueError("scene objects need a 'contacts' list (what touches them)")
+        else:  # the default soles must stand on the floor at the file's initial posture
+            contact_scene.check_feet(robot, qpos)
     except ValueError as err:  # every problem of the file names the file
         raise ValueError(str(err) if str(tasks_file) in str(err) else f"task file {tasks_file}: {err}") from None
     return Scene(robot, spec["tasks"], contact_set, qpos, str(tasks_file))

@@ -15,6 +15,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from wbc_jax.control.controller import ControllerState
 from wbc_jax.control.gains import Gains
@@ -117,10 +118,28 @@ def no_push(dtype=jnp.float32) -> Push:
                 body=jnp.full(1, -1, jnp.int32))  # fmt: skip
 
 
-def push_forces(push: Push, t):
-    """Each push's force (..., P, 3) at time t (numpy or JAX arrays alike)."""
-    on = (t >= push.onset) & (t < push.onset + push.duration)
-    return push.force * on[..., None]
+SHARE_SNAP = 1e-6
+
+
+def push_forces(push: Push, t, step: float | None = None):
+    """Each push's force (..., P, 3) at time t (numpy or JAX arrays alike).
+
+    With ``step`` (the physics step, s): the mean force over the step [t, t + step), i.e. the force
+    times the fraction of the step the push covers. A physics step applies its force for the whole
+    step, so the simulated impulse is then exactly force x duration for any onset and duration (a
+    push edge that is not on a step, or float rounding of t at an edge, would otherwise add or drop
+    a whole step: a 10 % error on a 10 ms push)."""
+    if step is None:
+        on = (t >= push.onset) & (t < push.onset + push.duration)
+        return push.force * on[..., None]
+    lo = t if hasattr(t, "clip") else np.asarray(t)
+    covered = (lo + step).clip(None, push.onset + push.duration) - lo.clip(push.onset, None)
+    share = covered.clip(0.0, step) / step
+    # Within SHARE_SNAP of 0 or 1 (1 ns of a 1 ms step): exactly 0 or 1, so that a push edge on the
+    # step grid gives the same force in programs that round t differently (a compiled and a Python
+    # loop), bit for bit; pushes off the grid keep their exact share.
+    share = (share >= 1.0 - SHARE_SNAP) + (share > SHARE_SNAP) * (share < 1.0 - SHARE_SNAP) * share
+    return push.force * share[..., None]
 
 
 def push_force(push: Push, t) -> Array:

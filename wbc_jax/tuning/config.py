@@ -113,7 +113,8 @@ class TuneConfig:
         1.0, "the controller's angular_weight_soft, as push-sweep's (1: WBC)", gt=constants.ANGULAR_WEIGHT_RANGE[0],
         le=constants.ANGULAR_WEIGHT_RANGE[1],
     )  # fmt: skip
-    duration_range: tuple[float, float] = option((0.05, 0.3), "push durations [s]", nargs=2, gt=0.0,
+    duration_range: tuple[float, float] = option((0.05, 0.3), "push durations [s]", nargs=2,
+                                                 ge=constants.MIN_PUSH_DURATION_S,
                                                  le=constants.MAX_PUSH_DURATION_S, unit="s", ordered=True)  # fmt: skip
     push_onset: float = option(0.2, "push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
     friction_range: tuple[float, float] = option((0.6, 1.2), "floor friction", nargs=2, ge=constants.FRICTION_RANGE[0],
@@ -261,7 +262,9 @@ class HeldoutConfig:
     grid_directions: tuple[float, ...] = option(_azimuths(32), "held-out push azimuths over 360 deg",
                                                 metavar="N", parse=_azimuths, show=len, ge=-360.0, le=360.0,
                                                 unit="deg", nonempty=True)  # fmt: skip
-    grid_duration: float = option(0.1, "held-out push length [s]", gt=0.0, le=constants.MAX_PUSH_DURATION_S, unit="s")
+    grid_duration: float = option(
+        0.1, "held-out push length [s]", ge=constants.MIN_PUSH_DURATION_S, le=constants.MAX_PUSH_DURATION_S, unit="s"
+    )
     grid_onset: float = option(0.5, "held-out push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
     grid_horizon: float = option(3.0, "seconds per held-out rollout", gt=0.0, le=constants.MAX_HORIZON_S, unit="s")
     variations: tuple[str, ...] = option(tuple(VARIATIONS), "unseen variations of the grid's pushes",

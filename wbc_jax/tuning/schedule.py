@@ -25,14 +25,12 @@ written as JSON of its own (``kind: gain_schedule``, :func:`load_schedule`).
 
 from __future__ import annotations
 
-import json
-import pathlib
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.control.gains import Gains
+from wbc_jax.core import io
 from wbc_jax.core.types import Array, pytree_dataclass
 from wbc_jax.sim import loop as loop_lib
 
@@ -122,16 +120,16 @@ def from_params(params: dict, bounds, ki_com, origin) -> GainSchedule:
 
 def is_schedule_file(path) -> bool:
     try:
-        return json.loads(pathlib.Path(path).read_text()).get("kind") == KIND
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+        return io.read_json(path, "schedule").get("kind") == KIND
+    except (OSError, ValueError, AttributeError):
         return False
 
 
 def load_schedule(path, dtype=np.float32) -> GainSchedule:
     """A schedule file (:meth:`GainSchedule.to_dict`), checked: groups, shapes, finite values, bounds."""
     try:
-        data = json.loads(pathlib.Path(path).read_text())
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
+        data = io.read_json(path, "schedule")
+    except OSError as err:
         raise ValueError(f"schedule file {path} is unreadable: {err}") from None
     if data.get("kind") != KIND or list(data.get("features", [])) != list(FEATURES):
         raise ValueError(f"schedule file {path}: not a gain schedule with features {list(FEATURES)}")
