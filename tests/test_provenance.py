@@ -8,7 +8,7 @@ import pathlib
 
 import pytest
 
-from wbc_jax.core import constants, io, provenance
+from wbc_jax.core import constants, io, loader, provenance
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 INDEX = ROOT / "experiments" / "gains" / "index.json"
@@ -22,9 +22,13 @@ def gains_problems(path: pathlib.Path, root: pathlib.Path = ROOT) -> list[str]:
     problems = provenance.check_inputs(result, root) if isinstance(result, dict) else []
     recorded = {}
     if isinstance(result, dict):
-        recorded = {e["path"]: e["sha256"] for e in (result.get("provenance", {}).get("inputs") or {}).values()}
+        # A run's gains/provenance.json (tuning/store.py) records each set's inputs in that set's own provenance.
+        records = [result] if "provenance" in result else [e for e in result.values() if isinstance(e, dict)]
+        recorded = {
+            e["path"]: e["sha256"] for r in records for e in ((r.get("provenance") or {}).get("inputs") or {}).values()
+        }
     for name in sorted(provenance.mentioned_files(result)):
-        if io.is_gains_file(root / name) and name not in recorded:
+        if loader.is_gains_file(root / name) and name not in recorded:
             problems.append(f"names the gains file {name} without its sha256 (provenance.inputs)")
     return problems
 
@@ -99,7 +103,7 @@ def _index() -> dict:
 
 def _repository_gains_files() -> set[str]:
     return {provenance.display_path(p) for folder in ("experiments", "docs", "assets")
-            for p in (ROOT / folder).rglob("*.json") if io.is_gains_file(p)}  # fmt: skip
+            for p in (ROOT / folder).rglob("*.json") if loader.is_gains_file(p)}  # fmt: skip
 
 
 def test_every_gains_file_is_indexed_and_every_indexed_one_is_there():

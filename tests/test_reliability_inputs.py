@@ -270,7 +270,7 @@ def test_hostile_files_fail_in_one_short_line(tmp_path, name, text, pattern):
         lambda p: gains_lib.load_gains(p),
         lambda p: problem.load_envelope(p),
         lambda p: schedule.load_schedule(p),
-        lambda p: io.read_json(p, "sweep summary"),
+        lambda p: loader.read_json(p, "sweep summary"),
         lambda p: loader.read_data(p, "held-out set"),
     ],
     ids=["gains", "envelope", "schedule", "summary", "read_data"],

@@ -28,7 +28,7 @@ import pathlib
 import subprocess
 import sys
 
-from wbc_jax.core import io, provenance
+from wbc_jax.core import io, loader, provenance
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 
@@ -80,7 +80,7 @@ def gains_files() -> dict[str, str]:
     out = {}
     for folder in ("experiments", "docs", "assets"):
         for p in sorted((ROOT / folder).rglob("*.json")):
-            if io.is_gains_file(p):
+            if loader.is_gains_file(p):
                 out.setdefault(provenance.sha256(p), provenance.display_path(p))
     return out
 
@@ -116,7 +116,9 @@ def repair(path: pathlib.Path, known: dict[str, str], dry_run: bool) -> dict | N
     if not isinstance(result, dict):
         return None
     recorded = {e["path"] for e in (result.get("provenance", {}).get("inputs") or {}).values()}
-    named = sorted(p for p in provenance.mentioned_files(result) if p not in recorded and io.is_gains_file(ROOT / p))
+    named = sorted(
+        p for p in provenance.mentioned_files(result) if p not in recorded and loader.is_gains_file(ROOT / p)
+    )
     checked = [p for p in evaluated(result, provenance.display_path(path)) if p not in recorded]
     if not named and not checked:
         return None

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.core import io
+from wbc_jax.core import loader
 from wbc_jax.core.constants import GAIN_FIELDS, GAIN_RANGES, NON_NEGATIVE_GAINS, default_gain_values
 from wbc_jax.core.loader import echo
 from wbc_jax.core.types import Array, pytree_dataclass
@@ -93,5 +93,5 @@ def gains_from_dict(values: dict, n: int = 23, dtype=jnp.float32, source: str = 
 
 def load_gains(path, n: int = 23, dtype=jnp.float32) -> Gains:
     """Read a gains JSON file (as written by ``wbc-jax tune`` or :func:`gains_to_dict`)."""
-    values = io.read_json(path, "gains")
+    values = loader.read_json(path, "gains")
     return gains_from_dict(values, n, dtype, source=f"gains file {path}")

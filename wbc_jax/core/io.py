@@ -60,21 +60,6 @@ def write_new_json(path: pathlib.Path, obj) -> None:
     atomic_write_bytes(path, data)
 
 
-def is_gains_file(path) -> bool:
-    """Is ``path`` a gains file: a JSON object whose keys are exactly the gain names
-    (constants.GAIN_FIELDS)? (Reading it as gains, with its values checked: control.gains.load_gains.)"""
-    from wbc_jax.core.constants import GAIN_FIELDS
-
-    path = pathlib.Path(path)
-    if path.suffix != ".json" or not path.is_file():
-        return False
-    try:
-        values = read_json(path, "gains")
-    except (ValueError, OSError):
-        return False
-    return isinstance(values, dict) and set(values) == set(GAIN_FIELDS)
-
-
 def _json_bytes(obj) -> bytes:
     return (json.dumps(obj, indent=2, default=_jsonable) + "\n").encode()
 
@@ -107,11 +92,15 @@ def atomic_save_figure(path: pathlib.Path, fig, dpi: int = 110) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
+# The largest input file any job reads (gains, envelopes, summaries; YAML task files: loader.MAX_YAML_BYTES). The
+# largest input file of the repository is a 270 kB limit summary: 4 MiB leaves 15x room.
+MAX_FILE_BYTES = 4 * 2**20
+
+
 def read_text(path, what: str, max_bytes: int | None = None) -> str:
     """The UTF-8 text of ``path``; one line naming ``what`` and the file when it cannot be read
     (missing, a folder, not readable, not UTF-8, longer than ``max_bytes``: None,
-    :data:`wbc_jax.core.loader.MAX_FILE_BYTES`; counted while reading, so a device never ends)."""
-    from wbc_jax.core.loader import MAX_FILE_BYTES
+    :data:`MAX_FILE_BYTES`; counted while reading, so a device never ends)."""
 
     path, limit = pathlib.Path(path), MAX_FILE_BYTES if max_bytes is None else max_bytes
     try:
@@ -130,10 +119,3 @@ def read_text(path, what: str, max_bytes: int | None = None) -> str:
         raise ValueError(f"{what} file {path} is not UTF-8 text (byte {err.start}: {err.reason})") from None
     except OSError as err:
         raise ValueError(f"{what} file {path} cannot be read ({err.strerror})") from None
-
-
-def read_json(path, what: str):
-    """The JSON value of ``path`` (:func:`read_text`); one line naming the file when it is not JSON."""
-    from wbc_jax.core.loader import parse_json
-
-    return parse_json(read_text(path, what), path, what)

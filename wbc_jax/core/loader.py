@@ -6,7 +6,7 @@ JSON or YAML with limits, so a hostile file fails in one short line within secon
     parse_yaml(text, ...)   -> value   safe tags only; nesting and expanded size (aliases) capped
     echo(value)             -> str     a value's repr cut to ECHO_CHARS, for error messages
 
-The file's size is capped before it is read (:func:`wbc_jax.core.io.read_text`, MAX_FILE_BYTES).
+The file's size is capped before it is read (:func:`wbc_jax.core.io.read_text`, ``io.MAX_FILE_BYTES``).
 YAML aliases are allowed, but the document they expand to is counted (a 400-byte "billion laughs"
 file expands to 10^9 nodes) and refused above MAX_NODES; a recursive alias is refused.
 """
@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-# The largest input file of the repository is a 270 kB limit summary: 4 MiB leaves 15x room.
-MAX_FILE_BYTES = 4 * 2**20
+from wbc_jax.core import io
+
 MAX_DEPTH = 32  # nesting levels: a task file needs 5, a summary 6
 MAX_YAML_BYTES = 2**20  # YAML files are task files (2 kB); PyYAML parses about 1 MB/s
 MAX_NODES = 200_000  # values of a YAML document with its aliases expanded
@@ -53,12 +53,10 @@ def reprlib_repr(value: Any, limit: int) -> str:
 def read_data(path, what: str) -> Any:
     """The value of a JSON (``.json``) or YAML (``.yaml``, ``.yml``) file, within the limits; one
     line naming ``what`` and the file otherwise."""
-    from wbc_jax.core import io
-
     path = pathlib.Path(path)
     if path.suffix not in (".json", ".yaml", ".yml"):
         raise ValueError(f"{what} file {path}: unknown format {path.suffix!r}; valid: .json, .yaml, .yml")
-    text = io.read_text(path, what, MAX_FILE_BYTES if path.suffix == ".json" else MAX_YAML_BYTES)
+    text = io.read_text(path, what, io.MAX_FILE_BYTES if path.suffix == ".json" else MAX_YAML_BYTES)
     return parse_json(text, path, what) if path.suffix == ".json" else parse_yaml(text, path, what)
 
 
@@ -167,3 +165,23 @@ def _check_expanded(root, path, what: str) -> None:
                 raise ValueError(f"{what} file {path}: a YAML alias refers to a value that contains it (recursive)")
             if id(child) not in size:
                 stack.append((child, False))
+
+
+def read_json(path, what: str):
+    """The JSON value of ``path`` (:func:`wbc_jax.core.io.read_text`); one line naming the file when it is not JSON."""
+    return parse_json(io.read_text(path, what), path, what)
+
+
+def is_gains_file(path) -> bool:
+    """Is ``path`` a gains file: a JSON object whose keys are exactly the gain names
+    (constants.GAIN_FIELDS)? (Reading it as gains, with its values checked: control.gains.load_gains.)"""
+    from wbc_jax.core.constants import GAIN_FIELDS
+
+    path = pathlib.Path(path)
+    if path.suffix != ".json" or not path.is_file():
+        return False
+    try:
+        values = read_json(path, "gains")
+    except (ValueError, OSError):
+        return False
+    return isinstance(values, dict) and set(values) == set(GAIN_FIELDS)

@@ -36,7 +36,7 @@ import pathlib
 
 import numpy as np
 
-from wbc_jax.core import constants, io
+from wbc_jax.core import constants, loader
 from wbc_jax.core.options import check_options, option
 from wbc_jax.jobs import runs, sweep_config, trajopt
 from wbc_jax.robot import model
@@ -167,7 +167,7 @@ def load_envelopes(cfg: LimitConfig) -> dict:
         if changed is not None and runs.run_root(path) is not None:
             raise ValueError(f"--envelopes {changed}; rerun that envelope")
         try:
-            data = io.read_json(path, "--envelopes")
+            data = loader.read_json(path, "--envelopes")
             env = data["envelope"].get("0", data["envelope"].get(0))
             pushed = data["config"]
         except (OSError, json.JSONDecodeError, UnicodeDecodeError, KeyError, AttributeError, TypeError) as err:

@@ -12,7 +12,7 @@ import pathlib
 
 import numpy as np
 
-from wbc_jax.core import io, provenance
+from wbc_jax.core import io, loader, provenance
 from wbc_jax.jobs import sweep_table
 from wbc_jax.robot import model as model_lib
 
@@ -20,7 +20,7 @@ from wbc_jax.robot import model as model_lib
 def _read(path) -> dict:
     path = pathlib.Path(path)
     try:
-        return io.read_json(path, "limit table input")
+        return loader.read_json(path, "limit table input")
     except OSError as err:
         raise ValueError(f"{path} is unreadable: {err}") from None
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from wbc_jax.control.controller import ControllerConfig
 from wbc_jax.control.gains import Gains, default_gains, gains_from_dict, gains_to_dict, load_gains, validate_gains
-from wbc_jax.core import constants, io, provenance
+from wbc_jax.core import constants, io, loader, provenance
 from wbc_jax.core.options import check_options
 from wbc_jax.jobs import runs
 from wbc_jax.jobs.sweep_config import SweepConfig, default_config
@@ -219,7 +219,7 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
             bar.update(hi - lo)
     if writer and done_envs == 0 and _finished(out):
         # A re-run of a finished run: its summary (the timings measured when it ran) stays as it is.
-        stored = io.read_json(out / "summary.json", "sweep summary")
+        stored = loader.read_json(out / "summary.json", "sweep summary")
         stored["envelope"] = {float(az): e for az, e in stored["envelope"].items()}  # keyed as summarize_table keys it
         return stored
     table = pd.concat(tables, ignore_index=True)
@@ -279,7 +279,7 @@ def load_sweep(run_dir) -> tuple[SweepConfig, dict]:
     path = run_dir / "summary.json"
     if not path.exists():
         raise FileNotFoundError(f"{path} is missing: the sweep has not finished; rerun it with the same --out")
-    summary = io.read_json(path, "sweep summary")
+    summary = loader.read_json(path, "sweep summary")
     foreign = f"{path} is not the summary of a push sweep (wbc-jax push-sweep writes it)"
     if not (isinstance(summary, dict) and isinstance(summary.get("config"), dict)
             and isinstance(summary.get("gains"), dict) and summary.get("backend") in physics.BACKENDS):  # fmt: skip

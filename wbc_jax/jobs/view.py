@@ -14,7 +14,7 @@ import zipfile
 
 import numpy as np
 
-from wbc_jax.core import io
+from wbc_jax.core import io, loader
 from wbc_jax.core.options import check_options, option
 from wbc_jax.jobs import runs
 from wbc_jax.jobs.sweep_config import MAX_ENVS
@@ -169,7 +169,9 @@ def load_run(run_dir: str | pathlib.Path, env: int | None = None) -> tuple[dict,
         dims = [int(d) for d in traj.pop("contact_dims", [6] * len(names))]
         boxes = {}
         metrics = run_dir / "metrics.json"
-        tasks = io.read_json(metrics, "balance metrics").get("config", {}).get("tasks") if metrics.exists() else None
+        tasks = (
+            loader.read_json(metrics, "balance metrics").get("config", {}).get("tasks") if metrics.exists() else None
+        )
         if tasks:
             boxes = scene_boxes(scenario.load_scene("icub", tasks).robot)
         return traj, {"kind": kind, "push_body": "chest", "joints": joints, "name": "rollout",

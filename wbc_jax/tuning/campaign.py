@@ -50,8 +50,15 @@ def _times(tc: TuneConfig) -> list:
     return sorted({float(t) for t in tc.snapshots_s if t < tc.budget_s} | {float(tc.budget_s)})
 
 
+def _inputs(tc: TuneConfig, hc: HeldoutConfig | None = None) -> dict:
+    """The run's input files by role (each recorded with its sha256 in every result the run writes)."""
+    return {"init_gains": tc.init_gains, "envelope": tc.envelope, "tasks": tc.tasks,
+            **(tuning_eval.set_files(hc.sets) if hc is not None else {})}  # fmt: skip
+
+
 def _write(out: pathlib.Path, problem: tp.Problem, name: str, controls, reg, origin: dict) -> None:
-    store.write_controls(out / "gains", name, controls, reg, origin, regularisation=problem.tc.tune_regularisation)
+    store.write_controls(out / "gains", name, controls, reg, origin, regularisation=problem.tc.tune_regularisation,
+                         inputs=_inputs(problem.tc))  # fmt: skip
 
 
 def _gradient_sets(problem: tp.Problem, out: pathlib.Path, rows: list) -> None:
@@ -141,7 +148,7 @@ def run(cfg: TuneConfig | None = None, hc: HeldoutConfig | None = None, *, lc: L
     runs.check_output_dir(out, "tune")
     problem = tp.make_problem(tc, lc, robot_name=robot_name)
     reference = tuning_eval.load_sets(hc.sets, problem.robot.index.n, problem.setup.dtype)  # checked before compiling
-    files = {"init_gains": tc.init_gains, "envelope": tc.envelope, "tasks": tc.tasks, **tuning_eval.set_files(hc.sets)}
+    files = _inputs(tc, hc)
     fp = runs.fingerprint({"tune": {k: v for k, v in dataclasses.asdict(tc).items() if k not in ("out", "phases")},
                            "heldout": {k: v for k, v in dataclasses.asdict(hc).items() if k != "out"},
                            "loss": dataclasses.asdict(lc), "dtype": str(scenario.float_dtype())},
@@ -233,5 +240,5 @@ def report(problem: tp.Problem, out: pathlib.Path, hc: HeldoutConfig, reference:
         race_report = race.write(out, problem, rep, index, histories)
         line = {"sets": line, "race": race_report["verdict"], "recommended": race_report["recommended"]}
     io.atomic_write_json(out / "summary.json", {"sets": line, "targets": rep["targets"],
-                                                "provenance": provenance.record()})  # fmt: skip
+                                                "provenance": provenance.record(_inputs(tc, hc))})  # fmt: skip
     return line

@@ -28,7 +28,7 @@ import numpy as np
 
 from wbc_jax.control.controller import ControllerConfig
 from wbc_jax.control.gains import Gains, default_gains, load_gains
-from wbc_jax.core import constants, io
+from wbc_jax.core import constants, loader
 from wbc_jax.jobs import sweep_table
 from wbc_jax.robot import model as model_lib
 from wbc_jax.sim import loop as loop_lib
@@ -48,7 +48,7 @@ def load_envelope(path) -> tuple[np.ndarray, np.ndarray]:
     """(azimuths (K,) deg, impulses (K,) N s) of an envelope file: {"azimuth_deg": [...],
     "impulse_ns": [...]}, or the summary.json of ``wbc-jax envelope`` (gain set 0)."""
     try:
-        data = io.read_json(path, "envelope")
+        data = loader.read_json(path, "envelope")
     except OSError as err:
         raise ValueError(f"envelope file {path} is unreadable: {err}") from None
     try:  # a summary.json of another job, or any other JSON: named, never a traceback

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.control.gains import Gains
-from wbc_jax.core import io
+from wbc_jax.core import loader
 from wbc_jax.core.types import Array, pytree_dataclass
 from wbc_jax.sim import loop as loop_lib
 
@@ -120,7 +120,7 @@ def from_params(params: dict, bounds, ki_com, origin) -> GainSchedule:
 
 def is_schedule_file(path) -> bool:
     try:
-        return io.read_json(path, "schedule").get("kind") == KIND
+        return loader.read_json(path, "schedule").get("kind") == KIND
     except (OSError, ValueError, AttributeError):
         return False
 
@@ -128,7 +128,7 @@ def is_schedule_file(path) -> bool:
 def load_schedule(path, dtype=np.float32) -> GainSchedule:
     """A schedule file (:meth:`GainSchedule.to_dict`), checked: groups, shapes, finite values, bounds."""
     try:
-        data = io.read_json(path, "schedule")
+        data = loader.read_json(path, "schedule")
     except OSError as err:
         raise ValueError(f"schedule file {path} is unreadable: {err}") from None
     if data.get("kind") != KIND or list(data.get("features", [])) != list(FEATURES):

@@ -95,9 +95,12 @@ def write_once(path: pathlib.Path, data: dict) -> bool:
     return True
 
 
-def write_controls(folder: pathlib.Path, name: str, controls, reg, origin: dict, *, regularisation: bool) -> dict:
+def write_controls(
+    folder: pathlib.Path, name: str, controls, reg, origin: dict, *, regularisation: bool, inputs: dict | None = None
+) -> dict:
     """``folder/NAME.json`` (and ``NAME_regularisation.json`` when ``regularisation``), written once, and
-    their origin in ``folder/provenance.json``. Returns {"gains": path, "regularisation": path or None}."""
+    their origin in ``folder/provenance.json`` (with the run's ``inputs`` files and their sha256). Returns
+    {"gains": path, "regularisation": path or None}."""
     folder = pathlib.Path(folder)
     path = folder / f"{name}.json"
     write_once(path, controls_dict(controls))
@@ -107,7 +110,7 @@ def write_controls(folder: pathlib.Path, name: str, controls, reg, origin: dict,
         write_once(reg_path, dict(zip(("pinv_damping", "kp_postural_reg"), np.asarray(reg, float).tolist())))
     index_path = folder / "provenance.json"
     index = json.loads(index_path.read_text()) if index_path.exists() else {}
-    entry = {**origin, "sha256": provenance.sha256(path), "provenance": provenance.record()}
+    entry = {**origin, "sha256": provenance.sha256(path), "provenance": provenance.record(inputs)}
     if name not in index or index[name].get("sha256") != entry["sha256"]:
         index[name] = entry
         io.atomic_write_json(index_path, index)
