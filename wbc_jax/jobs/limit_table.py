@@ -14,6 +14,7 @@ import numpy as np
 
 from wbc_jax.core import io, loader, provenance
 from wbc_jax.jobs import sweep_table
+from wbc_jax.robot import bounds
 from wbc_jax.robot import model as model_lib
 
 
@@ -25,10 +26,12 @@ def _read(path) -> dict:
         raise ValueError(f"{path} is unreadable: {err}") from None
 
 
-def body_table(limit_summary: dict | None, envelopes: dict, azimuths, robot) -> dict:
-    """{azimuth: row} of one body: ``limit_summary`` (a limit run's summary.json or None),
-    ``envelopes`` {label: envelope summary.json dict} (gain set 0), the LIP bound at ``azimuths``."""
+def body_table(limit_summary: dict | None, envelopes: dict, azimuths, robot, body: str) -> dict:
+    """{azimuth: row} of pushes on ``body``: ``limit_summary`` (a limit run's summary.json or None),
+    ``envelopes`` {label: envelope summary.json dict} (gain set 0), the LIP and flywheel bounds
+    (``wbc_jax.robot.bounds``) at ``azimuths``."""
     lip = sweep_table.lip_bound(robot, azimuths)
+    flywheel = bounds.flywheel_bound(robot, azimuths, body)
     rows = {}
     for az in azimuths:
         found = None if limit_summary is None else limit_summary["directions"].get(str(float(az)))
@@ -38,9 +41,12 @@ def body_table(limit_summary: dict | None, envelopes: dict, azimuths, robot) -> 
             e = summary["envelope"].get("0", summary["envelope"].get(0))[str(float(az))]["impulse_ns"]
             envs[label] = {"impulse_ns": e, "fraction_of_lip": e / lip[az]["impulse_bound_ns"],
                            "fraction_of_limit": e / lim if lim else None}  # fmt: skip
+        fly = flywheel[az]["impulse_bound_ns"]
         rows[float(az)] = {
-            "lip_bound_ns": lip[az]["impulse_bound_ns"], "limit_ns": lim,
+            "lip_bound_ns": lip[az]["impulse_bound_ns"], "flywheel_bound_ns": fly, "limit_ns": lim,
             "fraction_of_lip": None if lim is None else lim / lip[az]["impulse_bound_ns"],
+            "fraction_of_flywheel": None if lim is None else lim / fly,
+            "lip_fraction_of_flywheel": lip[az]["impulse_bound_ns"] / fly,
             "bracket_ns": None if found is None else found["bracket_ns"],
             "limit_at_least_envelopes": None if lim is None
             else all(v["impulse_ns"] <= lim + 1e-9 for v in envs.values()),
@@ -51,14 +57,18 @@ def body_table(limit_summary: dict | None, envelopes: dict, azimuths, robot) -> 
 
 def medians(rows: dict) -> dict:
     """Median (min) over directions of each envelope as a fraction of the LIP bound and of the
-    limit, and of the limit itself (None where not measured)."""
+    limit, of the limit as a fraction of the LIP and flywheel bounds (None where not measured), and
+    of the LIP bound as a fraction of the flywheel bound."""
 
     def stat(values):
         v = [x for x in values if x is not None]
         return None if len(v) < len(values) or not v else {"median": float(np.median(v)), "min": float(np.min(v))}
 
     labels = sorted({k for r in rows.values() for k in r["envelopes"]})
-    out = {"limit": {"fraction_of_lip": stat([r["fraction_of_lip"] for r in rows.values()])}}
+    out = {
+        "limit": {k: stat([r[k] for r in rows.values()]) for k in ("fraction_of_lip", "fraction_of_flywheel")},
+        "lip_bound": {"fraction_of_flywheel": stat([r["lip_fraction_of_flywheel"] for r in rows.values()])},
+    }
     for label in labels:
         out[label] = {k: stat([r["envelopes"][label][k] for r in rows.values()])
                       for k in ("fraction_of_lip", "fraction_of_limit")}  # fmt: skip
@@ -66,13 +76,17 @@ def medians(rows: dict) -> dict:
 
 
 def _targets(rows: dict, summary: dict | None) -> dict:
-    """Issue 37's targets for one body (None: its limit not measured): the limit at least every
-    controller's envelope in every direction; every limit from a trajectory replayed in C MuJoCo."""
+    """Issues 37 and 43's targets for one body (None: its limit not measured): the limit at least
+    every controller's envelope in every direction; every limit from a trajectory replayed in C
+    MuJoCo; the limit within 10 % of the flywheel bound in the median over directions."""
     if summary is None:
-        return {"limit_at_least_every_envelope": None, "every_limit_replayed_in_c_mujoco": None}
+        return {"limit_at_least_every_envelope": None, "every_limit_replayed_in_c_mujoco": None,
+                "limit_within_10pct_of_flywheel_bound_median": None}  # fmt: skip
     below = [az for az, r in rows.items() if r["limit_at_least_envelopes"] is False]
     measured = sum(r["limit_ns"] is not None for r in rows.values())
+    of_flywheel = [r["fraction_of_flywheel"] for r in rows.values() if r["fraction_of_flywheel"] is not None]
     return {"limit_at_least_every_envelope": not below, "directions_below_an_envelope": below,
+            "limit_within_10pct_of_flywheel_bound_median": bool(of_flywheel) and float(np.median(of_flywheel)) >= 0.9,
             "directions_measured": f"{measured} of {len(rows)}",
             "every_limit_replayed_in_c_mujoco": summary["targets"]["every_limit_replayed_in_c_mujoco"],
             "time_cut": summary.get("time_cut"), "rounds_done": summary.get("rounds_done"),
@@ -96,11 +110,12 @@ def write(out_dir, bodies: dict, commands: dict, robot_name: str = "icub") -> di
         else:
             inputs[f"{body}_limit"] = spec["limit"]
         azimuths = sorted({float(a) for s in envelopes.values() for a in s["envelope"]["0"]})
-        tables[body] = body_table(summary, envelopes, azimuths, robot)
+        tables[body] = body_table(summary, envelopes, azimuths, robot, body)
     result = {
         "what": "per pushed body and direction: the physical limit of push recovery (largest impulse with a torque "
         "trajectory within +-60 N m that passes the strict criterion on MJX and replayed in C MuJoCo), the LIP bound "
-        "m omega d and the strict envelopes of controllers, as fractions of the LIP bound and of the limit",
+        "m omega d, the LIP + flywheel bound (wbc_jax.robot.bounds, Pratt et al. 2006) and the strict envelopes of "
+        "controllers, as fractions of the LIP bound and of the limit",
         "bodies": {body: {"medians": medians(rows), "directions": rows} for body, rows in tables.items()},
         "targets": {body: _targets(rows, _read(bodies[body]["limit"]) if bodies[body].get("limit") else None)
                     for body, rows in tables.items()},

@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 from wbc_jax.core import constants
 from wbc_jax.jobs.sweep_config import SUPPORTS, SweepConfig
+from wbc_jax.robot import bounds
 from wbc_jax.robot import model as model_lib
 
 
@@ -20,28 +19,16 @@ def lip_bound(robot: model_lib.Robot, directions_deg, support: str = "two-feet",
 
     support: "two-feet" (home posture, CoM between the feet) or "left-foot" (the single-support
     phase of the one-foot task: the left sole's contact points, CoM over the left sole)."""
-    import mujoco
-    from scipy.spatial import ConvexHull
-
     if support not in SUPPORTS:
         raise ValueError(f"unknown support {support!r}; valid: {list(SUPPORTS)}")
-    m = robot.mj_model
-    d = mujoco.MjData(m)
-    d.qpos[:] = robot.home_qpos()
-    mujoco.mj_forward(m, d)
-    feet = robot.index.foot_geoms.ravel() if support == "two-feet" else robot.index.foot_geoms[0]
-    pts = d.geom_xpos[feet, :2]
-    hull = ConvexHull(pts)
-    com = d.subtree_com[robot.index.base_body].copy()
+    pts, com, d = bounds.standing_support(robot, support)
     if support == "left-foot":  # references.make_schedule("one-foot"): CoM y over the left sole
         com[1] = d.site_xpos[robot.index.foot_sites[0], 1]
     omega = math.sqrt(constants.GRAVITY / com[2])
     horizontal = math.cos(math.radians(elevation_deg))
     out = {}
     for az in directions_deg:
-        u = np.array([math.cos(math.radians(az)), math.sin(math.radians(az))])
-        # Distance along u from the CoM to the hull boundary: min over facets a.x + b <= 0.
-        dist = min((-(eq[:2] @ com[:2] + eq[2]) / (eq[:2] @ u)) for eq in hull.equations if eq[:2] @ u > 1e-12)
+        dist = bounds.ray_distance(pts, com[:2], az)
         bound = None if abs(elevation_deg) >= 90.0 else robot.index.mass * omega * dist / horizontal
         out[float(az)] = {"edge_distance_m": dist, "velocity_bound_mps": omega * dist, "impulse_bound_ns": bound}
     return out

@@ -1,5 +1,5 @@
 """Plots of the physical limit of push recovery (``wbc-jax limit``): the limit per direction
-against the LIP bound and the controllers' strict envelopes."""
+against the LIP and flywheel bounds and the controllers' strict envelopes."""
 
 from __future__ import annotations
 
@@ -22,6 +22,8 @@ def _panel(ax, directions: dict, title: str) -> None:
     az = np.array(sorted(float(a) for a in directions))
     rows = [directions[a] if a in directions else directions[str(a)] for a in az]
     ax.plot(*_closed(az, [r["lip_bound_ns"] for r in rows]), "k--", label="LIP bound m ω d")
+    if all(r.get("flywheel_bound_ns") is not None for r in rows):
+        ax.plot(*_closed(az, [r["flywheel_bound_ns"] for r in rows]), "k:", label="LIP + flywheel bound")
     if all(r.get("limit_ns") is not None for r in rows):
         ax.plot(*_closed(az, [r["limit_ns"] for r in rows]), "o-", lw=2, label="physical limit (trajectory opt.)")
     labels = sorted({k for r in rows for k in r.get("envelopes", {})})
