@@ -138,6 +138,8 @@ def test_bang_bang_is_optimal_and_a_push_above_the_com_lowers_it(robot, wheel):
 def test_flywheel_refuses_bad_input(robot):
     with pytest.raises(ValueError, match="below the CoM"):
         bounds.flywheel_bound(robot, [0.0], "r_ankle_2")
+    with pytest.raises(ValueError, match="outside the support polygon"):
+        bounds.ray_distance(np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]), np.array([2.0, 2.0]), 0.0)
     with pytest.raises(ValueError, match="torque, inertia, theta_max >= 0"):
         bounds.flywheel_shift(-1.0, 1.0, 1.0, 30.0, 4.0)
 

@@ -6,7 +6,7 @@
   v <= omega d(u), d the distance from the CoM to the polygon's edge along u.
 * The flywheel bound (:func:`flywheel_bound`): the same LIP plus a flywheel (the body rotating
   about the CoM), Pratt, Carff, Drakunov, Goswami, "Capture Point: A Step toward Humanoid Push
-  Recovery", Humanoids 2006, section IV.
+  Recovery", Humanoids 2006: the linear inverted pendulum plus flywheel and its capture region.
 
 Derivation of the flywheel bound (one horizontal axis). A flywheel torque tau (the rate of the
 centroidal angular momentum) moves the effective CoP: m x'' = m omega^2 (x - p - tau / (m g)).
@@ -15,7 +15,7 @@ iff xi(0) = int_0^inf omega exp(-omega s) (p(s) + tau(s) / (m g)) ds. The weight
 so the p part is a point of the polygon and the flywheel adds the shift
 D = int omega exp(-omega s) tau(s) / (m g) ds. With |tau| <= tau_max, the flywheel at rest at the
 start and the end (a standing robot keeps no spin) and its angle within theta_max, the largest D
-is reached by bang-bang, +tau_max for t1 then -tau_max for t1 (Pratt 2006, eq. 17-20): the wheel
+is reached by bang-bang, +tau_max for t1 then -tau_max for t1 (Pratt 2006's profile): the wheel
 stops at theta = tau_max t1^2 / I, so t1 = sqrt(I theta_max / tau_max), and
 D = (tau_max / (m g)) (1 - exp(-omega t1))^2 (a coast phase between the two only lowers D for the
 same angle: D = (tau/(m g))(1 - e^-a)(1 - e^-b) with a b fixed is largest at a = b). So
