@@ -224,8 +224,9 @@ def train(problem: Problem, out, *, progress: bool = True, step_fn=None, mesh=No
         state, start, extra = store.load_checkpoint(ckpt, state, key)
         rows = store.read_csv(hist_path)[:start] if hist_path.exists() else []
         snapshots = extra.get("snapshots", snapshots)[:start]
-        info = json.loads(info_path.read_text()) if info_path.exists() else {}
-    wall = float(rows[-1]["wall_s"]) if rows else 0.0
+    # A run stopped before its first step has its first compile on record: it counts, and may spend the budget.
+    info = json.loads(info_path.read_text()) if info_path.exists() else {}
+    wall = float(rows[-1]["wall_s"]) if rows else float(info.get("compile_s", 0.0))
 
     def spent(k: int) -> bool:
         return k >= tc.steps or (budget > 0 and wall >= budget)
