@@ -147,6 +147,7 @@ def test_out_of_bound_init_gains_are_a_clear_error_before_compiling(tmp_path):
     ({"angular_weight_soft": 0.0}, r"--angular-weight-soft must be a number in \(0, 10000\]"),
     ({"tasks": "/nonexistent.yaml"}, r"--tasks file /nonexistent.yaml does not exist"),
     ({"train_bodies": ("world",)}, r"--train-bodies 'world' is not a valid name here"),
+    ({"phases": ("cmaes", "hybrid")}, r"--phases hybrid is a method of the race: give --budget-s"),
 ])  # fmt: skip
 def test_bad_tune_config_is_a_clear_error(kwargs, message):
     with pytest.raises((ValueError, FileNotFoundError), match=message):
@@ -437,7 +438,7 @@ def test_hybrid_starts_from_cmaes_at_half_budget_adds_both_halves_and_resumes(tm
     at B / 2 (the same parameters, the same gains file), its set's sim steps and wall time are the parent's plus its
     gradient half's, it is written with its parent's sha256 and appears in race.json with its own rows
     (the verdict's gradient-based methods); a hybrid run stopped after one step resumes to the result of
-    an unstopped one; a missing parent and a hybrid without --budget-s are one-line errors. Steps and
+    an unstopped one; a missing parent is a one-line error (the job's before anything compiles). Steps and
     generations are counted, not timed (--steps binds, not the wall time): the result is the same on a
     loaded machine."""
     import shutil
@@ -446,8 +447,6 @@ def test_hybrid_starts_from_cmaes_at_half_budget_adds_both_halves_and_resumes(tm
 
     from wbc_jax.tuning import campaign, hybrid, race
 
-    with pytest.raises(ValueError, match="--phases hybrid is a method of the race: give --budget-s"):
-        config.TuneConfig(phases=("cmaes", "hybrid"), **TINY)
     tc = config.TuneConfig(batch=2, steps=3, population=16, es_batch=1, es_sigma=0.2, budget_s=600.0,
                            snapshots_s=(300.0,), phases=("cmaes", "hybrid"), **TINY)  # fmt: skip
     problem = tp.make_problem(tc)
@@ -518,6 +517,9 @@ def test_hybrid_starts_from_cmaes_at_half_budget_adds_both_halves_and_resumes(tm
     assert json.loads((out / "race.json").read_text())["methods"]["hybrid"]["engine"].endswith("jax")
     with pytest.raises(ValueError, match=r"needs CMA-ES's set at 250 s .*run --phases cmaes hybrid"):
         hybrid.run(problem, out, [500.0], progress=False, step_fn=step)
+    # The job itself: a hybrid without its parents in the run is refused before anything compiles.
+    with pytest.raises(ValueError, match=r"needs CMA-ES's set at 150 s"):
+        campaign.run(tc, out=str(tmp_path / "c"), phases=("hybrid", "report"), progress=False)
 
 
 # ---------------------------------------------------------------------------------------------

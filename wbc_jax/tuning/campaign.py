@@ -207,6 +207,8 @@ def run(cfg: TuneConfig | None = None, hc: HeldoutConfig | None = None, *, lc: L
         refined = timed("hybrid", lambda: hybrid.run(problem, out, _times(tc), progress=progress, mesh=mesh))
         for name, (controls, reg, origin) in refined.items():
             _write(out, problem, name, controls, reg, origin)
+        summary["hybrid"] = {n: {k: o[k] for k in ("parent", "step", "gradient_wall_s", "sim_steps", "wall_s")}
+                             for n, (_, _, o) in refined.items()}  # fmt: skip
     if "heldout" in tc.phases:
         sets = {**reference, **tuned_sets(problem, out)}
         results = timed("heldout", lambda: tuning_eval.heldout(sets, hc, out / "heldout", progress=progress,
