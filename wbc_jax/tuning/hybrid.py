@@ -98,8 +98,8 @@ def histories(out: pathlib.Path, index: dict) -> dict:
     """{set name: the hybrid run's history, its sim_steps and wall_s offset by its parent's} (learning curves)."""
     found = {}
     for name, origin in index.items():
-        path = folder(out, float(origin.get("budget_s") or 0)) / "history.csv"
-        if origin.get("method") != "hybrid" or not path.exists():
+        path = folder(out, float(origin["budget_s"])) / "history.csv" if origin.get("method") == "hybrid" else None
+        if path is None or not path.exists():
             continue
         found[name] = [{**r, "sim_steps": int(r["sim_steps"]) + origin["parent_sim_steps"],
                         "wall_s": float(r["wall_s"]) + origin["parent_wall_s"]} for r in store.read_csv(path)]  # fmt: skip
