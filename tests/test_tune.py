@@ -507,7 +507,10 @@ def test_hybrid_starts_from_cmaes_at_half_budget_adds_both_halves_and_resumes(tm
     index = json.loads((out / "gains" / "provenance.json").read_text())
     rep = {n: {"envelope_fraction_median": 0.5 + 0.1 * (index[n]["method"] == "hybrid"), "envelope_fraction_min": 0.4,
                "survival_rate": 0.2, "sinusoid_com_rmse_m": 1.0e-3} for n in index}  # fmt: skip
-    rc = race.write(out, problem, rep, index, {})
+    curves = hybrid.histories(out, index)  # the learning curves: the gradient half after its parent's
+    assert set(curves) == {"hybrid_t300", "hybrid"}
+    assert curves["hybrid"][0]["sim_steps"] == index["hybrid"]["parent_sim_steps"] + per_step
+    rc = race.write(out, problem, rep, index, curves)
     hyb = rc["methods"]["hybrid"]["points"]
     assert [p["budget_s"] for p in hyb] == [300.0, 600.0] and [p["name"] for p in hyb] == ["hybrid_t300", "hybrid"]
     assert hyb[1]["parent"] == "cmaes_t300" and hyb[1]["sim_steps"] == refined["hybrid"][2]["sim_steps"]
