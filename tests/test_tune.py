@@ -455,7 +455,7 @@ def test_hybrid_starts_from_cmaes_at_half_budget_adds_both_halves_and_resumes(tm
     evaluate = _fake_population(problem, target)
     budget = {"sim_steps": 0, "wall_s": 0.0}
     times = campaign._search_times(tc, "cmaes")
-    assert times == [150.0, 300.0, 600.0] and campaign._times(tc) == [300.0, 600.0]
+    assert times == [150.0, 300.0, 600.0] and race.budgets(tc) == [300.0, 600.0]
     out = tmp_path / "a"
     res = baselines.search(problem, "cmaes", out / "cmaes", budget=budget, progress=False, evaluate_fn=evaluate,
                            times=times, max_generations=2)  # fmt: skip
@@ -466,7 +466,7 @@ def test_hybrid_starts_from_cmaes_at_half_budget_adds_both_halves_and_resumes(tm
 
     opt = tune.make_optimizer(tc.lr, tc.clip_norm)
     step = _fake_step(problem, opt, target)
-    refined = hybrid.run(problem, out, campaign._times(tc), progress=False, step_fn=step)
+    refined = hybrid.run(problem, out, race.budgets(tc), progress=False, step_fn=step)
     assert set(refined) == {"hybrid_t300", "hybrid"}
     with np.load(out / "cmaes" / "checkpoint.npz") as z:
         cma_snapshots = z["extra_snapshots"]
@@ -517,6 +517,7 @@ def test_hybrid_starts_from_cmaes_at_half_budget_adds_both_halves_and_resumes(tm
     assert [p["budget_s"] for p in rc["methods"]["cmaes"]["points"]] == [150.0, 300.0, 600.0]
     assert rc["verdict"]["600"]["hybrid_minus_cmaes_median"] == pytest.approx(0.1)
     assert rc["verdict"]["600"]["target_met_by"] == ["hybrid"] and "150" not in rc["verdict"]
+    assert rc["budgets_s"] == [300.0, 600.0]  # the race's; CMA-ES's rows at 150 s are the hybrid's parents
     assert json.loads((out / "race.json").read_text())["methods"]["hybrid"]["engine"].endswith("jax")
     with pytest.raises(ValueError, match=r"needs CMA-ES's set at 250 s .*run --phases cmaes hybrid"):
         hybrid.run(problem, out, [500.0], progress=False, step_fn=step)

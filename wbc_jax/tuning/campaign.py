@@ -44,15 +44,10 @@ from wbc_jax.tuning.loss import LossConfig
 from wbc_jax.tuning.params import nava_conditions
 
 
-def _times(tc: TuneConfig) -> list:
-    """The wall times a race keeps gain sets at: the snapshots within the budget, then the budget."""
-    return sorted({float(t) for t in tc.snapshots_s if t < tc.budget_s} | {float(tc.budget_s)})
-
-
 def _search_times(tc: TuneConfig, kind: str) -> list:
-    """The wall times a search keeps its sets at: the race's, and for the hybrid's parent search (phase
+    """The wall times a search keeps its sets at: the race's budgets, and for the hybrid's parent search (phase
     hybrid) also half of each (where the hybrid starts)."""
-    times = _times(tc)
+    times = race.budgets(tc)
     if kind == hybrid.PARENT and "hybrid" in tc.phases:
         times = sorted(set(times) | set(hybrid.halves(times)))
     return times
@@ -66,7 +61,7 @@ def _gradient_sets(problem: tp.Problem, out: pathlib.Path, rows: list) -> None:
     tc = problem.tc
     folder = out / "gradient"
     if tc.budget_s > 0:
-        for t in _times(tc):
+        for t in race.budgets(tc):
             i = tuning.at_time(rows, t)
             controls, reg = tuning.snapshot_controls(problem, folder, i)
             r = rows[i] if i >= 0 else {"sim_steps": 0, "wall_s": 0.0}
@@ -157,7 +152,7 @@ def run(cfg: TuneConfig | None = None, hc: HeldoutConfig | None = None, *, lc: L
                           list(files.values()))  # fmt: skip
     runs.claim_output_dir(out, "tune", fp, resume=True)
     if "hybrid" in tc.phases and hybrid.PARENT not in tc.phases:  # its parents are there already, or an error now
-        for t in _times(tc):
+        for t in race.budgets(tc):
             hybrid.parent(problem, out, t)
     io.atomic_write_json(out / "config.json", {"tune": dataclasses.asdict(tc), "heldout": dataclasses.asdict(hc),
                                                "loss": dataclasses.asdict(lc),
@@ -204,7 +199,7 @@ def run(cfg: TuneConfig | None = None, hc: HeldoutConfig | None = None, *, lc: L
                                                                               progress=progress, mesh=mesh))  # fmt: skip
         _search_sets(problem, out, kind, res)
     if "hybrid" in tc.phases:
-        refined = timed("hybrid", lambda: hybrid.run(problem, out, _times(tc), progress=progress, mesh=mesh))
+        refined = timed("hybrid", lambda: hybrid.run(problem, out, race.budgets(tc), progress=progress, mesh=mesh))
         for name, (controls, reg, origin) in refined.items():
             _write(out, problem, name, controls, reg, origin)
         summary["hybrid"] = {n: {k: o[k] for k in ("parent", "step", "gradient_wall_s", "sim_steps", "wall_s")}

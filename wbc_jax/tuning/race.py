@@ -30,6 +30,12 @@ HYBRID_KEYS = ("parent", "parent_sha256", "parent_sim_steps", "parent_wall_s", "
 MARGIN = 0.05  # the median the gradient must gain over CMA-ES (issue 35)
 
 
+def budgets(tc) -> list:
+    """The race's budgets [s] (a :class:`~wbc_jax.tuning.config.TuneConfig`'s): the snapshots within
+    ``--budget-s``, then ``--budget-s``."""
+    return sorted({float(t) for t in tc.snapshots_s if t < tc.budget_s} | {float(tc.budget_s)})
+
+
 def points(rep: dict, index: dict) -> dict:
     """{method: [{budget_s, name, wall_s, sim_steps, envelope medians, survival, sinusoid}, ...]} by budget."""
     out: dict = {}
@@ -96,7 +102,7 @@ def write(out, problem: tp.Problem, rep: dict, index: dict, histories: dict) -> 
     engines = {"gradient": "jax", "cmaes": search, "random": search, "hybrid": f"{search}, then jax"}
     result = {
         "parameterisation": tc.parameterisation, "parameters": info.get("parameters"), "budget_s": tc.budget_s,
-        "budgets_s": sorted({p["budget_s"] for v in pts.values() for p in v}),
+        "budgets_s": budgets(tc),  # the race's; CMA-ES also has rows at their halves with phase hybrid
         "methods": {m: {"engine": engines[m], "points": v} for m, v in pts.items()},
         "gradient": {k: info.get(k) for k in ("estimator", "window_s", "batch", "checkpoint", "compile_s",
                                               "step_s_median", "gradient_physics_steps_per_s",
