@@ -21,7 +21,8 @@ Each step draws a fresh batch (:func:`wbc_jax.tuning.problem.sample_pushes`, rep
 the run is resumable (checkpoint.npz with every step's parameters, history.csv), and its history
 counts simulated physics steps (the forward rollouts of the windows included) and wall time
 (compilation included), against which the gradient-free searches get the same budgets. With
-``--budget-s`` the run stops when its wall time is spent.
+``--budget-s`` the run stops when its wall time is spent. The race's hybrid
+(:mod:`wbc_jax.tuning.hybrid`) runs this same loop from CMA-ES's set, with a wall budget of its own.
 """
 
 from __future__ import annotations
