@@ -333,32 +333,50 @@ TINY_RUN = ["--horizon", "0.3", "--push-onset", "0.05", "--duration-range", "0.0
 def test_race_pipeline_end_to_end(tmp_path, extra):
     """wbc-jax tune with a wall budget: every phase runs, each method's sets at the snapshot and at the
     budget are written once and held out (with their sinusoid RMSE), race.json names a recommendation;
-    a second call resumes without redoing anything."""
+    the hybrid starts from CMA-ES's set at half of each budget (kept for it) and adds both halves; a
+    second call resumes without redoing anything."""
     out = tmp_path / "run"
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "WBC_JAX_CACHE": os.environ.get("WBC_JAX_CACHE", ""),
            "XLA_FLAGS": "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true",
            "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}  # fmt: skip
+    phases = ["train", "quality", "cmaes", "random", "hybrid", "heldout", "report"]
     cmd = [sys.executable, "-m", "wbc_jax.cli", "tune", "--out", str(out), *TINY_RUN, *extra, "--budget-s", "30",
-           "--snapshots-s", "5", "--phases", "train", "quality", "cmaes", "random", "heldout", "report"]  # fmt: skip
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=3000, env=env)
+           "--snapshots-s", "5"]  # fmt: skip
+    proc = subprocess.run([*cmd, "--phases", *phases], capture_output=True, text=True, timeout=3000, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    names = {f"{m}{t}" for m in race.METHODS for t in ("", "_t5")}
+    names = {f"{m}{t}" for m in race.METHODS for t in ("", "_t5")} | {"cmaes_t2.5", "cmaes_t15"}
     index = json.loads((out / "gains" / "provenance.json").read_text())
     assert set(index) == names and all(len(e["sha256"]) == 64 for e in index.values())
+    for name, budget in (("hybrid_t5", 5.0), ("hybrid", 30.0)):
+        hyb, parent = index[name], index[f"cmaes_t{budget / 2:g}"]
+        assert hyb["parent"] == f"cmaes_t{budget / 2:g}" and hyb["parent_sha256"] == parent["sha256"]
+        assert hyb["sim_steps"] == parent["sim_steps"] + hyb["gradient_sim_steps"]
+        assert hyb["wall_s"] == pytest.approx(parent["wall_s"] + hyb["gradient_wall_s"], abs=1e-3)
+        assert hyb["gradient_compile_s"] > 0 and hyb["gradient_wall_s"] <= budget / 2  # compile counted
+        if hyb["step"] < 0:  # the compile took the half: the parent itself
+            assert hyb["sha256"] == parent["sha256"] and hyb["gradient_sim_steps"] == 0
+        if hyb["step"] >= 0 and parent["generation"] >= 0:  # it stepped from the parent's parameters
+            with (
+                np.load(out / "hybrid" / f"t{budget:g}" / "checkpoint.npz") as z,
+                np.load(out / "cmaes" / "checkpoint.npz") as c,
+            ):
+                np.testing.assert_array_equal(z["extra_start"], c["extra_snapshots"][parent["generation"]])
     held = json.loads((out / "heldout.json").read_text())
     for name in names | {"default", "critical"}:
         assert 0.0 <= held[name]["envelope_fraction_median"] and held[name]["sinusoid_com_rmse_m"] > 0, name
     assert held["provenance"]["inputs"]["gradient"]["sha256"] == index["gradient"]["sha256"]
     rc = json.loads((out / "race.json").read_text())
     assert set(rc["methods"]) == set(race.METHODS) and rc["budgets_s"] == [5.0, 30.0]
-    assert rc["recommended"] in held and "30" in rc["verdict"]
+    assert [p["budget_s"] for p in rc["methods"]["hybrid"]["points"]] == [5.0, 30.0]
+    assert [p["budget_s"] for p in rc["methods"]["cmaes"]["points"]] == [2.5, 5.0, 15.0, 30.0]
+    assert rc["recommended"] in held and "hybrid_minus_cmaes_median" in rc["verdict"]["30"]
     q = json.loads((out / "quality.json").read_text())
     assert set(q["estimates"]) >= {"first-order", "zeroth-order"} and q["parameters"] == (348 if "scheduled" in extra
                                                                                           else 58)  # fmt: skip
     assert (out / "race.png").stat().st_size > 0
     # Resumed: nothing left to do, the same files.
     before = (out / "heldout.json").read_text()
-    proc = subprocess.run(cmd[:-7] + ["--phases", "train", "cmaes", "random"], capture_output=True, text=True,
+    proc = subprocess.run([*cmd, "--phases", "train", "cmaes", "random", "hybrid"], capture_output=True, text=True,
                           timeout=1500, env=env)  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert json.loads((out / "gains" / "provenance.json").read_text()).keys() == index.keys()

@@ -147,6 +147,7 @@ def test_out_of_bound_init_gains_are_a_clear_error_before_compiling(tmp_path):
     ({"angular_weight_soft": 0.0}, r"--angular-weight-soft must be a number in \(0, 10000\]"),
     ({"tasks": "/nonexistent.yaml"}, r"--tasks file /nonexistent.yaml does not exist"),
     ({"train_bodies": ("world",)}, r"--train-bodies 'world' is not a valid name here"),
+    ({"phases": ("cmaes", "hybrid")}, r"--phases hybrid is a method of the race: give --budget-s"),
 ])  # fmt: skip
 def test_bad_tune_config_is_a_clear_error(kwargs, message):
     with pytest.raises((ValueError, FileNotFoundError), match=message):
@@ -425,6 +426,104 @@ def test_baselines_spend_the_budget_resume_and_improve(search_problem, tmp_path,
         np.testing.assert_allclose(getattr(again["equal_steps"]["controls"][0], k),
                                    getattr(res["equal_steps"]["controls"][0], k), rtol=1e-5)  # fmt: skip
     assert baselines.budget_generations(problem, budget["sim_steps"]) == 10
+
+
+# ---------------------------------------------------------------------------------------------
+# The race's hybrid (issue 42) with the same stand-ins: its bookkeeping
+
+
+def test_hybrid_starts_from_cmaes_at_half_budget_adds_both_halves_and_resumes(tmp_path):
+    """CMA-ES (a stand-in population objective, two generations) keeps its sets at the race's 300 and
+    600 s and, phase hybrid asked for, at 150 s too; the hybrid at each budget B starts from CMA-ES's set
+    at B / 2 (the same parameters, the same gains file), its set's sim steps and wall time are the parent's plus its
+    gradient half's, it is written with its parent's sha256 and appears in race.json with its own rows
+    (the verdict's gradient-based methods); a hybrid run stopped after one step resumes to the result of
+    an unstopped one; a missing parent is a one-line error (the job's before anything compiles). Steps and
+    generations are counted, not timed (--steps binds, not the wall time): the result is the same on a
+    loaded machine."""
+    import shutil
+
+    from jax.flatten_util import ravel_pytree
+
+    from wbc_jax.tuning import campaign, hybrid, race
+
+    tc = config.TuneConfig(batch=2, steps=3, population=16, es_batch=1, es_sigma=0.2, budget_s=600.0,
+                           snapshots_s=(300.0,), phases=("cmaes", "hybrid"), **TINY)  # fmt: skip
+    problem = tp.make_problem(tc)
+    flat0, unravel = ravel_pytree(problem.init_params())
+    target = problem.base.replace(kp_com=problem.base.kp_com * 2.0, kd_com=problem.base.kd_com * 3.0)
+    evaluate = _fake_population(problem, target)
+    budget = {"sim_steps": 0, "wall_s": 0.0}
+    times = campaign._search_times(tc, "cmaes")
+    assert times == [150.0, 300.0, 600.0] and race.budgets(tc) == [300.0, 600.0]
+    out = tmp_path / "a"
+    res = baselines.search(problem, "cmaes", out / "cmaes", budget=budget, progress=False, evaluate_fn=evaluate,
+                           times=times, max_generations=2)  # fmt: skip
+    campaign._search_sets(problem, out, "cmaes", res)
+    index = json.loads((out / "gains" / "provenance.json").read_text())
+    assert set(index) == {"cmaes_t150", "cmaes_t300", "cmaes"} and index["cmaes_t150"]["generation"] == 1
+    shutil.copytree(out, tmp_path / "b")
+
+    opt = tune.make_optimizer(tc.lr, tc.clip_norm)
+    step = _fake_step(problem, opt, target)
+    refined = hybrid.run(problem, out, race.budgets(tc), progress=False, step_fn=step)
+    assert set(refined) == {"hybrid_t300", "hybrid"}
+    with np.load(out / "cmaes" / "checkpoint.npz") as z:
+        cma_snapshots = z["extra_snapshots"]
+    per_step = tc.batch * problem.steps_per_rollout
+    for name, (controls, reg, origin) in refined.items():
+        budget_s = origin["budget_s"]
+        parent = index[origin["parent"]]
+        assert origin["parent"] == f"cmaes_t{budget_s / 2:g}" and origin["parent_sha256"] == parent["sha256"]
+        with np.load(hybrid.folder(out, budget_s) / "checkpoint.npz") as z:
+            start, steps = z["extra_start"], z["extra_snapshots"]
+        np.testing.assert_array_equal(start, cma_snapshots[parent["generation"]])  # the parent's parameters
+        parent_controls, _ = problem.controls(unravel(jnp.asarray(start, flat0.dtype)))
+        assert store.controls_dict(parent_controls) == json.loads((out / "gains" / f"{origin['parent']}.json")
+                                                                  .read_text())  # fmt: skip
+        rows = store.read_csv(hybrid.folder(out, budget_s) / "history.csv")
+        i = origin["step"]
+        assert i == len(rows) - 1 == len(steps) - 1 == tc.steps - 1 and float(rows[i]["wall_s"]) <= budget_s / 2
+        assert origin["gradient_sim_steps"] == (i + 1) * per_step == int(rows[i]["sim_steps"])
+        assert origin["sim_steps"] == parent["sim_steps"] + (i + 1) * per_step
+        assert origin["wall_s"] == pytest.approx(parent["wall_s"] + float(rows[i]["wall_s"]), abs=1e-3)
+        assert origin["parent_wall_s"] <= budget_s / 2 and origin["wall_s"] <= budget_s
+        refined_controls, _ = problem.controls(unravel(jnp.asarray(steps[i], flat0.dtype)))
+        assert (
+            store.controls_dict(controls)
+            == store.controls_dict(refined_controls)
+            != store.controls_dict(parent_controls)
+        )
+        campaign._write(out, problem, name, controls, reg, origin)
+    # Stopped after the first step of the 600 s budget's run, then resumed: the unstopped run's result.
+    with pytest.raises(_Interrupt):
+        hybrid.run(problem, tmp_path / "b", [600.0], progress=False,
+                   step_fn=_fake_step(problem, opt, target, stop_at=1))  # fmt: skip
+    assert len(store.read_csv(hybrid.folder(tmp_path / "b", 600.0) / "history.csv")) == 1
+    again = hybrid.run(problem, tmp_path / "b", [600.0], progress=False, step_fn=step)["hybrid"]
+    assert store.controls_dict(again[0]) == store.controls_dict(refined["hybrid"][0])
+    assert again[2]["sim_steps"] == refined["hybrid"][2]["sim_steps"]
+    # race.json: one row per method and budget, the hybrid's with its parts; the verdict sets it against CMA-ES.
+    index = json.loads((out / "gains" / "provenance.json").read_text())
+    rep = {n: {"envelope_fraction_median": 0.5 + 0.1 * (index[n]["method"] == "hybrid"), "envelope_fraction_min": 0.4,
+               "survival_rate": 0.2, "sinusoid_com_rmse_m": 1.0e-3} for n in index}  # fmt: skip
+    curves = hybrid.histories(out, index)  # the learning curves: the gradient half after its parent's
+    assert set(curves) == {"hybrid_t300", "hybrid"}
+    assert curves["hybrid"][0]["sim_steps"] == index["hybrid"]["parent_sim_steps"] + per_step
+    rc = race.write(out, problem, rep, index, curves)
+    hyb = rc["methods"]["hybrid"]["points"]
+    assert [p["budget_s"] for p in hyb] == [300.0, 600.0] and [p["name"] for p in hyb] == ["hybrid_t300", "hybrid"]
+    assert hyb[1]["parent"] == "cmaes_t300" and hyb[1]["sim_steps"] == refined["hybrid"][2]["sim_steps"]
+    assert [p["budget_s"] for p in rc["methods"]["cmaes"]["points"]] == [150.0, 300.0, 600.0]
+    assert rc["verdict"]["600"]["hybrid_minus_cmaes_median"] == pytest.approx(0.1)
+    assert rc["verdict"]["600"]["target_met_by"] == ["hybrid"] and "150" not in rc["verdict"]
+    assert rc["budgets_s"] == [300.0, 600.0]  # the race's; CMA-ES's rows at 150 s are the hybrid's parents
+    assert json.loads((out / "race.json").read_text())["methods"]["hybrid"]["engine"].endswith("jax")
+    with pytest.raises(ValueError, match=r"needs CMA-ES's set at 250 s .*run --phases cmaes hybrid"):
+        hybrid.run(problem, out, [500.0], progress=False, step_fn=step)
+    # The job itself: a hybrid without its parents in the run is refused before anything compiles.
+    with pytest.raises(ValueError, match=r"needs CMA-ES's set at 150 s"):
+        campaign.run(tc, out=str(tmp_path / "c"), phases=("hybrid", "report"), progress=False)
 
 
 # ---------------------------------------------------------------------------------------------

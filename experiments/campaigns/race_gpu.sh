@@ -8,9 +8,12 @@
 #      batch 1,024) when $RACE_OLD_NEED seconds are left (else the before is docs/tuning/train_info.json);
 #   b. gradient quality on the same program (phase quality, --quality-directions 0: no other compile),
 #      then phase profile (the per-tick parts, implicit against unrolled solver gradients);
-#   c. the race at a $RACE_BUDGET s wall budget per method (gradient on jax, CMA-ES and random search on
-#      --search-backend auto: Warp where installed) with the held-out evaluation and race.json / race.png,
-#      when $RACE_C_NEED seconds are left (a later call with the same $RACE_RUNS resumes it).
+#   c. the race at a $RACE_BUDGET s wall budget per method, with its sets also kept at $RACE_SNAPSHOTS s
+#      (e.g. RACE_BUDGET=600 RACE_SNAPSHOTS="120 300": the issue's 2, 5 and 10 minutes) (gradient on jax,
+#      CMA-ES and random search on --search-backend auto: Warp where installed; the hybrid: the gradient
+#      refining CMA-ES's set at half of each budget for the other half, CMA-ES keeping its sets at those
+#      halves for it) with the held-out evaluation and race.json / race.png, when $RACE_C_NEED seconds are
+#      left (a later call with the same $RACE_RUNS resumes it; the hybrid costs a fourth budget of time).
 #
 #   bash experiments/campaigns/race_gpu.sh OUT_DIR   # TINY=1: tiny sizes (CPU check); RACE_PARTS="new profile old race"
 #
@@ -69,9 +72,10 @@ else
   echo "part old: skipped ($(left)s left; the before is docs/tuning/train_info.json)"
 fi
 if [ "$(left)" -ge "${RACE_C_NEED:-600}" ]; then
-  RACE=(--out "$RUNS/race" --budget-s "$BUDGET" --snapshots-s --steps 100000 --batch "$B" --quality-pushes "$B"
-        --no-wall-budget --search-backend auto "${COMMON[@]}" "${HELD[@]}")
-  part race "$(cap 100000)" "${TUNE[@]}" "${RACE[@]}" --phases train cmaes random heldout report
+  read -r -a SNAPSHOTS <<< "${RACE_SNAPSHOTS:-}"  # wall times [s] within the budget: more race budgets
+  RACE=(--out "$RUNS/race" --budget-s "$BUDGET" --snapshots-s "${SNAPSHOTS[@]}" --steps 100000 --batch "$B"
+        --quality-pushes "$B" --no-wall-budget --search-backend auto "${COMMON[@]}" "${HELD[@]}")
+  part race "$(cap 100000)" "${TUNE[@]}" "${RACE[@]}" --phases train cmaes random hybrid heldout report
 else
   echo "part race: skipped ($(left)s left; needs ${RACE_C_NEED:-600}s: run it in a call of its own)"
 fi

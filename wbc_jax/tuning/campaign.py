@@ -6,6 +6,7 @@
     profile   profile.json                           where a gradient step's time goes
     cmaes     cmaes/                                 CMA-ES (evosax) on --search-backend
     random    random/                                random search on --search-backend
+    hybrid    hybrid/t<B>/                           the gradient refining CMA-ES's set at B/2 (with --budget-s)
     heldout   heldout/, heldout_raw.json             every gain set on the held-out evaluation
     report    heldout.json, race.json, summary.json, envelope_polar.png, learning_curves.png, race.png
 
@@ -14,9 +15,11 @@ searches its simulated steps (and its wall time, ``--wall-budget``); the sets ar
 ``random`` (equal steps) and ``cmaes_wall``, ``random_wall`` (equal wall time). With ``--budget-s T`` (the
 race): every method runs T seconds of wall time, compilation included, and its gain set at each of
 ``--snapshots-s`` and at T is kept (``gradient_t120``, ..., ``gradient`` at T): one run gives every
-budget. The tuned sets are written once into ``gains/`` (:func:`wbc_jax.tuning.store.write_controls`),
-with their origin in ``gains/provenance.json``; the held-out evaluation adds ``HeldoutConfig.sets``
-(the WBC defaults and the hand-set row by default).
+budget. Phase ``hybrid`` (:mod:`wbc_jax.tuning.hybrid`) refines CMA-ES's set at half of each budget
+with the gradient for the other half (``hybrid_t120``, ..., ``hybrid``). The tuned sets are written
+once into ``gains/`` (:func:`wbc_jax.tuning.store.write_controls`), with their origin in
+``gains/provenance.json``; the held-out evaluation adds ``HeldoutConfig.sets`` (the WBC defaults and
+the hand-set row by default).
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from wbc_jax.core import io, provenance
 from wbc_jax.jobs import runs
 from wbc_jax.report import tuning_plots
 from wbc_jax.sim import scenario
-from wbc_jax.tuning import baselines, race, store
+from wbc_jax.tuning import baselines, hybrid, race, store
 from wbc_jax.tuning import heldout as tuning_eval
 from wbc_jax.tuning import problem as tp
 from wbc_jax.tuning import tune as tuning
@@ -41,13 +44,13 @@ from wbc_jax.tuning.loss import LossConfig
 from wbc_jax.tuning.params import nava_conditions
 
 
-def _name(method: str, seconds: float | None) -> str:
-    return method if seconds is None else f"{method}_t{seconds:g}"
-
-
-def _times(tc: TuneConfig) -> list:
-    """The wall times a race keeps gain sets at: the snapshots within the budget, then the budget."""
-    return sorted({float(t) for t in tc.snapshots_s if t < tc.budget_s} | {float(tc.budget_s)})
+def _search_times(tc: TuneConfig, kind: str) -> list:
+    """The wall times a search keeps its sets at: the race's budgets, and for the hybrid's parent search (phase
+    hybrid) also half of each (where the hybrid starts)."""
+    times = race.budgets(tc)
+    if kind == hybrid.PARENT and "hybrid" in tc.phases:
+        times = sorted(set(times) | set(hybrid.halves(times)))
+    return times
 
 
 def _inputs(tc: TuneConfig, hc: HeldoutConfig | None = None) -> dict:
@@ -65,11 +68,11 @@ def _gradient_sets(problem: tp.Problem, out: pathlib.Path, rows: list) -> None:
     tc = problem.tc
     folder = out / "gradient"
     if tc.budget_s > 0:
-        for t in _times(tc):
+        for t in race.budgets(tc):
             i = tuning.at_time(rows, t)
             controls, reg = tuning.snapshot_controls(problem, folder, i)
             r = rows[i] if i >= 0 else {"sim_steps": 0, "wall_s": 0.0}
-            name = _name("gradient", None if t == tc.budget_s else t)
+            name = store.set_name("gradient", None if t == tc.budget_s else t)
             _write(
                 out,
                 problem,
@@ -94,7 +97,8 @@ def _gradient_sets(problem: tp.Problem, out: pathlib.Path, rows: list) -> None:
 def _search_sets(problem: tp.Problem, out: pathlib.Path, kind: str, res: dict) -> None:
     tc = problem.tc
     if tc.budget_s > 0:
-        picks = [(_name(kind, None if t == tc.budget_s else t), res["at"][t], t) for t in _times(tc)]
+        picks = [(store.set_name(kind, None if t == tc.budget_s else t), res["at"][t], t)
+                 for t in _search_times(tc, kind)]  # fmt: skip
     else:
         picks = [(kind, res["equal_steps"], None)]
         if res["equal_wall"]["reached"]:
@@ -154,6 +158,9 @@ def run(cfg: TuneConfig | None = None, hc: HeldoutConfig | None = None, *, lc: L
                            "loss": dataclasses.asdict(lc), "dtype": str(scenario.float_dtype())},
                           list(files.values()))  # fmt: skip
     runs.claim_output_dir(out, "tune", fp, resume=True)
+    if "hybrid" in tc.phases and hybrid.PARENT not in tc.phases:  # its parents are there already, or an error now
+        for t in race.budgets(tc):
+            hybrid.parent(problem, out, t)
     io.atomic_write_json(out / "config.json", {"tune": dataclasses.asdict(tc), "heldout": dataclasses.asdict(hc),
                                                "loss": dataclasses.asdict(lc),
                                                "provenance": provenance.record(files)})  # fmt: skip
@@ -194,13 +201,16 @@ def run(cfg: TuneConfig | None = None, hc: HeldoutConfig | None = None, *, lc: L
         summary["profile"] = timed("profile", lambda: profile.measure(problem, out, mesh=mesh))["summary"]
     for kind in tc.searches:
         budget = {"sim_steps": 0, "wall_s": 0.0} if tc.budget_s > 0 else _gradient_budget(out)
-        res = timed(
-            kind,
-            lambda k=kind, b=budget: baselines.search(
-                problem, k, out / k, budget=b, progress=progress, mesh=mesh, times=_times(tc) if tc.budget_s else ()
-            ),
-        )
+        times = _search_times(tc, kind) if tc.budget_s else ()
+        res = timed(kind, lambda k=kind, b=budget, t=times: baselines.search(problem, k, out / k, budget=b, times=t,
+                                                                              progress=progress, mesh=mesh))  # fmt: skip
         _search_sets(problem, out, kind, res)
+    if "hybrid" in tc.phases:
+        refined = timed("hybrid", lambda: hybrid.run(problem, out, race.budgets(tc), progress=progress, mesh=mesh))
+        for name, (controls, reg, origin) in refined.items():
+            _write(out, problem, name, controls, reg, origin)
+        summary["hybrid"] = {n: {k: o[k] for k in ("parent", "step", "gradient_wall_s", "sim_steps", "wall_s")}
+                             for n, (_, _, o) in refined.items()}  # fmt: skip
     if "heldout" in tc.phases:
         sets = {**reference, **tuned_sets(problem, out)}
         results = timed("heldout", lambda: tuning_eval.heldout(sets, hc, out / "heldout", progress=progress,
@@ -234,6 +244,7 @@ def report(problem: tp.Problem, out: pathlib.Path, hc: HeldoutConfig, reference:
     tuning_plots.envelope_polar({n: rep[n] for n in sets if n in rep and "_t" not in n}, out / "envelope_polar.png")
     histories = {k: store.read_csv(out / k / "history.csv") for k in ("gradient", *baselines.KINDS)
                  if (out / k / "history.csv").exists()}  # fmt: skip
+    histories.update(hybrid.histories(out, index))
     tuning_plots.learning_curves(histories, out / "learning_curves.png")
     line = {n: {k: rep[n][k] for k in tuning_eval.SUMMARY_KEYS} for n in sets if n in rep}
     if tc.budget_s > 0:

@@ -23,7 +23,7 @@ PUSH_SCALES = ("envelope", "lip")
 ENVELOPE_FILE = asset("tuning/default_envelope.json")  # package data, made by docs/tuning/README.md's bisection
 MAX_BATCH = 10_000_000  # pushes of one step, candidates, held-out pushes: beyond it a typo
 # The phases of a tuning run, in the order they run (each resumable).
-PHASES = ("predict", "train", "quality", "profile", "cmaes", "random", "heldout", "report")
+PHASES = ("predict", "train", "quality", "profile", "cmaes", "random", "hybrid", "heldout", "report")
 SEARCHES = ("cmaes", "random")
 SEARCH_BACKENDS = ("auto", "jax", "warp")
 ESTIMATORS = ("first-order", "smoothed", "interpolated")
@@ -51,8 +51,10 @@ class TuneConfig:
                                      "order: predict (does the loss rank held-out survival), train (gradient "
                                      "tuning), quality (the gradient against zeroth-order estimates), profile "
                                      "(where a gradient step's time goes), cmaes and random (gradient-free "
-                                     "searches), heldout (every gain set on the held-out grid, variations, "
-                                     "one-foot task and sinusoid), report (heldout.json, race.json, figures)",
+                                     "searches), hybrid (with --budget-s: the gradient refining CMA-ES's set at "
+                                     "half of each budget for the other half), heldout (every gain set on the "
+                                     "held-out grid, variations, one-foot task and sinusoid), report "
+                                     "(heldout.json, race.json, figures)",
                                      nargs="+", choices=PHASES, nonempty=True)  # fmt: skip
     steps: int = option(8, "gradient steps (an upper bound with --budget-s)", ge=1, le=1_000_000)
     batch: int = option(4, "rollouts per gradient step (sampled afresh each step)", ge=1, le=MAX_BATCH)
@@ -191,6 +193,9 @@ class TuneConfig:
             raise ValueError(f"--quality-pushes {self.quality_pushes} must be a multiple of the {self.pushes_per_call} "
                              "pushes of one gradient program call (--batch, halved for antithetic pairs, divided by "
                              "--windows with --window-s)")  # fmt: skip
+        if "hybrid" in self.phases and not self.budget_s:
+            raise ValueError("--phases hybrid is a method of the race: give --budget-s (it refines CMA-ES's set at "
+                             "half of each budget with the gradient for the other half)")  # fmt: skip
         if self.parameterisation == "scheduled" and self.tune_regularisation:
             raise ValueError("--parameterisation scheduled schedules the gains only: drop --tune-regularisation")
         if self.out is not None and pathlib.Path(self.out).exists() and not pathlib.Path(self.out).is_dir():

@@ -95,6 +95,12 @@ def write_once(path: pathlib.Path, data: dict) -> bool:
     return True
 
 
+def set_name(method: str, seconds: float | None = None) -> str:
+    """A tuned set's name: ``method`` (at the race's budget, or without one), ``method_t<seconds>`` at a
+    snapshot time of the race."""
+    return method if seconds is None else f"{method}_t{seconds:g}"
+
+
 def write_controls(
     folder: pathlib.Path, name: str, controls, reg, origin: dict, *, regularisation: bool, inputs: dict | None = None
 ) -> dict:

@@ -21,11 +21,13 @@ Each step draws a fresh batch (:func:`wbc_jax.tuning.problem.sample_pushes`, rep
 the run is resumable (checkpoint.npz with every step's parameters, history.csv), and its history
 counts simulated physics steps (the forward rollouts of the windows included) and wall time
 (compilation included), against which the gradient-free searches get the same budgets. With
-``--budget-s`` the run stops when its wall time is spent.
+``--budget-s`` the run stops when its wall time is spent. The race's hybrid
+(:mod:`wbc_jax.tuning.hybrid`) runs this same loop from CMA-ES's set, with a wall budget of its own.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import pathlib
 import time
@@ -188,33 +190,47 @@ def at_time(rows: list, seconds: float) -> int:
     return idx[-1] if idx else -1
 
 
-def train(problem: Problem, out, *, progress: bool = True, step_fn=None, mesh=None):
-    """Gradient tuning into ``out``: checkpoint.npz (resumable; every step's parameters), history.csv,
-    train_info.json. Stops after ``tc.steps`` steps, or when ``tc.budget_s`` (> 0) of wall time is spent.
+def start_key(problem: Problem, params) -> str:
+    """The checkpoint key of a training run from ``params`` (another start: another run)."""
+    flat = np.asarray(ravel_pytree(params)[0], np.float64)
+    return f"{problem.key}-start-{hashlib.sha256(flat.tobytes()).hexdigest()[:16]}"
 
+
+def train(problem: Problem, out, *, progress: bool = True, step_fn=None, mesh=None, start_params=None,
+          budget_s: float | None = None):  # fmt: skip
+    """Gradient tuning into ``out``: checkpoint.npz (resumable; every step's parameters), history.csv,
+    train_info.json. Stops after ``tc.steps`` steps, or when ``budget_s`` (default ``tc.budget_s``; > 0)
+    of wall time is spent, compilation included.
+
+    ``start_params``: the unconstrained parameters to start from (default: ``problem.init_params()``, the
+    --init-gains; the race's hybrid starts from CMA-ES's set); the checkpoint then also keeps them.
     ``step_fn``: a callable with :class:`GradientStep`'s signature (tests); default: a GradientStep,
     compiled here (its compile time, counted in the wall time, and memory go to train_info.json).
     Returns (tuned controls, regularisation (2,), history rows, info dict)."""
     from tqdm.auto import tqdm
 
     tc = problem.tc
+    budget = tc.budget_s if budget_s is None else float(budget_s)
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
     optimizer = make_optimizer(tc.lr, tc.clip_norm)
-    params = problem.init_params()
+    params = problem.init_params() if start_params is None else start_params
+    key = problem.key if start_params is None else start_key(problem, params)
     flat0, unravel = ravel_pytree(params)
+    kept = {} if start_params is None else {"start": np.asarray(flat0)}
     state = (params, optimizer.init(params))
     ckpt, hist_path, info_path = out / "checkpoint.npz", out / "history.csv", out / "train_info.json"
     start, rows, info, snapshots = 0, [], {}, np.zeros((0, flat0.size))
     if ckpt.exists():
-        state, start, extra = store.load_checkpoint(ckpt, state, problem.key)
+        state, start, extra = store.load_checkpoint(ckpt, state, key)
         rows = store.read_csv(hist_path)[:start] if hist_path.exists() else []
         snapshots = extra.get("snapshots", snapshots)[:start]
-        info = json.loads(info_path.read_text()) if info_path.exists() else {}
-    wall = float(rows[-1]["wall_s"]) if rows else 0.0
+    # A run stopped before its first step has its first compile on record: it counts, and may spend the budget.
+    info = json.loads(info_path.read_text()) if info_path.exists() else {}
+    wall = float(rows[-1]["wall_s"]) if rows else float(info.get("compile_s", 0.0))
 
     def spent(k: int) -> bool:
-        return k >= tc.steps or (tc.budget_s > 0 and wall >= tc.budget_s)
+        return k >= tc.steps or (budget > 0 and wall >= budget)
 
     if not spent(start) and (step_fn is None or isinstance(step_fn, GradientStep)):
         step_fn = GradientStep(problem, optimizer, mesh) if step_fn is None else step_fn
@@ -223,7 +239,7 @@ def train(problem: Problem, out, *, progress: bool = True, step_fn=None, mesh=No
         info.update(last_compile_s=round(compile_s, 2), device=provenance.device_label(),
                     n_devices=int(objectives.mesh_of(mesh).devices.size), batch=tc.batch, horizon_s=tc.horizon,
                     steps_per_rollout=problem.steps_per_rollout, estimator=tc.estimator, window_s=tc.window_s,
-                    checkpoint=tc.checkpoint, parameterisation=tc.parameterisation,
+                    checkpoint=tc.checkpoint, parameterisation=tc.parameterisation, budget_s=budget,
                     parameters=int(flat0.size), **(step_fn.memory_mb() or {}))  # fmt: skip
         info["provenance"] = provenance.record(
             {"init_gains": tc.init_gains, "envelope": tc.envelope, "tasks": tc.tasks}
@@ -245,7 +261,7 @@ def train(problem: Problem, out, *, progress: bool = True, step_fn=None, mesh=No
                          "rss_mb": round(store.rss_mb(), 1)})  # fmt: skip
             snapshots = np.concatenate([snapshots, np.asarray(ravel_pytree(params)[0])[None]])
             k += 1
-            store.save_checkpoint(ckpt, state, k, problem.key, snapshots=snapshots)
+            store.save_checkpoint(ckpt, state, k, key, snapshots=snapshots, **kept)
             store.write_csv(hist_path, rows, HISTORY_COLUMNS)
             bar.set_postfix(loss=f"{row['loss']:.4g}", surv=f"{row['survival_rate']:.2f}",
                             skipped=row["skipped_total"], dropped=int(row["nonfinite_envs"]))  # fmt: skip
@@ -260,9 +276,10 @@ def train(problem: Problem, out, *, progress: bool = True, step_fn=None, mesh=No
     return controls, problem.regularisation(reg), rows, info
 
 
-def snapshot_controls(problem: Problem, out, index: int):
-    """(controls, regularisation (2,)) after history row ``index`` of a training run in ``out`` (-1: the start)."""
-    params0 = problem.init_params()
+def snapshot_controls(problem: Problem, out, index: int, start_params=None):
+    """(controls, regularisation (2,)) after history row ``index`` of a training run in ``out`` (-1: the
+    start, ``start_params`` or ``problem.init_params()``)."""
+    params0 = problem.init_params() if start_params is None else start_params
     if index < 0:
         controls, reg = problem.controls(params0)
         return controls, problem.regularisation(reg)
