@@ -57,9 +57,9 @@ def _mjx_data(robot, qpos, qvel):
 
 @pytest.fixture(scope="module")
 def stand(robot, terms_fn):
-    """The setup of a 1 s stand task on MJX's JAX physics (float64), its initial controller state
-    and the matching CPU spec."""
-    sim = SimConfig(physics=physics.PhysicsConfig(backend="jax"))
+    """The setup of a 1 s stand task on C MuJoCo (float64; the program of tests/test_rollout.py's closed
+    loop, compiled once for both), its initial controller state and the matching CPU spec."""
+    sim = SimConfig(physics=physics.PhysicsConfig(backend="mujoco"))
     st = scenario.setup("stand", duration=1.0, sim=sim)
     assert st.dtype == np.float64 and st.robot is robot
     t_ref = terms_fn(_mjx_data(robot, st.qpos0, np.zeros(robot.index.nv)))
@@ -222,9 +222,10 @@ def test_make_spec_matches_setup(robot, stand):
     assert robot.mj_model.opt.iterations != 3  # a copy: the robot's model is untouched
 
 
-def test_closed_loop_matches_mjx_rollout(stand):
-    """C MuJoCo + NumPy vs the MJX (JAX physics) closed loop: same 1 s stand with a 40 N lateral
-    push; the metrics under the same names (constants.METRIC_NAMES)."""
+def test_closed_loop_matches_the_jax_closed_loop(stand):
+    """C MuJoCo + NumPy vs the JAX controller's closed loop on C MuJoCo (the MJX one equals it:
+    tests/test_rollout.py, nightly): same 1 s stand with a 40 N lateral push; the metrics under the same
+    names (constants.METRIC_NAMES)."""
     st, _, spec = stand
     push = scenario.make_push(PUSH["force"], PUSH["onset"], PUSH["duration"], st.dtype)
     run = runner.run(st, scenario.single(st, push))
@@ -232,12 +233,15 @@ def test_closed_loop_matches_mjx_rollout(stand):
     com_j, com_n = np.asarray(run.records.com[0]), res["com"][0]
     diff = np.linalg.norm(com_j - com_n, axis=1)
     excursion = np.abs(com_j - com_j[0]).max()
-    print(f"max CoM difference vs MJX over {spec.n_ticks} ticks: {diff.max():.3e} m "
+    print(f"max CoM difference vs the JAX loop over {spec.n_ticks} ticks: {diff.max():.3e} m "
           f"(CoM excursion {excursion:.3e} m); compile {run.compile_s:.1f} s; timing {res['timing']}")  # fmt: skip
     assert com_j.shape == com_n.shape == (spec.n_ticks, 3)
     assert excursion > 5e-3  # the push does move the robot
-    assert diff.max() < 1e-3  # the requirement; measured: ~1e-11 m (same physics, float64)
-    assert diff.max() < 1e-6, "C MuJoCo and MJX agree far better than this in float64"
+    # Two controllers (NumPy, JAX) on one physics: they differ by rounding alone. Measured against the MJX loop:
+    # ~1e-11 m of CoM, 8.4e-9 N m of torque (7.1e-9 with XLA held to AVX2); the bars are the requirement (1 mm)
+    # and 1e-6 m / 1e-5 N m, far above that noise and far below a wrong tick (the push moves the CoM > 5 mm).
+    assert diff.max() < 1e-3  # the requirement
+    assert diff.max() < 1e-6, "the NumPy and JAX controllers agree far better than this in float64"
     np.testing.assert_allclose(res["tau"][0], np.asarray(run.records.tau[0]), rtol=0, atol=1e-5)
     push_end = PUSH["onset"] + PUSH["duration"]
     ours = bc.summarize(res["metrics"], push_end)[0]

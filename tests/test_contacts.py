@@ -160,6 +160,9 @@ def test_feet_from_a_spec_file_are_the_default_contact_set(robot):
     assert float(outs[0].qp_violation) < 1e-8
 
 
+# Compiles the closed loop of the hand-on-table scene (its own model): nightly (`slow`). The default suite keeps the
+# hand contact through the controller (test_contact_detection_gates_the_hand, test_force_distribution_...).
+@pytest.mark.slow
 def test_hand_on_table_closed_loop():
     """1.5 s on the CPU (float64, as the test session): no fall, the measured (MuJoCo) hand force within 1 N of
     the desired 5 N, the QP constraints hold, nothing slips."""

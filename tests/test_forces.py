@@ -430,7 +430,9 @@ def test_solve_qp_unconstrained_minimiser(solve_one):
     x_unc = -np.linalg.solve(H, g)
     b = C @ x_unc + 1.0  # all constraints inactive, slack 1
     x, info = solve_one(H, g, C, b)
-    np.testing.assert_allclose(np.asarray(x), x_unc, rtol=1e-9, atol=1e-9)
+    # Interior point vs NumPy's solve (two paths): measured 5.8e-11 abs, 1.8e-11 rel, here and with XLA held to AVX2
+    # (the solver's stopping tolerance); bars ~100x that.
+    np.testing.assert_allclose(np.asarray(x), x_unc, rtol=5e-9, atol=5e-9)
     assert bool(info.converged) and not bool(info.infeasible)
     assert float(info.max_violation) == 0.0
 
@@ -446,7 +448,9 @@ def test_solve_qp_infeasible_falls_back(solve_one, dtype):
     x, info = solve_one(*(jnp.asarray(a, dtype) for a in (H, g, C, b)))
     assert bool(info.infeasible) and not bool(info.converged)
     assert np.all(np.isfinite(np.asarray(x)))
-    rtol = 1e-9 if dtype == jnp.float64 else 1e-4
+    # The fallback vs NumPy's float64 solve: measured 5.6e-14 rel in float64 and 2.9e-5 in float32, here and with XLA
+    # held to AVX2; the float32 bar is ~100x that (1e-4 left 3x), float64's far above its noise.
+    rtol = 1e-9 if dtype == jnp.float64 else 3e-3
     np.testing.assert_allclose(np.asarray(x), -np.linalg.solve(H, g), rtol=rtol, atol=rtol)
     assert float(info.max_violation) >= 1.0 - 1e-6
 
