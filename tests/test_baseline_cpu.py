@@ -197,6 +197,7 @@ def test_schedule_table_matches_schedule(robot, stand, terms_fn):
         table = bc.schedule_table(s, times)
         refs = jax.jit(jax.vmap(lambda t, s=s: s.at(t, jnp.float64)))(jnp.asarray(times))
         for k in table:
+            # NumPy vs JAX: measured 1.9e-16 relative, here and with XLA held to AVX2 (OpenBLAS Haswell).
             np.testing.assert_allclose(table[k], getattr(refs, k), rtol=1e-12, atol=1e-14,
                                        err_msg=f"{s.name} {k}")  # fmt: skip
 
@@ -209,6 +210,7 @@ def test_make_spec_matches_setup(robot, stand):
     ref = stand[2].to_dict()
     for name, value in spec.to_dict().items():
         if isinstance(value, np.ndarray):
+            # C MuJoCo's J_G,ang vs the JAX controller's: measured 6.4e-13 relative, 8.9e-16 abs (with AVX2 too).
             np.testing.assert_allclose(value, ref[name], rtol=1e-10, atol=1e-14, err_msg=name)
         elif name != "mj_model":
             assert value == ref[name], name
@@ -267,6 +269,7 @@ def test_batch_environments_are_independent(stand):
     for i in range(3):
         alone = bc.simulate(spec, {k: v[i] for k, v in g.items()},
                             {k: v[i] for k, v in push.items()}, n_ticks=25)  # fmt: skip
+        # NumPy batch vs alone (other BLAS calls): measured 6.7e-16 m here, 1.3e-15 m with OpenBLAS's Haswell kernels.
         np.testing.assert_allclose(batch["com"][i], alone["com"][0], rtol=0, atol=1e-12)
     assert np.abs(batch["com"][0] - batch["com"][1]).max() > 1e-4  # the pushes differ
 
@@ -286,6 +289,7 @@ def test_run_parallel_two_workers(stand):
     assert res["timing"]["physics_us_per_mj_step"] > 0
     # Same numbers as in this process.
     here = bc.simulate(spec, n_envs=4, n_ticks=5)
+    # The same NumPy code in a worker process: measured bit-equal (here and with OpenBLAS's Haswell kernels).
     np.testing.assert_allclose(res["com"], here["com"], rtol=0, atol=1e-12)
 
 
