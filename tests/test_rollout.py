@@ -28,12 +28,17 @@ def _run(backend: str):
 
 @pytest.fixture(scope="module")
 def runs():
-    return {backend: _run(backend) for backend in ("jax", "mujoco")}
+    """The benchmark scenario on C MuJoCo; tests/test_baseline_cpu.py runs the same program (one compile)."""
+    return {"mujoco": _run("mujoco")}
 
 
+# Compiling the MJX closed loop costs ~75 CPU s on the 2-core machine: nightly (`slow`). The default suite keeps the
+# MJX loop's traced chunk (test_closed_loop_products_run_in_full_float32), MJX physics' gradients
+# (tests/test_mjx_physics.py) and the controller against the NumPy baseline on C MuJoCo (tests/test_baseline_cpu.py).
+@pytest.mark.slow
 def test_c_mujoco_backend_equals_the_mjx_closed_loop(runs):
     """Same controller code, two physics engines: the CoM stays within 1e-6 m over 1 s (float64)."""
-    (_, mjx_run), (_, c_run) = runs["jax"], runs["mujoco"]
+    (_, mjx_run), (_, c_run) = _run("jax"), runs["mujoco"]
     com_mjx, com_c = mjx_run.records.com[0], c_run.records.com[0]
     assert com_mjx.shape == com_c.shape == (100, 3)
     assert np.abs(com_mjx - com_c).max() < 1e-6
@@ -89,9 +94,13 @@ def test_pipelined_host_batch_equals_environments_run_alone(runs):
     assert float(together.com_max_err[0]) > 1e-3  # the push moved the robot
     compiled = runs["mujoco"][1]
     assert host_loop.driver(runs["mujoco"][0].loop, 1) == ("compiled" if native.available() is None else "python")
+    # Two code paths: their float64 rounding differs by CPU. Measured over the metrics: 1.1e-9 relative, 4.9e-11
+    # absolute here, 3.8e-10 with XLA held to AVX2, 1.13e-9 on another 2-core x86 (issue 41); bars ~100x that. Any
+    # real difference (a tick's push, a sub-step) moves these metrics by > 1e-4. The halves above run the program
+    # of one environment alone on the same inputs: bit-equal (measured 0 here and with AVX2).
     for name, value in vars(alone[0]).items():
         np.testing.assert_allclose(np.asarray(getattr(compiled.metrics, name), float), np.asarray(value, float),
-                                   rtol=1e-9, atol=1e-12, err_msg=name)  # fmt: skip
+                                   rtol=1e-7, atol=3e-9, err_msg=name)  # fmt: skip
 
 
 def test_a_rerun_with_new_gains_compiles_nothing(runs):

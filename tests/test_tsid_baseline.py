@@ -95,6 +95,7 @@ def test_state_map_com_mass_matrix_and_momentum_match_mujoco(robot, pin_model):
         pin.framesForwardKinematics(pin_model, pd, q)
         for site in tb.FEET:
             oMf = pd.oMf[pin_model.getFrameId(site)]
+            # Pinocchio vs C MuJoCo: measured <= 6.7e-16 abs.
             np.testing.assert_allclose(oMf.translation, d.site_xpos[m.site(site).id], atol=1e-12)
             np.testing.assert_allclose(oMf.rotation, d.site_xmat[m.site(site).id].reshape(3, 3), atol=1e-12)
     print(f"worst over 3 states: {worst}")  # measured ~1e-13 (CoM), ~2e-12 (M, entries up to 33 kg)

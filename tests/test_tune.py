@@ -380,14 +380,16 @@ def test_training_loop_guard_resume_and_gains_file(small_problem, tmp_path):
 def test_training_stops_when_its_wall_budget_is_spent(tmp_path):
     """--budget-s: steps until the wall time (compile + steps) reaches the budget; tune.at_time picks the
     last step within a time (-1 before the first)."""
-    problem = tp.make_problem(config.TuneConfig(steps=1000, batch=2, budget_s=1.0, **TINY))
+    # A 3 s budget of 0.3 s steps: the first step's wall on a loaded 2-core machine measured 1.1 s (its 0.1 s sleep
+    # and ~1 s of overhead), so 1 s budgets ended after one step there; 3 s leaves room for two steps at 2x that.
+    problem = tp.make_problem(config.TuneConfig(steps=1000, batch=2, budget_s=3.0, **TINY))
     opt = tune.make_optimizer(0.1, 1.0)
     p0 = problem.init_params()
-    step = _fake_step(problem, opt, problem.base, sleep=0.1)
+    step = _fake_step(problem, opt, problem.base, sleep=0.3)
     step(p0, opt.init(p0), 0)  # warm: its first call compiles
     _, _, rows, _ = tune.train(problem, tmp_path, progress=False, step_fn=step)
     walls = [float(r["wall_s"]) for r in rows]
-    assert walls[-1] >= 1.0 and all(w < 1.0 for w in walls[:-1]) and 2 <= len(rows) <= 11
+    assert walls[-1] >= 3.0 and all(w < 3.0 for w in walls[:-1]) and 2 <= len(rows) <= 11
     assert tune.at_time(rows, walls[1] + 1e-6) == 1 and tune.at_time(rows, walls[0] / 2) == -1
 
 
