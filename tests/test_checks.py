@@ -247,7 +247,7 @@ def test_cpu_targets_bar():
 
 def test_bad_input_bar_is_every_case_failing_fast_and_clearly():
     bi = script("bad_input")
-    ok = doc("docs/reliability.json")["bad_input_pass2"]  # 96 cases on the 2-core CPU, all passed
+    ok = doc("docs/reliability.json")["bad_input_pass3"]  # 151 cases on the 2-core CPU, all passed
     assert ok["cases"] >= 90 and bi.failures(ok) == []
     bad = copy.deepcopy(ok)
     bad["cases_run"][0].update(ok=False, problems=["exit code 0", "wrote --out"])

@@ -15,6 +15,8 @@ FAST_COMPILE = {"JAX_ENABLE_X64": "1",
                 "XLA_FLAGS": "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"}  # fmt: skip
 
 
+@pytest.mark.slow  # two processes compile the sweep side by side (about 250 s on the 2-core CI machine); the
+# default set keeps the failing-process comparison and tests/test_reliability_paths.py's join timeout
 def test_two_processes_give_the_one_process_table(tmp_path):
     result = distributed.compare_processes(SWEEP, tmp_path, processes=2, env=FAST_COMPILE, timeout_s=900)
     assert result["failures"] == [], result

@@ -18,12 +18,17 @@ NOTEBOOK_TIMEOUT_S = 150
 # 2-core CPU, at any size. That run is over the default suite's time: the nightly command runs it (`python3 -m pytest
 # -m slow`, README), as it does tests/test_tune.py's closed-loop gradient check.
 VARIANTS = {"04_gain_tuning.ipynb": ("run_tuning", {"WBC_JAX_NB_RUN_TUNING": "1"}, 900)}
+# Notebooks the nightly set runs, for CI's 8 minutes: what they show, the default suite checks in tests of its own
+# (the dynamics terms against C MuJoCo and Pinocchio: tests/test_dynamics.py; the push sweep: tests/test_sweep.py).
+NIGHTLY_ONLY = {"01_dynamics.ipynb", "03_push_recovery.ipynb"}
 MARGIN_S = 30  # past the budget, pytest-timeout stops a hung run (the assertion below reports a slow one)
 
 
 def _runs() -> list:
     """(path, environment, budget) per notebook run: each notebook as committed, and its slow variant if any."""
-    runs = [pytest.param(p, {}, NOTEBOOK_TIMEOUT_S, id=p.stem, marks=pytest.mark.timeout(NOTEBOOK_TIMEOUT_S + MARGIN_S))
+    runs = [pytest.param(p, {}, NOTEBOOK_TIMEOUT_S, id=p.stem,
+                         marks=[pytest.mark.timeout(NOTEBOOK_TIMEOUT_S + MARGIN_S)]
+                         + ([pytest.mark.slow] if p.name in NIGHTLY_ONLY else []))
             for p in NOTEBOOKS]  # fmt: skip
     for p in NOTEBOOKS:
         if p.name in VARIANTS:

@@ -586,8 +586,8 @@ def test_bad_gains_files_name_the_problem(tmp_path):
     assert np.all(np.asarray(C.gains_from_dict(good).ki_com) == 0)  # ki_com = 0 stays allowed
 
 
-def test_tuned_gains_file_runs_in_balance_and_push_sweep(tmp_path, capsys):
-    """A tuned file (gains_to_dict of bounded gains) through both CLI paths."""
+def _tuned_gains_file(tmp_path):
+    """A tuned file (gains_to_dict of bounded gains) and its gains."""
     base = C.default_gains()
     reg0 = tuning_params.default_regularisation()
     bounds = tuning_params.default_bounds(base, 10.0, (0.02, 2.0), reg0)
@@ -595,12 +595,23 @@ def test_tuned_gains_file_runs_in_balance_and_push_sweep(tmp_path, capsys):
     gains = tuning_params.params_to_gains({k: v + 0.3 for k, v in p.items()}, bounds, base)
     path = tmp_path / "tuned_gains.json"
     path.write_text(json.dumps(C.gains_to_dict(gains)))
+    return path, gains
+
+
+def test_tuned_gains_file_runs_in_balance(tmp_path, capsys):
+    """A tuned file through `wbc-jax balance` (the program tests/test_wheel.py's balance shares)."""
+    path, gains = _tuned_gains_file(tmp_path)
     rc = cli.main(["balance", "--gains", str(path), "--duration", "0.05", "--out", str(tmp_path / "bal"),
                    "--quiet"])  # fmt: skip
     assert rc == 0, capsys.readouterr().err
     metrics = json.loads((tmp_path / "bal" / "metrics.json").read_text())
     np.testing.assert_allclose(metrics["gains"]["kp_postural"], np.asarray(gains.kp_postural), rtol=1e-6)
     assert not metrics["fell"] and not metrics["nan"]
+
+
+@pytest.mark.slow  # compiles the sweep's program for one env (about 60 CPU s); the balance path stays in the default set
+def test_tuned_gains_file_runs_in_push_sweep(tmp_path, capsys):
+    path, gains = _tuned_gains_file(tmp_path)
     rc = cli.main(["push-sweep", "--gains", str(path), "--magnitudes", "20", "20", "1", "--directions", "1",
                    "--horizon", "0.05", "--push-onset", "0.0", "--push-duration", "0.02", "--chunk-size", "1",
                    "--out", str(tmp_path / "sw"), "--quiet"])  # fmt: skip
