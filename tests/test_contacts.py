@@ -72,6 +72,7 @@ def test_scene_geometry(hand_scene):
     assert abs(top - (d.xpos[hand.body] + R @ np.array(hand.point))[2]) < 1e-12
 
 
+@pytest.mark.slow  # 40 CPU s; the feet's terms and the force distribution stay in the default set
 def test_contact_terms_stack_the_feet_terms(hand_scene):
     """Feet rows of the general set = the sole terms of dynamics.terms; the hand rows = its linear
     Jacobian (C MuJoCo mj_jac, mixed velocity); contact frames have z along the given normals."""

@@ -156,6 +156,7 @@ def test_com_velocity_matches_finite_differences(robot, mx, terms_fn):
     assert_close(t.W_v_CoM, (cp - cm) / (2 * eps), "CoM velocity", 1e-6, 1e-8)
 
 
+@pytest.mark.slow  # 30 CPU s; the mass matrix and bias against C MuJoCo stay in the default set
 def test_equation_of_motion_holds_with_mujoco_contact_forces(robot, mx, terms_fn):
     """M nu_dot + h - sum_k J_k^T f_k = S tau + tau_passive after an MJX step in contact."""
     from mujoco.mjx._src import support

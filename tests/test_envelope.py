@@ -74,6 +74,7 @@ def test_bad_search_input():
                                                 out=None), progress=False)  # fmt: skip
 
 
+@pytest.mark.slow  # 40 CPU s on the 2-core CI machine; the default set keeps the bisection's own tests
 def test_search_matches_a_grid_sweep_on_c_mujoco(tmp_path):
     """Two directions, pushes of 1-8 N s in 1 N s steps: the search's grid bracket is the grid's
     monotone envelope, its answer within the step above it, in 5 rounds (10 rollouts, 16 for the grid);

@@ -197,6 +197,7 @@ def _dot_precisions(sim: SimConfig) -> list[str]:
             for line in jaxpr.split("dot_general[")[1:]]  # fmt: skip
 
 
+@pytest.mark.slow  # traces the MJX loop twice (21 CPU s); the GPU set checks the float32 loop against float64
 def test_closed_loop_products_run_in_full_float32():
     """A GPU may run float32 products in TensorFloat-32 (a 10-bit mantissa), which moved survival
     outcomes at the fall boundary of a push grid (BENCHMARKS.md): every product of the loop's
