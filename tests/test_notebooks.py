@@ -19,8 +19,9 @@ NOTEBOOK_TIMEOUT_S = 150
 # -m slow`, README), as it does tests/test_tune.py's closed-loop gradient check.
 VARIANTS = {"04_gain_tuning.ipynb": ("run_tuning", {"WBC_JAX_NB_RUN_TUNING": "1"}, 900)}
 # Notebooks the nightly set runs, for CI's 8 minutes: what they show, the default suite checks in tests of its own
-# (the dynamics terms against C MuJoCo and Pinocchio: tests/test_dynamics.py; the push sweep: tests/test_sweep.py).
-NIGHTLY_ONLY = {"01_dynamics.ipynb", "03_push_recovery.ipynb"}
+# (the dynamics terms against C MuJoCo and Pinocchio: tests/test_dynamics.py; balancing: tests/test_controller.py and
+# tests/test_rollout.py; the push sweep: tests/test_sweep.py). Notebook 04 runs in both sets.
+NIGHTLY_ONLY = {"01_dynamics.ipynb", "02_balancing.ipynb", "03_push_recovery.ipynb"}
 MARGIN_S = 30  # past the budget, pytest-timeout stops a hung run (the assertion below reports a slow one)
 
 
