@@ -138,8 +138,7 @@ def race_rows(run: pathlib.Path) -> list[dict]:
                          "envelope_fraction_median": pt["envelope_fraction_median"],
                          "envelope_fraction_min": pt["envelope_fraction_min"], "survival": pt["survival_rate"],
                          "sinusoid_com_rmse_m": pt["sinusoid_com_rmse_m"], "physics_steps": pt["sim_steps"],
-                         "wall_s": pt["wall_s"], "gradient_physics_steps_per_s": rate if method != "cmaes" and
-                         method != "random" else None, "gains_sha256": origin.get("sha256")})  # fmt: skip
+                         "wall_s": pt["wall_s"], "gradient_physics_steps_per_s": None if method in ("cmaes", "random") else rate, "gains_sha256": origin.get("sha256")})  # fmt: skip
     return rows
 
 
