@@ -20,6 +20,7 @@ PARAM=${RACE_PARAM:-gains}
 PHASES=${RACE_PHASES:-train cmaes random heldout report}
 CAP=${RACE_CAP:-500}
 BUDGET=${RACE_BUDGET:-600}
+SNAPSHOTS=${RACE_SNAPSHOTS:-60 120 150 300}  # the per-axis run's; a new run: "120 300" (the hybrid adds the halves)
 RUNS=${RACE_RUNS:-/tmp/race_runs}  # RACE_RESTORE=0: a fresh run folder (e.g. to time a compile from the carried cache)
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 TF_CPP_MIN_LOG_LEVEL=3 WBC_JAX_CACHE=/tmp/xla-cache
 export XLA_FLAGS=${RACE_XLA_FLAGS---xla_gpu_autotune_level=0}
@@ -39,10 +40,10 @@ fi
 SECONDS=0
 # shellcheck disable=SC2086
 timeout --signal=INT --kill-after=20 "$CAP" python3 -m wbc_jax.cli tune --quiet --out "$RUNS/$PARAM" \
-  --phases $PHASES --parameterisation "$PARAM" --budget-s "$BUDGET" --snapshots-s 60 120 150 300 \
+  --phases $PHASES --parameterisation "$PARAM" --budget-s "$BUDGET" --snapshots-s $SNAPSHOTS \
   --steps 100000 --batch 2048 --quality-pushes 2048 --no-wall-budget --search-backend auto \
   --solver-gradient implicit --checkpoint tick --horizon 2 --lr 0.1 --push-scale lip --magnitude-range 0.3 1.0 \
-  --init-gains experiments/gains/com_critical_100.json --population 16 --es-batch 60 --chunk-size 16384 \
+  --init-gains assets/gains/com_critical_100.json --population 16 --es-batch 60 --chunk-size 16384 \
   ${RACE_FLAGS:-}
 echo "tune: rc=$? ${SECONDS}s (cap ${CAP}s; 124/130: stopped by the cap, resumes in the next piece)"
 for m in gradient cmaes random hybrid; do
