@@ -151,6 +151,11 @@ def fold_piece(run: pathlib.Path, docs: pathlib.Path, table: pathlib.Path) -> di
         if (run / rel).is_file():
             (docs / rel).parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(run / rel, docs / rel)
+    for hist in sorted((run / "hybrid").glob("t*/history.csv")):  # one gradient run per hybrid budget
+        (docs / "hybrid" / hist.parent.name).mkdir(parents=True, exist_ok=True)
+        for name in ("history.csv", "train_info.json"):
+            if (hist.parent / name).is_file():
+                shutil.copyfile(hist.parent / name, docs / "hybrid" / hist.parent.name / name)
     if (run / "gains").is_dir():
         shutil.copytree(run / "gains", docs / "gains", dirs_exist_ok=True)
     rows = race_rows(run)
@@ -166,7 +171,33 @@ def fold_piece(run: pathlib.Path, docs: pathlib.Path, table: pathlib.Path) -> di
         "verdict": {**old.get("verdict", {}), param: _json(run / "race.json")["verdict"]},
     }
     io.atomic_write_json(table, out)
+    table_plot(out["rows"], table.with_suffix(".png"))
     return out
+
+
+def table_plot(rows: list[dict], path: pathlib.Path) -> None:
+    """race.png beside the table: per parameterisation, each method's held-out envelope / LIP bound (median solid,
+    min dashed) against its wall-time budget."""
+    from matplotlib.figure import Figure
+
+    params = sorted({r["parameterisation"] for r in rows})
+    fig = Figure(figsize=(5 * len(params), 3.8))
+    axes = fig.subplots(1, len(params), squeeze=False)[0]
+    for ax, param in zip(axes, params, strict=True):
+        methods = sorted({r["method"] for r in rows if r["parameterisation"] == param})
+        for method in methods:
+            color = f"C{('gradient', 'cmaes', 'random', 'hybrid').index(method)}"  # one colour per method
+            pts = sorted((r for r in rows if r["parameterisation"] == param and r["method"] == method),
+                         key=lambda r: r["budget_s"])  # fmt: skip
+            x = [r["budget_s"] for r in pts]
+            ax.plot(x, [r["envelope_fraction_median"] for r in pts], "o-", color=color, label=f"{method} median")
+            ax.plot(x, [r["envelope_fraction_min"] for r in pts], "x--", color=color, alpha=0.6)
+        ax.set_title(f"{param} ({pts[0]['device']})", fontsize=9)
+        ax.set_xlabel("wall-time budget [s] (compilation included)")
+        ax.set_ylabel("held-out envelope / LIP bound (min dashed)")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
 
 
 def main(argv=None) -> int:

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from wbc_jax.sim import runner
 from wbc_jax.tuning import config, objectives, store
 from wbc_jax.tuning import problem as tp
 from wbc_jax.tuning.tune import _forward_backend, at_time
@@ -166,7 +167,7 @@ def search(problem: tp.Problem, kind: str, out, *, budget: dict, progress: bool 
     if not done(start) and hasattr(evaluate, "lower"):  # ahead of time: the compile timed apart
         pop_like = jax.vmap(unravel)(jnp.zeros((tc.population + 1, p0.size), p0.dtype))
         t0 = time.perf_counter()
-        evaluate = evaluate.lower(pop_like, batch(start)).compile()
+        evaluate = runner.compile_ahead(evaluate, pop_like, batch(start))  # keyed by the program alone
         compile_s = time.perf_counter() - t0 if compile_s is None else compile_s  # the first one counts
     compile_s = compile_s or 0.0
     wall = float(rows[-1]["wall_s"]) if rows else compile_s

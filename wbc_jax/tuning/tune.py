@@ -39,6 +39,7 @@ import optax
 from jax.flatten_util import ravel_pytree
 
 from wbc_jax.core import io, provenance
+from wbc_jax.sim import runner
 from wbc_jax.tuning import estimators, objectives, store
 from wbc_jax.tuning import problem as tp
 from wbc_jax.tuning import windows as tw
@@ -148,8 +149,8 @@ class GradientStep:
         t0 = time.perf_counter()
         params_b, eps, rollouts, _, _ = self.rows_of(params, 0)
         out = jax.eval_shape(self.grads, params_b, rollouts)
-        self.grads = self.grads.lower(params_b, rollouts).compile()
-        self.update = self.update.lower(params, opt_state, out[0], out[1], eps, out[2]).compile()
+        self.grads = runner.compile_ahead(self.grads, params_b, rollouts)  # keyed by the program alone
+        self.update = runner.compile_ahead(self.update, params, opt_state, out[0], out[1], eps, out[2])
         return time.perf_counter() - t0
 
     def memory_mb(self):
