@@ -16,12 +16,15 @@ OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 exec > >(tee -a "$OUT/log.txt") 2>&1
 SITE=/tmp/site; mkdir -p "$SITE" ~/wp
 export PYTHONPATH=$SITE:$PWD PYTHONUNBUFFERED=1 TF_CPP_MIN_LOG_LEVEL=3 WBC_JAX_CACHE=/tmp/xla-cache
-for d in .wa .wb .wc .wd; do [ -d $d ] && cp $d/* ~/wp/; done
+for d in .wa .wb .wc .wd .wr; do [ -d $d ] && cp $d/* ~/wp/; done
 if [ ! -d $SITE/mujoco ] && [ -f ~/wp/site_small.tar.xz ]; then
   xz -dc ~/wp/site_small.tar.xz | tar xf - -C $SITE && echo "wheels unpacked"
 fi
 if [ ! -d $SITE/warp ] && [ -f ~/wp/wpart_00 ] && [ -f ~/wp/wpart_01 ] && [ -f ~/wp/wpart_02 ]; then
   cat ~/wp/wpart_00 ~/wp/wpart_01 ~/wp/wpart_02 | xz -dc | tar xf - -C $SITE && echo "warp-lang unpacked"
+fi
+if [ ! -d $SITE/rerun ] && [ -f ~/wp/viz.tar.xz ]; then
+  xz -dc ~/wp/viz.tar.xz | tar xf - -C $SITE && echo "rerun and the notebook runner unpacked"
 fi
 echo "carried so far: $(ls ~/wp | tr '\n' ' ')"; [ -d $SITE/warp ] || echo "no warp yet (needs wpart_00..02)"
 run() {  # name, command...: time a job, keep its output
