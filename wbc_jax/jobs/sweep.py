@@ -109,7 +109,9 @@ def make_setup(cfg: SweepConfig, base_gains: Gains | None = None, *, robot_name:
     sim = SimConfig(
         record=record, loss_trace=loss_trace, checkpoint=checkpoint, push_body=cfg.body,
         perturb_plant=cfg.perturbs_plant,
-        physics=physics.PhysicsConfig(backend="jax" if loss_trace else cfg.backend, solver_iterations=cfg.solver_iterations),
+        # the engine as it resolves here: "auto" and the engine it picks build the same programs (one cache entry)
+        physics=physics.PhysicsConfig(backend="jax" if loss_trace else physics.resolve_backend(cfg.backend),
+                                      solver_iterations=cfg.solver_iterations),
     )  # fmt: skip
     return scenario.setup(
         cfg.task, duration=cfg.horizon,
