@@ -53,7 +53,7 @@ def test_the_default_bound_follows_the_slowest_finished_chunk():
 
 
 def test_a_stalled_device_of_four_is_an_error_naming_it_and_the_chunk():
-    """Four host CPU devices, one program each (runner.PerDevice): device 2 blocked in chunk 5 (the
+    """Four host CPU devices, one program each (per_device.PerDevice): device 2 blocked in chunk 5 (the
     test hook) gives DeviceStalled naming cpu:2 and chunk 5 after the 1.5 s bound, not a hang; the
     other devices' rows say they finished. Another chunk runs on all four, its values the program's,
     each device's row of waits non-negative and within the call's wall time."""
