@@ -88,6 +88,15 @@ for job in "$@"; do
       run $job python3 experiments/benchmarks/scaling.py --out "$OUT/$job" --gpus 1 2 --backends $b -- \
         --magnitudes 10 400 64 --directions 32 --gain-sets 8 --horizon 3 --chunk-size 16384 --push-onset 0.5 \
         --push-duration 0.1 ;;
+    scaling4_jax|scaling4_warp)  # issue 45: 32,768 envs on 1, 2 and 4 GPUs, 3 runs each (repeat floor), under a
+            # watchdog (a device stalled 240 s in a chunk: one line naming it, the row's error). SCALING_GPUS: the GPU
+            # counts of this call (one GPU's runs stay in /tmp/scaling4 on a warm machine for a later call's comparison).
+      b=${job#scaling4_}
+      run $job python3 experiments/benchmarks/scaling.py --out /tmp/scaling4 --gpus ${SCALING_GPUS:-1 2 4} \
+        --backends $b --repeats 3 --timeout 560 -- --magnitudes 10 400 64 --directions 32 --gain-sets 16 --horizon 3 \
+        --chunk-size 32768 --push-onset 0.5 --push-duration 0.1 --stall-timeout-s 240
+      mkdir -p "$OUT/$job"; cp /tmp/scaling4/scaling.json "$OUT/$job/"
+      find /tmp/scaling4/runs -name timeline.json | tar -czf "$OUT/$job/timelines.tgz" -T - ;;
     limit|limit_root)  # issue 37: the physical limit of push recovery, 32 directions, pushes of 0.1 s at 0.5 s (limit:
             # chest; limit_root: root_link). Time-capped (LIMIT_TIME s from the job's start: no new round, the round
             # in flight stops at its next judge, its C MuJoCo replays still run) and written into $OUT round by round,

@@ -326,3 +326,86 @@ def test_fingerprints_compare_inputs_by_content_not_by_spelling(tmp_path, capsys
     assert f"made with other inputs (config.gains ({(tmp_path / 'other.json').resolve()}): contents changed)" in _error(
         capsys
     )
+
+
+# ---- issue 45: a stalled device is an error; where each chunk's time went ----------------------
+
+
+def test_a_stalled_chunk_is_one_line_naming_the_device_and_the_chunk_and_the_run_resumes(finished, tmp_path,
+                                                                                          capsys):  # fmt: skip
+    """Chunk 1 blocked on its device (--simulate-stall 1 0) with --stall-timeout-s 2: exit status 3
+    within the bound and one line naming the chunk and the device; chunk 0's part kept, the timeline
+    of both written; the command without the test hook (another --stall-timeout-s: no part of the
+    fingerprint) resumes and simulates chunk 1 alone."""
+    out, gains = finished
+    argv = [*SWEEP, "--gains", str(gains), "--out", str(tmp_path / "sw")]
+    started = time.perf_counter()
+    assert cli.main([*argv, "--stall-timeout-s", "2", "--simulate-stall", "1", "0"]) == 3
+    assert time.perf_counter() - started < 60  # chunk 0 (compiled by the fixture), then the 2 s bound
+    assert _error(capsys) == ("wbc-jax push-sweep: error: chunk 1: device cpu:0 (C MuJoCo) did not finish its run "
+                              "within 2 s (0 of 1 device(s) did; bound: --stall-timeout-s); the chunks finished "
+                              "before are kept: rerun the same command to resume")  # fmt: skip
+    parts = tmp_path / "sw" / "parts"
+    assert sorted(p.name for p in parts.iterdir()) == ["part-00000.parquet"]
+    rows = json.loads((tmp_path / "sw" / "timeline.json").read_text())["rows"]
+    assert [(r["chunk"], r["finished"]) for r in rows] == [(0, True), (1, False)]
+    assert rows[1]["wall_s"] >= 2.0
+    assert cli.main([*argv, "--stall-timeout-s", "600"]) == 0, capsys.readouterr().err
+    summary = json.loads((tmp_path / "sw" / "summary.json").read_text())
+    assert summary["resumed_envs"] == 1 and summary["n_envs"] == 2
+    timeline = json.loads((tmp_path / "sw" / "timeline.json").read_text())
+    assert timeline["chunks_on_disk"] == [0] and [r["chunk"] for r in timeline["rows"]] == [1]
+
+
+def test_the_timeline_has_a_row_per_chunk_and_device_within_its_wall_time(finished):
+    """timeline.json of the fixture's run (two chunks on C MuJoCo's host device): one row per chunk,
+    every time non-negative, each row's compile, thread, dispatch, run, transfer and host seconds
+    summing to at most the chunk's wall time; the totals are the rows' sums."""
+    out, _ = finished
+    timeline = json.loads((out / "timeline.json").read_text())
+    assert timeline["backend"] == "mujoco" and timeline["devices"] == ["cpu:0"]
+    rows = timeline["rows"]
+    assert [(r["chunk"], r["device"], r["finished"]) for r in rows] == [(c, "cpu:0 (C MuJoCo)", True) for c in (0, 1)]
+    timed = ("compile_s", "thread_start_s", "dispatch_s", "wait_s", "transfer_s", "host_s")
+    for row in rows:
+        assert min(row[k] for k in timed) >= 0.0 and row["wait_s"] > 0.0, row
+        assert sum(row[k] for k in timed) <= row["wall_s"] + 1e-3, row
+    totals = timeline["totals_by_device"]["cpu:0 (C MuJoCo)"]
+    assert totals["wait_s"] == pytest.approx(sum(r["wait_s"] for r in rows), abs=1e-3)
+
+
+SCALING = [sys.executable, str(ROOT / "experiments" / "benchmarks" / "scaling.py"), "--gpus", "1", "--backends",
+           "mujoco", "--repeats", "2"]  # fmt: skip
+
+
+def test_scaling_refuses_a_scaling_json_it_did_not_write_before_running(tmp_path):
+    """The default suite's sibling of the next test (20-30 s here, two calls: nightly): a --out whose
+    scaling.json another tool wrote is refused in one line, nothing run, nothing written."""
+    (tmp_path / "scaling.json").write_text(json.dumps({"rows": []}))
+    proc = subprocess.run([*SCALING, "--out", str(tmp_path), "--", *SWEEP[1:-1]], capture_output=True, text=True,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=120)  # fmt: skip
+    assert proc.returncode == 1 and proc.stderr.strip() == (
+        f"scaling.py: error: --out {tmp_path}: its scaling.json was not written by scaling.py (no 'calls'); "
+        "give another --out"), proc.stderr  # fmt: skip
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scaling.json"]
+
+
+@pytest.mark.slow
+def test_scaling_writes_only_under_its_out_and_takes_a_second_call_with_other_flags(finished, tmp_path):
+    """experiments/benchmarks/scaling.py on the CPU (C MuJoCo, the fixture's compiled program): its runs
+    (with their timelines) and scaling.json under --out alone; a second call with other sweep flags
+    keeps the first's rows."""
+    out = tmp_path / "scaling"
+    env = {**os.environ, "JAX_ENABLE_X64": "1", "PYTHONPATH": str(ROOT)}  # the float64 program the fixture compiled
+    script = [*SCALING, "--out", str(out), "--"]
+    flags = SWEEP[1:-1]  # the sweep's flags without the command and --quiet
+    for grid in (flags, [*flags[:3], "3", *flags[4:]]):  # 2, then 3 magnitudes
+        proc = subprocess.run([*script, *grid], capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scaling"]  # nothing beside --out (cwd is tmp_path)
+    assert sorted(p.name for p in out.iterdir()) == ["runs", "scaling.json"]
+    result = json.loads((out / "scaling.json").read_text())
+    assert len(result["calls"]) == 2 and [(r["envs"], r["repeats"]) for r in result["rows"]] == [(2, 2), (3, 2)]
+    for row in result["rows"]:
+        assert row["repeat_flips"] == 0 and "error" not in row, row  # C MuJoCo repeats itself exactly
+        assert (out / row["runs"] / "run1" / "timeline.json").is_file() and row["timeline_last_run"]

@@ -251,6 +251,11 @@ def main(argv: list[str] | None = None) -> int:
             ImportError, MemoryError) as err:  # fmt: skip
         print(f"wbc-jax {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except TimeoutError as err:  # a device stalled (wbc_jax/sim/watchdog.py): its thread cannot be stopped
+        print(f"wbc-jax {args.command}: error: {err}", file=sys.stderr)
+        if argv is None:  # the command line: leave without waiting on the stuck thread at shutdown
+            _leave(3)
+        return 3
     except OSError as err:  # the file system refused a write (full disk, a name too long, ...)
         where = f" ({err.filename})" if err.filename else ""
         print(f"wbc-jax {args.command}: error: {err.strerror or err}{where}", file=sys.stderr)

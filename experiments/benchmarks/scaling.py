@@ -3,17 +3,23 @@
     python experiments/benchmarks/scaling.py --out docs/scaling --gpus 1 2 --backends warp jax -- SWEEP FLAGS
 
 For each backend and GPU count, one process (``CUDA_VISIBLE_DEVICES`` = the first N GPUs) runs
-``wbc-jax push-sweep SWEEP FLAGS`` twice (the second run is the steady-state timing; the two
-tables give the engine's run-to-run floor) and the tables of N GPUs are compared with one GPU's
-cell by cell. Writes scaling.json (backend, devices, run s, speed-up, outcome agreement, device
-names, commands, provenance). Exits 1 when the outcomes of N GPUs differ from one GPU's in more
-cells than the engine's own repeat floor (the bar: outcomes equal within the repeat floor) or a
-run fails; the speed-up targets (Warp 1.8x, JAX 1.9x on 2 GPUs) are reported as met or not.
+``wbc-jax push-sweep SWEEP FLAGS`` ``--repeats`` times (the last run is the steady-state timing;
+the tables of one GPU give the engine's run-to-run floor: the most flips between any two) and the
+tables of N GPUs are compared with one GPU's cell by cell (one GPU's runs may come from an earlier
+call with the same flags and --out: a call too long for one limit is split by GPU count). Everything goes under ``--out``: the
+runs in runs/<ID>/<backend>_<N>gpu/run<k>/ (ID: a hash of the sweep flags; each call redoes its
+own runs, so the timings are measured) with each run's timeline.json (every device's compile,
+dispatch, run, transfer and host seconds per chunk), and scaling.json, which keeps the rows of
+earlier calls with other sweep flags (``calls``) and replaces those of the same flags. Exits 1
+when the outcomes of N GPUs differ from one GPU's in more cells than the engine's own repeat
+floor (the bar: outcomes equal within the repeat floor) or a run fails; the speed-up targets are
+reported as met or not.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import pathlib
@@ -26,19 +32,22 @@ import numpy as np
 from wbc_jax.core import io, provenance
 
 OUTCOMES = ("survived", "upright")
-TARGETS = {"warp": {2: 1.8, 4: 3.5}, "jax": {2: 1.9}}
+TARGETS = {"warp": {2: 1.9, 4: 3.6}, "jax": {2: 1.9, 4: 3.6}}  # issue 45
 
 RUN = """
-import json, sys, time
+import json, sys
 from wbc_jax import cli
 from wbc_jax.jobs import sweep
-out, flags = sys.argv[1], sys.argv[2:]
+from wbc_jax.sim import runner
+runner.enable_compilation_cache()
+out, repeats, flags = sys.argv[1], int(sys.argv[2]), sys.argv[3:]
 res = []
-for k in range(2):
+for k in range(repeats):
     cfg = cli.push_sweep_config([*flags, "--out", f"{out}/run{k}"])
     s = sweep.run_sweep(cfg, progress=False)
     res.append({key: s[key] for key in ("run_s", "compile_s", "survival_rate", "n_devices", "device", "n_envs",
                                        "physics_steps_per_s")})
+    res[-1]["timeline"] = json.load(open(f"{out}/run{k}/timeline.json"))["totals_by_device"]
 print("RESULT " + json.dumps(res))
 """
 
@@ -53,6 +62,31 @@ def _outcomes(folder: pathlib.Path):
 def flips(a: dict, b: dict) -> int:
     """Cells whose strict survival differs between two tables."""
     return int(np.sum(a["survived"] != b["survived"]))
+
+
+def repeat_floor(tables: list[dict]) -> int:
+    """The most survival flips between any two of one configuration's repeated tables."""
+    return max(flips(a, b) for i, a in enumerate(tables) for b in tables[i + 1 :])
+
+
+def call_id(flags: list[str]) -> str:
+    """The folder name of a call's runs: its sweep flags' hash (another call with them redoes them)."""
+    return hashlib.sha256(json.dumps(flags).encode()).hexdigest()[:12]
+
+
+def earlier_calls(path: pathlib.Path) -> dict:
+    """The calls recorded in an earlier scaling.json at ``path`` ({} when there is none); a file
+    that scaling.py did not write is refused, naming it, before anything runs."""
+    if not path.exists():
+        return {}
+    try:
+        calls = json.loads(path.read_text()).get("calls")
+    except (OSError, ValueError, AttributeError):
+        calls = None
+    if not isinstance(calls, dict):
+        raise SystemExit(f"scaling.py: error: --out {path.parent}: its scaling.json was not written by scaling.py "
+                         "(no 'calls'); give another --out")  # fmt: skip
+    return calls
 
 
 def check(rows: list[dict]) -> list[str]:
@@ -78,51 +112,69 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", default="runs/scaling")
     p.add_argument("--gpus", type=int, nargs="+", default=[1, 2])
-    p.add_argument("--backends", nargs="+", default=["warp", "jax"], choices=["warp", "jax"])
+    # mujoco: C MuJoCo on the host (one device), for a check of the script on a CPU
+    p.add_argument("--backends", nargs="+", default=["warp", "jax"], choices=["warp", "jax", "mujoco"])
+    p.add_argument("--repeats", type=int, default=3, choices=range(2, 11), metavar="2..10",
+                   help="runs of each configuration in its process (the repeat floor needs two or more)")  # fmt: skip
     p.add_argument("--timeout", type=float, default=1500.0)
     args = p.parse_args(own)
     out = pathlib.Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    calls = earlier_calls(out / "scaling.json")
+    ident = call_id(flags)
     rows = []
     for backend in args.backends:
         tables = {}
         for n in sorted(args.gpus):
             env = {**os.environ, "CUDA_VISIBLE_DEVICES": ",".join(str(i) for i in range(n))}
-            folder = pathlib.Path("/tmp/wbc_scaling") / f"{backend}_{n}"
-            cmd = [sys.executable, "-c", RUN, str(folder), *flags, "--backend", backend]
-            row = {"backend": backend, "gpus": n}
+            folder = out / "runs" / ident / f"{backend}_{n}gpu"
+            shutil.rmtree(folder, ignore_errors=True)  # this call's own runs, redone: measured, not resumed
+            cmd = [sys.executable, "-c", RUN, str(folder), str(args.repeats), *flags, "--backend", backend]
+            row = {"backend": backend, "gpus": n, "runs": folder.relative_to(out).as_posix()}
             try:
                 proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=args.timeout)
                 line = [x for x in proc.stdout.splitlines() if x.startswith("RESULT ")]
                 if proc.returncode != 0 or not line:
                     raise RuntimeError(f"rc {proc.returncode}: {' | '.join(proc.stderr.strip().splitlines()[-4:])}")
                 runs = json.loads(line[-1][len("RESULT ") :])
-                tables[n] = [_outcomes(folder / f"run{k}") for k in range(2)]
-                # The tables come back with the results (the device machine keeps nothing).
-                shutil.copy(folder / "run1" / "results.parquet", out / f"{backend}_{n}gpu_results.parquet")
-                row.update({"run_s": runs[1]["run_s"], "first_run_s": runs[0]["run_s"], "compile_s": runs[0]["compile_s"],
-                            "survival_rate": runs[1]["survival_rate"], "n_devices": runs[1]["n_devices"],
-                            "device": runs[1]["device"], "envs": runs[1]["n_envs"],
-                            "physics_steps_per_s": runs[1]["physics_steps_per_s"],
-                            "repeat_flips": flips(*tables[n])})  # fmt: skip
+                tables[n] = [_outcomes(folder / f"run{k}") for k in range(args.repeats)]
+                last = runs[-1]
+                row.update({"run_s": last["run_s"], "run_s_each": [r["run_s"] for r in runs],
+                            "compile_s": runs[0]["compile_s"], "survival_rate": last["survival_rate"],
+                            "n_devices": last["n_devices"], "device": last["device"], "envs": last["n_envs"],
+                            "physics_steps_per_s": last["physics_steps_per_s"], "timeline_last_run": last["timeline"],
+                            "repeats": args.repeats, "repeat_flips": repeat_floor(tables[n])})  # fmt: skip
             except (RuntimeError, subprocess.TimeoutExpired) as err:
                 row["error"] = str(err)
             rows.append(row)
+        earlier = [r for r in calls.get(ident, {}).get("rows", []) if r["backend"] == backend]
         one = next((r for r in rows if r["backend"] == backend and r["gpus"] == 1 and "error" not in r), None)
+        if one is None and 1 not in tables:  # one GPU measured by an earlier call with these flags, its runs kept
+            one = next((r for r in earlier if r["gpus"] == 1 and "error" not in r), None)
+            tables[1] = (
+                None if one is None else [_outcomes(out / one["runs"] / f"run{k}") for k in range(one["repeats"])]
+            )
         for r in rows:
             if r["backend"] != backend or "error" in r or one is None:
                 continue
             r["speed_up"] = round(one["run_s"] / r["run_s"], 3)
             r["repeat_floor_one_gpu"] = one["repeat_flips"]
-            r["flips_vs_one_gpu"] = flips(tables[1][1], tables[r["gpus"]][1])
+            r["flips_vs_one_gpu"] = flips(tables[1][-1], tables[r["gpus"]][-1])
             target = TARGETS.get(backend, {}).get(r["gpus"])
             if target is not None:
                 r["speed_up_target"] = target
                 r["speed_up_met"] = r["speed_up"] >= target
         print(json.dumps([r for r in rows if r["backend"] == backend]), flush=True)
+    # Rows of an earlier call with these flags stay unless this call measured their backend and GPUs again.
+    done = {(r["backend"], r["gpus"]) for r in rows}
+    kept = [r for r in calls.get(ident, {}).get("rows", []) if (r["backend"], r["gpus"]) not in done]
+    rows = sorted(kept + rows, key=lambda r: (r["backend"], r["gpus"]))
     failures = check(rows)
-    result = {"rows": rows, "failures": failures, "sweep_flags": flags,
-              "provenance": provenance.record(argv=["experiments/benchmarks/scaling.py", *argv])}  # fmt: skip
+    calls[ident] = {"sweep_flags": flags, "rows": rows, "failures": failures,
+                    "provenance": provenance.record(argv=["experiments/benchmarks/scaling.py", *argv])}  # fmt: skip
+    every = list(calls.values())
+    result = {"calls": calls, "rows": [{**r, "sweep_flags": c["sweep_flags"]} for c in every for r in c["rows"]],
+              "failures": [f for c in every for f in c["failures"]]}  # fmt: skip
+    out.mkdir(parents=True, exist_ok=True)
     io.atomic_write_json(out / "scaling.json", result)
     print(json.dumps({"failures": failures}), flush=True)
     return 1 if failures else 0

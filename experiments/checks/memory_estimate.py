@@ -72,7 +72,7 @@ def mjx_bytes_per_env(backend: str, batch: int) -> dict:
     before = set(loop_lib.PROGRAMS)
     runner.run(st, scen, batch_size=batch)
     (key,) = set(loop_lib.PROGRAMS) - before
-    per_device = loop_lib.PROGRAMS[key].compiled.values()  # runner.PerDevice: one program per device
+    per_device = loop_lib.PROGRAMS[key].compiled.values()  # per_device.PerDevice: one program per device
     compiled = sum(ma.temp_size_in_bytes + ma.argument_size_in_bytes + ma.output_size_in_bytes
                    for ma in (c.memory_analysis() for c in per_device))  # fmt: skip
     out = {"compiled_per_env": compiled / batch, "estimate_per_env": runner.memory_estimate(st, batch)["per_env"]}

@@ -169,6 +169,7 @@ def search(cfg: sweep_config.SweepConfig, *, resolution: float | None = None, ro
     push_end = cfg.push_onset + cfg.push_duration
     impulses = magnitudes * cfg.push_duration
     timing = {"compile_s": 0.0, "run_s": 0.0, "started": None}
+    finished_run_s: list[float] = []  # each batch's run: the watchdog's default bound (--stall-timeout-s)
 
     def survives(k: np.ndarray, impulse: np.ndarray) -> np.ndarray:
         scen, _ = sweep.scenarios_at(cfg, sets, impulse / cfg.push_duration, azi[k], gset[k], friction[k],
@@ -176,7 +177,9 @@ def search(cfg: sweep_config.SweepConfig, *, resolution: float | None = None, ro
         alive = []
         for lo in range(0, k.size, batch):  # one compiled shape for every round
             part = jax.tree_util.tree_map(lambda x, lo=lo: np.asarray(x)[lo : lo + batch], scen)
-            result = runner.run(st, part, batch_size=batch, queue=cfg.queue)
+            watch = cfg.watchdog(len(finished_run_s), finished_run_s)  # its chunks: the batches run so far
+            result = runner.run(st, part, batch_size=batch, queue=cfg.queue, watch=watch)
+            finished_run_s.append(result.run_s)
             timing["compile_s"] += result.compile_s
             timing["started"] = timing["started"] or result.started
             timing["run_s"] += result.run_s

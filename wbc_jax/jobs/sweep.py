@@ -15,6 +15,7 @@ import dataclasses
 import math
 import pathlib
 import sys
+import time
 
 import jax
 import numpy as np
@@ -28,7 +29,7 @@ from wbc_jax.jobs.sweep_config import SweepConfig, default_config
 from wbc_jax.jobs.sweep_table import summarize_table
 from wbc_jax.robot import model as model_lib
 from wbc_jax.sim import metrics as metrics_lib
-from wbc_jax.sim import physics, runner, scenario
+from wbc_jax.sim import physics, runner, scenario, watchdog
 from wbc_jax.sim.state import Push, Scenario, SimConfig
 
 
@@ -108,7 +109,9 @@ def make_setup(cfg: SweepConfig, base_gains: Gains | None = None, *, robot_name:
     sim = SimConfig(
         record=record, loss_trace=loss_trace, checkpoint=checkpoint, push_body=cfg.body,
         perturb_plant=cfg.perturbs_plant,
-        physics=physics.PhysicsConfig(backend="jax" if loss_trace else cfg.backend, solver_iterations=cfg.solver_iterations),
+        # the engine as it resolves here: "auto" and the engine it picks build the same programs (one cache entry)
+        physics=physics.PhysicsConfig(backend="jax" if loss_trace else physics.resolve_backend(cfg.backend),
+                                      solver_iterations=cfg.solver_iterations),
     )  # fmt: skip
     return scenario.setup(
         cfg.task, duration=cfg.horizon,
@@ -168,6 +171,9 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
 
     cfg = dataclasses.replace(default_config() if cfg is None else cfg, **overrides)
     cfg.check()
+    devices = runner.batch_devices() if physics.resolve_backend(cfg.backend) != "mujoco" else jax.devices("cpu")[:1]
+    local = [d for d in devices if d.process_index == jax.process_index()]  # the devices this process runs on
+    check_simulated_stall(cfg, math.ceil(cfg.size / cfg.batch_size), len(local))
     out = pathlib.Path(cfg.out)
     dtype = scenario.float_dtype()
     robot = model_lib.load_robot(robot_name)
@@ -189,6 +195,8 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
     started = None  # when the first chunk started simulating
     done_envs = 0
     tables = []
+    finished_run_s: list[float] = []  # each chunk's run, for the watchdog's default bound
+    timeline: list[dict] = []
     bounds = [(c * batch, min((c + 1) * batch, cfg.size)) for c in range(n_chunks)]
     stored = [_read_part(parts / _part_name(c), lo, hi) for c, (lo, hi) in enumerate(bounds)]
     replaced = [_part_name(c) for c, t in enumerate(stored) if t is None and (parts / _part_name(c)).exists()]
@@ -202,8 +210,20 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
             part = parts / _part_name(c)
             table = stored[c]
             if todo[c]:
+                chunk_start = time.perf_counter()
                 chunk = jax.tree_util.tree_map(lambda x, lo=lo, hi=hi: np.asarray(x)[lo:hi], scen)
-                result = runner.run(st, chunk, batch_size=batch, queue=cfg.queue)
+                watch = cfg.watchdog(c, finished_run_s)
+                run_start = time.perf_counter()
+                try:
+                    result = runner.run(st, chunk, batch_size=batch, queue=cfg.queue, watch=watch)
+                except watchdog.DeviceStalled:
+                    if writer:  # where the time went up to the stall
+                        now = time.perf_counter()
+                        timeline += watchdog.timeline_rows(watch, run_start - chunk_start, now - chunk_start)
+                        _write_timeline(out, st.backend, devices, timeline, todo)
+                    raise
+                run_end = time.perf_counter()
+                finished_run_s.append(result.run_s)
                 compile_s += result.compile_s
                 started = started or result.started
                 run_s += result.run_s
@@ -214,6 +234,10 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
                 if writer:
                     io.atomic_write_parquet(part, table)
                     runs.record_output(part)
+                    now = time.perf_counter()
+                    host_s = (run_start - chunk_start) + (now - run_end)
+                    timeline += watchdog.timeline_rows(watch, host_s, now - chunk_start)
+                    _write_timeline(out, st.backend, devices, timeline, todo)
             if table is not None:  # None: a part only process 0 can read (no shared file system)
                 tables.append(table)
             bar.update(hi - lo)
@@ -228,7 +252,6 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
         runs.record_output(out / "results.parquet")
     steps_per_env = st.loop.n_ticks * st.loop.n_sub
     summary = summarize_table(table, cfg, st.robot)
-    devices = runner.batch_devices() if st.backend != "mujoco" else jax.devices()[:1]  # C MuJoCo: host only
     summary.update({
         "config": dataclasses.asdict(cfg),
         "backend": st.backend,
@@ -259,6 +282,32 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
         sweep_plots.survival_map(table, out / "survival.png", summary["envelope"])
         sweep_plots.envelope(table, summary["envelope"], out / "envelope.png")
     return summary
+
+
+def check_simulated_stall(cfg: SweepConfig, n_chunks: int, n_devices: int) -> None:
+    """``--simulate-stall CHUNK DEVICE`` names a chunk and a device of this run (else it would test nothing)."""
+    if cfg.simulate_stall is None:
+        return
+    chunk, device = cfg.simulate_stall
+    if chunk >= n_chunks or device >= n_devices:
+        raise ValueError(f"--simulate-stall {chunk} {device}: this run has chunks 0..{n_chunks - 1} and devices "
+                         f"0..{n_devices - 1}")  # fmt: skip
+
+
+def _write_timeline(out: pathlib.Path, backend: str, devices: list, rows: list[dict], todo: list[bool]) -> None:
+    """timeline.json: one row per chunk run by this process and device (:func:`watchdog.timeline_rows`),
+    each device's totals, and the chunks read back from disk instead."""
+    totals: dict = {}
+    for row in rows:
+        device = totals.setdefault(row["device"], dict.fromkeys(watchdog.TIMED, 0.0))
+        for key in watchdog.TIMED:
+            device[key] = round(device[key] + row[key], 4)
+    io.atomic_write_json(out / "timeline.json", {
+        "backend": backend, "device": provenance.device_label(),
+        "devices": [watchdog.device_label(d) for d in devices],
+        "chunks_on_disk": [c for c, t in enumerate(todo) if not t],
+        "rows": rows, "totals_by_device": totals,
+    })  # fmt: skip
 
 
 def _finished(out: pathlib.Path) -> bool:

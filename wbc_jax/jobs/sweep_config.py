@@ -17,7 +17,7 @@ from wbc_jax.core import constants as limits
 from wbc_jax.core.options import check_options, option
 from wbc_jax.jobs import runs
 from wbc_jax.robot import model
-from wbc_jax.sim import physics, scenario
+from wbc_jax.sim import physics, scenario, watchdog
 
 SWEEP_TASKS = ("stand", "one-foot")
 # The one-foot task (references.make_schedule) balances on the left foot from 7 to 9 s.
@@ -112,8 +112,20 @@ class SweepConfig:
     backend: str = option("auto", "physics engine (auto: C MuJoCo on a CPU, MJX-Warp/JAX on a GPU)",
                           choices=physics.BACKENDS)  # fmt: skip
     out: str | None = option("runs/push_sweep", "output folder (a sweep resumes there)")
+    stall_timeout_s: float | None = option(
+        None, "seconds a chunk may run on a device before the run stops with an error naming the device and the "
+        f"chunk (default: max({watchdog.MIN_STALL_S:g} s, {watchdog.STALL_FACTOR:g}x the slowest finished chunk), "
+        f"{watchdog.FIRST_CHUNK_STALL_S:g} s for the first; compiling gets at least {watchdog.COMPILE_STALL_S:g} s)",
+        gt=0.0, le=watchdog.MAX_STALL_S, unit="s",
+    )  # fmt: skip
+    simulate_stall: tuple[int, int] | None = option(
+        None, "test of the watchdog: device DEVICE (its index in the run's devices) blocks in chunk CHUNK until "
+        "--stall-timeout-s ends the run", nargs=2, metavar=("CHUNK", "DEVICE"), ge=0, le=MAX_ENVS,
+    )  # fmt: skip
 
     KIND: ClassVar[str] = "sweep"  # the run kind of its output folder (jobs/runs.py)
+    # Fields that bound or test how a run proceeds, not what it computes: no part of the fingerprint.
+    PROCEDURE: ClassVar[tuple[str, ...]] = ("stall_timeout_s", "simulate_stall")
 
     def check(self) -> None:
         """Every check that compiles nothing (run first, before any file is written): the declared
@@ -148,8 +160,15 @@ class SweepConfig:
     def fingerprint(self) -> dict:
         """What determines the results (:func:`wbc_jax.jobs.runs.fingerprint`): the engine as it resolves
         here (``auto`` on a CPU is ``mujoco``)."""
-        return runs.fingerprint({**dataclasses.asdict(self), "backend": physics.resolve_backend(self.backend),
+        fields = {k: v for k, v in dataclasses.asdict(self).items() if k not in self.PROCEDURE}
+        return runs.fingerprint({**fields, "backend": physics.resolve_backend(self.backend),
                                  "dtype": str(scenario.float_dtype())}, [self.gains, self.tasks])  # fmt: skip
+
+    def watchdog(self, chunk: int, finished_run_s: list[float]) -> watchdog.Watchdog:
+        """The watchdog of chunk ``chunk``, given the run seconds of the chunks finished before it in
+        this process (:func:`wbc_jax.sim.watchdog.stall_bound`)."""
+        bound = watchdog.stall_bound(self.stall_timeout_s, finished_run_s)
+        return watchdog.Watchdog(chunk, bound, warm=bool(finished_run_s), simulate_stall=self.simulate_stall)
 
     def controller_config(self, base: ControllerConfig | None = None) -> ControllerConfig:
         """``base`` (default: the defaults) with this sweep's controller settings."""

@@ -26,9 +26,11 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from wbc_jax.sim import host_loop, mjx_loop, physics
 from wbc_jax.sim import loop as loop_lib
 from wbc_jax.sim import metrics as metrics_lib
+from wbc_jax.sim.per_device import PerDevice
 from wbc_jax.sim.scenario import Setup
 from wbc_jax.sim.scenario import single as single_scenario
 from wbc_jax.sim.state import Feedforward, Scenario
+from wbc_jax.sim.watchdog import Watchdog, device_label, run_watched
 
 # A queued run (scenarios per batch slot) checks which robots are decided every this many ticks
 # at most (the largest divisor of the horizon's ticks up to it): 0.25 s at 100 Hz.
@@ -175,7 +177,7 @@ def check_queue(queue, backend: str, record: bool = False) -> None:
 
 def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
         on_tick: Callable[[int], None] | None = None, queue: int = 1,
-        feedforward: Feedforward | None = None) -> Run:  # fmt: skip
+        feedforward: Feedforward | None = None, watch: Watchdog | None = None) -> Run:  # fmt: skip
     """Run the closed loop over a Scenario batch (leading axis B) on the setup's backend.
 
     ``batch_size``: the compiled batch shape (B is padded up to it; None: B). ``on_tick``: called
@@ -184,7 +186,8 @@ def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
     or diverged robots and starting its next scenario (:meth:`ClosedLoop.rollout_queue`); the
     outcomes equal those of the plain run, and a retired environment's metrics stop at its
     retirement (``ticks``). ``feedforward``: torques added to the controller's in a window of
-    ticks, with the batch axis B (:class:`wbc_jax.sim.state.Feedforward`; None: none)."""
+    ticks, with the batch axis B (:class:`wbc_jax.sim.state.Feedforward`; None: none). ``watch``: the
+    chunk's bound per device and its timeline (:mod:`wbc_jax.sim.watchdog`; None: unbounded)."""
     loop = setup_.loop
     check_queue(queue, loop.backend, loop.cfg.record)
     if queue > 1 and feedforward is not None:
@@ -195,18 +198,25 @@ def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
     padded = pad_batch(jax.tree_util.tree_map(np.asarray, scen), size)
     ff = None if feedforward is None else pad_batch(jax.tree_util.tree_map(np.asarray, feedforward), size)
     if queue > 1:
-        out = _run_mjx_queue(setup_, padded, queue)
+        out = _run_mjx_queue(setup_, padded, queue, watch=watch)
     elif loop.backend == "mujoco":
         if jax.process_count() > 1:
             raise ValueError(
                 "a run over several processes (jax.distributed) needs an MJX backend: --backend jax or warp"
             )
         t0 = time.perf_counter()
-        metrics, records, compile_s = host_loop.run_host(loop, padded, setup_.qpos0, setup_.dtype, on_tick=on_tick,
-                                                         feedforward=ff)  # fmt: skip
+
+        def host(times: dict):  # C MuJoCo's threads, driven from one host thread (compiling on a first call)
+            out = host_loop.run_host(loop, padded, setup_.qpos0, setup_.dtype, on_tick=on_tick, feedforward=ff)
+            times.update(compile_s=out[2], wait_s=time.perf_counter() - t0 - out[2])
+            return out
+
+        label = f"{device_label(jax.devices('cpu')[0])} (C MuJoCo)"
+        compiles = watch is not None and not watch.warm
+        [(metrics, records, compile_s)] = run_watched([(label, host)], watch, "run", compiles=compiles)
         out = Run(metrics, records, compile_s, time.perf_counter() - t0 - compile_s)
     else:
-        out = _run_mjx(setup_, padded, size, on_tick, ff)
+        out = _run_mjx(setup_, padded, size, on_tick, ff, watch)
     out.started = called + out.compile_s
     out.metrics = jax.tree_util.tree_map(lambda x: np.asarray(x)[:B], out.metrics)
     if out.records is not None:
@@ -224,78 +234,8 @@ def _global_batch(tree, sharding: NamedSharding, dtype):
     )
 
 
-class PerDevice:
-    """``fn`` compiled once for each of this process's devices of ``mesh``; a call runs each device's
-    shard of the batch axis on that device (asynchronously, side by side) and returns global arrays
-    sharded along the batch axis, as ``jit(shard_map(fn))`` would, with no communication between
-    devices. Single-device programs, because (i) MJX-Warp's step is a foreign call with no
-    partitioning rule: under ``jit`` with sharded inputs XLA ran it over the whole batch on every
-    device (its contact buffer sized for one device's share), which made two GPUs slower than one
-    and changed outcomes, and (ii) XLA (jax 0.11.2, CUDA) crashed compiling the closed loop as one
-    two-GPU ``shard_map`` program.
-
-    Args:
-      fn: the per-device function of its arguments' local shards.
-      mesh: the 1-D batch mesh (:func:`device_mesh`).
-      batched: per positional argument, True if it is sharded along the batch axis (a global
-        array), False if every device takes it whole (a host value).
-    """
-
-    def __init__(self, fn, mesh: Mesh, batched: tuple[bool, ...]):
-        self.fn, self.mesh, self.batched = fn, mesh, batched
-        self.devices = [d for d in mesh.devices.flat if d.process_index == jax.process_index()]
-        self.compiled: dict = {}
-
-    def _local(self, args, device):
-        """The arguments as ``device`` sees them: its shard of each batched global array."""
-
-        def shard(x):
-            return next(s.data for s in x.addressable_shards if s.device == device)
-
-        return [jax.tree_util.tree_map(shard, a) if b else a for a, b in zip(args, self.batched, strict=True)]
-
-    def compile(self, *args) -> float:
-        """Compile for every local device; returns the seconds spent. Tracing happens here, in the
-        caller's thread (JAX's settings such as ``enable_x64`` are thread-local); only XLA's compile
-        of several devices runs in parallel threads."""
-        t0 = time.perf_counter()
-        lowered = []
-        for device in self.devices:
-            on = jax.sharding.SingleDeviceSharding(device)
-            lowered.append(jax.jit(self.fn, in_shardings=on, out_shardings=on).lower(*self._local(args, device)))
-        if len(lowered) == 1:
-            compiled = [lowered[0].compile()]
-        else:
-            from concurrent.futures import ThreadPoolExecutor
-
-            with ThreadPoolExecutor(max_workers=len(lowered)) as pool:
-                compiled = list(pool.map(lambda low: low.compile(), lowered))
-        self.compiled = dict(zip(self.devices, compiled, strict=True))
-        return time.perf_counter() - t0
-
-    def __call__(self, *args):
-        # One host thread per device: an XLA:GPU program with while loops (the QP, the physics' solver)
-        # runs its loop control on the thread that launched it, so launching the devices one after the
-        # other from one thread ran them one after the other.
-        run = lambda d: self.compiled[d](*self._local(args, d))  # noqa: E731
-        if len(self.devices) == 1:
-            outs = [run(self.devices[0])]
-        else:
-            from concurrent.futures import ThreadPoolExecutor
-
-            with ThreadPoolExecutor(max_workers=len(self.devices)) as pool:
-                outs = list(pool.map(run, self.devices))
-        sharding = NamedSharding(self.mesh, PartitionSpec("batch"))
-        n_dev = self.mesh.devices.size
-
-        def assemble(*leaves):
-            shape = (leaves[0].shape[0] * n_dev, *leaves[0].shape[1:])
-            return jax.make_array_from_single_device_arrays(shape, sharding, list(leaves))
-
-        return jax.tree_util.tree_map(assemble, *outs)
-
-
-def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick, ff: Feedforward | None = None) -> Run:
+def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick, ff: Feedforward | None = None,
+             watch: Watchdog | None = None) -> Run:  # fmt: skip
     """MJX backends: vmap(closed loop) per device (:class:`PerDevice`) over the batch, sharded
     along it over the device mesh. A run without records is one program (Warp's data never leaves
     it: its contact buffer is shared by a device's environments); a recorded run (``jax`` only)
@@ -333,9 +273,11 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick, ff: Feedforward 
                                         s.gains, s.push, batch=local, feedforward=f)  # fmt: skip
 
             cache[key] = PerDevice(jax.vmap(one), mesh, (True, True))
-            compile_s = cache[key].compile(scen_dev, ff_dev)
+            compile_s = cache[key].compile(scen_dev, ff_dev, watch=watch)
         t0 = time.perf_counter()
-        metrics, records = jax.tree_util.tree_map(_to_host, cache[key](scen_dev, ff_dev))
+        one_process = jax.process_count() == 1  # each device's share copied to the host in its own thread
+        outs = cache[key](scen_dev, ff_dev, watch=watch, to_host=one_process)
+        metrics, records = jax.tree_util.tree_map(_to_host, outs)
         if on_tick is not None:
             on_tick(loop.n_ticks)
         return Run(metrics, records, compile_s, time.perf_counter() - t0)
@@ -351,16 +293,16 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick, ff: Feedforward 
 
     if key not in cache:
         start_fn = PerDevice(start, mesh, (True,))
-        compile_s = start_fn.compile(scen_dev)
+        compile_s = start_fn.compile(scen_dev, watch=watch)
         advance_fn = PerDevice(advance, mesh, (True, True, False, True))
-        compile_s += advance_fn.compile(scen_dev, start_fn(scen_dev), np.int32(0), ff_dev)
+        compile_s += advance_fn.compile(scen_dev, start_fn(scen_dev), np.int32(0), ff_dev, watch=watch)
         cache[key] = (start_fn, advance_fn)
     start_fn, advance_fn = cache[key]
     t0 = time.perf_counter()
-    carry = start_fn(scen_dev)
+    carry = start_fn(scen_dev, watch=watch)
     pieces = []
     for k0 in range(0, loop.n_ticks, chunk):
-        carry, records = advance_fn(scen_dev, carry, np.int32(k0), ff_dev)
+        carry, records = advance_fn(scen_dev, carry, np.int32(k0), ff_dev, watch=watch)
         pieces.append(jax.tree_util.tree_map(_to_host, records))
         if on_tick is not None:
             on_tick(min(k0 + chunk, loop.n_ticks))
@@ -369,7 +311,8 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick, ff: Feedforward 
     return Run(metrics, records, compile_s, time.perf_counter() - t0)
 
 
-def _run_mjx_queue(setup_: Setup, scen: Scenario, queue: int, check_ticks: int = QUEUE_CHECK_TICKS) -> Run:
+def _run_mjx_queue(setup_: Setup, scen: Scenario, queue: int, check_ticks: int = QUEUE_CHECK_TICKS,
+                   watch: Watchdog | None = None) -> Run:  # fmt: skip
     """MJX backends, a queue of scenarios per batch slot: each device takes its share of the
     batch's scenarios and works through them in order with ceil(share / queue) slots
     (:func:`wbc_jax.sim.mjx_loop.rollout_queue`, vmap over its slots; :class:`PerDevice`). A
@@ -405,9 +348,10 @@ def _run_mjx_queue(setup_: Setup, scen: Scenario, queue: int, check_ticks: int =
             return jax.vmap(slot, out_axes=None, axis_name="slots")(jnp.arange(slots, dtype=jnp.int32))
 
         cache[key] = PerDevice(on_device, mesh, (True,))
-        compile_s = cache[key].compile(scen_dev)
+        compile_s = cache[key].compile(scen_dev, watch=watch)
     t0 = time.perf_counter()
-    metrics = jax.tree_util.tree_map(lambda x: _to_host(x)[:size], cache[key](scen_dev))
+    outs = cache[key](scen_dev, watch=watch, to_host=jax.process_count() == 1)
+    metrics = jax.tree_util.tree_map(lambda x: _to_host(x)[:size], outs)
     return Run(metrics, None, compile_s, time.perf_counter() - t0)
 
 
