@@ -17,10 +17,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import load_script
 
 from wbc_jax.control.controller import ControllerConfig
 from wbc_jax.core import processes
-from wbc_jax.jobs import distributed
 from wbc_jax.sim import host_loop, mjx_loop, physics, scenario
 from wbc_jax.sim.state import Feedforward, SimConfig
 from wbc_jax.tuning import config, objectives, tune
@@ -28,6 +28,8 @@ from wbc_jax.tuning import loss as tuning_loss
 from wbc_jax.tuning import problem as tp
 from wbc_jax.tuning import schedule as gain_schedule
 from wbc_jax.tuning import windows as tw
+
+distributed = load_script("experiments/checks/multihost_check.py")  # the multi-process test harness
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
