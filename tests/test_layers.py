@@ -7,8 +7,8 @@ import pathlib
 import pytest
 
 PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "wbc_jax"
-# The flow of data: robot -> control -> closed loop -> figures -> jobs -> tuning -> command line.
-LAYERS = ("core", "robot", "control", "sim", "report", "jobs", "tuning", "cli")
+# The flow of data: robot -> control -> closed loop -> figures -> jobs -> tuning -> commands -> command line.
+LAYERS = ("core", "robot", "control", "sim", "report", "jobs", "tuning", "commands", "cli")
 
 
 def _module_name(path: pathlib.Path) -> str:
