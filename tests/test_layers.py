@@ -146,3 +146,47 @@ def test_the_private_name_scan_finds_both_forms():
         "probe.py:3 reads wbc_jax.core.io._secret",
         "probe.py:6 reads wbc_jax.robot.model._check_name",
     ]
+
+
+# Names of gain tuning's settings (its loss trace, its rematerialisation choice ``--checkpoint``).
+TUNING_SETTINGS = ("loss_trace", "checkpoint")
+LOWER_LAYERS = ("core", "robot", "control", "sim", "report", "jobs")
+
+
+def _tuning_names(where: str, source: str) -> list[str]:
+    """``where:line name`` for each variable, argument, keyword, field or attribute of a file named
+    after a tuning setting (JAX's own ``jax.checkpoint`` excepted)."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Attribute):
+            name = None if ast.unparse(node.value) == "jax" else node.attr
+        else:
+            name = getattr(node, "id", None) or getattr(node, "arg", None)
+        if name in TUNING_SETTINGS:
+            found.append(f"{where}:{node.lineno} {name}")
+    return found
+
+
+def test_lower_layers_hold_no_tuning_setting():
+    """Issue 44: the loop takes a differentiated rollout's record and rematerialisation as values
+    (``wbc_jax.sim.loop.compose(trace=, remat=)``); no settings of tuning in SimConfig or the jobs."""
+    found = [
+        use
+        for layer in LOWER_LAYERS
+        for p in sorted((PACKAGE / layer).rglob("*.py"))
+        for use in _tuning_names(str(p.relative_to(PACKAGE.parent)), p.read_text())
+    ]
+    assert not found, "tuning settings in lower layers:\n" + "\n".join(found)
+
+
+def test_the_tuning_name_scan_finds_fields_arguments_and_attributes():
+    source = (
+        "class C:\n    loss_trace: bool = False\n"
+        "def f(checkpoint=False):\n    return g(loss_trace=True, x=cfg.checkpoint, y=jax.checkpoint(h))\n"
+    )
+    assert _tuning_names("probe.py", source) == [
+        "probe.py:2 loss_trace",
+        "probe.py:3 checkpoint",
+        "probe.py:4 loss_trace",
+        "probe.py:4 checkpoint",
+    ]

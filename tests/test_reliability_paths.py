@@ -138,7 +138,7 @@ def test_the_window_loop_with_a_schedule_computes_the_plain_loops_tick(window_pr
     assert built.gains_at is gain_schedule.gains_of_schedule
     assert built.recorders == (tuning_loss.tune_trace, tw.record_start)
     # The same composition on the analytic force distribution: it compiles in a fraction of the QP's time.
-    sim = SimConfig(record=False, loss_trace=True)
+    sim = SimConfig(record=False)
     st = scenario.setup("stand", duration=0.1, sim=sim, controller=ControllerConfig(forces="analytic"))
     loop = tw.recording_loop(gain_schedule.scheduled_loop(tuning_loss.tuning_loop(st.loop)))
     assert (loop.gains_at, loop.recorders) == (built.gains_at, built.recorders)
