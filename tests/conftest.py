@@ -100,3 +100,18 @@ def c_data(robot, qpos, qvel) -> mujoco.MjData:
     d.qpos[:], d.qvel[:] = qpos, qvel
     mujoco.mj_forward(robot.mj_model, d)
     return d
+
+
+def load_script(relative: str):
+    """A script of the repository (experiments/, benchmarks/: not a package) loaded from its file, once."""
+    import importlib.util
+    import pathlib
+    import sys
+
+    key = "script_" + relative.replace("/", "_").removesuffix(".py")
+    if key not in sys.modules:
+        spec = importlib.util.spec_from_file_location(key, pathlib.Path(__file__).resolve().parent.parent / relative)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[key] = module
+        spec.loader.exec_module(module)
+    return sys.modules[key]

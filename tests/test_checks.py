@@ -5,13 +5,13 @@ before the margin fix) are known failures that the bar must catch. No JAX compil
 
 import ast
 import copy
-import importlib.util
 import json
 import pathlib
 import sys
 
 import pandas as pd
 import pytest
+from conftest import load_script
 
 from wbc_jax.core import checks
 
@@ -34,13 +34,7 @@ SCRIPTS = {
 
 def script(name: str):
     """A script of SCRIPTS loaded from its file (scripts are not a package), once."""
-    key = f"check_script_{name}"
-    if key not in sys.modules:
-        spec = importlib.util.spec_from_file_location(key, ROOT / SCRIPTS[name])
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[key] = module
-        spec.loader.exec_module(module)
-    return sys.modules[key]
+    return load_script(SCRIPTS[name])
 
 
 def doc(path: str) -> dict:

@@ -1,9 +1,10 @@
 """Several processes joined by jax.distributed (CPU devices, Gloo) give the one-process results
-table (wbc_jax/jobs/distributed.py), and a failing process fails the comparison."""
+table (experiments/checks/multihost_check.py), and a failing process fails the comparison."""
 
 import pytest
+from conftest import load_script
 
-from wbc_jax.jobs import distributed
+distributed = load_script("experiments/checks/multihost_check.py")
 
 # 4 magnitudes x 2 directions: 8 envs over 0.6 s, two of which fall (their trajectories amplify
 # rounding, so float64: the tables then agree to ~1e-8). The analytic force distribution (no QP)

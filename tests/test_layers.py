@@ -7,8 +7,8 @@ import pathlib
 import pytest
 
 PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "wbc_jax"
-# The flow of data: robot -> control -> closed loop -> figures -> jobs -> tuning -> command line.
-LAYERS = ("core", "robot", "control", "sim", "report", "jobs", "tuning", "cli")
+# The flow of data: robot -> control -> closed loop -> figures -> jobs -> tuning -> commands -> command line.
+LAYERS = ("core", "robot", "control", "sim", "report", "jobs", "tuning", "commands", "cli")
 
 
 def _module_name(path: pathlib.Path) -> str:
@@ -89,3 +89,104 @@ def test_no_subclass_of_the_closed_loop():
     from wbc_jax.tuning import heldout, schedule, tune, windows  # noqa: F401  (the former subclasses' modules)
 
     assert ClosedLoop.__subclasses__() == []
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
+def _private_uses(where: str, me: str, source: str) -> list[str]:
+    """``where:line name`` for each private name of another wbc_jax module that the module ``me``
+    (its text ``source``) imports (``from wbc_jax.x import _name``) or reads as an attribute of a
+    module it imported (``x._name``)."""
+    tree = ast.parse(source)
+    modules = {}  # local name -> the wbc_jax module it is bound to
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("wbc_jax"):
+            for alias in node.names:
+                sub = f"{node.module}.{alias.name}"
+                if sub in MODULES:
+                    modules[alias.asname or alias.name] = sub
+                elif _private(alias.name) and node.module != me:
+                    found.append(f"{where}:{node.lineno} imports {node.module}.{alias.name}")
+        elif isinstance(node, ast.Import):
+            modules |= {a.asname: a.name for a in node.names if a.asname and a.name.startswith("wbc_jax")}
+    for node in ast.walk(tree):
+        if not (isinstance(node, ast.Attribute) and _private(node.attr)):
+            continue
+        owner = ast.unparse(node.value)
+        target = modules.get(owner, owner if owner in MODULES else None)
+        if target is not None and target != me:
+            found.append(f"{where}:{node.lineno} reads {target}.{node.attr}")
+    return found
+
+
+def test_no_private_name_used_across_modules():
+    """Issue 44: what a module shares is public in the layer it belongs to; no module imports or
+    reads another wbc_jax module's private (``_name``) names."""
+    found = [
+        use
+        for p in sorted(PACKAGE.rglob("*.py"))
+        for use in _private_uses(str(p.relative_to(PACKAGE.parent)), _module_name(p), p.read_text())
+    ]
+    assert not found, "private names used across modules:\n" + "\n".join(found)
+
+
+def test_the_private_name_scan_finds_both_forms():
+    """The scan above is not vacuous: it flags an import and an attribute read of another module's
+    private name (a module's own private names, and public ones, pass)."""
+    source = (
+        "from wbc_jax.jobs.grids import _hidden\nfrom wbc_jax.core import io\nio._secret(1)\nio.jsonable\n"
+        "import wbc_jax.robot.model as m\nm._check_name\nfrom wbc_jax.tuning.tune import _own\n"
+    )
+    found = _private_uses("probe.py", "wbc_jax.tuning.tune", source)
+    assert sorted(found) == [
+        "probe.py:1 imports wbc_jax.jobs.grids._hidden",
+        "probe.py:3 reads wbc_jax.core.io._secret",
+        "probe.py:6 reads wbc_jax.robot.model._check_name",
+    ]
+
+
+# Names of gain tuning's settings (its loss trace, its rematerialisation choice ``--checkpoint``).
+TUNING_SETTINGS = ("loss_trace", "checkpoint")
+LOWER_LAYERS = ("core", "robot", "control", "sim", "report", "jobs")
+
+
+def _tuning_names(where: str, source: str) -> list[str]:
+    """``where:line name`` for each variable, argument, keyword, field or attribute of a file named
+    after a tuning setting (JAX's own ``jax.checkpoint`` excepted)."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Attribute):
+            name = None if ast.unparse(node.value) == "jax" else node.attr
+        else:
+            name = getattr(node, "id", None) or getattr(node, "arg", None)
+        if name in TUNING_SETTINGS:
+            found.append(f"{where}:{node.lineno} {name}")
+    return found
+
+
+def test_lower_layers_hold_no_tuning_setting():
+    """Issue 44: the loop takes a differentiated rollout's record and rematerialisation as values
+    (``wbc_jax.sim.loop.compose(trace=, remat=)``); no settings of tuning in SimConfig or the jobs."""
+    found = [
+        use
+        for layer in LOWER_LAYERS
+        for p in sorted((PACKAGE / layer).rglob("*.py"))
+        for use in _tuning_names(str(p.relative_to(PACKAGE.parent)), p.read_text())
+    ]
+    assert not found, "tuning settings in lower layers:\n" + "\n".join(found)
+
+
+def test_the_tuning_name_scan_finds_fields_arguments_and_attributes():
+    source = (
+        "class C:\n    loss_trace: bool = False\n"
+        "def f(checkpoint=False):\n    return g(loss_trace=True, x=cfg.checkpoint, y=jax.checkpoint(h))\n"
+    )
+    assert _tuning_names("probe.py", source) == [
+        "probe.py:2 loss_trace",
+        "probe.py:3 checkpoint",
+        "probe.py:4 loss_trace",
+        "probe.py:4 checkpoint",
+    ]

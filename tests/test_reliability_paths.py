@@ -17,10 +17,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import load_script
 
 from wbc_jax.control.controller import ControllerConfig
 from wbc_jax.core import processes
-from wbc_jax.jobs import distributed
 from wbc_jax.sim import host_loop, mjx_loop, physics, scenario
 from wbc_jax.sim.state import Feedforward, SimConfig
 from wbc_jax.tuning import config, objectives, tune
@@ -28,6 +28,8 @@ from wbc_jax.tuning import loss as tuning_loss
 from wbc_jax.tuning import problem as tp
 from wbc_jax.tuning import schedule as gain_schedule
 from wbc_jax.tuning import windows as tw
+
+distributed = load_script("experiments/checks/multihost_check.py")  # the multi-process test harness
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
@@ -136,7 +138,7 @@ def test_the_window_loop_with_a_schedule_computes_the_plain_loops_tick(window_pr
     assert built.gains_at is gain_schedule.gains_of_schedule
     assert built.recorders == (tuning_loss.tune_trace, tw.record_start)
     # The same composition on the analytic force distribution: it compiles in a fraction of the QP's time.
-    sim = SimConfig(record=False, loss_trace=True)
+    sim = SimConfig(record=False)
     st = scenario.setup("stand", duration=0.1, sim=sim, controller=ControllerConfig(forces="analytic"))
     loop = tw.recording_loop(gain_schedule.scheduled_loop(tuning_loss.tuning_loop(st.loop)))
     assert (loop.gains_at, loop.recorders) == (built.gains_at, built.recorders)

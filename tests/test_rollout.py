@@ -286,6 +286,26 @@ def test_bad_settings_are_named():
         physics.resolve_backend("mujoco", differentiable=True)
 
 
+def test_a_differentiated_loop_is_composed_with_its_trace_and_remat():
+    """A loop's per-tick trace and rematerialisation are values (issue 44: no tuning settings in
+    SimConfig): each composition has its own programs' key, a trace excludes SimConfig.record, and a
+    policy that JAX lacks is named. No compile."""
+    from wbc_jax.sim import loop as loop_lib
+
+    plain = scenario.setup("stand", duration=0.1, sim=SimConfig(record=False)).loop
+    traced = loop_lib.compose(plain, trace=loop_lib.smooth_trace)
+    remat = loop_lib.compose(traced, remat="checkpoint_dots")
+    recorded = loop_lib.compose(plain, recorder=loop_lib.smooth_trace)  # a recorder alone: no gains function
+    assert (traced.trace, traced.remat, remat.trace, remat.remat) == (loop_lib.smooth_trace, False,
+                                                                      loop_lib.smooth_trace, "checkpoint_dots")  # fmt: skip
+    assert len({loop.structure_key for loop in (plain, traced, remat, recorded)}) == 4
+    recording = scenario.setup("stand", duration=0.1, sim=SimConfig(record=True)).loop
+    with pytest.raises(ValueError, match="a trace and SimConfig.record are exclusive"):
+        loop_lib.compose(recording, trace=loop_lib.smooth_trace)
+    with pytest.raises(ValueError, match="remat 'every_other' is not a policy of jax.checkpoint_policies"):
+        loop_lib.compose(plain, remat="every_other")
+
+
 def _float32_com(backend: str, platforms: str, out: pathlib.Path) -> np.ndarray:
     """The benchmark scenario's CoM (T, 3) in float32 on ``backend``, in a process of its own: a
     float32 program traced in this float64 session mixes int64 index constants with int32 sizes,

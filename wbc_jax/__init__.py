@@ -3,13 +3,14 @@
 The subpackages follow the flow of data; each imports only those before it
 (tests/test_layers.py):
 
-    core -> robot -> control -> sim -> report -> jobs -> tuning -> cli
+    core -> robot -> control -> sim -> report -> jobs -> tuning -> commands -> cli
 
 ``core`` numbers, types, helpers, results on disk; ``robot`` the model, dynamics terms and
 contacts; ``control`` one controller tick (momentum task, contact forces, torques, motion tasks);
 ``sim`` the closed loop on three physics engines and batched runs; ``report`` figures and rerun
 recordings; ``jobs`` balance, push sweep, envelope, the physical limit of push recovery, view;
-``tuning`` gain tuning and its held-out evaluation; ``cli`` the ``wbc-jax`` command.
+``tuning`` gain tuning and its held-out evaluation; ``commands`` one module per command of the
+``wbc-jax`` command line (``cli``), each with the same shape, in one registry.
 
 The names below are the public surface, imported on first use (``import wbc_jax`` stays light):
 

@@ -12,6 +12,7 @@ import math
 import os
 import sys
 
+from wbc_jax.commands import registry
 from wbc_jax.core import processes
 from wbc_jax.core.options import field_type, flag_name
 from wbc_jax.core.processes import DistributedConfig
@@ -92,30 +93,8 @@ def config_from_args(args: argparse.Namespace, config):
 
 
 def job_configs() -> dict:
-    """Each job's (default config, help) by command name."""
-    from wbc_jax.jobs import balance, envelope, info, limit, sweep_config, view
-    from wbc_jax.tuning import config as tune_config
-
-    return {
-        "info": (info.default_config(), "print the robot model summary as JSON"),
-        "balance": (balance.default_config(), "closed-loop balancing run: metrics, trajectory, plots"),
-        "push-sweep": (sweep_config.default_config(), "batched push-recovery sweep (the main job)"),
-        "envelope": (envelope.default_config(), "recovery envelope by batched bisection over the sweep's magnitudes"),
-        "limit": (
-            limit.default_config(),
-            "the physical limit of push recovery: trajectory optimisation through MJX, "
-            "bisection over the impulse, every limit replayed in C MuJoCo",
-        ),
-        "view": (view.default_config(), "log a run (or one env of a push sweep) to rerun: .rrd or viewer"),
-        "tune": (
-            tune_config.default_config(),
-            "gain tuning in phases: gradient, CMA-ES, random search, held-out evaluation, the race's report",
-        ),
-        "heldout": (
-            tune_config.heldout_default_config(),
-            "gain files on the held-out grid, variations, one-foot task and sinusoid",
-        ),
-    }
+    """Each command's (default config, help) by name (:func:`wbc_jax.commands.registry`)."""
+    return {name: (command.default_config(), command.help) for name, command in registry().items()}
 
 
 def _one_thread_pool() -> None:
@@ -129,71 +108,13 @@ def _one_thread_pool() -> None:
         os.environ.setdefault("PJRT_NPROC", "1")
 
 
-# Commands that also take another config's flags: command -> (config, fields left to the job's own).
-# ``tune`` holds out its gain sets with the held-out flags; its tasks and soft-QP weight are the run's.
-SHARED_CONFIGS = {"tune": ("heldout", ("out", "tasks", "angular_weight_soft"))}
-
-
-# Jobs that keep what they finished and go on from it with the same command (the others start over).
-RESUMABLE = ("push-sweep", "limit", "tune", "heldout")
-
-
-def _run_job(command: str, cfg, quiet: bool, shared=None) -> dict:
-    """Run a checked config (``shared``: the checked config of :data:`SHARED_CONFIGS`); returns the one
-    JSON line's dict."""
-    from wbc_jax.sim import runner
-
-    if command == "info":
-        from wbc_jax.jobs import info
-
-        return info.run(cfg)
-    if command == "view":
-        from wbc_jax.jobs import view
-
-        path = view.view(cfg.run_dir, cfg.env, out=cfg.out, spawn=cfg.spawn)
-        return {"rrd": None if path is None else str(path), "spawned": bool(cfg.spawn)}
-    runner.enable_compilation_cache()
-    if command == "balance":
-        from wbc_jax.jobs import balance
-
-        return balance.run(cfg, progress=not quiet)
-    if command == "push-sweep":
-        from wbc_jax.jobs import sweep
-
-        summary = sweep.run_sweep(cfg, progress=not quiet)
-        keys = ("n_envs", "survival_rate", "upright_rate", "nan_envs", "qp_infeasible_envs", "backend",
-                "physics_steps_per_s", "compile_s", "run_s", "started_s", "n_devices")  # fmt: skip
-        return {k: summary[k] for k in keys}
-    if command == "envelope":
-        from wbc_jax.jobs import envelope
-
-        found = envelope.search(cfg, progress=not quiet)
-        return {"rollouts": found["rollouts"], "grid_rollouts": found["grid_rollouts"], "rounds": found["rounds"],
-                "backend": found["backend"], "run_s": found["run_s"], "compile_s": found["compile_s"],
-                "started_s": found["started_s"],
-                "impulse_ns": {str(a): e["impulse_ns"] for a, e in found["envelope"][0].items()}}  # fmt: skip
-    if command == "limit":
-        from wbc_jax.jobs import limit_rounds
-
-        summary = limit_rounds.run(cfg, progress=not quiet)
-        return {"body": cfg.body, "median_fraction_of_lip": summary["median_fraction_of_lip"],
-                "targets": summary["targets"], "wall_s": summary["wall_s"], "device": summary["device"],
-                "limit_ns": {str(a): r["limit_ns"] for a, r in summary["directions"].items()}}  # fmt: skip
-    if command == "heldout":
-        from wbc_jax.tuning import heldout
-
-        return heldout.run(cfg, progress=not quiet)
-    from wbc_jax.tuning import campaign
-
-    return json.loads(json.dumps(campaign.run(cfg, shared, progress=not quiet), default=str))
-
-
 def push_sweep_config(flags: list[str]):
     """The checked config that ``wbc-jax push-sweep FLAGS`` would run: for the scripts of
     experiments/ that take the job's flags after ``--``."""
-    from wbc_jax.jobs import sweep_config
+    from wbc_jax.commands import push_sweep
 
-    cfg = config_from_args(build_parser().parse_args(["push-sweep", *flags]), sweep_config.default_config())
+    command = push_sweep.COMMAND
+    cfg = config_from_args(build_parser().parse_args([command.name, *flags]), command.default_config())
     cfg.check()
     return cfg
 
@@ -205,13 +126,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_config_arguments(dist, DistributedConfig())
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
-    for command, (config, help_text) in job_configs().items():
-        job = sub.add_parser(command, help=help_text)
-        add_config_arguments(job, config)
-        if command in SHARED_CONFIGS:
-            other, skip = SHARED_CONFIGS[command]
-            add_config_arguments(job, job_configs()[other][0], skip=skip)
-        if command not in ("info", "view"):
+    for name, command in registry().items():
+        job = sub.add_parser(name, help=command.help)
+        add_config_arguments(job, command.default_config())
+        for shared, skip in command.shared:
+            add_config_arguments(job, shared(), skip=skip)
+        if command.compiles:
             job.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
 
@@ -230,23 +150,24 @@ def main(argv: list[str] | None = None) -> int:
     # would bury the commands' output; the programs run correctly.
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
     args = build_parser().parse_args(argv)
-    if args.command == "balance" and not args.distributed:
+    command = registry()[args.command]
+    if command.one_robot and not args.distributed:
         _one_thread_pool()  # before JAX starts (the checks below list its devices)
     try:
         dist = config_from_args(args, DistributedConfig())
         dist.check()
         if dist.distributed:  # before JAX starts (the checks below list its devices)
             processes.initialize(dist, f"wbc-jax {args.command}")
-        # Every job: the declared ranges and the job's own checks (config.check) before anything
-        # loads a program or writes a file.
-        cfg = config_from_args(args, job_configs()[args.command][0])
-        cfg.check()
-        shared = None
-        if args.command in SHARED_CONFIGS:
-            shared = config_from_args(args, job_configs()[SHARED_CONFIGS[args.command][0]][0])
-            shared = dataclasses.replace(shared, tasks=cfg.tasks, angular_weight_soft=cfg.angular_weight_soft)
-            shared.check()
-        line = _run_job(args.command, cfg, getattr(args, "quiet", False), shared)
+        # Every job checks its config (the declared ranges and the job's own checks) once, where it
+        # starts, before anything loads a program or writes a file.
+        configs = [config_from_args(args, command.default_config())]
+        configs += [config_from_args(args, shared()) for shared, _ in command.shared]
+        cfg = configs[0] if command.combine is None else command.combine(*configs)
+        if command.compiles:
+            from wbc_jax.sim import runner
+
+            runner.enable_compilation_cache()
+        line = command.run(cfg, not getattr(args, "quiet", False))
     except (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError,
             ImportError, MemoryError) as err:  # fmt: skip
         print(f"wbc-jax {args.command}: error: {err}", file=sys.stderr)
@@ -261,12 +182,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wbc-jax {args.command}: error: {err.strerror or err}{where}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        again = "resume with the same command" if args.command in RESUMABLE else "run the same command again"
+        again = "resume with the same command" if command.resumable else "run the same command again"
         print(f"wbc-jax {args.command}: interrupted; {again}", file=sys.stderr)
         if argv is None:  # the command line: leave now (every result file is written atomically)
             _leave(130)
         return 130
-    print(json.dumps(line, indent=2) if args.command == "info" else json.dumps(line, separators=(",", ":")))
+    print(json.dumps(line, indent=command.indent) if command.indent else json.dumps(line, separators=(",", ":")))
     return 0
 
 

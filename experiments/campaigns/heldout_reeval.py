@@ -67,7 +67,7 @@ def load_sets(specs: list, n: int, dtype) -> dict:
 
 def main(argv=None) -> int:
     from wbc_jax.core import provenance
-    from wbc_jax.jobs import sweep_config
+    from wbc_jax.jobs import grids
     from wbc_jax.report import tuning_plots
     from wbc_jax.robot.model import load_robot
     from wbc_jax.sim import scenario
@@ -76,8 +76,8 @@ def main(argv=None) -> int:
     args = parse(argv)
     prev = json.loads(pathlib.Path(args.previous).read_text()) if args.previous else {}
     hc = tuning_eval.HeldoutConfig(
-        grid_magnitudes=sweep_config._grid(args.magnitudes),
-        grid_directions=sweep_config._azimuths(args.directions),
+        grid_magnitudes=grids.magnitude_grid(args.magnitudes),
+        grid_directions=grids.azimuths(args.directions),
         grid_horizon=args.horizon,
         variation_magnitudes=args.variation_magnitudes,
         variation_directions=args.variation_directions,

@@ -61,7 +61,7 @@ def write_new_json(path: pathlib.Path, obj) -> None:
 
 
 def _json_bytes(obj) -> bytes:
-    return (json.dumps(obj, indent=2, default=_jsonable) + "\n").encode()
+    return (json.dumps(obj, indent=2, default=jsonable) + "\n").encode()
 
 
 def atomic_save_npz(path: pathlib.Path, **arrays) -> None:
@@ -70,7 +70,8 @@ def atomic_save_npz(path: pathlib.Path, **arrays) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
-def _jsonable(x):
+def jsonable(x):
+    """``json.dumps``'s ``default``: NumPy arrays and scalars as lists and Python numbers."""
     if isinstance(x, np.ndarray):
         return x.tolist()
     if isinstance(x, (np.floating, np.integer, np.bool_)):

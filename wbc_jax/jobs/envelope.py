@@ -32,7 +32,7 @@ import numpy as np
 from wbc_jax.control.gains import gains_to_dict
 from wbc_jax.core import constants, io, provenance
 from wbc_jax.core.options import option
-from wbc_jax.jobs import runs, sweep, sweep_config, sweep_table
+from wbc_jax.jobs import grids, runs, sweep, sweep_config, sweep_table
 from wbc_jax.robot import model
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import runner, scenario
@@ -52,7 +52,7 @@ class EnvelopeConfig(sweep_config.SweepConfig):
 
     magnitudes: tuple[float, ...] = option(
         DEFAULT_MAGNITUDES, "push force grid [N]: LO HI N (the impulses searched: each x --push-duration)", nargs=3,
-        metavar=("LO", "HI", "N"), parse=sweep_config._grid, show=sweep_config._show_grid, gt=0.0,
+        metavar=("LO", "HI", "N"), parse=grids.magnitude_grid, show=grids.show_magnitude_grid, gt=0.0,
         le=constants.MAX_PUSH_N, unit="N", nonempty=True,
     )  # fmt: skip
     chunk_size: int = option(1024, "searches per compiled batch (at most the searches; its memory is estimated and "

@@ -38,7 +38,7 @@ import numpy as np
 
 from wbc_jax.core import constants, loader
 from wbc_jax.core.options import check_options, option
-from wbc_jax.jobs import runs, sweep_config, trajopt
+from wbc_jax.jobs import grids, runs, sweep_config, trajopt
 from wbc_jax.robot import model
 from wbc_jax.sim import scenario
 
@@ -57,7 +57,7 @@ class LimitConfig:
 
     directions: tuple[float, ...] = option(
         (0.0, 90.0, 180.0, 270.0), "number of push azimuths over 360 deg (0 = forward, 90 = left)",
-        metavar="N", parse=sweep_config._azimuths, show=len, ge=-360.0, le=360.0, unit="deg", nonempty=True,
+        metavar="N", parse=grids.azimuths, show=len, ge=-360.0, le=360.0, unit="deg", nonempty=True,
     )  # fmt: skip
     elevation: float = option(0.0, "push elevation [deg]", ge=-90.0, le=90.0, unit="deg")
     push_duration: float = option(

@@ -27,6 +27,7 @@ from wbc_jax.control.gains import gains_to_dict
 from wbc_jax.core import constants, io, provenance
 from wbc_jax.jobs import limit, runs, sweep, sweep_table, trajopt
 from wbc_jax.robot import model as model_lib
+from wbc_jax.sim import loop as loop_lib
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import runner, scenario
 from wbc_jax.sim.state import Feedforward
@@ -52,7 +53,10 @@ class Search:
         def setup(backend, **kw):
             return sweep.make_setup(cfg.sweep(backend, SETUP_BODY), self.base, robot_name=robot_name, **kw)
 
-        self.grad_setup = setup("jax", loss_trace=True, checkpoint=cfg.method == "gradient")
+        # The optimiser's loop: a smooth trace per tick, the tick rematerialised for exact gradients.
+        grad_setup = setup("jax")
+        self.grad_setup = dataclasses.replace(grad_setup, loop=loop_lib.compose(
+            grad_setup.loop, trace=loop_lib.smooth_trace, remat=cfg.method == "gradient"))  # fmt: skip
         self.judge_setup, self.replay_setup = setup("jax"), setup("mujoco")
         self.k0, self.T, self.tail, knot = cfg.ticks(self.grad_setup.loop.cfg.control_dt)
         self.opt = trajopt.Optimiser(self.grad_setup, self.k0, self.T, self.tail, method=cfg.method,

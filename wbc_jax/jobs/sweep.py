@@ -100,17 +100,17 @@ def build_scenarios(cfg: SweepConfig, base_gains: Gains, n: int, dtype=np.float3
 
 
 def make_setup(cfg: SweepConfig, base_gains: Gains | None = None, *, robot_name: str = "icub",
-               loss_trace: bool = False, checkpoint: bool = False, record: bool = False,
+               record: bool = False,
                controller: ControllerConfig | None = None) -> scenario.Setup:  # fmt: skip
-    """The closed loop of a sweep's environments (tuning uses it with a LossTrace, replays with
-    ``record``). ``controller``: further controller settings (forces, postural, angular_weight_soft
+    """The closed loop of a sweep's environments (replays with ``record``; the limit job composes a
+    traced loop from it). ``controller``: further controller settings (forces, postural, angular_weight_soft
     from ``cfg``)."""
     scene = scenario.load_scene(robot_name, cfg.tasks)
     sim = SimConfig(
-        record=record, loss_trace=loss_trace, checkpoint=checkpoint, push_body=cfg.body,
+        record=record, push_body=cfg.body,
         perturb_plant=cfg.perturbs_plant,
         # the engine as it resolves here: "auto" and the engine it picks build the same programs (one cache entry)
-        physics=physics.PhysicsConfig(backend="jax" if loss_trace else physics.resolve_backend(cfg.backend),
+        physics=physics.PhysicsConfig(backend=physics.resolve_backend(cfg.backend),
                                       solver_iterations=cfg.solver_iterations),
     )  # fmt: skip
     return scenario.setup(

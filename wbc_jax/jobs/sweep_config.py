@@ -6,16 +6,14 @@ before anything loads or compiles."""
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import ClassVar
-
-import numpy as np
 
 from wbc_jax.control.controller import FORCE_MODES, ControllerConfig, with_job_settings
 from wbc_jax.control.torques import POSTURAL_VARIANTS
 from wbc_jax.core import constants as limits
 from wbc_jax.core.options import check_options, option
 from wbc_jax.jobs import runs
+from wbc_jax.jobs.grids import azimuths, magnitude_grid, show_magnitude_grid
 from wbc_jax.robot import model
 from wbc_jax.sim import physics, scenario, watchdog
 
@@ -24,31 +22,7 @@ SWEEP_TASKS = ("stand", "one-foot")
 ONE_FOOT_WINDOW = (7.0, 9.0)
 SUPPORTS = ("two-feet", "left-foot")
 MAX_ENVS = 10_000_000  # a grid larger than this is a typo (its scenarios alone take ~3 GB of memory)
-MAX_GRID_AXIS = 100_000  # magnitudes (or directions) of one grid axis, checked before the axis is built
 MAX_QUEUE = 1024
-
-
-def _grid(values) -> tuple[float, ...]:
-    """``--magnitudes LO HI N``: N evenly spaced values (N a whole number in [1, MAX_GRID_AXIS])."""
-    lo, hi, n = (float(v) for v in values)
-    if not (math.isfinite(lo) and math.isfinite(hi) and math.isfinite(n)):
-        raise ValueError(f"--magnitudes LO HI N needs finite numbers, got {list(values)}")
-    if n != int(n) or not 1 <= n <= MAX_GRID_AXIS:
-        raise ValueError(f"--magnitudes LO HI N: N must be a whole number in [1, {MAX_GRID_AXIS:,}], got {n:g}")
-    return tuple(float(x) for x in np.linspace(lo, hi, int(n)))
-
-
-def _show_grid(values) -> tuple:
-    values = np.asarray(values, float)
-    return (values[0], values[-1], len(values))
-
-
-def _azimuths(count) -> tuple[float, ...]:
-    """``--directions N``: N azimuths evenly spread over 360 deg from 0 (forward)."""
-    n = float(count)
-    if not math.isfinite(n) or n != int(n) or not 1 <= n <= MAX_GRID_AXIS:
-        raise ValueError(f"--directions must be a whole number in [1, {MAX_GRID_AXIS:,}], got {count}")
-    return tuple(float(x) for x in np.arange(int(n)) * 360.0 / int(n))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,11 +33,11 @@ class SweepConfig:
 
     magnitudes: tuple[float, ...] = option(
         (20.0, 60.0, 100.0), "push force grid [N]: LO HI N", nargs=3, metavar=("LO", "HI", "N"),
-        parse=_grid, show=_show_grid, ge=0.0, le=limits.MAX_PUSH_N, unit="N", nonempty=True,
+        parse=magnitude_grid, show=show_magnitude_grid, ge=0.0, le=limits.MAX_PUSH_N, unit="N", nonempty=True,
     )  # fmt: skip
     directions: tuple[float, ...] = option(
         (0.0, 90.0, 180.0, 270.0), "number of push azimuths over 360 deg (0 = forward, 90 = left)",
-        metavar="N", parse=_azimuths, show=len, ge=-360.0, le=360.0, unit="deg", nonempty=True,
+        metavar="N", parse=azimuths, show=len, ge=-360.0, le=360.0, unit="deg", nonempty=True,
     )  # fmt: skip
     elevation: float = option(0.0, "push elevation [deg] (+90: straight up)", ge=-90.0, le=90.0, unit="deg")
     push_duration: float = option(

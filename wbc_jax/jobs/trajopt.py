@@ -166,7 +166,7 @@ class Optimiser:
     def __init__(self, setup: Setup, onset_tick: int, window: int, tail: int, *, method: str = "es",
                  learning_rate: float, clip_norm: float = 10.0, knot: int = 1, pairs: int = 8, sigma: float = 2.0,
                  cost: Cost = Cost()):  # fmt: skip
-        if not (setup.loop.cfg.loss_trace and setup.loop.backend == "jax"):
+        if not (setup.loop.trace is not None and setup.loop.backend == "jax"):
             raise ValueError("the optimiser needs a closed loop with a LossTrace on the 'jax' backend")
         if method not in METHODS:
             raise ValueError(f"unknown optimiser method {method!r}; valid: {list(METHODS)}")

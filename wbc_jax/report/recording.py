@@ -178,7 +178,7 @@ def log_trajectory(rec, traj: dict, *, robot: str = "icub", push_body: str = "ch
     T = check_trajectory(traj)
     m = visual_model(robot)
     bodies = _names(m, mujoco.mjtObj.mjOBJ_BODY, m.nbody)
-    model_lib._check_name("body", push_body, bodies[1:])
+    model_lib.check_name("body", push_body, bodies[1:])
     t = np.asarray(traj["t"], float)
     time = [rr.TimeColumn(TIMELINE, duration=t)]
     xpos, xquat, gpos = body_poses(m, traj["qpos"])

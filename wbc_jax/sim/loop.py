@@ -52,8 +52,15 @@ PROGRAMS: dict = {}
 #     gain schedule evaluated at the state); None: the argument is the gains.
 #   recorder(record, new_state, state, qpos, qvel) -> record: a richer per-tick record, from the
 #     tick's record, the loop state after and before the tick and the physics state it started at.
+#   trace(loop, state, terms, ref, out) -> record: the per-tick record of a loop whose rollouts are
+#     differentiated (e.g. :func:`smooth_trace`), from the loop state before the tick, the dynamics
+#     terms, the references and the controller's output; exclusive with ``SimConfig.record``.
+#   remat: the tick under ``jax.checkpoint`` in reverse mode (its residuals recomputed instead of
+#     stored for the whole horizon; same values): True, or a name of ``jax.checkpoint_policies``
+#     (e.g. "checkpoint_dots": keep what that policy saves); False: stored.
 GainsAt = Callable[[Any, Array, Array], Gains]
 Recorder = Callable[[Any, LoopState, LoopState, Array, Array], Any]
+Trace = Callable[[Any, LoopState, Any, Any, Any], Any]
 
 
 class ClosedLoop:
@@ -65,10 +72,15 @@ class ClosedLoop:
     """
 
     def __init__(self, robot: Robot, schedule: Schedule, controller: Controller, cfg: SimConfig,
-                 gains_at: GainsAt | None = None, recorders: tuple[Recorder, ...] = ()):  # fmt: skip
+                 gains_at: GainsAt | None = None, recorders: tuple[Recorder, ...] = (), trace: Trace | None = None,
+                 remat: bool | str = False):  # fmt: skip
+        if trace is not None and cfg.record:
+            raise ValueError("a trace and SimConfig.record are exclusive (set record=False)")
+        if isinstance(remat, str) and not hasattr(jax.checkpoint_policies, remat):
+            raise ValueError(f"remat {remat!r} is not a policy of jax.checkpoint_policies")
         idx = robot.index
         self.robot, self.idx, self.schedule, self.controller, self.cfg = robot, idx, schedule, controller, cfg
-        self.gains_at, self.recorders = gains_at, tuple(recorders)
+        self.gains_at, self.recorders, self.trace, self.remat = gains_at, tuple(recorders), trace, remat
         self.physics_dt = float(robot.mj_model.opt.timestep)
         self.n_sub = physics.steps_per_tick(cfg.control_dt, self.physics_dt)
         self.n_ticks = int(round(cfg.duration / cfg.control_dt))
@@ -78,10 +90,10 @@ class ClosedLoop:
         # Bodies that must stay off the floor: all but the feet and the ankle links above them.
         feet_and_ankles = set(idx.foot_bodies.tolist()) | set(robot.mj_model.body_parentid[idx.foot_bodies].tolist())
         self.non_foot_bodies = np.array([b for b in range(1, robot.mj_model.nbody) if b not in feet_and_ankles])
-        # A loss trace (gain tuning) is computed in MJX: on 'jax' (gradients) or on 'warp' (the
-        # gradient-free searches' forward rollouts); 'auto' then means 'jax'.
+        # A traced loop (differentiated rollouts) is computed in MJX: on 'jax' (gradients) or on 'warp'
+        # (the gradient-free searches' forward rollouts); 'auto' then means 'jax'.
         requested = cfg.physics.backend
-        self.backend = physics.resolve_backend(requested, differentiable=cfg.loss_trace and requested != "warp")
+        self.backend = physics.resolve_backend(requested, differentiable=trace is not None and requested != "warp")
         if self.backend == "warp" and controller.config.contact_detection:
             raise ValueError(
                 "contact detection reads the simulator's contact forces, which the 'warp' backend does not "
@@ -115,7 +127,9 @@ class ClosedLoop:
         parts = (buf.tobytes(), repr(sched), repr(self.controller.config), repr(self.contact_set),
                  repr(self.controller.stack), repr(self.cfg))  # fmt: skip
         if self.gains_at is not None or self.recorders:  # a plain loop's key is as it always was
-            parts += (repr([_qualified_name(f) for f in (self.gains_at, *self.recorders)]),)
+            parts += (repr([None if f is None else _qualified_name(f) for f in (self.gains_at, *self.recorders)]),)
+        if self.trace is not None or self.remat:
+            parts += (repr([None if self.trace is None else _qualified_name(self.trace), self.remat]),)
         return hashlib.sha256(b"".join(p if isinstance(p, bytes) else p.encode() for p in parts)).hexdigest()
 
     # -- the controller side ------------------------------------------------------------------
@@ -175,12 +189,8 @@ class ClosedLoop:
                 qp_violation=out.qp_violation, push=push_force(push, t_now), s=terms.s, s_des=ref.s_des,
                 task_err=out.task_err,
             )  # fmt: skip
-        elif cfg.loss_trace:
-            record = LossTrace(
-                com=terms.W_p_CoM, com_ref=ref.com_pos, com_vel=terms.W_v_CoM, tau=out.tau,
-                support_xy=metrics_lib.support_corners(self.contact_set, out.contact_pos, out.contact_R)[:, :2],
-                com_height0=state.com0_height, foot_normal=out.contact_R[jnp.asarray(self.contact_set.feet), :, 2],
-            )  # fmt: skip
+        elif self.trace is not None:
+            record = self.trace(self, state, terms, ref, out)
         for recorder in self.recorders:
             record = recorder(record, new_state, state, qpos, qvel)
         return new_state, ctrl, record
@@ -260,13 +270,28 @@ def make_closed_loop(robot: Robot, schedule: Schedule, controller: Controller, c
     return ClosedLoop(robot, schedule, controller, cfg)
 
 
-def compose(loop: ClosedLoop, *, gains_at: GainsAt | None = None, recorder: Recorder | None = None) -> ClosedLoop:
+def compose(loop: ClosedLoop, *, gains_at: GainsAt | None = None, recorder: Recorder | None = None,
+            trace: Trace | None = None, remat: bool | str | None = None) -> ClosedLoop:  # fmt: skip
     """A copy of ``loop`` (same robot, schedule, controller, settings) whose gains argument goes
-    through ``gains_at`` (where given: it replaces the loop's) and whose per-tick record then goes
-    through ``recorder`` (where given: after the loop's own recorders)."""
+    through ``gains_at`` (where given: it replaces the loop's), whose per-tick record is ``trace``'s
+    (where given: it replaces the loop's) and then goes through ``recorder`` (where given: after the
+    loop's own recorders), with the tick's rematerialisation ``remat`` (where given)."""
     return ClosedLoop(loop.robot, loop.schedule, loop.controller, loop.cfg,
                       gains_at=loop.gains_at if gains_at is None else gains_at,
-                      recorders=loop.recorders + (() if recorder is None else (recorder,)))  # fmt: skip
+                      recorders=loop.recorders + (() if recorder is None else (recorder,)),
+                      trace=loop.trace if trace is None else trace,
+                      remat=loop.remat if remat is None else remat)  # fmt: skip
+
+
+def smooth_trace(loop: ClosedLoop, state: LoopState, terms, ref, out) -> LossTrace:
+    """The :class:`LossTrace` of a tick (a :data:`Trace`): smooth, differentiable quantities of the
+    losses of gain tuning and of the limit job's trajectory optimisation."""
+    cset = loop.contact_set
+    return LossTrace(
+        com=terms.W_p_CoM, com_ref=ref.com_pos, com_vel=terms.W_v_CoM, tau=out.tau,
+        support_xy=metrics_lib.support_corners(cset, out.contact_pos, out.contact_R)[:, :2],
+        com_height0=state.com0_height, foot_normal=out.contact_R[jnp.asarray(cset.feet), :, 2],
+    )  # fmt: skip
 
 
 def _qualified_name(fn) -> str:

@@ -90,8 +90,8 @@ def chunk(loop, plant: mjx.Model, gains: Gains, push: Push, carry, k0, n_ticks: 
                 state = loop.observe(state, *slots)
         return (d_new, state, finite), record
 
-    if loop.cfg.checkpoint:
-        policy = loop.cfg.checkpoint
+    if loop.remat:
+        policy = loop.remat
         tick = jax.checkpoint(
             tick, policy=getattr(jax.checkpoint_policies, policy) if isinstance(policy, str) else None
         )

@@ -49,12 +49,9 @@ class SimConfig:
       control_dt: controller period (s); the physics step comes from the model (1 ms).
       duration: simulated time (s).
       push_body: body the pushes act on (at its CoM, world-axes force).
-      record: keep per-tick trajectories (False in large sweeps: metrics only).
-      loss_trace: per tick, emit a small :class:`LossTrace` (smooth, differentiable losses; gain
-        tuning) instead of a Trajectory; exclusive with ``record``.
-      checkpoint: wrap the tick in ``jax.checkpoint`` (reverse mode: the residuals of one tick are
-        recomputed instead of stored for the whole horizon; same values); a name of
-        ``jax.checkpoint_policies`` (e.g. "checkpoint_dots") keeps what that policy saves.
+      record: keep per-tick trajectories (False in large sweeps: metrics only). A loop that
+        differentiates its rollouts composes its own per-tick record instead
+        (:func:`wbc_jax.sim.loop.compose`: ``trace``, ``remat``).
       physics: the physics backend and its solver settings.
       perturb_plant: the plant's friction and masses differ per environment (sweeps); False: the
         nominal model is simulated.
@@ -73,8 +70,6 @@ class SimConfig:
     duration: float = 10.0
     push_body: str = "chest"
     record: bool = True
-    loss_trace: bool = False
-    checkpoint: bool | str = False
     physics: physics.PhysicsConfig = physics.PhysicsConfig()
     perturb_plant: bool = False
     matmul_precision: str = "highest"
@@ -89,10 +84,6 @@ class SimConfig:
                 or not (math.isfinite(value) and value > 0)
             ):
                 raise ValueError(f"{name} must be a positive finite number of seconds, got {value!r}")
-        if self.loss_trace and self.record:
-            raise ValueError("loss_trace and record are exclusive (set record=False)")
-        if isinstance(self.checkpoint, str) and not hasattr(jax.checkpoint_policies, self.checkpoint):
-            raise ValueError(f"checkpoint {self.checkpoint!r} is not a policy of jax.checkpoint_policies")
         if self.matmul_precision not in MATMUL_PRECISIONS:
             raise ValueError(f"unknown matmul_precision {self.matmul_precision!r}; valid: {list(MATMUL_PRECISIONS)}")
         if self.host_loop not in HOST_LOOPS:
@@ -240,7 +231,8 @@ class Trajectory:
 
 @pytree_dataclass
 class LossTrace:
-    """Per-tick quantities for smooth losses (time-major under scan), when ``SimConfig.loss_trace``.
+    """Per-tick quantities for smooth losses (time-major under scan): the record of a loop composed
+    with ``trace=``:func:`wbc_jax.sim.loop.smooth_trace`.
 
     com (T, 3), com_ref (T, 3), com_vel (T, 3): CoM, its reference, its velocity (world);
     tau (T, n): applied torques; support_xy (T, F, 2): xy of the F support corners (the CoP

@@ -34,7 +34,7 @@ from jax.flatten_util import ravel_pytree
 from wbc_jax.sim import runner
 from wbc_jax.tuning import config, objectives, store
 from wbc_jax.tuning import problem as tp
-from wbc_jax.tuning.tune import _forward_backend, at_time
+from wbc_jax.tuning.tune import at_time, forward_backend
 
 KINDS = ("cmaes", "random")
 STREAMS = {"cmaes": 1, "random": 2}  # tuning_problem.batch_rng streams
@@ -146,7 +146,7 @@ def search(problem: tp.Problem, kind: str, out, *, budget: dict, progress: bool 
     b = tc.candidate_batch
     per_gen = (tc.population + 1) * b * problem.steps_per_rollout
     if evaluate_fn is None:
-        fwd = tp.with_backend(problem, _forward_backend(tc))
+        fwd = tp.with_backend(problem, forward_backend(tc))
         evaluate = jax.jit(objectives.make_population_objective(fwd, tc.population + 1, b, mesh))
     else:
         evaluate = evaluate_fn

@@ -14,7 +14,8 @@ import numpy as np
 from wbc_jax.core import constants
 from wbc_jax.core.assets import asset
 from wbc_jax.core.options import check_input_file, check_options, option
-from wbc_jax.jobs.sweep_config import MAX_GRID_AXIS, ONE_FOOT_WINDOW, _azimuths, _grid, _show_grid
+from wbc_jax.jobs.grids import MAX_GRID_AXIS, azimuths, magnitude_grid, show_magnitude_grid
+from wbc_jax.jobs.sweep_config import ONE_FOOT_WINDOW
 from wbc_jax.robot import model
 from wbc_jax.sim import physics
 
@@ -260,12 +261,12 @@ class HeldoutConfig:
                                    "'critical' (the hand-set row: assets/gains/com_critical_100.json) or "
                                    "NAME=FILE (a gains file or a gain-schedule file); wbc-jax tune adds its own",
                                    nargs="*")  # fmt: skip
-    grid_magnitudes: tuple[float, ...] = option(_grid((10.0, 400.0, 64)), "held-out grid of chest push forces [N]: "
-                                                "LO HI N", nargs=3, metavar=("LO", "HI", "N"), parse=_grid,
-                                                show=_show_grid, ge=0.0, le=constants.MAX_PUSH_N, unit="N",
+    grid_magnitudes: tuple[float, ...] = option(magnitude_grid((10.0, 400.0, 64)), "held-out grid of chest push forces [N]: "
+                                                "LO HI N", nargs=3, metavar=("LO", "HI", "N"), parse=magnitude_grid,
+                                                show=show_magnitude_grid, ge=0.0, le=constants.MAX_PUSH_N, unit="N",
                                                 nonempty=True)  # fmt: skip
-    grid_directions: tuple[float, ...] = option(_azimuths(32), "held-out push azimuths over 360 deg",
-                                                metavar="N", parse=_azimuths, show=len, ge=-360.0, le=360.0,
+    grid_directions: tuple[float, ...] = option(azimuths(32), "held-out push azimuths over 360 deg",
+                                                metavar="N", parse=azimuths, show=len, ge=-360.0, le=360.0,
                                                 unit="deg", nonempty=True)  # fmt: skip
     grid_duration: float = option(
         0.1, "held-out push length [s]", ge=constants.MIN_PUSH_DURATION_S, le=constants.MAX_PUSH_DURATION_S, unit="s"

@@ -47,12 +47,12 @@ def robust_mean_gradient(grads, clip_factor: float):
     Returns (mean gradient (the leaves without the batch axis; NaN if no rollout is finite, so
     that the optimiser's guard skips the step), stats {"nonfinite_envs": (), "clipped_envs": (),
     "env_grad_norm_median": ()})."""
-    mean, stats, _ = _robust_rows(rows(grads), clip_factor)
+    mean, stats, _ = robust_rows(rows(grads), clip_factor)
     unravel = ravel_pytree(jax.tree_util.tree_map(lambda x: x[0], grads))[1]
     return unravel(mean), stats
 
 
-def _robust_rows(flat: jax.Array, clip_factor: float):
+def robust_rows(flat: jax.Array, clip_factor: float):
     """(mean (D,), stats, clipped finite rows (B, D) with zeros for the non-finite ones, finite (B,))."""
     B = flat.shape[0]
     finite = jnp.all(jnp.isfinite(flat), axis=1)  # (B,)
@@ -120,7 +120,7 @@ def interpolate(fo_rows: jax.Array, fo_ok: jax.Array, zo_rows: jax.Array, zo_ok:
 def combine(kind: str, values: jax.Array, grads, eps, *, sigma: float, clip_factor: float, bias_factor: float):
     """The step's gradient (a pytree like one row of ``grads``) and its stats, by estimator ``kind``."""
     unravel = ravel_pytree(jax.tree_util.tree_map(lambda x: x[0], grads))[1]
-    mean, stats, (kept, finite) = _robust_rows(rows(grads), clip_factor)
+    mean, stats, (kept, finite) = robust_rows(rows(grads), clip_factor)
     stats = {**stats, "alpha": jnp.ones(()), "fo_var": jnp.zeros(()), "zo_var": jnp.zeros(()),
              "bias_norm": jnp.zeros(())}  # fmt: skip
     if kind == "interpolated":

@@ -31,7 +31,7 @@ import numpy as np
 from wbc_jax.control.controller import ControllerConfig
 from wbc_jax.control.gains import Gains, default_gains, load_gains
 from wbc_jax.core import constants, io, provenance
-from wbc_jax.jobs import runs, sweep, sweep_config, sweep_table
+from wbc_jax.jobs import grids, runs, sweep, sweep_config, sweep_table
 from wbc_jax.report import tuning_plots
 from wbc_jax.report.tuning_plots import survival_vs_loss
 from wbc_jax.sim import metrics as metrics_lib
@@ -192,7 +192,7 @@ def heldout(sets: dict, hc: HeldoutConfig, out, *, progress: bool = True, robot_
         controls = [sets[n][0] for n in names]
         stacked = _stack(controls, dtype)
         tag = hashlib.sha256(json.dumps([dataclasses.asdict(hc), [store.controls_dict(c) for c in controls], reg],
-                                        sort_keys=True, default=io._jsonable).encode()).hexdigest()[:10]  # fmt: skip
+                                        sort_keys=True, default=io.jsonable).encode()).hexdigest()[:10]  # fmt: skip
         # Stand: the grid and the variations, one program (per-env plant: friction varies).
         cfg = sweep_config.SweepConfig(magnitudes=tuple(hc.grid_magnitudes), directions=tuple(hc.grid_directions),
                                        push_duration=hc.grid_duration, push_onset=hc.grid_onset,
@@ -201,7 +201,7 @@ def heldout(sets: dict, hc: HeldoutConfig, out, *, progress: bool = True, robot_
         nominal = _nominal(controls[0], dtype)
         st = _with_kind(sweep.make_setup(cfg, nominal, robot_name=robot_name, controller=_controller(reg, hc)), kind)
         robot = st.robot
-        vdirs = sweep_config._azimuths(hc.variation_directions)
+        vdirs = grids.azimuths(hc.variation_directions)
         blocks = [("grid", "chest", hc.grid_duration, 1.0, impulses, np.asarray(hc.grid_directions))]
         vimp = np.linspace(impulses[0], impulses[-1], hc.variation_magnitudes)
         for v in hc.variations:

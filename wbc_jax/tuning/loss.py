@@ -65,10 +65,11 @@ def tune_trace(record: LossTrace, new_state, state, qpos: Array, qvel: Array) ->
     return TuneTrace(base=record, foot_normal=record.foot_normal, qp_infeasible=infeasible)
 
 
-def tuning_loop(loop: loop_lib.ClosedLoop) -> loop_lib.ClosedLoop:
-    """The closed loop whose per-tick record is a :class:`TuneTrace` (with ``cfg.loss_trace``;
-    otherwise the loop as it is)."""
-    return loop_lib.compose(loop, recorder=tune_trace) if loop.cfg.loss_trace else loop
+def tuning_loop(loop: loop_lib.ClosedLoop, remat: bool | str = False) -> loop_lib.ClosedLoop:
+    """The closed loop (built with ``SimConfig.record`` False) whose per-tick record is a
+    :class:`TuneTrace`, its tick rematerialised in reverse mode by ``remat``
+    (:data:`wbc_jax.sim.loop.Trace`)."""
+    return loop_lib.compose(loop, trace=loop_lib.smooth_trace, recorder=tune_trace, remat=remat)
 
 
 TERMS = ("capture", "tilt", "slip", "settle", "height", "com", "effort", "saturation")

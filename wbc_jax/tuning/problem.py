@@ -203,7 +203,7 @@ class Problem:
 
 
 def checkpoint_setting(name: str):
-    """SimConfig.checkpoint of a ``--checkpoint`` choice."""
+    """The tuning loop's ``remat`` (:func:`wbc_jax.sim.loop.compose`) of a ``--checkpoint`` choice."""
     return {"tick": True, "none": False, "dots": "checkpoint_dots"}[name]
 
 
@@ -213,7 +213,7 @@ def make_problem(tc: TuneConfig, lc: tuning_loss.LossConfig | None = None, *, ro
     """Check the inputs (gains file inside the bounds, bodies) and build the tuning closed loop
     (stand task, perturbed plant, a :class:`~wbc_jax.tuning.loss.TuneTrace` per tick, the gain
     schedule evaluated at each tick with ``parameterisation == "scheduled"``). ``horizon``: seconds
-    (default ``tc.horizon``); ``checkpoint``: a SimConfig.checkpoint (default from
+    (default ``tc.horizon``); ``checkpoint``: the loop's ``remat`` (default from
     ``tc.checkpoint``); ``backend``: the physics engine (gradients need ``jax``)."""
     lc = tuning_loss.LossConfig() if lc is None else lc
     dtype = scenario.float_dtype()
@@ -232,16 +232,14 @@ def make_problem(tc: TuneConfig, lc: tuning_loss.LossConfig | None = None, *, ro
         tuning_params.check_in_bounds(init, reg0, bounds, source=f"--init-gains {tc.init_gains}")
     table = envelope_table(tc, robot)
     sim = SimConfig(
-        record=False, loss_trace=True,
-        checkpoint=checkpoint_setting(tc.checkpoint) if checkpoint is None else checkpoint,
-        push_body=tc.train_bodies[0], perturb_plant=True,
+        record=False, push_body=tc.train_bodies[0], perturb_plant=True,
         physics=physics.PhysicsConfig(backend=backend, solver_iterations=tc.solver_iterations,
                                       ls_iterations=tc.ls_iterations),
     )  # fmt: skip
     st = scenario.setup("stand", duration=tc.horizon if horizon is None else horizon, sim=sim, gains=base,
                         controller=ControllerConfig(angular_weight_soft=tc.angular_weight_soft),
                         scene=scenario.load_scene(robot_name, tc.tasks))  # fmt: skip
-    loop = tuning_loss.tuning_loop(st.loop)
+    loop = tuning_loss.tuning_loop(st.loop, checkpoint_setting(tc.checkpoint) if checkpoint is None else checkpoint)
     if tc.parameterisation == "scheduled":
         loop = gain_schedule.scheduled_loop(loop)
     iterations = tc.solver_iterations or int(robot.mj_model.opt.iterations)

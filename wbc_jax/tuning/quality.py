@@ -129,13 +129,13 @@ def measure(problem: tp.Problem, out, *, mesh=None, progress: bool = True, step=
     v_sm, g_sm, e_sm = program_rows(perturbed=True) if B % 2 == 0 else (None, None, None)
 
     estimates, per_batch_means = {}, {}
-    fo_batches = [np.asarray(estimators._robust_rows(jnp.asarray(g), tc.env_clip)[0]) for g in g_fo]
+    fo_batches = [np.asarray(estimators.robust_rows(jnp.asarray(g), tc.env_clip)[0]) for g in g_fo]
     per_batch_means["first-order"] = np.stack(fo_batches)
     estimates["first-order"] = np.mean(fo_batches, 0)
     if g_sm is not None:
         sm_batches, ip_batches, alphas = [], [], []
         for v, g, e in zip(v_sm, g_sm, e_sm):
-            sm, _, (kept, ok) = estimators._robust_rows(jnp.asarray(g), tc.env_clip)
+            sm, _, (kept, ok) = estimators.robust_rows(jnp.asarray(g), tc.env_clip)
             zo, zo_ok = estimators.zeroth_order_rows(jnp.asarray(v), jnp.asarray(e), sigma)
             mix, stats = estimators.interpolate(kept, ok, zo, zo_ok, tc.bias_factor)
             sm_batches.append(np.asarray(sm))
@@ -148,7 +148,7 @@ def measure(problem: tp.Problem, out, *, mesh=None, progress: bool = True, step=
         if progress:
             print(json.dumps({"quality": "zeroth-order", "candidates": 2 * M + 1, "pushes": N}), flush=True)
         P = 2 * M + 1
-        fwd = tp.with_backend(problem, tuning._forward_backend(tc))
+        fwd = tp.with_backend(problem, tuning.forward_backend(tc))
         pop = jax.jit(objectives.make_population_objective(fwd, P, N, mesh))
         e = np.asarray(jax.random.normal(jax.random.key(tc.seed * 1000 + 13), (M, D), flat0.dtype))
         cands = np.concatenate([np.asarray(flat0)[None], np.asarray(flat0) + sigma * e, np.asarray(flat0) - sigma * e])

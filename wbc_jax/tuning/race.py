@@ -96,9 +96,9 @@ def write(out, problem: tp.Problem, rep: dict, index: dict, histories: dict) -> 
     pts = points(rep, index)
     info_path = out / "gradient" / "train_info.json"
     info = json.loads(info_path.read_text()) if info_path.exists() else {}
-    from wbc_jax.tuning.tune import _forward_backend
+    from wbc_jax.tuning.tune import forward_backend
 
-    search = _forward_backend(tc)  # the engine the searches ran on (--search-backend auto resolved)
+    search = forward_backend(tc)  # the engine the searches ran on (--search-backend auto resolved)
     engines = {"gradient": "jax", "cmaes": search, "random": search, "hybrid": f"{search}, then jax"}
     result = {
         "parameterisation": tc.parameterisation, "parameters": info.get("parameters"), "budget_s": tc.budget_s,

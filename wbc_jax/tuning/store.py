@@ -81,7 +81,7 @@ def write_once(path: pathlib.Path, data: dict) -> bool:
     """Write JSON ``data`` to ``path`` unless the file is there; the same contents again are accepted
     (returns False), other contents are an error: a campaign never overwrites a result."""
     path = pathlib.Path(path)
-    blob = json.loads(json.dumps(data, default=io._jsonable))
+    blob = json.loads(json.dumps(data, default=io.jsonable))
     if path.exists():
         try:
             old = json.loads(path.read_text())

@@ -95,7 +95,7 @@ class GradientStep:
             raise ValueError(f"--batch {tc.batch} must be a multiple of the {n_dev} devices")
         self.windowed = tc.window_s > 0
         if self.windowed:
-            self.fwd = tp.with_backend(problem, _forward_backend(tc))
+            self.fwd = tp.with_backend(problem, forward_backend(tc))
             self.rollouts = tc.distinct_rollouts // tc.windows
             if self.rollouts % n_dev:
                 raise ValueError(
@@ -176,7 +176,7 @@ class GradientStep:
         return params, opt_state, row
 
 
-def _forward_backend(tc: TuneConfig) -> str:
+def forward_backend(tc: TuneConfig) -> str:
     """The engine of forward rollouts: ``--search-backend`` resolved (auto: warp where available)."""
     from wbc_jax.sim import physics
 

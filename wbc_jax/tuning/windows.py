@@ -134,7 +134,7 @@ def make_window_grads(problem: tp.Problem, mesh=None):
         if reg:
             state = state.replace(controller=state.controller.replace(**reg))
         seed = w.scen.friction + sum(jnp.sum(x) for x in jax.tree_util.tree_leaves((controls, reg)))
-        carry = tp._touch((d.replace(qvel=w.qvel.astype(d.qpos.dtype)), state, jnp.ones((), bool)), seed)
+        carry = mjx_loop.touch((d.replace(qvel=w.qvel.astype(d.qpos.dtype)), state, jnp.ones((), bool)), seed)
         (d, state, ok), trace = mjx_loop.chunk(loop, plant, controls, w.scen.push, carry, w.tick, W)
         terms = tuning_loss.loss_terms(trace, lc, None, loop.cfg.control_dt, reference=(w.normal0, w.support0))
         terms["terminal"] = tuning_loss.terminal_cost(trace, lc)

@@ -1,0 +1,80 @@
+"""Issue 44: one module per command of the command line, each with one shape (a Command: its
+config, ``run(cfg, progress)``), registered once; the CLI loops over the registry and each job's
+config is checked once. No JAX compile: the jobs are stopped right after their check."""
+
+import ast
+import dataclasses
+import inspect
+import pathlib
+
+import pytest
+
+from wbc_jax import cli, commands
+from wbc_jax.commands import Command, registry
+from wbc_jax.jobs import balance, envelope, limit, sweep_config
+from wbc_jax.robot import model
+
+COMMANDS_DIR = pathlib.Path(commands.__file__).parent
+
+
+def test_the_registry_is_the_command_line():
+    """Every CLI command is in the registry and every registry entry is a CLI command; one module per
+    command, named after it, and no command module left out of the registry."""
+    parser = cli.build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command")
+    assert list(sub.choices) == list(registry())
+    modules = sorted(p.stem for p in COMMANDS_DIR.glob("*.py") if p.stem != "__init__")
+    assert modules == sorted(commands.MODULES) == sorted(n.replace("-", "_") for n in registry())
+
+
+@pytest.mark.parametrize("name", list(commands.MODULES))
+def test_every_command_has_the_one_shape(name):
+    import importlib
+
+    module = importlib.import_module(f"wbc_jax.commands.{name}")
+    command = module.COMMAND
+    assert isinstance(command, Command) and command.name.replace("-", "_") == name
+    assert registry()[command.name] is command
+    assert list(inspect.signature(command.run).parameters) == ["cfg", "progress"]
+    config = command.default_config()
+    assert dataclasses.is_dataclass(config) and callable(config.check)
+    for shared, skip in command.shared:
+        assert set(skip) <= {f.name for f in dataclasses.fields(shared())}
+    assert (command.combine is None) == (not command.shared)
+
+
+def test_the_cli_names_no_command():
+    """The command line loops over the registry: no command's name appears in cli.py."""
+    tree = ast.parse(pathlib.Path(cli.__file__).read_text())
+    names = {n.value for n in ast.walk(tree) if isinstance(n, ast.Constant) and isinstance(n.value, str)}
+    assert not names & set(registry()), sorted(names & set(registry()))
+
+
+# command -> (its config class, what to stop right after the check: (module, attribute))
+STOPS = {
+    "balance": (balance.BalanceConfig, (balance, "make_setup")),
+    "push-sweep": (sweep_config.SweepConfig, (model, "load_robot")),
+    "envelope": (envelope.EnvelopeConfig, (model, "load_robot")),
+    "limit": (limit.LimitConfig, (model, "load_robot")),
+}
+
+
+@pytest.mark.parametrize("name", sorted(STOPS))
+def test_each_job_checks_its_config_once(name, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    config_class, (module, attribute) = STOPS[name]
+    calls = []
+    check = config_class.check
+
+    def counted(self):
+        calls.append(type(self).__name__)
+        return check(self)
+
+    def stop(*args, **kwargs):
+        raise ValueError("stopped after the check")
+
+    monkeypatch.setattr(config_class, "check", counted)
+    monkeypatch.setattr(module, attribute, stop)
+    assert cli.main([name, "--quiet", "--out", str(tmp_path / "out")]) == 2
+    assert "stopped after the check" in capsys.readouterr().err
+    assert calls == [config_class.__name__], calls

@@ -1,0 +1,35 @@
+"""``wbc-jax tune``: gain tuning in phases (:mod:`wbc_jax.tuning.campaign`). It holds out its gain
+sets with the held-out flags (``wbc-jax heldout``'s), whose tasks and soft-QP weight are the run's."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+from wbc_jax.commands import Command
+from wbc_jax.tuning import config
+
+
+@dataclasses.dataclass(frozen=True)
+class TuneJob:
+    """The tune command's two configs (each checked when it is made)."""
+
+    tune: config.TuneConfig
+    heldout: config.HeldoutConfig
+
+
+def combine(tc: config.TuneConfig, hc: config.HeldoutConfig) -> TuneJob:
+    return TuneJob(tc, dataclasses.replace(hc, tasks=tc.tasks, angular_weight_soft=tc.angular_weight_soft))
+
+
+def run(cfg: TuneJob, progress: bool) -> dict:
+    from wbc_jax.tuning import campaign  # (imported when run: the flags need only the config)
+
+    return json.loads(json.dumps(campaign.run(cfg.tune, cfg.heldout, progress=progress), default=str))
+
+
+COMMAND = Command(
+    "tune", "gain tuning in phases: gradient, CMA-ES, random search, held-out evaluation, the race's report",
+    config.default_config, run, resumable=True,
+    shared=((config.heldout_default_config, ("out", "tasks", "angular_weight_soft")),), combine=combine,
+)  # fmt: skip
