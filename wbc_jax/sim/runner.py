@@ -60,8 +60,8 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> pathlib.P
     return path
 
 
-def compile_ahead(fn, *args):
-    """``fn.lower(*args).compile()`` (``fn`` a jitted function) with JAX's tracing caches cleared first.
+def lower_fresh(fn, *args):
+    """``fn.lower(*args)`` (``fn`` a jitted function) with JAX's tracing caches cleared first.
 
     The persistent cache is keyed by the lowered program's text, and that text depends on what was
     traced before in the process: inner jitted functions cached by an earlier trace change how the
@@ -70,7 +70,13 @@ def compile_ahead(fn, *args):
     200 s compile ran again). Cleared, the text and the key depend on the program alone. Executables
     compiled ahead of time are kept; jitted functions re-trace on their next call."""
     jax.clear_caches()
-    return fn.lower(*args).compile()
+    return fn.lower(*args)
+
+
+def compile_ahead(fn, *args):
+    """``fn`` compiled ahead of time for ``args``, keyed in the persistent cache by the program alone
+    (:func:`lower_fresh`)."""
+    return lower_fresh(fn, *args).compile()
 
 
 def batch_devices() -> list:
