@@ -213,8 +213,9 @@ def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
         t0 = time.perf_counter()
 
         def host(times: dict):  # C MuJoCo's threads, driven from one host thread (compiling on a first call)
+            start = time.perf_counter()  # not t0: the thread's own start is thread_start_s
             out = host_loop.run_host(loop, padded, setup_.qpos0, setup_.dtype, on_tick=on_tick, feedforward=ff)
-            times.update(compile_s=out[2], wait_s=time.perf_counter() - t0 - out[2])
+            times.update(compile_s=out[2], wait_s=time.perf_counter() - start - out[2])
             return out
 
         label = f"{device_label(jax.devices('cpu')[0])} (C MuJoCo)"
