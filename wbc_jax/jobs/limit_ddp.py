@@ -213,6 +213,8 @@ class CrossCheck:
                 placement = self.pin_data.oMf[frame]
                 contact.addContact(f"{foot}_contact", croc.ContactModel6D(
                     self.state, frame, placement, pin.LOCAL, nu, np.array([0.0, 0.5 / self.dt])))  # fmt: skip
+                if terminal:  # no torques at the terminal node: its contact forces are no decision
+                    continue
                 cone = croc.WrenchCone(np.eye(3), self.params.mu, self.box, 4, True, self.params.fz_min)
                 residual = croc.ResidualModelContactWrenchCone(self.state, frame, cone, nu)
                 barrier = croc.ActivationModelQuadraticBarrier(croc.ActivationBounds(cone.lb, cone.ub))
