@@ -150,6 +150,19 @@ def _joint_limits(m, names) -> tuple[np.ndarray, np.ndarray, float]:
     ids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n) for n in names]
     if min(ids) < 0:
         raise ValueError(f"the model lacks a hip joint of {names}")
+    home = m.key("home").qpos[m.jnt_qposadr[ids]]
+    return m.jnt_range[ids], home, float(min(joint_torque_limits(m, names)))
+
+
+def joint_torque_limits(m, names) -> np.ndarray:
+    """(k,) N m: per joint of ``names``, the largest torque the plant applies: its actuator's
+    ctrlrange times gear (0 without one), capped by the joint's actuatorfrcrange where limited
+    (MuJoCo clamps the joint's actuator force to it)."""
+    import mujoco
+
+    ids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n) for n in names]
+    if min(ids) < 0:
+        raise ValueError(f"the model lacks a joint of {list(names)}")
     torque = []
     for j in ids:
         act = [a for a in range(m.nu) if m.actuator_trnid[a, 0] == j]
@@ -157,8 +170,7 @@ def _joint_limits(m, names) -> tuple[np.ndarray, np.ndarray, float]:
         if m.jnt_actfrclimited[j]:
             limit = min(limit, m.jnt_actfrcrange[j, 1])
         torque.append(limit)
-    home = m.key("home").qpos[m.jnt_qposadr[ids]]
-    return m.jnt_range[ids], home, float(min(torque))
+    return np.array(torque, float)
 
 
 def flywheel_model(robot) -> Flywheel:
