@@ -39,7 +39,7 @@ import numpy as np
 
 from wbc_jax.core import constants
 from wbc_jax.core.options import check_options, option
-from wbc_jax.jobs import limit, limit_rounds, sweep_config
+from wbc_jax.jobs import grids, limit, limit_rounds
 from wbc_jax.robot import bounds, contacts, model
 from wbc_jax.sim import host_loop, physics
 
@@ -60,6 +60,9 @@ def _tsid_baseline():
     """benchmarks/tsid_baseline.py (not a package; JAX-free), loaded once by file path."""
     module = sys.modules.get("tsid_baseline")
     if module is None:
+        if not TSID_BASELINE.is_file():
+            raise ValueError(f"the crocoddyl cross-check builds its Pinocchio model with {TSID_BASELINE}, which an "
+                             "installed wheel lacks: run it from a checkout of the repository")  # fmt: skip
         spec = importlib.util.spec_from_file_location("tsid_baseline", TSID_BASELINE)
         module = importlib.util.module_from_spec(spec)
         sys.modules["tsid_baseline"] = module
@@ -73,7 +76,7 @@ class DdpConfig:
 
     directions: tuple[float, ...] = option(
         (0.0, 90.0, 180.0, 270.0), "number of push azimuths over 360 deg (0 = forward, 90 = left)",
-        metavar="N", parse=sweep_config._azimuths, show=len, ge=-360.0, le=360.0, unit="deg", nonempty=True,
+        metavar="N", parse=grids.azimuths, show=len, ge=-360.0, le=360.0, unit="deg", nonempty=True,
     )  # fmt: skip
     body: str = option("chest", "pushed body", names=model.pushable_bodies)
     push_duration: float = option(
@@ -160,7 +163,7 @@ class CrossCheck:
         qpos0 = np.asarray(st.qpos0, float)[None].repeat(B, 0)
         cast = lambda x: np.asarray(x, st.dtype if np.asarray(x).dtype.kind == "f" else None)  # noqa: E731
         gains, push = jax.tree_util.tree_map(cast, scen.gains), jax.tree_util.tree_map(cast, scen.push)
-        fns, _ = host_loop._host_programs(loop, gains, cast(qpos0), push)
+        fns, _ = host_loop.host_programs(loop, gains, cast(qpos0), push)
         state = fns["init"](cast(qpos0))
         host = physics.HostBatch(host_loop.host_models(loop, scen), qpos0, 1)
         try:

@@ -86,7 +86,7 @@ def run_host(loop, scen: Scenario, qpos0: np.ndarray, dtype, *, on_tick=None, th
     gains = [take(scen.gains, part) for part in parts]
     push = [take(scen.push, part) for part in parts]
     ff = [None if feedforward is None else take(feedforward, part) for part in parts]
-    fns, compile_s = _host_programs(loop, gains[0], cast(qpos[parts[0]]), push[0], ff[0])
+    fns, compile_s = host_programs(loop, gains[0], cast(qpos[parts[0]]), push[0], ff[0])
     states = [fns["init"](cast(qpos[part])) for part in parts]
     cores = threads or os.cpu_count() or 1
     hosts = [physics.HostBatch(models[part], qpos[part], max(1, cores - 1) if pipelined else cores)
@@ -160,7 +160,7 @@ def control_host(loop, gains, state, qpos, qvel, k, physics_ok, push, feedforwar
     return state, ctrl, record, loop.step_push_forces(push, k).astype(ctrl.dtype), loop.push_bodies(push)
 
 
-def _host_programs(loop, gains, qpos, push, ff=None):
+def host_programs(loop, gains, qpos, push, ff=None):
     """The compiled, vmapped init, control and measure of the host loop for this batch shape
     (compiled once per loop, shape and feedforward length, kept on disk by :mod:`wbc_jax.sim.executables`):
     (programs, seconds spent compiling or loading them now)."""
