@@ -47,10 +47,18 @@ _LONGEST_FIRST = ["test_tune", "04_gain_tuning-run_tuning", "test_distributed", 
                   "02_balancing", "03_push_recovery", "test_cli", "test_baseline_cpu", "01_dynamics"]  # fmt: skip
 
 
+# Slow tests that share no module fixture and each take 20+ minutes on the loaded 2-core machine (a whole `tune` race
+# in a subprocess): each parametrisation is a unit of its own and they start first, side by side on the two workers,
+# so that `.ci/nightly slow` does not end with them run one after the other on one worker.
+_OWN_UNITS_FIRST = ["test_race_pipeline_end_to_end"]
+
+
 def _work_unit(item) -> str:
     module = item.module.__name__.rsplit(".", 1)[-1]
     if module == "test_notebooks" and hasattr(item, "callspec"):
         return item.callspec.id  # the notebook's name
+    if getattr(item, "originalname", "") in _OWN_UNITS_FIRST:
+        return item.name  # the test with its parameters' id
     return module
 
 
@@ -59,7 +67,12 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         item.add_marker(pytest.mark.xdist_group(_work_unit(item)))
     rank = {name: k for k, name in enumerate(_LONGEST_FIRST)}
-    items.sort(key=lambda item: rank.get(_work_unit(item), len(rank)))  # stable: file order otherwise
+    rank.update({name: k - len(_OWN_UNITS_FIRST) for k, name in enumerate(_OWN_UNITS_FIRST)})
+
+    def _rank(item) -> int:
+        return rank.get(getattr(item, "originalname", ""), rank.get(_work_unit(item), len(rank)))
+
+    items.sort(key=_rank)  # stable: file order otherwise
     if any(d.platform == "gpu" for d in jax.devices()):
         return
     skip = pytest.mark.skip(reason="needs a GPU")
