@@ -40,7 +40,7 @@ NAMED_POINTS = {
 }
 
 
-def _check_name(kind: str, name: str, valid: list[str]) -> None:
+def check_name(kind: str, name: str, valid: list[str]) -> None:
     if name not in valid:
         plural = "bodies" if kind == "body" else f"{kind}s"
         raise ValueError(f"unknown {kind} {name!r}; valid {plural}: {sorted(valid)}")
@@ -78,7 +78,7 @@ def load_mj_model(robot: str = "icub", *, visual: bool = False) -> mujoco.MjMode
     Raises:
       ValueError: unknown robot name. FileNotFoundError: missing model file.
     """
-    _check_name("robot", robot, list(ROBOTS))
+    check_name("robot", robot, list(ROBOTS))
     path = ROBOTS[robot]
     if not path.exists():
         raise FileNotFoundError(
@@ -145,12 +145,12 @@ class RobotIndex:
 
     def site_id(self, name: str) -> int:
         """Site id by name; raises ValueError listing the valid names."""
-        _check_name("site", name, list(self.site_names))
+        check_name("site", name, list(self.site_names))
         return self.site_names.index(name)
 
     def body_id(self, name: str) -> int:
         """Body id by name; raises ValueError listing the valid names."""
-        _check_name("body", name, list(self.body_names))
+        check_name("body", name, list(self.body_names))
         return self.body_names.index(name)
 
     @property
@@ -163,7 +163,7 @@ class RobotIndex:
         if name in self.body_names and name not in self.pushable_bodies:
             raise ValueError(f"cannot push body {name!r} (the world does not move); pushable bodies: "
                              f"{sorted(self.pushable_bodies)}")  # fmt: skip
-        _check_name("body", name, list(self.pushable_bodies))
+        check_name("body", name, list(self.pushable_bodies))
         return self.body_names.index(name)
 
 
@@ -185,7 +185,7 @@ def build_index(m: mujoco.MjModel, robot: str = "icub", joints=ICUB_JOINTS) -> R
     if len(set(joints)) != len(joints):
         raise ValueError(f"duplicate joint names in {joints}")
     for name in joints:
-        _check_name("joint", name, hinge_names)
+        check_name("joint", name, hinge_names)
     jid = np.array([joint_names.index(name) for name in joints])
     act_joint = {int(m.actuator_trnid[a, 0]): a for a in range(m.nu)}
     missing = [joints[k] for k, j in enumerate(jid) if j not in act_joint]
@@ -193,7 +193,7 @@ def build_index(m: mujoco.MjModel, robot: str = "icub", joints=ICUB_JOINTS) -> R
         raise ValueError(f"joints without a motor: {missing}")
     site_names = tuple(_names(m, mujoco.mjtObj.mjOBJ_SITE, m.nsite))
     for name in FEET:
-        _check_name("site", name, list(site_names))
+        check_name("site", name, list(site_names))
     foot_sites = np.array([site_names.index(s) for s in FEET])
     foot_bodies = m.site_bodyid[foot_sites].copy()
     geom_names = _names(m, mujoco.mjtObj.mjOBJ_GEOM, m.ngeom)
