@@ -40,8 +40,8 @@ def pytest_configure(config):
 # compilation cache: test_distributed 199, test_contacts 171, test_rollout 149, test_baseline_cpu 113, test_viz 92,
 # test_dynamics 86, test_forces 79, test_tune 76, test_controller 70, test_sweep 61, test_cli 50, before the MJX and
 # hand-on-table loops went nightly). test_rollout and test_baseline_cpu share a compiled loop: far apart, so that
-# one compiles it and the other loads it. With `-m slow`, test_tune's closed-loop gradient check and notebook 04's
-# pipeline compile on the two workers side by side.
+# one compiles it and the other loads it. With `-m slow`, the race's end-to-end runs start first (_OWN_UNITS_FIRST),
+# then test_tune's closed-loop gradient check and notebook 04's pipeline.
 _LONGEST_FIRST = ["test_tune", "04_gain_tuning-run_tuning", "test_distributed", "test_rollout", "test_contacts",
                   "test_viz", "test_dynamics", "test_forces", "test_controller", "test_sweep", "test_mjx_physics",
                   "02_balancing", "03_push_recovery", "test_cli", "test_baseline_cpu", "01_dynamics"]  # fmt: skip
