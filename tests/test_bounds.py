@@ -170,3 +170,24 @@ def test_limit_table_rows_carry_the_flywheel_bound(robot):
     assert limit_table._targets(rows, summary)["limit_within_10pct_of_flywheel_bound_median"] is False  # 0.61
     near = {az: dict(r, fraction_of_flywheel=0.95) for az, r in rows.items()}
     assert limit_table._targets(near, summary)["limit_within_10pct_of_flywheel_bound_median"] is True
+
+
+def test_limit_table_takes_the_best_optimiser_per_direction(robot):
+    """The crocoddyl cross-check's limit where it is larger (found_by names it), the MJX search's elsewhere; the
+    bracket's upper end is where every optimiser failed; envelopes are fractions of that limit."""
+    from wbc_jax.jobs import limit_table
+
+    envelopes = {"tuned": {"envelope": {"0": {"0.0": {"impulse_ns": 8.0}, "90.0": {"impulse_ns": 9.0}}}}}
+    mjx = {"directions": {"0.0": {"limit_ns": 10.0, "bracket_ns": [10.0, 15.0]},
+                          "90.0": {"limit_ns": 20.0, "bracket_ns": [20.0, 21.0]}}}  # fmt: skip
+    ddp = {"directions": {"0.0": {"limit_ns": 11.0, "bracket_ns": [11.0, 11.5]},
+                          "90.0": {"limit_ns": 18.0, "bracket_ns": [18.0, 19.0]}}}  # fmt: skip
+    rows = limit_table.body_table(mjx, envelopes, [0.0, 90.0], robot, "chest", ddp)
+    assert (rows[0.0]["limit_ns"], rows[0.0]["found_by"], rows[0.0]["bracket_ns"]) == (11.0, "crocoddyl", [11.0, 15.0])
+    assert (rows[90.0]["limit_ns"], rows[90.0]["found_by"], rows[90.0]["bracket_ns"]) == (20.0, "mjx", [20.0, 21.0])
+    assert rows[0.0]["limit_by_optimiser_ns"] == {"mjx": 10.0, "crocoddyl": 11.0}
+    assert rows[0.0]["envelopes"]["tuned"]["fraction_of_limit"] == pytest.approx(8.0 / 11.0)
+    alone = limit_table.body_table(None, envelopes, [0.0], robot, "chest", ddp)  # the cross-check alone
+    assert alone[0.0]["limit_ns"] == 11.0 and alone[0.0]["found_by"] == "crocoddyl"
+    none = limit_table.body_table(None, envelopes, [0.0], robot, "chest")
+    assert none[0.0]["limit_ns"] is None and none[0.0]["found_by"] is None and none[0.0]["bracket_ns"] is None

@@ -2,7 +2,8 @@
 direction (``wbc-jax limit`` runs), the LIP bound and the strict envelopes of the default, hand-set
 and tuned gain sets (``wbc-jax envelope`` runs in docs/limit/envelopes), as fractions of the limit.
 
-    python experiments/acceptance/limit_table.py --chest runs/limit_chest --root-link runs/limit_root_link
+    python experiments/acceptance/limit_table.py --chest runs/limit_chest --root-link runs/limit_root_link \
+        [--ddp-chest docs/limit/ddp_chest.json]
 
 A body without its limit run keeps its envelopes and LIP bound; ``missing`` in the file names the
 command that fills its limit in.
@@ -29,6 +30,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--chest", help="output folder of the chest limit run (its summary.json)")
     parser.add_argument("--root-link", help="output folder of the root_link limit run")
+    parser.add_argument("--ddp-chest", help="the crocoddyl cross-check's file (experiments/acceptance/ddp_chest.py)")
     parser.add_argument("--out", default="docs/limit")
     args = parser.parse_args()
     bodies = {}
@@ -45,7 +47,8 @@ def main() -> None:
             summary = kept
         bodies[body] = {"limit": summary,
                         "envelopes": {label: ENVELOPES / f"{name}_{body}" / "summary.json"
-                                      for label, name in GAIN_SETS.items()}}  # fmt: skip
+                                      for label, name in GAIN_SETS.items()},
+                        "ddp": args.ddp_chest if body == "chest" else None}  # fmt: skip
     result = limit_table.write(args.out, bodies, COMMANDS)
     medians = {body: b["medians"] for body, b in result["bodies"].items()}
     print(json.dumps({"medians": medians, "targets": result["targets"]}, indent=1))

@@ -26,16 +26,34 @@ def _read(path) -> dict:
         raise ValueError(f"{path} is unreadable: {err}") from None
 
 
-def body_table(limit_summary: dict | None, envelopes: dict, azimuths, robot, body: str) -> dict:
+def _best(found: dict) -> tuple[float | None, list | None, str | None]:
+    """(limit, bracket, optimiser) from {optimiser: {"limit_ns", "bracket_ns"}}: the largest limit (each is a
+    trajectory replayed and passed in C MuJoCo), and the smallest impulse where every optimiser failed (the
+    largest of their brackets' upper ends)."""
+    if not found:
+        return None, None, None
+    name = max(found, key=lambda k: found[k]["limit_ns"])
+    upper = max(f["bracket_ns"][1] for f in found.values())
+    return found[name]["limit_ns"], [found[name]["limit_ns"], upper], name
+
+
+def body_table(limit_summary: dict | None, envelopes: dict, azimuths, robot, body: str,
+               ddp: dict | None = None) -> dict:  # fmt: skip
     """{azimuth: row} of pushes on ``body``: ``limit_summary`` (a limit run's summary.json or None),
     ``envelopes`` {label: envelope summary.json dict} (gain set 0), the LIP and flywheel bounds
-    (``wbc_jax.robot.bounds``) at ``azimuths``."""
+    (``wbc_jax.robot.bounds``) at ``azimuths``; ``ddp``: the crocoddyl cross-check's results
+    (experiments/acceptance/ddp_chest.py) where it ran. The limit is the best optimiser's (``found_by``)."""
     lip = sweep_table.lip_bound(robot, azimuths)
     flywheel = bounds.flywheel_bound(robot, azimuths, body)
     rows = {}
     for az in azimuths:
-        found = None if limit_summary is None else limit_summary["directions"].get(str(float(az)))
-        lim = None if found is None else found["limit_ns"]
+        by = {}
+        if limit_summary is not None and str(float(az)) in limit_summary["directions"]:
+            by["mjx"] = limit_summary["directions"][str(float(az))]
+        if ddp is not None and str(float(az)) in ddp["directions"]:
+            by["crocoddyl"] = ddp["directions"][str(float(az))]
+        lim, bracket, found_by = _best(by)
+        found = {"bracket_ns": bracket} if by else None
         envs = {}
         for label, summary in envelopes.items():
             e = summary["envelope"].get("0", summary["envelope"].get(0))[str(float(az))]["impulse_ns"]
@@ -47,7 +65,8 @@ def body_table(limit_summary: dict | None, envelopes: dict, azimuths, robot, bod
             "fraction_of_lip": None if lim is None else lim / lip[az]["impulse_bound_ns"],
             "fraction_of_flywheel": None if lim is None else lim / fly,
             "lip_fraction_of_flywheel": lip[az]["impulse_bound_ns"] / fly,
-            "bracket_ns": None if found is None else found["bracket_ns"],
+            "bracket_ns": None if found is None else found["bracket_ns"], "found_by": found_by,
+            "limit_by_optimiser_ns": {k: v["limit_ns"] for k, v in by.items()} or None,
             "limit_at_least_envelopes": None if lim is None
             else all(v["impulse_ns"] <= lim + 1e-9 for v in envs.values()),
             "envelopes": envs,
@@ -95,7 +114,7 @@ def _targets(rows: dict, summary: dict | None) -> dict:
 
 def write(out_dir, bodies: dict, commands: dict, robot_name: str = "icub") -> dict:
     """docs/limit/limit.json and limit.png from ``bodies`` {body: {"limit": summary path or None,
-    "envelopes": {label: summary path}}}; ``commands`` {body: the command that fills in a missing
+    "envelopes": {label: summary path}, "ddp": the crocoddyl cross-check's file (optional)}}; ``commands`` {body: the command that fills in a missing
     body's limit}."""
     from wbc_jax.report import limit_plots
 
@@ -110,10 +129,14 @@ def write(out_dir, bodies: dict, commands: dict, robot_name: str = "icub") -> di
         else:
             inputs[f"{body}_limit"] = spec["limit"]
         azimuths = sorted({float(a) for s in envelopes.values() for a in s["envelope"]["0"]})
-        tables[body] = body_table(summary, envelopes, azimuths, robot, body)
+        ddp = _read(spec["ddp"]) if spec.get("ddp") else None
+        if ddp is not None:
+            inputs[f"{body}_ddp"] = spec["ddp"]
+        tables[body] = body_table(summary, envelopes, azimuths, robot, body, ddp)
     result = {
         "what": "per pushed body and direction: the physical limit of push recovery (largest impulse with a torque "
-        "trajectory within +-60 N m that passes the strict criterion on MJX and replayed in C MuJoCo), the LIP bound "
+        "trajectory within the model's torque limits that passes the strict criterion replayed in C MuJoCo, the best "
+        "of the MJX search and the crocoddyl cross-check where it ran: found_by), the LIP bound "
         "m omega d, the LIP + flywheel bound (wbc_jax.robot.bounds, Pratt et al. 2006) and the strict envelopes of "
         "controllers, as fractions of the LIP bound and of the limit",
         "bodies": {body: {"medians": medians(rows), "directions": rows} for body, rows in tables.items()},
