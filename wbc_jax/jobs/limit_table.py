@@ -53,7 +53,6 @@ def body_table(limit_summary: dict | None, envelopes: dict, azimuths, robot, bod
         if ddp is not None and str(float(az)) in ddp["directions"]:
             by["crocoddyl"] = ddp["directions"][str(float(az))]
         lim, bracket, found_by = _best(by)
-        found = {"bracket_ns": bracket} if by else None
         envs = {}
         for label, summary in envelopes.items():
             e = summary["envelope"].get("0", summary["envelope"].get(0))[str(float(az))]["impulse_ns"]
@@ -65,7 +64,7 @@ def body_table(limit_summary: dict | None, envelopes: dict, azimuths, robot, bod
             "fraction_of_lip": None if lim is None else lim / lip[az]["impulse_bound_ns"],
             "fraction_of_flywheel": None if lim is None else lim / fly,
             "lip_fraction_of_flywheel": lip[az]["impulse_bound_ns"] / fly,
-            "bracket_ns": None if found is None else found["bracket_ns"], "found_by": found_by,
+            "bracket_ns": bracket, "found_by": found_by,
             "limit_by_optimiser_ns": {k: v["limit_ns"] for k, v in by.items()} or None,
             "limit_at_least_envelopes": None if lim is None
             else all(v["impulse_ns"] <= lim + 1e-9 for v in envs.values()),
