@@ -151,11 +151,11 @@ def fold_piece(run: pathlib.Path, docs: pathlib.Path, table: pathlib.Path) -> di
         if (run / rel).is_file():
             (docs / rel).parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(run / rel, docs / rel)
-    for hist in sorted((run / "hybrid").glob("t*/history.csv")):  # one gradient run per hybrid budget
-        (docs / "hybrid" / hist.parent.name).mkdir(parents=True, exist_ok=True)
+    for budget in sorted((run / "hybrid").glob("t*/")):  # one gradient run per hybrid budget (a run whose compile
+        (docs / "hybrid" / budget.name).mkdir(parents=True, exist_ok=True)  # spent its half has no history)
         for name in ("history.csv", "train_info.json"):
-            if (hist.parent / name).is_file():
-                shutil.copyfile(hist.parent / name, docs / "hybrid" / hist.parent.name / name)
+            if (budget / name).is_file():
+                shutil.copyfile(budget / name, docs / "hybrid" / budget.name / name)
     if (run / "gains").is_dir():
         shutil.copytree(run / "gains", docs / "gains", dirs_exist_ok=True)
     rows = race_rows(run)
