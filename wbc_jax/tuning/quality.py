@@ -47,6 +47,30 @@ STREAM = 6
 LINE_STEPS = (0.02, 0.05, 0.1, 0.2)  # unconstrained units along a unit direction
 
 
+# The population program evaluates at most this many rollouts at once: 2,048 pushes x 129 candidates in one
+# program asked an H200 for 168 GiB (phase quality of the race, 2026-11-26); the searches' own programs stay
+# within it too (--population 16 x --es-batch 60).
+ENVS_PER_CALL = 16384
+
+
+def candidates_per_call(candidates: int, pushes: int) -> int:
+    """Candidates per population-program call: all ``candidates`` when their ``pushes`` rollouts each fit
+    :data:`ENVS_PER_CALL`, else as many as fit (at least one)."""
+    return max(1, min(candidates, ENVS_PER_CALL // max(pushes, 1)))
+
+
+def evaluate(pop, per_call: int, unravel, points: np.ndarray, filler: np.ndarray, scen) -> np.ndarray:
+    """The objective (K,) of the flat parameter ``points`` (K, D) through the population program ``pop`` of
+    ``per_call`` candidates, in calls of ``per_call`` (the last padded with ``filler`` (D,), dropped)."""
+    k = len(points)
+    padded = np.concatenate([points, np.repeat(filler[None], -k % per_call, 0)]) if k % per_call else points
+    values = []
+    for i in range(0, len(padded), per_call):
+        batch = jax.vmap(unravel)(jnp.asarray(padded[i : i + per_call], filler.dtype))
+        values += np.asarray(pop(batch, scen)[0], float).tolist()
+    return np.asarray(values[:k], float)
+
+
 def cosine(a, b) -> float:
     a, b = np.asarray(a, float), np.asarray(b, float)
     na, nb = np.linalg.norm(a), np.linalg.norm(b)
@@ -147,13 +171,13 @@ def measure(problem: tp.Problem, out, *, mesh=None, progress: bool = True, step=
     if M > 0:  # zeroth order on the population program: theta, then theta +- sigma e_m, the same N pushes
         if progress:
             print(json.dumps({"quality": "zeroth-order", "candidates": 2 * M + 1, "pushes": N}), flush=True)
-        P = 2 * M + 1
+        P = candidates_per_call(2 * M + 1, N)
         fwd = tp.with_backend(problem, tuning.forward_backend(tc))
         pop = jax.jit(objectives.make_population_objective(fwd, P, N, mesh))
         e = np.asarray(jax.random.normal(jax.random.key(tc.seed * 1000 + 13), (M, D), flat0.dtype))
         cands = np.concatenate([np.asarray(flat0)[None], np.asarray(flat0) + sigma * e, np.asarray(flat0) - sigma * e])
         t0 = time.perf_counter()
-        J = np.asarray(pop(jax.vmap(unravel)(jnp.asarray(cands, flat0.dtype)), scen_all)[0], float)
+        J = evaluate(pop, P, unravel, cands, np.asarray(flat0), scen_all)
         pop_s = time.perf_counter() - t0
         J0, Jp, Jm = J[0], J[1 : M + 1], J[M + 1 :]
         directional = (Jp - Jm) / (2 * sigma)  # (M,) the smoothed loss's derivative along each e_m
@@ -174,10 +198,7 @@ def measure(problem: tp.Problem, out, *, mesh=None, progress: bool = True, step=
     J_line = []
     if pop is not None:
         pts = [np.asarray(flat0) - h * dirs[name] / max(np.linalg.norm(dirs[name]), 1e-30) for name, h in line]
-        pts += [np.asarray(flat0)] * (P - len(pts) % P if len(pts) % P else 0)
-        for i in range(0, len(pts), P):
-            batch = jax.vmap(unravel)(jnp.asarray(np.stack(pts[i : i + P]), flat0.dtype))
-            J_line += np.asarray(pop(batch, scen_all)[0], float).tolist()
+        J_line = evaluate(pop, P, unravel, np.stack(pts), np.asarray(flat0), scen_all).tolist()
     result = {"device": provenance.device_label(), "parameters": D, "pushes": N, "batch": tc.batch,
               "directions": M, "sigma": sigma, "estimator_program": "window" if step.windowed else "whole horizon",
               "window_s": tc.window_s, "horizon_s": tc.horizon, "objective": float(J0),
