@@ -102,15 +102,25 @@ def test_architecture_names_only_what_exists():
             assert listed == _modules(PACKAGE / folder), (folder, sorted(listed ^ _modules(PACKAGE / folder)))
 
 
+def _anchors(page: pathlib.Path) -> set[str]:
+    """The anchors of a page's headings, as GitHub makes them (lower case, punctuation dropped, spaces to -)."""
+    headings = re.findall(r"^#+ (.+)$", page.read_text(), re.M)
+    return {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-") for h in headings}
+
+
 def test_markdown_links_resolve():
+    """Every relative link of a written page reaches a file, and its #anchor a heading of that file."""
     broken = []
     for page in WRITTEN:
         for target in re.findall(r"\]\(([^)\s]+)\)", page.read_text()):
-            if re.match(r"[a-z]+:", target) or target.startswith("#"):
+            if re.match(r"[a-z]+:", target):
                 continue
-            if not (page.parent / target.split("#")[0]).exists():
+            path, _, anchor = target.partition("#")
+            linked = page.parent / path if path else page
+            if not linked.exists() or (anchor and linked.suffix == ".md" and anchor not in _anchors(linked)):
                 broken.append(f"{page.relative_to(ROOT)} -> {target}")
     assert not broken, broken
+    assert "physics-engines---backend" in _anchors(ROOT / "docs" / "usage.md")
 
 
 def test_readme_is_a_five_minute_read_naming_every_command():
