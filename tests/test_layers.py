@@ -1,4 +1,4 @@
-"""The package's layers (README "What is there"): every import points to the same layer or an
+"""The package's layers (docs/architecture.md): every import points to the same layer or an
 earlier one, and no two modules import each other, directly or through others."""
 
 import ast

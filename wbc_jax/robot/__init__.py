@@ -1,3 +1,4 @@
 """The robot: the MuJoCo model and its names resolved once (``model``), the free-floating dynamics
-terms in the mixed representation (``dynamics``), the contact set (``contacts``) and the scene its
-contacts touch (``scene``). Imports only :mod:`wbc_jax.core`."""
+terms in the mixed representation (``dynamics``), the contact set (``contacts``), the scene its
+contacts touch (``scene``), whether a contact set is physical at the initial posture (``placement``)
+and the theoretical bounds on push recovery (``bounds``). Imports only :mod:`wbc_jax.core`."""

@@ -48,7 +48,7 @@ from wbc_jax.sim.state import LossTrace
 class TuneTrace:
     """Per-tick record of a tuning rollout (time-major under scan; a batch axis under vmap).
 
-    base: :class:`wbc_jax.sim.rollout.LossTrace` (com (T, 3), com_ref (T, 3), com_vel (T, 3), tau
+    base: :class:`wbc_jax.sim.state.LossTrace` (com (T, 3), com_ref (T, 3), com_vel (T, 3), tau
     (T, n), support_xy (T, F, 2), com_height0 (T,)); foot_normal (T, 2, 3): the soles' normals
     (world); qp_infeasible (T,) bool: the force QP had no feasible solution (not differentiable).
     """

@@ -260,7 +260,7 @@ _touch = mjx_loop.touch
 
 
 def rollout(loop: loop_lib.ClosedLoop, plant, qpos, gains, push, reg=None, seed=None):
-    """:meth:`wbc_jax.sim.rollout.ClosedLoop.rollout` with, when ``seed`` is given (a scalar that varies
+    """:func:`wbc_jax.sim.mjx_loop.rollout` with, when ``seed`` is given (a scalar that varies
     along the vmapped batch and depends on the differentiated parameters), every leaf of the
     initial carry made to depend on it (:func:`wbc_jax.sim.mjx_loop.touch`: the same values, a
     shorter trace)."""
