@@ -19,7 +19,7 @@ from wbc_jax.control.gains import default_gains, gains_to_dict
 from wbc_jax.core import options
 from wbc_jax.jobs import sweep_config
 from wbc_jax.tuning import config as tune_config
-from wbc_jax.tuning import tune  # noqa: F401  (before the tripwire: optax applies jax.jit when imported)
+from wbc_jax.tuning.algorithms import gradient  # noqa: F401  (before the tripwire: optax applies jax.jit when imported)
 
 _spec = importlib.util.spec_from_file_location(
     "bad_input", pathlib.Path(__file__).resolve().parents[1] / "experiments" / "checks" / "bad_input.py"

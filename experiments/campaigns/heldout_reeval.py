@@ -25,7 +25,7 @@ DEFAULT_SETS = ("default", f"gradient={GAINS / 'tuned_gradient.json'}", f"cmaes=
 
 
 def parse(argv=None):
-    from wbc_jax.tuning import heldout as tuning_eval
+    from wbc_jax.tuning.runs import heldout as tuning_eval
 
     hc0 = tuning_eval.HeldoutConfig()
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -48,7 +48,7 @@ def parse(argv=None):
 def load_sets(specs: list, n: int, dtype) -> dict:
     """{name: (Gains, regularisation)} from 'NAME=FILE' or 'default' (clear errors before compiling)."""
     from wbc_jax.control.gains import default_gains, load_gains
-    from wbc_jax.tuning import params as tuning_params
+    from wbc_jax.tuning.algorithms import params as tuning_params
 
     reg0 = tuning_params.default_regularisation()
     sets = {}
@@ -71,7 +71,7 @@ def main(argv=None) -> int:
     from wbc_jax.report import tuning_plots
     from wbc_jax.robot.model import load_robot
     from wbc_jax.sim import scenario
-    from wbc_jax.tuning import heldout as tuning_eval
+    from wbc_jax.tuning.runs import heldout as tuning_eval
 
     args = parse(argv)
     prev = json.loads(pathlib.Path(args.previous).read_text()) if args.previous else {}

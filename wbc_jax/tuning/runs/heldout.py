@@ -11,7 +11,7 @@ What a gain set is judged on, none of which the tuning loss saw (S gain sets; :c
 * the 20 s CoM sinusoid of the seed (``balance``'s task): CoM RMSE (<= 1.5 mm to keep the seed's
   task), on C MuJoCo by default.
 
-A gain set is a Gains or a :class:`~wbc_jax.tuning.schedule.GainSchedule` with its regularisation;
+A gain set is a Gains or a :class:`~wbc_jax.tuning.algorithms.schedule.GainSchedule` with its regularisation;
 all sets of one kind and regularisation run as one batch (one compiled program per task; gains are
 data), in chunks written as Parquet parts (resumable). :func:`write_heldout` writes heldout.json
 with its provenance; :func:`run` is the ``wbc-jax heldout`` job on gains files.
@@ -37,10 +37,10 @@ from wbc_jax.report.tuning_plots import survival_vs_loss
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import mjx_loop, physics, runner, scenario
 from wbc_jax.sim.state import Push, Scenario, SimConfig
-from wbc_jax.tuning import loss as tuning_loss
-from wbc_jax.tuning import params as tuning_params
-from wbc_jax.tuning import problem as tp
-from wbc_jax.tuning import schedule as gain_schedule
+from wbc_jax.tuning.algorithms import loss as tuning_loss
+from wbc_jax.tuning.algorithms import params as tuning_params
+from wbc_jax.tuning.algorithms import problem as tp
+from wbc_jax.tuning.algorithms import schedule as gain_schedule
 from wbc_jax.tuning import store
 from wbc_jax.tuning.config import HAND_SET_GAINS, VARIATIONS, HeldoutConfig, heldout_default_config
 
