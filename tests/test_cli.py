@@ -61,6 +61,22 @@ def test_tune_and_heldout_share_the_held_out_flags(tmp_path):
     assert cli.config_from_args(parser.parse_args(["tune", "--tasks", tasks]), heldout).tasks == tasks
 
 
+def test_heldout_reeval_takes_the_heldout_jobs_flags():
+    """experiments/campaigns/heldout_reeval.py declares no held-out flag of its own: wbc-jax heldout's,
+    generated from the job's config (the job's defaults but its sets and folder), checked as the job
+    checks them."""
+    from conftest import load_script
+
+    script = load_script("experiments/campaigns/heldout_reeval.py")
+    hc, previous = script.parse(["--grid-directions", "4", "--chunk-size", "7", "--no-one-foot"])
+    job = tune_config.heldout_default_config()
+    assert hc == dataclasses.replace(job, sets=script.DEFAULT_SETS, out="runs/heldout_reeval",
+                                     grid_directions=(0.0, 90.0, 180.0, 270.0), chunk_size=7, one_foot=False)  # fmt: skip
+    assert previous.endswith("docs/tuning/heldout.json")
+    with pytest.raises(ValueError, match=r"--chunk-size must be a whole number in \[1, "):
+        script.parse(["--chunk-size", "0"])
+
+
 def _declared(config):
     """(flag, Valid, scalar type) of each number field of a job config."""
     for field in dataclasses.fields(config):

@@ -87,7 +87,7 @@ def test_no_subclass_of_the_closed_loop():
     assert not {m: c for m, c in found.items() if c}, found
     from wbc_jax.sim.loop import ClosedLoop
     from wbc_jax.tuning.algorithms import gradient, schedule, windows  # noqa: F401  (the former subclasses' modules)
-    from wbc_jax.tuning.runs import heldout  # noqa: F401
+    from wbc_jax.tuning.orchestration import heldout  # noqa: F401
 
     assert ClosedLoop.__subclasses__() == []
 
@@ -196,7 +196,7 @@ def test_the_tuning_name_scan_finds_fields_arguments_and_attributes():
 # Gain tuning's folders, each importing only those before it: the shared configs and store, the
 # problem and its methods, what runs and judges them.
 TUNING_PARTS = (("wbc_jax.tuning.config", "wbc_jax.tuning.store"), ("wbc_jax.tuning.algorithms",),
-                ("wbc_jax.tuning.runs",))  # fmt: skip
+                ("wbc_jax.tuning.orchestration",))  # fmt: skip
 
 
 def _tuning_part(module: str) -> int | None:
@@ -207,9 +207,9 @@ def _tuning_part(module: str) -> int | None:
 
 
 @pytest.mark.parametrize("module", sorted(m for m in MODULES if _tuning_part(m) is not None))
-def test_tuning_algorithms_never_import_its_runs(module):
+def test_tuning_algorithms_never_import_its_orchestration(module):
     """Issue 44: tuning/ shows which module is which; the algorithms (and the config and store they
-    share with the runs) never import the runs."""
+    share with the orchestration) never import the orchestration."""
     mine = _tuning_part(module)
     later = sorted(t for t in MODULES[module] if (_tuning_part(t) is not None and _tuning_part(t) > mine))
     assert not later, f"{module} imports later parts of tuning: {later}"
@@ -231,3 +231,18 @@ def test_no_module_over_450_lines(folder):
     assert files, f"no Python files under {folder}/"
     long = {str(p.relative_to(ROOT)): n for p in files if (n := len(p.read_text().splitlines())) > MAX_LINES}
     assert not long, f"files over {MAX_LINES} lines: {long}"
+
+
+def _calls(path: pathlib.Path) -> set[str]:
+    return {ast.unparse(n.func) for n in ast.walk(ast.parse(path.read_text())) if isinstance(n, ast.Call)}
+
+
+def test_one_chunk_runner():
+    """Issue 44: the push sweep and the held-out evaluation run their batches through the one chunk
+    runner (wbc_jax.jobs.chunks): no other module names a Parquet part file or runs chunks itself."""
+    users = {
+        m for m in ("jobs/sweep.py", "tuning/orchestration/heldout.py") if "chunks.run_chunks" in _calls(PACKAGE / m)
+    }
+    assert users == {"jobs/sweep.py", "tuning/orchestration/heldout.py"}
+    naming = sorted(str(p.relative_to(PACKAGE)) for p in PACKAGE.rglob("*.py") if "part-{" in p.read_text())
+    assert naming == ["jobs/chunks.py"], f"part files named outside jobs/chunks.py: {naming}"

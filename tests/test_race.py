@@ -23,7 +23,7 @@ from wbc_jax.tuning.algorithms import estimators
 from wbc_jax.tuning.algorithms import loss as tuning_loss
 from wbc_jax.tuning.algorithms import params as tuning_params
 from wbc_jax.tuning.algorithms import schedule as gs
-from wbc_jax.tuning.runs import race
+from wbc_jax.tuning.orchestration import race
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 

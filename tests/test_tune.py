@@ -28,7 +28,7 @@ from wbc_jax.tuning.algorithms import baselines, gradient
 from wbc_jax.tuning.algorithms import loss as tuning_loss
 from wbc_jax.tuning.algorithms import params as tuning_params
 from wbc_jax.tuning.algorithms import problem as tp
-from wbc_jax.tuning.runs import heldout as tuning_eval
+from wbc_jax.tuning.orchestration import heldout as tuning_eval
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 # One subprocess (float64, XLA backend optimisation lowered) holds the one gradient program:
@@ -458,7 +458,7 @@ def test_hybrid_starts_from_cmaes_at_half_budget_adds_both_halves_and_resumes(tm
     from jax.flatten_util import ravel_pytree
 
     from wbc_jax.tuning.algorithms import hybrid
-    from wbc_jax.tuning.runs import campaign, race
+    from wbc_jax.tuning.orchestration import campaign, race
 
     tc = config.TuneConfig(batch=2, steps=3, population=16, es_batch=1, es_sigma=0.2, budget_s=600.0,
                            snapshots_s=(300.0,), phases=("cmaes", "hybrid"), **TINY)  # fmt: skip

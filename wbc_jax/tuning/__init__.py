@@ -6,8 +6,8 @@
   ``schedule``), the smooth loss (``loss``), the push distribution and objectives (``problem``,
   ``objectives``, ``windows``), the gradient's estimators (``estimators``) and training (``gradient``),
   the gradient-free searches (``baselines``) and the gradient refining CMA-ES (``hybrid``);
-* ``runs/``: what runs and judges them: the phases of ``wbc-jax tune`` (``campaign``), the held-out
+* ``orchestration/``: what runs and judges them: the phases of ``wbc-jax tune`` (``campaign``), the held-out
   evaluation (``heldout``, also ``wbc-jax heldout``), the race's report (``race``), the gradient's
   quality and profile (``quality``, ``profile``).
 
-Algorithms never import runs (tests/test_layers.py)."""
+Algorithms never import orchestration (tests/test_layers.py)."""

@@ -39,8 +39,8 @@ from jax.flatten_util import ravel_pytree
 
 from wbc_jax.core import io, provenance
 from wbc_jax.tuning.algorithms import estimators, objectives
-from wbc_jax.tuning.algorithms import problem as tp
 from wbc_jax.tuning.algorithms import gradient as tuning
+from wbc_jax.tuning.algorithms import problem as tp
 from wbc_jax.tuning.algorithms import windows as tw
 
 STREAM = 6

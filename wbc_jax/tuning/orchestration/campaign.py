@@ -35,15 +35,15 @@ from wbc_jax.core import io, provenance
 from wbc_jax.jobs import runs
 from wbc_jax.report import tuning_plots
 from wbc_jax.sim import scenario
-from wbc_jax.tuning.algorithms import baselines, hybrid
-from wbc_jax.tuning.runs import race
 from wbc_jax.tuning import store
-from wbc_jax.tuning.runs import heldout as tuning_eval
-from wbc_jax.tuning.algorithms import problem as tp
+from wbc_jax.tuning.algorithms import baselines, hybrid
 from wbc_jax.tuning.algorithms import gradient as tuning
-from wbc_jax.tuning.config import HeldoutConfig, TuneConfig, heldout_default_config
+from wbc_jax.tuning.algorithms import problem as tp
 from wbc_jax.tuning.algorithms.loss import LossConfig
 from wbc_jax.tuning.algorithms.params import nava_conditions
+from wbc_jax.tuning.config import HeldoutConfig, TuneConfig, heldout_default_config
+from wbc_jax.tuning.orchestration import heldout as tuning_eval
+from wbc_jax.tuning.orchestration import race
 
 
 def _search_times(tc: TuneConfig, kind: str) -> list:
@@ -192,13 +192,13 @@ def run(cfg: TuneConfig | None = None, hc: HeldoutConfig | None = None, *, lc: L
         _gradient_sets(problem, out, rows)
         summary["train"] = {k: info.get(k) for k in ("compile_s", "step_s_median", "gradient_physics_steps_per_s")}
     if "quality" in tc.phases:
-        from wbc_jax.tuning.runs import quality
+        from wbc_jax.tuning.orchestration import quality
 
         q = timed("quality", lambda: quality.measure(problem, out, mesh=mesh, progress=progress, step=step))
         summary["quality"] = {k: {m: e[m] for m in ("cosine_zeroth_order", "directional_correlation") if m in e}
                               for k, e in q["estimates"].items()}  # fmt: skip
     if "profile" in tc.phases:
-        from wbc_jax.tuning.runs import profile
+        from wbc_jax.tuning.orchestration import profile
 
         summary["profile"] = timed("profile", lambda: profile.measure(problem, out, mesh=mesh))["summary"]
     for kind in tc.searches:
