@@ -1,4 +1,4 @@
-"""[TSID peer] One-core measurement of the TSID balancing controller (``benchmarks/tsid_baseline.py``).
+"""[TSID peer] One-core measurement of the TSID balancing controller (``benchmarks/tsid_baseline/``).
 
 In one run, on one core (BLAS/OpenMP threads set to 1 before numpy loads; TSID, Pinocchio and C
 MuJoCo step one robot in one thread; ``--cpu`` also pins the process to one core):
@@ -315,7 +315,7 @@ def measure(args, log=print) -> dict:
             sin["n_ticks"] * peer.control_dt / float(np.median(loop_s)), 2
         )
     out = {
-        "peer": "TSID (Pinocchio + eiquadprog) on C MuJoCo, benchmarks/tsid_baseline.py",
+        "peer": "TSID (Pinocchio + eiquadprog) on C MuJoCo, benchmarks/tsid_baseline/",
         "command": command,
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "cpu": tb.bc.cpu_name(),
@@ -411,7 +411,7 @@ def main(argv=None) -> dict:
     if problem is not None:
         raise SystemExit(f"error: {problem}")
     try:
-        tb._body_id(tb.load_mj_model(), args.body)
+        tb.body_id(tb.load_mj_model(), args.body)
     except ValueError as err:
         raise SystemExit(f"error: --body: {err}") from None
     if args.cpu is not None:

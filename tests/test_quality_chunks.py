@@ -4,7 +4,7 @@
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.tuning import quality
+from wbc_jax.tuning.orchestration import quality
 
 
 def test_candidates_per_call_caps_the_rollouts_of_one_call():

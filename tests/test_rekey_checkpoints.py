@@ -11,8 +11,8 @@ import pytest
 
 from wbc_jax.core import io, provenance
 from wbc_jax.jobs import runs
-from wbc_jax.tuning import loss as tuning_loss
-from wbc_jax.tuning.baselines import NOT_SEARCH
+from wbc_jax.tuning.algorithms import loss as tuning_loss
+from wbc_jax.tuning.algorithms.baselines import NOT_SEARCH
 from wbc_jax.tuning.config import NOT_TRAINING, TuneConfig, config_key
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]

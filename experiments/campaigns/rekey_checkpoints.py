@@ -25,7 +25,7 @@ import numpy as np
 
 from wbc_jax.core import io, provenance
 from wbc_jax.jobs import runs
-from wbc_jax.tuning.baselines import NOT_SEARCH
+from wbc_jax.tuning.algorithms.baselines import NOT_SEARCH
 from wbc_jax.tuning.config import NOT_TRAINING
 
 

@@ -23,7 +23,7 @@ import sys
 
 from wbc_jax.core import io
 from wbc_jax.jobs import runs
-from wbc_jax.tuning import race
+from wbc_jax.tuning.orchestration import race
 
 
 def method_files(run_dir: pathlib.Path, method: str) -> tuple[list[pathlib.Path], list[str]]:

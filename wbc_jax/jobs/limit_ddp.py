@@ -6,7 +6,7 @@ push (body, azimuth, impulse, duration, onset: the pushes of :mod:`wbc_jax.jobs.
 1. the post-push state: the balancing controller alone in C MuJoCo (float64) from the standing
    start through the push, read at the first tick after it (k1), as the limit's replays see it;
 2. crocoddyl's box-constrained FDDP (``SolverBoxFDDP``) on the Pinocchio model of the iCub
-   (``benchmarks/tsid_baseline.pinocchio_model``: the controller model of the TSID peer, equal to
+   (:func:`wbc_jax.robot.pinocchio.pinocchio_model`: the controller model of the TSID peer, equal to
    the MJCF's to 1e-12) from that state over ``ddp_horizon`` s at the control tick: both soles
    held by rigid 6-D contacts (``ContactModel6D``) at their post-push placements, a wrench-cone
    cost per sole (friction pyramid at the controller's mu and the CoP inside the controller's CoP
@@ -30,8 +30,6 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
-import pathlib
-import sys
 import time
 
 import jax
@@ -40,10 +38,9 @@ import numpy as np
 from wbc_jax.core import constants
 from wbc_jax.core.options import check_options, option
 from wbc_jax.jobs import grids, limit, limit_rounds
-from wbc_jax.robot import bounds, contacts, model
+from wbc_jax.robot import bounds, contacts, model, pinocchio
 from wbc_jax.sim import host_loop, physics
 
-TSID_BASELINE = pathlib.Path(__file__).resolve().parents[2] / "benchmarks" / "tsid_baseline.py"
 FEET = ("l_sole", "r_sole")
 
 
@@ -51,23 +48,7 @@ def crocoddyl_problem() -> str | None:
     """Why the cross-check cannot run here (one sentence), or None."""
     if importlib.util.find_spec("crocoddyl") is None:
         return "crocoddyl is not installed (pip install -e '.[dev]' installs crocoddyl==3.2.1)"
-    if not TSID_BASELINE.exists():
-        return f"{TSID_BASELINE} (the Pinocchio model of the iCub) is missing: the cross-check runs from a checkout"
     return None
-
-
-def _tsid_baseline():
-    """benchmarks/tsid_baseline.py (not a package; JAX-free), loaded once by file path."""
-    module = sys.modules.get("tsid_baseline")
-    if module is None:
-        if not TSID_BASELINE.is_file():
-            raise ValueError(f"the crocoddyl cross-check builds its Pinocchio model with {TSID_BASELINE}, which an "
-                             "installed wheel lacks: run it from a checkout of the repository")  # fmt: skip
-        spec = importlib.util.spec_from_file_location("tsid_baseline", TSID_BASELINE)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules["tsid_baseline"] = module
-        spec.loader.exec_module(module)
-    return module
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,11 +104,10 @@ class CrossCheck:
 
         self.cfg, self.croc, self.pin = cfg, crocoddyl, pin
         self.search = limit_rounds.Search(cfg.limit_config())
-        tb = _tsid_baseline()
         robot = self.search.replay_setup.robot
         m = robot.mj_model
-        self.pin_model = tb.pinocchio_model()
-        self.map = tb.StateMap(m, self.pin_model)
+        self.pin_model = pinocchio.pinocchio_model(robot.index.joints)
+        self.map = pinocchio.StateMap(m, self.pin_model, robot.index.joints)
         self.loop = self.search.replay_setup.loop
         self.dt = self.loop.cfg.control_dt
         self.k0 = self.search.k0

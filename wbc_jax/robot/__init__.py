@@ -1,4 +1,6 @@
 """The robot: the MuJoCo model and its names resolved once (``model``), the free-floating dynamics
 terms in the mixed representation (``dynamics``), the contact set (``contacts``), the scene its
-contacts touch (``scene``), whether a contact set is physical at the initial posture (``placement``)
-and the theoretical bounds on push recovery (``bounds``). Imports only :mod:`wbc_jax.core`."""
+contacts touch (``scene``), whether a contact set is physical at the initial posture (``placement``),
+the theoretical bounds on push recovery (``bounds``) and the same robot in Pinocchio (``pinocchio``:
+the model reduced to the controller's joints and the state map, JAX-free). Imports only
+:mod:`wbc_jax.core`."""

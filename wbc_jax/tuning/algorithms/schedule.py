@@ -1,6 +1,6 @@
 """Gains scheduled on the push state: the 348-entry parameterisation of gain tuning.
 
-Each of the 58 tuned gain entries of :mod:`wbc_jax.tuning.params` (K_P,CoM, the CoM damping ratios,
+Each of the 58 tuned gain entries of :mod:`wbc_jax.tuning.algorithms.params` (K_P,CoM, the CoM damping ratios,
 K_I,w, the angular damping ratios, postural k_p and damping ratios) becomes a function of the state
 of the robot at every control tick:
 

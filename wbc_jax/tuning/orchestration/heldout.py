@@ -11,7 +11,7 @@ What a gain set is judged on, none of which the tuning loss saw (S gain sets; :c
 * the 20 s CoM sinusoid of the seed (``balance``'s task): CoM RMSE (<= 1.5 mm to keep the seed's
   task), on C MuJoCo by default.
 
-A gain set is a Gains or a :class:`~wbc_jax.tuning.schedule.GainSchedule` with its regularisation;
+A gain set is a Gains or a :class:`~wbc_jax.tuning.algorithms.schedule.GainSchedule` with its regularisation;
 all sets of one kind and regularisation run as one batch (one compiled program per task; gains are
 data), in chunks written as Parquet parts (resumable). :func:`write_heldout` writes heldout.json
 with its provenance; :func:`run` is the ``wbc-jax heldout`` job on gains files.
@@ -31,17 +31,17 @@ import numpy as np
 from wbc_jax.control.controller import ControllerConfig
 from wbc_jax.control.gains import Gains, default_gains, load_gains
 from wbc_jax.core import constants, io, provenance
-from wbc_jax.jobs import grids, runs, sweep, sweep_config, sweep_table
+from wbc_jax.jobs import chunks, grids, runs, sweep, sweep_config, sweep_table
 from wbc_jax.report import tuning_plots
 from wbc_jax.report.tuning_plots import survival_vs_loss
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import mjx_loop, physics, runner, scenario
 from wbc_jax.sim.state import Push, Scenario, SimConfig
-from wbc_jax.tuning import loss as tuning_loss
-from wbc_jax.tuning import params as tuning_params
-from wbc_jax.tuning import problem as tp
-from wbc_jax.tuning import schedule as gain_schedule
 from wbc_jax.tuning import store
+from wbc_jax.tuning.algorithms import loss as tuning_loss
+from wbc_jax.tuning.algorithms import params as tuning_params
+from wbc_jax.tuning.algorithms import problem as tp
+from wbc_jax.tuning.algorithms import schedule as gain_schedule
 from wbc_jax.tuning.config import HAND_SET_GAINS, VARIATIONS, HeldoutConfig, heldout_default_config
 
 
@@ -130,37 +130,19 @@ def _scenarios(robot, rows: dict, stacked, dtype) -> Scenario:
 
 def _run_table(st: scenario.Setup, scen: Scenario, cols: dict, folder: pathlib.Path, chunk: int, tag: str,
                progress: bool, push_end: float) -> tuple:  # fmt: skip
-    """Run a batch in chunks (Parquet parts in ``folder``, reused when their tag matches):
-    (DataFrame of columns + metrics, {compile_s, run_s, physics_steps_per_s})."""
+    """Run a batch with the sweep's chunk runner (:func:`wbc_jax.jobs.chunks.run_chunks`: Parquet
+    parts in ``folder``, named by ``tag`` and reused when they are the run's own): (DataFrame of
+    columns + metrics, {compile_s, run_s, envs, physics_steps_per_s})."""
     import pandas as pd
-    from tqdm.auto import tqdm
 
-    folder.mkdir(parents=True, exist_ok=True)
     B = len(cols["gain_set"])
-    tables, compile_s, run_s, ran = [], 0.0, 0.0, 0
-    with tqdm(total=B, unit="env", disable=not progress, desc=f"{folder.name} ({st.backend})") as bar:
-        for c, lo in enumerate(range(0, B, chunk)):
-            hi = min(lo + chunk, B)
-            part = folder / f"part-{c:05d}-{tag}.parquet"
-            if part.exists() and runs.output_changed(part) is None:  # the run's own part (else recomputed)
-                table = pd.read_parquet(part)
-            else:
-                res = runner.run(
-                    st,
-                    jax.tree_util.tree_map(lambda x, lo=lo, hi=hi: np.asarray(x)[lo:hi], scen),
-                    batch_size=min(chunk, B),
-                )
-                compile_s, run_s, ran = compile_s + res.compile_s, run_s + res.run_s, ran + hi - lo
-                metrics = metrics_lib.summarize(res.metrics, push_end)
-                table = pd.DataFrame({**{k: np.asarray(v)[lo:hi] for k, v in cols.items() if k != "onset"}, **metrics})
-                io.atomic_write_parquet(part, table)
-                runs.record_output(part)
-            tables.append(table)
-            bar.update(hi - lo)
+    columns = {k: v for k, v in cols.items() if k != "onset"}
+    ran = chunks.run_chunks(st, scen, columns, folder, batch=min(chunk, B), push_end=push_end, tag=tag,
+                            progress=progress, label=folder.name)  # fmt: skip
     steps = st.loop.n_ticks * st.loop.n_sub
-    timing = {"compile_s": round(compile_s, 2), "run_s": round(run_s, 2), "envs": B,
-              "physics_steps_per_s": ran * steps / run_s if run_s > 0 else None}  # fmt: skip
-    return pd.concat(tables, ignore_index=True), timing
+    timing = {"compile_s": round(ran.compile_s, 2), "run_s": round(ran.run_s, 2), "envs": B,
+              "physics_steps_per_s": ran.done_envs * steps / ran.run_s if ran.run_s > 0 else None}  # fmt: skip
+    return pd.concat(ran.tables, ignore_index=True), timing
 
 
 def _envelope(table, cfg: sweep_config.SweepConfig, robot) -> dict:

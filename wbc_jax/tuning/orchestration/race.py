@@ -7,7 +7,7 @@ reads them back with their simulated steps and writes:
 * race.json: per method, per budget: the held-out envelope / LIP bound (median, min), grid survival,
   the 20 s sinusoid's CoM RMSE, simulated steps and wall time; the gradient's throughput; the verdict
   per budget for each gradient-based method (the gradient, and the hybrid: the gradient refining
-  CMA-ES's set at half the budget, :mod:`wbc_jax.tuning.hybrid`): its median minus CMA-ES's, its min
+  CMA-ES's set at half the budget, :mod:`wbc_jax.tuning.algorithms.hybrid`): its median minus CMA-ES's, its min
   against CMA-ES's, the sinusoid bound, and whether the issue's target is met (median >= CMA-ES +
   0.05, min >= CMA-ES's, sinusoid <= 1.5 mm; ``target_met``: by either method); and the set a user is
   told to pick (the best held-out median among the sets that keep the sinusoid within 1.5 mm);
@@ -20,11 +20,11 @@ import json
 import pathlib
 
 from wbc_jax.core import constants, io, provenance
-from wbc_jax.tuning import problem as tp
+from wbc_jax.tuning.algorithms import problem as tp
 
 METHODS = ("gradient", "cmaes", "random", "hybrid")
 GRADIENT_BASED = ("gradient", "hybrid")  # the methods the verdict sets against CMA-ES
-# A hybrid row's parts: its CMA-ES parent and the gradient's half (wbc_jax/tuning/hybrid.py).
+# A hybrid row's parts: its CMA-ES parent and the gradient's half (wbc_jax/tuning/algorithms/hybrid.py).
 HYBRID_KEYS = ("parent", "parent_sha256", "parent_sim_steps", "parent_wall_s", "gradient_sim_steps", "gradient_wall_s",
                "gradient_compile_s")  # fmt: skip
 MARGIN = 0.05  # the median the gradient must gain over CMA-ES (issue 35)
@@ -96,7 +96,7 @@ def write(out, problem: tp.Problem, rep: dict, index: dict, histories: dict) -> 
     pts = points(rep, index)
     info_path = out / "gradient" / "train_info.json"
     info = json.loads(info_path.read_text()) if info_path.exists() else {}
-    from wbc_jax.tuning.tune import forward_backend
+    from wbc_jax.tuning.algorithms.gradient import forward_backend
 
     search = forward_backend(tc)  # the engine the searches ran on (--search-backend auto resolved)
     engines = {"gradient": "jax", "cmaes": search, "random": search, "hybrid": f"{search}, then jax"}

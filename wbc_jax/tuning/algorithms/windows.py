@@ -15,7 +15,7 @@ state. Here (``--window-s``):
 3. each window runs W ticks on MJX-JAX and is differentiated (per window, as the whole-horizon
    step): its loss is the per-tick mean of the tuning loss's terms (the settling term, which asks
    for rest at the end of a rollout, left out) plus ``terminal_weight`` x a capturability cost at
-   its last tick (:func:`wbc_jax.tuning.loss.terminal_cost`: capture point in the support polygon,
+   its last tick (:func:`wbc_jax.tuning.algorithms.loss.terminal_cost`: capture point in the support polygon,
    CoM at height), the analytic stand-in for SHAC's learned critic.
 
 The solver of a window starts cold (MJX's warm start is not carried over), which moves the first
@@ -34,9 +34,9 @@ from wbc_jax.sim import loop as loop_lib
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import mjx_loop, physics
 from wbc_jax.sim.state import LoopState, Scenario
-from wbc_jax.tuning import loss as tuning_loss
-from wbc_jax.tuning import objectives
-from wbc_jax.tuning import problem as tp
+from wbc_jax.tuning.algorithms import loss as tuning_loss
+from wbc_jax.tuning.algorithms import objectives
+from wbc_jax.tuning.algorithms import problem as tp
 
 
 @pytree_dataclass

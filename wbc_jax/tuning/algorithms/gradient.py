@@ -15,14 +15,14 @@ implicit one 3.8x cheaper), 4 corner spheres per foot (foot boxes gave NaN gradi
 through its implicit derivative, and ``jax.checkpoint`` on each 10 ms tick (``--checkpoint``). Each rollout has its own parameters and gradient (vmap of value_and_grad), so a
 rollout that diverges is dropped from the step instead of poisoning it. The rollouts are whole
 horizons from the sampled pushes, or (``--window-s``) short windows started from states along
-forward rollouts (:mod:`wbc_jax.tuning.windows`).
+forward rollouts (:mod:`wbc_jax.tuning.algorithms.windows`).
 
-Each step draws a fresh batch (:func:`wbc_jax.tuning.problem.sample_pushes`, reproducible by step);
+Each step draws a fresh batch (:func:`wbc_jax.tuning.algorithms.problem.sample_pushes`, reproducible by step);
 the run is resumable (checkpoint.npz with every step's parameters, history.csv), and its history
 counts simulated physics steps (the forward rollouts of the windows included) and wall time
 (compilation included), against which the gradient-free searches get the same budgets. With
 ``--budget-s`` the run stops when its wall time is spent. The race's hybrid
-(:mod:`wbc_jax.tuning.hybrid`) runs this same loop from CMA-ES's set, with a wall budget of its own.
+(:mod:`wbc_jax.tuning.algorithms.hybrid`) runs this same loop from CMA-ES's set, with a wall budget of its own.
 """
 
 from __future__ import annotations
@@ -40,13 +40,14 @@ from jax.flatten_util import ravel_pytree
 
 from wbc_jax.core import io, provenance
 from wbc_jax.sim import runner
-from wbc_jax.tuning import estimators, objectives, store
-from wbc_jax.tuning import problem as tp
-from wbc_jax.tuning import windows as tw
+from wbc_jax.tuning import store
+from wbc_jax.tuning.algorithms import estimators, objectives
+from wbc_jax.tuning.algorithms import problem as tp
+from wbc_jax.tuning.algorithms import windows as tw
+from wbc_jax.tuning.algorithms.estimators import ESTIMATOR_STATS, robust_mean_gradient  # noqa: F401
+from wbc_jax.tuning.algorithms.loss import TERMS
+from wbc_jax.tuning.algorithms.problem import Problem
 from wbc_jax.tuning.config import TuneConfig, default_config  # noqa: F401  (the job's config)
-from wbc_jax.tuning.estimators import ESTIMATOR_STATS, robust_mean_gradient  # noqa: F401
-from wbc_jax.tuning.loss import TERMS
-from wbc_jax.tuning.problem import Problem
 
 HISTORY_COLUMNS = ("step", "loss", "rollout_loss", *TERMS, "survival_rate", "upright_rate", "qp_infeasible_rate",
                    "grad_norm", "finite", "skipped_total", "step_s", "sim_steps", "grad_sim_steps", "wall_s",

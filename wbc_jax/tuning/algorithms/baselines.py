@@ -1,12 +1,12 @@
 """Gradient-free baselines of gain tuning: CMA-ES (evosax) and random search, given the gradient's
 budget of simulated physics steps and of wall time, or (``--budget-s``) a wall-time budget of their own.
 
-Both search the unconstrained parameters of the gradient (:mod:`wbc_jax.tuning.params`, or the gain
-schedule of :mod:`wbc_jax.tuning.schedule`: same groups, bounds and stability conditions) on the same
-loss (:mod:`wbc_jax.tuning.loss`), on their fastest engine (``--search-backend``: MJX-Warp on a GPU,
+Both search the unconstrained parameters of the gradient (:mod:`wbc_jax.tuning.algorithms.params`, or the gain
+schedule of :mod:`wbc_jax.tuning.algorithms.schedule`: same groups, bounds and stability conditions) on the same
+loss (:mod:`wbc_jax.tuning.algorithms.loss`), on their fastest engine (``--search-backend``: MJX-Warp on a GPU,
 MJX-JAX elsewhere). A generation draws b fresh pushes of the training distribution and evaluates P
 candidates plus the current solution on them (common random numbers), in one forward program of
-(P + 1) b rollouts (:func:`wbc_jax.tuning.objectives.make_population_objective`):
+(P + 1) b rollouts (:func:`wbc_jax.tuning.algorithms.objectives.make_population_objective`):
 
 * ``cmaes``: evosax's CMA-ES (population P, initial step ``es_sigma``); the current solution is
   its mean, told nothing (only the P asked candidates are told);
@@ -32,9 +32,10 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from wbc_jax.sim import runner
-from wbc_jax.tuning import config, objectives, store
-from wbc_jax.tuning import problem as tp
-from wbc_jax.tuning.tune import at_time, forward_backend
+from wbc_jax.tuning import config, store
+from wbc_jax.tuning.algorithms import objectives
+from wbc_jax.tuning.algorithms import problem as tp
+from wbc_jax.tuning.algorithms.gradient import at_time, forward_backend
 
 KINDS = ("cmaes", "random")
 STREAMS = {"cmaes": 1, "random": 2}  # tuning_problem.batch_rng streams
@@ -117,7 +118,7 @@ def search(problem: tp.Problem, kind: str, out, *, budget: dict, progress: bool 
            max_generations: int | None = None, evaluate_fn=None, mesh=None, times=()) -> dict:  # fmt: skip
     """Run (or resume) a gradient-free search into ``out`` until ``budget`` {"sim_steps",
     "wall_s"} is spent, or with ``tc.budget_s`` until that wall time (or ``max_generations``).
-    ``evaluate_fn``: an objective with :func:`~wbc_jax.tuning.objectives.make_population_objective`'s
+    ``evaluate_fn``: an objective with :func:`~wbc_jax.tuning.algorithms.objectives.make_population_objective`'s
     signature (tests); default: that one on ``--search-backend``, compiled here.
 
     Returns {"history": rows, "equal_steps": {...}, "equal_wall": {...}, "compile_s"}; each

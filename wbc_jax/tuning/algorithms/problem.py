@@ -8,11 +8,11 @@
   uniform in ``duration_range``, floor friction, plant mass scale and initial joint noise; batch k of a stream is drawn from ``default_rng([seed, stream,
   k])``, so a resumed run draws the same pushes;
 * the tuned parameters and their controls (:class:`Problem`: plain gains, or a
-  :class:`~wbc_jax.tuning.schedule.GainSchedule` with ``parameterisation == "scheduled"``);
+  :class:`~wbc_jax.tuning.algorithms.schedule.GainSchedule` with ``parameterisation == "scheduled"``);
 * the differentiable objectives on MJX's JAX implementation (:func:`make_batched_loss`: one gain
   set over B pushes; :func:`make_env_objective`: one push), with the loss of
-  :mod:`wbc_jax.tuning.loss`. The forward objectives of the searches, on any MJX engine, and the
-  sharded gradient programs are in :mod:`wbc_jax.tuning.objectives`.
+  :mod:`wbc_jax.tuning.algorithms.loss`. The forward objectives of the searches, on any MJX engine, and the
+  sharded gradient programs are in :mod:`wbc_jax.tuning.algorithms.objectives`.
 
 Shapes: ``B`` pushes, ``P`` candidates, ``n = 23`` joints, T ticks.
 """
@@ -35,9 +35,9 @@ from wbc_jax.sim import loop as loop_lib
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import mjx_loop, physics, scenario
 from wbc_jax.sim.state import Push, Scenario, SimConfig
-from wbc_jax.tuning import loss as tuning_loss
-from wbc_jax.tuning import params as tuning_params
-from wbc_jax.tuning import schedule as gain_schedule
+from wbc_jax.tuning.algorithms import loss as tuning_loss
+from wbc_jax.tuning.algorithms import params as tuning_params
+from wbc_jax.tuning.algorithms import schedule as gain_schedule
 from wbc_jax.tuning.config import ENVELOPE_FILE, NOT_TRAINING, TuneConfig, config_key
 
 # ---------------------------------------------------------------------------------------------
@@ -211,7 +211,7 @@ def make_problem(tc: TuneConfig, lc: tuning_loss.LossConfig | None = None, *, ro
                  horizon: float | None = None, checkpoint: bool | str | None = None,
                  backend: str = "jax") -> Problem:  # fmt: skip
     """Check the inputs (gains file inside the bounds, bodies) and build the tuning closed loop
-    (stand task, perturbed plant, a :class:`~wbc_jax.tuning.loss.TuneTrace` per tick, the gain
+    (stand task, perturbed plant, a :class:`~wbc_jax.tuning.algorithms.loss.TuneTrace` per tick, the gain
     schedule evaluated at each tick with ``parameterisation == "scheduled"``). ``horizon``: seconds
     (default ``tc.horizon``); ``checkpoint``: the loop's ``remat`` (default from
     ``tc.checkpoint``); ``backend``: the physics engine (gradients need ``jax``)."""

@@ -15,7 +15,7 @@ searches its simulated steps (and its wall time, ``--wall-budget``); the sets ar
 ``random`` (equal steps) and ``cmaes_wall``, ``random_wall`` (equal wall time). With ``--budget-s T`` (the
 race): every method runs T seconds of wall time, compilation included, and its gain set at each of
 ``--snapshots-s`` and at T is kept (``gradient_t120``, ..., ``gradient`` at T): one run gives every
-budget. Phase ``hybrid`` (:mod:`wbc_jax.tuning.hybrid`) refines CMA-ES's set at half of each budget
+budget. Phase ``hybrid`` (:mod:`wbc_jax.tuning.algorithms.hybrid`) refines CMA-ES's set at half of each budget
 with the gradient for the other half (``hybrid_t120``, ..., ``hybrid``). The tuned sets are written
 once into ``gains/`` (:func:`wbc_jax.tuning.store.write_controls`), with their origin in
 ``gains/provenance.json``; the held-out evaluation adds ``HeldoutConfig.sets`` (the WBC defaults and
@@ -35,13 +35,15 @@ from wbc_jax.core import io, provenance
 from wbc_jax.jobs import runs
 from wbc_jax.report import tuning_plots
 from wbc_jax.sim import scenario
-from wbc_jax.tuning import baselines, hybrid, race, store
-from wbc_jax.tuning import heldout as tuning_eval
-from wbc_jax.tuning import problem as tp
-from wbc_jax.tuning import tune as tuning
+from wbc_jax.tuning import store
+from wbc_jax.tuning.algorithms import baselines, hybrid
+from wbc_jax.tuning.algorithms import gradient as tuning
+from wbc_jax.tuning.algorithms import problem as tp
+from wbc_jax.tuning.algorithms.loss import LossConfig
+from wbc_jax.tuning.algorithms.params import nava_conditions
 from wbc_jax.tuning.config import HeldoutConfig, TuneConfig, heldout_default_config
-from wbc_jax.tuning.loss import LossConfig
-from wbc_jax.tuning.params import nava_conditions
+from wbc_jax.tuning.orchestration import heldout as tuning_eval
+from wbc_jax.tuning.orchestration import race
 
 
 def _search_times(tc: TuneConfig, kind: str) -> list:
@@ -119,7 +121,7 @@ def _gradient_budget(out: pathlib.Path) -> dict:
 
 def tuned_sets(problem: tp.Problem, out: pathlib.Path) -> dict:
     """{name: (controls, regularisation (2,))} of the gain files in ``out/gains`` (read back, checked)."""
-    from wbc_jax.tuning import schedule as gain_schedule
+    from wbc_jax.tuning.algorithms import schedule as gain_schedule
 
     index_path = out / "gains" / "provenance.json"
     index = json.loads(index_path.read_text()) if index_path.exists() else {}
@@ -190,13 +192,13 @@ def run(cfg: TuneConfig | None = None, hc: HeldoutConfig | None = None, *, lc: L
         _gradient_sets(problem, out, rows)
         summary["train"] = {k: info.get(k) for k in ("compile_s", "step_s_median", "gradient_physics_steps_per_s")}
     if "quality" in tc.phases:
-        from wbc_jax.tuning import quality
+        from wbc_jax.tuning.orchestration import quality
 
         q = timed("quality", lambda: quality.measure(problem, out, mesh=mesh, progress=progress, step=step))
         summary["quality"] = {k: {m: e[m] for m in ("cosine_zeroth_order", "directional_correlation") if m in e}
                               for k, e in q["estimates"].items()}  # fmt: skip
     if "profile" in tc.phases:
-        from wbc_jax.tuning import profile
+        from wbc_jax.tuning.orchestration import profile
 
         summary["profile"] = timed("profile", lambda: profile.measure(problem, out, mesh=mesh))["summary"]
     for kind in tc.searches:

@@ -1,6 +1,6 @@
 """The tuned parameters of the controller: every gain, bounded, positive, stable.
 
-Gain tuning (:mod:`wbc_jax.tuning.tune`, :mod:`wbc_jax.tuning.baselines`) searches an unconstrained vector
+Gain tuning (:mod:`wbc_jax.tuning.algorithms.gradient`, :mod:`wbc_jax.tuning.algorithms.baselines`) searches an unconstrained vector
 ``params`` ({group: (k,)}) mapped to the controller's gains and regularisation by
 
     value = exp(log lo + sigmoid(p) (log hi - log lo))          (each entry in (lo, hi), log-scaled)

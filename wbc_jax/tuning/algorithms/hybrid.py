@@ -4,7 +4,7 @@ For each race budget B (the ``--snapshots-s`` within ``--budget-s``, and ``--bud
 from CMA-ES's current solution at B / 2 (its mean after the last generation within B / 2: the set
 ``cmaes_t<B/2>``, which the race keeps when phase ``hybrid`` is asked for) and refines it with the
 gradient for the remaining B / 2 seconds of wall time: the training of phase ``train`` (same flags,
-optimiser, estimator, batch; :func:`wbc_jax.tuning.tune.train` from the parent's parameters), its
+optimiser, estimator, batch; :func:`wbc_jax.tuning.algorithms.gradient.train` from the parent's parameters), its
 program compiled afresh and the compile counted in that half (with JAX's persistent cache mostly a
 load). Its set at B (``hybrid_t<B>``, ``hybrid`` at ``--budget-s``) is the parameters after its last
 step within B / 2 (the parent itself when none fits), with the wall time and simulated steps of both
@@ -21,9 +21,9 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from wbc_jax.core import provenance
-from wbc_jax.tuning import problem as tp
 from wbc_jax.tuning import store
-from wbc_jax.tuning import tune as tuning
+from wbc_jax.tuning.algorithms import gradient as tuning
+from wbc_jax.tuning.algorithms import problem as tp
 
 PARENT = "cmaes"  # the gradient-free search whose set the hybrid refines
 
@@ -72,7 +72,7 @@ def parent(problem: tp.Problem, out: pathlib.Path, budget: float) -> dict:
 
 def run(problem: tp.Problem, out: pathlib.Path, times, *, progress: bool = True, mesh=None, step_fn=None) -> dict:
     """The hybrid at every race budget in ``times`` (module docstring). ``step_fn``: as
-    :func:`wbc_jax.tuning.tune.train`'s (tests); default: each budget compiles its own program.
+    :func:`wbc_jax.tuning.algorithms.gradient.train`'s (tests); default: each budget compiles its own program.
     Returns {set name: (controls, regularisation (2,), origin dict)}; every parent is checked first."""
     out = pathlib.Path(out)
     parents = {float(b): parent(problem, out, float(b)) for b in times}

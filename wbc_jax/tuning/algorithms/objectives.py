@@ -5,7 +5,7 @@
     data_parallel(fn, mesh)            fn over the batch axis of every argument and output, one shard per device
 
 The gradient program takes one parameter vector per rollout (the estimators of
-:mod:`wbc_jax.tuning.estimators` perturb them), so each rollout's reverse-mode gradient is its own
+:mod:`wbc_jax.tuning.algorithms.estimators` perturb them), so each rollout's reverse-mode gradient is its own
 and a diverging rollout neither poisons nor steers the step. The population objective runs the P
 candidates x b pushes as one flat batch of P b rollouts with per-rollout gains, on the problem's
 engine (``jax``, or ``warp`` whose contact buffer is shared by the batch of one program), and
@@ -25,8 +25,8 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from wbc_jax.sim import physics, runner
-from wbc_jax.tuning import loss as tuning_loss
-from wbc_jax.tuning import problem as tp
+from wbc_jax.tuning.algorithms import loss as tuning_loss
+from wbc_jax.tuning.algorithms import problem as tp
 
 AXIS = "batch"
 

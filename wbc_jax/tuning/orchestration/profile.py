@@ -29,7 +29,7 @@ import numpy as np
 
 from wbc_jax.core import io, provenance
 from wbc_jax.sim import physics
-from wbc_jax.tuning import problem as tp
+from wbc_jax.tuning.algorithms import problem as tp
 
 REPEATS = 5
 

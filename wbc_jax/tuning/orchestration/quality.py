@@ -5,7 +5,7 @@ with J(theta) the mean objective of the N rollouts (the training loss at the tra
 
 * first-order estimates from the training program (the whole horizon, or ``--window-s`` windows):
   per-rollout gradients at theta (``first-order``) and at antithetic perturbations theta +- sigma eps
-  (``smoothed``, and with their values the ``interpolated`` mix: :mod:`wbc_jax.tuning.estimators`),
+  (``smoothed``, and with their values the ``interpolated`` mix: :mod:`wbc_jax.tuning.algorithms.estimators`),
   each over the N pushes in batches of the training batch;
 * a zeroth-order estimate of the gradient of the smoothed loss E[J(theta + sigma eps)] from M antithetic
   directions on the same N pushes (common random numbers), g_ZO = mean_m (J(theta + sigma e_m) -
@@ -38,10 +38,10 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from wbc_jax.core import io, provenance
-from wbc_jax.tuning import estimators, objectives
-from wbc_jax.tuning import problem as tp
-from wbc_jax.tuning import tune as tuning
-from wbc_jax.tuning import windows as tw
+from wbc_jax.tuning.algorithms import estimators, objectives
+from wbc_jax.tuning.algorithms import gradient as tuning
+from wbc_jax.tuning.algorithms import problem as tp
+from wbc_jax.tuning.algorithms import windows as tw
 
 STREAM = 6
 LINE_STEPS = (0.02, 0.05, 0.1, 0.2)  # unconstrained units along a unit direction
@@ -97,7 +97,7 @@ def snr(rows: np.ndarray) -> float:
 
 def measure(problem: tp.Problem, out, *, mesh=None, progress: bool = True, step=None) -> dict:
     """The gradient-quality figures (module docstring) at the start of the search; quality.json in ``out``.
-    ``step``: the training's :class:`~wbc_jax.tuning.tune.GradientStep` (its compiled program is reused)."""
+    ``step``: the training's :class:`~wbc_jax.tuning.algorithms.gradient.GradientStep` (its compiled program is reused)."""
     tc = problem.tc
     out = pathlib.Path(out)
     t_start = time.perf_counter()
