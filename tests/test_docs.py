@@ -70,15 +70,18 @@ def test_each_subpackage_docstring_lists_its_modules():
     """A subpackage's docstring names its modules (``name``): only modules that exist, and all of
     them (commands lists them in its ``MODULES``, the order of ``wbc-jax --help``)."""
     problems = []
-    for init in sorted(PACKAGE.glob("*/__init__.py")):
+    for init in sorted(PACKAGE.glob("**/__init__.py")):
         folder = init.parent
+        if folder == PACKAGE:
+            continue
         named = set(re.findall(r"``([a-z_][a-z0-9_]*)``", ast.get_docstring(ast.parse(init.read_text())) or ""))
         if folder.name == "commands":
             named = set(importlib.import_module("wbc_jax.commands").MODULES)
         if named - _modules(folder):
-            problems.append(f"{folder.name}: names modules that do not exist: {sorted(named - _modules(folder))}")
+            problems.append(f"{folder.relative_to(PACKAGE)}: names modules that do not exist: "
+                            f"{sorted(named - _modules(folder))}")  # fmt: skip
         if _modules(folder) - named:
-            problems.append(f"{folder.name}: does not name {sorted(_modules(folder) - named)}")
+            problems.append(f"{folder.relative_to(PACKAGE)}: does not name {sorted(_modules(folder) - named)}")
     assert not problems, "\n".join(problems)
 
 

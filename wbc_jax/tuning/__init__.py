@@ -2,12 +2,7 @@
 
 * ``config`` (the commands' flags: :class:`~wbc_jax.tuning.config.TuneConfig`, ``HeldoutConfig``) and
   ``store`` (checkpoints, history tables, gain files written once): used by both folders;
-* ``algorithms/``: the problem and the methods that solve it: the tuned parameters (``params``,
-  ``schedule``), the smooth loss (``loss``), the push distribution and objectives (``problem``,
-  ``objectives``, ``windows``), the gradient's estimators (``estimators``) and training (``gradient``),
-  the gradient-free searches (``baselines``) and the gradient refining CMA-ES (``hybrid``);
-* ``orchestration/``: what runs and judges them: the phases of ``wbc-jax tune`` (``campaign``), the held-out
-  evaluation (``heldout``, also ``wbc-jax heldout``), the race's report (``race``), the gradient's
-  quality and profile (``quality``, ``profile``).
+* ``algorithms``: the problem and the methods that solve it (its docstring lists its modules);
+* ``orchestration``: what runs and judges them (its docstring lists its modules).
 
 Algorithms never import orchestration (tests/test_layers.py)."""

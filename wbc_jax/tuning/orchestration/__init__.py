@@ -1,2 +1,4 @@
-"""What runs gain tuning and judges its sets: the phases of ``wbc-jax tune``, the held-out
-evaluation, the race's report, the gradient's quality and profile (:mod:`wbc_jax.tuning`)."""
+"""What runs gain tuning and judges its sets (:mod:`wbc_jax.tuning`): the phases of ``wbc-jax tune``
+(``campaign``), the held-out evaluation, also ``wbc-jax heldout`` (``heldout``), the race's report
+(``race``), the gradient's quality against zeroth-order estimates (``quality``) and where a step's time
+goes (``profile``)."""
