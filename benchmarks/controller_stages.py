@@ -32,6 +32,7 @@ os.environ.setdefault("PJRT_NPROC", "1")
 
 import argparse
 import importlib
+import importlib.util
 import json
 import pathlib
 import re
@@ -155,7 +156,12 @@ def import_commit(ref: str) -> str:
         text = path.read_text()
         path.write_text(re.sub(r"\bwbc_jax\b", name, text))
     (work / "assets").symlink_to(ROOT / "assets")  # the model files, read beside the package
-    sys.path.insert(0, str(work))
+    # Imported by location (the scripts leave sys.path alone): its submodules follow the package's path.
+    spec = importlib.util.spec_from_file_location(name, work / name / "__init__.py",
+                                                  submodule_search_locations=[str(work / name)])  # fmt: skip
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
     return name
 
 
