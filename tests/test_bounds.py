@@ -189,5 +189,7 @@ def test_limit_table_takes_the_best_optimiser_per_direction(robot):
     assert rows[0.0]["envelopes"]["tuned"]["fraction_of_limit"] == pytest.approx(8.0 / 11.0)
     alone = limit_table.body_table(None, envelopes, [0.0], robot, "chest", ddp)  # the cross-check alone
     assert alone[0.0]["limit_ns"] == 11.0 and alone[0.0]["found_by"] == "crocoddyl"
+    still_open = {"directions": {"0.0": {"limit_ns": 12.0, "bracket_ns": [12.0, None]}}}  # nothing failed above 12
+    assert limit_table.body_table(mjx, envelopes, [0.0], robot, "chest", still_open)[0.0]["bracket_ns"] == [12.0, None]
     none = limit_table.body_table(None, envelopes, [0.0], robot, "chest")
     assert none[0.0]["limit_ns"] is None and none[0.0]["found_by"] is None and none[0.0]["bracket_ns"] is None

@@ -26,6 +26,54 @@ def test_bad_input_is_named_before_anything_solves(field, value, message):
     assert "\n" not in str(err.value)
 
 
+def test_next_impulse_steps_up_down_then_halves_the_bracket():
+    def tests(*pairs):
+        return [{"impulse_ns": j, "verified": ok} for j, ok in pairs]
+
+    assert limit_ddp.next_impulse([], 8.0, 30.0) == 8.0
+    assert limit_ddp.next_impulse(tests((8.0, True)), 8.0, 30.0) == pytest.approx(10.0)
+    assert limit_ddp.next_impulse(tests((8.0, True)), 8.0, 9.0) == 9.0  # capped at the flywheel bound
+    assert limit_ddp.next_impulse(tests((8.0, False)), 8.0, 30.0) == pytest.approx(6.4)
+    assert limit_ddp.next_impulse(tests((8.0, False), (6.4, False)), 8.0, 30.0) == pytest.approx(5.12)
+    assert limit_ddp.next_impulse(tests((8.0, False), (6.4, True)), 8.0, 30.0) == pytest.approx(7.2)
+    assert limit_ddp.next_impulse(tests((8.0, True), (10.0, False)), 8.0, 30.0) == pytest.approx(9.0)
+
+
+class _Threshold:
+    """A stand-in for CrossCheck: a push passes up to its direction's threshold; counts the pushes run."""
+
+    def __init__(self, thresholds, tests):
+        self.cfg = limit_ddp.DdpConfig(tests=tests)
+        self.thresholds, self.runs = np.asarray(thresholds), []
+
+    def run(self, d, impulse):
+        self.runs.append((tuple(d), tuple(impulse)))
+        return [{"impulse_ns": float(j), "verified": bool(j <= self.thresholds[i])} for i, j in zip(d, impulse)]
+
+
+def test_bisect_resumes_where_it_stopped():
+    start, cap = np.array([8.0, 8.0]), np.array([30.0, 30.0])
+    whole = limit_ddp.bisect(_Threshold([9.5, 5.0], 4), start, cap)
+    tried = [[r["impulse_ns"] for r in t] for t in whole]
+    np.testing.assert_allclose(tried, [[8.0, 10.0, 9.0, 9.5], [8.0, 6.4, 5.12, 4.096]])
+    again = _Threshold([9.5, 5.0], 4)  # cut off after 2 tests in direction 0, 3 in direction 1
+    resumed = limit_ddp.bisect(again, start, cap, [whole[0][:2], whole[1][:3]])
+    assert resumed == whole
+    assert [d for d, _ in again.runs] == [(0, 1), (0,)]  # only what was missing, the finished direction left out
+
+
+def test_resume_refuses_a_file_of_other_settings():
+    cfg = limit_ddp.DdpConfig(max_iterations=20, tests=6, directions=(90.0,))
+    previous = {"config": {**{k: getattr(cfg, k) for k in cfg.__dataclass_fields__}, "tests": 4,
+                           "directions": [0.0]}, "directions": {"0.0": {"tests": [{"impulse_ns": 1.0}]}}}  # fmt: skip
+    assert limit_ddp.resumed_tests(previous, cfg, "ddp.json") == {0.0: [{"impulse_ns": 1.0}]}  # more tests, directions
+    assert limit_ddp.resumed_tests(None, cfg, "ddp.json") == {}
+    previous["config"]["max_iterations"] = 40
+    with pytest.raises(ValueError, match=r"ddp.json was written with max_iterations=40, this run has 20") as err:
+        limit_ddp.resumed_tests(previous, cfg, "ddp.json")
+    assert "\n" not in str(err.value)
+
+
 def test_joint_torque_limits_are_the_plants():
     """ctrlrange capped by actuatorfrcrange: the hips' pitch 55.5, roll 37 N m, the arms' 60."""
     from wbc_jax.robot import model

@@ -29,11 +29,12 @@ def _read(path) -> dict:
 def _best(found: dict) -> tuple[float | None, list | None, str | None]:
     """(limit, bracket, optimiser) from {optimiser: {"limit_ns", "bracket_ns"}}: the largest limit (each is a
     trajectory replayed and passed in C MuJoCo), and the smallest impulse where every optimiser failed (the
-    largest of their brackets' upper ends)."""
+    largest of their brackets' upper ends; None where one optimiser failed at none it tried)."""
     if not found:
         return None, None, None
     name = max(found, key=lambda k: found[k]["limit_ns"])
-    upper = max(f["bracket_ns"][1] for f in found.values())
+    uppers = [f["bracket_ns"][1] for f in found.values()]
+    upper = None if None in uppers else max(uppers)
     return found[name]["limit_ns"], [found[name]["limit_ns"], upper], name
 
 
@@ -42,7 +43,7 @@ def body_table(limit_summary: dict | None, envelopes: dict, azimuths, robot, bod
     """{azimuth: row} of pushes on ``body``: ``limit_summary`` (a limit run's summary.json or None),
     ``envelopes`` {label: envelope summary.json dict} (gain set 0), the LIP and flywheel bounds
     (``wbc_jax.robot.bounds``) at ``azimuths``; ``ddp``: the crocoddyl cross-check's results
-    (experiments/acceptance/ddp_chest.py) where it ran. The limit is the best optimiser's (``found_by``)."""
+    (experiments/acceptance/ddp_limit.py) where it ran. The limit is the best optimiser's (``found_by``)."""
     lip = sweep_table.lip_bound(robot, azimuths)
     flywheel = bounds.flywheel_bound(robot, azimuths, body)
     rows = {}
