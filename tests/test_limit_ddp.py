@@ -3,6 +3,8 @@ anything solves, the state map between Pinocchio and C MuJoCo, a short DDP from 
 state whose contact wrenches keep the friction pyramid, the CoP rectangle and the torque bounds,
 and (slow) the controller tracking the DDP of a zero push in C MuJoCo, upright by the strict test."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -17,7 +19,7 @@ GAINS = "experiments/gains/tuned_gradient.json"
 @pytest.mark.parametrize(
     ("field", "value", "message"),
     [("ddp_horizon", 0.0, "--ddp-horizon"), ("max_iterations", 0, "--max-iterations"),
-     ("directions", (), "--directions"), ("body", "nose", "--body")],
+     ("directions", (), "--directions"), ("body", "nose", "--body"), ("cop_scale", 1.2, "--cop-scale")],
 )  # fmt: skip
 def test_bad_input_is_named_before_anything_solves(field, value, message):
     cfg = limit_ddp.DdpConfig(**{field: value})
@@ -68,6 +70,10 @@ def test_resume_refuses_a_file_of_other_settings():
                            "directions": [0.0]}, "directions": {"0.0": {"tests": [{"impulse_ns": 1.0}]}}}  # fmt: skip
     assert limit_ddp.resumed_tests(previous, cfg, "ddp.json") == {0.0: [{"impulse_ns": 1.0}]}  # more tests, directions
     assert limit_ddp.resumed_tests(None, cfg, "ddp.json") == {}
+    del previous["config"]["cop_scale"]  # a file older than the field: its default
+    assert limit_ddp.resumed_tests(previous, cfg, "ddp.json") == {0.0: [{"impulse_ns": 1.0}]}
+    with pytest.raises(ValueError, match=r"cop_scale=1.0, this run has 0.8"):
+        limit_ddp.resumed_tests(previous, dataclasses.replace(cfg, cop_scale=0.8), "ddp.json")
     previous["config"]["max_iterations"] = 40
     with pytest.raises(ValueError, match=r"ddp.json was written with max_iterations=40, this run has 20") as err:
         limit_ddp.resumed_tests(previous, cfg, "ddp.json")

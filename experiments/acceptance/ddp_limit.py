@@ -33,6 +33,7 @@ def main() -> None:
     parser.add_argument("--directions", type=float, nargs="+", required=True, help="azimuths [deg] of limit.json")
     parser.add_argument("--tests", type=int, default=4, help="impulses tested per direction")
     parser.add_argument("--max-iterations", type=int, default=40, help="DDP iterations per solve")
+    parser.add_argument("--cop-scale", type=float, default=1.0, help="the DDP's CoP rectangle / the controller's")
     parser.add_argument("--batch", type=int, default=4, help="directions per batch (one C MuJoCo replay batch)")
     parser.add_argument("--out", help="default: docs/limit/ddp_<body>.json")
     args = parser.parse_args()
@@ -46,7 +47,8 @@ def main() -> None:
                  f"{', '.join(sorted(table, key=float))})")  # fmt: skip
     previous = loader.read_json(out, "crocoddyl cross-check") if out.exists() else None
     try:
-        settings = dict(body=args.body, gains=GAINS, tests=args.tests, max_iterations=args.max_iterations)
+        settings = dict(body=args.body, gains=GAINS, tests=args.tests, max_iterations=args.max_iterations,
+                        cop_scale=args.cop_scale)  # fmt: skip
         done = limit_ddp.resumed_tests(previous, limit_ddp.DdpConfig(**settings), out)
         azimuths = sorted(set(done) | {float(a) for a in args.directions})
         cfg = limit_ddp.DdpConfig(directions=tuple(azimuths), **settings)
@@ -82,7 +84,8 @@ def main() -> None:
             "provenance": provenance.record({"gains": GAINS}),
         })  # fmt: skip
 
-    todo = [a for a in azimuths if len(tested[a]) < cfg.tests]
+    order = list(dict.fromkeys([float(a) for a in args.directions] + azimuths))  # as given first, then the file's
+    todo = [a for a in order if len(tested[a]) < cfg.tests]
     print(f"{out}: {len(azimuths) - len(todo)} of {len(azimuths)} directions done; next {todo}", flush=True)
     for i in range(0, len(todo), args.batch):
         part = todo[i : i + args.batch]

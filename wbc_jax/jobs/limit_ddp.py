@@ -94,6 +94,8 @@ class DdpConfig:
     w_state: float = option(1.0, "weight of the state regularisation toward standing", gt=0.0, le=1e6)
     w_com: float = option(100.0, "weight of the CoM toward its standing position", ge=0.0, le=1e6)
     w_wrench_cone: float = option(100.0, "weight of the wrench-cone barrier (friction, CoP)", gt=0.0, le=1e9)
+    cop_scale: float = option(1.0, "the barrier's CoP rectangle as a fraction of the controller's, about its centre "
+                              "(below 1: a margin for the tracking)", gt=0.0, le=1.0)  # fmt: skip
     w_control: float = option(1e-3, "weight of the torque regularisation", ge=0.0, le=1e6)
     w_terminal: float = option(100.0, "terminal weight multiplier of state and CoM", ge=1.0, le=1e6)
     tests: int = option(5, "impulses tested per direction (the bisection's steps)", ge=1, le=50)
@@ -137,7 +139,7 @@ class CrossCheck:
         self.T = int(round(cfg.ddp_horizon / self.dt))
         self.params = contacts.ContactParams()
         (x_lo, x_hi), (y_lo, y_hi) = self.params.foot_size
-        self.box = np.array([x_hi - x_lo, y_hi - y_lo])
+        self.box = cfg.cop_scale * np.array([x_hi - x_lo, y_hi - y_lo])
         centre = pin.SE3(np.eye(3), np.array([(x_lo + x_hi) / 2, (y_lo + y_hi) / 2, 0.0]))
         self.contact_frames = []
         for foot in FEET:  # the CoP rectangle's centre, where the wrench cone is centred
@@ -354,7 +356,7 @@ def resumed_tests(previous: dict | None, cfg: DdpConfig, path) -> dict[float, li
     for name in cfg.__dataclass_fields__:
         if name in RESUME_FREE:
             continue
-        was, now = previous["config"].get(name), getattr(cfg, name)
+        was, now = previous["config"].get(name, cfg.__dataclass_fields__[name].default), getattr(cfg, name)
         if was != now:
             raise ValueError(f"{path} was written with {name}={was!r}, this run has {now!r}: pass the same settings "
                              "to resume it, or another --out")  # fmt: skip

@@ -26,7 +26,7 @@ def _panel(ax, directions: dict, title: str) -> None:
         ax.plot(*_closed(az, [r["flywheel_bound_ns"] for r in rows]), "k:", label="LIP + flywheel bound")
     if all(r.get("limit_ns") is not None for r in rows):
         ax.plot(*_closed(az, [r["limit_ns"] for r in rows]), "o-", lw=2, label="physical limit (trajectory opt.)")
-        by_ddp = [r.get("found_by") == "crocoddyl" for r in rows]
+        by_ddp = [(r.get("found_by") or "").startswith("crocoddyl") for r in rows]
         if any(by_ddp):
             ax.plot(np.deg2rad(az[by_ddp]), [r["limit_ns"] for r, d in zip(rows, by_ddp, strict=True) if d], "r*",
                     ms=10, label="limit found by crocoddyl")  # fmt: skip
