@@ -138,3 +138,7 @@ def test_zero_push_tracked_stays_upright(check):
     rec = check.run(np.array([0]), np.array([0.0]))[0]
     assert rec["verified"], rec
     assert rec["replay_max_foot_slip_m"] < 0.005
+    # the stored witness (the torques replayed from the onset) replays to the same outcome on its own
+    assert rec["feedforward"].shape == (check.k1 - check.k0 + check.T, len(check.map.joints))
+    alone = check.replay_alone(0, 0.0, rec["feedforward"])
+    assert alone["verified"] and alone["replay_max_foot_tilt_deg"] == pytest.approx(rec["replay_max_foot_tilt_deg"])

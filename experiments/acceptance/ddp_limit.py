@@ -13,6 +13,7 @@ resumes: directions already tested keep their tests (and continue if ``--tests``
 """
 
 import argparse
+import io as io_
 import json
 import pathlib
 import sys
@@ -36,6 +37,9 @@ def main() -> None:
     parser.add_argument("--cop-scale", type=float, default=1.0, help="the DDP's CoP rectangle / the controller's")
     parser.add_argument("--batch", type=int, default=4, help="directions per batch (one C MuJoCo replay batch)")
     parser.add_argument("--out", help="default: docs/limit/ddp_<body>.json")
+    parser.add_argument("--recheck", nargs="*", type=float, metavar="AZ",
+                        help="each direction's limit again in a batch of its own (these azimuths; none: all): the "
+                             "stored witness replayed, or (none stored) solved and replayed anew")  # fmt: skip
     args = parser.parse_args()
     out = pathlib.Path(args.out or f"docs/limit/ddp_{args.body}.json")
     if args.batch < 1:
@@ -56,6 +60,10 @@ def main() -> None:
     except ValueError as err:
         sys.exit(str(err))
     rows = {a: table[str(a)] for a in azimuths}
+    witness_path = out.with_name(out.stem + "_witness.npz")  # the verified tests' replayed torques
+    witnesses = dict(np.load(witness_path)) if witness_path.exists() else {}
+    alone = {float(a): r["limit_replayed_alone"] for a, r in (previous or {}).get("directions", {}).items()
+             if r.get("limit_replayed_alone")}  # fmt: skip
     tested = {a: list(done.get(a, [])) for a in azimuths}
     command = "python experiments/acceptance/ddp_limit.py " + " ".join(sys.argv[1:])
     commands = (previous or {}).get("commands", [(previous or {}).get("command")] if previous else [])
@@ -75,6 +83,8 @@ def main() -> None:
                 "flywheel_bound_ns": row["flywheel_bound_ns"], "lip_bound_ns": row["lip_bound_ns"],
                 "tests": tested[a],
             }  # fmt: skip
+            if a in alone and alone[a]["impulse_ns"] == lo:
+                directions[str(a)]["limit_replayed_alone"] = alone[a]
         io.atomic_write_json(out, {
             "what": "crocoddyl BoxFDDP from the C MuJoCo post-push state, tracked in C MuJoCo by the tuned controller "
                     "with feedforward torques, strict criterion; limit_ns: the largest impulse whose tracked DDP "
@@ -85,6 +95,22 @@ def main() -> None:
         })  # fmt: skip
 
     order = list(dict.fromkeys([float(a) for a in args.directions] + azimuths))  # as given first, then the file's
+    if args.recheck is not None:
+        check = limit_ddp.CrossCheck(cfg)
+        for i, a in enumerate(azimuths):
+            lo = limit.bracket([(r["impulse_ns"], r["verified"]) for r in tested[a]])[0]
+            if lo == 0.0 or (args.recheck and a not in args.recheck):
+                continue
+            key = f"{a}:{lo!r}"
+            if key in witnesses:
+                alone[a] = {"impulse_ns": lo, "how": "witness replayed", **check.replay_alone(i, lo, witnesses[key])}
+            else:
+                rec = check.run(np.array([i]), np.array([lo]))[0]
+                rec.pop("feedforward")
+                alone[a] = {"how": "solved and replayed", **rec}
+            print(a, lo, alone[a]["how"], alone[a]["verified"], alone[a]["failed"], flush=True)
+            write()
+        return
     todo = [a for a in order if len(tested[a]) < cfg.tests]
     print(f"{out}: {len(azimuths) - len(todo)} of {len(azimuths)} directions done; next {todo}", flush=True)
     for i in range(0, len(todo), args.batch):
@@ -97,6 +123,12 @@ def main() -> None:
         def on_test(batch_tests, part=part):
             for a, tests in zip(part, batch_tests, strict=True):
                 tested[a] = tests
+                u = tests[-1].pop("feedforward", None)
+                if u is not None and tests[-1]["verified"]:
+                    witnesses[f"{a}:{tests[-1]['impulse_ns']!r}"] = u
+            buffer = io_.BytesIO()
+            np.savez_compressed(buffer, **witnesses)
+            io.atomic_write_bytes(witness_path, buffer.getvalue())
             write()
             print(f"{time.perf_counter() - t0:.0f} s:", {a: (round(tested[a][-1]["impulse_ns"], 2),
                                                             tested[a][-1]["verified"]) for a in part}, flush=True)  # fmt: skip

@@ -288,6 +288,7 @@ class CrossCheck:
     def run(self, d: np.ndarray, impulse: np.ndarray) -> list[dict]:
         """Solve and replay the pushes of directions ``d`` (B,) (indices) with ``impulse`` (B,) N s.
         Returns per push {"verified", "iterations", "cost", "converged", "solve_s", "solve_cpu_s", "failed",
+        "feedforward" (ticks, n) the torques replayed from the onset (the witness; not JSON),
         "replay_<column>"}."""
         scen = self.search.scenarios(np.asarray(d), np.asarray(impulse, float))
         (q_on, _), (q1, v1), state, programs = self.post_push(scen)
@@ -311,9 +312,19 @@ class CrossCheck:
         for b, sol in enumerate(solves):
             rec = {k: sol[k] for k in ("iterations", "cost", "converged", "solve_s", "solve_cpu_s")}
             rec.update(verified=bool(cols["survived"][b]), failed=cols["failed"][b], impulse_ns=float(impulse[b]),
+                       feedforward=u[b],
                        **{f"replay_{k}": float(cols[k][b]) for k in limit_rounds.REPLAY_COLUMNS})  # fmt: skip
             out.append(rec)
         return out
+
+    def replay_alone(self, d: int, impulse: float, feedforward: np.ndarray) -> dict:
+        """The C MuJoCo replay of one recorded witness (feedforward (ticks, n) from :meth:`run`) in a
+        batch of its own: whether it passes whatever else was replayed beside it. Returns the
+        judge's columns of that push."""
+        scen = self.search.scenarios(np.array([d]), np.array([float(impulse)]))
+        cols = self.search.judge(scen, np.asarray(feedforward)[None], "mujoco")
+        return {"verified": bool(cols["survived"][0]), "failed": cols["failed"][0],
+                **{f"replay_{k}": float(cols[k][0]) for k in limit_rounds.REPLAY_COLUMNS}}  # fmt: skip
 
 
 def next_impulse(tests: list[dict], start: float, cap: float) -> float:
