@@ -42,6 +42,8 @@ from wbc_jax.robot import bounds, contacts, model, pinocchio
 from wbc_jax.sim import host_loop, physics
 
 FEET = ("l_sole", "r_sole")
+STEP = 1.25  # the bisection's factor while a direction's bracket is open
+RESUME_FREE = ("directions", "tests")  # config fields a resumed cross-check may change
 
 
 def crocoddyl_problem() -> str | None:
@@ -73,6 +75,8 @@ class DdpConfig:
     w_state: float = option(1.0, "weight of the state regularisation toward standing", gt=0.0, le=1e6)
     w_com: float = option(100.0, "weight of the CoM toward its standing position", ge=0.0, le=1e6)
     w_wrench_cone: float = option(100.0, "weight of the wrench-cone barrier (friction, CoP)", gt=0.0, le=1e9)
+    cop_scale: float = option(1.0, "the barrier's CoP rectangle as a fraction of the controller's, about its centre "
+                              "(below 1: a margin for the tracking)", gt=0.0, le=1.0)  # fmt: skip
     w_control: float = option(1e-3, "weight of the torque regularisation", ge=0.0, le=1e6)
     w_terminal: float = option(100.0, "terminal weight multiplier of state and CoM", ge=1.0, le=1e6)
     tests: int = option(5, "impulses tested per direction (the bisection's steps)", ge=1, le=50)
@@ -115,7 +119,7 @@ class CrossCheck:
         self.T = int(round(cfg.ddp_horizon / self.dt))
         self.params = contacts.ContactParams()
         (x_lo, x_hi), (y_lo, y_hi) = self.params.foot_size
-        self.box = np.array([x_hi - x_lo, y_hi - y_lo])
+        self.box = cfg.cop_scale * np.array([x_hi - x_lo, y_hi - y_lo])
         centre = pin.SE3(np.eye(3), np.array([(x_lo + x_hi) / 2, (y_lo + y_hi) / 2, 0.0]))
         self.contact_frames = []
         for foot in FEET:  # the CoP rectangle's centre, where the wrench cone is centred
@@ -220,16 +224,17 @@ class CrossCheck:
 
     def solve(self, x0: np.ndarray, x_stand: np.ndarray, T: int | None = None) -> dict:
         """BoxFDDP from x0 (warm start: x0 held, quasi-static torques). Returns {"xs" (T + 1, nx),
-        "us" (T, nu), "iterations", "cost", "converged", "solve_s", "solver"}."""
+        "us" (T, nu), "iterations", "cost", "converged", "solve_s", "solve_cpu_s" (this process's CPU
+        time, every thread: the machine is shared), "solver"}."""
         problem = self.problem(x0, x_stand, self.T if T is None else T)
         solver = self.croc.SolverBoxFDDP(problem)
         xs = [x0] * (problem.T + 1)
         us = problem.quasiStatic([x0] * problem.T)
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.process_time()
         converged = solver.solve(xs, us, self.cfg.max_iterations, False)
         return {"xs": np.array(solver.xs), "us": np.array(solver.us), "iterations": int(solver.iter),
-                "cost": float(solver.cost), "converged": bool(converged),
-                "solve_s": time.perf_counter() - t0, "solver": solver}  # fmt: skip
+                "cost": float(solver.cost), "converged": bool(converged), "solve_s": time.perf_counter() - t0,
+                "solve_cpu_s": time.process_time() - cpu0, "solver": solver}  # fmt: skip
 
     def contact_forces(self, solver) -> np.ndarray:
         """(T, 2, 6) the DDP's contact wrenches [force, torque] per sole in its contact frame."""
@@ -262,7 +267,8 @@ class CrossCheck:
 
     def run(self, d: np.ndarray, impulse: np.ndarray) -> list[dict]:
         """Solve and replay the pushes of directions ``d`` (B,) (indices) with ``impulse`` (B,) N s.
-        Returns per push {"verified", "iterations", "cost", "converged", "solve_s", "failed",
+        Returns per push {"verified", "iterations", "cost", "converged", "solve_s", "solve_cpu_s", "failed",
+        "feedforward" (ticks, n) the torques replayed from the onset (the witness; not JSON),
         "replay_<column>"}."""
         scen = self.search.scenarios(np.asarray(d), np.asarray(impulse, float))
         (q_on, _), (q1, v1), state, programs = self.post_push(scen)
@@ -284,33 +290,65 @@ class CrossCheck:
         cols = self.search.judge(scen, u, "mujoco")
         out = []
         for b, sol in enumerate(solves):
-            rec = {k: sol[k] for k in ("iterations", "cost", "converged", "solve_s")}
+            rec = {k: sol[k] for k in ("iterations", "cost", "converged", "solve_s", "solve_cpu_s")}
             rec.update(verified=bool(cols["survived"][b]), failed=cols["failed"][b], impulse_ns=float(impulse[b]),
+                       feedforward=u[b],
                        **{f"replay_{k}": float(cols[k][b]) for k in limit_rounds.REPLAY_COLUMNS})  # fmt: skip
             out.append(rec)
         return out
 
+    def replay_alone(self, d: int, impulse: float, feedforward: np.ndarray) -> dict:
+        """The C MuJoCo replay of one recorded witness (feedforward (ticks, n) from :meth:`run`) in a
+        batch of its own: whether it passes whatever else was replayed beside it. Returns the
+        judge's columns of that push."""
+        scen = self.search.scenarios(np.array([d]), np.array([float(impulse)]))
+        cols = self.search.judge(scen, np.asarray(feedforward)[None], "mujoco")
+        return {"verified": bool(cols["survived"][0]), "failed": cols["failed"][0],
+                **{f"replay_{k}": float(cols[k][0]) for k in limit_rounds.REPLAY_COLUMNS}}  # fmt: skip
 
-def bisect(check: CrossCheck, start: np.ndarray, cap: np.ndarray, on_test=None) -> list[list[dict]]:
-    """Per direction, ``cfg.tests`` impulses: the first at ``start`` (D,) N s; above the largest
-    verified one while nothing failed (x1.25, at most ``cap``), else the bracket's middle. All
-    directions of a step in one batch. Returns per direction its tests (records)."""
+
+def next_impulse(tests: list[dict], start: float, cap: float) -> float:
+    """The next impulse of a direction's bisection from its ``tests`` so far: ``start`` first; x1.25
+    above the largest verified impulse while nothing above it failed (at most ``cap``); /1.25 below
+    the smallest failed one while nothing passed; else the bracket's middle."""
+    lo, hi = limit.bracket([(r["impulse_ns"], r["verified"]) for r in tests])
+    if not tests:
+        return float(start)
+    if np.isinf(hi):
+        return float(min(cap, STEP * lo))
+    if lo == 0.0:
+        return float(hi / STEP)
+    return float(0.5 * (lo + hi))
+
+
+def bisect(check: CrossCheck, start: np.ndarray, cap: np.ndarray, tested: list[list[dict]] | None = None,
+           on_test=None) -> list[list[dict]]:  # fmt: skip
+    """Per direction ``cfg.tests`` impulses (:func:`next_impulse`) from ``start`` (D,) N s, capped at
+    ``cap`` (D,); ``tested``: each direction's tests already made (a resumed run), which are kept and
+    continued. The directions still short of ``cfg.tests`` run in one batch a step; ``on_test``
+    (tested) after each. Returns per direction its tests (records)."""
     D = len(start)
-    tested: list[list[dict]] = [[] for _ in range(D)]
-    for _ in range(check.cfg.tests):
-        nxt = []
-        for d in range(D):
-            pairs = [(r["impulse_ns"], r["verified"]) for r in tested[d]]
-            lo, hi = limit.bracket(pairs)
-            if not pairs:
-                nxt.append(start[d])
-            elif np.isinf(hi):
-                nxt.append(min(cap[d], 1.25 * lo))
-            else:
-                nxt.append(0.5 * (lo + hi))
-        records = check.run(np.arange(D), np.array(nxt))
-        for d, rec in enumerate(records):
+    tested = [list(t) for t in tested] if tested is not None else [[] for _ in range(D)]
+    while todo := [d for d in range(D) if len(tested[d]) < check.cfg.tests]:
+        impulses = [next_impulse(tested[d], start[d], cap[d]) for d in todo]
+        for d, rec in zip(todo, check.run(np.array(todo), np.array(impulses)), strict=True):
             tested[d].append(rec)
         if on_test is not None:
             on_test(tested)
     return tested
+
+
+def resumed_tests(previous: dict | None, cfg: DdpConfig, path) -> dict[float, list[dict]]:
+    """{azimuth: tests} of a cross-check file written before (None: a fresh run) whose problem is
+    ``cfg``'s: every config field but the directions and the tests per direction must agree, else a
+    one-line error naming the file and the first field that differs."""
+    if previous is None:
+        return {}
+    for name in cfg.__dataclass_fields__:
+        if name in RESUME_FREE:
+            continue
+        was, now = previous["config"].get(name, cfg.__dataclass_fields__[name].default), getattr(cfg, name)
+        if was != now:
+            raise ValueError(f"{path} was written with {name}={was!r}, this run has {now!r}: pass the same settings "
+                             "to resume it, or another --out")  # fmt: skip
+    return {float(a): row["tests"] for a, row in previous["directions"].items()}
