@@ -36,37 +36,56 @@ def pytest_configure(config):
 
 # pytest-xdist (`-n 2 --dist loadgroup`, pyproject's addopts): each test module is one unit of work,
 # so module-scoped fixtures (compiled programs) are built once; each notebook is a unit of its own.
-# Units start longest first (CPU seconds per module, measured one module at a time on the 2-core CI machine, cold
-# compilation cache: test_distributed 199, test_contacts 171, test_rollout 149, test_baseline_cpu 113, test_viz 92,
-# test_dynamics 86, test_forces 79, test_tune 76, test_controller 70, test_sweep 61, test_cli 50, before the MJX and
-# hand-on-table loops went nightly). test_rollout and test_baseline_cpu share a compiled loop: far apart, so that
-# one compiles it and the other loads it. With `-m slow`, the race's end-to-end runs start first (_OWN_UNITS_FIRST),
-# then test_tune's closed-loop gradient check and notebook 04's pipeline.
-_LONGEST_FIRST = ["test_tune", "04_gain_tuning-run_tuning", "test_distributed", "test_rollout", "test_contacts",
-                  "test_viz", "test_dynamics", "test_forces", "test_controller", "test_sweep", "test_mjx_physics",
-                  "02_balancing", "03_push_recovery", "test_cli", "test_baseline_cpu", "01_dynamics"]  # fmt: skip
+# Units start longest first, so that the two workers finish together (xdist hands each worker the next unit when it
+# has fewer than two). The default suite's order: CPU seconds per unit, measured one module at a time on the 2-core
+# machine with a cold compilation cache (the ci branch, 2026-11-26): test_rollout 82 (it compiles the 1 s stand loop
+# first: test_baseline_cpu, test_tune and test_wheel start later and load it), test_viz 79, test_forces 74,
+# test_contacts 58, test_limit 44, test_hierarchy 36, test_reliability_paths 31, test_baseline_cpu 55 (25 with the
+# loop loaded), test_controller 27, test_tune 23 (the loop loaded), test_race 17. test_reliability_runs compiles the
+# short sweep that test_cli's resume test then loads. The MJX modules were measured only by wall time on the loaded
+# machine (test_mjx_physics the longest): its 256-environment subprocess is a unit of its own (_OWN_UNITS).
+_LONGEST_FIRST = ["test_rollout", "test_mjx_physics", "test_viz", "test_forces", "test_reliability_runs",
+                  "test_contacts", "test_limit", "test_hierarchy", "test_reliability_paths",
+                  "test_vmapped_rollout_of_256_envs_completes_on_cpu", "test_sweep", "test_baseline_cpu", "test_cli",
+                  "test_controller", "test_tune", "test_dynamics", "test_wheel", "test_race", "04_gain_tuning",
+                  "test_tsid_baseline", "test_watchdog", "test_distributed"]  # fmt: skip
+# `-m slow` (the nightly set): the race's end-to-end runs start first (_OWN_UNITS_FIRST), then test_tune's closed-loop
+# gradient check and notebook 04's pipeline, then the modules whose slow tests compile MJX loops.
+_LONGEST_FIRST_SLOW = ["test_tune", "04_gain_tuning-run_tuning", "test_distributed", "test_rollout", "test_contacts",
+                       "test_viz", "test_dynamics", "test_forces", "test_controller", "test_sweep", "test_mjx_physics",
+                       "02_balancing", "03_push_recovery", "test_cli", "test_baseline_cpu", "01_dynamics"]  # fmt: skip
 
 
 # Slow tests that share no module fixture and each take 20+ minutes on the loaded 2-core machine (a whole `tune` race
 # in a subprocess): each parametrisation is a unit of its own and they start first, side by side on the two workers,
 # so that `.ci/nightly slow` does not end with them run one after the other on one worker.
 _OWN_UNITS_FIRST = ["test_race_pipeline_end_to_end"]
+# Tests of the default suite that share no module fixture with their module and take a large part of it: a unit of
+# their own, placed by _LONGEST_FIRST.
+_OWN_UNITS = ["test_vmapped_rollout_of_256_envs_completes_on_cpu"]
 
 
 def _work_unit(item) -> str:
     module = item.module.__name__.rsplit(".", 1)[-1]
     if module == "test_notebooks" and hasattr(item, "callspec"):
         return item.callspec.id  # the notebook's name
-    if getattr(item, "originalname", "") in _OWN_UNITS_FIRST:
+    if getattr(item, "originalname", "") in _OWN_UNITS_FIRST + _OWN_UNITS:
         return item.name  # the test with its parameters' id
     return module
+
+
+def _is_slow_set(config) -> bool:
+    """`-m slow` (the nightly set) rather than the default `-m 'not slow'`."""
+    expression = config.option.markexpr or ""
+    return "slow" in expression and "not slow" not in expression
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the xdist_group marks
 def pytest_collection_modifyitems(config, items):
     for item in items:
         item.add_marker(pytest.mark.xdist_group(_work_unit(item)))
-    rank = {name: k for k, name in enumerate(_LONGEST_FIRST)}
+    order = _LONGEST_FIRST_SLOW if _is_slow_set(config) else _LONGEST_FIRST
+    rank = {name: k for k, name in enumerate(order)}
     rank.update({name: k - len(_OWN_UNITS_FIRST) for k, name in enumerate(_OWN_UNITS_FIRST)})
 
     def _rank(item) -> int:

@@ -1,5 +1,7 @@
 """The torque law against its definition, the momentum task, and controller input checks."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -14,11 +16,21 @@ from wbc_jax.control.references import Reference
 from wbc_jax.robot import contacts, dynamics
 
 
+@functools.cache
+def _compiled_terms(robot):
+    """dynamics.terms compiled once for the module's three states: every leaf committed to the CPU (make_data's
+    leaves are, jnp.asarray's are not, and jit compiles once per combination: 13 CPU s each)."""
+    jitted = jax.jit(lambda d: dynamics.terms(robot.mjx_model, d, robot.index))
+    return lambda d: jitted(jax.device_put(d, jax.devices("cpu")[0]))
+
+
+def _terms_at(robot, qpos, qvel):
+    return _compiled_terms(robot)(mjx.make_data(robot.mj_model).replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel)))
+
+
 @pytest.fixture(scope="module")
 def state_terms(robot):
-    qpos, qvel = random_state(robot, 11, joint_scale=0.2)
-    d = mjx.make_data(robot.mj_model).replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel))
-    return jax.jit(lambda d: dynamics.terms(robot.mjx_model, d, robot.index))(d)
+    return _terms_at(robot, *random_state(robot, 11, joint_scale=0.2))
 
 
 def _torque_terms(t, damping, postural="stable", rows=None):
@@ -124,19 +136,27 @@ def standing_terms(robot):
     qpos = robot.home_qpos()
     qpos[robot.index.qpos_joints] += rng.uniform(-0.03, 0.03, robot.index.n)
     qvel = rng.normal(scale=0.05, size=robot.mj_model.nv)
-    d = mjx.make_data(robot.mj_model).replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel))
-    return jax.jit(lambda d: dynamics.terms(robot.mjx_model, d, robot.index))(d)
+    return _terms_at(robot, qpos, qvel)
+
+
+def _reference(t) -> Reference:
+    return Reference(
+        com_pos=t.W_p_CoM + jnp.array([0.0, 0.01, 0.0]), com_vel=jnp.zeros(3),
+        com_acc=jnp.zeros(3), s_des=t.s, activation=jnp.ones(2),
+    )  # fmt: skip
+
+
+@functools.cache
+def _compiled_tick(robot, forces: str):
+    """The controller's first tick from terms t, compiled once per forces mode for the module (op by op,
+    a tick cost several times the CPU time of its compile)."""
+    ctrl = C.make_controller(robot, C.ControllerConfig(forces=forces))
+    return jax.jit(lambda gains, t: ctrl.step(gains, ctrl.init(t), t, _reference(t), 0.0)[0])
 
 
 def _step(robot, t, forces):
     gains = G.default_gains(23, jnp.float64)
-    ctrl = C.make_controller(robot, C.ControllerConfig(forces=forces))
-    ref = Reference(
-        com_pos=t.W_p_CoM + jnp.array([0.0, 0.01, 0.0]), com_vel=jnp.zeros(3),
-        com_acc=jnp.zeros(3), s_des=t.s, activation=jnp.ones(2),
-    )  # fmt: skip
-    out, _ = ctrl.step(gains, ctrl.init(t), t, ref, 0.0)
-    return gains, ref, out
+    return gains, _reference(t), _compiled_tick(robot, forces)(gains, t)
 
 
 @pytest.mark.parametrize("forces", ["qp", "analytic"])
@@ -211,8 +231,7 @@ def test_postural_projector_derivative_at_a_symmetric_posture(robot):
     """At the home posture (left-right symmetric: mirrored limbs give near-equal eigenvalues of
     X^-1 X^-T) eigh's own JVP of the projector is NaN in float32; spectral_projector's is finite,
     equals eigh's in float64 and matches central differences of the postural projector."""
-    d = mjx.make_data(robot.mj_model).replace(qpos=jnp.asarray(robot.home_qpos()))
-    tt = _torque_terms(jax.jit(lambda d: dynamics.terms(robot.mjx_model, d, robot.index))(d), 1.0)
+    tt = _torque_terms(_terms_at(robot, robot.home_qpos(), np.zeros(robot.mj_model.nv)), 1.0)
     A = jnp.linalg.solve(tt.Mbar, jnp.eye(23) + tt.Lambda.T @ tt.Lambda)
     A = A @ A.T
     rng = np.random.default_rng(2)

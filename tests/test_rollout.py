@@ -28,7 +28,8 @@ def _run(backend: str):
 
 @pytest.fixture(scope="module")
 def runs():
-    """The benchmark scenario on C MuJoCo; tests/test_baseline_cpu.py runs the same program (one compile)."""
+    """The benchmark scenario on C MuJoCo; tests/test_baseline_cpu.py and the balance runs of tests/test_tune.py
+    and tests/test_wheel.py (SHARED_BALANCE) run the same program (one compile in the session)."""
     return {"mujoco": _run("mujoco")}
 
 

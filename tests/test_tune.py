@@ -609,11 +609,16 @@ def _tuned_gains_file(tmp_path):
     return path, gains
 
 
+# `balance --duration 1 --backend mujoco` is the closed loop of tests/test_rollout.py and tests/test_baseline_cpu.py
+# (1 s stand on C MuJoCo, the same structure key and shapes): the session compiles it once (30 CPU s) and this run
+# loads it (2 CPU s), as tests/test_wheel.py's balance does; the gains are arguments, not part of the program.
+SHARED_BALANCE = ["balance", "--duration", "1.0", "--backend", "mujoco"]
+
+
 def test_tuned_gains_file_runs_in_balance(tmp_path, capsys):
-    """A tuned file through `wbc-jax balance` (the program tests/test_wheel.py's balance shares)."""
+    """A tuned file through `wbc-jax balance`."""
     path, gains = _tuned_gains_file(tmp_path)
-    rc = cli.main(["balance", "--gains", str(path), "--duration", "0.05", "--out", str(tmp_path / "bal"),
-                   "--quiet"])  # fmt: skip
+    rc = cli.main([*SHARED_BALANCE, "--gains", str(path), "--out", str(tmp_path / "bal"), "--quiet"])
     assert rc == 0, capsys.readouterr().err
     metrics = json.loads((tmp_path / "bal" / "metrics.json").read_text())
     np.testing.assert_allclose(metrics["gains"]["kp_postural"], np.asarray(gains.kp_postural), rtol=1e-6)

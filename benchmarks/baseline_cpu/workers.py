@@ -122,6 +122,10 @@ def run_parallel(
     ctx = mp.get_context("spawn")
     start_event = ctx.Event()
     spec_dict = spec.to_dict()
+    # The whole run's deadline starts before the first launch: each worker's own wait for the start signal (the same
+    # timeout) starts at its launch, so a deadline taken after the launches (slow on a loaded machine) let a worker
+    # give up first and report an error where the timeout was due.
+    deadline = time.monotonic() + timeout
     procs, conns = [], []
     # One BLAS thread per worker (set before the children import numpy).
     old_env = {k: os.environ.get(k) for k in _THREAD_ENV}
@@ -153,7 +157,6 @@ def run_parallel(
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
-    deadline = time.monotonic() + timeout
     results: list = [None] * len(procs)
     ok = False
     try:
