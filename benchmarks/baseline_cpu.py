@@ -70,6 +70,8 @@ import mujoco
 import numpy as np
 import quadprog
 
+from wbc_jax.robot.robots import DEFAULT_ROBOT, describe
+
 
 def _load_constants():
     """``wbc_jax/core/constants.py``, loaded by file path.
@@ -373,7 +375,7 @@ def make_spec(
     config = ControllerConfig(forces=forces, postural=postural, **(controller or {}))
     st = scenario.setup(task, duration=duration, controller=config, sim=sim, robot_name=robot_name)
     spec = spec_from_setup(st)
-    return spec, constants.default_gain_values(spec.n)
+    return spec, describe(robot_name).default_gain_values(spec.n)
 
 
 def centroidal_jacobian_ref(
@@ -419,10 +421,10 @@ def centroidal_jacobian_ref(
 
 
 def gains_to_numpy(gains, n_envs: int, n: int) -> dict:
-    """Gains (wbc_jax.control.gains.Gains, a dict, or None: the WBC defaults of
-    ``constants.default_gain_values``) -> dict of (n_envs, dim) float64 arrays."""
+    """Gains (wbc_jax.control.gains.Gains, a dict, or None: the default robot's gains,
+    ``RobotDescription.default_gain_values``) -> dict of (n_envs, dim) float64 arrays."""
     if gains is None:
-        gains = constants.default_gain_values(n)
+        gains = describe(DEFAULT_ROBOT).default_gain_values(n)
     out = {}
     for name in GAIN_FIELDS:
         value = gains[name] if isinstance(gains, dict) else getattr(gains, name)

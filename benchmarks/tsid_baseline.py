@@ -99,6 +99,8 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from wbc_jax.robot import icub
+
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 MODEL_XML = ROOT / "assets" / "icub" / "icub_23dof.xml"
 
@@ -121,6 +123,7 @@ constants = bc.constants
 
 DRIVEN_JOINTS: tuple[str, ...] = tuple(mjcf.DRIVEN_JOINTS)
 FEET = ("l_sole", "r_sole")
+ROBOTS = ("icub",)  # the robots whose Pinocchio model this peer builds (wbc_jax.jobs.limit_ddp checks)
 TASKS = ("stand", "sinusoid")
 # Copies of wbc_jax names (modules that import JAX), checked in tests/test_tsid_baseline.py:
 FOOT_SIZE = ((-0.07, 0.12), (-0.045, 0.045))  # robot.contacts.ContactParams().foot_size (m, sole frame)
@@ -444,7 +447,7 @@ class TsidConfig:
     def gains(self, n: int) -> dict[str, np.ndarray]:
         """The resolved gains (float64): kp_com, kd_com, kp_am (3,), kp_posture, kd_posture (n,),
         in ``DRIVEN_JOINTS`` order. Raises ValueError on a wrong shape or a negative gain."""
-        wbc = constants.default_gain_values(n)
+        wbc = icub.DESCRIPTION.default_gain_values(n)
         out = {
             "kp_com": wbc["kp_com"] if self.kp_com is None else self.kp_com,
             "kd_com": wbc["kd_com"] if self.kd_com is None else self.kd_com,

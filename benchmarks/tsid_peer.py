@@ -232,7 +232,7 @@ SENSITIVITY = {
     "w_posture=1e-4": {"w_posture": 1e-4},
     "w_posture=1e-2": {"w_posture": 1e-2},
     "contact_kp=10": {"contact_kp": 10.0},
-    "kd_com=2sqrt(kp_com) (TSID's critical damping)": {"kd_com": tuple(2 * np.sqrt(tb.constants.WBC_KP_COM))},
+    "kd_com=2sqrt(kp_com) (TSID's critical damping)": {"kd_com": tuple(2 * np.sqrt(tb.icub.DESCRIPTION.gains.kp_com))},
     "foot_size=the soles' contact spheres": {"foot_size": "contact spheres"},  # tb.sole_contact_rectangle
 }
 

@@ -108,7 +108,7 @@ def distribution(hand_scene):
     robot, _, cset, qpos = hand_scene
     t = dynamics.terms(robot.mjx_model, _data(robot, qpos), robot.index, cset.frames)
     ct = contacts.contact_terms(cset, t, 2.0, jnp.ones(2))
-    g = default_gains(robot.index.n, jnp.float64)
+    g = default_gains(robot.description, jnp.float64)
     cfg = C.ControllerConfig()
     rows = contacts.row_activation(cset, ct.activation)
     tt = torques.torque_terms(t, ct.J * rows[:, None], ct.Jdot_nu * rows, postural="stable",
@@ -151,7 +151,7 @@ def test_feet_from_a_spec_file_are_the_default_contact_set(robot):
         np.testing.assert_allclose(a.R_body_contact, b.R_body_contact, atol=1e-9)
     qvel = np.random.default_rng(5).normal(scale=0.2, size=robot.mj_model.nv)
     t = dynamics.terms(robot.mjx_model, _data(robot, robot.home_qpos(), qvel), robot.index)
-    g = default_gains(robot.index.n, jnp.float64)
+    g = default_gains(robot.description, jnp.float64)
     ref = Reference(com_pos=t.W_p_CoM + jnp.array([0.01, -0.005, 0.0]), com_vel=jnp.zeros(3),
                     com_acc=jnp.zeros(3), s_des=t.s, activation=jnp.ones(2))  # fmt: skip
     outs = []
@@ -282,7 +282,7 @@ def test_contact_detection_gates_the_hand(hand_scene):
     ctrl = C.make_controller(robot, contact_set=cset)
     assert ctrl.config.contact_detection
     t = dynamics.terms(robot.mjx_model, _data(robot, qpos), robot.index, cset.frames)
-    g = default_gains(robot.index.n, jnp.float64)
+    g = default_gains(robot.description, jnp.float64)
     ref = Reference(com_pos=t.W_p_CoM, com_vel=jnp.zeros(3), com_acc=jnp.zeros(3), s_des=t.s,
                     activation=jnp.ones(2))  # fmt: skip
     step = jax.jit(ctrl.step)

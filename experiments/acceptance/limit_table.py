@@ -49,7 +49,7 @@ def main() -> None:
                         "envelopes": {label: ENVELOPES / f"{name}_{body}" / "summary.json"
                                       for label, name in GAIN_SETS.items()},
                         "ddp": args.ddp_chest if body == "chest" else None}  # fmt: skip
-    result = limit_table.write(args.out, bodies, COMMANDS)
+    result = limit_table.write(args.out, bodies, COMMANDS, "icub")
     medians = {body: b["medians"] for body, b in result["bodies"].items()}
     print(json.dumps({"medians": medians, "targets": result["targets"]}, indent=1))
 

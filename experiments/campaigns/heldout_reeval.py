@@ -45,7 +45,7 @@ def parse(argv=None):
     return p.parse_args(argv)
 
 
-def load_sets(specs: list, n: int, dtype) -> dict:
+def load_sets(specs: list, robot, dtype) -> dict:
     """{name: (Gains, regularisation)} from 'NAME=FILE' or 'default' (clear errors before compiling)."""
     from wbc_jax.control.gains import default_gains, load_gains
     from wbc_jax.tuning import params as tuning_params
@@ -57,11 +57,11 @@ def load_sets(specs: list, n: int, dtype) -> dict:
         if name in sets:
             raise ValueError(f"gain set {name!r} given twice")
         if name == "default" and not path:
-            sets[name] = (default_gains(n, dtype), reg0)
+            sets[name] = (default_gains(robot, dtype), reg0)
         elif not path:
             raise ValueError(f"--sets entries are NAME=GAINS.json or 'default', got {spec!r}")
         else:
-            sets[name] = (load_gains(path, n, dtype), reg0)  # load_gains checks the file and its values
+            sets[name] = (load_gains(path, len(robot.joints), dtype), reg0)  # load_gains checks the file and its values
     return sets
 
 
@@ -87,7 +87,7 @@ def main(argv=None) -> int:
         chunk_size=args.chunk_size,
     )  # checks the sizes before anything compiles
     robot = load_robot("icub")
-    sets = load_sets(args.sets, robot.index.n, scenario.float_dtype())
+    sets = load_sets(args.sets, robot.description, scenario.float_dtype())
     inputs = {f"gains:{name}": path for name, _, path in (x.partition("=") for x in args.sets) if path}
     prov = provenance.record({**inputs, "previous": args.previous}, argv=provenance.script_argv(__file__, argv))
     out = pathlib.Path(args.out)

@@ -135,15 +135,6 @@ class ControllerConfig:
         )  # fmt: skip
 
 
-def with_job_settings(base: ControllerConfig | None, forces: str, postural: str,
-                      angular_weight_soft: float) -> ControllerConfig:  # fmt: skip
-    """``base`` (default: the defaults) with a job's controller flags (``--forces``, ``--postural``,
-    ``--angular-weight-soft`` of balance, push-sweep and envelope; the jobs' configs check their
-    declared ranges first, :class:`ControllerConfig` checks the values again)."""
-    return dataclasses.replace(base or ControllerConfig(), forces=forces, postural=postural,
-                               angular_weight_soft=angular_weight_soft)  # fmt: skip
-
-
 @pytree_dataclass
 class ControllerState:
     """Controller memory and the arrays fixed for a run.

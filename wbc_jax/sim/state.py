@@ -48,7 +48,8 @@ class SimConfig:
     Attributes:
       control_dt: controller period (s); the physics step comes from the model (1 ms).
       duration: simulated time (s).
-      push_body: body the pushes act on (at its CoM, world-axes force).
+      push_body: body the pushes act on (at its CoM, world-axes force): a body name or a role of the
+        robot description (``trunk``).
       record: keep per-tick trajectories (False in large sweeps: metrics only). A loop that
         differentiates its rollouts composes its own per-tick record instead
         (:func:`wbc_jax.sim.loop.compose`: ``trace``, ``remat``).
@@ -68,7 +69,7 @@ class SimConfig:
 
     control_dt: float = constants.CONTROL_DT
     duration: float = 10.0
-    push_body: str = "chest"
+    push_body: str = "trunk"
     record: bool = True
     physics: physics.PhysicsConfig = physics.PhysicsConfig()
     perturb_plant: bool = False
