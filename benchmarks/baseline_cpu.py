@@ -155,7 +155,7 @@ class BaselineSpec:
     pinv_tol: float
     kp_postural_reg: float
     hessian_reg: float
-    torque_limit: float
+    torque_limit: np.ndarray  # (n,) N m, or () where one limit for all
     torque_weight_soft: float
     angular_weight_soft: float
     compensate_passive: bool
@@ -331,7 +331,7 @@ def spec_from_setup(st, controller_state=None) -> BaselineSpec:
         push_body=int(loop.push_body), non_foot_bodies=np.asarray(loop.non_foot_bodies),
         forces=config.forces, postural=config.postural, pinv_damping=float(config.pinv_damping),
         pinv_tol=float(config.pinv_tol), kp_postural_reg=float(config.kp_postural_reg),
-        hessian_reg=float(config.hessian_reg), torque_limit=float(config.torque_limit),
+        hessian_reg=float(config.hessian_reg), torque_limit=np.asarray(config.saturation(idx), float),
         torque_weight_soft=float(config.torque_weight_soft), angular_weight_soft=float(config.angular_weight_soft),
         compensate_passive=bool(config.compensate_passive),
         C_foot=C_foot, b_foot=b_foot, fz_row=int(constraints.constraint_rows(params, "surface").unilateral),

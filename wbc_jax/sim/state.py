@@ -154,15 +154,17 @@ class Feedforward:
     torque: Array
 
 
-def feedforward_torque(ff: Feedforward | None, k, tau: Array, limit: float) -> Array:
+def feedforward_torque(ff: Feedforward | None, k, tau: Array, limit) -> Array:
     """(n,) the torques the plant gets at tick ``k``: the controller's saturated ``tau`` (n,)
-    plus ``ff``'s torque of that tick, saturated at +-``limit`` N m (``ff`` None: ``tau``)."""
+    plus ``ff``'s torque of that tick, saturated at +-``limit`` N m (a number or per joint (n,);
+    ``ff`` None: ``tau``)."""
     if ff is None:
         return tau
     i = k - ff.start
     T = ff.torque.shape[0]
     inside = (i >= 0) & (i < T)
     u = ff.torque[jnp.clip(i, 0, T - 1)].astype(tau.dtype)
+    limit = jnp.asarray(limit, tau.dtype)
     return jnp.where(inside, jnp.clip(tau + u, -limit, limit), tau)
 
 
