@@ -233,7 +233,7 @@ def test_push_distribution_is_reproducible_and_in_range(robot):
     assert not np.array_equal(a.push.force, c.push.force)
     rel = ca["impulse_ns"] / tp.interp_periodic(*table, ca["azimuth_deg"])
     assert rel.min() >= 0.6 - 1e-9 and rel.max() <= 1.4 + 1e-9
-    assert set(ca["body"]) <= {robot.index.body_id(n) for n in tc.train_bodies}
+    assert set(ca["body"]) <= {robot.index.pushable_body_id(n) for n in tc.train_bodies}
     assert np.all((a.friction >= 0.6) & (a.friction <= 1.2)) and np.all(np.abs(a.mass_scale - 1) <= 0.1 + 1e-6)
 
 
