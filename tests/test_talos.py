@@ -107,8 +107,8 @@ def test_dynamics_match_pinocchio(talos, builder):
 
 @pytest.mark.slow  # compiles the Talos closed loop on both engines: minutes on the 2-core machine
 def test_c_mujoco_and_mjx_agree_on_talos():
-    """The same controller on both engines, Talos standing through a 0.3 s push: the CoM agrees to
-    1e-6 m over 0.6 s (float64), and the push moved it."""
+    """The same controller on both engines, Talos standing through a 15 N s lateral push: the CoM agrees to
+    1e-5 m over 0.6 s (float64) while the push moves it by a centimetre."""
     from wbc_jax.sim import physics, runner, scenario
     from wbc_jax.sim.state import SimConfig
 
@@ -119,5 +119,8 @@ def test_c_mujoco_and_mjx_agree_on_talos():
 
     com_c, com_mjx = run("mujoco").records.com[0], run("jax").records.com[0]
     assert com_c.shape == com_mjx.shape == (60, 3)
-    assert np.abs(com_c - com_mjx).max() < 1e-6
-    assert np.linalg.norm(com_c - com_c[0], axis=1).max() > 1e-3
+    # Measured 1.6e-6 m at 0.6 s (2-core AMD EPYC, 2026-11-26), 8e-8 m after the first tick: the two engines'
+    # contact solvers round differently and the 90 kg robot on stiff contacts grows it (the iCub's 1 s: < 1e-6 m).
+    # 1e-5 m leaves 6x that; a model or controller that differs between the engines moves the CoM by millimetres.
+    assert np.abs(com_c - com_mjx).max() < 1e-5
+    assert np.linalg.norm(com_c - com_c[0], axis=1).max() > 5e-3
