@@ -1,6 +1,6 @@
 """Install libtsid (TSID's C++ library) on any CPython 3, before ``pip install -e ".[dev]"``.
 
-Why: the dev extra's ``tsid==1.10.0`` (the TSID peer, benchmarks/tsid_baseline.py) has cp311 wheels,
+Why: the dev extra's ``tsid==1.10.0`` (the TSID peer, benchmarks/tsid_baseline/) has cp311 wheels,
 but it requires ``libtsid==1.10.0``, and PyPI holds that only as wheels tagged cp314-cp314 (plus an
 sdist whose build clones jrl-cmakemodules from GitHub and compiles TSID). The wheel holds no Python
 (lib/libtsid.so, headers, CMake and pkg-config files under cmeel.prefix): the tag is a packaging

@@ -9,7 +9,7 @@ For each physics backend (``jax``: MJX's JAX implementation, ``warp``: MJX-Warp 
 size: compile time, closed-loop physics steps/s and control ticks/s (``runner.run`` on a batch of
 40 N pushes spread over 360 deg; 1 kHz physics, 100 Hz control), the same physics with the torques
 held fixed (physics only), the controller's share of the time (1 - closed loop / physics only),
-peak device memory. Then the CPU baseline (benchmarks/baseline_cpu.py: C MuJoCo + the controller in
+peak device memory. Then the CPU baseline (benchmarks/baseline_cpu/: C MuJoCo + the controller in
 NumPy, one worker process per core) on the same task, and the ratio of each closed loop to it
 (for ``mujoco`` also steps/s per core on both sides). The trajectory check: the MJX closed loop and
 the baseline on one 1 s stand with a 40 N lateral chest push, CoM difference.
@@ -31,158 +31,20 @@ import json
 import os
 import pathlib
 import sys
-import time
 import traceback
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-# baseline_cpu is imported from this script's folder: Python puts it first on sys.path when the
-# script runs (and spawn's workers inherit that path).
+# baseline_cpu and loop_timing are imported from this script's folder: Python puts it first on
+# sys.path when the script runs (and spawn's workers inherit that path).
 
 BACKENDS = ("jax", "warp", "mujoco")
 EQUIVALENCE_BAR_M = 1e-3  # the MJX closed loop against the C MuJoCo + NumPy baseline, CoM over 1 s
 BAR = (f"the MJX closed loop's CoM within {EQUIVALENCE_BAR_M * 1e3:g} mm of the C MuJoCo + NumPy baseline's over "
        "1 s (the trajectory check; skipped with --skip-equivalence)")  # fmt: skip
-PUSH_MAGNITUDE = 40.0  # N, horizontal, azimuths spread over 360 deg
 JSON_KEYS = ("device", "date", "backend", "solver_iterations", "batch", "closed_loop_steps_per_s",
              "physics_only_steps_per_s", "cpu_baseline_steps_per_s", "cpu_baseline_workers", "ratio",
              "n_devices", "command", "sweep_name", "sweep_run_s", "sweep_envs")  # fmt: skip
 JSON_ROW_KEY = ("device", "backend", "solver_iterations", "batch", "n_devices", "sweep_name")
-
-
-# ---------------------------------------------------------------------------------------------
-# Closed loop and physics only
-
-
-def make_setup(backend: str, horizon: float, iterations: int | None, *, record: bool = False):
-    """The stand task's closed loop on ``backend`` (default gains, the two feet)."""
-    from wbc_jax.sim import physics, scenario
-    from wbc_jax.sim.state import SimConfig
-
-    sim = SimConfig(record=record, physics=physics.PhysicsConfig(backend=backend, solver_iterations=iterations))
-    return scenario.setup("stand", duration=horizon, sim=sim)
-
-
-def push_batch(st, batch: int, onset: float, duration: float):
-    """A Scenario batch: one PUSH_MAGNITUDE N horizontal push per environment, azimuths evenly
-    over 360 deg (sweep.build_scenarios), nominal plant, default gains."""
-    import numpy as np
-
-    from wbc_jax.jobs import sweep, sweep_config
-
-    cfg = sweep_config.SweepConfig(
-        magnitudes=(PUSH_MAGNITUDE,), directions=tuple(float(a) for a in np.linspace(0, 360, batch, endpoint=False)),
-        horizon=st.loop.cfg.duration, push_onset=onset, push_duration=duration, chunk_size=batch,
-    )  # fmt: skip
-    scen, _ = sweep.build_scenarios(cfg, st.gains, st.robot.index.n, st.dtype)
-    return scen
-
-
-def peak_memory() -> int | None:
-    import jax
-
-    stats = jax.devices()[0].memory_stats() or {}
-    return stats.get("peak_bytes_in_use")
-
-
-def time_closed_loop(st, scen, push_end: float, repeats: int = 1) -> dict:
-    """Compile + first run, then ``repeats`` timed runs of the same batch (runner.run,
-    compiled programs cached on the setup); the fastest counts."""
-    import numpy as np
-
-    from wbc_jax.sim import metrics as metrics_lib
-    from wbc_jax.sim import runner
-
-    first = runner.run(st, scen)
-    timed = [runner.run(st, scen) for _ in range(repeats)]
-    run_s = min(r.run_s for r in timed)
-    B = int(np.asarray(scen.friction).shape[0])
-    steps = B * st.loop.n_ticks * st.loop.n_sub
-    cols = metrics_lib.summarize(timed[-1].metrics, push_end)
-    return {
-        "compile_s": round(first.compile_s, 2),
-        "first_run_s": round(first.run_s, 4),
-        "run_s": round(run_s, 4),
-        "closed_loop_steps_per_s": steps / run_s,
-        "control_ticks_per_s": B * st.loop.n_ticks / run_s,
-        # Names of constants.METRIC_NAMES: the rates of its booleans, medians of the others.
-        "survived_rate": float(np.mean(cols["survived"])),
-        "upright_rate": float(np.mean(cols["upright"])),
-        "com_max_err_m_median": float(np.median(cols["com_max_err_m"])),
-        "qp_infeasible_ticks_total": int(np.sum(cols["qp_infeasible_ticks"])),
-    }
-
-
-def hold_torques(st):
-    """(nu,) torques to hold in the physics-only run: the controller's first tick at the initial
-    posture (NumPy baseline, C MuJoCo: no compilation), so that the robot stands as in the loop."""
-    import baseline_cpu
-    import mujoco
-    import numpy as np
-
-    spec = baseline_cpu.spec_from_setup(st)
-    ctrl = baseline_cpu.NumpyController(spec)
-    d = mujoco.MjData(spec.mj_model)
-    d.qpos[:] = spec.qpos0
-    mujoco.mj_forward(spec.mj_model, d)
-    out, _ = ctrl([d], baseline_cpu.gains_to_numpy(st.gains, 1, spec.n), spec.reference(0), ctrl.init_state(1))
-    tau = np.zeros(spec.mj_model.nu)
-    tau[spec.actuators] = out["tau"][0]
-    return tau
-
-
-def time_physics_only(st, batch: int, tau, repeats: int = 1) -> dict:
-    """The closed loop's physics alone: ``batch`` environments from the initial posture, the
-    torques ``tau`` held, no push, the same number of steps (MJX: one jitted, vmapped scan of
-    physics.step on device_model/device_data; C MuJoCo: physics.HostBatch, as the host loop);
-    the fastest of ``repeats`` timed runs counts."""
-    import jax
-    import jax.numpy as jnp
-    import numpy as np
-
-    from wbc_jax.sim import physics
-
-    loop, robot = st.loop, st.robot
-    cfg = loop.cfg.physics
-    steps = loop.n_ticks * loop.n_sub
-    qpos = np.repeat(np.asarray(st.qpos0, float)[None], batch, 0)
-    if loop.backend == "mujoco":
-        model = physics.solver_mj_model(robot.mj_model, cfg)
-        ctrl = np.repeat(np.asarray(tau, float)[None], batch, 0)
-        xfrc = np.zeros((batch, loop.n_sub, robot.mj_model.nbody, 6))
-        times = []
-        for _ in range(repeats):
-            host = physics.HostBatch(model, qpos)
-            try:
-                t0 = time.perf_counter()
-                for _ in range(loop.n_ticks):
-                    host.step(ctrl, xfrc)
-                times.append(time.perf_counter() - t0)
-            finally:
-                host.close()
-        return {"physics_only_steps_per_s": batch * steps / min(times), "physics_only_compile_s": 0.0,
-                "physics_only_threads": host.threads}  # fmt: skip
-    dtype = st.dtype
-    m = physics.device_model(robot.mj_model, loop.backend, cfg)
-    ctrl = jnp.asarray(tau, dtype)
-    xfrc = jnp.zeros((robot.mj_model.nbody, 6), dtype)
-
-    def env(q):
-        d = physics.device_data(robot.mj_model, loop.backend, cfg, q, dtype, batch=batch)
-        d, _ = jax.lax.scan(lambda dd, _: (physics.step(m, dd, ctrl, xfrc), None), d, None, length=steps)
-        return d.qpos
-
-    q = jnp.asarray(qpos, dtype)
-    t0 = time.perf_counter()
-    with jax.default_matmul_precision(loop.cfg.matmul_precision):  # as the closed loop's physics
-        fn = jax.jit(jax.vmap(env)).lower(q).compile()
-    compile_s = time.perf_counter() - t0
-    jax.block_until_ready(fn(q))  # warm
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(q))
-        times.append(time.perf_counter() - t0)
-    return {"physics_only_steps_per_s": batch * steps / min(times), "physics_only_compile_s": round(compile_s, 2)}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -195,6 +57,7 @@ def equivalence_check(horizon: float = 1.0, iterations: int | None = None) -> di
     0.3 s for 0.1 s. The bar: CoM within 1 mm over 1 s."""
     import baseline_cpu
     import numpy as np
+    from loop_timing import make_setup
 
     from wbc_jax.sim import runner, scenario
 
@@ -343,6 +206,15 @@ def main(argv=None) -> dict:
 
     import baseline_cpu
     import jax
+    from loop_timing import (
+        PUSH_MAGNITUDE,
+        hold_torques,
+        make_setup,
+        peak_memory,
+        push_batch,
+        time_closed_loop,
+        time_physics_only,
+    )  # fmt: skip
 
     from wbc_jax.core import checks, io, provenance
     from wbc_jax.sim import physics

@@ -1,4 +1,4 @@
-"""[TSID peer] One-core measurement of the TSID balancing controller (``benchmarks/tsid_baseline.py``).
+"""[TSID peer] One-core measurement of the TSID balancing controller (``benchmarks/tsid_baseline/``).
 
 In one run, on one core (BLAS/OpenMP threads set to 1 before numpy loads; TSID, Pinocchio and C
 MuJoCo step one robot in one thread; ``--cpu`` also pins the process to one core):
@@ -51,6 +51,8 @@ HERE = pathlib.Path(__file__).resolve().parent
 # tsid_baseline is imported from this script's folder: Python puts it first on sys.path when the
 # script runs (python benchmarks/tsid_peer.py).
 import tsid_baseline as tb  # noqa: E402
+
+from wbc_jax.robot import icub  # noqa: E402
 
 # The grid of wbc_jax/jobs/envelope.py (DEFAULT_MAGNITUDES) and of the documented 64 x 32 sweeps.
 MAGNITUDES = (10.0, 400.0, 64)  # N: LO, HI, count (np.linspace)
@@ -232,7 +234,7 @@ SENSITIVITY = {
     "w_posture=1e-4": {"w_posture": 1e-4},
     "w_posture=1e-2": {"w_posture": 1e-2},
     "contact_kp=10": {"contact_kp": 10.0},
-    "kd_com=2sqrt(kp_com) (TSID's critical damping)": {"kd_com": tuple(2 * np.sqrt(tb.icub.DESCRIPTION.gains.kp_com))},
+    "kd_com=2sqrt(kp_com) (TSID's critical damping)": {"kd_com": tuple(2 * np.sqrt(icub.DESCRIPTION.gains.kp_com))},
     "foot_size=the soles' contact spheres": {"foot_size": "contact spheres"},  # tb.sole_contact_rectangle
 }
 
@@ -315,7 +317,7 @@ def measure(args, log=print) -> dict:
             sin["n_ticks"] * peer.control_dt / float(np.median(loop_s)), 2
         )
     out = {
-        "peer": "TSID (Pinocchio + eiquadprog) on C MuJoCo, benchmarks/tsid_baseline.py",
+        "peer": "TSID (Pinocchio + eiquadprog) on C MuJoCo, benchmarks/tsid_baseline/",
         "command": command,
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "cpu": tb.bc.cpu_name(),
@@ -411,7 +413,7 @@ def main(argv=None) -> dict:
     if problem is not None:
         raise SystemExit(f"error: {problem}")
     try:
-        tb._body_id(tb.load_mj_model(), args.body)
+        tb.body_id(tb.load_mj_model(), args.body)
     except ValueError as err:
         raise SystemExit(f"error: --body: {err}") from None
     if args.cpu is not None:

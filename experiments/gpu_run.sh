@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# One call on a GPU machine (README "On a GPU machine"): install the carried wheels next to the
+# One call on a GPU machine (docs/usage.md, "On a GPU machine"): install the carried wheels next to the
 # machine's own jax (never replacing it), then run the jobs named as arguments. Results go to
 # $OUT (one folder per job, log.txt), so a call that runs past its limit still returns what finished.
 #

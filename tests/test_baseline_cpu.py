@@ -1,4 +1,4 @@
-"""The CPU baseline (benchmarks/baseline_cpu.py: C MuJoCo + NumPy controller) against the JAX/MJX
+"""The CPU baseline (benchmarks/baseline_cpu/: C MuJoCo + NumPy controller) against the JAX/MJX
 implementation: dynamics terms, one controller tick, references, the closed loop, and its
 process pool."""
 
@@ -27,10 +27,12 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 
 def _load_baseline():
-    """benchmarks/baseline_cpu.py (a script folder, not a package), imported once."""
+    """benchmarks/baseline_cpu/ (a package of the script folder benchmarks/), imported once."""
     name = "baseline_cpu"
     if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / "baseline_cpu.py")
+        folder = ROOT / "benchmarks" / name
+        spec = importlib.util.spec_from_file_location(name, folder / "__init__.py",
+                                                      submodule_search_locations=[str(folder)])  # fmt: skip
         module = importlib.util.module_from_spec(spec)
         sys.modules[name] = module  # dataclasses look their module up by name
         spec.loader.exec_module(module)

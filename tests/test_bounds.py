@@ -180,14 +180,19 @@ def test_limit_table_takes_the_best_optimiser_per_direction(robot):
     envelopes = {"tuned": {"envelope": {"0": {"0.0": {"impulse_ns": 8.0}, "90.0": {"impulse_ns": 9.0}}}}}
     mjx = {"directions": {"0.0": {"limit_ns": 10.0, "bracket_ns": [10.0, 15.0]},
                           "90.0": {"limit_ns": 20.0, "bracket_ns": [20.0, 21.0]}}}  # fmt: skip
-    ddp = {"directions": {"0.0": {"limit_ns": 11.0, "bracket_ns": [11.0, 11.5]},
+    ddp = {"config": {}, "directions": {"0.0": {"limit_ns": 11.0, "bracket_ns": [11.0, 11.5]},
                           "90.0": {"limit_ns": 18.0, "bracket_ns": [18.0, 19.0]}}}  # fmt: skip
-    rows = limit_table.body_table(mjx, envelopes, [0.0, 90.0], robot, "chest", ddp)
+    rows = limit_table.body_table(mjx, envelopes, [0.0, 90.0], robot, "chest", [ddp])
     assert (rows[0.0]["limit_ns"], rows[0.0]["found_by"], rows[0.0]["bracket_ns"]) == (11.0, "crocoddyl", [11.0, 15.0])
     assert (rows[90.0]["limit_ns"], rows[90.0]["found_by"], rows[90.0]["bracket_ns"]) == (20.0, "mjx", [20.0, 21.0])
     assert rows[0.0]["limit_by_optimiser_ns"] == {"mjx": 10.0, "crocoddyl": 11.0}
     assert rows[0.0]["envelopes"]["tuned"]["fraction_of_limit"] == pytest.approx(8.0 / 11.0)
-    alone = limit_table.body_table(None, envelopes, [0.0], robot, "chest", ddp)  # the cross-check alone
+    alone = limit_table.body_table(None, envelopes, [0.0], robot, "chest", [ddp])  # the cross-check alone
     assert alone[0.0]["limit_ns"] == 11.0 and alone[0.0]["found_by"] == "crocoddyl"
+    # a second setting of the cross-check (a smaller CoP rectangle) is an optimiser of its own; nothing failed above 12
+    margin = {"config": {"cop_scale": 0.8}, "directions": {"0.0": {"limit_ns": 12.0, "bracket_ns": [12.0, None]}}}
+    both = limit_table.body_table(mjx, envelopes, [0.0], robot, "chest", [ddp, margin])[0.0]
+    assert (both["limit_ns"], both["found_by"], both["bracket_ns"]) == (12.0, "crocoddyl cop x0.8", [12.0, None])
+    assert both["limit_by_optimiser_ns"] == {"mjx": 10.0, "crocoddyl": 11.0, "crocoddyl cop x0.8": 12.0}
     none = limit_table.body_table(None, envelopes, [0.0], robot, "chest")
     assert none[0.0]["limit_ns"] is None and none[0.0]["found_by"] is None and none[0.0]["bracket_ns"] is None

@@ -19,7 +19,7 @@ from wbc_jax.core import options
 from wbc_jax.jobs import sweep_config
 from wbc_jax.robot.icub import DESCRIPTION as ICUB
 from wbc_jax.tuning import config as tune_config
-from wbc_jax.tuning import tune  # noqa: F401  (before the tripwire: optax applies jax.jit when imported)
+from wbc_jax.tuning.algorithms import gradient  # noqa: F401  (before the tripwire: optax applies jax.jit when imported)
 
 _spec = importlib.util.spec_from_file_location(
     "bad_input", pathlib.Path(__file__).resolve().parents[1] / "experiments" / "checks" / "bad_input.py"
@@ -59,6 +59,22 @@ def test_tune_and_heldout_share_the_held_out_flags(tmp_path):
     tasks = str(tmp_path / "t.yaml")
     pathlib.Path(tasks).write_text("contacts: []\n")
     assert cli.config_from_args(parser.parse_args(["tune", "--tasks", tasks]), heldout).controller.tasks == tasks
+
+
+def test_heldout_reeval_takes_the_heldout_jobs_flags():
+    """experiments/campaigns/heldout_reeval.py declares no held-out flag of its own: wbc-jax heldout's,
+    generated from the job's config (the job's defaults but its sets and folder), checked as the job
+    checks them."""
+    from conftest import load_script
+
+    script = load_script("experiments/campaigns/heldout_reeval.py")
+    hc, previous = script.parse(["--grid-directions", "4", "--chunk-size", "7", "--no-one-foot"])
+    job = tune_config.heldout_default_config()
+    assert hc == options.replace(job, sets=script.DEFAULT_SETS, out="runs/heldout_reeval",
+                                     grid_directions=(0.0, 90.0, 180.0, 270.0), chunk_size=7, one_foot=False)  # fmt: skip
+    assert previous.endswith("docs/tuning/heldout.json")
+    with pytest.raises(ValueError, match=r"--chunk-size must be a whole number in \[1, "):
+        script.parse(["--chunk-size", "0"])
 
 
 def _declared(config):

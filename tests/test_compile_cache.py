@@ -14,8 +14,9 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 from wbc_jax.sim import runner
-from wbc_jax.tuning import config, tune
-from wbc_jax.tuning import problem as tp
+from wbc_jax.tuning import config
+from wbc_jax.tuning.algorithms import gradient
+from wbc_jax.tuning.algorithms import problem as tp
 
 
 @pytest.mark.slow  # lowers the tuning gradient program through the closed loop three times (minutes of CPU)
@@ -23,12 +24,12 @@ from wbc_jax.tuning import problem as tp
 def test_gradient_program_lowers_to_the_same_text_whatever_was_traced_before():
     tc = config.TuneConfig(batch=2, horizon=0.1, push_onset=0.0, duration_range=(0.02, 0.05), eval_horizon=0.1)
     problem = tp.make_problem(tc)
-    opt = tune.make_optimizer(tc.lr, tc.clip_norm)
+    opt = gradient.make_optimizer(tc.lr, tc.clip_norm)
     flat0, unravel = ravel_pytree(problem.init_params())
 
     def text(shift: float, fresh: bool) -> str:
         params = unravel(jnp.asarray(np.asarray(flat0) + shift, flat0.dtype))  # the hybrid's other starts
-        step = tune.GradientStep(problem, opt)
+        step = gradient.GradientStep(problem, opt)
         params_b, _, rollouts, _, _ = step.rows_of(params, 0)
         lowered = runner.lower_fresh(step.grads, params_b, rollouts) if fresh else step.grads.lower(params_b, rollouts)
         return hashlib.sha256(lowered.as_text().encode()).hexdigest()

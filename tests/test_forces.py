@@ -812,10 +812,11 @@ def test_distribute_batch_runs_fallbacks_only_where_needed(two_feet_problems):
         np.testing.assert_allclose(f_batch[i], alone[i][0], rtol=1e-9, atol=1e-9)
     calm = [a[jnp.array([0, 3])] for a in args]
     jaxpr = str(jax.make_jaxpr(jax.vmap(one))(*calm))
-    # Three branches (the soft QP after each of the two formulations, the ramp); the linear
-    # algebra's own conds are dispatch on the platform (platform_index).
+    # Three branches (the soft QP after each of the two formulations, the ramp) and one in each of
+    # the four QPs (its unconstrained fallback minimiser); the linear algebra's own conds are
+    # dispatch on the platform (platform_index).
     branches = len(re.findall(r"= cond\[", jaxpr)) - len(re.findall(r"= platform_index\[", jaxpr))
-    assert branches == 3
+    assert branches == 3 + 4
 
 
 def test_two_feet_gradients(two_feet_problems):

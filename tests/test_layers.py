@@ -1,4 +1,4 @@
-"""The package's layers (README "What is there"): every import points to the same layer or an
+"""The package's layers (docs/architecture.md): every import points to the same layer or an
 earlier one, and no two modules import each other, directly or through others."""
 
 import ast
@@ -87,7 +87,8 @@ def test_no_subclass_of_the_closed_loop():
     found = {_module_name(p): _closed_loop_subclasses(p) for p in sorted(PACKAGE.rglob("*.py"))}
     assert not {m: c for m, c in found.items() if c}, found
     from wbc_jax.sim.loop import ClosedLoop
-    from wbc_jax.tuning import heldout, schedule, tune, windows  # noqa: F401  (the former subclasses' modules)
+    from wbc_jax.tuning.algorithms import gradient, schedule, windows  # noqa: F401  (the former subclasses' modules)
+    from wbc_jax.tuning.orchestration import heldout  # noqa: F401
 
     assert ClosedLoop.__subclasses__() == []
 
@@ -139,9 +140,9 @@ def test_the_private_name_scan_finds_both_forms():
     private name (a module's own private names, and public ones, pass)."""
     source = (
         "from wbc_jax.jobs.grids import _hidden\nfrom wbc_jax.core import io\nio._secret(1)\nio.jsonable\n"
-        "import wbc_jax.robot.model as m\nm._check_name\nfrom wbc_jax.tuning.tune import _own\n"
+        "import wbc_jax.robot.model as m\nm._check_name\nfrom wbc_jax.tuning.algorithms.gradient import _own\n"
     )
-    found = _private_uses("probe.py", "wbc_jax.tuning.tune", source)
+    found = _private_uses("probe.py", "wbc_jax.tuning.algorithms.gradient", source)
     assert sorted(found) == [
         "probe.py:1 imports wbc_jax.jobs.grids._hidden",
         "probe.py:3 reads wbc_jax.core.io._secret",
@@ -233,3 +234,58 @@ def test_the_icub_word_list_catches_a_name():
     words, numbers = _icub_specific_words()
     assert {"icub", "chest", "root_link", "l_elbow_1", "r_knee"} <= words and "l_sole" not in words
     assert "33.06" in numbers and "(-0.07, 0.12)" in numbers
+
+
+# Gain tuning's folders, each importing only those before it: the shared configs and store, the
+# problem and its methods, what runs and judges them.
+TUNING_PARTS = (("wbc_jax.tuning.config", "wbc_jax.tuning.store"), ("wbc_jax.tuning.algorithms",),
+                ("wbc_jax.tuning.orchestration",))  # fmt: skip
+
+
+def _tuning_part(module: str) -> int | None:
+    for rank, prefixes in enumerate(TUNING_PARTS):
+        if any(module == p or module.startswith(p + ".") for p in prefixes):
+            return rank
+    return None
+
+
+@pytest.mark.parametrize("module", sorted(m for m in MODULES if _tuning_part(m) is not None))
+def test_tuning_algorithms_never_import_its_orchestration(module):
+    """Issue 44: tuning/ shows which module is which; the algorithms (and the config and store they
+    share with the orchestration) never import the orchestration."""
+    mine = _tuning_part(module)
+    later = sorted(t for t in MODULES[module] if (_tuning_part(t) is not None and _tuning_part(t) > mine))
+    assert not later, f"{module} imports later parts of tuning: {later}"
+
+
+def test_every_tuning_module_is_in_a_part():
+    stray = [m for m in MODULES if m.startswith("wbc_jax.tuning.") and _tuning_part(m) is None]
+    assert not stray, f"tuning modules outside {TUNING_PARTS}: {stray}"
+
+
+MAX_LINES = 450
+ROOT = PACKAGE.parent
+
+
+@pytest.mark.parametrize("folder", ["wbc_jax", "benchmarks"])
+def test_no_module_over_450_lines(folder):
+    """Issue 44: no Python file under wbc_jax/ or benchmarks/ is longer than 450 lines."""
+    files = sorted((ROOT / folder).rglob("*.py"))
+    assert files, f"no Python files under {folder}/"
+    long = {str(p.relative_to(ROOT)): n for p in files if (n := len(p.read_text().splitlines())) > MAX_LINES}
+    assert not long, f"files over {MAX_LINES} lines: {long}"
+
+
+def _calls(path: pathlib.Path) -> set[str]:
+    return {ast.unparse(n.func) for n in ast.walk(ast.parse(path.read_text())) if isinstance(n, ast.Call)}
+
+
+def test_one_chunk_runner():
+    """Issue 44: the push sweep and the held-out evaluation run their batches through the one chunk
+    runner (wbc_jax.jobs.chunks): no other module names a Parquet part file or runs chunks itself."""
+    users = {
+        m for m in ("jobs/sweep.py", "tuning/orchestration/heldout.py") if "chunks.run_chunks" in _calls(PACKAGE / m)
+    }
+    assert users == {"jobs/sweep.py", "tuning/orchestration/heldout.py"}
+    naming = sorted(str(p.relative_to(PACKAGE)) for p in PACKAGE.rglob("*.py") if "part-{" in p.read_text())
+    assert naming == ["jobs/chunks.py"], f"part files named outside jobs/chunks.py: {naming}"

@@ -16,7 +16,7 @@ NOTEBOOK_TIMEOUT_S = 150
 # Notebook 04 with RUN_TUNING (its environment switch below) compiles a reverse-mode program through the whole closed
 # loop (MJX physics + controller) and two forward ones (CMA-ES's population, the held-out pushes): 335 s alone on the
 # 2-core CPU, at any size. That run is over the default suite's time: the nightly command runs it (`python3 -m pytest
-# -m slow`, README), as it does tests/test_tune.py's closed-loop gradient check.
+# -m slow`, docs/usage.md), as it does tests/test_tune.py's closed-loop gradient check.
 VARIANTS = {"04_gain_tuning.ipynb": ("run_tuning", {"WBC_JAX_NB_RUN_TUNING": "1"}, 900)}
 # Notebooks the nightly set runs, for CI's 8 minutes: what they show, the default suite checks in tests of its own
 # (the dynamics terms against C MuJoCo and Pinocchio: tests/test_dynamics.py; balancing: tests/test_controller.py and

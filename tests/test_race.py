@@ -19,10 +19,12 @@ from wbc_jax.control import gains as C
 from wbc_jax.core import constants
 from wbc_jax.core.constants import GAIN_FIELDS
 from wbc_jax.robot.icub import DESCRIPTION as ICUB
-from wbc_jax.tuning import estimators, race, store
-from wbc_jax.tuning import loss as tuning_loss
-from wbc_jax.tuning import params as tuning_params
-from wbc_jax.tuning import schedule as gs
+from wbc_jax.tuning import store
+from wbc_jax.tuning.algorithms import estimators
+from wbc_jax.tuning.algorithms import loss as tuning_loss
+from wbc_jax.tuning.algorithms import params as tuning_params
+from wbc_jax.tuning.algorithms import schedule as gs
+from wbc_jax.tuning.orchestration import race
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
@@ -215,7 +217,7 @@ def test_seeded_carry_keeps_a_non_finite_cotangent_of_the_initial_state_out_of_t
     """The initial carry is made to depend on the parameters (``problem._touch``) only to shorten the
     trace; its derivative must be a true zero, or an infinite cotangent of a state entry (sqrt at 0)
     reaches the gradient as inf x 0 = NaN."""
-    from wbc_jax.tuning import problem
+    from wbc_jax.tuning.algorithms import problem
 
     def f(p):
         x = problem._touch({"a": jnp.zeros(2), "n": jnp.arange(2)}, jnp.sum(p))
@@ -280,7 +282,7 @@ SHARDED = r"""
 import json, jax, jax.numpy as jnp, numpy as np
 jax.config.update("jax_enable_x64", True)
 from jax.sharding import Mesh
-from wbc_jax.tuning import estimators, objectives
+from wbc_jax.tuning.algorithms import estimators, objectives
 
 def env_objective(p, x):  # a nonlinear per-rollout objective with a rollout that diverges
     return jnp.log1p(jnp.sum((p["a"] * x) ** 2) + jnp.sum(jnp.sin(p["b"] * x[:2]))) / jnp.where(x[0] > 1.95, 0.0, 1.0)
@@ -395,15 +397,16 @@ CLOSED_LOOP_SHARDED = r"""
 import json, jax, jax.numpy as jnp, numpy as np
 jax.config.update("jax_enable_x64", True)
 from jax.sharding import Mesh
-from wbc_jax.tuning import config, estimators, objectives, tune
-from wbc_jax.tuning import problem as tp
+from wbc_jax.tuning import config
+from wbc_jax.tuning.algorithms import estimators, objectives, gradient
+from wbc_jax.tuning.algorithms import problem as tp
 from wbc_jax.robot.icub import DESCRIPTION as ICUB
 
 tc = config.TuneConfig(horizon=0.05, push_onset=0.0, duration_range=(0.02, 0.04), eval_horizon=0.1, batch=2,
                        quality_pushes=2, population=1, es_batch=1)
 problem = tp.make_problem(tc)
 params = problem.init_params()
-scen = objectives.cast_batch(tune.training_batch(problem, 0)[0], problem.setup.dtype)
+scen = objectives.cast_batch(gradient.training_batch(problem, 0)[0], problem.setup.dtype)
 out = {}
 for n in (1, 2):  # one environment per device (XLA:CPU deadlocks with several: runner.batch_devices)
     mesh = Mesh(np.asarray(jax.devices()[:n]), ("batch",))

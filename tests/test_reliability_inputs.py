@@ -27,7 +27,7 @@ from wbc_jax.robot import placement
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import scenario
 from wbc_jax.sim.state import Push, push_forces
-from wbc_jax.tuning import problem, schedule
+from wbc_jax.tuning.algorithms import problem, schedule
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 FEET = "contacts:\n  - {name: l, frame: l_sole, normal: %s%s}\n  - {name: r, frame: r_sole, normal: [0, 0, 1]}\n"

@@ -23,11 +23,12 @@ from wbc_jax.control.controller import ControllerConfig
 from wbc_jax.core import processes
 from wbc_jax.sim import host_loop, mjx_loop, physics, scenario
 from wbc_jax.sim.state import Feedforward, SimConfig
-from wbc_jax.tuning import config, objectives, tune
-from wbc_jax.tuning import loss as tuning_loss
-from wbc_jax.tuning import problem as tp
-from wbc_jax.tuning import schedule as gain_schedule
-from wbc_jax.tuning import windows as tw
+from wbc_jax.tuning import config
+from wbc_jax.tuning.algorithms import gradient, objectives
+from wbc_jax.tuning.algorithms import loss as tuning_loss
+from wbc_jax.tuning.algorithms import problem as tp
+from wbc_jax.tuning.algorithms import schedule as gain_schedule
+from wbc_jax.tuning.algorithms import windows as tw
 
 distributed = load_script("experiments/checks/multihost_check.py")  # the multi-process test harness
 
@@ -97,7 +98,7 @@ def test_window_sampler_traces_through_the_driver(window_problem):
     R, K, W = tc.distinct_rollouts // tc.windows, tc.windows, tw.window_ticks(problem)
     assert (R, K, W) == (2, 2, 2)
     params = problem.init_params()
-    scen = objectives.cast_batch(tune.training_batch(problem, 0)[0], problem.setup.dtype)
+    scen = objectives.cast_batch(gradient.training_batch(problem, 0)[0], problem.setup.dtype)
     ticks = tw.sample_starts(np.random.default_rng(0), R, K, problem.loop.n_ticks, W)
     assert ticks.shape == (R, K) and ticks.max() <= problem.loop.n_ticks - W
     starts, terms, metrics = jax.eval_shape(tw.make_sampler(problem, R, K), params, scen, ticks)
@@ -117,7 +118,7 @@ def test_a_gain_schedule_traces_in_every_driver_with_a_feedforward(window_proble
     assert gain_schedule.scheduled_loop(loop) is loop and loop.structure_key != st.loop.structure_key
     sched = _varying_schedule(problem)
     qpos = jnp.asarray(st.qpos0, st.dtype)
-    push = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[0], tune.training_batch(problem, 0)[0].push)
+    push = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[0], gradient.training_batch(problem, 0)[0].push)
     ff = Feedforward(start=jnp.int32(1), torque=jnp.zeros((3, problem.robot.index.n), st.dtype))
     plant = physics.device_model(st.robot.mj_model, "jax", loop.cfg.physics)
     metrics, _ = jax.eval_shape(lambda s: mjx_loop.rollout(loop, plant, qpos, s, push, feedforward=ff), sched)
@@ -148,7 +149,7 @@ def test_the_window_loop_with_a_schedule_computes_the_plain_loops_tick(window_pr
     qpos = jnp.asarray(st.qpos0, st.dtype)
     qvel = jnp.zeros(st.robot.mj_model.nv, st.dtype).at[0].set(0.15)  # the base moves: the schedule's gains vary
     assert not np.allclose(sched.gains_at(qpos, qvel).kd_com, sched.at_rest().kd_com, rtol=1e-3)
-    push = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[0], tune.training_batch(problem, 0)[0].push)
+    push = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[0], gradient.training_batch(problem, 0)[0].push)
     n = problem.robot.index.n
     ff = Feedforward(start=jnp.int32(0), torque=jnp.zeros((2, n), st.dtype).at[0, 0].set(0.5))
     k, ok = jnp.int32(0), jnp.ones((), bool)

@@ -27,7 +27,7 @@ from wbc_jax.control.gains import default_gains, gains_to_dict
 from wbc_jax.jobs import balance, limit, limit_rounds, runs, sweep_config
 from wbc_jax.robot.icub import DESCRIPTION as ICUB
 from wbc_jax.sim import physics
-from wbc_jax.tuning import tune  # noqa: F401  (before a tripwire: optax applies jax.jit when imported)
+from wbc_jax.tuning.algorithms import gradient  # noqa: F401  (before a tripwire: optax applies jax.jit when imported)
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SWEEP = ["push-sweep", "--magnitudes", "20", "40", "2", "--directions", "1", "--horizon", "0.05", "--push-onset",

@@ -228,7 +228,7 @@ def test_polygon_margin_on_the_gpu_equals_float64():
 
 
 def test_fall_thresholds_are_70_percent_of_the_com_height_and_5_cm():
-    """The README's fall: the CoM below 70 % of its initial height, or a body other than the feet
+    """The fall (docs/usage.md, "Survival"): the CoM below 70 % of its initial height, or a body other than the feet
     and ankles below 5 cm; just above either threshold is no fall."""
     assert (constants.FALL_COM_HEIGHT, constants.BODY_FLOOR_HEIGHT) == (0.7, 0.05)
     z = jax.numpy.zeros(3)

@@ -20,7 +20,7 @@ from wbc_jax.sim import runner, scenario
 def test_controller_settings_of_a_sweep_and_a_held_out_evaluation_reach_the_loop():
     """--angular-weight-soft and --tasks travel into the closed loop's force QP and contact set (the
     held-out evaluation's and the tuning run's configs too), not only into the run's records."""
-    from wbc_jax.tuning import heldout as tuning_eval
+    from wbc_jax.tuning.orchestration import heldout as tuning_eval
 
     tasks = str(pathlib.Path(__file__).resolve().parent.parent / "experiments" / "tasks" / "feet_sole95.yaml")
     cfg = options.replace(sweep_config.SweepConfig(), angular_weight_soft=0.01, tasks=tasks, forces="qp")

@@ -1,4 +1,4 @@
-"""The TSID peer (benchmarks/tsid_baseline.py, benchmarks/tsid_peer.py): the MuJoCo-to-Pinocchio state
+"""The TSID peer (benchmarks/tsid_baseline/, benchmarks/tsid_peer.py, wbc_jax/robot/pinocchio.py): the MuJoCo-to-Pinocchio state
 map, the copies of wbc_jax's definitions it keeps to stay JAX-free, and TSID's closed loop on the
 stand and sinusoid tasks and under pushes. The closed-loop tests need tsid (the dev extra, after
 .ci/install_libtsid.py) with the Pinocchio it was built against; they skip otherwise."""
@@ -17,22 +17,27 @@ from wbc_jax.control import references
 from wbc_jax.core import constants
 from wbc_jax.jobs import envelope, sweep_table
 from wbc_jax.robot import contacts, model
+from wbc_jax.robot import pinocchio as robot_pinocchio
 from wbc_jax.robot.icub import DESCRIPTION as ICUB
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 
 def _load(name: str, path: pathlib.Path):
-    """A script of benchmarks/ (not a package), imported once."""
+    """A script of benchmarks/ (not a package), or a package of it from its folder, imported once."""
     if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, path)
+        if path.is_dir():
+            spec = importlib.util.spec_from_file_location(name, path / "__init__.py",
+                                                          submodule_search_locations=[str(path)])  # fmt: skip
+        else:
+            spec = importlib.util.spec_from_file_location(name, path)
         module = importlib.util.module_from_spec(spec)
         sys.modules[name] = module
         spec.loader.exec_module(module)
     return sys.modules[name]
 
 
-tb = _load("tsid_baseline", ROOT / "benchmarks" / "tsid_baseline.py")
+tb = _load("tsid_baseline", ROOT / "benchmarks" / "tsid_baseline")
 tp = _load("tsid_peer", ROOT / "benchmarks" / "tsid_peer.py")
 bc = sys.modules["baseline_cpu"]
 
@@ -43,7 +48,7 @@ needs_tsid = pytest.mark.skipif(TSID_PROBLEM is not None, reason=f"TSID closed l
 @pytest.fixture(scope="module")
 def pin_model():
     pytest.importorskip("pinocchio")
-    return tb.pinocchio_model()
+    return robot_pinocchio.pinocchio_model(tb.DRIVEN_JOINTS)
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +67,7 @@ def test_state_map_com_mass_matrix_and_momentum_match_mujoco(robot, pin_model):
     import pinocchio as pin
 
     m = tb.load_mj_model()
-    smap = tb.StateMap(m, pin_model)
+    smap = robot_pinocchio.StateMap(m, pin_model, tb.DRIVEN_JOINTS)
     # Why 1e-8 holds: no armature on either side (it would add to M's diagonal), the MJCF carries the
     # URDF's inertias at 12 digits, the static links fused into the same parents; the URDF damping
     # is what the controller compensates.
@@ -104,15 +109,17 @@ def test_state_map_com_mass_matrix_and_momentum_match_mujoco(robot, pin_model):
 
 
 def test_state_map_pieces():
-    np.testing.assert_array_equal(tb.quat_wxyz_to_xyzw([1.0, 2.0, 3.0, 4.0]), [2.0, 3.0, 4.0, 1.0])
+    np.testing.assert_array_equal(robot_pinocchio.quat_wxyz_to_xyzw([1.0, 2.0, 3.0, 4.0]), [2.0, 3.0, 4.0, 1.0])
     Rz = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # base yawed +90 deg
     # World +x velocity is base -y; the angular part is already in base axes.
-    np.testing.assert_allclose(tb.base_velocity_to_pinocchio(Rz, [1.0, 0, 0, 0.1, 0.2, 0.3]), [0, -1, 0, 0.1, 0.2, 0.3])
+    np.testing.assert_allclose(
+        robot_pinocchio.base_velocity_to_pinocchio(Rz, [1.0, 0, 0, 0.1, 0.2, 0.3]), [0, -1, 0, 0.1, 0.2, 0.3]
+    )
 
 
 def test_state_map_joint_orders(pin_model):
     m = tb.load_mj_model()
-    smap = tb.StateMap(m, pin_model)
+    smap = robot_pinocchio.StateMap(m, pin_model, tb.DRIVEN_JOINTS)
     x = np.arange(len(tb.DRIVEN_JOINTS), dtype=float)
     np.testing.assert_array_equal(smap.joints_from_pin(smap.joints_to_pin(x)), x)
     # Pinocchio's actuated order is the URDF tree's (legs first), not the controller's.
@@ -120,7 +127,7 @@ def test_state_map_joint_orders(pin_model):
     for k, name in enumerate(tb.DRIVEN_JOINTS):
         assert smap.joints_to_pin(x)[pin_model.idx_vs[pin_model.getJointId(name)] - 6] == k
     with pytest.raises(ValueError, match="'nope' is not in the MuJoCo model"):
-        tb.StateMap(m, pin_model, joints=("nope",))
+        robot_pinocchio.StateMap(m, pin_model, joints=("nope",))
 
 
 # --------------------------------------------------------------------------------------

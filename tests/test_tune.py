@@ -24,11 +24,12 @@ from wbc_jax.report import tuning_plots
 from wbc_jax.robot.icub import DESCRIPTION as ICUB
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim.state import LossTrace
-from wbc_jax.tuning import baselines, config, store, tune
-from wbc_jax.tuning import heldout as tuning_eval
-from wbc_jax.tuning import loss as tuning_loss
-from wbc_jax.tuning import params as tuning_params
-from wbc_jax.tuning import problem as tp
+from wbc_jax.tuning import config, store
+from wbc_jax.tuning.algorithms import baselines, gradient
+from wbc_jax.tuning.algorithms import loss as tuning_loss
+from wbc_jax.tuning.algorithms import params as tuning_params
+from wbc_jax.tuning.algorithms import problem as tp
+from wbc_jax.tuning.orchestration import heldout as tuning_eval
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 # One subprocess (float64, XLA backend optimisation lowered) holds the one gradient program:
@@ -276,7 +277,7 @@ def _target_loss(problem, target):
 
 
 def _fake_step(problem, optimizer, target, stop_at=None, nan_at=(), sleep=0.0):
-    """A train step (:class:`tune.GradientStep`'s signature) on a known quadratic (log-gain distance to
+    """A train step (:class:`gradient.GradientStep`'s signature) on a known quadratic (log-gain distance to
     ``target``), the real optimiser; a NaN gradient at the steps in ``nan_at``; raises at ``stop_at`` (a
     killed run); ``sleep`` seconds per step (wall budgets)."""
     import time
@@ -297,8 +298,8 @@ def _fake_step(problem, optimizer, target, stop_at=None, nan_at=(), sleep=0.0):
         finite = all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree_util.tree_leaves(grad))
         row = {"loss": float(value), "rollout_loss": float(value), **{n: float(value) for n in tuning_loss.TERMS},
                "grad_norm": float(optax.global_norm(grad)), "finite": finite,
-               "skipped_total": tune.skipped_count(opt_state), "grad_sim_steps": per_step, "sim_steps_delta": per_step,
-               **{n: 0.0 for n in tune.ESTIMATOR_STATS}, **tp.survival_stats(_metrics(problem.tc.batch))}  # fmt: skip
+               "skipped_total": gradient.skipped_count(opt_state), "grad_sim_steps": per_step, "sim_steps_delta": per_step,
+               **{n: 0.0 for n in gradient.ESTIMATOR_STATS}, **tp.survival_stats(_metrics(problem.tc.batch))}  # fmt: skip
         return optax.apply_updates(params, updates), opt_state, row
 
     return step
@@ -319,17 +320,17 @@ def test_robust_mean_gradient_drops_diverged_rollouts_and_clips_outliers():
     norms = np.linalg.norm(flat[keep], axis=1)
     cap = 3.0 * np.median(norms)
     scale = np.minimum(1.0, cap / norms)
-    mean, stats = tune.robust_mean_gradient(grads, 3.0)
+    mean, stats = gradient.robust_mean_gradient(grads, 3.0)
     np.testing.assert_allclose(mean["a"], (scale[:, None] * a[keep]).mean(0), rtol=1e-6)
     np.testing.assert_allclose(mean["b"], (scale[:, None, None] * b[keep]).mean(0), rtol=1e-6)
     assert int(stats["nonfinite_envs"]) == 1 and int(stats["clipped_envs"]) == 1
     assert float(stats["env_grad_norm_median"]) == pytest.approx(np.median(norms), rel=1e-6)
     # Without clipping: the plain mean of the finite rollouts.
-    plain, stats0 = tune.robust_mean_gradient(grads, 0.0)
+    plain, stats0 = gradient.robust_mean_gradient(grads, 0.0)
     np.testing.assert_allclose(plain["a"], a[keep].mean(0), rtol=1e-6)
     assert int(stats0["clipped_envs"]) == 0
     # No finite rollout: a non-finite mean, which the optimiser's guard skips.
-    bad, stats_bad = tune.robust_mean_gradient({"a": jnp.full((2, 3), jnp.nan)}, 3.0)
+    bad, stats_bad = gradient.robust_mean_gradient({"a": jnp.full((2, 3), jnp.nan)}, 3.0)
     assert not np.any(np.isfinite(bad["a"])) and int(stats_bad["nonfinite_envs"]) == 2
 
 
@@ -344,8 +345,8 @@ def test_training_loop_guard_resume_and_gains_file(small_problem, tmp_path):
     tc = problem.tc
     base = problem.base
     target = base.replace(kp_com=base.kp_com * 2.0, kd_com=base.kd_com * 3.0, kp_postural=base.kp_postural * 0.5)
-    opt = tune.make_optimizer(tc.lr, tc.clip_norm)
-    full, _, rows_full, _ = tune.train(problem, tmp_path / "a", progress=False,
+    opt = gradient.make_optimizer(tc.lr, tc.clip_norm)
+    full, _, rows_full, _ = gradient.train(problem, tmp_path / "a", progress=False,
                                        step_fn=_fake_step(problem, opt, target, nan_at=(2,)))  # fmt: skip
     losses = [float(r["loss"]) for r in rows_full]
     assert losses[-1] < 0.5 * losses[0]  # it optimises
@@ -356,19 +357,21 @@ def test_training_loop_guard_resume_and_gains_file(small_problem, tmp_path):
     assert problem.steps_per_rollout == 100  # 0.1 s at 1 kHz
     # Killed at step 4, then resumed: same result, history without duplicates.
     with pytest.raises(_Interrupt):
-        tune.train(
+        gradient.train(
             problem, tmp_path / "b", progress=False, step_fn=_fake_step(problem, opt, target, stop_at=4, nan_at=(2,))
         )
-    resumed, _, rows, _ = tune.train(problem, tmp_path / "b", progress=False, step_fn=_fake_step(problem, opt, target))
+    resumed, _, rows, _ = gradient.train(
+        problem, tmp_path / "b", progress=False, step_fn=_fake_step(problem, opt, target)
+    )
     assert [int(r["step"]) for r in rows] == list(range(6))
     for k in GAIN_FIELDS:
         np.testing.assert_allclose(getattr(resumed, k), getattr(full, k), rtol=1e-6)
     other = tp.make_problem(config.TuneConfig(steps=7, batch=2, lr=0.2, clip_norm=10.0, **TINY))
     with pytest.raises(ValueError, match="another tuning config"):
-        tune.train(other, tmp_path / "b", progress=False, step_fn=_fake_step(other, opt, target))
+        gradient.train(other, tmp_path / "b", progress=False, step_fn=_fake_step(other, opt, target))
     # Every step's parameters are kept: the last is the result, -1 the start.
-    last, _ = tune.snapshot_controls(problem, tmp_path / "a", 5)
-    start, _ = tune.snapshot_controls(problem, tmp_path / "a", -1)
+    last, _ = gradient.snapshot_controls(problem, tmp_path / "a", 5)
+    start, _ = gradient.snapshot_controls(problem, tmp_path / "a", -1)
     for k in GAIN_FIELDS:
         np.testing.assert_allclose(getattr(last, k), getattr(full, k), rtol=1e-6)
         np.testing.assert_allclose(getattr(start, k), getattr(problem.init, k), rtol=1e-4)
@@ -386,19 +389,19 @@ def test_training_loop_guard_resume_and_gains_file(small_problem, tmp_path):
 
 
 def test_training_stops_when_its_wall_budget_is_spent(tmp_path):
-    """--budget-s: steps until the wall time (compile + steps) reaches the budget; tune.at_time picks the
+    """--budget-s: steps until the wall time (compile + steps) reaches the budget; gradient.at_time picks the
     last step within a time (-1 before the first)."""
     # A 3 s budget of 0.3 s steps: the first step's wall on a loaded 2-core machine measured 1.1 s (its 0.1 s sleep
     # and ~1 s of overhead), so 1 s budgets ended after one step there; 3 s leaves room for two steps at 2x that.
     problem = tp.make_problem(config.TuneConfig(steps=1000, batch=2, budget_s=3.0, **TINY))
-    opt = tune.make_optimizer(0.1, 1.0)
+    opt = gradient.make_optimizer(0.1, 1.0)
     p0 = problem.init_params()
     step = _fake_step(problem, opt, problem.base, sleep=0.3)
     step(p0, opt.init(p0), 0)  # warm: its first call compiles
-    _, _, rows, _ = tune.train(problem, tmp_path, progress=False, step_fn=step)
+    _, _, rows, _ = gradient.train(problem, tmp_path, progress=False, step_fn=step)
     walls = [float(r["wall_s"]) for r in rows]
     assert walls[-1] >= 3.0 and all(w < 3.0 for w in walls[:-1]) and 2 <= len(rows) <= 11
-    assert tune.at_time(rows, walls[1] + 1e-6) == 1 and tune.at_time(rows, walls[0] / 2) == -1
+    assert gradient.at_time(rows, walls[1] + 1e-6) == 1 and gradient.at_time(rows, walls[0] / 2) == -1
 
 
 def _fake_population(problem, target):
@@ -455,7 +458,8 @@ def test_hybrid_starts_from_cmaes_at_half_budget_adds_both_halves_and_resumes(tm
 
     from jax.flatten_util import ravel_pytree
 
-    from wbc_jax.tuning import campaign, hybrid, race
+    from wbc_jax.tuning.algorithms import hybrid
+    from wbc_jax.tuning.orchestration import campaign, race
 
     tc = config.TuneConfig(batch=2, steps=3, population=16, es_batch=1, es_sigma=0.2, budget_s=600.0,
                            snapshots_s=(300.0,), phases=("cmaes", "hybrid"), **TINY)  # fmt: skip
@@ -474,7 +478,7 @@ def test_hybrid_starts_from_cmaes_at_half_budget_adds_both_halves_and_resumes(tm
     assert set(index) == {"cmaes_t150", "cmaes_t300", "cmaes"} and index["cmaes_t150"]["generation"] == 1
     shutil.copytree(out, tmp_path / "b")
 
-    opt = tune.make_optimizer(tc.lr, tc.clip_norm)
+    opt = gradient.make_optimizer(tc.lr, tc.clip_norm)
     step = _fake_step(problem, opt, target)
     refined = hybrid.run(problem, out, race.budgets(tc), progress=False, step_fn=step)
     assert set(refined) == {"hybrid_t300", "hybrid"}

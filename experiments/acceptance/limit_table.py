@@ -3,7 +3,7 @@ direction (``wbc-jax limit`` runs), the LIP bound and the strict envelopes of th
 and tuned gain sets (``wbc-jax envelope`` runs in docs/limit/envelopes), as fractions of the limit.
 
     python experiments/acceptance/limit_table.py --chest runs/limit_chest --root-link runs/limit_root_link \
-        [--ddp-chest docs/limit/ddp_chest.json]
+        [--ddp-chest docs/limit/ddp_chest.json ...] [--ddp-root-link docs/limit/ddp_root_link.json ...]
 
 A body without its limit run keeps its envelopes and LIP bound; ``missing`` in the file names the
 command that fills its limit in.
@@ -30,11 +30,18 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--chest", help="output folder of the chest limit run (its summary.json)")
     parser.add_argument("--root-link", help="output folder of the root_link limit run")
-    parser.add_argument("--ddp-chest", help="the crocoddyl cross-check's file (experiments/acceptance/ddp_chest.py)")
+    parser.add_argument(
+        "--ddp-chest",
+        nargs="+",
+        default=(),
+        help="the chest's crocoddyl cross-checks (experiments/acceptance/ddp_limit.py), one per setting",
+    )
+    parser.add_argument("--ddp-root-link", nargs="+", default=(),
+                        help="root_link's crocoddyl cross-checks (ddp_limit.py --body root_link)")  # fmt: skip
     parser.add_argument("--out", default="docs/limit")
     args = parser.parse_args()
     bodies = {}
-    for body, run in (("chest", args.chest), ("root_link", args.root_link)):
+    for body, run, ddp in (("chest", args.chest, args.ddp_chest), ("root_link", args.root_link, args.ddp_root_link)):
         summary = None if run is None else pathlib.Path(run) / "summary.json"
         if summary is not None and not summary.exists():
             sys.exit(
@@ -48,8 +55,11 @@ def main() -> None:
         bodies[body] = {"limit": summary,
                         "envelopes": {label: ENVELOPES / f"{name}_{body}" / "summary.json"
                                       for label, name in GAIN_SETS.items()},
-                        "ddp": args.ddp_chest if body == "chest" else None}  # fmt: skip
-    result = limit_table.write(args.out, bodies, COMMANDS, "icub")
+                        "ddp": ddp}  # fmt: skip
+    try:
+        result = limit_table.write(args.out, bodies, COMMANDS, "icub")
+    except ValueError as err:
+        sys.exit(str(err))
     medians = {body: b["medians"] for body, b in result["bodies"].items()}
     print(json.dumps({"medians": medians, "targets": result["targets"]}, indent=1))
 

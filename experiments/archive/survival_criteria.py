@@ -24,10 +24,11 @@ QUANTITIES = ("max_foot_slip_m", "max_foot_tilt_deg", "end_com_speed_mps", "end_
 
 
 def load_benchmark():
-    """benchmarks/benchmark.py (a script, not a package), loaded from its file."""
+    """benchmarks/loop_timing.py (the benchmark's closed loop and pushes; a script, not a package), loaded
+    from its file."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location("benchmark", ROOT / "benchmarks" / "benchmark.py")
+    spec = importlib.util.spec_from_file_location("loop_timing", ROOT / "benchmarks" / "loop_timing.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module

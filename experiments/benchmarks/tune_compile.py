@@ -35,8 +35,9 @@ def main() -> None:
 
     from wbc_jax.core import provenance
     from wbc_jax.sim import runner
-    from wbc_jax.tuning import config, estimators, objectives, tune
-    from wbc_jax.tuning import problem as tp
+    from wbc_jax.tuning import config
+    from wbc_jax.tuning.algorithms import estimators, gradient, objectives
+    from wbc_jax.tuning.algorithms import problem as tp
 
     if args.cache:
         runner.enable_compilation_cache(args.cache)
@@ -47,7 +48,7 @@ def main() -> None:
                        checkpoint=args.checkpoint, solver_iterations=args.solver_iterations)  # fmt: skip
     problem = tp.make_problem(tc)
     p0 = problem.init_params()
-    scen = objectives.shard(objectives.cast_batch(tune.training_batch(problem, 0)[0], problem.setup.dtype))
+    scen = objectives.shard(objectives.cast_batch(gradient.training_batch(problem, 0)[0], problem.setup.dtype))
     if args.mode == "grad":  # the training's gradient program: per-rollout value and gradient
         f, fargs = jax.jit(objectives.make_rollout_grads(problem)), (estimators.repeated(p0, tc.batch), scen)
     else:

@@ -51,5 +51,6 @@ for m in gradient cmaes random hybrid; do
 done
 ls "$RUNS/$PARAM"
 tar -czf "$OUT_DIR/race_$PARAM.tgz" -C "$RUNS" "$PARAM"
-tar -czf - -C "$WBC_JAX_CACHE" . | split -b 15M -d -a 2 - "$OUT_DIR/$KEY.tgz."
+# RACE_PACK_CACHE=0: leave the compiled programs on the machine (race_lanes.sh packs them once, at the end)
+[ "${RACE_PACK_CACHE:-1}" = 1 ] && tar -czf - -C "$WBC_JAX_CACHE" . | split -b 15M -d -a 2 - "$OUT_DIR/$KEY.tgz."
 ls -la "$OUT_DIR"

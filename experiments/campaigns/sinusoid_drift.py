@@ -54,8 +54,8 @@ def main(argv=None) -> int:
     from wbc_jax.core import io, provenance
     from wbc_jax.jobs import balance
     from wbc_jax.robot.icub import DESCRIPTION as ICUB
-    from wbc_jax.tuning import heldout as tuning_eval
-    from wbc_jax.tuning import params as tuning_params
+    from wbc_jax.tuning.algorithms import params as tuning_params
+    from wbc_jax.tuning.orchestration import heldout as tuning_eval
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default="runs/sinusoid_drift.json")

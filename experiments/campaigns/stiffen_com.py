@@ -34,7 +34,7 @@ GAINS = ROOT / "experiments" / "gains"
 def with_com_floor(gains, floor: float):
     """Gains with K_P,CoM x, y raised to ``floor`` (N/m per kg) and K_D,CoM keeping each axis's
     damping ratio; z and every other gain unchanged."""
-    from wbc_jax.tuning.params import damping_ratio
+    from wbc_jax.tuning.algorithms.params import damping_ratio
 
     kp = np.asarray(gains.kp_com, float)
     zeta = damping_ratio(np.asarray(gains.kd_com, float), kp)
@@ -57,8 +57,8 @@ def main(argv=None) -> int:
     from wbc_jax.core import constants, io, provenance
     from wbc_jax.robot.icub import DESCRIPTION as ICUB
     from wbc_jax.robot.model import load_robot
-    from wbc_jax.tuning import heldout as tuning_eval
-    from wbc_jax.tuning import params as tuning_params
+    from wbc_jax.tuning.algorithms import params as tuning_params
+    from wbc_jax.tuning.orchestration import heldout as tuning_eval
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default="runs/stiff_com")

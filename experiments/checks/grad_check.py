@@ -2,7 +2,7 @@
 
     python experiments/checks/grad_check.py N [--out FILE]
 
-Per-scenario reverse-mode gradients of the tuning loss (wbc_jax/tuning/loss.py: capture point,
+Per-scenario reverse-mode gradients of the tuning loss (wbc_jax/tuning/algorithms/loss.py: capture point,
 foot tilt and slip, settling, CoM, effort; log1p of the total) over N random push scenarios
 (0.1 s horizon, float64, random parameters of every group inside the bounds, random push
 magnitudes 0-150 N and azimuths, friction 0.6-1.2, mass +-10 %, joint noise), a count of
@@ -68,8 +68,8 @@ def main(argv=None) -> dict:
 
     from wbc_jax.core import io
     from wbc_jax.tuning import config
-    from wbc_jax.tuning import params as tuning_params
-    from wbc_jax.tuning import problem as tp
+    from wbc_jax.tuning.algorithms import params as tuning_params
+    from wbc_jax.tuning.algorithms import problem as tp
 
     rng = np.random.default_rng(7)
     tc = config.TuneConfig(horizon=0.1, push_onset=0.02, duration_range=(0.05, 0.05), joint_noise=0.02,

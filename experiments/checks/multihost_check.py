@@ -10,7 +10,7 @@ the others within --rtol/--atol (different per-device batch shapes round differe
 they agree to ~1e-8 on a falling robot). A failure of any process, or a time-out, is a failure of
 the comparison, with the process's last lines of stderr. Exits 1 if a process fails or times out
 or the tables differ; writes multihost.json (with provenance) into --out. On several hosts the same
-sweep runs with ``wbc-jax --distributed push-sweep ...`` (README). tests/test_distributed.py runs
+sweep runs with ``wbc-jax --distributed push-sweep ...`` (docs/usage.md). tests/test_distributed.py runs
 :func:`compare_processes` (a test harness, not a job: it lives with the checks).
 """
 

@@ -1,4 +1,4 @@
-"""``wbc-jax heldout``: gain files on the held-out evaluation (:mod:`wbc_jax.tuning.heldout`)."""
+"""``wbc-jax heldout``: gain files on the held-out evaluation (:mod:`wbc_jax.tuning.orchestration.heldout`)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from wbc_jax.tuning import config
 
 
 def run(cfg: config.HeldoutConfig, progress: bool) -> dict:
-    from wbc_jax.tuning import heldout  # (imported when run: the flags need only the config)
+    from wbc_jax.tuning.orchestration import heldout  # (imported when run: the flags need only the config)
 
     return heldout.run(cfg, progress=progress)  # cfg checked when it was made
 

@@ -1,4 +1,4 @@
-"""``wbc-jax tune``: gain tuning in phases (:mod:`wbc_jax.tuning.campaign`). It holds out its gain
+"""``wbc-jax tune``: gain tuning in phases (:mod:`wbc_jax.tuning.orchestration.campaign`). It holds out its gain
 sets with the held-out flags (``wbc-jax heldout``'s), whose robot and controller flags are the run's."""
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ def combine(tc: config.TuneConfig, hc: config.HeldoutConfig) -> TuneJob:
 
 
 def run(cfg: TuneJob, progress: bool) -> dict:
-    from wbc_jax.tuning import campaign  # (imported when run: the flags need only the config)
+    from wbc_jax.tuning.orchestration import campaign  # (imported when run: the flags need only the config)
 
     return json.loads(json.dumps(campaign.run(cfg.tune, cfg.heldout, progress=progress), default=str))
 

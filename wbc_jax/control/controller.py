@@ -49,7 +49,7 @@ class ControllerConfig:
       kp_postural_reg: Reg.KP_postural. hessian_reg: Reg.HessianQP.
       base_vel_damping: Reg.pinvDamp_baseVel (angular-momentum integral).
       torque_limit: saturation (N m); None: each joint's motor limit in the robot's model (the
-        actuators' ctrlrange, :attr:`~wbc_jax.robot.model.RobotIndex.torque_limit`). qp_iterations: at most this many interior-point steps.
+        actuators' ctrlrange, ``torque_limit`` of :class:`~wbc_jax.robot.model.RobotIndex`). qp_iterations: at most this many interior-point steps.
       torque_weight_soft: |tau|^2 against |A f - w|^2 in the soft momentum QP.
       angular_weight_soft: the angular rows of |A f - w|^2 against the linear ones in the soft
         momentum QP (1: WBC; < 1: the CoM first where a push asks more than the feet can give).

@@ -43,7 +43,7 @@ from wbc_jax.control.constraints import (
     normal_force_rows,
     row_weights,
 )
-from wbc_jax.core.math import batch_any
+from wbc_jax.core.math import batch_any, cho_solve_spd
 from wbc_jax.core.types import Array
 from wbc_jax.robot.contacts import ContactSet
 
@@ -91,7 +91,7 @@ def _restricted(cset: ContactSet, A: Array, mask: Array, wrench_des: Array):
     dtype = A.dtype
     keep = _row_mask(cset, mask)
     A_m = A * keep[None, :]
-    A_pinv = jnp.linalg.solve(A_m @ A_m.T, A_m).T  # A_m has full row rank 6 (a sole is kept)
+    A_pinv = cho_solve_spd(A_m @ A_m.T, A_m).T  # A_m has full row rank 6 (a sole is kept)
     f1 = A_pinv @ wrench_des
     N = keep[:, None] * (jnp.eye(D, dtype=dtype) - A_pinv @ A_m) * keep[None, :]
     Z = range_basis(N, D - 6)
@@ -172,7 +172,7 @@ def soft_momentum_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array,
 
     (c = ``settings.torque_weight_soft``; W = diag(1, 1, 1, a, a, a) with a =
     ``settings.angular_weight_soft``: a < 1 keeps the force that moves the CoM and gives up the
-    angular-momentum rate first, docs/tuning/HISTORY.md). Arguments as :func:`momentum_equality_qp`."""
+    angular-momentum rate first, docs/tuning/angular_weight/). Arguments as :func:`momentum_equality_qp`."""
     dtype = A.dtype
     keep = _row_mask(cset, mask)
     C, b = constraints(cset, W_R, jnp.ones(len(cset.contacts), dtype))

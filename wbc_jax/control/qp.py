@@ -77,6 +77,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from wbc_jax.control.qp_ipm import interior_point
+from wbc_jax.core.math import batch_any
 
 Array = jax.Array
 
@@ -212,9 +213,10 @@ def solve_qp(
     fallback = (~ipm.converged & (ipm.violation > fallback_tol)) | ~ipm.finite
     fallback = fallback | ~finite_input
     ridge = _fallback_ridge(Hp)
-    x_unc = _unconstrained_minimiser(Hp, gp, ridge)
-
-    x_p = jnp.where(fallback, x_unc, ipm.x)
+    # The unconstrained minimiser only in calls where some problem of a batch falls back.
+    x_p = lax.cond(
+        batch_any(fallback), lambda: jnp.where(fallback, _unconstrained_minimiser(Hp, gp, ridge), ipm.x), lambda: ipm.x
+    )
     x_p = jnp.where(finite_input, x_p, jnp.nan)
     # At the fallback point no constraint is treated as active: lam = 0, s = 1
     # turns the derivative rule into that of -H^{-1} g.

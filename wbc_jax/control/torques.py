@@ -68,12 +68,14 @@ class TorqueTerms:
     tau_0: Array
 
 
-def postural_projector(Lambda: Array, Mbar: Array, pinv_damping: Array | float, pinv_tol: float) -> Array:
+def postural_projector(Lambda: Array, Mbar: Array, pinv_damping: Array | float, pinv_tol: float,
+                       Mbar_factor: Array | None = None) -> Array:  # fmt: skip
     """P (n, n) = pinv(X, tol) X for X = N_Lambda Mbar: the projector on X's right singular
     vectors whose singular values exceed ``pinv_tol`` (absolute, as MATLAB's ``pinv(X, tol)``).
 
     Lambda: (D, n); Mbar: (n, n) positive definite; pinv_damping > 0 (of N_Lambda's damped
-    pseudo-inverse). With that pseudo-inverse N_Lambda = (I + Lambda^T Lambda / damping)^-1
+    pseudo-inverse); Mbar_factor: (n, n) Mbar's lower Cholesky factor where the caller has it
+    (:func:`torque_terms` reads it off M's), None: factorised here. With that pseudo-inverse N_Lambda = (I + Lambda^T Lambda / damping)^-1
     (Woodbury), so X^-1 = Mbar^-1 (I + Lambda^T Lambda / damping) = V S^-1 U^T and the cut
     directions are the eigenvectors of X^-1 X^-T = V S^-2 V^T with eigenvalues 1 / s^2 above
     1 / tol^2 (computed for damping X^-1, whose entries stay in float32's range for any damping).
@@ -85,7 +87,8 @@ def postural_projector(Lambda: Array, Mbar: Array, pinv_damping: Array | float, 
     """
     n = Mbar.shape[0]
     eye = jnp.eye(n, dtype=Mbar.dtype)
-    X_inv_scaled = jnp.linalg.solve(Mbar, pinv_damping * eye + Lambda.T @ Lambda)  # damping X^-1
+    L = jnp.linalg.cholesky(Mbar) if Mbar_factor is None else Mbar_factor
+    X_inv_scaled = jax.scipy.linalg.cho_solve((L, True), pinv_damping * eye + Lambda.T @ Lambda)  # damping X^-1
     return eye - spectral_projector(X_inv_scaled @ X_inv_scaled.T, (pinv_damping / pinv_tol) ** 2)
 
 
@@ -139,8 +142,10 @@ def postural_torque(
     pinv_tol: float = 1e-5,
     kp_reg: float = 0.1,
     freeze_projector: bool = False,
+    Mbar_factor: Array | None = None,
 ) -> Array:
-    """u_0 (n,) of the postural task (module docstring). kp, kd, s_err, s_dot: (n,).
+    """u_0 (n,) of the postural task (module docstring). kp, kd, s_err, s_dot: (n,); Mbar_factor:
+    as :func:`postural_projector`'s.
 
     For ``stable``, diag(k) pinv(X) X v is evaluated as diag(k) P v with P = pinv(X) X
     (:func:`postural_projector`) for X = N_Lambda Mbar; P is formed from Lambda (D, n) and
@@ -153,7 +158,7 @@ def postural_torque(
         return -kp * s_err - kd * s_dot
     if variant == "stable":
         X = N_Lambda @ Mbar
-        P = postural_projector(Lambda, Mbar, pinv_damping, pinv_tol)
+        P = postural_projector(Lambda, Mbar, pinv_damping, pinv_tol, Mbar_factor)
         P = jax.lax.stop_gradient(P) if freeze_projector else P
         return -kp * (P @ s_err) - kp_reg * (X @ s_err) - kd * (P @ s_dot)
     raise ValueError(f"unknown postural variant {variant!r}; valid: {list(POSTURAL_VARIANTS)}")
@@ -192,20 +197,23 @@ def torque_terms(
     Returns:
       :class:`TorqueTerms`.
     """
-    n = t.s.shape[0]
+    n, D = t.s.shape[0], J_c.shape[0]
     M = t.M
     h = t.h - t.tau_passive if compensate_passive else t.h
-    Minv_JcT = jnp.linalg.solve(M, J_c.T)  # (nv, D)
-    Minv_h = jnp.linalg.solve(M, h)
-    Jc_Minv = Minv_JcT.T  # M symmetric
-    Lambda = Jc_Minv[:, 6:]
+    # One Cholesky factorisation of M serves every solve of the tick: M = L L^T with
+    # L = [[L_b, 0], [L_sb, L_s]] gives M_sb M_b^-1 = L_sb L_b^-1 and the base-eliminated inertia
+    # Mbar = M_s - M_sb M_b^-1 M_bs = L_s L_s^T, whose factor the postural projector solves with.
+    L = jnp.linalg.cholesky(M)
+    Minv = jax.scipy.linalg.cho_solve((L, True), jnp.concatenate([J_c.T, h[:, None]], axis=1))
+    Minv_JcT, Minv_h = Minv[:, :D], Minv[:, D]  # (nv, D), (nv,)
+    Lambda = Minv_JcT.T[:, 6:]  # M symmetric
     Lambda_pinv = damped_pinv(Lambda, pinv_damping)
     N_Lambda = jnp.eye(n, dtype=M.dtype) - Lambda_pinv @ Lambda
 
-    M_b, M_bs, M_sb, M_s = M[:6, :6], M[:6, 6:], M[6:, :6], M[6:, 6:]
-    Mb_inv = jnp.linalg.solve(M_b, jnp.concatenate([M_bs, h[:6, None], J_c[:, :6].T], axis=1))
-    Mb_inv_Mbs, Mb_inv_hb, Mb_inv_JbT = Mb_inv[:, :n], Mb_inv[:, n], Mb_inv[:, n + 1 :]
-    Mbar = M_s - M_sb @ Mb_inv_Mbs
+    L_b, L_sb, L_s = L[:6, :6], L[6:, :6], L[6:, 6:]
+    Lb_inv = jax.scipy.linalg.solve_triangular(L_b, jnp.concatenate([h[:6, None], J_c[:, :6].T], axis=1), lower=True)
+    Msb_Mb_inv_hb, Msb_Mb_inv_JbT = L_sb @ Lb_inv[:, 0], L_sb @ Lb_inv[:, 1:]
+    Mbar = L_s @ L_s.T
     u0 = postural_torque(
         postural,
         kp=kp_postural,
@@ -219,11 +227,12 @@ def torque_terms(
         pinv_tol=pinv_tol,
         kp_reg=kp_postural_reg,
         freeze_projector=freeze_projector,
+        Mbar_factor=L_s,
     )
     Sigma_c = -Lambda_pinv @ (J_c @ Minv_JcT)
     tau_c = Lambda_pinv @ (J_c @ Minv_h - Jdot_nu_c)
-    Sigma_0 = -(J_c[:, 6:].T - M_sb @ Mb_inv_JbT)
-    tau_0 = h[6:] - M_sb @ Mb_inv_hb + u0
+    Sigma_0 = -(J_c[:, 6:].T - Msb_Mb_inv_JbT)
+    tau_0 = h[6:] - Msb_Mb_inv_hb + u0
     Sigma = Sigma_c + N_Lambda @ Sigma_0
     tau_model = tau_c + N_Lambda @ tau_0
     return TorqueTerms(

@@ -6,7 +6,7 @@ push (body, azimuth, impulse, duration, onset: the pushes of :mod:`wbc_jax.jobs.
 1. the post-push state: the balancing controller alone in C MuJoCo (float64) from the standing
    start through the push, read at the first tick after it (k1), as the limit's replays see it;
 2. crocoddyl's box-constrained FDDP (``SolverBoxFDDP``) on the Pinocchio model of the robot
-   (``benchmarks/tsid_baseline.pinocchio_model``: the controller model of the TSID peer, equal to
+   (:func:`wbc_jax.robot.pinocchio.pinocchio_model`: the controller model of the TSID peer, equal to
    the MJCF's to 1e-12) from that state over ``ddp_horizon`` s at the control tick: both soles
    held by rigid 6-D contacts (``ContactModel6D``) at their post-push placements, a wrench-cone
    cost per sole (friction pyramid at the controller's mu and the CoP inside the controller's CoP
@@ -30,8 +30,6 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
-import pathlib
-import sys
 import time
 
 import jax
@@ -40,34 +38,19 @@ import numpy as np
 from wbc_jax.core import constants
 from wbc_jax.core.options import check_options, option
 from wbc_jax.jobs import grids, limit, limit_rounds
-from wbc_jax.robot import bounds, contacts, model
+from wbc_jax.robot import bounds, contacts, model, pinocchio
 from wbc_jax.robot.robots import robot_option
 from wbc_jax.sim import host_loop, physics
 
-TSID_BASELINE = pathlib.Path(__file__).resolve().parents[2] / "benchmarks" / "tsid_baseline.py"
+STEP = 1.25  # the bisection's factor while a direction's bracket is open
+RESUME_FREE = ("directions", "tests")  # config fields a resumed cross-check may change
 
 
 def crocoddyl_problem() -> str | None:
     """Why the cross-check cannot run here (one sentence), or None."""
     if importlib.util.find_spec("crocoddyl") is None:
         return "crocoddyl is not installed (pip install -e '.[dev]' installs crocoddyl==3.2.1)"
-    if not TSID_BASELINE.exists():
-        return f"{TSID_BASELINE} (the peer's Pinocchio model) is missing: the cross-check runs from a checkout"
     return None
-
-
-def _tsid_baseline():
-    """benchmarks/tsid_baseline.py (not a package; JAX-free), loaded once by file path."""
-    module = sys.modules.get("tsid_baseline")
-    if module is None:
-        if not TSID_BASELINE.is_file():
-            raise ValueError(f"the crocoddyl cross-check builds its Pinocchio model with {TSID_BASELINE}, which an "
-                             "installed wheel lacks: run it from a checkout of the repository")  # fmt: skip
-        spec = importlib.util.spec_from_file_location("tsid_baseline", TSID_BASELINE)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules["tsid_baseline"] = module
-        spec.loader.exec_module(module)
-    return module
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,6 +77,8 @@ class DdpConfig:
     w_state: float = option(1.0, "weight of the state regularisation toward standing", gt=0.0, le=1e6)
     w_com: float = option(100.0, "weight of the CoM toward its standing position", ge=0.0, le=1e6)
     w_wrench_cone: float = option(100.0, "weight of the wrench-cone barrier (friction, CoP)", gt=0.0, le=1e9)
+    cop_scale: float = option(1.0, "the barrier's CoP rectangle as a fraction of the controller's, about its centre "
+                              "(below 1: a margin for the tracking)", gt=0.0, le=1.0)  # fmt: skip
     w_control: float = option(1e-3, "weight of the torque regularisation", ge=0.0, le=1e6)
     w_terminal: float = option(100.0, "terminal weight multiplier of state and CoM", ge=1.0, le=1e6)
     tests: int = option(5, "impulses tested per direction (the bisection's steps)", ge=1, le=50)
@@ -104,7 +89,7 @@ class DdpConfig:
         problem = crocoddyl_problem()
         if problem is not None:
             raise ValueError(problem)
-        peers = _tsid_baseline().ROBOTS  # the robots whose Pinocchio model the TSID peer builds
+        peers = pinocchio.ROBOTS  # the robots whose Pinocchio model wbc_jax.robot.pinocchio builds
         if self.robot not in peers:
             raise ValueError(
                 f"--robot {self.robot}: the crocoddyl cross-check has the Pinocchio models of {list(peers)}"
@@ -130,11 +115,10 @@ class CrossCheck:
 
         self.cfg, self.croc, self.pin = cfg, crocoddyl, pin
         self.search = limit_rounds.Search(cfg.limit_config())
-        tb = _tsid_baseline()
         robot = self.search.replay_setup.robot
         m = robot.mj_model
-        self.pin_model = tb.pinocchio_model()
-        self.map = tb.StateMap(m, self.pin_model)
+        self.pin_model = pinocchio.pinocchio_model(robot.index.joints)
+        self.map = pinocchio.StateMap(m, self.pin_model, robot.index.joints)
         self.loop = self.search.replay_setup.loop
         self.dt = self.loop.cfg.control_dt
         self.k0 = self.search.k0
@@ -142,7 +126,7 @@ class CrossCheck:
         self.T = int(round(cfg.ddp_horizon / self.dt))
         self.params = contacts.ContactParams(foot_size=robot.description.sole_cop)
         (x_lo, x_hi), (y_lo, y_hi) = self.params.foot_size
-        self.box = np.array([x_hi - x_lo, y_hi - y_lo])
+        self.box = cfg.cop_scale * np.array([x_hi - x_lo, y_hi - y_lo])
         centre = pin.SE3(np.eye(3), np.array([(x_lo + x_hi) / 2, (y_lo + y_hi) / 2, 0.0]))
         self.feet = robot.description.feet
         self.contact_frames = []
@@ -248,16 +232,17 @@ class CrossCheck:
 
     def solve(self, x0: np.ndarray, x_stand: np.ndarray, T: int | None = None) -> dict:
         """BoxFDDP from x0 (warm start: x0 held, quasi-static torques). Returns {"xs" (T + 1, nx),
-        "us" (T, nu), "iterations", "cost", "converged", "solve_s", "solver"}."""
+        "us" (T, nu), "iterations", "cost", "converged", "solve_s", "solve_cpu_s" (this process's CPU
+        time, every thread: the machine is shared), "solver"}."""
         problem = self.problem(x0, x_stand, self.T if T is None else T)
         solver = self.croc.SolverBoxFDDP(problem)
         xs = [x0] * (problem.T + 1)
         us = problem.quasiStatic([x0] * problem.T)
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.process_time()
         converged = solver.solve(xs, us, self.cfg.max_iterations, False)
         return {"xs": np.array(solver.xs), "us": np.array(solver.us), "iterations": int(solver.iter),
-                "cost": float(solver.cost), "converged": bool(converged),
-                "solve_s": time.perf_counter() - t0, "solver": solver}  # fmt: skip
+                "cost": float(solver.cost), "converged": bool(converged), "solve_s": time.perf_counter() - t0,
+                "solve_cpu_s": time.process_time() - cpu0, "solver": solver}  # fmt: skip
 
     def contact_forces(self, solver) -> np.ndarray:
         """(T, 2, 6) the DDP's contact wrenches [force, torque] per sole in its contact frame."""
@@ -290,7 +275,8 @@ class CrossCheck:
 
     def run(self, d: np.ndarray, impulse: np.ndarray) -> list[dict]:
         """Solve and replay the pushes of directions ``d`` (B,) (indices) with ``impulse`` (B,) N s.
-        Returns per push {"verified", "iterations", "cost", "converged", "solve_s", "failed",
+        Returns per push {"verified", "iterations", "cost", "converged", "solve_s", "solve_cpu_s", "failed",
+        "feedforward" (ticks, n) the torques replayed from the onset (the witness; not JSON),
         "replay_<column>"}."""
         scen = self.search.scenarios(np.asarray(d), np.asarray(impulse, float))
         (q_on, _), (q1, v1), state, programs = self.post_push(scen)
@@ -312,33 +298,65 @@ class CrossCheck:
         cols = self.search.judge(scen, u, "mujoco")
         out = []
         for b, sol in enumerate(solves):
-            rec = {k: sol[k] for k in ("iterations", "cost", "converged", "solve_s")}
+            rec = {k: sol[k] for k in ("iterations", "cost", "converged", "solve_s", "solve_cpu_s")}
             rec.update(verified=bool(cols["survived"][b]), failed=cols["failed"][b], impulse_ns=float(impulse[b]),
+                       feedforward=u[b],
                        **{f"replay_{k}": float(cols[k][b]) for k in limit_rounds.REPLAY_COLUMNS})  # fmt: skip
             out.append(rec)
         return out
 
+    def replay_alone(self, d: int, impulse: float, feedforward: np.ndarray) -> dict:
+        """The C MuJoCo replay of one recorded witness (feedforward (ticks, n) from :meth:`run`) in a
+        batch of its own: whether it passes whatever else was replayed beside it. Returns the
+        judge's columns of that push."""
+        scen = self.search.scenarios(np.array([d]), np.array([float(impulse)]))
+        cols = self.search.judge(scen, np.asarray(feedforward)[None], "mujoco")
+        return {"verified": bool(cols["survived"][0]), "failed": cols["failed"][0],
+                **{f"replay_{k}": float(cols[k][0]) for k in limit_rounds.REPLAY_COLUMNS}}  # fmt: skip
 
-def bisect(check: CrossCheck, start: np.ndarray, cap: np.ndarray, on_test=None) -> list[list[dict]]:
-    """Per direction, ``cfg.tests`` impulses: the first at ``start`` (D,) N s; above the largest
-    verified one while nothing failed (x1.25, at most ``cap``), else the bracket's middle. All
-    directions of a step in one batch. Returns per direction its tests (records)."""
+
+def next_impulse(tests: list[dict], start: float, cap: float) -> float:
+    """The next impulse of a direction's bisection from its ``tests`` so far: ``start`` first; x1.25
+    above the largest verified impulse while nothing above it failed (at most ``cap``); /1.25 below
+    the smallest failed one while nothing passed; else the bracket's middle."""
+    lo, hi = limit.bracket([(r["impulse_ns"], r["verified"]) for r in tests])
+    if not tests:
+        return float(start)
+    if np.isinf(hi):
+        return float(min(cap, STEP * lo))
+    if lo == 0.0:
+        return float(hi / STEP)
+    return float(0.5 * (lo + hi))
+
+
+def bisect(check: CrossCheck, start: np.ndarray, cap: np.ndarray, tested: list[list[dict]] | None = None,
+           on_test=None) -> list[list[dict]]:  # fmt: skip
+    """Per direction ``cfg.tests`` impulses (:func:`next_impulse`) from ``start`` (D,) N s, capped at
+    ``cap`` (D,); ``tested``: each direction's tests already made (a resumed run), which are kept and
+    continued. The directions still short of ``cfg.tests`` run in one batch a step; ``on_test``
+    (tested) after each. Returns per direction its tests (records)."""
     D = len(start)
-    tested: list[list[dict]] = [[] for _ in range(D)]
-    for _ in range(check.cfg.tests):
-        nxt = []
-        for d in range(D):
-            pairs = [(r["impulse_ns"], r["verified"]) for r in tested[d]]
-            lo, hi = limit.bracket(pairs)
-            if not pairs:
-                nxt.append(start[d])
-            elif np.isinf(hi):
-                nxt.append(min(cap[d], 1.25 * lo))
-            else:
-                nxt.append(0.5 * (lo + hi))
-        records = check.run(np.arange(D), np.array(nxt))
-        for d, rec in enumerate(records):
+    tested = [list(t) for t in tested] if tested is not None else [[] for _ in range(D)]
+    while todo := [d for d in range(D) if len(tested[d]) < check.cfg.tests]:
+        impulses = [next_impulse(tested[d], start[d], cap[d]) for d in todo]
+        for d, rec in zip(todo, check.run(np.array(todo), np.array(impulses)), strict=True):
             tested[d].append(rec)
         if on_test is not None:
             on_test(tested)
     return tested
+
+
+def resumed_tests(previous: dict | None, cfg: DdpConfig, path) -> dict[float, list[dict]]:
+    """{azimuth: tests} of a cross-check file written before (None: a fresh run) whose problem is
+    ``cfg``'s: every config field but the directions and the tests per direction must agree, else a
+    one-line error naming the file and the first field that differs."""
+    if previous is None:
+        return {}
+    for name in cfg.__dataclass_fields__:
+        if name in RESUME_FREE:
+            continue
+        was, now = previous["config"].get(name, cfg.__dataclass_fields__[name].default), getattr(cfg, name)
+        if was != now:
+            raise ValueError(f"{path} was written with {name}={was!r}, this run has {now!r}: pass the same settings "
+                             "to resume it, or another --out")  # fmt: skip
+    return {float(a): row["tests"] for a, row in previous["directions"].items()}

@@ -29,20 +29,29 @@ def _read(path) -> dict:
 def _best(found: dict) -> tuple[float | None, list | None, str | None]:
     """(limit, bracket, optimiser) from {optimiser: {"limit_ns", "bracket_ns"}}: the largest limit (each is a
     trajectory replayed and passed in C MuJoCo), and the smallest impulse where every optimiser failed (the
-    largest of their brackets' upper ends)."""
+    largest of their brackets' upper ends; None where one optimiser failed at none it tried)."""
     if not found:
         return None, None, None
     name = max(found, key=lambda k: found[k]["limit_ns"])
-    upper = max(f["bracket_ns"][1] for f in found.values())
+    uppers = [f["bracket_ns"][1] for f in found.values()]
+    upper = None if None in uppers else max(uppers)
     return found[name]["limit_ns"], [found[name]["limit_ns"], upper], name
 
 
+def ddp_label(ddp: dict) -> str:
+    """The optimiser's name of one crocoddyl cross-check file: "crocoddyl", with its CoP rectangle's
+    scale where the barrier's rectangle is not the controller's."""
+    scale = ddp["config"].get("cop_scale", 1.0)
+    return "crocoddyl" if scale == 1.0 else f"crocoddyl cop x{scale:g}"
+
+
 def body_table(limit_summary: dict | None, envelopes: dict, azimuths, robot, body: str,
-               ddp: dict | None = None) -> dict:  # fmt: skip
+               ddps: list | tuple = ()) -> dict:  # fmt: skip
     """{azimuth: row} of pushes on ``body``: ``limit_summary`` (a limit run's summary.json or None),
     ``envelopes`` {label: envelope summary.json dict} (gain set 0), the LIP and flywheel bounds
-    (``wbc_jax.robot.bounds``) at ``azimuths``; ``ddp``: the crocoddyl cross-check's results
-    (experiments/acceptance/ddp_chest.py) where it ran. The limit is the best optimiser's (``found_by``)."""
+    (``wbc_jax.robot.bounds``) at ``azimuths``; ``ddps``: the crocoddyl cross-checks' results
+    (experiments/acceptance/ddp_limit.py, each file an optimiser: :func:`ddp_label`) where they ran.
+    The limit is the best optimiser's (``found_by``)."""
     lip = sweep_table.lip_bound(robot, azimuths)
     flywheel = bounds.flywheel_bound(robot, azimuths, body)
     rows = {}
@@ -50,8 +59,9 @@ def body_table(limit_summary: dict | None, envelopes: dict, azimuths, robot, bod
         by = {}
         if limit_summary is not None and str(float(az)) in limit_summary["directions"]:
             by["mjx"] = limit_summary["directions"][str(float(az))]
-        if ddp is not None and str(float(az)) in ddp["directions"]:
-            by["crocoddyl"] = ddp["directions"][str(float(az))]
+        for ddp in ddps:
+            if str(float(az)) in ddp["directions"]:
+                by[ddp_label(ddp)] = ddp["directions"][str(float(az))]
         lim, bracket, found_by = _best(by)
         envs = {}
         for label, summary in envelopes.items():
@@ -113,7 +123,7 @@ def _targets(rows: dict, summary: dict | None) -> dict:
 
 def write(out_dir, bodies: dict, commands: dict, robot: str) -> dict:
     """docs/limit/limit.json and limit.png from ``bodies`` {body: {"limit": summary path or None,
-    "envelopes": {label: summary path}, "ddp": the crocoddyl cross-check's file (optional)}}; ``commands`` {body: the command that fills in a missing
+    "envelopes": {label: summary path}, "ddp": the crocoddyl cross-checks' files (optional)}}; ``commands`` {body: the command that fills in a missing
     body's limit}; ``robot``: the robot's name."""
     from wbc_jax.report import limit_plots
 
@@ -128,10 +138,12 @@ def write(out_dir, bodies: dict, commands: dict, robot: str) -> dict:
         else:
             inputs[f"{body}_limit"] = spec["limit"]
         azimuths = sorted({float(a) for s in envelopes.values() for a in s["envelope"]["0"]})
-        ddp = _read(spec["ddp"]) if spec.get("ddp") else None
-        if ddp is not None:
-            inputs[f"{body}_ddp"] = spec["ddp"]
-        tables[body] = body_table(summary, envelopes, azimuths, robot, body, ddp)
+        ddps = [_read(p) for p in spec.get("ddp") or ()]
+        labels = [ddp_label(d) for d in ddps]
+        if len(set(labels)) < len(labels):
+            raise ValueError(f"{body}'s crocoddyl files {spec['ddp']} repeat an optimiser ({labels}): one file each")
+        inputs.update({f"{body}_ddp_{i}": p for i, p in enumerate(spec.get("ddp") or ())})
+        tables[body] = body_table(summary, envelopes, azimuths, robot, body, ddps)
     result = {
         "what": "per pushed body and direction: the physical limit of push recovery (largest impulse with a torque "
         "trajectory within the model's torque limits that passes the strict criterion replayed in C MuJoCo, the best "

@@ -14,8 +14,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import pathlib
-import sys
-import time
 
 import jax
 import numpy as np
@@ -24,7 +22,7 @@ from wbc_jax.control.controller import ControllerConfig
 from wbc_jax.control.gains import Gains, default_gains, gains_from_dict, gains_to_dict, load_gains, validate_gains
 from wbc_jax.core import constants, io, loader, options, provenance
 from wbc_jax.core.options import check_options
-from wbc_jax.jobs import runs
+from wbc_jax.jobs import chunks, runs
 from wbc_jax.jobs.sweep_config import SweepConfig, default_config
 from wbc_jax.jobs.sweep_table import summarize_table
 from wbc_jax.robot import model as model_lib
@@ -130,36 +128,6 @@ def fingerprint(cfg: SweepConfig) -> dict:
     return cfg.fingerprint()
 
 
-def _part_name(c: int) -> str:
-    return f"part-{c:05d}.parquet"
-
-
-def _read_part(path: pathlib.Path, lo: int, hi: int):
-    """A part file if it is the run's own (its sha256 the one the manifest recorded when the run
-    wrote it) and holds exactly envs lo..hi-1, else None (missing, changed, copied in, unreadable
-    or wrong: recomputed)."""
-    import pandas as pd
-
-    if not path.exists() or runs.output_changed(path) is not None:
-        return None
-    try:
-        table = pd.read_parquet(path)
-    except Exception:
-        return None
-    if "env" not in table or not np.array_equal(table["env"].to_numpy(), np.arange(lo, hi)):
-        return None
-    return table
-
-
-def _agreed(flags: list[bool]) -> list[bool]:
-    """Process 0's list of flags on every process (the list as is in a one-process run)."""
-    if jax.process_count() == 1:
-        return list(flags)
-    from jax.experimental import multihost_utils
-
-    return [bool(f) for f in multihost_utils.broadcast_one_to_all(np.asarray(flags, bool))]
-
-
 def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, **overrides) -> dict:
     """Run (or resume) a sweep into ``cfg.out``: parts/*.parquet, results.parquet, summary.json, plots.
 
@@ -167,7 +135,6 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, **overri
     (config, input file contents, model, version); each part file is checked against the env
     range it must hold and recomputed if it does not."""
     import pandas as pd
-    from tqdm.auto import tqdm
 
     cfg = options.replace(default_config() if cfg is None else cfg, **overrides)
     cfg.check()
@@ -187,60 +154,18 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, **overri
     if writer:
         runs.claim_output_dir(out, "sweep", cfg.fingerprint(), resume=True)
 
-    push_end = cfg.push_onset + cfg.push_duration
-    batch = cfg.batch_size
-    n_chunks = math.ceil(cfg.size / batch)
-    parts = out / "parts"
-    compile_s = run_s = 0.0
-    started = None  # when the first chunk started simulating
-    done_envs = 0
-    tables = []
-    finished_run_s: list[float] = []  # each chunk's run, for the watchdog's default bound
     timeline: list[dict] = []
-    bounds = [(c * batch, min((c + 1) * batch, cfg.size)) for c in range(n_chunks)]
-    stored = [_read_part(parts / _part_name(c), lo, hi) for c, (lo, hi) in enumerate(bounds)]
-    replaced = [_part_name(c) for c, t in enumerate(stored) if t is None and (parts / _part_name(c)).exists()]
-    if replaced and writer:
-        print(f"sweep --out {out}: {len(replaced)} part file(s) not the run's own (changed or copied in), recomputed: "
-              f"{replaced[:3]}", file=sys.stderr)  # fmt: skip
-    # Every process must run the same chunks (each run is a collective): process 0's parts decide.
-    todo = _agreed([t is None for t in stored])
-    with tqdm(total=cfg.size, unit="env", disable=not progress, desc=f"sweep ({st.backend})") as bar:
-        for c, (lo, hi) in enumerate(bounds):
-            part = parts / _part_name(c)
-            table = stored[c]
-            if todo[c]:
-                chunk_start = time.perf_counter()
-                chunk = jax.tree_util.tree_map(lambda x, lo=lo, hi=hi: np.asarray(x)[lo:hi], scen)
-                watch = cfg.watchdog(c, finished_run_s)
-                run_start = time.perf_counter()
-                try:
-                    result = runner.run(st, chunk, batch_size=batch, queue=cfg.queue, watch=watch)
-                except watchdog.DeviceStalled:
-                    if writer:  # where the time went up to the stall
-                        now = time.perf_counter()
-                        timeline += watchdog.timeline_rows(watch, run_start - chunk_start, now - chunk_start)
-                        _write_timeline(out, st.backend, devices, timeline, todo)
-                    raise
-                run_end = time.perf_counter()
-                finished_run_s.append(result.run_s)
-                compile_s += result.compile_s
-                started = started or result.started
-                run_s += result.run_s
-                done_envs += hi - lo
-                cols = metrics_lib.summarize(result.metrics, push_end)
-                table = pd.DataFrame({"env": np.arange(lo, hi), **{k: v[lo:hi] for k, v in columns.items()}, **cols,
-                                      "ticks_simulated": np.asarray(result.metrics.ticks)})  # fmt: skip
-                if writer:
-                    io.atomic_write_parquet(part, table)
-                    runs.record_output(part)
-                    now = time.perf_counter()
-                    host_s = (run_start - chunk_start) + (now - run_end)
-                    timeline += watchdog.timeline_rows(watch, host_s, now - chunk_start)
-                    _write_timeline(out, st.backend, devices, timeline, todo)
-            if table is not None:  # None: a part only process 0 can read (no shared file system)
-                tables.append(table)
-            bar.update(hi - lo)
+
+    def record_timeline(watch, host_s: float, wall_s: float, todo: list[bool]) -> None:
+        nonlocal timeline
+        timeline += watchdog.timeline_rows(watch, host_s, wall_s)
+        _write_timeline(out, st.backend, devices, timeline, todo)
+
+    ran = chunks.run_chunks(st, scen, columns, out / "parts", batch=cfg.batch_size,
+                            push_end=cfg.push_onset + cfg.push_duration, queue=cfg.queue, watch=cfg.watchdog,
+                            timeline=record_timeline, writer=writer, progress=progress, label="sweep")  # fmt: skip
+    tables, compile_s, run_s, done_envs, started = ran.tables, ran.compile_s, ran.run_s, ran.done_envs, ran.started
+    replaced = ran.replaced
     if writer and done_envs == 0 and _finished(out):
         # A re-run of a finished run: its summary (the timings measured when it ran) stays as it is.
         stored = loader.read_json(out / "summary.json", "sweep summary")

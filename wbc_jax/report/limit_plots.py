@@ -26,6 +26,10 @@ def _panel(ax, directions: dict, title: str) -> None:
         ax.plot(*_closed(az, [r["flywheel_bound_ns"] for r in rows]), "k:", label="LIP + flywheel bound")
     if all(r.get("limit_ns") is not None for r in rows):
         ax.plot(*_closed(az, [r["limit_ns"] for r in rows]), "o-", lw=2, label="physical limit (trajectory opt.)")
+        by_ddp = [(r.get("found_by") or "").startswith("crocoddyl") for r in rows]
+        if any(by_ddp):
+            ax.plot(np.deg2rad(az[by_ddp]), [r["limit_ns"] for r, d in zip(rows, by_ddp, strict=True) if d], "r*",
+                    ms=10, label="limit found by crocoddyl")  # fmt: skip
     labels = sorted({k for r in rows for k in r.get("envelopes", {})})
     for label in labels:
         ax.plot(*_closed(az, [r["envelopes"][label]["impulse_ns"] for r in rows]), ".-", label=label)
@@ -42,10 +46,15 @@ def polar(summary: dict, path: pathlib.Path) -> None:
     io.atomic_save_figure(path, fig)
 
 
-def polar_bodies(tables: dict, path: pathlib.Path) -> None:
-    """One polar panel per pushed body: ``tables`` {body: {azimuth: row}}."""
+def bodies_figure(tables: dict) -> Figure:
+    """One polar panel per pushed body: ``tables`` {body: {azimuth: row}} (limit.json's directions)."""
     fig = Figure(figsize=(6 * len(tables), 7.5))
     for i, (body, directions) in enumerate(tables.items()):
         _panel(fig.add_subplot(1, len(tables), i + 1, projection="polar"), directions, f"{body} push [N s]")
     fig.tight_layout()
-    io.atomic_save_figure(path, fig)
+    return fig
+
+
+def polar_bodies(tables: dict, path: pathlib.Path) -> None:
+    """:func:`bodies_figure` saved to ``path``."""
+    io.atomic_save_figure(path, bodies_figure(tables))

@@ -1,4 +1,6 @@
 """The closed loop: physics engines (``physics``), the loop's data (``state``), one control tick
-(``loop``), the horizon on MJX (``mjx_loop``) or on C MuJoCo (``host_loop``), the metrics
-(``metrics``), scenes and set-ups (``scenario``) and batched runs on any engine and device mesh
-(``runner``)."""
+(``loop``), the horizon on MJX (``mjx_loop``) or on C MuJoCo (``host_loop``: a Python loop of ticks,
+or ``host_scan``: one compiled program calling C MuJoCo through ``native``), the metrics
+(``metrics``), scenes and set-ups (``scenario``), batched runs on any engine and device mesh
+(``runner``, one program per device: ``per_device``, under a ``watchdog``) and compiled programs
+kept on disk (``executables``)."""

@@ -3,7 +3,7 @@
 Three engines step the same MuJoCo model:
 
 * ``jax``: MJX's JAX implementation. Differentiable; the engine of gradient tuning and the
-  reference the others are checked against (tests/test_physics.py).
+  reference the others are checked against (tests/test_mjx_physics.py, tests/test_rollout.py).
 * ``warp``: MJX's Warp implementation (``impl='warp'``, CUDA GPUs, warp-lang installed:
   ``pip install -e ".[cuda]"``). Not differentiable; fast batched forward runs on a GPU.
 * ``mujoco``: C MuJoCo (``mujoco.mj_step``) on the host CPU, one ``MjData`` per environment,

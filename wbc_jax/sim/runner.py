@@ -171,7 +171,7 @@ class Run:
 
 
 def check_queue(queue, backend: str, record: bool = False) -> None:
-    """A queue length (scenarios per batch slot, :meth:`wbc_jax.sim.rollout.ClosedLoop.rollout_queue`)
+    """A queue length (scenarios per batch slot, :func:`wbc_jax.sim.mjx_loop.rollout_queue`)
     that can run on ``backend``; a clear error otherwise."""
     if isinstance(queue, bool) or not isinstance(queue, int) or queue < 1:
         raise ValueError(f"queue must be a whole number >= 1 (scenarios per batch slot), got {queue!r}")
@@ -189,7 +189,7 @@ def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
     ``batch_size``: the compiled batch shape (B is padded up to it; None: B). ``on_tick``: called
     with the ticks done (C MuJoCo and chunked MJX runs), for progress bars. ``queue``: scenarios
     per batch slot (MJX backends): the batch runs ceil(size / queue) slots, each retiring fallen
-    or diverged robots and starting its next scenario (:meth:`ClosedLoop.rollout_queue`); the
+    or diverged robots and starting its next scenario (:func:`wbc_jax.sim.mjx_loop.rollout_queue`); the
     outcomes equal those of the plain run, and a retired environment's metrics stop at its
     retirement (``ticks``). ``feedforward``: torques added to the controller's in a window of
     ticks, with the batch axis B (:class:`wbc_jax.sim.state.Feedforward`; None: none). ``watch``: the

@@ -1,3 +1,8 @@
-"""Gain tuning: the tuned parameters (``params``), the smooth loss (``loss``), the problem and its
-configuration (``config``, ``problem``), gradient training and the pipeline of ``wbc-jax tune``
-(``tune``), gradient-free baselines (``baselines``) and the held-out evaluation (``heldout``)."""
+"""Gain tuning, in two folders over two shared modules:
+
+* ``config`` (the commands' flags: :class:`~wbc_jax.tuning.config.TuneConfig`, ``HeldoutConfig``) and
+  ``store`` (checkpoints, history tables, gain files written once): used by both folders;
+* ``algorithms``: the problem and the methods that solve it (its docstring lists its modules);
+* ``orchestration``: what runs and judges them (its docstring lists its modules).
+
+Algorithms never import orchestration (tests/test_layers.py)."""

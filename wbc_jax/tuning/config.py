@@ -75,7 +75,7 @@ class TuneConfig:
                                             gt=0.0, le=1e7, unit="s")  # fmt: skip
     parameterisation: str = option("gains", "what is tuned: 'gains' (58 gains, 60 with --tune-regularisation) or "
                                    "'scheduled' (the same gains scheduled on the push state: 348 entries, "
-                                   "wbc_jax/tuning/schedule.py)", choices=PARAMETERISATIONS)  # fmt: skip
+                                   "wbc_jax/tuning/algorithms/schedule.py)", choices=PARAMETERISATIONS)  # fmt: skip
     estimator: str = option("first-order", "gradient estimator: 'first-order' (per-rollout reverse mode, robust "
                             "mean), 'smoothed' (the same at antithetic Gaussian perturbations of the parameters: "
                             "the gradient of the smoothed loss), 'interpolated' (first- and zeroth-order "

@@ -71,7 +71,7 @@ def rss_mb() -> float:
 
 def controls_dict(controls) -> dict:
     """The JSON of a tuned gain set: a gains file's dict for :class:`Gains`, a schedule's
-    :meth:`to_dict` otherwise (:class:`wbc_jax.tuning.schedule.GainSchedule`)."""
+    :meth:`to_dict` otherwise (:class:`wbc_jax.tuning.algorithms.schedule.GainSchedule`)."""
     if isinstance(controls, Gains):
         return gains_to_dict(controls)
     return controls.to_dict()

@@ -1,0 +1,143 @@
+"""The timed parts of ``benchmarks/benchmark.py``: the stand task's closed loop on a batch of pushes
+(:func:`time_closed_loop`) and the same physics with the torques held (:func:`time_physics_only`).
+
+Imported from the benchmarks/ folder (``import loop_timing``), as ``baseline_cpu``; heavy imports
+(JAX, wbc_jax) stay inside functions, so that run_parallel's worker processes stay JAX-free."""
+
+from __future__ import annotations
+
+import time
+
+PUSH_MAGNITUDE = 40.0  # N, horizontal, azimuths spread over 360 deg
+
+
+def make_setup(backend: str, horizon: float, iterations: int | None, *, record: bool = False):
+    """The stand task's closed loop on ``backend`` (default gains, the two feet)."""
+    from wbc_jax.sim import physics, scenario
+    from wbc_jax.sim.state import SimConfig
+
+    sim = SimConfig(record=record, physics=physics.PhysicsConfig(backend=backend, solver_iterations=iterations))
+    return scenario.setup("stand", duration=horizon, sim=sim)
+
+
+def push_batch(st, batch: int, onset: float, duration: float):
+    """A Scenario batch: one PUSH_MAGNITUDE N horizontal push per environment, azimuths evenly
+    over 360 deg (sweep.build_scenarios), nominal plant, default gains."""
+    import numpy as np
+
+    from wbc_jax.jobs import sweep, sweep_config
+
+    cfg = sweep_config.SweepConfig(
+        magnitudes=(PUSH_MAGNITUDE,), directions=tuple(float(a) for a in np.linspace(0, 360, batch, endpoint=False)),
+        horizon=st.loop.cfg.duration, push_onset=onset, push_duration=duration, chunk_size=batch,
+    )  # fmt: skip
+    scen, _ = sweep.build_scenarios(cfg, st.gains, st.robot.index.n, st.dtype)
+    return scen
+
+
+def peak_memory() -> int | None:
+    import jax
+
+    stats = jax.devices()[0].memory_stats() or {}
+    return stats.get("peak_bytes_in_use")
+
+
+def time_closed_loop(st, scen, push_end: float, repeats: int = 1) -> dict:
+    """Compile + first run, then ``repeats`` timed runs of the same batch (runner.run,
+    compiled programs cached on the setup); the fastest counts."""
+    import numpy as np
+
+    from wbc_jax.sim import metrics as metrics_lib
+    from wbc_jax.sim import runner
+
+    first = runner.run(st, scen)
+    timed = [runner.run(st, scen) for _ in range(repeats)]
+    run_s = min(r.run_s for r in timed)
+    B = int(np.asarray(scen.friction).shape[0])
+    steps = B * st.loop.n_ticks * st.loop.n_sub
+    cols = metrics_lib.summarize(timed[-1].metrics, push_end)
+    return {
+        "compile_s": round(first.compile_s, 2),
+        "first_run_s": round(first.run_s, 4),
+        "run_s": round(run_s, 4),
+        "closed_loop_steps_per_s": steps / run_s,
+        "control_ticks_per_s": B * st.loop.n_ticks / run_s,
+        # Names of constants.METRIC_NAMES: the rates of its booleans, medians of the others.
+        "survived_rate": float(np.mean(cols["survived"])),
+        "upright_rate": float(np.mean(cols["upright"])),
+        "com_max_err_m_median": float(np.median(cols["com_max_err_m"])),
+        "qp_infeasible_ticks_total": int(np.sum(cols["qp_infeasible_ticks"])),
+    }
+
+
+def hold_torques(st):
+    """(nu,) torques to hold in the physics-only run: the controller's first tick at the initial
+    posture (NumPy baseline, C MuJoCo: no compilation), so that the robot stands as in the loop."""
+    import baseline_cpu
+    import mujoco
+    import numpy as np
+
+    spec = baseline_cpu.spec_from_setup(st)
+    ctrl = baseline_cpu.NumpyController(spec)
+    d = mujoco.MjData(spec.mj_model)
+    d.qpos[:] = spec.qpos0
+    mujoco.mj_forward(spec.mj_model, d)
+    out, _ = ctrl([d], baseline_cpu.gains_to_numpy(st.gains, 1, spec.n), spec.reference(0), ctrl.init_state(1))
+    tau = np.zeros(spec.mj_model.nu)
+    tau[spec.actuators] = out["tau"][0]
+    return tau
+
+
+def time_physics_only(st, batch: int, tau, repeats: int = 1) -> dict:
+    """The closed loop's physics alone: ``batch`` environments from the initial posture, the
+    torques ``tau`` held, no push, the same number of steps (MJX: one jitted, vmapped scan of
+    physics.step on device_model/device_data; C MuJoCo: physics.HostBatch, as the host loop);
+    the fastest of ``repeats`` timed runs counts."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from wbc_jax.sim import physics
+
+    loop, robot = st.loop, st.robot
+    cfg = loop.cfg.physics
+    steps = loop.n_ticks * loop.n_sub
+    qpos = np.repeat(np.asarray(st.qpos0, float)[None], batch, 0)
+    if loop.backend == "mujoco":
+        model = physics.solver_mj_model(robot.mj_model, cfg)
+        ctrl = np.repeat(np.asarray(tau, float)[None], batch, 0)
+        xfrc = np.zeros((batch, loop.n_sub, robot.mj_model.nbody, 6))
+        times = []
+        for _ in range(repeats):
+            host = physics.HostBatch(model, qpos)
+            try:
+                t0 = time.perf_counter()
+                for _ in range(loop.n_ticks):
+                    host.step(ctrl, xfrc)
+                times.append(time.perf_counter() - t0)
+            finally:
+                host.close()
+        return {"physics_only_steps_per_s": batch * steps / min(times), "physics_only_compile_s": 0.0,
+                "physics_only_threads": host.threads}  # fmt: skip
+    dtype = st.dtype
+    m = physics.device_model(robot.mj_model, loop.backend, cfg)
+    ctrl = jnp.asarray(tau, dtype)
+    xfrc = jnp.zeros((robot.mj_model.nbody, 6), dtype)
+
+    def env(q):
+        d = physics.device_data(robot.mj_model, loop.backend, cfg, q, dtype, batch=batch)
+        d, _ = jax.lax.scan(lambda dd, _: (physics.step(m, dd, ctrl, xfrc), None), d, None, length=steps)
+        return d.qpos
+
+    q = jnp.asarray(qpos, dtype)
+    t0 = time.perf_counter()
+    with jax.default_matmul_precision(loop.cfg.matmul_precision):  # as the closed loop's physics
+        fn = jax.jit(jax.vmap(env)).lower(q).compile()
+    compile_s = time.perf_counter() - t0
+    jax.block_until_ready(fn(q))  # warm
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(q))
+        times.append(time.perf_counter() - t0)
+    return {"physics_only_steps_per_s": batch * steps / min(times), "physics_only_compile_s": round(compile_s, 2)}
