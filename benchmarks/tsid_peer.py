@@ -52,6 +52,8 @@ HERE = pathlib.Path(__file__).resolve().parent
 # script runs (python benchmarks/tsid_peer.py).
 import tsid_baseline as tb  # noqa: E402
 
+from wbc_jax.robot import icub  # noqa: E402
+
 # The grid of wbc_jax/jobs/envelope.py (DEFAULT_MAGNITUDES) and of the documented 64 x 32 sweeps.
 MAGNITUDES = (10.0, 400.0, 64)  # N: LO, HI, count (np.linspace)
 DIRECTIONS = 32  # azimuths k 360 / N deg from 0 (forward; 90 = left)
@@ -232,7 +234,7 @@ SENSITIVITY = {
     "w_posture=1e-4": {"w_posture": 1e-4},
     "w_posture=1e-2": {"w_posture": 1e-2},
     "contact_kp=10": {"contact_kp": 10.0},
-    "kd_com=2sqrt(kp_com) (TSID's critical damping)": {"kd_com": tuple(2 * np.sqrt(tb.constants.WBC_KP_COM))},
+    "kd_com=2sqrt(kp_com) (TSID's critical damping)": {"kd_com": tuple(2 * np.sqrt(icub.DESCRIPTION.gains.kp_com))},
     "foot_size=the soles' contact spheres": {"foot_size": "contact spheres"},  # tb.sole_contact_rectangle
 }
 

@@ -191,7 +191,7 @@ def test_schedule_table_matches_schedule(robot, stand, terms_fn):
     st = stand[0]
     t0 = terms_fn(_mjx_data(robot, st.qpos0, np.zeros(robot.index.nv)))
     kwargs = dict(com0=np.asarray(t0.W_p_CoM), s0=np.asarray(t0.s), left_sole=np.asarray(t0.W_p_frames[0]),
-                  joints=robot.index.joints)  # fmt: skip
+                  joints=robot.index.joints, foot_lift_deg=robot.description.foot_lift_deg)  # fmt: skip
     sched = references.make_schedule("one-foot", **kwargs)
     sine = references.make_schedule("sinusoid", **kwargs)
     times = np.array([0.0, 1.7, 4.5, 6.0, 8.0, 10.2, 12.0, 14.0, 15.99])

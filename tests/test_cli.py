@@ -2,7 +2,6 @@
 anything is compiled or written (a tripwire on jax.jit fails any case that gets that far); run
 directories bound to their inputs (no mixed or dropped results)."""
 
-import dataclasses
 import importlib.util
 import json
 import math
@@ -18,6 +17,7 @@ from wbc_jax import cli
 from wbc_jax.control.gains import default_gains, gains_to_dict
 from wbc_jax.core import options
 from wbc_jax.jobs import sweep_config
+from wbc_jax.robot.icub import DESCRIPTION as ICUB
 from wbc_jax.tuning import config as tune_config
 from wbc_jax.tuning.algorithms import gradient  # noqa: F401  (before the tripwire: optax applies jax.jit when imported)
 
@@ -33,7 +33,7 @@ def test_flags_are_generated_from_the_configs(capsys):
         with pytest.raises(SystemExit):
             cli.main([command, "--help"])
         text = capsys.readouterr().out
-        for field in dataclasses.fields(config):
+        for field in options.flat_fields(config):
             assert options.flag_name(field) in text, (command, field.name)
     # Defaults shown as they are given on the command line; values parsed into the config.
     parser = cli.build_parser()
@@ -58,7 +58,7 @@ def test_tune_and_heldout_share_the_held_out_flags(tmp_path):
         assert hc.chunk_size == 7 and hc.sinusoid_s == heldout.sinusoid_s
     tasks = str(tmp_path / "t.yaml")
     pathlib.Path(tasks).write_text("contacts: []\n")
-    assert cli.config_from_args(parser.parse_args(["tune", "--tasks", tasks]), heldout).tasks == tasks
+    assert cli.config_from_args(parser.parse_args(["tune", "--tasks", tasks]), heldout).controller.tasks == tasks
 
 
 def test_heldout_reeval_takes_the_heldout_jobs_flags():
@@ -70,7 +70,7 @@ def test_heldout_reeval_takes_the_heldout_jobs_flags():
     script = load_script("experiments/campaigns/heldout_reeval.py")
     hc, previous = script.parse(["--grid-directions", "4", "--chunk-size", "7", "--no-one-foot"])
     job = tune_config.heldout_default_config()
-    assert hc == dataclasses.replace(job, sets=script.DEFAULT_SETS, out="runs/heldout_reeval",
+    assert hc == options.replace(job, sets=script.DEFAULT_SETS, out="runs/heldout_reeval",
                                      grid_directions=(0.0, 90.0, 180.0, 270.0), chunk_size=7, one_foot=False)  # fmt: skip
     assert previous.endswith("docs/tuning/heldout.json")
     with pytest.raises(ValueError, match=r"--chunk-size must be a whole number in \[1, "):
@@ -79,7 +79,7 @@ def test_heldout_reeval_takes_the_heldout_jobs_flags():
 
 def _declared(config):
     """(flag, Valid, scalar type) of each number field of a job config."""
-    for field in dataclasses.fields(config):
+    for field in options.flat_fields(config):
         kind, _, _ = options.field_type(type(config), field)
         valid = field.metadata["valid"]
         if kind in (int, float) and valid.choices is None and "parse" not in field.metadata:
@@ -91,7 +91,7 @@ def test_every_flag_has_a_declared_range():
     input file; every other text flag has its choices or names (or is a path or a folder)."""
     paths = {"out", "run_dir", "tasks", "gains", "init_gains", "envelope", "envelopes"}
     for command, (config, _) in cli.job_configs().items():
-        for field in dataclasses.fields(config):
+        for field in options.flat_fields(config):
             valid = field.metadata["valid"]
             kind, _, _ = options.field_type(type(config), field)
             if kind in (int, float):
@@ -192,7 +192,7 @@ def test_resume_binds_the_run_to_its_inputs(tmp_path, capsys):
     names the difference; a part file replaced by another chunk's is recomputed; the results hold
     each env once."""
     gains = tmp_path / "g.json"
-    gains.write_text(json.dumps(gains_to_dict(default_gains())))
+    gains.write_text(json.dumps(gains_to_dict(default_gains(ICUB))))
     out = tmp_path / "sw"
     argv = ["push-sweep", "--magnitudes", "20", "40", "2", "--directions", "1", "--horizon", "0.05",
             "--push-onset", "0", "--push-duration", "0.02", "--chunk-size", "1", "--gains", str(gains),
@@ -213,7 +213,7 @@ def test_resume_binds_the_run_to_its_inputs(tmp_path, capsys):
     assert summary["resumed_envs"] == 1
     assert summary["physics_steps_simulated"] == 2 * 5 * 10
     # Other gains in the same file: refused, naming the file.
-    values = gains_to_dict(default_gains())
+    values = gains_to_dict(default_gains(ICUB))
     values["kp_com"] = [60.0, 60.0, 10.0]
     gains.write_text(json.dumps(values))
     assert cli.main(argv) == 2

@@ -78,3 +78,52 @@ def test_each_job_checks_its_config_once(name, tmp_path, monkeypatch, capsys):
     assert cli.main([name, "--quiet", "--out", str(tmp_path / "out")]) == 2
     assert "stopped after the check" in capsys.readouterr().err
     assert calls == [config_class.__name__], calls
+
+
+CONTROLLER_FLAGS = ("tasks", "forces", "postural", "angular_weight_soft")
+
+
+def _configs():
+    """Every config a command takes (its own and the shared ones), by command."""
+    for name, command in registry().items():
+        yield name, [command.default_config(), *(shared() for shared, _ in command.shared)]
+
+
+def test_every_job_takes_the_robot_and_the_controller_flags_from_one_declaration():
+    """Issue 44/47: ``--robot`` is one field declared once (wbc_jax/robot/robots.py) in every job's
+    config but view's (a run's robot is in its folder), and the controller's flags are one nested
+    :class:`ControllerFlags`, never declared by a job's own config."""
+    from wbc_jax.control.flags import ControllerFlags
+    from wbc_jax.core import options
+    from wbc_jax.robot.robots import ROBOT_NAMES
+
+    declared = {f.name: f for f in dataclasses.fields(ControllerFlags)}
+    for name, configs in _configs():
+        for config in configs:
+            own = {f.name: f for f in dataclasses.fields(config)}
+            assert not set(CONTROLLER_FLAGS) & set(own), (name, type(config).__name__)
+            for field in options.flat_fields(config):
+                if field.name in CONTROLLER_FLAGS:
+                    assert field is declared[field.name], (name, field.name)
+        if name != "view":
+            robot = {f.name: f for f in dataclasses.fields(configs[0])}["robot"]
+            assert robot.metadata["valid"].choices == ROBOT_NAMES, name
+    assert set(ROBOT_NAMES) >= {"icub", "talos"}
+
+
+def test_the_robot_is_part_of_every_fingerprint(tmp_path):
+    """The same job on two robots is two runs: the fingerprint holds the robot and its model file."""
+    from wbc_jax.core import options
+
+    for cls in (balance.BalanceConfig, sweep_config.SweepConfig, limit.LimitConfig):
+        fingerprint = limit.fingerprint if cls is limit.LimitConfig else cls.fingerprint
+        icub, talos = (fingerprint(options.replace(cls(), robot=r, out=str(tmp_path / r))) for r in ("icub", "talos"))
+        assert (icub["config"]["robot"], talos["config"]["robot"]) == ("icub", "talos"), cls
+        assert icub["model"] != talos["model"], cls
+
+
+def test_an_unknown_robot_is_one_line(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["balance", "--robot", "atlas"])
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--robot" in err and "'atlas'" in err and "talos" in err, err

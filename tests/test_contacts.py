@@ -108,7 +108,7 @@ def distribution(hand_scene):
     produce and for its opposite (pulling the robot down through the floor). One compiled program:
     run op by op, the same code cost 2.3x the CPU time (51 against 22 CPU s on the 2-core machine)."""
     robot, _, cset, qpos = hand_scene
-    g = default_gains(robot.index.n, jnp.float64)
+    g = default_gains(robot.description, jnp.float64)
     cfg = C.ControllerConfig()
     # A desired wrench that needs the contacts: the weight and a forward/sideways force.
     wrench = jnp.array([8.0, -3.0, 9.81 * robot.index.mass, 0.5, -1.0, 0.2])
@@ -159,7 +159,7 @@ def test_feet_from_a_spec_file_are_the_default_contact_set(robot):
         np.testing.assert_allclose(a.point, b.point, atol=1e-12)
         np.testing.assert_allclose(a.R_body_contact, b.R_body_contact, atol=1e-9)
     qvel = np.random.default_rng(5).normal(scale=0.2, size=robot.mj_model.nv)
-    g = default_gains(robot.index.n, jnp.float64)
+    g = default_gains(robot.description, jnp.float64)
 
     def tick(contact_set):  # compiled: op by op it cost twice the CPU time
         ctrl = C.make_controller(robot, contact_set=contact_set)
@@ -297,7 +297,7 @@ def test_contact_detection_gates_the_hand(hand_scene, distribution):
     ctrl = C.make_controller(robot, contact_set=cset)
     assert ctrl.config.contact_detection
     t = distribution["t"]  # the terms at the scene's home state
-    g = default_gains(robot.index.n, jnp.float64)
+    g = default_gains(robot.description, jnp.float64)
     ref = Reference(com_pos=t.W_p_CoM, com_vel=jnp.zeros(3), com_acc=jnp.zeros(3), s_des=t.s,
                     activation=jnp.ones(2))  # fmt: skip
     step = jax.jit(ctrl.step)

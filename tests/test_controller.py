@@ -14,6 +14,7 @@ from wbc_jax.control import controller as C
 from wbc_jax.control import gains as G
 from wbc_jax.control.references import Reference
 from wbc_jax.robot import contacts, dynamics
+from wbc_jax.robot.icub import DESCRIPTION as ICUB
 
 
 @functools.cache
@@ -34,7 +35,7 @@ def state_terms(robot):
 
 
 def _torque_terms(t, damping, postural="stable", rows=None):
-    gains = G.default_gains(23, jnp.float64)
+    gains = G.default_gains(ICUB, jnp.float64)
     J_c, Jdot_nu_c = t.J_frames.reshape(12, -1), t.Jdot_nu_frames.reshape(12)  # both soles, active
     if rows is not None:  # contact rows scaled by their activations
         J_c, Jdot_nu_c = J_c * rows[:, None], Jdot_nu_c * rows
@@ -155,7 +156,7 @@ def _compiled_tick(robot, forces: str):
 
 
 def _step(robot, t, forces):
-    gains = G.default_gains(23, jnp.float64)
+    gains = G.default_gains(ICUB, jnp.float64)
     return gains, _reference(t), _compiled_tick(robot, forces)(gains, t)
 
 
@@ -205,7 +206,7 @@ def test_wrench_map_matches_moment_arithmetic(robot):
      ("kp_postural", [1.0] * 5, "23 entries"), ("kp_com", [1e30, 1.0, 1.0], r"above its range \[0, 10000\]")],
 )  # fmt: skip
 def test_bad_gains_rejected(field, value, match):
-    gains = G.default_gains().replace(**{field: jnp.asarray(value)})
+    gains = G.default_gains(ICUB).replace(**{field: jnp.asarray(value)})
     with pytest.raises(ValueError, match=match):
         G.validate_gains(gains, 23)
 
@@ -216,15 +217,15 @@ def test_bad_modes_and_gain_files(tmp_path):
     with pytest.raises(ValueError, match=r"unknown postural variant 'x'.*stable"):
         C.ControllerConfig(postural="x")
     with pytest.raises(ValueError, match=r"unknown keys \['kp_foo'\], missing keys \['kp_com'\]"):
-        d = G.gains_to_dict(G.default_gains())
+        d = G.gains_to_dict(G.default_gains(ICUB))
         d["kp_foo"] = d.pop("kp_com")
         G.gains_from_dict(d)
     with pytest.raises(FileNotFoundError, match="does not exist"):
         G.load_gains(tmp_path / "nope.json")
     with pytest.raises(ValueError, match="is not a file"):
         G.load_gains(tmp_path)
-    round_trip = G.gains_from_dict(G.gains_to_dict(G.default_gains()))
-    np.testing.assert_allclose(round_trip.kp_postural, G.default_gains().kp_postural)
+    round_trip = G.gains_from_dict(G.gains_to_dict(G.default_gains(ICUB)))
+    np.testing.assert_allclose(round_trip.kp_postural, G.default_gains(ICUB).kp_postural)
 
 
 def test_postural_projector_derivative_at_a_symmetric_posture(robot):

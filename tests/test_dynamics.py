@@ -8,7 +8,8 @@ import pytest
 from conftest import assert_close, c_data, random_state
 from mujoco import mjx
 
-from wbc_jax.robot import dynamics, model
+from wbc_jax.robot import dynamics
+from wbc_jax.robot.icub import DESCRIPTION as ICUB
 
 SEEDS = range(5)
 REL = 1e-6  # issue 4: relative error < 1e-6 (float64)
@@ -103,7 +104,7 @@ def _pinocchio_model(robot):
     urdf = str(icub_models.get_model_file("iCubGazeboV2_5"))
     full = pin.buildModelFromUrdf(urdf, pin.JointModelFreeFlyer())
     locked = [full.getJointId(n) for n in full.names if n not in ("universe", "root_joint")
-              and n not in model.ICUB_JOINTS]  # fmt: skip
+              and n not in ICUB.joints]  # fmt: skip
     reduced = pin.buildReducedModel(full, locked, pin.neutral(full))
     return pin, reduced
 
@@ -112,8 +113,8 @@ def test_centroidal_momentum_matrix_matches_pinocchio(robot, mx, terms_fn):
     pin, pm = _pinocchio_model(robot)
     pd = pm.createData()
     assert pm.nv == robot.mj_model.nv
-    idx_q = [pm.joints[pm.getJointId(n)].idx_q for n in model.ICUB_JOINTS]
-    idx_v = [pm.joints[pm.getJointId(n)].idx_v for n in model.ICUB_JOINTS]
+    idx_q = [pm.joints[pm.getJointId(n)].idx_q for n in ICUB.joints]
+    idx_v = [pm.joints[pm.getJointId(n)].idx_v for n in ICUB.joints]
     assert pin.computeTotalMass(pm) == pytest.approx(robot.index.mass, rel=1e-9)
     worst = 0.0
     for seed in range(20):

@@ -37,7 +37,7 @@ def state(robot):
     # The soles' frames first (the contacts), then the stack's.
     frames = dynamics.sole_frames(robot.index) + stack.frames
     t = jax.jit(lambda m, d: dynamics.terms(m, d, robot.index, frames))(robot.mjx_model, dx)
-    g = default_gains(robot.index.n, jnp.float64)
+    g = default_gains(robot.description, jnp.float64)
     tt = torques.torque_terms(t, t.J_frames[:2].reshape(12, -1), t.Jdot_nu_frames[:2].reshape(12),
                               postural="stable", kp_postural=g.kp_postural,
                               kd_postural=g.kd_postural, s_des=jnp.asarray(t.s) * 0.9)  # fmt: skip

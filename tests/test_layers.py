@@ -3,6 +3,7 @@ earlier one, and no two modules import each other, directly or through others.""
 
 import ast
 import pathlib
+import re
 
 import pytest
 
@@ -191,6 +192,48 @@ def test_the_tuning_name_scan_finds_fields_arguments_and_attributes():
         "probe.py:4 loss_trace",
         "probe.py:4 checkpoint",
     ]
+
+
+def _icub_specific_words() -> tuple[set[str], list[str]]:
+    """(names, number literals) that belong to the iCub alone: its joint, body, site and named-point
+    names that the other robots lack, its mass and its sole's and gains' numbers."""
+    from wbc_jax.robot import model
+    from wbc_jax.robot.robots import DESCRIPTIONS
+
+    def names(robot: str) -> set[str]:
+        idx = model.load_robot(robot).index
+        desc = DESCRIPTIONS[robot]
+        return {*idx.joints, *idx.body_names, *idx.site_names, *desc.named_points, *desc.bodies.values()} - {""}
+
+    others = set().union(*(names(r) for r in DESCRIPTIONS if r != "icub"))
+    icub = DESCRIPTIONS["icub"]
+    mass = model.load_robot("icub").index.mass
+    numbers = [f"{mass:.2f}", f"{mass:.0f} kg", "23-joint", "23 joints", str(icub.sole_cop[0]), str(icub.sole_cop[1]),
+               str(icub.gains.kp_postural[-6:])]  # fmt: skip
+    return (names("icub") - others) | {"icub"}, numbers
+
+
+def test_no_module_outside_the_robot_layer_names_the_icub():
+    """Everything robot-specific comes from a robot description (issue 47): no module of the package
+    outside wbc_jax/robot/ holds an iCub name (``icub`` in any case, its joints, bodies, sites) or
+    number (its mass, its sole's CoP rectangle, its postural gains)."""
+    words, numbers = _icub_specific_words()
+    pattern = re.compile(r"(?i)icub|\b(" + "|".join(sorted(map(re.escape, words - {"icub"}))) + r")\b")
+    found = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if path.relative_to(PACKAGE).parts[0] == "robot":
+            continue
+        text = path.read_text()
+        found += [f"{path.relative_to(PACKAGE.parent)}: {m.group(0)}" for m in pattern.finditer(text)]
+        found += [f"{path.relative_to(PACKAGE.parent)}: {n}" for n in numbers if n in text]
+    assert not found, found
+
+
+def test_the_icub_word_list_catches_a_name():
+    """The check above finds what it looks for: the iCub's names and numbers are in its words."""
+    words, numbers = _icub_specific_words()
+    assert {"icub", "chest", "root_link", "l_elbow_1", "r_knee"} <= words and "l_sole" not in words
+    assert "33.06" in numbers and "(-0.07, 0.12)" in numbers
 
 
 # Gain tuning's folders, each importing only those before it: the shared configs and store, the

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from wbc_jax.robot import model
+from wbc_jax.robot.icub import DESCRIPTION as ICUB
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
@@ -17,7 +18,7 @@ def test_summary_matches_the_urdf(robot):
     assert (s["nq"], s["nv"], s["nu"]) == (30, 29, 23)
     # Sum of the iCubGazeboV2_5 URDF link masses (controller-spec 4): 33.06 kg.
     assert s["mass"] == pytest.approx(33.0617, abs=1e-3)
-    assert s["joints"] == list(model.ICUB_JOINTS)
+    assert s["joints"] == list(ICUB.joints)
     assert s["timestep"] == 0.001
 
 
@@ -45,7 +46,7 @@ def test_home_keyframe_has_soles_on_the_floor(robot):
     y = d.site_xpos[robot.index.foot_sites, 1]
     assert y[0] - y[1] == pytest.approx(0.14, abs=0.01)
     # Posture as in the WBC simulator (degrees).
-    elbow = d.qpos[robot.index.qpos_joints[model.ICUB_JOINTS.index("l_elbow")]]
+    elbow = d.qpos[robot.index.qpos_joints[ICUB.joints.index("l_elbow")]]
     assert np.rad2deg(elbow) == pytest.approx(50.0)
 
 

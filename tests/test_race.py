@@ -18,6 +18,7 @@ import pytest
 from wbc_jax.control import gains as C
 from wbc_jax.core import constants
 from wbc_jax.core.constants import GAIN_FIELDS
+from wbc_jax.robot.icub import DESCRIPTION as ICUB
 from wbc_jax.tuning import store
 from wbc_jax.tuning.algorithms import estimators
 from wbc_jax.tuning.algorithms import loss as tuning_loss
@@ -111,11 +112,13 @@ def test_combine_first_order_is_the_robust_mean_and_interpolated_the_mix():
 
 @pytest.fixture(scope="module")
 def bounds():
-    return tuning_params.default_bounds(C.default_gains(), 10.0, (0.02, 2.0), tuning_params.default_regularisation())
+    return tuning_params.default_bounds(
+        C.default_gains(ICUB), 10.0, (0.02, 2.0), tuning_params.default_regularisation()
+    )
 
 
 def _schedule(bounds, scale):
-    base = C.default_gains()
+    base = C.default_gains(ICUB)
     plain = tuning_params.controls_to_params(base, tuning_params.default_regularisation(), bounds,
                                              regularisation=False)  # fmt: skip
     p = gs.init_params(plain)
@@ -326,7 +329,7 @@ TINY_RUN = ["--horizon", "0.3", "--push-onset", "0.05", "--duration-range", "0.0
             "--batch", "4", "--steps", "2", "--population", "2", "--es-batch", "1", "--quality-pushes", "4",
             "--quality-directions", "2", "--eval-pushes", "2", "--grid-magnitudes", "20", "200", "3",
             "--grid-directions", "2", "--variation-magnitudes", "2", "--variation-directions", "2", "--variations",
-            "l_hand", "--grid-onset", "0.1", "--grid-horizon", "0.4", "--one-foot-onset", "7.5", "--one-foot-horizon",
+            "left_hand", "--grid-onset", "0.1", "--grid-horizon", "0.4", "--one-foot-onset", "7.5", "--one-foot-horizon",
             "7.7", "--sinusoid-s", "0.3", "--quiet"]  # fmt: skip
 
 
@@ -397,6 +400,7 @@ from jax.sharding import Mesh
 from wbc_jax.tuning import config
 from wbc_jax.tuning.algorithms import estimators, objectives, gradient
 from wbc_jax.tuning.algorithms import problem as tp
+from wbc_jax.robot.icub import DESCRIPTION as ICUB
 
 tc = config.TuneConfig(horizon=0.05, push_onset=0.0, duration_range=(0.02, 0.04), eval_horizon=0.1, batch=2,
                        quality_pushes=2, population=1, es_batch=1)

@@ -31,7 +31,7 @@ def _schedule(task, **kw):
     robot = model.load_robot()
     return references.make_schedule(
         task, com0=np.array([0.0, 0.0, 0.55]), s0=np.zeros(robot.index.n), left_sole=np.array([0.0, 0.07, 0.0]),
-        joints=robot.index.joints, **kw,
+        joints=robot.index.joints, foot_lift_deg=robot.description.foot_lift_deg, **kw,
     )  # fmt: skip
 
 

@@ -25,6 +25,7 @@ import pytest
 from wbc_jax import cli
 from wbc_jax.control.gains import default_gains, gains_to_dict
 from wbc_jax.jobs import balance, limit, limit_rounds, runs, sweep_config
+from wbc_jax.robot.icub import DESCRIPTION as ICUB
 from wbc_jax.sim import physics
 from wbc_jax.tuning.algorithms import gradient  # noqa: F401  (before a tripwire: optax applies jax.jit when imported)
 
@@ -38,7 +39,7 @@ def finished(tmp_path_factory):
     """(folder of a finished sweep run with --gains GAINS, the gains file)."""
     base = tmp_path_factory.mktemp("finished")
     gains = base / "g.json"
-    gains.write_text(json.dumps(gains_to_dict(default_gains())))
+    gains.write_text(json.dumps(gains_to_dict(default_gains(ICUB))))
     out = base / "sw"
     assert cli.main([*SWEEP, "--gains", str(gains), "--out", str(out)]) == 0
     return out, gains
@@ -191,9 +192,9 @@ def test_limit_with_no_round_claims_nothing(tmp_path, capsys, tripwire, monkeypa
     assert "--time-limit 0 summarises the rounds on disk" in _error(capsys) and not out.exists()
 
     lip = {0.0: {"impulse_bound_ns": 20.0}, 90.0: {"impulse_bound_ns": 15.0}}
-    fake = types.SimpleNamespace(azimuths=[0.0, 90.0], lip=lip, envelopes={}, base=default_gains(), steps=0,
+    fake = types.SimpleNamespace(azimuths=[0.0, 90.0], lip=lip, envelopes={}, base=default_gains(ICUB), steps=0,
                                  timing={}, dtype=np.float32, physics_steps_per_candidate_step=1)  # fmt: skip
-    monkeypatch.setattr(limit_rounds, "Search", lambda cfg, robot_name: fake)
+    monkeypatch.setattr(limit_rounds, "Search", lambda cfg: fake)
     cfg = limit.LimitConfig(directions=(0.0, 90.0), time_limit=1e-9, out=str(out))
     with pytest.raises(ValueError, match=r"ran out before round 1 finished: nothing was measured"):
         limit_rounds.run(cfg, progress=False)
@@ -305,7 +306,7 @@ def test_fingerprints_compare_inputs_by_content_not_by_spelling(tmp_path, capsys
     gains file (another name, a symlink, ../): the same fingerprint; other gains contents are still
     refused, named."""
     gains = tmp_path / "g.json"
-    gains.write_text(json.dumps(gains_to_dict(default_gains())))
+    gains.write_text(json.dumps(gains_to_dict(default_gains(ICUB))))
     (tmp_path / "d").mkdir()
     (tmp_path / "link.json").symlink_to(gains)
     first = balance.BalanceConfig(duration=0.1, gains=str(gains), out=str(tmp_path / "b"))
@@ -319,7 +320,7 @@ def test_fingerprints_compare_inputs_by_content_not_by_spelling(tmp_path, capsys
         cfg.check()  # the folder is accepted
     shutil.copytree(tmp_path / "b", tmp_path / "copy")
     dataclasses.replace(first, out=str(tmp_path / "copy")).check()
-    values = gains_to_dict(default_gains())
+    values = gains_to_dict(default_gains(ICUB))
     (tmp_path / "other.json").write_text(json.dumps({**values, "kp_com": [60.0, 60.0, 10.0]}))
     assert cli.main(["balance", "--duration", "0.1", "--gains", str(tmp_path / "other.json"), "--out",
                      str(tmp_path / "b")]) == 2  # fmt: skip

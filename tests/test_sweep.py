@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 
 from wbc_jax.control.gains import default_gains
+from wbc_jax.core import options
 from wbc_jax.jobs import sweep, sweep_config, sweep_table
+from wbc_jax.robot.icub import DESCRIPTION as ICUB
 from wbc_jax.sim import runner, scenario
 
 
@@ -21,16 +23,16 @@ def test_controller_settings_of_a_sweep_and_a_held_out_evaluation_reach_the_loop
     from wbc_jax.tuning.orchestration import heldout as tuning_eval
 
     tasks = str(pathlib.Path(__file__).resolve().parent.parent / "experiments" / "tasks" / "feet_sole95.yaml")
-    cfg = sweep_config.SweepConfig(angular_weight_soft=0.01, tasks=tasks, forces="qp")
-    st = sweep.make_setup(cfg, default_gains(23, scenario.float_dtype()))
+    cfg = options.replace(sweep_config.SweepConfig(), angular_weight_soft=0.01, tasks=tasks, forces="qp")
+    st = sweep.make_setup(cfg, default_gains(ICUB, scenario.float_dtype()))
     assert st.loop.controller.config.force_settings.angular_weight_soft == 0.01
     rects = [c.params.foot_size for c in st.loop.contact_set.contacts]
     assert rects[0] == ((-0.0635, 0.1255), (-0.0425, 0.0505)) and rects[1][1] == (-0.0505, 0.0425)
-    hc = tuning_eval.HeldoutConfig(angular_weight_soft=0.1, tasks=tasks)
+    hc = options.replace(tuning_eval.HeldoutConfig(), angular_weight_soft=0.1, tasks=tasks)
     assert tuning_eval._controller((1.0, 0.1), hc).angular_weight_soft == 0.1
     assert sweep.make_setup(sweep_config.SweepConfig()).loop.controller.config.angular_weight_soft == 1.0
     with pytest.raises(FileNotFoundError, match="--tasks file /nowhere.yaml does not exist"):
-        tuning_eval.HeldoutConfig(tasks="/nowhere.yaml")
+        options.replace(tuning_eval.HeldoutConfig(), tasks="/nowhere.yaml")
 
 
 def test_bad_sweep_input_is_rejected_before_compiling(robot, tmp_path):
@@ -55,14 +57,14 @@ def test_bad_sweep_input_is_rejected_before_compiling(robot, tmp_path):
 
 def test_scenario_grid(robot):
     cfg = sweep_config.SweepConfig(magnitudes=(10.0, 20.0), directions=(0.0, 90.0), gain_sets=3, seed=4)
-    scen, cols = sweep.build_scenarios(cfg, default_gains(), 23)
+    scen, cols = sweep.build_scenarios(cfg, default_gains(ICUB), 23)
     assert scen.push.force.shape == (12, 1, 3) and scen.gains.kp_postural.shape == (12, 23)
     np.testing.assert_allclose(np.linalg.norm(scen.push.force[:, 0], axis=1), cols["magnitude_n"], rtol=1e-6)
     left = (cols["azimuth_deg"] == 90.0) & (cols["magnitude_n"] == 20.0)
     np.testing.assert_allclose(scen.push.force[left, 0], [[0, 20, 0]] * 3, atol=1e-5)
     # gain set 0 is the default; the others are seeded rescalings of it.
     assert np.allclose(scen.gains.kp_com[cols["gain_set"] == 0], [50, 50, 10])
-    again, _ = sweep.build_scenarios(cfg, default_gains(), 23)
+    again, _ = sweep.build_scenarios(cfg, default_gains(ICUB), 23)
     np.testing.assert_array_equal(again.gains.kp_com, scen.gains.kp_com)
 
 
@@ -85,6 +87,7 @@ SHARDED = textwrap.dedent(
     import jax, numpy as np
     from wbc_jax.control.gains import default_gains
     from wbc_jax.jobs import sweep, sweep_config
+    from wbc_jax.robot.icub import DESCRIPTION as ICUB
     from wbc_jax.sim import metrics, runner, scenario
     backend = sys.argv[3]
     if backend == "jax":
@@ -100,8 +103,8 @@ SHARDED = textwrap.dedent(
         print(json.dumps({"summary": {k: s[k] for k in ("n_envs", "n_devices")}}))
         raise SystemExit(0)
     # NaN isolation: the same setup and batch shape, one environment starts from NaN joints.
-    st = sweep.make_setup(cfg, default_gains(23, scenario.float_dtype()))
-    scen, _ = sweep.build_scenarios(cfg, default_gains(), 23, scenario.float_dtype())
+    st = sweep.make_setup(cfg, default_gains(ICUB, scenario.float_dtype()))
+    scen, _ = sweep.build_scenarios(cfg, default_gains(ICUB), 23, scenario.float_dtype())
     scen = jax.tree_util.tree_map(lambda x: np.asarray(x)[:2], scen)
     scen = scen.replace(joint_offset=scen.joint_offset.copy())
     scen.joint_offset[1] = np.nan
@@ -114,7 +117,7 @@ SHARDED = textwrap.dedent(
     if backend == "jax":
         # Two scenarios per batch slot: 1,600 N (falls), 20 N (survives), NaN joints (diverges), 10 N
         # (survives; it starts in the slot the fallen and the diverged robot left).
-        four, _ = sweep.build_scenarios(cfg, default_gains(), 23, scenario.float_dtype())
+        four, _ = sweep.build_scenarios(cfg, default_gains(ICUB), 23, scenario.float_dtype())
         four = jax.tree_util.tree_map(lambda x: np.asarray(x)[[2, 0, 0, 0]].copy(), four)
         four.push.force[0] *= 4  # 1,600 N for 0.1 s: down well before the end
         four.joint_offset[2] = np.nan

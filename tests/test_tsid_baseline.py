@@ -18,6 +18,7 @@ from wbc_jax.core import constants
 from wbc_jax.jobs import envelope, sweep_table
 from wbc_jax.robot import contacts, model
 from wbc_jax.robot import pinocchio as robot_pinocchio
+from wbc_jax.robot.icub import DESCRIPTION as ICUB
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
@@ -137,7 +138,7 @@ def test_state_map_joint_orders(pin_model):
 def test_copies_match_wbc_jax(robot):
     params = contacts.ContactParams()
     assert tb.FOOT_SIZE == params.foot_size and tb.FZ_MIN == params.fz_min
-    assert tb.DRIVEN_JOINTS == model.ICUB_JOINTS
+    assert tb.DRIVEN_JOINTS == ICUB.joints
     m, ref_m = tb.load_mj_model(), model.load_mj_model()
     assert (m.nq, m.nv, m.nu, m.nbody, m.ngeom) == (ref_m.nq, ref_m.nv, ref_m.nu, ref_m.nbody, ref_m.ngeom)
     np.testing.assert_array_equal(m.body_mass, ref_m.body_mass)
@@ -149,7 +150,12 @@ def test_copies_match_wbc_jax(robot):
         assert tb.FOOT_SIZE == spec.foot_size
         peer_sched = tb.make_schedule(task, spec.ref_com_pos[0], spec.ref_s_des[0])  # sin(0) = 0: com0
         ref_sched = references.make_schedule(
-            task, com0=spec.ref_com_pos[0], s0=spec.ref_s_des[0], left_sole=np.zeros(3), joints=model.ICUB_JOINTS
+            task,
+            com0=spec.ref_com_pos[0],
+            s0=spec.ref_s_des[0],
+            left_sole=np.zeros(3),
+            joints=ICUB.joints,
+            foot_lift_deg=ICUB.foot_lift_deg,
         )
         assert peer_sched.duration == ref_sched.duration == spec.n_ticks * spec.control_dt
         times = np.arange(spec.n_ticks) * spec.control_dt
@@ -238,9 +244,9 @@ def test_config_checks():
     with pytest.raises(ValueError, match="kp_posture must be 23 finite numbers"):
         tb.TsidConfig(kp_posture=(1.0, 2.0)).gains(23)
     g = tb.TsidConfig().gains(23)
-    np.testing.assert_array_equal(g["kp_com"], constants.WBC_KP_COM)
-    np.testing.assert_allclose(g["kd_com"], 2 * np.sqrt(constants.WBC_KP_COM) / 20)
-    np.testing.assert_allclose(g["kd_posture"], 2 * np.sqrt(constants.WBC_KP_POSTURAL))
+    np.testing.assert_array_equal(g["kp_com"], ICUB.gains.kp_com)
+    np.testing.assert_allclose(g["kd_com"], 2 * np.sqrt(ICUB.gains.kp_com) / 20)
+    np.testing.assert_allclose(g["kd_posture"], 2 * np.sqrt(ICUB.gains.kp_postural))
     np.testing.assert_array_equal(tb.TsidConfig().corners()[:, 0], [-0.07, -0.045, 0.0])
 
 

@@ -17,10 +17,11 @@ import pytest
 
 from wbc_jax import cli
 from wbc_jax.control import gains as C
-from wbc_jax.core import constants
+from wbc_jax.core import constants, options
 from wbc_jax.core.constants import GAIN_FIELDS
 from wbc_jax.jobs import sweep_table
 from wbc_jax.report import tuning_plots
+from wbc_jax.robot.icub import DESCRIPTION as ICUB
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim.state import LossTrace
 from wbc_jax.tuning import config, store
@@ -85,7 +86,7 @@ def test_no_nan_gradients_over_random_scenarios(grad_check):
 
 
 def test_parameters_round_trip_stay_in_bounds_and_keep_nava_conditions():
-    base = C.default_gains()
+    base = C.default_gains(ICUB)
     reg0 = tuning_params.default_regularisation()
     bounds = tuning_params.default_bounds(base, 10.0, (0.02, 2.0), reg0)
     p = tuning_params.controls_to_params(base, reg0, bounds)
@@ -113,7 +114,7 @@ def test_parameters_round_trip_stay_in_bounds_and_keep_nava_conditions():
 def test_hand_set_critical_gains_are_inside_the_bounds_and_stable():
     crit = C.load_gains(ROOT / "assets" / "gains" / "com_critical_100.json")
     reg0 = tuning_params.default_regularisation()
-    bounds = tuning_params.default_bounds(C.default_gains(), 10.0, (0.02, 2.0), reg0)
+    bounds = tuning_params.default_bounds(C.default_gains(ICUB), 10.0, (0.02, 2.0), reg0)
     tuning_params.check_in_bounds(crit, reg0, bounds)
     nava = tuning_params.nava_conditions(crit, reg0)
     assert nava["holds"]
@@ -121,7 +122,7 @@ def test_hand_set_critical_gains_are_inside_the_bounds_and_stable():
 
 
 def test_out_of_bound_init_gains_are_a_clear_error_before_compiling(tmp_path):
-    good = C.gains_to_dict(C.default_gains())
+    good = C.gains_to_dict(C.default_gains(ICUB))
     cases = [({**good, "kp_com": [5000.0, 50.0, 10.0]}, r"kp_com is outside its bounds at entries \[0\]"),
              ({**good, "kd_com": [1e-6, 0.7, 0.3]}, r"zeta_com is outside its bounds at entries \[0\]"),
              ({**good, "kp_postural": [float("nan")] * 23}, r"NaN or infinite"),
@@ -159,7 +160,7 @@ def test_out_of_bound_init_gains_are_a_clear_error_before_compiling(tmp_path):
 ])  # fmt: skip
 def test_bad_tune_config_is_a_clear_error(kwargs, message):
     with pytest.raises((ValueError, FileNotFoundError), match=message):
-        config.TuneConfig(**kwargs)
+        options.replace(config.TuneConfig(), **kwargs)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -233,7 +234,7 @@ def test_push_distribution_is_reproducible_and_in_range(robot):
     assert not np.array_equal(a.push.force, c.push.force)
     rel = ca["impulse_ns"] / tp.interp_periodic(*table, ca["azimuth_deg"])
     assert rel.min() >= 0.6 - 1e-9 and rel.max() <= 1.4 + 1e-9
-    assert set(ca["body"]) <= {robot.index.body_id(n) for n in tc.train_bodies}
+    assert set(ca["body"]) <= {robot.index.pushable_body_id(n) for n in tc.train_bodies}
     assert np.all((a.friction >= 0.6) & (a.friction <= 1.2)) and np.all(np.abs(a.mass_scale - 1) <= 0.1 + 1e-6)
 
 
@@ -551,7 +552,7 @@ def test_heldout_json_and_targets(tmp_path):
         grid = {"envelope_fraction_median": float(np.median(frac)), "envelope_fraction_min": min(frac),
                 "survival_rate": surv, "upright_rate": surv, "peak_torque_nm_median": 30.0, "envelope": env,
                 "envelope_fraction_monotone_median": 0.5, "envelope_fraction_monotone_min": 0.4}  # fmt: skip
-        return {"grid": grid, "variations": {"l_hand": grid}, "sinusoid_com_rmse_m": 1e-3}
+        return {"grid": grid, "variations": {"left_hand": grid}, "sinusoid_com_rmse_m": 1e-3}
 
     results = {
         "default": entry([0.5, 0.6], 0.2),
@@ -577,7 +578,7 @@ def test_heldout_json_and_targets(tmp_path):
 
 
 def test_bad_gains_files_name_the_problem(tmp_path):
-    good = C.gains_to_dict(C.default_gains())
+    good = C.gains_to_dict(C.default_gains(ICUB))
     cases = [
         ({**good, "kp_foo": [1.0]}, r"unknown keys \['kp_foo'\]"),
         ({k: v for k, v in good.items() if k != "kd_com"}, r"missing keys \['kd_com'\]"),
@@ -599,7 +600,7 @@ def test_bad_gains_files_name_the_problem(tmp_path):
 
 def _tuned_gains_file(tmp_path):
     """A tuned file (gains_to_dict of bounded gains) and its gains."""
-    base = C.default_gains()
+    base = C.default_gains(ICUB)
     reg0 = tuning_params.default_regularisation()
     bounds = tuning_params.default_bounds(base, 10.0, (0.02, 2.0), reg0)
     p = tuning_params.controls_to_params(base, reg0, bounds, regularisation=False)
@@ -657,7 +658,7 @@ def test_com_floor_raises_kp_com_in_x_y_and_keeps_each_damping_ratio():
     high = module.with_com_floor(out, 10.0)  # a floor below the gains leaves them as they are
     np.testing.assert_array_equal(np.asarray(high.kp_com), np.asarray(out.kp_com))
     # --restore-yaw: K_P,w z and K_I,w z raised to the reference's (0.165 -> 1, 0.080 -> 0.25 here), x and y kept.
-    ref = C.default_gains(23)
+    ref = C.default_gains(ICUB)
     yaw = module.with_yaw_floor(g, ref)
     assert float(g.kp_ang[2]) < 1.0 and float(g.ki_ang[2]) < 0.25
     np.testing.assert_allclose(np.asarray(yaw.kp_ang), [g.kp_ang[0], g.kp_ang[1], ref.kp_ang[2]], rtol=1e-6)

@@ -16,8 +16,7 @@ import pytest
 
 from wbc_jax.core import provenance
 from wbc_jax.core.assets import ASSETS
-from wbc_jax.robot.model import ROBOTS
-from wbc_jax.tuning.config import ENVELOPE_FILE, HAND_SET_GAINS
+from wbc_jax.robot.robots import DESCRIPTIONS
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 # What the build reads: the pyproject's packages, package-dir (assets/) and readme.
@@ -78,7 +77,8 @@ def test_wheel_holds_every_module_the_model_and_the_default_files(wheel):
     modules = {p.relative_to(ROOT).as_posix() for p in (ROOT / "wbc_jax").rglob("*") if p.suffix in (".py", ".cc")}
     assert not modules - names, f"modules missing from the wheel (pyproject's packages): {sorted(modules - names)}"
     # Every file the code reads by default is package data, byte for byte the checkout's.
-    defaults = [*ROBOTS.values(), HAND_SET_GAINS, ENVELOPE_FILE]
+    defaults = [d.model_path for d in DESCRIPTIONS.values()]
+    defaults += [d.asset_path(f) for d in DESCRIPTIONS.values() for f in (d.hand_set_gains, d.default_envelope) if f]
     for path in defaults:
         name = f"wbc_jax/assets/{path.relative_to(ASSETS).as_posix()}"
         assert packaged.get(name) == hashlib.sha256(path.read_bytes()).hexdigest(), f"{name}: not in the wheel as is"
@@ -93,7 +93,8 @@ def test_installed_package_runs_info_and_balance_from_another_folder(installed):
     native_cache = work.parent / "native_cache"
     where = (f"import json, jax, wbc_jax; jax.config.update('jax_compilation_cache_dir', {str(native_cache)!r}); "
              "from wbc_jax.core import assets, provenance; from wbc_jax.sim import native; "
-             "from wbc_jax.tuning.config import HAND_SET_GAINS as g; why_not = native.available(); "
+             "from wbc_jax.robot.robots import describe; d = describe('icub'); g = d.asset_path(d.hand_set_gains); "
+             "why_not = native.available(); "
              "record = {'provenance': provenance.record({'gains': g}, with_device=False)}; "
              "print(json.dumps([why_not, record, sorted(provenance.mentioned_files(str(g))), "
              "provenance.check_inputs(record), wbc_jax.__file__, str(assets.ASSETS), str(native.SOURCE)]))")  # fmt: skip

@@ -1,4 +1,5 @@
-"""wbc_jax: whole-body force (momentum-based) balancing control of the iCub in MuJoCo MJX.
+"""wbc_jax: whole-body force (momentum-based) balancing control of torque-controlled humanoids in MuJoCo MJX
+(one description per robot in ``wbc_jax/robot/``; jobs choose it with ``--robot``).
 
 The subpackages follow the flow of data; each imports only those before it
 (tests/test_layers.py):
@@ -14,7 +15,7 @@ recordings; ``jobs`` balance, push sweep, envelope, the physical limit of push r
 
 The names below are the public surface, imported on first use (``import wbc_jax`` stays light):
 
-    robot = wbc_jax.load_robot("icub")
+    robot = wbc_jax.load_robot("talos")
     st = wbc_jax.setup("sinusoid", duration=5.0)
     result = wbc_jax.run(st, wbc_jax.single(st))
 """

@@ -14,7 +14,7 @@ import sys
 
 from wbc_jax.commands import registry
 from wbc_jax.core import processes
-from wbc_jax.core.options import field_type, flag_name
+from wbc_jax.core.options import field_type, flag_name, is_nested
 from wbc_jax.core.processes import DistributedConfig
 
 
@@ -52,6 +52,9 @@ def add_config_arguments(parser: argparse.ArgumentParser, config, skip=()) -> No
     for field in dataclasses.fields(config):
         if field.name in skip:
             continue
+        if is_nested(field):  # a shared group of flags: its fields are this command's flags
+            add_config_arguments(parser, getattr(config, field.name), skip)
+            continue
         meta = field.metadata
         flag = flag_name(field)
         default = getattr(config, field.name)
@@ -80,6 +83,9 @@ def config_from_args(args: argparse.Namespace, config):
     """The config with the flags given on the command line (``parse`` hooks applied)."""
     changes = {}
     for field in dataclasses.fields(config):
+        if is_nested(field):
+            changes[field.name] = config_from_args(args, getattr(config, field.name))
+            continue
         if field.name not in vars(args):
             continue
         value = getattr(args, field.name)

@@ -89,7 +89,7 @@ class BaselineSpec:
     pinv_tol: float
     kp_postural_reg: float
     hessian_reg: float
-    torque_limit: float
+    torque_limit: np.ndarray  # (n,) N m, or () where one limit for all
     torque_weight_soft: float
     angular_weight_soft: float
     compensate_passive: bool

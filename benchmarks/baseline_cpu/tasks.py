@@ -8,8 +8,10 @@ import math
 import mujoco
 import numpy as np
 
+from wbc_jax.robot.robots import DEFAULT_ROBOT, describe
+
 from .controller import skew
-from .spec import GAIN_FIELDS, BaselineSpec, constants, schedule_table, solver_model
+from .spec import GAIN_FIELDS, BaselineSpec, schedule_table, solver_model
 
 
 def _check_feet_only(st) -> None:
@@ -86,7 +88,7 @@ def spec_from_setup(st, controller_state=None) -> BaselineSpec:
         push_body=int(loop.push_body), non_foot_bodies=np.asarray(loop.non_foot_bodies),
         forces=config.forces, postural=config.postural, pinv_damping=float(config.pinv_damping),
         pinv_tol=float(config.pinv_tol), kp_postural_reg=float(config.kp_postural_reg),
-        hessian_reg=float(config.hessian_reg), torque_limit=float(config.torque_limit),
+        hessian_reg=float(config.hessian_reg), torque_limit=np.asarray(config.saturation(idx), float),
         torque_weight_soft=float(config.torque_weight_soft), angular_weight_soft=float(config.angular_weight_soft),
         compensate_passive=bool(config.compensate_passive),
         C_foot=C_foot, b_foot=b_foot, fz_row=int(constraints.constraint_rows(params, "surface").unilateral),
@@ -130,7 +132,7 @@ def make_spec(
     config = ControllerConfig(forces=forces, postural=postural, **(controller or {}))
     st = scenario.setup(task, duration=duration, controller=config, sim=sim, robot_name=robot_name)
     spec = spec_from_setup(st)
-    return spec, constants.default_gain_values(spec.n)
+    return spec, describe(robot_name).default_gain_values(spec.n)
 
 
 def centroidal_jacobian_ref(
@@ -176,10 +178,10 @@ def centroidal_jacobian_ref(
 
 
 def gains_to_numpy(gains, n_envs: int, n: int) -> dict:
-    """Gains (wbc_jax.control.gains.Gains, a dict, or None: the WBC defaults of
-    ``constants.default_gain_values``) -> dict of (n_envs, dim) float64 arrays."""
+    """Gains (wbc_jax.control.gains.Gains, a dict, or None: the default robot's gains,
+    ``RobotDescription.default_gain_values``) -> dict of (n_envs, dim) float64 arrays."""
     if gains is None:
-        gains = constants.default_gain_values(n)
+        gains = describe(DEFAULT_ROBOT).default_gain_values(n)
     out = {}
     for name in GAIN_FIELDS:
         value = gains[name] if isinstance(gains, dict) else getattr(gains, name)

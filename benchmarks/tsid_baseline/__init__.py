@@ -56,7 +56,7 @@ The weights have no WBC counterpart and move the push envelope (``tsid_peer.py -
 The torque limits are not in the QP: with TSID's ``TaskActuationBounds`` as hard constraints (level
 0), eiquadprog looped without returning on a 158.6 N, 0.1 s forward push.
 
-Gains: the WBC defaults (``wbc_jax/core/constants.py``) where the formulations correspond:
+Gains: the iCub's WBC defaults (``wbc_jax/robot/icub.py``) where the formulations correspond:
 
 * K_P,CoM = (50, 50, 10), K_D,CoM = 2 sqrt(K_P,CoM) / 20 -> ``TaskComEquality`` Kp, Kd: the same
   law (the WBC asks the momentum rate m (c_ddot_ref - K_P e - K_D e_dot), TSID the CoM acceleration

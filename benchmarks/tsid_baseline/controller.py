@@ -8,9 +8,10 @@ import math
 import mujoco
 import numpy as np
 
+from wbc_jax.robot import icub
 from wbc_jax.robot.pinocchio import StateMap
 
-from .model import FEET, FOOT_SIZE, FZ_MAX, FZ_MIN, constants, floor_friction, import_tsid
+from .model import FEET, FOOT_SIZE, FZ_MAX, FZ_MIN, floor_friction, import_tsid
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,7 +64,7 @@ class TsidConfig:
     def gains(self, n: int) -> dict[str, np.ndarray]:
         """The resolved gains (float64): kp_com, kd_com, kp_am (3,), kp_posture, kd_posture (n,),
         in ``DRIVEN_JOINTS`` order. Raises ValueError on a wrong shape or a negative gain."""
-        wbc = constants.default_gain_values(n)
+        wbc = icub.DESCRIPTION.default_gain_values(n)
         out = {
             "kp_com": wbc["kp_com"] if self.kp_com is None else self.kp_com,
             "kd_com": wbc["kd_com"] if self.kd_com is None else self.kd_com,

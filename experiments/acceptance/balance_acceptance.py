@@ -1,9 +1,11 @@
 """Measured acceptance of the balancing controller (issue: the controller of the seed paper).
 
-    python experiments/acceptance/balance_acceptance.py [--only NAME ...] [--out runs/acceptance]
+    python experiments/acceptance/balance_acceptance.py [--robot NAME] [--only NAME ...] [--out runs/acceptance]
 
 Runs each scenario with ``wbc_jax.jobs.balance.run`` and merges the metrics into
-``docs/balance_acceptance.json`` (one key per scenario; re-running one scenario updates it).
+``docs/balance_acceptance.json`` (the default robot's; another robot's into
+``docs/<robot>/balance_acceptance.json``; one key per scenario, NAME-mjx on ``--backend jax``;
+re-running one scenario updates it).
 Scenarios: stand (10 s), sinusoid (20 s, 2 cm at 0.2 Hz), one-foot (16 s), push-qp /
 push-analytic (same lateral push, both force distributions), sinusoid-60-stable /
 sinusoid-60-seed (postural variants over 60 s) and the joint-error figure of the last two.
@@ -19,12 +21,13 @@ import numpy as np
 
 from wbc_jax.core import io, provenance
 from wbc_jax.jobs import balance
+from wbc_jax.robot.robots import DEFAULT_ROBOT, ROBOT_NAMES
 from wbc_jax.sim import runner
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 # 4 N s lateral: inside the measured survival envelope at 90 deg (~6 N s, docs/sweep_h100).
-PUSH = {"push_force": (0.0, 40.0, 0.0), "push_onset": 1.0, "push_duration": 0.1}  # chest, world +y (left)
+PUSH = {"push_force": (0.0, 40.0, 0.0), "push_onset": 1.0, "push_duration": 0.1}  # trunk, world +y (left)
 
 SCENARIOS = {
     "stand": dict(task="stand", duration=10.0),
@@ -72,8 +75,10 @@ def joint_error_figure(out: pathlib.Path, dest: pathlib.Path) -> dict:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--only", nargs="*", default=list(SCENARIOS), choices=list(SCENARIOS))
+    parser.add_argument("--robot", default=DEFAULT_ROBOT, choices=list(ROBOT_NAMES))
     parser.add_argument("--out", default=str(ROOT / "runs" / "acceptance"))
-    parser.add_argument("--summary", default=str(ROOT / "docs" / "balance_acceptance.json"))
+    parser.add_argument("--summary", default=None, help="default: docs/balance_acceptance.json, another robot's "
+                        "docs/<robot>/balance_acceptance.json")  # fmt: skip
     parser.add_argument("--backend", default="auto", help="physics backend (wbc_jax.sim.physics.BACKENDS)")
     parser.add_argument(
         "--solver-iterations",
@@ -84,20 +89,23 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     record = provenance.record(argv=provenance.script_argv(__file__, argv))
     runner.enable_compilation_cache()  # scenarios of the same shape compile once, as in the CLI
-    out = pathlib.Path(args.out)
-    summary_path = pathlib.Path(args.summary)
+    docs = ROOT / "docs" if args.robot == DEFAULT_ROBOT else ROOT / "docs" / args.robot
+    out = pathlib.Path(args.out) if args.robot == DEFAULT_ROBOT else pathlib.Path(args.out) / args.robot
+    summary_path = pathlib.Path(args.summary) if args.summary else docs / "balance_acceptance.json"
+    summary_path.parent.mkdir(parents=True, exist_ok=True)
     it = args.solver_iterations
     for name in args.only:
         key = name if it is None else f"{name}-it{it}"
+        key += "-mjx" if args.robot != DEFAULT_ROBOT and args.backend == "jax" else ""
         result = balance.run(out=str(out / key), progress=False, solver_iterations=it, backend=args.backend,
-                             **SCENARIOS[name])  # fmt: skip
+                             robot=args.robot, **SCENARIOS[name])  # fmt: skip
         print(key, json.dumps(result), flush=True)
         # Merge (re-read: other processes may have written other scenarios meanwhile).
         current = json.loads(summary_path.read_text()) if summary_path.exists() else {}
         current[key] = {**result, "provenance": record}
         io.atomic_write_json(summary_path, current)
     if (out / "sinusoid-60-stable").exists() or (out / "sinusoid-60-seed").exists():
-        figure = ROOT / "docs" / "postural_joint_error.png"
+        figure = docs / "postural_joint_error.png"
         current = json.loads(summary_path.read_text()) if summary_path.exists() else {}
         current["postural_comparison"] = {**joint_error_figure(out, figure), "provenance": record}
         io.atomic_write_json(summary_path, current)

@@ -47,7 +47,7 @@ import jax
 import numpy as np
 
 from wbc_jax.control import task_files
-from wbc_jax.core import io, provenance
+from wbc_jax.core import io, options, provenance
 from wbc_jax.jobs import balance, sweep, sweep_config, sweep_table
 from wbc_jax.robot import scene as contact_scene
 from wbc_jax.sim import metrics as metrics_lib
@@ -117,7 +117,8 @@ def longest_run(mask: np.ndarray) -> np.ndarray:
 def push_sweep(spec: pathlib.Path, backend: str, magnitudes, directions, horizon: float, record: bool):
     """A chest-push sweep of a contact file: (setup, metrics dict of columns, records or None)."""
     cfg = sweep_config.SweepConfig(magnitudes=tuple(magnitudes), directions=tuple(directions), horizon=horizon,
-                            push_onset=0.5, push_duration=0.1, tasks=str(spec), backend=backend)  # fmt: skip
+                            push_onset=0.5, push_duration=0.1, backend=backend)  # fmt: skip
+    cfg = options.replace(cfg, tasks=str(spec))
     dtype = scenario.float_dtype()
     st = sweep.make_setup(cfg, sweep.base_gains(cfg, 23, dtype), record=record)
     scen, columns = sweep.build_scenarios(cfg, st.gains, st.robot.index.n, dtype)

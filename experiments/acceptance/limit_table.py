@@ -57,7 +57,7 @@ def main() -> None:
                                       for label, name in GAIN_SETS.items()},
                         "ddp": ddp}  # fmt: skip
     try:
-        result = limit_table.write(args.out, bodies, COMMANDS)
+        result = limit_table.write(args.out, bodies, COMMANDS, "icub")
     except ValueError as err:
         sys.exit(str(err))
     medians = {body: b["medians"] for body, b in result["bodies"].items()}

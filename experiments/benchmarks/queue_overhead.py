@@ -51,7 +51,7 @@ def main(argv=None) -> dict:
         "backend": st.loop.backend,
         "device": provenance.device_label(),
         "provenance": provenance.record(
-            {"gains": cfg.gains, "tasks": cfg.tasks}, argv=provenance.script_argv(__file__, given)
+            {"gains": cfg.gains, "tasks": cfg.controller.tasks}, argv=provenance.script_argv(__file__, given)
         ),
     }
     for name in args.variants:

@@ -51,7 +51,7 @@ def main(argv=None) -> dict:
         shutil.copy(first / name, out / name)
     s = json.loads((first / "summary.json").read_text())
     result = {"runs": runs, "n_envs": s["n_envs"], "backend": s["backend"], "device": s["device"],
-              "provenance": provenance.record({"gains": base.gains, "tasks": base.tasks},
+              "provenance": provenance.record({"gains": base.gains, "tasks": base.controller.tasks},
                                               argv=provenance.script_argv(__file__, given))}  # fmt: skip
     io.atomic_write_json(out / "timing.json", result)
     print(json.dumps(result), flush=True)

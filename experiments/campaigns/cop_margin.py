@@ -34,7 +34,7 @@ import sys
 import mujoco
 import numpy as np
 
-from wbc_jax.core import io, provenance
+from wbc_jax.core import io, options, provenance
 from wbc_jax.jobs import envelope
 from wbc_jax.robot import contacts, model
 from wbc_jax.sim import runner
@@ -110,7 +110,7 @@ def main(argv=None) -> dict:
             tasks = out / f"feet_{args.rectangle}{round(scale * 100)}.json"
             io.atomic_write_bytes(tasks, task_file(rectangles, scale).encode())
             for weight in args.angular_weights:
-                cfg = dataclasses.replace(base, gains=gains, tasks=str(tasks), angular_weight_soft=weight)
+                cfg = options.replace(base, gains=gains, tasks=str(tasks), angular_weight_soft=weight)
                 found = envelope.search(cfg, progress=False)
                 frac = {az: e["fraction_of_bound"] for az, e in found["envelope"][0].items()}
                 key = f"{name}@{scale:g}" + ("" if weight == 1.0 else f"@w{weight:g}")

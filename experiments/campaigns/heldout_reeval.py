@@ -58,9 +58,9 @@ def main(argv=None) -> int:
 
     hc, previous = parse(argv)
     prev = json.loads(pathlib.Path(previous).read_text()) if previous else {}
-    robot = load_robot("icub")
-    sets = tuning_eval.load_sets(hc.sets, robot.index.n, scenario.float_dtype())
-    inputs = {f"gains:{name}": path for name, path in tuning_eval.set_files(hc.sets).items()}
+    robot = load_robot(hc.robot)
+    sets = tuning_eval.load_sets(hc.sets, robot.description, scenario.float_dtype())
+    inputs = {f"gains:{name}": path for name, path in tuning_eval.set_files(hc.sets, robot.description).items()}
     prov = provenance.record({**inputs, "previous": previous}, argv=provenance.script_argv(__file__, argv))
     out = pathlib.Path(hc.out)
     results = tuning_eval.heldout(sets, hc, out / "heldout")

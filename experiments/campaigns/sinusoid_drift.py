@@ -53,6 +53,7 @@ def main(argv=None) -> int:
     from wbc_jax.control.gains import default_gains, load_gains
     from wbc_jax.core import io, provenance
     from wbc_jax.jobs import balance
+    from wbc_jax.robot.icub import DESCRIPTION as ICUB
     from wbc_jax.tuning.algorithms import params as tuning_params
     from wbc_jax.tuning.orchestration import heldout as tuning_eval
 
@@ -68,7 +69,7 @@ def main(argv=None) -> int:
     p.add_argument("--windowed", nargs="*", default=["com_critical_100", "tuned_gradient", "tuned_cmaes"])
     args = p.parse_args(argv)
     names = ["default", *[s for s in args.sets if s != "default"]]
-    gains = [default_gains(23) if n == "default" else load_gains(gains_file(n), 23) for n in names]
+    gains = [default_gains(ICUB) if n == "default" else load_gains(gains_file(n), 23) for n in names]
     files = {f"gains:{n}": gains_file(n) for n in {*names, *args.windowed} if n != "default"}
     prov = provenance.record(files, argv=provenance.script_argv(__file__, argv))  # the files as they are read
     rmse = {n: {} for n in names}

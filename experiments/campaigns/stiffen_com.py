@@ -55,6 +55,7 @@ def with_yaw_floor(gains, reference):
 def main(argv=None) -> int:
     from wbc_jax.control.gains import default_gains, gains_to_dict, load_gains
     from wbc_jax.core import constants, io, provenance
+    from wbc_jax.robot.icub import DESCRIPTION as ICUB
     from wbc_jax.robot.model import load_robot
     from wbc_jax.tuning.algorithms import params as tuning_params
     from wbc_jax.tuning.orchestration import heldout as tuning_eval
@@ -77,7 +78,7 @@ def main(argv=None) -> int:
     n = load_robot("icub").index.n
     tuned = {s: load_gains(GAINS / f"tuned_{s}.json", n) for s in args.sets}
     if args.restore_yaw:
-        tuned = {s: with_yaw_floor(g, default_gains(n, np.asarray(g.kp_ang).dtype)) for s, g in tuned.items()}
+        tuned = {s: with_yaw_floor(g, default_gains(ICUB, np.asarray(g.kp_ang).dtype)) for s, g in tuned.items()}
     suffix = args.suffix or ("_stiff_com_yaw" if args.restore_yaw else "_stiff_com")
     targets = {s: GAINS / f"tuned_{s}{suffix}.json" for s in args.sets}
     prov = provenance.record({f"gains:{s}": GAINS / f"tuned_{s}.json" for s in args.sets},

@@ -31,6 +31,7 @@ import tempfile
 import time
 
 from wbc_jax.core import checks, io, provenance
+from wbc_jax.robot.icub import DESCRIPTION as ICUB
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 # Issue 41, classes 3, 4 and 7 (their cases: integrity_cases, at the end of the file).
@@ -61,7 +62,7 @@ def cases(tmp: pathlib.Path) -> list[tuple[str, list[str], str]]:
     from wbc_jax.control.gains import default_gains, gains_to_dict
     from wbc_jax.jobs import balance, envelope
 
-    gains = gains_to_dict(default_gains())
+    gains = gains_to_dict(default_gains(ICUB))
     rank = {**gains, "kp_com": [[50.0, 50.0, 10.0], [50.0, 50.0, 10.0]]}
     huge = {**gains, "kp_com": [1e30, 50.0, 10.0]}
     text = {**gains, "kd_postural": "high"}
@@ -286,7 +287,7 @@ def _fake_sweep(path: pathlib.Path, outputs: dict | None = None, inputs: dict | 
     pd.DataFrame({"env": [0, 1], "survived": [True, False]}).to_parquet(path / "results.parquet", index=False)
     config = {k: list(v) if isinstance(v, tuple) else v
               for k, v in dataclasses.asdict(sweep_config.SweepConfig(out=None)).items()}  # fmt: skip
-    _write(path / "summary.json", json.dumps({"config": config, "gains": gains_to_dict(default_gains()),
+    _write(path / "summary.json", json.dumps({"config": config, "gains": gains_to_dict(default_gains(ICUB)),
                                               "backend": "mujoco"}))  # fmt: skip
     own = {name: provenance.sha256(path / name) for name in ("results.parquet", "summary.json")}
     manifest = {"kind": "sweep", "fingerprint": {"inputs": inputs or {}}, "outputs": {**own, **(outputs or {})}}

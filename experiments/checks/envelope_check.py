@@ -68,7 +68,7 @@ def main(argv=None) -> dict:
               "run_s": found["run_s"], "compile_s": found["compile_s"], "backend": found["backend"],
               "device": provenance.device_label(),
               "provenance": provenance.record({"grid": pathlib.Path(args.grid) / "results.parquet", "gains": cfg.gains,
-                                               "tasks": cfg.tasks}, argv=provenance.script_argv(__file__, given))}  # fmt: skip
+                                               "tasks": cfg.controller.tasks}, argv=provenance.script_argv(__file__, given))}  # fmt: skip
     result["check"] = checks.verdict(failures(result), BAR)
     out = pathlib.Path(args.out)
     io.atomic_write_json(out / "envelope_check.json", result)

@@ -64,7 +64,7 @@ def random_scenarios(rng: np.random.Generator, n: int, robot, dtype) -> Scenario
     force = direction * rng.uniform(0.0, 5000.0, size=(n, 1))
     duration = np.exp(rng.uniform(np.log(0.001), np.log(1.0), n))
     body = rng.integers(1, m.nbody, n)
-    base = constants.default_gain_values(idx.n)
+    base = idx.description.default_gain_values(idx.n)
     gains = {}
     for name, value in base.items():
         lo, hi = constants.GAIN_RANGES[name]

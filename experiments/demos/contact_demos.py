@@ -23,7 +23,7 @@ import pathlib
 
 import numpy as np
 
-from wbc_jax.core import io, provenance
+from wbc_jax.core import io, options, provenance
 from wbc_jax.jobs import balance, sweep, sweep_config
 
 EXPERIMENTS = pathlib.Path(__file__).resolve().parents[1]
@@ -52,7 +52,7 @@ def main(argv=None) -> dict:
     )  # fmt: skip
     sweeps = {}
     for name, spec in (("hand", HAND), ("feet", FEET)):
-        cfg = sweep_config.SweepConfig(**grid, tasks=str(spec), out=str(out / f"sweep_{name}"))
+        cfg = options.replace(sweep_config.SweepConfig(**grid, out=str(out / f"sweep_{name}")), tasks=str(spec))
         sweeps[name] = sweep.run_sweep(cfg)
     envelope = {}
     for az in sweeps["feet"]["envelope"]:

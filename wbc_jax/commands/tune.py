@@ -1,5 +1,5 @@
 """``wbc-jax tune``: gain tuning in phases (:mod:`wbc_jax.tuning.orchestration.campaign`). It holds out its gain
-sets with the held-out flags (``wbc-jax heldout``'s), whose tasks and soft-QP weight are the run's."""
+sets with the held-out flags (``wbc-jax heldout``'s), whose robot and controller flags are the run's."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ class TuneJob:
 
 
 def combine(tc: config.TuneConfig, hc: config.HeldoutConfig) -> TuneJob:
-    return TuneJob(tc, dataclasses.replace(hc, tasks=tc.tasks, angular_weight_soft=tc.angular_weight_soft))
+    return TuneJob(tc, dataclasses.replace(hc, robot=tc.robot, controller=tc.controller))
 
 
 def run(cfg: TuneJob, progress: bool) -> dict:
@@ -31,5 +31,5 @@ def run(cfg: TuneJob, progress: bool) -> dict:
 COMMAND = Command(
     "tune", "gain tuning in phases: gradient, CMA-ES, random search, held-out evaluation, the race's report",
     config.default_config, run, resumable=True,
-    shared=((config.heldout_default_config, ("out", "tasks", "angular_weight_soft")),), combine=combine,
+    shared=((config.heldout_default_config, ("out", "robot", "controller")),), combine=combine,
 )  # fmt: skip

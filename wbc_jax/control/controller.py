@@ -48,7 +48,8 @@ class ControllerConfig:
       pinv_tol: absolute tolerance of the pseudo-inverses (Reg.pinvTol).
       kp_postural_reg: Reg.KP_postural. hessian_reg: Reg.HessianQP.
       base_vel_damping: Reg.pinvDamp_baseVel (angular-momentum integral).
-      torque_limit: saturation (N m). qp_iterations: at most this many interior-point steps.
+      torque_limit: saturation (N m); None: each joint's motor limit in the robot's model (the
+        actuators' ctrlrange, ``torque_limit`` of :class:`~wbc_jax.robot.model.RobotIndex`). qp_iterations: at most this many interior-point steps.
       torque_weight_soft: |tau|^2 against |A f - w|^2 in the soft momentum QP.
       angular_weight_soft: the angular rows of |A f - w|^2 against the linear ones in the soft
         momentum QP (1: WBC; < 1: the CoM first where a push asks more than the feet can give).
@@ -80,7 +81,7 @@ class ControllerConfig:
     kp_postural_reg: float = 0.1
     hessian_reg: float = 1e-7
     base_vel_damping: float = 1e-7
-    torque_limit: float = 60.0
+    torque_limit: float | None = None
     qp_iterations: int = qp.DEFAULT_ITERATIONS
     torque_weight_soft: float = 1e-4
     angular_weight_soft: float = 1.0
@@ -96,6 +97,11 @@ class ControllerConfig:
     detection_ramp_out: float = 0.02
     detection_ramp_in: float = 0.3
 
+    def saturation(self, index) -> np.ndarray | float:
+        """The torque saturation (N m): ``torque_limit``, else per joint (n,) the motors' limits of
+        the robot ``index`` (:class:`~wbc_jax.robot.model.RobotIndex`)."""
+        return np.asarray(index.torque_limit, float) if self.torque_limit is None else self.torque_limit
+
     def __post_init__(self):
         if self.forces not in FORCE_MODES:
             raise ValueError(f"unknown forces mode {self.forces!r}; valid: {list(FORCE_MODES)}")
@@ -106,6 +112,8 @@ class ControllerConfig:
                     "detection_ramp_in")  # fmt: skip
         for name in positive:
             value = getattr(self, name)
+            if name == "torque_limit" and value is None:  # the robot's motor limits
+                continue
             if (
                 isinstance(value, bool)
                 or not isinstance(value, (int, float))
@@ -133,15 +141,6 @@ class ControllerConfig:
             normal_force_weight=self.normal_force_weight,
             violation_tol=self.violation_tol,
         )  # fmt: skip
-
-
-def with_job_settings(base: ControllerConfig | None, forces: str, postural: str,
-                      angular_weight_soft: float) -> ControllerConfig:  # fmt: skip
-    """``base`` (default: the defaults) with a job's controller flags (``--forces``, ``--postural``,
-    ``--angular-weight-soft`` of balance, push-sweep and envelope; the jobs' configs check their
-    declared ranges first, :class:`ControllerConfig` checks the values again)."""
-    return dataclasses.replace(base or ControllerConfig(), forces=forces, postural=postural,
-                               angular_weight_soft=angular_weight_soft)  # fmt: skip
 
 
 @pytree_dataclass
@@ -243,6 +242,7 @@ def make_controller(
     frames = cset.frames if stack is None else cset.frames + stack.frames
     frame0 = len(cset.contacts)
     mass = robot.index.mass
+    saturation = config.saturation(robot.index)
     settings = config.force_settings
     feet = cset.feet
 
@@ -316,7 +316,7 @@ def make_controller(
         else:
             tau_unsat = tt.tau_model + tt.Sigma @ f
         out = ControlOutput(
-            tau=jnp.clip(tau_unsat, -config.torque_limit, config.torque_limit),
+            tau=jnp.clip(tau_unsat, -jnp.asarray(saturation, dtype), jnp.asarray(saturation, dtype)),
             tau_unsat=tau_unsat,
             f=f,
             Ldot_star=Ldot_star,

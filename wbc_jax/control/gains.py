@@ -8,14 +8,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.core import loader
-from wbc_jax.core.constants import GAIN_FIELDS, GAIN_RANGES, NON_NEGATIVE_GAINS, default_gain_values
+from wbc_jax.core.constants import GAIN_FIELDS, GAIN_RANGES, NON_NEGATIVE_GAINS
 from wbc_jax.core.loader import echo
 from wbc_jax.core.types import Array, pytree_dataclass
+from wbc_jax.robot.description import RobotDescription
 
 
 @pytree_dataclass
 class Gains:
-    """Controller gains (n = 23 joints; a leading batch axis for several gain sets).
+    """Controller gains (n joints; a leading batch axis for several gain sets).
 
     Attributes:
       kp_com, kd_com, ki_com: (3,) CoM PID (ki_com = 0: the WBC law; > 0: the seed's PID)
@@ -32,9 +33,9 @@ class Gains:
     kd_postural: Array
 
 
-def default_gains(n: int = 23, dtype=jnp.float32) -> Gains:
-    """WBC iCubGazeboV2_5 gains (:func:`wbc_jax.core.constants.default_gain_values`)."""
-    return Gains(**{k: jnp.asarray(v, dtype) for k, v in default_gain_values(n).items()})
+def default_gains(robot: RobotDescription, dtype=jnp.float32) -> Gains:
+    """The robot's default gains (:meth:`wbc_jax.robot.description.RobotDescription.default_gain_values`)."""
+    return Gains(**{k: jnp.asarray(v, dtype) for k, v in robot.default_gain_values().items()})
 
 
 def validate_gains(gains: Gains, n: int) -> None:

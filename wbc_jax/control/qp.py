@@ -1,6 +1,6 @@
 """A small dense QP solver in JAX: ``min 1/2 x'Hx + g'x  s.t.  Cx <= b``.
 
-Each control tick of the iCub balancing controller (robotology whole-body-controllers,
+Each control tick of the humanoid balancing controller (robotology whole-body-controllers,
 the seed paper) solves tiny dense QPs for the contact wrenches (:mod:`wbc_jax.control.forces`
 builds them). :func:`solve_qp` runs under ``jit``/``vmap``/``lax.scan`` and is differentiable
 in reverse *and* forward mode.

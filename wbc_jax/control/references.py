@@ -9,6 +9,7 @@ one-foot) build these from the robot's initial state; ``at(t)`` is pure and jit-
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 
 import jax.numpy as jnp
 import numpy as np
@@ -87,6 +88,7 @@ def make_schedule(
     s0: np.ndarray,
     left_sole: np.ndarray,
     joints: tuple[str, ...],
+    foot_lift_deg: Mapping[str, float] | None = None,
     duration: float | None = None,
     amplitude: float = 0.02,
     frequency: float = 0.2,
@@ -99,6 +101,8 @@ def make_schedule(
         the right foot -> balance -> put it back -> two feet).
       com0: (3,) initial CoM. s0: (n,) postural reference (home posture).
       left_sole: (3,) left sole origin. joints: joint names (controller order).
+      foot_lift_deg: joint -> degrees that lift the right foot with its sole parallel to the floor
+        (the robot description's ``foot_lift_deg``; needed by ``one-foot``).
       duration: seconds (default: 10 for stand, 20 for sinusoid, 16 for one-foot).
       amplitude, frequency: of the sinusoid (m, Hz).
     """
@@ -126,12 +130,12 @@ def make_schedule(
     # left foot; 9-11 put it back; 11.5-12.5 load it; 12.5-15.5 CoM back to the middle.
     over_left = np.array([com0[0], left_sole[1], com0[2]])
     shift = over_left - com0
+    if not foot_lift_deg:
+        raise ValueError("the one-foot task needs foot_lift_deg: the joint angles that lift the right foot "
+                         "(the robot description's)")  # fmt: skip
     lift = np.zeros(len(s0))
-    # Lift the right foot 5 cm with its sole kept parallel to the floor (hip and knee flexion,
-    # ankle compensating: computed from the iCub kinematics at the home posture).
-    lift[joints.index("r_hip_pitch")] = np.deg2rad(20.0)
-    lift[joints.index("r_knee")] = np.deg2rad(-40.0)
-    lift[joints.index("r_ankle_pitch")] = np.deg2rad(-20.0)
+    for joint, degrees in foot_lift_deg.items():  # hip and knee flexion, the ankle keeping the sole flat
+        lift[joints.index(joint)] = np.deg2rad(degrees)
     com_seg = ((1.0, 12.5), (3.0, 3.0), np.stack([shift, -shift]))
     post_seg = ((5.5, 9.0), (1.5, 2.0), np.stack([lift, -lift]))
     act_seg = ((4.0, 11.5), (1.0, 1.0), np.array([[0.0, -1.0], [0.0, 1.0]]))

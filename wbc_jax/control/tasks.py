@@ -24,7 +24,7 @@ import numpy as np
 
 from wbc_jax.core.loader import echo
 from wbc_jax.robot.dynamics import Frames
-from wbc_jax.robot.model import NAMED_POINTS, Robot
+from wbc_jax.robot.model import Robot
 
 TASK_KINDS = ("position", "orientation", "com", "base_orientation", "joints", "postural")
 REFERENCE_KINDS = ("constant", "circle")
@@ -67,7 +67,7 @@ class MotionTask:
     Attributes:
       name: unique name.
       kind: one of ``TASK_KINDS``.
-      frame: body, site or named point (``NAMED_POINTS``) for position / orientation tasks.
+      frame: body, site or named point (the robot description's ``named_points``) for position / orientation tasks.
       offset: (3,) point in the body frame, added to the frame's own offset (position tasks).
       joints: joint names of a ``joints`` task (``("all",)``: every controlled joint).
       kp, kd: PD gains, a number or one per row; kd None: 2 sqrt(kp) (critical damping).
@@ -192,15 +192,16 @@ def _resolve_frame(robot: Robot, task: MotionTask) -> tuple[int, tuple[float, fl
     offset = np.asarray(task.offset, dtype=float)
     if offset.shape != (3,) or not np.all(np.isfinite(offset)):
         raise ValueError(f"task {echo(task.name)}: offset must be 3 finite numbers, got {echo(task.offset)}")
-    if task.frame in NAMED_POINTS:
-        body, point = NAMED_POINTS[task.frame]
+    named_points = robot.description.named_points
+    if task.frame in named_points:
+        body, point = named_points[task.frame]
         return idx.body_id(body), tuple(float(x) for x in np.asarray(point) + offset)
     if task.frame in idx.body_names and task.frame:
         return idx.body_id(task.frame), tuple(float(x) for x in offset)
     if task.frame in idx.site_names and task.frame:
         sid = idx.site_id(task.frame)
         return int(m.site_bodyid[sid]), tuple(float(x) for x in m.site_pos[sid] + offset)
-    valid = sorted(set(idx.body_names) | set(idx.site_names) | set(NAMED_POINTS) - {""})
+    valid = sorted(set(idx.body_names) | set(idx.site_names) | set(named_points) - {""})
     raise ValueError(f"task {echo(task.name)}: unknown frame {echo(task.frame)}; valid frames: {valid}")
 
 

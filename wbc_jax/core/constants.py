@@ -1,26 +1,20 @@
 """Numbers and names shared by the package and the NumPy CPU baseline (``benchmarks/``).
 
 This module imports neither JAX nor MuJoCo: the baseline's worker processes load it alone.
-Sources of the numbers: the WBC iCubGazeboV2_5 configuration (robotology whole-body-controllers,
-gainsAndReferences.m) and the measurements in docs/ of this repository.
+Sources of the numbers: the whole-body-controllers conventions (robotology) and the measurements in
+docs/ of this repository; robot-specific numbers live in the robot descriptions (wbc_jax/robot/).
 """
 
 from __future__ import annotations
 
-import numpy as np
-
 GRAVITY = 9.81  # m/s^2, as in the papers and MuJoCo's default
 
 # ---------------------------------------------------------------------------------------------
-# Controller gains (WBC iCubGazeboV2_5, state 1 "two feet balancing", gainsAndReferences.m)
+# Controller gains (their default values belong to each robot: wbc_jax/robot/<name>.py)
 
 GAIN_FIELDS = ("kp_com", "kd_com", "ki_com", "kp_ang", "ki_ang", "kp_postural", "kd_postural")
 # ki_com may be 0 in a gains file (the WBC law has no CoM integral); the others must be > 0.
 NON_NEGATIVE_GAINS = ("ki_com",)
-WBC_KP_COM = (50.0, 50.0, 10.0)
-WBC_KP_ANG = 1.0  # = 2 sqrt(K_I,w)
-WBC_KI_ANG = 0.25
-WBC_KP_POSTURAL = [10, 30, 20] + [10, 10, 10, 8] * 2 + [30, 30, 20, 20, 100, 100] + [30, 50, 30, 60, 100, 100]
 # Gains files are checked against these ranges (a gain outside is a typo, not a setting).
 GAIN_RANGES = {
     "kp_com": (0.0, 1e4),
@@ -33,29 +27,11 @@ GAIN_RANGES = {
 }
 
 
-def default_gain_values(n: int = 23) -> dict[str, np.ndarray]:
-    """WBC gains as float64 arrays: K_P,CoM = [50, 50, 10], K_D,CoM = 2 sqrt(K_P) / 20,
-    K_I,CoM = 0, K_P,w = 1, K_I,w = 0.25, postural k_p per joint, k_d = 2 sqrt(k_p) / 20."""
-    if n != len(WBC_KP_POSTURAL):
-        raise ValueError(f"default gains are for the 23-joint iCub, got n={n}")
-    kp_com = np.array(WBC_KP_COM)
-    kp_post = np.array(WBC_KP_POSTURAL, dtype=float)
-    return {
-        "kp_com": kp_com,
-        "kd_com": 2 * np.sqrt(kp_com) / 20,
-        "ki_com": np.zeros(3),
-        "kp_ang": np.full(3, WBC_KP_ANG),
-        "ki_ang": np.full(3, WBC_KI_ANG),
-        "kp_postural": kp_post,
-        "kd_postural": 2 * np.sqrt(kp_post) / 20,
-    }
-
-
 # ---------------------------------------------------------------------------------------------
 # Physical ranges of the jobs' flags (wbc_jax.core.options declarations; one place for all jobs)
 
 MAX_HORIZON_S = 600.0  # simulated seconds of one rollout: ten minutes of balancing
-MAX_PUSH_N = 5000.0  # 15 g on the 33 kg iCub for the push's length
+MAX_PUSH_N = 5000.0  # 5 g on a 100 kg humanoid for the push's length: beyond it a typo
 MAX_PUSH_DURATION_S = 60.0
 # One physics step of the model (1 kHz): a shorter push would be spread over the step (its impulse
 # kept, its force not); longer ones need not be whole steps (wbc_jax.sim.state.push_forces).

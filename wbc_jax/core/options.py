@@ -15,6 +15,10 @@ a file, readable, UTF-8 text) and ``names`` (a callable ``robot name -> valid na
 pushable bodies; the owning layer supplies it, so this module imports no model). Types come from
 the field's annotation. File entries (a contact, a scene object) declare theirs with
 :func:`entry` and are checked with an ``owner`` that names them.
+
+A group of flags that several jobs share (the controller's) is declared once, as a dataclass, and
+held by each job's config as a :func:`nested` field: the command line, the checks, fingerprints and
+summaries see its fields flat, as if declared in the job's config (:func:`flat_dict`, :func:`replace`).
 """
 
 from __future__ import annotations
@@ -83,6 +87,70 @@ def option(default: Any, help: str, *, ge=None, gt=None, le=None, lt=None, unit:
     return dataclasses.field(default=default, metadata={"help": help, "valid": valid, **cli})
 
 
+def nested(default: Any) -> Any:
+    """A field holding a shared group of flags (a frozen dataclass of :func:`option` fields): its
+    fields are flags of the owning config, by their own names."""
+    if not dataclasses.is_dataclass(default):
+        raise TypeError("a nested field holds a dataclass instance")
+    return dataclasses.field(default=default, metadata={"nested": True})
+
+
+def is_nested(field: dataclasses.Field) -> bool:
+    """``field`` holds a shared group of flags (:func:`nested`)."""
+    return bool(field.metadata.get("nested"))
+
+
+def flat_fields(obj) -> list[dataclasses.Field]:
+    """The fields of config ``obj`` that are flags: its own and those of its nested groups."""
+    out = []
+    for field in dataclasses.fields(obj):
+        out += flat_fields(getattr(obj, field.name)) if is_nested(field) else [field]
+    return out
+
+
+def flat_dict(obj) -> dict:
+    """The fields of config ``obj`` by name, its nested groups' fields among them (JSON-ready values
+    as ``dataclasses.asdict`` gives them)."""
+    out = {}
+    for field in dataclasses.fields(obj):
+        value = getattr(obj, field.name)
+        if is_nested(field):
+            out.update(flat_dict(value))
+        else:
+            out[field.name] = dataclasses.asdict(value) if dataclasses.is_dataclass(value) else value
+    return out
+
+
+def replace(obj, **changes):
+    """``dataclasses.replace`` by flat names: a name of a nested group's field changes it there."""
+    own = {}
+    groups: dict[str, dict] = {}
+    nested_names = {}
+    for field in dataclasses.fields(obj):
+        if is_nested(field):
+            for inner in _flat_names(getattr(obj, field.name)):
+                nested_names[inner] = field.name
+    for name, value in changes.items():
+        if name in nested_names:
+            groups.setdefault(nested_names[name], {})[name] = value
+        else:
+            own[name] = value
+    for group, values in groups.items():
+        own[group] = replace(getattr(obj, group), **values)
+    return dataclasses.replace(obj, **own)
+
+
+def from_flat(cls: type, values: dict):
+    """A config of type ``cls`` from flat field values (:func:`flat_dict`); names it lacks are left out."""
+    obj = cls()
+    known = set(_flat_names(obj))
+    return replace(obj, **{k: v for k, v in values.items() if k in known})
+
+
+def _flat_names(obj) -> list[str]:
+    return [field.name for field in flat_fields(obj)]
+
+
 def entry(default: Any = dataclasses.MISSING, **valid: Any) -> Any:
     """A field of a file entry (no flag; no default: required) with its valid values
     (:class:`Valid`'s fields)."""
@@ -102,7 +170,7 @@ def flag_name(field: dataclasses.Field) -> str:
 def field_type(owner: type, field: dataclasses.Field) -> tuple[type, bool, bool]:
     """(scalar type, is a tuple, may be None) of a config field: ``float | None`` -> (float,
     False, True), ``tuple[float, ...]`` -> (float, True, False)."""
-    hint = _hints(owner)[field.name]
+    hint = _hint(owner, field.name)
     optional = False
     if typing.get_origin(hint) in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(hint) if a is not type(None)]
@@ -114,18 +182,36 @@ def field_type(owner: type, field: dataclasses.Field) -> tuple[type, bool, bool]
     return hint, False, optional
 
 
+def _hint(owner: type, name: str):
+    """The annotation of field ``name`` of ``owner`` or of one of its nested groups."""
+    hints = _hints(owner)
+    if name in hints:
+        return hints[name]
+    for field in dataclasses.fields(owner):
+        if is_nested(field):
+            try:
+                return _hint(type(field.default), name)
+            except KeyError:
+                continue
+    raise KeyError(name)
+
+
 @functools.lru_cache(maxsize=64)
 def _hints(cls: type) -> dict:
     return typing.get_type_hints(cls)
 
 
-def check_options(obj, owner: str | None = None, robot: str = "icub") -> None:
+def check_options(obj, owner: str | None = None, robot: str | None = None) -> None:
     """Raise ValueError, in one line naming the field and its valid values, for the first field of
     the dataclass ``obj`` outside its declaration (types, bounds, choices, order, input files,
-    names on ``robot``). Fields are named as flags (``--push-onset``), or with ``owner`` as keys of
-    a file entry (``contact 'hand': mu``)."""
+    names on ``robot``, default the config's own ``robot`` field, checked first). Fields are named
+    as flags (``--push-onset``), or with ``owner`` as keys of a file entry (``contact 'hand': mu``)."""
     hints = _hints(type(obj))
-    for field in dataclasses.fields(obj):
+    fields = sorted(dataclasses.fields(obj), key=lambda f: f.name != "robot")  # the robot first: names need it
+    for field in fields:
+        if is_nested(field):
+            check_options(getattr(obj, field.name), owner, robot or getattr(obj, "robot", None))
+            continue
         valid = field.metadata.get("valid")
         if valid is None:
             continue
@@ -157,7 +243,7 @@ def check_options(obj, owner: str | None = None, robot: str = "icub") -> None:
             for v in values:
                 check_input_file(v, flag)
         if valid.names is not None:
-            known = list(valid.names(robot))
+            known = list(valid.names(robot or obj.robot))
             for v in values:
                 if v not in known:
                     raise ValueError(f"{flag} {echo(v)} is not a valid name here; valid: {known}")

@@ -2,7 +2,7 @@
 
 Frames and symbols (jaxsim-style ASCII names):
 
-* ``W``: world frame, z up; ``B``: the floating base (``root_link``, x points backward);
+* ``W``: world frame, z up; ``B``: the floating base (the model's root body);
   ``l_sole``/``r_sole``: the sole frames of the URDF (x forward, z up); ``G[W]``: the CoM
   with world axes (centroidal frame).
 * ``nu`` (6+n,): the **mixed** velocity ``[W_v_B, W_omega_B, s_dot]``: base-origin linear

@@ -12,13 +12,14 @@ import jax
 import numpy as np
 
 from wbc_jax.control import references
-from wbc_jax.control.controller import FORCE_MODES, ControllerConfig, with_job_settings
+from wbc_jax.control.controller import ControllerConfig
+from wbc_jax.control.flags import ControllerFlags
 from wbc_jax.control.gains import gains_to_dict, load_gains
-from wbc_jax.control.torques import POSTURAL_VARIANTS
 from wbc_jax.core import constants as limits
-from wbc_jax.core import io, provenance
-from wbc_jax.core.options import check_options, option
+from wbc_jax.core import io, options, provenance
+from wbc_jax.core.options import check_options, flat_dict, nested, option
 from wbc_jax.jobs import runs
+from wbc_jax.robot.robots import robot_option
 from wbc_jax.sim import host_loop, physics, runner, scenario
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim.state import HOST_LOOPS, SimConfig
@@ -29,24 +30,15 @@ class BalanceConfig:
     """A balance run (the CLI flags of ``wbc-jax balance`` are generated from these fields, and
     their declared ranges are checked by :meth:`check`)."""
 
+    robot: str = robot_option()
     task: str = option("stand", "balance task", choices=references.TASKS)
     duration: float | None = option(None, "seconds (default: the task's: stand 10, sinusoid 20, one-foot 16)",
                                     gt=0.0, le=limits.MAX_HORIZON_S, unit="s")  # fmt: skip
-    forces: str = option("qp", "force distribution", choices=FORCE_MODES)
-    postural: str = option("stable", "postural task variant", choices=POSTURAL_VARIANTS)
-    angular_weight_soft: float = option(
-        1.0, "soft momentum QP: weight of the angular-momentum rate against the linear one where a push asks for "
-        "more than the feet can give (1: WBC; < 1: the CoM first, the upper body absorbs the rest)",
-        gt=limits.ANGULAR_WEIGHT_RANGE[0], le=limits.ANGULAR_WEIGHT_RANGE[1],
-    )  # fmt: skip
-    gains: str | None = option(None, "gains JSON file (default: WBC iCubGazeboV2_5)", metavar="FILE", input_file=True)
-    tasks: str | None = option(
-        None, "task/contact file (JSON/YAML): motion tasks, contacts, scene objects, initial posture; "
-        "e.g. experiments/tasks/reach_circle.yaml, experiments/tasks/hand_on_table.yaml", metavar="FILE",
-        input_file=True,
-    )  # fmt: skip
+    controller: ControllerFlags = nested(ControllerFlags())
+    gains: str | None = option(None, "gains JSON file (default: the robot's, wbc_jax/robot/<name>.py)", metavar="FILE",
+                               input_file=True)  # fmt: skip
     push_force: tuple[float, float, float] | None = option(
-        None, "push on the chest, world axes [N]", nargs=3, metavar=("FX", "FY", "FZ"),
+        None, "push on the trunk (the robot's 'trunk' body), world axes [N]", nargs=3, metavar=("FX", "FY", "FZ"),
         ge=-limits.MAX_PUSH_N, le=limits.MAX_PUSH_N, unit="N",
     )  # fmt: skip
     push_onset: float = option(1.0, "push start [s]", ge=0.0, lt=limits.MAX_HORIZON_S, unit="s")
@@ -78,25 +70,23 @@ class BalanceConfig:
 
     def fingerprint(self) -> dict:
         # The engine as it resolves here (auto on a CPU is mujoco): the same run whichever was named.
-        return runs.fingerprint({**dataclasses.asdict(self), "backend": physics.resolve_backend(self.backend)},
-                                [self.gains, self.tasks])  # fmt: skip
+        return runs.fingerprint({**flat_dict(self), "backend": physics.resolve_backend(self.backend)},
+                                [self.gains, self.controller.tasks], self.robot)  # fmt: skip
 
     def controller_config(self, base: ControllerConfig | None = None) -> ControllerConfig:
         """``base`` (default: the defaults) with this run's controller settings."""
-        return with_job_settings(base, self.forces, self.postural, self.angular_weight_soft)
+        return self.controller.config(base)
 
 
 def default_config() -> BalanceConfig:
     return BalanceConfig()
 
 
-def make_setup(
-    cfg: BalanceConfig, robot_name: str = "icub", controller: ControllerConfig | None = None
-) -> scenario.Setup:
+def make_setup(cfg: BalanceConfig, controller: ControllerConfig | None = None) -> scenario.Setup:
     """Scene, controller and closed loop of a balance run (checked, nothing compiled).
     ``controller``: further controller settings (forces, postural and angular_weight_soft come from
     ``cfg``)."""
-    scene = scenario.load_scene(robot_name, cfg.tasks)
+    scene = scenario.load_scene(cfg.robot, cfg.controller.tasks)
     dtype = scenario.float_dtype()
     gains = load_gains(cfg.gains, scene.robot.index.n, dtype) if cfg.gains else None
     sim = SimConfig(
@@ -110,8 +100,8 @@ def make_setup(
     )  # fmt: skip
 
 
-def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: str = "icub",
-        controller: ControllerConfig | None = None, **overrides) -> dict:  # fmt: skip
+def run(cfg: BalanceConfig | None = None, *, progress: bool = True, controller: ControllerConfig | None = None,
+        **overrides) -> dict:  # fmt: skip
     """Run the balance job; write metrics.json, trajectory.npz and PNG plots into ``cfg.out``
     (None: nothing written). ``overrides``: fields of :class:`BalanceConfig`; ``controller``:
     further controller settings (hierarchy damping, ...).
@@ -121,9 +111,9 @@ def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: 
     """
     from tqdm.auto import tqdm
 
-    cfg = dataclasses.replace(default_config() if cfg is None else cfg, **overrides)
+    cfg = options.replace(default_config() if cfg is None else cfg, **overrides)
     cfg.check()
-    st = make_setup(cfg, robot_name, controller)
+    st = make_setup(cfg, controller)
     out = None if cfg.out is None else pathlib.Path(cfg.out)
     if out is not None:
         runs.claim_output_dir(out, "balance", cfg.fingerprint())
@@ -138,7 +128,7 @@ def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: 
     wall = time.time() - start
     metrics = jax.tree_util.tree_map(lambda x: x[0], result_run.metrics)
     traj = {name: np.asarray(v)[0] for name, v in dataclasses.asdict(result_run.records).items()}
-    result = {"task": cfg.task, "forces": cfg.forces, "postural": cfg.postural, "duration_s": loop.cfg.duration,
+    result = {"task": cfg.task, "forces": cfg.controller.forces, "postural": cfg.controller.postural, "duration_s": loop.cfg.duration,
               "solver_iterations": int(cfg.solver_iterations or st.robot.mj_model.opt.iterations),
               "control_dt_s": loop.cfg.control_dt, "backend": st.backend,
               "host_loop": host_loop.driver(loop, 1) if st.backend == "mujoco" else None}  # fmt: skip
@@ -158,8 +148,8 @@ def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: 
     if out is not None:
         io.atomic_write_json(out / "metrics.json", {**result, "gains": gains_to_dict(st.gains),
                                                    "provenance": provenance.record({"gains": cfg.gains,
-                                                                                    "tasks": cfg.tasks}),
-                                                   "config": dataclasses.asdict(cfg),
+                                                                                    "tasks": cfg.controller.tasks}),
+                                                   "config": flat_dict(cfg),
                                                    "controller": dataclasses.asdict(st.loop.controller.config)})  # fmt: skip
         io.atomic_save_npz(out / "trajectory.npz", joints=np.array(st.robot.index.joints),
                            contact_names=np.array(loop.contact_set.names),
@@ -169,7 +159,7 @@ def run(cfg: BalanceConfig | None = None, *, progress: bool = True, robot_name: 
         if cfg.plots:
             from wbc_jax.report import plots  # matplotlib: imported after the simulation
 
-            title = f"{cfg.task}, forces={cfg.forces}, postural={cfg.postural}"
+            title = f"{cfg.robot} {cfg.task}, forces={cfg.controller.forces}, postural={cfg.controller.postural}"
             plots.com_tracking(traj, out / "com.png", title)
             plots.contact_forces(traj, list(loop.contact_set.names), [c.dim for c in loop.contact_set.contacts],
                                  out / "contact_forces.png", title)  # fmt: skip

@@ -31,13 +31,13 @@ import numpy as np
 
 from wbc_jax.control.gains import gains_to_dict
 from wbc_jax.core import constants, io, provenance
-from wbc_jax.core.options import option
+from wbc_jax.core.options import flat_dict, option
 from wbc_jax.jobs import grids, runs, sweep, sweep_config, sweep_table
 from wbc_jax.robot import model
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import runner, scenario
 
-# The grid of the documented sweeps (docs/sweep_h100): 64 chest pushes of 10-400 N for 0.1 s.
+# The grid of the documented sweeps (docs/sweep_h100): 64 trunk pushes of 10-400 N for 0.1 s.
 DEFAULT_MAGNITUDES = tuple(float(x) for x in np.linspace(10.0, 400.0, 64))
 # Bisection rounds inside one grid step at most: 2^-20 of a step is far below any engine's
 # run-to-run variation.
@@ -126,8 +126,7 @@ def bisect(impulses: np.ndarray, survives: Callable[[np.ndarray, np.ndarray], np
     return {"lo": lo, "hi": hi, "grid_lo": grid_lo, "at_cap": ~failed_in_grid, "rollouts": rollouts, "rounds": rounds}
 
 
-def search(cfg: sweep_config.SweepConfig, *, resolution: float | None = None, robot_name: str = "icub",
-           progress: bool = True) -> dict:  # fmt: skip
+def search(cfg: sweep_config.SweepConfig, *, resolution: float | None = None, progress: bool = True) -> dict:
     """The largest survived impulse per direction (and gain set) of ``cfg`` to its ``resolution``
     N s (a :class:`~wbc_jax.jobs.sweep_config.SweepConfig` is searched at ``resolution``, default
     0.25, in batches of the envelope's default chunk size), by :func:`bisect` over the impulses of the sweep's grid (``cfg.magnitudes`` x
@@ -141,7 +140,8 @@ def search(cfg: sweep_config.SweepConfig, *, resolution: float | None = None, ro
     from tqdm.auto import tqdm
 
     if not isinstance(cfg, EnvelopeConfig):  # a sweep's grid and settings; its chunk size is the grid's, not ours
-        cfg = EnvelopeConfig(**{**dataclasses.asdict(cfg), "chunk_size": EnvelopeConfig.chunk_size},
+        fields = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)}  # nested groups kept whole
+        cfg = EnvelopeConfig(**{**fields, "chunk_size": EnvelopeConfig.chunk_size},
                              resolution=0.25 if resolution is None else resolution)  # fmt: skip
     elif resolution is not None:
         cfg = dataclasses.replace(cfg, resolution=resolution)
@@ -149,9 +149,9 @@ def search(cfg: sweep_config.SweepConfig, *, resolution: float | None = None, ro
     resolution = cfg.resolution
     magnitudes = np.unique(np.asarray(cfg.magnitudes, float))
     dtype = scenario.float_dtype()
-    robot = model.load_robot(robot_name)
+    robot = model.load_robot(cfg.robot)
     base = sweep.base_gains(cfg, robot.index.n, dtype)
-    st = sweep.make_setup(cfg, base, robot_name=robot_name)
+    st = sweep.make_setup(cfg, base)
     rng = np.random.default_rng(cfg.seed)
     sets = sweep.gain_sets(base, cfg.gain_sets, cfg.gain_scale_range, rng)
     azi, gset = (
@@ -206,8 +206,8 @@ def search(cfg: sweep_config.SweepConfig, *, resolution: float | None = None, ro
         "resolution_ns": resolution, "backend": st.backend, "device": provenance.device_label(),
         "compile_s": round(timing["compile_s"], 2), "run_s": round(timing["run_s"], 2),
         "started_s": round(timing["started"] - provenance.process_started(), 2),
-        "config": dataclasses.asdict(cfg), "gains": gains_to_dict(base),
-        "provenance": provenance.record({"gains": cfg.gains, "tasks": cfg.tasks}),
+        "config": flat_dict(cfg), "gains": gains_to_dict(base),
+        "provenance": provenance.record({"gains": cfg.gains, "tasks": cfg.controller.tasks}),
     }  # fmt: skip
     if cfg.out is not None:
         io.atomic_write_json(pathlib.Path(cfg.out) / "summary.json", summary)

@@ -4,15 +4,16 @@ from __future__ import annotations
 
 import dataclasses
 
-from wbc_jax.core.options import check_options, option
+from wbc_jax.core.options import check_options
 from wbc_jax.robot import model
+from wbc_jax.robot.robots import robot_option
 
 
 @dataclasses.dataclass(frozen=True)
 class InfoConfig:
     """The CLI flags of ``wbc-jax info`` are generated from these fields."""
 
-    robot: str = option("icub", "robot model", choices=tuple(model.ROBOTS))
+    robot: str = robot_option()
 
     def check(self) -> None:
         check_options(self)

@@ -1,7 +1,7 @@
 """``wbc-jax limit``: the physical limit of push recovery, by trajectory optimisation through MJX.
 
 For a push (body, azimuth, elevation, duration, onset), the largest impulse from which **some**
-joint-torque trajectory within the motor limits (+-60 N m) recovers under the strict criterion
+joint-torque trajectory within the motor limits (the model's actuators) recovers under the strict criterion
 (feet in place: slip <= 2 cm, tilt <= 5 deg while in full contact; no fall; the CoM settled over
 the support polygon at the end of the horizon). The feasibility test is the trajectory optimiser
 of :mod:`wbc_jax.jobs.trajopt` (torques around the balancing controller's in a window after the
@@ -40,6 +40,7 @@ from wbc_jax.core import constants, loader
 from wbc_jax.core.options import check_options, option
 from wbc_jax.jobs import grids, runs, sweep_config, trajopt
 from wbc_jax.robot import model
+from wbc_jax.robot.robots import DEFAULT_ROBOT, describe, robot_option
 from wbc_jax.sim import scenario
 
 MAX_HORIZON_S = 60.0  # a limit search rolls out its whole horizon per judge: minutes, not hours
@@ -55,6 +56,7 @@ class LimitConfig:
     """What ``wbc-jax limit`` searches, and how; its fields are the command's flags, their declared
     ranges checked by :meth:`check`."""
 
+    robot: str = robot_option()
     directions: tuple[float, ...] = option(
         (0.0, 90.0, 180.0, 270.0), "number of push azimuths over 360 deg (0 = forward, 90 = left)",
         metavar="N", parse=grids.azimuths, show=len, ge=-360.0, le=360.0, unit="deg", nonempty=True,
@@ -64,7 +66,8 @@ class LimitConfig:
         0.1, "push length [s]", ge=constants.MIN_PUSH_DURATION_S, le=constants.MAX_PUSH_DURATION_S, unit="s"
     )
     push_onset: float = option(0.5, "push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
-    body: str = option("chest", "pushed body", names=model.pushable_bodies)
+    body: str = option("trunk", "pushed body: a body of the robot or a role (trunk, pelvis, left_hand, right_thigh)",
+                       names=model.pushable_bodies)  # fmt: skip
     gains: str | None = option(None, "gains JSON file of the balancing controller around which torques are optimised",
                                metavar="FILE", input_file=True)  # fmt: skip
     horizon: float = option(3.0, "seconds per rollout (the strict criterion is judged at its end)", gt=0.0,
@@ -128,7 +131,7 @@ class LimitConfig:
     def sweep(self, backend: str, body: str | None = None) -> sweep_config.SweepConfig:
         """The sweep config that pushes and simulates alike (its setups and scenarios)."""
         return sweep_config.SweepConfig(
-            magnitudes=(1.0,), directions=self.directions, elevation=self.elevation, push_duration=self.push_duration,
+            robot=self.robot, magnitudes=(1.0,), directions=self.directions, elevation=self.elevation, push_duration=self.push_duration,
             push_onset=self.push_onset, body=body or self.body, gains=self.gains, horizon=self.horizon,
             solver_iterations=self.solver_iterations, backend=backend, out=None,
         )  # fmt: skip
@@ -153,7 +156,7 @@ def fingerprint(cfg: LimitConfig) -> dict:
     and ``out`` do not (a capped search resumes under another cap, a folder copied off the GPU
     machine resumes where it lies)."""
     fields = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("time_limit", "out")}
-    return runs.fingerprint({**fields, "dtype": str(scenario.float_dtype())}, [cfg.gains, *cfg.envelopes])
+    return runs.fingerprint({**fields, "dtype": str(scenario.float_dtype())}, [cfg.gains, *cfg.envelopes], cfg.robot)
 
 
 def load_envelopes(cfg: LimitConfig) -> dict:
@@ -172,8 +175,12 @@ def load_envelopes(cfg: LimitConfig) -> dict:
             pushed = data["config"]
         except (OSError, json.JSONDecodeError, UnicodeDecodeError, KeyError, AttributeError, TypeError) as err:
             raise ValueError(f"--envelopes {path}: not the summary.json of wbc-jax envelope ({err})") from None
-        for key in ("body", "push_duration", "push_onset", "elevation"):
-            if pushed.get(key) != getattr(cfg, key):
+        desc = describe(cfg.robot)
+        if desc.body(str(pushed.get("body"))) != desc.body(cfg.body):  # a role and its body are the same push
+            raise ValueError(f"--envelopes {path}: its pushes have body {desc.body(str(pushed.get('body')))!r}, "
+                             f"the search {desc.body(cfg.body)!r}")  # fmt: skip
+        for key in ("robot", "push_duration", "push_onset", "elevation"):
+            if pushed.get(key, DEFAULT_ROBOT if key == "robot" else None) != getattr(cfg, key):
                 raise ValueError(f"--envelopes {path}: its pushes have {key} {pushed.get(key)!r}, the search "
                                  f"{getattr(cfg, key)!r}")  # fmt: skip
         try:

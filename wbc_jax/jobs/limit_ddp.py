@@ -5,7 +5,7 @@ push (body, azimuth, impulse, duration, onset: the pushes of :mod:`wbc_jax.jobs.
 
 1. the post-push state: the balancing controller alone in C MuJoCo (float64) from the standing
    start through the push, read at the first tick after it (k1), as the limit's replays see it;
-2. crocoddyl's box-constrained FDDP (``SolverBoxFDDP``) on the Pinocchio model of the iCub
+2. crocoddyl's box-constrained FDDP (``SolverBoxFDDP``) on the Pinocchio model of the robot
    (:func:`wbc_jax.robot.pinocchio.pinocchio_model`: the controller model of the TSID peer, equal to
    the MJCF's to 1e-12) from that state over ``ddp_horizon`` s at the control tick: both soles
    held by rigid 6-D contacts (``ContactModel6D``) at their post-push placements, a wrench-cone
@@ -39,9 +39,9 @@ from wbc_jax.core import constants
 from wbc_jax.core.options import check_options, option
 from wbc_jax.jobs import grids, limit, limit_rounds
 from wbc_jax.robot import bounds, contacts, model, pinocchio
+from wbc_jax.robot.robots import robot_option
 from wbc_jax.sim import host_loop, physics
 
-FEET = ("l_sole", "r_sole")
 STEP = 1.25  # the bisection's factor while a direction's bracket is open
 RESUME_FREE = ("directions", "tests")  # config fields a resumed cross-check may change
 
@@ -61,7 +61,9 @@ class DdpConfig:
         (0.0, 90.0, 180.0, 270.0), "number of push azimuths over 360 deg (0 = forward, 90 = left)",
         metavar="N", parse=grids.azimuths, show=len, ge=-360.0, le=360.0, unit="deg", nonempty=True,
     )  # fmt: skip
-    body: str = option("chest", "pushed body", names=model.pushable_bodies)
+    robot: str = robot_option()
+    body: str = option("trunk", "pushed body: a body of the robot or a role (trunk, pelvis, left_hand, right_thigh)",
+                       names=model.pushable_bodies)  # fmt: skip
     push_duration: float = option(
         0.1, "push length [s]", ge=constants.MIN_PUSH_DURATION_S, le=constants.MAX_PUSH_DURATION_S, unit="s"
     )
@@ -87,13 +89,18 @@ class DdpConfig:
         problem = crocoddyl_problem()
         if problem is not None:
             raise ValueError(problem)
+        peers = pinocchio.ROBOTS  # the robots whose Pinocchio model wbc_jax.robot.pinocchio builds
+        if self.robot not in peers:
+            raise ValueError(
+                f"--robot {self.robot}: the crocoddyl cross-check has the Pinocchio models of {list(peers)}"
+            )
         self.limit_config().check()
 
     def limit_config(self) -> limit.LimitConfig:
         """The limit search's config whose pushes, setups and judge the cross-check shares: the
         feedforward window from the onset through the push and the DDP's horizon, every tick free."""
         return limit.LimitConfig(
-            directions=self.directions, body=self.body, push_duration=self.push_duration, push_onset=self.push_onset,
+            robot=self.robot, directions=self.directions, body=self.body, push_duration=self.push_duration, push_onset=self.push_onset,
             gains=self.gains, horizon=self.horizon, window=self.push_duration + self.ddp_horizon, tail=0.0,
             knot_interval=constants.CONTROL_DT, candidates=1, rounds=1, out="/nonexistent/limit_ddp",
         )  # fmt: skip
@@ -117,12 +124,13 @@ class CrossCheck:
         self.k0 = self.search.k0
         self.k1 = self.k0 + int(round(cfg.push_duration / self.dt))
         self.T = int(round(cfg.ddp_horizon / self.dt))
-        self.params = contacts.ContactParams()
+        self.params = contacts.ContactParams(foot_size=robot.description.sole_cop)
         (x_lo, x_hi), (y_lo, y_hi) = self.params.foot_size
         self.box = cfg.cop_scale * np.array([x_hi - x_lo, y_hi - y_lo])
         centre = pin.SE3(np.eye(3), np.array([(x_lo + x_hi) / 2, (y_lo + y_hi) / 2, 0.0]))
+        self.feet = robot.description.feet
         self.contact_frames = []
-        for foot in FEET:  # the CoP rectangle's centre, where the wrench cone is centred
+        for foot in self.feet:  # the CoP rectangle's centre, where the wrench cone is centred
             sole = self.pin_model.getFrameId(foot)
             parent = self.pin_model.frames[sole]
             frame = pin.Frame(f"{foot}_cop_centre", parent.parentJoint, sole, parent.placement * centre,
@@ -194,7 +202,7 @@ class CrossCheck:
             weight = cfg.w_terminal if terminal else 1.0
             contact = croc.ContactModelMultiple(self.state, nu)
             costs = croc.CostModelSum(self.state, nu)
-            for foot, frame in zip(FEET, self.contact_frames, strict=True):
+            for foot, frame in zip(self.feet, self.contact_frames, strict=True):
                 # Baumgarte damping 0.5 / dt: Euler halves a contact-velocity error per tick (at
                 # 2 / dt it flips sign every tick and the contact forces ring).
                 placement = self.pin_data.oMf[frame]
@@ -241,7 +249,7 @@ class CrossCheck:
         out = []
         for data in solver.problem.runningDatas:
             cs = data.differential.multibody.contacts.contacts
-            out.append([np.concatenate([cs[f"{f}_contact"].f.linear, cs[f"{f}_contact"].f.angular]) for f in FEET])
+            out.append([np.concatenate([cs[f"{f}_contact"].f.linear, cs[f"{f}_contact"].f.angular]) for f in self.feet])
         return np.array(out)
 
     # -- mapping between the engines -------------------------------------------------------------

@@ -33,7 +33,7 @@ from wbc_jax.sim import runner, scenario
 from wbc_jax.sim.state import Feedforward
 
 # The setups' push body; the pushed body travels in Push.body, so all bodies share the programs.
-SETUP_BODY = "chest"
+SETUP_BODY = "trunk"
 REPLAY_COLUMNS = ("max_foot_slip_m", "max_foot_tilt_deg", "end_com_speed_mps", "end_com_support_margin_m",
                   "min_com_height_m", "max_abs_torque_nm")  # fmt: skip
 
@@ -41,17 +41,17 @@ REPLAY_COLUMNS = ("max_foot_slip_m", "max_foot_tilt_deg", "end_com_speed_mps", "
 class Search:
     """The search of one config: setups, bounds, optimiser; :meth:`round` runs one round."""
 
-    def __init__(self, cfg: limit.LimitConfig, robot_name: str = "icub"):
+    def __init__(self, cfg: limit.LimitConfig):
         self.cfg = cfg
         self.dtype = scenario.float_dtype()
-        robot = model_lib.load_robot(robot_name)
-        self.body_id = robot.index.body_id(cfg.body)
+        robot = model_lib.load_robot(cfg.robot)
+        self.body_id = robot.index.pushable_body_id(cfg.body)
         self.envelopes = limit.load_envelopes(cfg)
         self.base = sweep.base_gains(cfg.sweep("jax"), robot.index.n, self.dtype)
         self.n = robot.index.n
 
         def setup(backend, **kw):
-            return sweep.make_setup(cfg.sweep(backend, SETUP_BODY), self.base, robot_name=robot_name, **kw)
+            return sweep.make_setup(cfg.sweep(backend, SETUP_BODY), self.base, **kw)
 
         # The optimiser's loop: a smooth trace per tick, the tick rematerialised for exact gradients.
         grad_setup = setup("jax")
@@ -250,7 +250,7 @@ def _save_state(out: pathlib.Path, search: Search, records: list, witnesses: dic
     runs.record_output(out / "state.json")
 
 
-def run(cfg: limit.LimitConfig, *, progress: bool = True, robot_name: str = "icub") -> dict:
+def run(cfg: limit.LimitConfig, *, progress: bool = True) -> dict:
     """Run (or resume) the search of ``cfg`` into ``cfg.out``: state.json and witness.npz after
     every round, summary.json and limit.png at the end. Returns the summary."""
     from tqdm.auto import tqdm
@@ -259,7 +259,7 @@ def run(cfg: limit.LimitConfig, *, progress: bool = True, robot_name: str = "icu
     deadline = None if cfg.time_limit is None else t_start + cfg.time_limit
     cfg.check()
     out = pathlib.Path(cfg.out)
-    search = Search(cfg, robot_name)
+    search = Search(cfg)
     runs.claim_output_dir(out, "limit", limit.fingerprint(cfg), resume=True)
     records, witnesses = _load_state(out)
     D = len(search.azimuths)

@@ -121,13 +121,13 @@ def _targets(rows: dict, summary: dict | None) -> dict:
             "devices": summary.get("devices")}  # fmt: skip
 
 
-def write(out_dir, bodies: dict, commands: dict, robot_name: str = "icub") -> dict:
+def write(out_dir, bodies: dict, commands: dict, robot: str) -> dict:
     """docs/limit/limit.json and limit.png from ``bodies`` {body: {"limit": summary path or None,
     "envelopes": {label: summary path}, "ddp": the crocoddyl cross-checks' files (optional)}}; ``commands`` {body: the command that fills in a missing
-    body's limit}."""
+    body's limit}; ``robot``: the robot's name."""
     from wbc_jax.report import limit_plots
 
-    robot = model_lib.load_robot(robot_name)
+    robot = model_lib.load_robot(robot)
     tables, missing, inputs = {}, {}, {}
     for body, spec in bodies.items():
         envelopes = {label: _read(p) for label, p in spec["envelopes"].items()}

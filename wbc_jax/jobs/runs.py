@@ -37,13 +37,13 @@ INPUT_PATHS = "inputs"
 NAME_MAX = 255  # bytes of one path component on Linux file systems (ENAMETOOLONG beyond)
 
 
-def fingerprint(config: dict, files=(), robot: str = "icub") -> dict:
-    """What determines a run's results: the config without its output-only fields, each input
-    file (paths in ``files``; None skipped) as its contents' sha256 wherever the config names it
-    (a path, or NAME=PATH), the robot model file and the package version. ``inputs`` records the
-    resolved path of each file (kept in the manifest, not compared)."""
+def fingerprint(config: dict, files, robot: str) -> dict:
+    """What determines a run's results: the config (its ``robot`` among its fields) without its
+    output-only fields, each input file (paths in ``files``; None skipped) as its contents' sha256
+    wherever the config names it (a path, or NAME=PATH), the robot's model file and the package
+    version. ``inputs`` records the resolved path of each file (kept in the manifest, not compared)."""
     from wbc_jax import __version__
-    from wbc_jax.robot.model import ROBOTS
+    from wbc_jax.robot.robots import describe
 
     contents = {str(f): _content(f) for f in files if f}
 
@@ -59,7 +59,7 @@ def fingerprint(config: dict, files=(), robot: str = "icub") -> dict:
             return f"{name}={contents[path]}"
         return value
 
-    model = ROBOTS.get(robot)
+    model = describe(robot).model_path
     return {
         "config": canonical(json.loads(json.dumps(config, default=str))),
         "model": provenance.sha256(model) if model is not None and model.exists() else None,

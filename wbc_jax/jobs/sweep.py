@@ -20,12 +20,13 @@ import numpy as np
 
 from wbc_jax.control.controller import ControllerConfig
 from wbc_jax.control.gains import Gains, default_gains, gains_from_dict, gains_to_dict, load_gains, validate_gains
-from wbc_jax.core import constants, io, loader, provenance
+from wbc_jax.core import constants, io, loader, options, provenance
 from wbc_jax.core.options import check_options
 from wbc_jax.jobs import chunks, runs
 from wbc_jax.jobs.sweep_config import SweepConfig, default_config
 from wbc_jax.jobs.sweep_table import summarize_table
 from wbc_jax.robot import model as model_lib
+from wbc_jax.robot.robots import describe
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import physics, runner, scenario, watchdog
 from wbc_jax.sim.state import Push, Scenario, SimConfig
@@ -97,13 +98,12 @@ def build_scenarios(cfg: SweepConfig, base_gains: Gains, n: int, dtype=np.float3
     return scenarios_at(cfg, sets, mag.ravel(), azi.ravel(), gset.ravel(), friction, mass_scale, joint_offset, dtype)
 
 
-def make_setup(cfg: SweepConfig, base_gains: Gains | None = None, *, robot_name: str = "icub",
-               record: bool = False,
+def make_setup(cfg: SweepConfig, base_gains: Gains | None = None, *, record: bool = False,
                controller: ControllerConfig | None = None) -> scenario.Setup:  # fmt: skip
     """The closed loop of a sweep's environments (replays with ``record``; the limit job composes a
     traced loop from it). ``controller``: further controller settings (forces, postural, angular_weight_soft
     from ``cfg``)."""
-    scene = scenario.load_scene(robot_name, cfg.tasks)
+    scene = scenario.load_scene(cfg.robot, cfg.controller.tasks)
     sim = SimConfig(
         record=record, push_body=cfg.body,
         perturb_plant=cfg.perturbs_plant,
@@ -119,7 +119,7 @@ def make_setup(cfg: SweepConfig, base_gains: Gains | None = None, *, robot_name:
 
 
 def base_gains(cfg: SweepConfig, n: int, dtype) -> Gains:
-    gains = load_gains(cfg.gains, n, dtype) if cfg.gains else default_gains(n, dtype)
+    gains = load_gains(cfg.gains, n, dtype) if cfg.gains else default_gains(describe(cfg.robot), dtype)
     validate_gains(gains, n)
     return gains
 
@@ -128,7 +128,7 @@ def fingerprint(cfg: SweepConfig) -> dict:
     return cfg.fingerprint()
 
 
-def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_name: str = "icub", **overrides) -> dict:
+def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, **overrides) -> dict:
     """Run (or resume) a sweep into ``cfg.out``: parts/*.parquet, results.parquet, summary.json, plots.
 
     ``overrides``: fields of :class:`SweepConfig`. A resumed run must have the same fingerprint
@@ -136,16 +136,16 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
     range it must hold and recomputed if it does not."""
     import pandas as pd
 
-    cfg = dataclasses.replace(default_config() if cfg is None else cfg, **overrides)
+    cfg = options.replace(default_config() if cfg is None else cfg, **overrides)
     cfg.check()
     devices = runner.batch_devices() if physics.resolve_backend(cfg.backend) != "mujoco" else jax.devices("cpu")[:1]
     local = [d for d in devices if d.process_index == jax.process_index()]  # the devices this process runs on
     check_simulated_stall(cfg, math.ceil(cfg.size / cfg.batch_size), len(local))
     out = pathlib.Path(cfg.out)
     dtype = scenario.float_dtype()
-    robot = model_lib.load_robot(robot_name)
+    robot = model_lib.load_robot(cfg.robot)
     base = base_gains(cfg, robot.index.n, dtype)
-    st = make_setup(cfg, base, robot_name=robot_name)
+    st = make_setup(cfg, base)
     runner.check_memory(st, cfg.batch_size, envs=cfg.size, queue=cfg.queue, flag="--chunk-size")
     scen, columns = build_scenarios(cfg, base, robot.index.n, dtype)
     # With several processes (jax.distributed), each computes every chunk with its devices' share
@@ -178,7 +178,7 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
     steps_per_env = st.loop.n_ticks * st.loop.n_sub
     summary = summarize_table(table, cfg, st.robot)
     summary.update({
-        "config": dataclasses.asdict(cfg),
+        "config": options.flat_dict(cfg),
         "backend": st.backend,
         "survival_criterion": constants.SURVIVAL_CRITERION,
         "device": provenance.device_label(),
@@ -197,7 +197,7 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, robot_na
         "resumed_envs": int(cfg.size - done_envs),
         "recomputed_parts": replaced,
         "gains": gains_to_dict(base),
-        "provenance": provenance.record({"gains": cfg.gains, "tasks": cfg.tasks}),
+        "provenance": provenance.record({"gains": cfg.gains, "tasks": cfg.controller.tasks}),
     })  # fmt: skip
     if writer:
         io.atomic_write_json(out / "summary.json", summary)
@@ -259,16 +259,15 @@ def load_sweep(run_dir) -> tuple[SweepConfig, dict]:
             and isinstance(summary.get("gains"), dict) and summary.get("backend") in physics.BACKENDS):  # fmt: skip
         raise ValueError(f"{foreign}: it lacks the sweep's config, gains or backend")
     values = {k: tuple(v) if isinstance(v, list) else v for k, v in summary["config"].items()}
-    known = {f.name for f in dataclasses.fields(SweepConfig)}
     try:
-        cfg = SweepConfig(**{k: v for k, v in values.items() if k in known})
-        check_options(dataclasses.replace(cfg, out=None, gains=None, tasks=None))  # files: checked by the replay
+        cfg = options.from_flat(SweepConfig, values)  # a summary without "robot": the default robot's
+        check_options(options.replace(cfg, out=None, gains=None, tasks=None))  # files: checked by the replay
     except (TypeError, ValueError) as err:
         raise ValueError(f"{foreign}: its config does not hold ({err})") from None
     return cfg, summary
 
 
-def replay_env(run_dir, env: int, *, robot_name: str = "icub", backend: str | None = None):
+def replay_env(run_dir, env: int, *, backend: str | None = None):
     """Re-simulate env ``env`` of a finished push sweep, recording its trajectory.
 
     The scenario is rebuilt deterministically from the stored config, seed and base gains
@@ -290,7 +289,7 @@ def replay_env(run_dir, env: int, *, robot_name: str = "icub", backend: str | No
         raise ValueError(f"env {env} is out of range: this sweep has envs 0..{len(table) - 1}")
     cfg = dataclasses.replace(cfg, backend=backend or summary.get("backend", cfg.backend))
     dtype = scenario.float_dtype()
-    robot = model_lib.load_robot(robot_name)
+    robot = model_lib.load_robot(cfg.robot)
     base = gains_from_dict(summary["gains"], robot.index.n, dtype)
     scen, columns = build_scenarios(cfg, base, robot.index.n, dtype)
     row = table[table["env"] == env].iloc[0].to_dict()
@@ -298,7 +297,7 @@ def replay_env(run_dir, env: int, *, robot_name: str = "icub", backend: str | No
         if not np.isclose(columns[key][env], row[key]):
             raise ValueError(f"the rebuilt scenario of env {env} differs from the sweep's ({key}); "
                              "the sweep was written by another version")  # fmt: skip
-    st = make_setup(cfg, base, robot_name=robot_name, record=True)
+    st = make_setup(cfg, base, record=True)
     one = jax.tree_util.tree_map(lambda x: np.asarray(x)[env : env + 1], scen)
     result = runner.run(st, one)
     traj = {name: np.asarray(v)[0] for name, v in dataclasses.asdict(result.records).items()}

@@ -8,13 +8,14 @@ from __future__ import annotations
 import dataclasses
 from typing import ClassVar
 
-from wbc_jax.control.controller import FORCE_MODES, ControllerConfig, with_job_settings
-from wbc_jax.control.torques import POSTURAL_VARIANTS
+from wbc_jax.control.controller import ControllerConfig
+from wbc_jax.control.flags import ControllerFlags
 from wbc_jax.core import constants as limits
-from wbc_jax.core.options import check_options, option
+from wbc_jax.core.options import check_options, flat_dict, nested, option
 from wbc_jax.jobs import runs
 from wbc_jax.jobs.grids import azimuths, magnitude_grid, show_magnitude_grid
 from wbc_jax.robot import model
+from wbc_jax.robot.robots import robot_option
 from wbc_jax.sim import physics, scenario, watchdog
 
 SWEEP_TASKS = ("stand", "one-foot")
@@ -31,6 +32,7 @@ class SweepConfig:
     The CLI flags of ``wbc-jax push-sweep`` are generated from these fields, and their declared
     ranges are checked by :meth:`check`."""
 
+    robot: str = robot_option()
     magnitudes: tuple[float, ...] = option(
         (20.0, 60.0, 100.0), "push force grid [N]: LO HI N", nargs=3, metavar=("LO", "HI", "N"),
         parse=magnitude_grid, show=show_magnitude_grid, ge=0.0, le=limits.MAX_PUSH_N, unit="N", nonempty=True,
@@ -44,7 +46,8 @@ class SweepConfig:
         0.1, "push length [s]", ge=limits.MIN_PUSH_DURATION_S, le=limits.MAX_PUSH_DURATION_S, unit="s"
     )
     push_onset: float = option(0.5, "push start [s]", ge=0.0, lt=limits.MAX_HORIZON_S, unit="s")
-    body: str = option("chest", "pushed body", names=model.pushable_bodies)
+    body: str = option("trunk", "pushed body: a body of the robot or a role (trunk, pelvis, left_hand, right_thigh)",
+                       names=model.pushable_bodies)  # fmt: skip
     gains: str | None = option(None, "gains JSON file (the first gain set)", metavar="FILE", input_file=True)
     gain_sets: int = option(1, "gain sets: the first, then seeded log-uniform scalings of it", ge=1, le=MAX_ENVS)
     gain_scale_range: tuple[float, float] = option(
@@ -65,18 +68,10 @@ class SweepConfig:
         "stand", "two feet (stand) or pushed in the single-support phase of the one-foot task "
         "(7-9 s: e.g. --push-onset 7.5 --horizon 9)", choices=SWEEP_TASKS,
     )  # fmt: skip
-    forces: str = option("qp", "force distribution", choices=FORCE_MODES)
-    postural: str = option("stable", "postural task variant", choices=POSTURAL_VARIANTS)
-    angular_weight_soft: float = option(
-        1.0, "soft momentum QP: weight of the angular-momentum rate against the linear one where a push asks for "
-        "more than the feet can give (1: WBC; < 1: the CoM first, the upper body absorbs the rest)",
-        gt=limits.ANGULAR_WEIGHT_RANGE[0], le=limits.ANGULAR_WEIGHT_RANGE[1],
-    )  # fmt: skip
+    controller: ControllerFlags = nested(ControllerFlags())
     solver_iterations: int | None = option(None, "contact solver Newton iterations (default: the model's, 4)",
                                            ge=1, le=limits.MAX_SOLVER_ITERATIONS)  # fmt: skip
     seed: int = option(0, "seed of the random perturbations", ge=0, le=limits.MAX_SEED)
-    tasks: str | None = option(None, "task/contact file (JSON/YAML), as balance --tasks", metavar="FILE",
-                               input_file=True)  # fmt: skip
     chunk_size: int = option(12, "environments per compiled batch (at most the sweep's; its memory is estimated "
                              "and checked before it is allocated)", ge=1, le=MAX_ENVS)  # fmt: skip
     queue: int = option(
@@ -134,9 +129,10 @@ class SweepConfig:
     def fingerprint(self) -> dict:
         """What determines the results (:func:`wbc_jax.jobs.runs.fingerprint`): the engine as it resolves
         here (``auto`` on a CPU is ``mujoco``)."""
-        fields = {k: v for k, v in dataclasses.asdict(self).items() if k not in self.PROCEDURE}
+        fields = {k: v for k, v in flat_dict(self).items() if k not in self.PROCEDURE}
         return runs.fingerprint({**fields, "backend": physics.resolve_backend(self.backend),
-                                 "dtype": str(scenario.float_dtype())}, [self.gains, self.tasks])  # fmt: skip
+                                 "dtype": str(scenario.float_dtype())}, [self.gains, self.controller.tasks],
+                                self.robot)  # fmt: skip
 
     def watchdog(self, chunk: int, finished_run_s: list[float]) -> watchdog.Watchdog:
         """The watchdog of chunk ``chunk``, given the run seconds of the chunks finished before it in
@@ -146,7 +142,7 @@ class SweepConfig:
 
     def controller_config(self, base: ControllerConfig | None = None) -> ControllerConfig:
         """``base`` (default: the defaults) with this sweep's controller settings."""
-        return with_job_settings(base, self.forces, self.postural, self.angular_weight_soft)
+        return self.controller.config(base)
 
     @property
     def size(self) -> int:

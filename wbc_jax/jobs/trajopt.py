@@ -58,7 +58,7 @@ Every step also keeps, per candidate, the lowest-objective z seen (``best_z``): 
 tests that one.
 
 Shapes: B candidates (directions x impulses), T window ticks, W = T + tail ticks, Kn knots,
-n = 23 joints, M sample pairs.
+n joints, M sample pairs.
 """
 
 from __future__ import annotations

@@ -19,7 +19,8 @@ from wbc_jax.core.options import check_options, option
 from wbc_jax.jobs import runs
 from wbc_jax.jobs.sweep_config import MAX_ENVS
 from wbc_jax.report.recording import check_trajectory, log_trajectory, scene_boxes
-from wbc_jax.robot import model as model_lib
+from wbc_jax.robot.robots import DEFAULT_ROBOT, describe
+from wbc_jax.sim.state import SimConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -148,7 +149,7 @@ def load_run(run_dir: str | pathlib.Path, env: int | None = None) -> tuple[dict,
     """The trajectory of a run dir and how to draw it.
 
     Returns:
-      (traj dict, info {"kind", "push_body", "joints", "name", "contacts", "dims", "boxes"}).
+      (traj dict, info {"kind", "robot", "push_body", "joints", "name", "contacts", "dims", "boxes"}).
 
     Raises:
       FileNotFoundError / ValueError: unknown dir, missing files, env given for a balance run or
@@ -164,24 +165,24 @@ def load_run(run_dir: str | pathlib.Path, env: int | None = None) -> tuple[dict,
         if env is not None:
             raise ValueError(f"{run_dir} is a balance run (one trajectory): --env applies to sweeps only")
         traj = _read_npz(run_dir / "trajectory.npz")
-        joints = [str(j) for j in traj.pop("joints", model_lib.ICUB_JOINTS)]
+        metrics = run_dir / "metrics.json"
+        config = loader.read_json(metrics, "balance metrics").get("config", {}) if metrics.exists() else {}
+        robot = config.get("robot", DEFAULT_ROBOT)  # a run of before --robot: the default robot's
+        joints = [str(j) for j in traj.pop("joints", describe(robot).joints)]
         names = [str(c) for c in traj.pop("contact_names", ["left", "right"])]
         dims = [int(d) for d in traj.pop("contact_dims", [6] * len(names))]
         boxes = {}
-        metrics = run_dir / "metrics.json"
-        tasks = (
-            loader.read_json(metrics, "balance metrics").get("config", {}).get("tasks") if metrics.exists() else None
-        )
+        tasks = config.get("tasks")
         if tasks:
-            boxes = scene_boxes(scenario.load_scene("icub", tasks).robot)
-        return traj, {"kind": kind, "push_body": "chest", "joints": joints, "name": "rollout",
+            boxes = scene_boxes(scenario.load_scene(robot, tasks).robot)
+        return traj, {"kind": kind, "robot": robot, "push_body": SimConfig.push_body, "joints": joints, "name": "rollout",
                       "contacts": names, "dims": dims, "boxes": boxes}  # fmt: skip
     if env is None:
         size = _sweep_size(run_dir)
         raise ValueError(f"{run_dir} is a push sweep of {size} envs: choose one with --env I, I in 0..{size - 1}")
     st, traj, _, _ = sweep.replay_env(run_dir, env)
     cset = st.loop.contact_set
-    return traj, {"kind": kind, "push_body": st.loop.cfg.push_body, "joints": list(st.robot.index.joints),
+    return traj, {"kind": kind, "robot": st.robot.index.robot, "push_body": st.loop.cfg.push_body, "joints": list(st.robot.index.joints),
                   "name": f"env_{env}", "contacts": list(cset.names), "dims": [c.dim for c in cset.contacts],
                   "boxes": scene_boxes(st.robot)}  # fmt: skip
 
@@ -209,7 +210,7 @@ def view(run_dir: str | pathlib.Path, env: int | None = None, *, out: str | path
         check_recording_path(path, out is not None)
         path.parent.mkdir(parents=True, exist_ok=True)
         rec.save(str(path))
-    log_trajectory(rec, traj, push_body=info["push_body"], joints=info["joints"], contacts=info["contacts"],
+    log_trajectory(rec, traj, robot=info["robot"], push_body=info["push_body"], joints=info["joints"], contacts=info["contacts"],
                    dims=info["dims"], boxes=info["boxes"])  # fmt: skip
     rec.flush()
     if path is not None:

@@ -5,7 +5,7 @@ Host-side only (numpy in, ``.rrd`` or a viewer out); never imported by traced co
 A recording holds, on the ``sim_time`` timeline (seconds, one row per controller tick)::
 
     world/robot/<body>              Transform3D per tick (C MuJoCo mj_kinematics of traj qpos)
-    world/robot/<body>/geom_<g>     static Transform3D (geom in body) + static Mesh3D (iCub STL)
+    world/robot/<body>/geom_<g>     static Transform3D (geom in body) + static Mesh3D (the robot's STL)
     world/floor                     static Boxes3D
     world/com, world/com_ref        Points3D (now) ; world/com/trail, world/com_ref/trail LineStrips3D
     world/support_polygon           LineStrips3D: convex hull of the sole spheres touching the floor
@@ -28,6 +28,7 @@ import mujoco
 import numpy as np
 
 from wbc_jax.robot import model as model_lib
+from wbc_jax.robot.robots import DEFAULT_ROBOT, describe
 
 TIMELINE = "sim_time"
 FORCE_SCALE = 1.0 / 500.0  # m per N for the arrows: the ~160 N per sole of standing -> 0.32 m
@@ -44,8 +45,8 @@ def wrench_names(names: list[str], dims: list[int]) -> list[str]:
 
 
 @functools.lru_cache(maxsize=2)
-def visual_model(robot: str = "icub") -> mujoco.MjModel:
-    """The robot's C model with its visual meshes (from the installed icub-models), cached."""
+def visual_model(robot: str = DEFAULT_ROBOT) -> mujoco.MjModel:
+    """The robot's C model with its visual meshes (its description's ``mesh_dir``), cached."""
     return model_lib.load_mj_model(robot, visual=True)
 
 
@@ -158,7 +159,7 @@ def log_robot_meshes(rec, m: mujoco.MjModel) -> list[str]:
     return paths
 
 
-def log_trajectory(rec, traj: dict, *, robot: str = "icub", push_body: str = "chest",
+def log_trajectory(rec, traj: dict, *, robot: str, push_body: str,
                    joints: list[str] | None = None, contacts: list[str] | None = None,
                    dims: list[int] | None = None, boxes: dict | None = None) -> None:  # fmt: skip
     """Log a recorded rollout to a rerun recording stream.
@@ -168,7 +169,8 @@ def log_trajectory(rec, traj: dict, *, robot: str = "icub", push_body: str = "ch
       traj: numpy fields of :class:`rollout.Trajectory` (time-major, length T): t (T,),
         qpos (T, nq), com/com_ref (T, 3), tau (T, n), f_cmd/f_meas (T, D), Ldot_star/Ldot_meas
         (T, 6), contact_pos/contact_normal (T, K, 3), activation (T, K), push (T, 3).
-      robot: robot name (visual model). push_body: body the push acts on (arrow tip at its CoM).
+      robot: robot name (visual model). push_body: body (or body role, ``trunk``) the push acts on
+        (arrow tip at its CoM).
       joints: joint names (n,) for the torque series (default: indices).
       contacts, dims: contact names and wrench sizes (K,) (default: the two soles).
       boxes: scene objects {name: (center (3,), half sizes (3,), rotation (3, 3))}.
@@ -178,6 +180,7 @@ def log_trajectory(rec, traj: dict, *, robot: str = "icub", push_body: str = "ch
     T = check_trajectory(traj)
     m = visual_model(robot)
     bodies = _names(m, mujoco.mjtObj.mjOBJ_BODY, m.nbody)
+    push_body = describe(robot).body(push_body)
     model_lib.check_name("body", push_body, bodies[1:])
     t = np.asarray(traj["t"], float)
     time = [rr.TimeColumn(TIMELINE, duration=t)]

@@ -38,7 +38,7 @@ def envelope_polar(summary: dict, path) -> None:
         e = summary[n]["grid_envelope"]
         ax.plot(theta, closed(np.array([e[a]["impulse_ns"] for a in az])), ".-",
                 label=f"{n} (median {summary[n]['envelope_fraction_median']:.2f})")  # fmt: skip
-    ax.set_title("largest survived chest impulse [N s] (strict survival)")
+    ax.set_title("largest survived trunk impulse [N s] (strict survival)")
     ax.legend(loc="lower left", fontsize=7, bbox_to_anchor=(-0.1, -0.12))
     _save(fig, path)
 

@@ -50,9 +50,6 @@ import numpy as np
 
 from wbc_jax.core import constants
 
-HIP_PITCH = ("l_hip_pitch", "r_hip_pitch")
-HIP_ROLL = ("l_hip_roll", "r_hip_roll")
-
 
 @dataclasses.dataclass(frozen=True)
 class Flywheel:
@@ -143,14 +140,14 @@ def _composite_inertia(m, d, bodies, point: np.ndarray) -> np.ndarray:
     return inertia
 
 
-def _joint_limits(m, names) -> tuple[np.ndarray, np.ndarray, float]:
+def _joint_limits(m, names, keyframe: str) -> tuple[np.ndarray, np.ndarray, float]:
     """(ranges (k, 2), home angles (k,), the smallest per-joint torque limit) of joints ``names``."""
     import mujoco
 
     ids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n) for n in names]
     if min(ids) < 0:
         raise ValueError(f"the model lacks a hip joint of {names}")
-    home = m.key("home").qpos[m.jnt_qposadr[ids]]
+    home = m.key(keyframe).qpos[m.jnt_qposadr[ids]]
     return m.jnt_range[ids], home, float(min(joint_torque_limits(m, names)))
 
 
@@ -177,14 +174,15 @@ def flywheel_model(robot) -> Flywheel:
     """The robot's LIP + flywheel from its MJCF in the home posture (choices: module docstring)."""
     m = robot.mj_model
     _, com, d = standing_support(robot)
-    legs = {int(m.jnt_bodyid[m.joint(n).id]) for n in HIP_PITCH}  # the bodies the hip pitch joints move
+    hip_pitch, hip_roll = robot.description.hip_pitch, robot.description.hip_roll
+    legs = {int(m.jnt_bodyid[m.joint(n).id]) for n in hip_pitch}  # the bodies the hip pitch joints move
     in_leg = [any(a in legs for a in _ancestors(m, b)) for b in range(m.nbody)]
     upper = [b for b in range(1, m.nbody) if not in_leg[b]]
-    hips = np.mean([d.xanchor[m.joint(n).id] for n in HIP_PITCH], axis=0)
+    hips = np.mean([d.xanchor[m.joint(n).id] for n in hip_pitch], axis=0)
     whole = _composite_inertia(m, d, range(1, m.nbody), com)
     trunk = _composite_inertia(m, d, upper, hips)
-    pitch_range, pitch_home, pitch_torque = _joint_limits(m, HIP_PITCH)
-    roll_range, roll_home, roll_torque = _joint_limits(m, HIP_ROLL)
+    pitch_range, pitch_home, pitch_torque = _joint_limits(m, hip_pitch, robot.description.nominal_keyframe)
+    roll_range, roll_home, roll_torque = _joint_limits(m, hip_roll, robot.description.nominal_keyframe)
     return Flywheel(
         mass=float(m.body_subtreemass[robot.index.base_body]), com_height=float(com[2]),
         inertia_pitch=float(max(whole[1, 1], trunk[1, 1])), inertia_roll=float(max(whole[0, 0], trunk[0, 0])),

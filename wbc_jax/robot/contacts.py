@@ -32,13 +32,13 @@ from wbc_jax.core import constants
 from wbc_jax.core.loader import echo
 from wbc_jax.core.options import check_options, entry
 from wbc_jax.core.types import Array, pytree_dataclass
+from wbc_jax.robot import icub
 from wbc_jax.robot import model as model_lib
 from wbc_jax.robot.dynamics import DynamicsTerms, Frames
 
 CONTACT_TYPES = ("surface", "point")
 OBJECT_TYPES = ("box",)
 DIMENSION = {"surface": 6, "point": 3}
-FEET_FRAMES = {"l_sole": 0, "r_sole": 1}
 # Ranges of a contact file's numbers: a contact point within a metre of its frame, friction
 # coefficients up to 10, forces up to 10 kN, scene objects within 100 m.
 MAX_OFFSET_M = 1.0
@@ -62,17 +62,15 @@ class ContactParams:
         mu_t: torsional friction coefficient (|tau_z| <= mu_t f_z).
         fz_min: minimal normal force [N].
         foot_size: ((x_min, x_max), (y_min, y_max)) of the centre-of-pressure
-            rectangle in the contact frame [m] (default: the iCub sole's).
+            rectangle in the contact frame [m] (a sole's: its robot description's ``sole_cop``; the
+            default, the iCub's, is for robot-free uses: every contact built on a robot passes its own).
     """
 
     mu: float = 1.0 / 3.0
     n_points: int = 4
     mu_t: float = 1.0 / 75.0
     fz_min: float = 10.0
-    foot_size: tuple[tuple[float, float], tuple[float, float]] = (
-        (-0.07, 0.12),
-        (-0.045, 0.045),
-    )
+    foot_size: tuple[tuple[float, float], tuple[float, float]] = icub.DESCRIPTION.sole_cop
 
     def __post_init__(self) -> None:
         for name in ("mu", "mu_t", "fz_min"):
@@ -126,7 +124,7 @@ class Contact:
 
     Attributes:
       name: unique name.
-      frame: body, site or named point (``wbc_jax.robot.model.NAMED_POINTS``) where the contact acts.
+      frame: body, site or named point (the robot description's ``named_points``) where the contact acts.
       normal: (3,) surface normal in world axes at the initial posture (required).
       type: ``"surface"`` (6-D wrench, friction cone, torsion, CoP rectangle) or ``"point"``.
       offset: (3,) added to the frame's point, in the body frame.
@@ -238,10 +236,10 @@ class ContactSet:
 
 def feet_contact_set(robot: model_lib.Robot, params: ContactParams | None = None) -> ContactSet:
     """The default contact set: both soles on the floor (surface contacts of the WBC controller,
-    rigid-contact constraints ``params``, default :class:`ContactParams`), activated by the
-    task's foot schedule."""
+    rigid-contact constraints ``params``, default :class:`ContactParams` on the description's sole
+    CoP rectangle), activated by the task's foot schedule."""
     idx = robot.index
-    params = ContactParams() if params is None else params
+    params = ContactParams(foot_size=robot.description.sole_cop) if params is None else params
     return ContactSet(
         contacts=tuple(
             ResolvedContact(
@@ -256,7 +254,7 @@ def feet_contact_set(robot: model_lib.Robot, params: ContactParams | None = None
                 foot=k,
                 geoms=tuple(int(g) for g in idx.foot_geoms[k]),
             )  # fmt: skip
-            for k, name in enumerate(model_lib.FEET)
+            for k, name in enumerate(robot.description.feet)
         )
     )
 
@@ -312,8 +310,9 @@ def _vector(owner: str, name: str, value, size: int = 3) -> np.ndarray:
     return arr
 
 
-def check_spec(contacts, objects) -> tuple[tuple[Contact, ...], tuple[SceneObject, ...]]:
-    """Check a contact set and scene objects for errors that need no model (names, shapes, values)."""
+def check_spec(contacts, objects, feet: tuple[str, str]) -> tuple[tuple[Contact, ...], tuple[SceneObject, ...]]:
+    """Check a contact set and scene objects for errors that need no model (names, shapes, values);
+    ``feet``: the robot's sole sites (left, right)."""
     contacts = tuple(contact_from_dict(c) if isinstance(c, dict) else c for c in contacts)
     objects = tuple(object_from_dict(o) if isinstance(o, dict) else o for o in objects)
     if not contacts:
@@ -350,7 +349,7 @@ def check_spec(contacts, objects) -> tuple[tuple[Contact, ...], tuple[SceneObjec
             raise ValueError(f"{owner}: a point contact has no CoP rectangle (got cop {c.cop}); use type 'surface'")
         if not isinstance(c.detect, bool):
             raise ValueError(f"{owner}: detect must be true or false, got {echo(c.detect)}")
-        if c.detect and c.frame in FEET_FRAMES and not np.any(_vector(owner, "offset", c.offset)):
+        if c.detect and c.frame in feet and not np.any(_vector(owner, "offset", c.offset)):
             raise ValueError(f"{owner}: the soles follow the task's foot schedule; contact detection (detect) is for "
                              "the other contacts")  # fmt: skip
         a = c.activation

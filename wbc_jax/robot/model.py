@@ -8,36 +8,15 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import pathlib
 
 import jax
 import mujoco
 import numpy as np
 
 from wbc_jax.core import mjx as mjx_device
-from wbc_jax.core.assets import asset
 from wbc_jax.core.mjx import mjx
-
-ROBOTS = {"icub": asset("icub/icub_23dof.xml")}  # package data (wbc_jax.core.assets)
-MESHDIR_PLACEHOLDER = "ICUB_MODELS_MESHES"
-
-# The 23 joints of the WBC balancing controllers (configRobot.m, ROBOT_DOF = 23), in order.
-ICUB_JOINTS = (
-    "torso_pitch", "torso_roll", "torso_yaw",
-    "l_shoulder_pitch", "l_shoulder_roll", "l_shoulder_yaw", "l_elbow",
-    "r_shoulder_pitch", "r_shoulder_roll", "r_shoulder_yaw", "r_elbow",
-    "l_hip_pitch", "l_hip_roll", "l_hip_yaw", "l_knee", "l_ankle_pitch", "l_ankle_roll",
-    "r_hip_pitch", "r_hip_roll", "r_hip_yaw", "r_knee", "r_ankle_pitch", "r_ankle_roll",
-)  # fmt: skip
-FEET = ("l_sole", "r_sole")
-
-# Named points that are not bodies of the 23-dof model: the URDF's hand frames sit on bodies merged
-# into the forearms (the wrist joints are not controlled). Offsets: sum of the fixed origins of
-# r/l_wrist_prosup, _wrist_pitch and _wrist_yaw in icub-models iCubGazeboV2_5 model.urdf (joints at 0).
-NAMED_POINTS = {
-    "r_hand": ("r_elbow_1", (-0.141328, 0.003007, 0.022344)),
-    "l_hand": ("l_elbow_1", (0.141258, 0.014507, 0.022631)),
-}
+from wbc_jax.robot.description import RobotDescription
+from wbc_jax.robot.robots import DEFAULT_ROBOT, describe
 
 
 def check_name(kind: str, name: str, valid: list[str]) -> None:
@@ -56,45 +35,42 @@ def _quat_to_mat(quat: np.ndarray) -> np.ndarray:
     return R.reshape(3, 3)
 
 
-def icub_mesh_dir() -> pathlib.Path:
-    """Folder of the iCub STL meshes inside the installed ``icub-models`` package."""
-    try:
-        import icub_models
-    except ImportError as err:  # pragma: no cover - icub-models is a hard dependency
-        raise ImportError("visual meshes need the 'icub-models' package") from err
-    urdf = pathlib.Path(str(icub_models.get_model_file("iCubGazeboV2_5")))
-    return urdf.parents[2] / "meshes" / "simmechanics"
-
-
-def load_mj_model(robot: str = "icub", *, visual: bool = False) -> mujoco.MjModel:
+def load_mj_model(robot: str = DEFAULT_ROBOT, *, visual: bool = False) -> mujoco.MjModel:
     """Compile the robot's MJCF into a C MuJoCo model.
 
     Args:
-      robot: robot name, one of ``ROBOTS``.
-      visual: keep the visual meshes (read from the installed icub-models package). The
+      robot: robot name (``wbc_jax.robot.robots.DESCRIPTIONS``).
+      visual: keep the visual meshes (read from the description's ``mesh_dir``). The
         physics model drops them: they never collide, and MJX would otherwise preprocess
         tens of thousands of mesh vertices for nothing.
 
     Raises:
       ValueError: unknown robot name. FileNotFoundError: missing model file.
     """
-    check_name("robot", robot, list(ROBOTS))
-    path = ROBOTS[robot]
+    spec = physics_spec(describe(robot), visual=visual)
+    return spec.compile()
+
+
+def physics_spec(desc: RobotDescription, *, visual: bool = False) -> mujoco.MjSpec:
+    """The robot's MJCF as an editable spec: without its visual meshes unless ``visual``."""
+    path = desc.model_path
     if not path.exists():
         raise FileNotFoundError(
             f"model file {path} is missing; reinstall wbc_jax (it is package data), or in a "
-            f"checkout regenerate it with 'python assets/build_icub_mjcf.py'"
+            f"checkout regenerate it with 'python {desc.builder}'"
         )
     spec = mujoco.MjSpec.from_file(str(path))
     if visual:
-        spec.meshdir = str(icub_mesh_dir())
+        if desc.mesh_dir is None:
+            raise ValueError(f"robot {desc.name} has no visual meshes")
+        spec.meshdir = str(desc.mesh_dir())
     else:
         for geom in list(spec.geoms):
             if geom.type == mujoco.mjtGeom.mjGEOM_MESH:
                 spec.delete(geom)
         for mesh in list(spec.meshes):
             spec.delete(mesh)
-    return spec.compile()
+    return spec
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -158,8 +134,15 @@ class RobotIndex:
         """The bodies a push can act on: the robot's, not the world (body 0, which never moves)."""
         return self.body_names[1:]
 
+    @property
+    def description(self) -> RobotDescription:
+        """The robot's description (:mod:`wbc_jax.robot.description`)."""
+        return describe(self.robot)
+
     def pushable_body_id(self, name: str) -> int:
-        """Body id of a body a push can act on; raises ValueError listing the valid names."""
+        """Body id of a body a push can act on (a body name or a role, ``trunk``); raises ValueError
+        listing the valid names."""
+        name = self.description.body(name)
         if name in self.body_names and name not in self.pushable_bodies:
             raise ValueError(f"cannot push body {name!r} (the world does not move); pushable bodies: "
                              f"{sorted(self.pushable_bodies)}")  # fmt: skip
@@ -167,8 +150,9 @@ class RobotIndex:
         return self.body_names.index(name)
 
 
-def build_index(m: mujoco.MjModel, robot: str = "icub", joints=ICUB_JOINTS) -> RobotIndex:
-    """Resolve joint, actuator, site and body names of ``m`` into a :class:`RobotIndex`.
+def build_index(m: mujoco.MjModel, robot: str = DEFAULT_ROBOT, joints=None) -> RobotIndex:
+    """Resolve joint, actuator, site and body names of ``m`` into a :class:`RobotIndex` (``joints``:
+    the controlled joints, default the description's).
 
     Raises:
       ValueError: no free joint at the root, unknown joint/site names, a joint with no motor.
@@ -181,7 +165,8 @@ def build_index(m: mujoco.MjModel, robot: str = "icub", joints=ICUB_JOINTS) -> R
     base_body = int(m.jnt_bodyid[free[0]])
     joint_names = _names(m, mujoco.mjtObj.mjOBJ_JOINT, m.njnt)
     hinge_names = [joint_names[j] for j in range(m.njnt) if j != free[0]]
-    joints = tuple(joints)
+    desc = describe(robot)
+    joints = tuple(desc.joints if joints is None else joints)
     if len(set(joints)) != len(joints):
         raise ValueError(f"duplicate joint names in {joints}")
     for name in joints:
@@ -192,13 +177,13 @@ def build_index(m: mujoco.MjModel, robot: str = "icub", joints=ICUB_JOINTS) -> R
     if missing:
         raise ValueError(f"joints without a motor: {missing}")
     site_names = tuple(_names(m, mujoco.mjtObj.mjOBJ_SITE, m.nsite))
-    for name in FEET:
+    for name in desc.feet:
         check_name("site", name, list(site_names))
-    foot_sites = np.array([site_names.index(s) for s in FEET])
+    foot_sites = np.array([site_names.index(s) for s in desc.feet])
     foot_bodies = m.site_bodyid[foot_sites].copy()
     geom_names = _names(m, mujoco.mjtObj.mjOBJ_GEOM, m.ngeom)
     foot_geoms = np.array(
-        [[g for g, nm in enumerate(geom_names) if nm.startswith(f"{s[0]}_foot_contact")] for s in FEET]
+        [[g for g, nm in enumerate(geom_names) if nm.startswith(prefix)] for prefix in desc.foot_contact_prefixes]
     )
     dof_joints = m.jnt_dofadr[jid].copy()
     # Which dofs move each body: walk up the tree from the dof's body.
@@ -247,13 +232,18 @@ class Robot:
         with jax.ensure_compile_time_eval():
             return mjx_device.put_model(self.mj_model)
 
+    @property
+    def description(self) -> RobotDescription:
+        """The robot's description (:mod:`wbc_jax.robot.description`)."""
+        return self.index.description
+
     def home_qpos(self) -> np.ndarray:
-        """qpos of the ``home`` keyframe (WBC simulator posture, soles on the floor)."""
-        return self.mj_model.key("home").qpos.copy()
+        """qpos of the description's nominal keyframe (soles flat on the floor)."""
+        return self.mj_model.key(self.description.nominal_keyframe).qpos.copy()
 
 
 @functools.lru_cache(maxsize=8)
-def load_robot(robot: str = "icub") -> Robot:
+def load_robot(robot: str = DEFAULT_ROBOT) -> Robot:
     """Load a robot by name: C model, MJX model (JAX backend, on first use) and index (cached)."""
     m = load_mj_model(robot)
     return Robot(mj_model=m, index=build_index(m, robot))
@@ -264,7 +254,7 @@ def summary(robot: Robot) -> dict:
     m, idx = robot.mj_model, robot.index
     return {
         "robot": idx.robot,
-        "source": "icub-models iCubGazeboV2_5 URDF (assets/icub/icub_23dof.xml)",
+        "source": idx.description.source,
         "nq": int(m.nq),
         "nv": int(m.nv),
         "nu": int(m.nu),
@@ -273,7 +263,7 @@ def summary(robot: Robot) -> dict:
         "joints": list(idx.joints),
         "timestep": float(m.opt.timestep),
         "solver": {"iterations": int(m.opt.iterations), "ls_iterations": int(m.opt.ls_iterations)},
-        "feet": list(FEET),
+        "feet": list(idx.description.feet),
         "contact_geoms_per_foot": int(idx.foot_geoms.shape[1]),
         "torque_limit_nm": float(idx.torque_limit.max()),
         "home_qpos": [round(float(x), 6) for x in robot.home_qpos()],
@@ -281,8 +271,8 @@ def summary(robot: Robot) -> dict:
 
 
 @functools.lru_cache(maxsize=8)
-def pushable_bodies(robot: str = "icub") -> tuple[str, ...]:
-    """The bodies of ``robot`` a push can act on (:attr:`RobotIndex.pushable_bodies`): the valid
-    values of the jobs' body flags. From the C model alone: checking a flag starts no JAX backend
-    (``jax.distributed.initialize`` must come before one)."""
-    return build_index(load_mj_model(robot), robot).pushable_bodies
+def pushable_bodies(robot: str) -> tuple[str, ...]:
+    """The bodies of ``robot`` a push can act on (:attr:`RobotIndex.pushable_bodies`) and the body
+    roles (``trunk``, ...): the valid values of the jobs' body flags. From the C model alone:
+    checking a flag starts no JAX backend (``jax.distributed.initialize`` must come before one)."""
+    return (*build_index(load_mj_model(robot), robot).pushable_bodies, *describe(robot).bodies)

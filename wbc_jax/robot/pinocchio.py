@@ -19,6 +19,7 @@ import mujoco
 import numpy as np
 
 ICUB_URDF_MODEL = "iCubGazeboV2_5"  # icub-models' robot whose URDF the MJCF is built from
+ROBOTS = ("icub",)  # the robots whose Pinocchio model this module builds (wbc_jax.jobs.limit_ddp checks)
 
 
 def icub_urdf() -> pathlib.Path:

@@ -19,24 +19,27 @@ import numpy as np
 from wbc_jax.core.loader import echo
 from wbc_jax.robot import model as model_lib
 from wbc_jax.robot import placement
-from wbc_jax.robot.contacts import FEET_FRAMES, Contact, ContactParams, ContactSet, ResolvedContact, check_spec
+from wbc_jax.robot.contacts import Contact, ContactParams, ContactSet, ResolvedContact, check_spec
+from wbc_jax.robot.description import RobotDescription
+from wbc_jax.robot.robots import describe
 
-SPHERE_RADIUS = 0.005  # m, as the feet's corner spheres (assets/build_icub_mjcf.py)
+SPHERE_RADIUS = 0.005  # m, as the feet's corner spheres (the model builders of assets/)
 CONTACT_SOLREF = (0.004, 1.0)  # as the feet
 
 
 def _frame_point(m: mujoco.MjModel, idx: model_lib.RobotIndex, c: Contact):
     """(body id, point in the body frame, site id or -1) of a contact's frame."""
     offset = np.asarray(c.offset, float)
-    if c.frame in model_lib.NAMED_POINTS:
-        body, point = model_lib.NAMED_POINTS[c.frame]
+    named_points = idx.description.named_points
+    if c.frame in named_points:
+        body, point = named_points[c.frame]
         return idx.body_id(body), np.asarray(point) + offset, -1
     if c.frame and c.frame in idx.site_names:
         sid = idx.site_id(c.frame)
         return int(m.site_bodyid[sid]), m.site_pos[sid] + offset, sid
     if c.frame and c.frame in idx.body_names:
         return idx.body_id(c.frame), offset, -1
-    valid = sorted((set(idx.body_names) | set(idx.site_names) | set(model_lib.NAMED_POINTS)) - {""})
+    valid = sorted((set(idx.body_names) | set(idx.site_names) | set(named_points)) - {""})
     raise ValueError(f"contact {echo(c.name)}: unknown frame {echo(c.frame)}; valid frames: {valid}")
 
 
@@ -52,16 +55,17 @@ def _contact_rotation(normal: np.ndarray, site_R: np.ndarray | None) -> np.ndarr
     return np.stack([x, np.cross(z, x), z], axis=1)
 
 
-def _check_placement(m: mujoco.MjModel, d: mujoco.MjData, c: Contact, frame: tuple, placed: dict) -> None:
+def _check_placement(m: mujoco.MjModel, d: mujoco.MjData, c: Contact, frame: tuple, placed: dict,
+                     desc: RobotDescription) -> None:  # fmt: skip
     """Does contact ``c`` touch what it names at the initial posture (``d``, after mj_forward)?
     Contacts through the robot's own geoms (the soles) touch the floor: a sole must stand flat on it
     with its CoP rectangle inside the foot; others must reach their object, normal along its
     surface's, CoP rectangle on it (:mod:`wbc_jax.robot.placement`)."""
     body, _, _, W_p, W_R_c = frame
-    surface, cop = c.touches or "floor", c.cop or ContactParams().foot_size
+    surface, cop = c.touches or "floor", c.cop or desc.sole_cop
     if c.touches is None:
         geoms = _own_geoms(m, c, body, sorted(placed))
-        if c.frame in FEET_FRAMES and not np.any(c.offset):
+        if c.frame in desc.feet and not np.any(c.offset):
             placement.check_normal(c.name, W_R_c[:, 2], W_p, placed[surface], surface)
             placement.check_sole(m, d, c.name, m.site(c.frame).id, geoms, cop)
             return
@@ -78,9 +82,9 @@ def check_feet(robot: model_lib.Robot, qpos: np.ndarray) -> None:
     d = mujoco.MjData(m)
     d.qpos[:] = qpos
     mujoco.mj_forward(m, d)
-    for frame in FEET_FRAMES:
+    for frame in robot.description.feet:
         site = m.site(frame).id
-        placement.check_sole(m, d, frame, site, _pair_geoms(m, int(m.site_bodyid[site])), ContactParams().foot_size)
+        placement.check_sole(m, d, frame, site, _pair_geoms(m, int(m.site_bodyid[site])), robot.description.sole_cop)
 
 
 def _own_geoms(m: mujoco.MjModel, c: Contact, body: int, surfaces: list[str]) -> list[int]:
@@ -101,7 +105,7 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
     """Add the scene objects, the contacts' collision spheres and their pairs to the robot model.
 
     Args:
-      robot: robot name (``wbc_jax.robot.model.ROBOTS``). contacts, objects: sequences of
+      robot: robot name (``wbc_jax.robot.robots.DESCRIPTIONS``). contacts, objects: sequences of
         :class:`Contact` / :class:`SceneObject` (or mappings). qpos: (nq,) the initial posture
         (normals and ``under`` placements refer to it); None: the home keyframe.
 
@@ -113,7 +117,9 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
       ValueError: unknown frames or objects, missing normals, bad values, a contact with nothing
         to touch (naming the valid choices).
     """
-    contacts, objects = check_spec(contacts, objects)
+    desc = describe(robot)
+    feet = {name: k for k, name in enumerate(desc.feet)}
+    contacts, objects = check_spec(contacts, objects, desc.feet)
     base = model_lib.load_mj_model(robot)
     idx = model_lib.build_index(base, robot)
     qpos = base.key("home").qpos.copy() if qpos is None else np.asarray(qpos, float)
@@ -132,19 +138,14 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
         W_p = d.xpos[body] + R_body @ point
         frames[c.name] = (body, point, R_body.T @ W_R_c, W_p, W_R_c)
 
-    soles = {c.frame for c in contacts if c.frame in FEET_FRAMES and not np.any(np.asarray(c.offset, float))}
-    missing = sorted(set(FEET_FRAMES) - soles)
+    soles = {c.frame for c in contacts if c.frame in feet and not np.any(np.asarray(c.offset, float))}
+    missing = sorted(set(feet) - soles)
     if missing:
         raise ValueError(
-            f"the contact set must hold both soles (frames {sorted(FEET_FRAMES)}, no offset): missing "
+            f"the contact set must hold both soles (frames {sorted(feet)}, no offset): missing "
             f"{missing}; contacts given: {[c.name for c in contacts]}"
         )
-    spec = mujoco.MjSpec.from_file(str(model_lib.ROBOTS[robot]))
-    for geom in list(spec.geoms):  # physics model: no meshes (as load_mj_model)
-        if geom.type == mujoco.mjtGeom.mjGEOM_MESH:
-            spec.delete(geom)
-    for mesh in list(spec.meshes):
-        spec.delete(mesh)
+    spec = model_lib.physics_spec(desc)
     placed = {}
     for o in objects:
         if o.under is not None:
@@ -165,7 +166,7 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
     friction["floor"] = 1.0
     placed["floor"] = (np.array([0.0, 0.0, d.geom_xpos[base.geom("floor").id][2] - 1e3]), np.full(3, 1e3))
     for c in contacts:
-        _check_placement(base, d, c, frames[c.name], placed)
+        _check_placement(base, d, c, frames[c.name], placed, desc)
     placement.check_objects_clear(base, d, {o.name: placed[o.name] for o in objects},
                                   [(frames[c.name][0], frames[c.name][3]) for c in contacts])  # fmt: skip
     added: dict[str, list[str]] = {}
@@ -176,7 +177,7 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
         if c.type == "point":
             corners = [np.zeros(2)]
         else:
-            (x0, x1), (y0, y1) = c.cop or ContactParams().foot_size
+            (x0, x1), (y0, y1) = c.cop or desc.sole_cop
             corners = [np.array([x, y]) for x in (x0, x1) for y in (y0, y1)]
         body_spec = spec.body(base.body(body).name)
         names = []
@@ -204,7 +205,7 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
             geoms = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, g) for g in added[c.name]]
         else:
             geoms = _own_geoms(m, c, body, sorted(friction))
-        cop = c.cop or ContactParams().foot_size
+        cop = c.cop or desc.sole_cop
         params = ContactParams(mu=c.mu, mu_t=c.mu_t, fz_min=c.fz_min, foot_size=cop)
         resolved.append(
             ResolvedContact(
@@ -216,7 +217,7 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
                 params=params,
                 normal_force=math.nan if c.normal_force is None else float(c.normal_force),
                 activation=c.activation,
-                foot=FEET_FRAMES.get(c.frame, -1) if not np.any(c.offset) else -1,
+                foot=feet.get(c.frame, -1) if not np.any(c.offset) else -1,
                 geoms=tuple(int(g) for g in geoms),
                 detect=c.detect,
             )  # fmt: skip

@@ -173,7 +173,7 @@ class ClosedLoop:
             gains = self.gains_at(gains, qpos, qvel)
         out, cstate = self.controller.step(gains, state.controller, terms, ref, t_now, state.measured_normal)
         if feedforward is not None:
-            limit = self.controller.config.torque_limit
+            limit = self.controller.config.saturation(idx)
             out = out.replace(tau=state_lib.feedforward_torque(feedforward, k, out.tau, limit))
         ctrl = jnp.zeros(self.robot.mj_model.nu, dtype).at[idx.actuators].set(out.tau)
         metrics, anchors, normals = self._metrics(state, terms, ref, out, t_now, physics_ok)

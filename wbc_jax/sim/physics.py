@@ -38,7 +38,7 @@ from wbc_jax.core.mjx import mjx
 from wbc_jax.core.types import Array
 
 BACKENDS = ("auto", "jax", "warp", "mujoco")
-FLOOR_GEOM = 0  # the floor is the model's first geom (assets/build_icub_mjcf.py; tested)
+FLOOR_GEOM = 0  # the floor is the model's first geom (the model builders of assets/; tested)
 _WARP_INSTALL = 'pip install -e ".[cuda]" (warp-lang, the extra of mujoco-mjx)'
 
 

@@ -36,10 +36,10 @@ from wbc_jax.sim.watchdog import Watchdog, device_label, run_watched
 # at most (the largest divisor of the horizon's ticks up to it): 0.25 s at 100 Hz.
 QUEUE_CHECK_TICKS = 25
 # Memory of one environment of a batch, as a multiple of its MJX Data (the physics state): 4x
-# covers what was measured (BENCHMARKS.md, the iCub's 31.6 kB Data in float32: 30-36 kB per env
+# covers what was measured (BENCHMARKS.md, the default robot's 31.6 kB Data in float32: 30-36 kB per env
 # on an H100 with MJX-JAX, 117 kB on an H200 with Warp; experiments/checks/memory_estimate.py on the CPU).
 MJX_ENV_FACTOR = 4
-# C MuJoCo: one MjData per environment, resident after stepping (0.56 MB for the iCub,
+# C MuJoCo: one MjData per environment, resident after stepping (0.56 MB for the default robot,
 # experiments/checks/memory_estimate.py), doubled for contact-rich states.
 HOST_ENV_BYTES = 1_200_000
 

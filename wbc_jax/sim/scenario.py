@@ -25,6 +25,7 @@ from wbc_jax.control.gains import Gains, default_gains, validate_gains
 from wbc_jax.robot import contacts as contacts_lib
 from wbc_jax.robot import model as model_lib
 from wbc_jax.robot import scene as contact_scene
+from wbc_jax.robot.robots import DEFAULT_ROBOT
 from wbc_jax.sim import loop as loop_lib
 from wbc_jax.sim.state import Push, Scenario, SimConfig, no_push
 
@@ -41,7 +42,7 @@ class Scene:
     tasks_file: str | None = None
 
 
-def load_scene(robot_name: str = "icub", tasks_file=None) -> Scene:
+def load_scene(robot_name: str = DEFAULT_ROBOT, tasks_file=None) -> Scene:
     """Robot, motion tasks, contact set and initial posture of a specification file (None: the
     plain robot on both feet at the home posture). With ``contacts`` in the file the robot is the
     scene of :func:`wbc_jax.robot.scene.build_scene` (objects, collision spheres, pairs)."""
@@ -97,7 +98,7 @@ def setup(
     sim: SimConfig | None = None,
     gains: Gains | None = None,
     scene: Scene | None = None,
-    robot_name: str = "icub",
+    robot_name: str = DEFAULT_ROBOT,
     tasks_file=None,
 ) -> Setup:
     """Validate everything (before any compilation) and build the closed loop of a run.
@@ -106,7 +107,7 @@ def setup(
       task: ``stand``, ``sinusoid`` or ``one-foot`` (:func:`wbc_jax.control.references.make_schedule`).
       duration: seconds (None: the task's default); overrides ``sim.duration``.
       controller: controller settings. sim: rollout settings (duration set from the task).
-      gains: nominal gains (None: the WBC defaults). scene: a loaded :class:`Scene` (None: from
+      gains: nominal gains (None: the robot's defaults). scene: a loaded :class:`Scene` (None: from
         ``robot_name`` and ``tasks_file``).
     """
     if task not in references.TASKS:
@@ -118,7 +119,7 @@ def setup(
     config = ControllerConfig() if controller is None else controller
     sim = SimConfig() if sim is None else sim
     dtype = float_dtype()
-    gains = default_gains(robot.index.n, dtype) if gains is None else gains
+    gains = default_gains(robot.description, dtype) if gains is None else gains
     validate_gains(gains, robot.index.n)
     robot.index.pushable_body_id(sim.push_body)  # unknown body: the valid names, before compiling
     stack = None if scene.tasks is None else tasks_lib.resolve(robot, scene.tasks, scene.qpos)
@@ -129,7 +130,8 @@ def setup(
     mujoco.mj_forward(m, d)
     schedule = references.make_schedule(
         task, com0=d.subtree_com[robot.index.base_body].copy(), s0=scene.qpos[robot.index.qpos_joints],
-        left_sole=d.site_xpos[robot.index.foot_sites[0]].copy(), joints=robot.index.joints, duration=duration,
+        left_sole=d.site_xpos[robot.index.foot_sites[0]].copy(), joints=robot.index.joints,
+        foot_lift_deg=robot.description.foot_lift_deg, duration=duration,
     )  # fmt: skip
     sim = dataclasses.replace(sim, duration=schedule.duration)
     ctrl = make_controller(robot, config, contact_set=scene.contact_set, stack=stack, control_dt=sim.control_dt)

@@ -48,7 +48,8 @@ class SimConfig:
     Attributes:
       control_dt: controller period (s); the physics step comes from the model (1 ms).
       duration: simulated time (s).
-      push_body: body the pushes act on (at its CoM, world-axes force).
+      push_body: body the pushes act on (at its CoM, world-axes force): a body name or a role of the
+        robot description (``trunk``).
       record: keep per-tick trajectories (False in large sweeps: metrics only). A loop that
         differentiates its rollouts composes its own per-tick record instead
         (:func:`wbc_jax.sim.loop.compose`: ``trace``, ``remat``).
@@ -68,7 +69,7 @@ class SimConfig:
 
     control_dt: float = constants.CONTROL_DT
     duration: float = 10.0
-    push_body: str = "chest"
+    push_body: str = "trunk"
     record: bool = True
     physics: physics.PhysicsConfig = physics.PhysicsConfig()
     perturb_plant: bool = False
@@ -153,15 +154,17 @@ class Feedforward:
     torque: Array
 
 
-def feedforward_torque(ff: Feedforward | None, k, tau: Array, limit: float) -> Array:
+def feedforward_torque(ff: Feedforward | None, k, tau: Array, limit) -> Array:
     """(n,) the torques the plant gets at tick ``k``: the controller's saturated ``tau`` (n,)
-    plus ``ff``'s torque of that tick, saturated at +-``limit`` N m (``ff`` None: ``tau``)."""
+    plus ``ff``'s torque of that tick, saturated at +-``limit`` N m (a number or per joint (n,);
+    ``ff`` None: ``tau``)."""
     if ff is None:
         return tau
     i = k - ff.start
     T = ff.torque.shape[0]
     inside = (i >= 0) & (i < T)
     u = ff.torque[jnp.clip(i, 0, T - 1)].astype(tau.dtype)
+    limit = jnp.asarray(limit, tau.dtype)
     return jnp.where(inside, jnp.clip(tau + u, -limit, limit), tau)
 
 

@@ -1,6 +1,6 @@
 """The configurations of gain tuning: ``wbc-jax tune`` (:class:`TuneConfig`) and the held-out evaluation
 (:class:`HeldoutConfig`, also ``wbc-jax heldout``). Their fields are the commands' flags; ``wbc-jax tune``
-takes both (the held-out fields it shares with the tuning run, ``tasks`` and ``angular_weight_soft``, once)."""
+takes both (the held-out fields it shares with the tuning run, ``robot`` and the controller's flags, once)."""
 
 from __future__ import annotations
 
@@ -11,17 +11,17 @@ import pathlib
 
 import numpy as np
 
+from wbc_jax.control.flags import ControllerFlags
 from wbc_jax.core import constants
-from wbc_jax.core.assets import asset
-from wbc_jax.core.options import check_input_file, check_options, option
+from wbc_jax.core.options import check_input_file, check_options, flat_dict, nested, option
 from wbc_jax.jobs.grids import MAX_GRID_AXIS, azimuths, magnitude_grid, show_magnitude_grid
 from wbc_jax.jobs.sweep_config import ONE_FOOT_WINDOW
 from wbc_jax.robot import model
+from wbc_jax.robot.robots import robot_option
 from wbc_jax.sim import physics
 
 CHECKPOINTS = ("tick", "none", "dots")
 PUSH_SCALES = ("envelope", "lip")
-ENVELOPE_FILE = asset("tuning/default_envelope.json")  # package data, made by docs/tuning/README.md's bisection
 MAX_BATCH = 10_000_000  # pushes of one step, candidates, held-out pushes: beyond it a typo
 # The phases of a tuning run, in the order they run (each resumable).
 PHASES = ("predict", "train", "quality", "profile", "cmaes", "random", "hybrid", "heldout", "report")
@@ -29,15 +29,16 @@ SEARCHES = ("cmaes", "random")
 SEARCH_BACKENDS = ("auto", "jax", "warp")
 ESTIMATORS = ("first-order", "smoothed", "interpolated")
 PARAMETERISATIONS = ("gains", "scheduled")
-# The hand-set row of every comparison: the WBC gains with a critically damped CoM loop.
-HAND_SET_GAINS = asset("gains/com_critical_100.json")  # package data
-# Held-out variations, name: (pushed body, push duration s, floor friction); magnitudes keep the grid's impulses.
+# The default envelope (docs/tuning/README.md's bisection) and the hand-set row of every comparison (the
+# default gains with a critically damped CoM loop) are the robot's (its description's package data files).
+# Held-out variations, name: (pushed body role, push duration s, floor friction); magnitudes keep the grid's
+# impulses.
 VARIATIONS = {
-    "l_hand": ("l_elbow_1", 0.1, 1.0),
-    "r_upper_leg": ("r_upper_leg", 0.1, 1.0),
-    "duration_0.02s": ("chest", 0.02, 1.0),
-    "duration_0.5s": ("chest", 0.5, 1.0),
-    "friction_0.5": ("chest", 0.1, 0.5),
+    "left_hand": ("left_hand", 0.1, 1.0),
+    "right_thigh": ("right_thigh", 0.1, 1.0),
+    "duration_0.02s": ("trunk", 0.02, 1.0),
+    "duration_0.5s": ("trunk", 0.5, 1.0),
+    "friction_0.5": ("trunk", 0.1, 0.5),
 }
 
 
@@ -47,6 +48,7 @@ class TuneConfig:
     ``--batch 1024``). The CLI flags of ``wbc-jax tune`` are generated from these fields, and
     their declared ranges are checked by :meth:`check`."""
 
+    robot: str = robot_option()
     out: str = option("runs/tune", "output folder (resumes a run there)")
     phases: tuple[str, ...] = option(("train", "cmaes", "random", "heldout", "report"), "what to run, in this "
                                      "order: predict (does the loss rank held-out survival), train (gradient "
@@ -107,15 +109,9 @@ class TuneConfig:
     push_scale: str = option("envelope", "what push impulses are multiples of, per direction: 'envelope' (the default "
                              "gains' strict envelope, --envelope) or 'lip' (the feet-in-place LIP bound m omega d)",
                              choices=PUSH_SCALES)  # fmt: skip
-    train_bodies: tuple[str, ...] = option(("chest", "root_link"), "pushed bodies", nargs="+", nonempty=True,
-                                           names=model.pushable_bodies)  # fmt: skip
-    tasks: str | None = option(None, "contact file of the two feet (JSON/YAML), as push-sweep --tasks: e.g. "
-                               "experiments/tasks/feet_sole95.yaml (the CoP rectangles of the model's soles)",
-                               metavar="FILE", input_file=True)  # fmt: skip
-    angular_weight_soft: float = option(
-        1.0, "the controller's angular_weight_soft, as push-sweep's (1: WBC)", gt=constants.ANGULAR_WEIGHT_RANGE[0],
-        le=constants.ANGULAR_WEIGHT_RANGE[1],
-    )  # fmt: skip
+    train_bodies: tuple[str, ...] = option(("trunk", "pelvis"), "pushed bodies (bodies of the robot or roles)",
+                                           nargs="+", nonempty=True, names=model.pushable_bodies)  # fmt: skip
+    controller: ControllerFlags = nested(ControllerFlags())
     duration_range: tuple[float, float] = option((0.05, 0.3), "push durations [s]", nargs=2,
                                                  ge=constants.MIN_PUSH_DURATION_S,
                                                  le=constants.MAX_PUSH_DURATION_S, unit="s", ordered=True)  # fmt: skip
@@ -127,8 +123,8 @@ class TuneConfig:
     joint_noise: float = option(0.01, "initial joint noise std [rad]", ge=0.0, le=constants.MAX_JOINT_NOISE_RAD,
                                 unit="rad")  # fmt: skip
     envelope: str | None = option(None, "the default gains' envelope per direction, JSON (default: "
-                                  "the package's assets/tuning/default_envelope.json; where that file "
-                                  "is absent, --envelope-fraction x the LIP bound)", metavar="FILE", input_file=True)  # fmt: skip
+                                  "the robot description's default_envelope, package data; where it "
+                                  "has none, --envelope-fraction x the LIP bound)", metavar="FILE", input_file=True)  # fmt: skip
     envelope_fraction: float = option(0.5, "without --envelope: the default envelope as this fraction of the LIP bound",
                                       gt=0.0, le=10.0)  # fmt: skip
     solver_iterations: int | None = option(None, "contact-solver Newton iterations in training (default: the model's)",
@@ -240,7 +236,7 @@ NOT_TRAINING = ("out", "phases", "population", "es_batch", "es_sigma", "wall_bud
 
 def config_key(*configs, exclude=()) -> str:
     """A short hash of dataclass configs, less the ``exclude`` fields (checkpoints belong to one)."""
-    blob = json.dumps([{k: v for k, v in dataclasses.asdict(c).items() if k not in exclude} for c in configs],
+    blob = json.dumps([{k: v for k, v in flat_dict(c).items() if k not in exclude} for c in configs],
                       sort_keys=True)  # fmt: skip
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -250,18 +246,19 @@ class HeldoutConfig:
     """The held-out evaluation (``wbc-jax heldout``, and the phase ``heldout`` of ``wbc-jax tune``); the
     defaults are the comparison's: every field is a flag of both commands.
 
-    grid: chest pushes of ``grid_duration`` s at ``grid_onset`` s over ``grid_magnitudes`` x
+    grid: trunk pushes of ``grid_duration`` s at ``grid_onset`` s over ``grid_magnitudes`` x
     ``grid_directions``, ``grid_horizon`` s. variations (:data:`VARIATIONS`): ``variation_magnitudes`` x
     ``variation_directions`` over the grid's impulse range. one_foot: pushes at ``one_foot_onset`` s of the
-    one-foot task. sinusoid_s: seconds of the seed's CoM sinusoid (0: skip). tasks, angular_weight_soft: the
-    contact file and soft-QP weight of every closed loop (in ``wbc-jax tune``: the tuning run's)."""
+    one-foot task. sinusoid_s: seconds of the seed's CoM sinusoid (0: skip). robot, controller: the robot and
+    the controller's flags of every closed loop (in ``wbc-jax tune``: the tuning run's)."""
 
+    robot: str = robot_option()
     out: str = option("runs/heldout", "output folder (resumes a run there)")
-    sets: tuple[str, ...] = option(("default", "critical"), "gain sets held out: 'default' (the WBC gains), "
-                                   "'critical' (the hand-set row: assets/gains/com_critical_100.json) or "
+    sets: tuple[str, ...] = option(("default", "critical"), "gain sets held out: 'default' (the robot's gains), "
+                                   "'critical' (the robot's hand-set row, e.g. assets/gains/com_critical_100.json) or "
                                    "NAME=FILE (a gains file or a gain-schedule file); wbc-jax tune adds its own",
                                    nargs="*")  # fmt: skip
-    grid_magnitudes: tuple[float, ...] = option(magnitude_grid((10.0, 400.0, 64)), "held-out grid of chest push forces [N]: "
+    grid_magnitudes: tuple[float, ...] = option(magnitude_grid((10.0, 400.0, 64)), "held-out grid of trunk push forces [N]: "
                                                 "LO HI N", nargs=3, metavar=("LO", "HI", "N"), parse=magnitude_grid,
                                                 show=show_magnitude_grid, ge=0.0, le=constants.MAX_PUSH_N, unit="N",
                                                 nonempty=True)  # fmt: skip
@@ -287,12 +284,7 @@ class HeldoutConfig:
     heldout_backend: str = option("auto", "physics of the held-out pushes (auto: warp on a GPU, C MuJoCo on a CPU)",
                                   choices=physics.BACKENDS)  # fmt: skip
     chunk_size: int = option(16384, "held-out environments per compiled batch", ge=1, le=MAX_BATCH)
-    tasks: str | None = option(None, "contact file of the feet (JSON/YAML), as push-sweep --tasks", metavar="FILE",
-                               input_file=True)  # fmt: skip
-    angular_weight_soft: float = option(
-        1.0, "the controller's angular_weight_soft (1: WBC)", gt=constants.ANGULAR_WEIGHT_RANGE[0],
-        le=constants.ANGULAR_WEIGHT_RANGE[1],
-    )  # fmt: skip
+    controller: ControllerFlags = nested(ControllerFlags())
 
     def __post_init__(self):
         self.check()

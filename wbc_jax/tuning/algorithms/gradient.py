@@ -244,7 +244,7 @@ def train(problem: Problem, out, *, progress: bool = True, step_fn=None, mesh=No
                     checkpoint=tc.checkpoint, parameterisation=tc.parameterisation, budget_s=budget,
                     parameters=int(flat0.size), **(step_fn.memory_mb() or {}))  # fmt: skip
         info["provenance"] = provenance.record(
-            {"init_gains": tc.init_gains, "envelope": tc.envelope, "tasks": tc.tasks}
+            {"init_gains": tc.init_gains, "envelope": tc.envelope, "tasks": tc.controller.tasks}
         )
         io.atomic_write_json(info_path, info)
     if not rows:

@@ -3,7 +3,7 @@
 Strict survival (:data:`wbc_jax.core.constants.SURVIVAL_CRITERION`) fails in five ways: a fall, a
 foot that slips (> 2 cm) or tilts (> 5 deg), a CoM still moving at the end (> 0.05 m/s), or a CoM
 outside the support polygon at the end. Each has a smooth per-tick counterpart, averaged over the
-T ticks of a rollout (B rollouts, F = 8 sole corners, n = 23 joints):
+T ticks of a rollout (B rollouts, F = 8 sole corners, n joints):
 
 * ``capture``: the instantaneous capture point xi = c + v / omega (omega = sqrt(g / h0)) against
   the support polygon of the sole corners: relu(capture_margin - margin(xi))^2 / capture_scale^2

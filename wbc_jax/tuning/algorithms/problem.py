@@ -26,7 +26,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.control.controller import ControllerConfig
 from wbc_jax.control.gains import Gains, default_gains, load_gains
 from wbc_jax.core import constants, loader
 from wbc_jax.jobs import sweep_table
@@ -38,7 +37,7 @@ from wbc_jax.sim.state import Push, Scenario, SimConfig
 from wbc_jax.tuning.algorithms import loss as tuning_loss
 from wbc_jax.tuning.algorithms import params as tuning_params
 from wbc_jax.tuning.algorithms import schedule as gain_schedule
-from wbc_jax.tuning.config import ENVELOPE_FILE, NOT_TRAINING, TuneConfig, config_key
+from wbc_jax.tuning.config import NOT_TRAINING, TuneConfig, config_key
 
 # ---------------------------------------------------------------------------------------------
 # The push distribution
@@ -70,14 +69,15 @@ def load_envelope(path) -> tuple[np.ndarray, np.ndarray]:
 def envelope_table(tc: TuneConfig, robot: model_lib.Robot) -> tuple[np.ndarray, np.ndarray]:
     """(azimuths (32,) or (K,) deg, impulses N s) that push impulses are scaled by: with
     ``push_scale == "lip"`` the feet-in-place LIP bound over 32 directions; else the default
-    envelope per direction: ``tc.envelope``, the stored :data:`ENVELOPE_FILE`, or
+    envelope per direction: ``tc.envelope``, the robot description's ``default_envelope``, or
     ``envelope_fraction`` x the LIP bound."""
     if tc.push_scale == "lip":
         return _lip_table(robot)
     if tc.envelope is not None:
         return load_envelope(tc.envelope)
-    if ENVELOPE_FILE.is_file():
-        return load_envelope(ENVELOPE_FILE)
+    stored = robot.description.asset_path(robot.description.default_envelope)
+    if stored is not None and stored.is_file():
+        return load_envelope(stored)
     az, bound = _lip_table(robot)
     return az, tc.envelope_fraction * bound
 
@@ -104,11 +104,13 @@ def batch_rng(seed: int, stream: int, k: int) -> np.random.Generator:
 def sample_pushes(tc: TuneConfig, robot: model_lib.Robot, table, rng: np.random.Generator, size: int,
                   dtype=np.float32) -> tuple[Scenario, dict]:  # fmt: skip
     """``size`` pushes of the training distribution (module docstring): (Scenario with a leading
-    axis of ``size`` (its gains are the WBC defaults, unused by the objectives), numpy columns)."""
+    axis of ``size`` (its gains are the robot's defaults, unused by the objectives), numpy columns)."""
     n = robot.index.n
     az = rng.uniform(0.0, 360.0, size)
     impulse = rng.uniform(*tc.magnitude_range, size) * interp_periodic(*table, az)
-    body = np.array([robot.index.body_id(b) for b in tc.train_bodies])[rng.integers(0, len(tc.train_bodies), size)]
+    body = np.array([robot.index.pushable_body_id(b) for b in tc.train_bodies])[
+        rng.integers(0, len(tc.train_bodies), size)
+    ]
     duration = rng.uniform(*tc.duration_range, size)
     friction, mass = rng.uniform(*tc.friction_range, size), rng.uniform(*tc.mass_range, size)
     offsets = rng.normal(scale=tc.joint_noise, size=(size, n)) if tc.joint_noise else np.zeros((size, n))
@@ -121,7 +123,7 @@ def pushes_at(robot, az, impulse, body, duration, onset, friction, mass, offsets
     az, impulse, duration = (np.asarray(x, float) for x in (az, impulse, duration))
     B = az.size
     u = np.stack([np.cos(np.deg2rad(az)), np.sin(np.deg2rad(az)), np.zeros(B)], 1)
-    base = default_gains(robot.index.n)
+    base = default_gains(robot.description)
     scen = Scenario(
         push=Push(force=((impulse / duration)[:, None] * u)[:, None, :].astype(dtype),
                   onset=np.full((B, 1), onset, dtype), duration=duration[:, None].astype(dtype),
@@ -207,8 +209,7 @@ def checkpoint_setting(name: str):
     return {"tick": True, "none": False, "dots": "checkpoint_dots"}[name]
 
 
-def make_problem(tc: TuneConfig, lc: tuning_loss.LossConfig | None = None, *, robot_name: str = "icub",
-                 horizon: float | None = None, checkpoint: bool | str | None = None,
+def make_problem(tc: TuneConfig, lc: tuning_loss.LossConfig | None = None, *, horizon: float | None = None, checkpoint: bool | str | None = None,
                  backend: str = "jax") -> Problem:  # fmt: skip
     """Check the inputs (gains file inside the bounds, bodies) and build the tuning closed loop
     (stand task, perturbed plant, a :class:`~wbc_jax.tuning.algorithms.loss.TuneTrace` per tick, the gain
@@ -217,10 +218,10 @@ def make_problem(tc: TuneConfig, lc: tuning_loss.LossConfig | None = None, *, ro
     ``tc.checkpoint``); ``backend``: the physics engine (gradients need ``jax``)."""
     lc = tuning_loss.LossConfig() if lc is None else lc
     dtype = scenario.float_dtype()
-    robot = model_lib.load_robot(robot_name)
+    robot = model_lib.load_robot(tc.robot)
     for b in tc.train_bodies:
-        robot.index.body_id(b)
-    base = default_gains(robot.index.n, dtype)
+        robot.index.pushable_body_id(b)
+    base = default_gains(robot.description, dtype)
     reg0 = tuning_params.default_regularisation()
     bounds = tuning_params.default_bounds(base, tc.bound_factor, tc.zeta_range, reg0)
     if tc.keep_tracking:
@@ -237,8 +238,8 @@ def make_problem(tc: TuneConfig, lc: tuning_loss.LossConfig | None = None, *, ro
                                       ls_iterations=tc.ls_iterations),
     )  # fmt: skip
     st = scenario.setup("stand", duration=tc.horizon if horizon is None else horizon, sim=sim, gains=base,
-                        controller=ControllerConfig(angular_weight_soft=tc.angular_weight_soft),
-                        scene=scenario.load_scene(robot_name, tc.tasks))  # fmt: skip
+                        controller=tc.controller.config(),
+                        scene=scenario.load_scene(tc.robot, tc.controller.tasks))  # fmt: skip
     loop = tuning_loss.tuning_loop(st.loop, checkpoint_setting(tc.checkpoint) if checkpoint is None else checkpoint)
     if tc.parameterisation == "scheduled":
         loop = gain_schedule.scheduled_loop(loop)

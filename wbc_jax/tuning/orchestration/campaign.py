@@ -31,9 +31,11 @@ import time
 
 import numpy as np
 
-from wbc_jax.core import io, provenance
+from wbc_jax.core import io, options, provenance
+from wbc_jax.core.options import flat_dict
 from wbc_jax.jobs import runs
 from wbc_jax.report import tuning_plots
+from wbc_jax.robot.robots import describe
 from wbc_jax.sim import scenario
 from wbc_jax.tuning import store
 from wbc_jax.tuning.algorithms import baselines, hybrid
@@ -57,8 +59,8 @@ def _search_times(tc: TuneConfig, kind: str) -> list:
 
 def _inputs(tc: TuneConfig, hc: HeldoutConfig | None = None) -> dict:
     """The run's input files by role (each recorded with its sha256 in every result the run writes)."""
-    return {"init_gains": tc.init_gains, "envelope": tc.envelope, "tasks": tc.tasks,
-            **(tuning_eval.set_files(hc.sets) if hc is not None else {})}  # fmt: skip
+    return {"init_gains": tc.init_gains, "envelope": tc.envelope, "tasks": tc.controller.tasks,
+            **(tuning_eval.set_files(hc.sets, describe(tc.robot)) if hc is not None else {})}  # fmt: skip
 
 
 def _write(out: pathlib.Path, problem: tp.Problem, name: str, controls, reg, origin: dict) -> None:
@@ -143,27 +145,26 @@ def tuned_sets(problem: tp.Problem, out: pathlib.Path) -> dict:
 
 
 def run(cfg: TuneConfig | None = None, hc: HeldoutConfig | None = None, *, lc: LossConfig | None = None,
-        progress: bool = True, robot_name: str = "icub", mesh=None, **overrides) -> dict:  # fmt: skip
+        progress: bool = True, mesh=None, **overrides) -> dict:  # fmt: skip
     """The ``tune`` job (module docstring). ``overrides``: fields of :class:`TuneConfig`. Returns the
     summary of what ran (phase timings, and the held-out rows once reported)."""
-    tc = dataclasses.replace(tuning.default_config() if cfg is None else cfg, **overrides)
-    hc = dataclasses.replace(heldout_default_config() if hc is None else hc, tasks=tc.tasks,
-                             angular_weight_soft=tc.angular_weight_soft)  # fmt: skip
+    tc = options.replace(tuning.default_config() if cfg is None else cfg, **overrides)
+    hc = dataclasses.replace(heldout_default_config() if hc is None else hc, robot=tc.robot, controller=tc.controller)
     lc = LossConfig() if lc is None else lc
     out = pathlib.Path(tc.out)
     runs.check_output_dir(out, "tune")
-    problem = tp.make_problem(tc, lc, robot_name=robot_name)
-    reference = tuning_eval.load_sets(hc.sets, problem.robot.index.n, problem.setup.dtype)  # checked before compiling
+    problem = tp.make_problem(tc, lc)
+    reference = tuning_eval.load_sets(hc.sets, problem.robot.description, problem.setup.dtype)  # checked first
     files = _inputs(tc, hc)
-    fp = runs.fingerprint({"tune": {k: v for k, v in dataclasses.asdict(tc).items() if k not in ("out", "phases")},
-                           "heldout": {k: v for k, v in dataclasses.asdict(hc).items() if k != "out"},
+    fp = runs.fingerprint({"tune": {k: v for k, v in flat_dict(tc).items() if k not in ("out", "phases")},
+                           "heldout": {k: v for k, v in flat_dict(hc).items() if k != "out"},
                            "loss": dataclasses.asdict(lc), "dtype": str(scenario.float_dtype())},
-                          list(files.values()))  # fmt: skip
+                          list(files.values()), tc.robot)  # fmt: skip
     runs.claim_output_dir(out, "tune", fp, resume=True)
     if "hybrid" in tc.phases and hybrid.PARENT not in tc.phases:  # its parents are there already, or an error now
         for t in race.budgets(tc):
             hybrid.parent(problem, out, t)
-    io.atomic_write_json(out / "config.json", {"tune": dataclasses.asdict(tc), "heldout": dataclasses.asdict(hc),
+    io.atomic_write_json(out / "config.json", {"tune": flat_dict(tc), "heldout": flat_dict(hc),
                                                "loss": dataclasses.asdict(lc),
                                                "provenance": provenance.record(files)})  # fmt: skip
     timings_path = out / "timings.json"
@@ -215,8 +216,7 @@ def run(cfg: TuneConfig | None = None, hc: HeldoutConfig | None = None, *, lc: L
                              for n, (_, _, o) in refined.items()}  # fmt: skip
     if "heldout" in tc.phases:
         sets = {**reference, **tuned_sets(problem, out)}
-        results = timed("heldout", lambda: tuning_eval.heldout(sets, hc, out / "heldout", progress=progress,
-                                                               robot_name=robot_name))  # fmt: skip
+        results = timed("heldout", lambda: tuning_eval.heldout(sets, hc, out / "heldout", progress=progress))
         io.atomic_write_json(out / "heldout_raw.json", results)
     if "report" in tc.phases:
         summary["heldout"] = report(problem, out, hc, reference)
@@ -233,16 +233,19 @@ def report(problem: tp.Problem, out: pathlib.Path, hc: HeldoutConfig, reference:
     index_path = out / "gains" / "provenance.json"
     index = json.loads(index_path.read_text()) if index_path.exists() else {}
     sets = {**reference, **tuned_sets(problem, out)}
-    files = {**tuning_eval.set_files(hc.sets), **{n: str(out / "gains" / f"{n}.json") for n in index}}
+    files = {
+        **tuning_eval.set_files(hc.sets, problem.robot.description),
+        **{n: str(out / "gains" / f"{n}.json") for n in index},
+    }
     budgets = {n: {"sim_steps": e.get("sim_steps", 0), "wall_s": e.get("wall_s", 0.0)} for n, e in index.items()}
-    extra = {"config": {"tune": dataclasses.asdict(tc), "heldout": dataclasses.asdict(hc)},
+    extra = {"config": {"tune": flat_dict(tc), "heldout": flat_dict(hc)},
              "nava_2016": {n: nava_conditions(c, r) for n, (c, r) in sets.items() if hasattr(c, "kp_com")}}  # fmt: skip
     for name in ("prediction", "quality"):
         if (out / f"{name}.json").exists():
             extra[name] = {k: v for k, v in json.loads((out / f"{name}.json").read_text()).items()
                            if not isinstance(v, list)}  # fmt: skip
     rep = tuning_eval.write_heldout(out / "heldout.json", results, budgets, extra=extra,
-                                    inputs={**files, "tasks": tc.tasks, "init_gains": tc.init_gains})  # fmt: skip
+                                    inputs={**files, "tasks": tc.controller.tasks, "init_gains": tc.init_gains})  # fmt: skip
     tuning_plots.envelope_polar({n: rep[n] for n in sets if n in rep and "_t" not in n}, out / "envelope_polar.png")
     histories = {k: store.read_csv(out / k / "history.csv") for k in ("gradient", *baselines.KINDS)
                  if (out / k / "history.csv").exists()}  # fmt: skip

@@ -2,11 +2,11 @@
 
 What a gain set is judged on, none of which the tuning loss saw (S gain sets; :class:`HeldoutConfig`):
 
-* the push grid of ``docs/sweep_h100`` (chest, 0.1 s at 0.5 s, M magnitudes x D directions, 3 s),
+* the push grid of ``docs/sweep_h100`` (the trunk, 0.1 s at 0.5 s, M magnitudes x D directions, 3 s),
   on the held-out backend: strict survival rate, envelope (largest survived impulse per direction)
   as a fraction of the feet-in-place LIP bound, min / median over directions;
-* unseen variations (:data:`wbc_jax.tuning.config.VARIATIONS`): pushes on the left hand (the forearm
-  body ``l_elbow_1``, which carries the hand) and the right thigh, durations 0.02 s and 0.5 s, floor
+* unseen variations (:data:`wbc_jax.tuning.config.VARIATIONS`): pushes on the left hand (the body of
+  the robot's ``left_hand`` role) and the right thigh, durations 0.02 s and 0.5 s, floor
   friction 0.5, and pushes during the single-support phase of the one-foot task;
 * the 20 s CoM sinusoid of the seed (``balance``'s task): CoM RMSE (<= 1.5 mm to keep the seed's
   task), on C MuJoCo by default.
@@ -31,9 +31,12 @@ import numpy as np
 from wbc_jax.control.controller import ControllerConfig
 from wbc_jax.control.gains import Gains, default_gains, load_gains
 from wbc_jax.core import constants, io, provenance
+from wbc_jax.core.options import flat_dict
 from wbc_jax.jobs import chunks, grids, runs, sweep, sweep_config, sweep_table
 from wbc_jax.report import tuning_plots
 from wbc_jax.report.tuning_plots import survival_vs_loss
+from wbc_jax.robot.description import RobotDescription
+from wbc_jax.robot.robots import describe
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import mjx_loop, physics, runner, scenario
 from wbc_jax.sim.state import Push, Scenario, SimConfig
@@ -42,13 +45,14 @@ from wbc_jax.tuning.algorithms import loss as tuning_loss
 from wbc_jax.tuning.algorithms import params as tuning_params
 from wbc_jax.tuning.algorithms import problem as tp
 from wbc_jax.tuning.algorithms import schedule as gain_schedule
-from wbc_jax.tuning.config import HAND_SET_GAINS, VARIATIONS, HeldoutConfig, heldout_default_config
+from wbc_jax.tuning.config import VARIATIONS, HeldoutConfig, heldout_default_config
 
 
-def load_sets(specs, n: int, dtype, regularisation=None) -> dict:
-    """{name: (Gains or GainSchedule, regularisation (2,))} of ``--sets`` entries: 'default' (WBC),
-    'critical' (the hand-set row) or NAME=FILE (a gains file or a gain-schedule file); checked before
-    anything compiles."""
+def load_sets(specs, robot: RobotDescription, dtype, regularisation=None) -> dict:
+    """{name: (Gains or GainSchedule, regularisation (2,))} of ``--sets`` entries: 'default' (the
+    robot's), 'critical' (its hand-set row) or NAME=FILE (a gains file or a gain-schedule file);
+    checked before anything compiles."""
+    n = len(robot.joints)
     reg0 = tuning_params.default_regularisation() if regularisation is None else np.asarray(regularisation, float)
     sets = {}
     for spec in specs:
@@ -56,9 +60,9 @@ def load_sets(specs, n: int, dtype, regularisation=None) -> dict:
         if name in sets:
             raise ValueError(f"gain set {name!r} given twice")
         if not path and name == "default":
-            sets[name] = (default_gains(n, dtype), reg0)
+            sets[name] = (default_gains(robot, dtype), reg0)
         elif not path and name == "critical":
-            sets[name] = (load_gains(HAND_SET_GAINS, n, dtype), reg0)
+            sets[name] = (load_gains(hand_set_gains(robot), n, dtype), reg0)
         elif not path:
             raise ValueError(f"--sets entries are 'default', 'critical' or NAME=FILE, got {spec!r}")
         elif gain_schedule.is_schedule_file(path):
@@ -68,11 +72,18 @@ def load_sets(specs, n: int, dtype, regularisation=None) -> dict:
     return sets
 
 
-def set_files(specs) -> dict:
+def hand_set_gains(robot: RobotDescription):
+    """The robot's hand-set gains file (the 'critical' set); one line where it has none."""
+    if robot.hand_set_gains is None:
+        raise ValueError(f"--sets critical: robot {robot.name} has no hand-set gains file; give NAME=FILE")
+    return robot.asset_path(robot.hand_set_gains)
+
+
+def set_files(specs, robot: RobotDescription) -> dict:
     """{name: path} of the files among ``--sets`` entries (for provenance)."""
     files = {name: path for name, _, path in (s.partition("=") for s in specs) if path}
     if any(s == "critical" for s in specs):
-        files["critical"] = str(HAND_SET_GAINS)
+        files["critical"] = str(hand_set_gains(robot))
     return files
 
 
@@ -90,8 +101,7 @@ def _groups(sets: dict) -> dict:
 
 
 def _controller(reg, hc: HeldoutConfig) -> ControllerConfig:
-    return ControllerConfig(pinv_damping=float(reg[0]), kp_postural_reg=float(reg[1]),
-                            angular_weight_soft=hc.angular_weight_soft)  # fmt: skip
+    return hc.controller.config(ControllerConfig(pinv_damping=float(reg[0]), kp_postural_reg=float(reg[1])))
 
 
 def _stack(controls: list, dtype):
@@ -160,7 +170,7 @@ def _envelope(table, cfg: sweep_config.SweepConfig, robot) -> dict:
                                   "bound_impulse_ns": e["bound_impulse_ns"]} for a, e in s["envelope"].items()}}  # fmt: skip
 
 
-def heldout(sets: dict, hc: HeldoutConfig, out, *, progress: bool = True, robot_name: str = "icub") -> dict:
+def heldout(sets: dict, hc: HeldoutConfig, out, *, progress: bool = True) -> dict:
     """Evaluate gain sets {name: (Gains or GainSchedule, regularisation (2,))} on the held-out grid,
     variations, one-foot task and sinusoid (module docstring), into ``out`` (resumable). Returns
     {name: {"grid": {...}, "variations": {name: {...}}, "one_foot": {...}, "sinusoid_com_rmse_m"}},
@@ -173,18 +183,18 @@ def heldout(sets: dict, hc: HeldoutConfig, out, *, progress: bool = True, robot_
     for gi, ((kind, *reg), names) in enumerate(_groups(sets).items()):
         controls = [sets[n][0] for n in names]
         stacked = _stack(controls, dtype)
-        tag = hashlib.sha256(json.dumps([dataclasses.asdict(hc), [store.controls_dict(c) for c in controls], reg],
+        tag = hashlib.sha256(json.dumps([flat_dict(hc), [store.controls_dict(c) for c in controls], reg],
                                         sort_keys=True, default=io.jsonable).encode()).hexdigest()[:10]  # fmt: skip
         # Stand: the grid and the variations, one program (per-env plant: friction varies).
-        cfg = sweep_config.SweepConfig(magnitudes=tuple(hc.grid_magnitudes), directions=tuple(hc.grid_directions),
+        cfg = sweep_config.SweepConfig(robot=hc.robot, controller=hc.controller, magnitudes=tuple(hc.grid_magnitudes), directions=tuple(hc.grid_directions),
                                        push_duration=hc.grid_duration, push_onset=hc.grid_onset,
                                        horizon=hc.grid_horizon, friction=(0.5, 1.0), backend=hc.heldout_backend,
-                                       out=None, tasks=hc.tasks, angular_weight_soft=hc.angular_weight_soft)  # fmt: skip
+                                       out=None)  # fmt: skip
         nominal = _nominal(controls[0], dtype)
-        st = _with_kind(sweep.make_setup(cfg, nominal, robot_name=robot_name, controller=_controller(reg, hc)), kind)
+        st = _with_kind(sweep.make_setup(cfg, nominal, controller=_controller(reg, hc)), kind)
         robot = st.robot
         vdirs = grids.azimuths(hc.variation_directions)
-        blocks = [("grid", "chest", hc.grid_duration, 1.0, impulses, np.asarray(hc.grid_directions))]
+        blocks = [("grid", "trunk", hc.grid_duration, 1.0, impulses, np.asarray(hc.grid_directions))]
         vimp = np.linspace(impulses[0], impulses[-1], hc.variation_magnitudes)
         for v in hc.variations:
             body, dur, fr = VARIATIONS[v]
@@ -201,9 +211,9 @@ def heldout(sets: dict, hc: HeldoutConfig, out, *, progress: bool = True, robot_
         if hc.one_foot:
             of = dataclasses.replace(cfg, task="one-foot", push_onset=hc.one_foot_onset, horizon=hc.one_foot_horizon,
                                      friction=(1.0, 1.0))  # fmt: skip
-            st1 = _with_kind(sweep.make_setup(of, nominal, robot_name=robot_name, controller=_controller(reg, hc)),
+            st1 = _with_kind(sweep.make_setup(of, nominal, controller=_controller(reg, hc)),
                              kind)  # fmt: skip
-            blocks = [("one_foot", "chest", hc.grid_duration, 1.0, vimp, vdirs)]
+            blocks = [("one_foot", "trunk", hc.grid_duration, 1.0, vimp, vdirs)]
             cols = _block_columns(robot, blocks, len(controls), hc.one_foot_onset)
             table1, timing[f"one_foot_{gi}"] = _run_table(st1, _scenarios(robot, cols, stacked, dtype), cols,
                                                           out / f"one_foot_{gi}", hc.chunk_size, tag, progress,
@@ -211,7 +221,7 @@ def heldout(sets: dict, hc: HeldoutConfig, out, *, progress: bool = True, robot_
             for s, name in enumerate(names):
                 result[name]["one_foot"] = _envelope(table1[table1["gain_set"] == s], of, robot)
         if hc.sinusoid_s > 0:
-            rmse, timing[f"sinusoid_{gi}"] = sinusoid(controls, reg, hc, robot_name)
+            rmse, timing[f"sinusoid_{gi}"] = sinusoid(controls, reg, hc)
             for s, name in enumerate(names):
                 result[name]["sinusoid_com_rmse_m"] = rmse[s]
     result["_timing"] = timing
@@ -230,7 +240,7 @@ def _block_columns(robot, blocks, n_sets: int, onset: float) -> dict:
         cols["magnitude_n"] += (imp / dur).tolist()
         cols["azimuth_deg"] += az.tolist()
         cols["duration_s"] += [dur] * s.size
-        cols["body"] += [robot.index.body_id(body)] * s.size
+        cols["body"] += [robot.index.pushable_body_id(body)] * s.size
         cols["friction"] += [fr] * s.size
         cols["mass_scale"] += [1.0] * s.size
     out = {k: np.asarray(v) for k, v in cols.items()}
@@ -238,14 +248,14 @@ def _block_columns(robot, blocks, n_sets: int, onset: float) -> dict:
     return out
 
 
-def sinusoid(controls: list, reg, hc: HeldoutConfig, robot_name: str = "icub") -> tuple[list, dict]:
+def sinusoid(controls: list, reg, hc: HeldoutConfig) -> tuple[list, dict]:
     """CoM RMSE (m) of each gain set (all Gains or all GainSchedules) on the seed's CoM sinusoid
     (``hc.sinusoid_s`` s, no push), the closed loop of ``wbc-jax balance --task sinusoid`` (metrics
     only), all sets as one batch."""
     sim = SimConfig(record=False, physics=physics.PhysicsConfig(backend=hc.sinusoid_backend))
     dtype = scenario.float_dtype()
     st = scenario.setup("sinusoid", duration=hc.sinusoid_s, controller=_controller(reg, hc), sim=sim,
-                        gains=_nominal(controls[0], dtype), scene=scenario.load_scene(robot_name, hc.tasks))  # fmt: skip
+                        gains=_nominal(controls[0], dtype), scene=scenario.load_scene(hc.robot, hc.controller.tasks))  # fmt: skip
     st = _with_kind(st, _kind(controls[0]))
     one = scenario.single(st)
     scen = jax.tree_util.tree_map(lambda x: np.repeat(np.asarray(x), len(controls), 0), one)
@@ -309,7 +319,9 @@ def survival_prediction(problem: tp.Problem, n: int, *, gains=None, reg=None, ou
            "failure_rates": {k: float(np.mean(v)) for k, v in metrics_lib.failed_tests(outcome).items()}}  # fmt: skip
     if out is not None:
         out = pathlib.Path(out)
-        res["provenance"] = provenance.record({"init_gains": tc.init_gains, "envelope": tc.envelope, "tasks": tc.tasks})
+        res["provenance"] = provenance.record(
+            {"init_gains": tc.init_gains, "envelope": tc.envelope, "tasks": tc.controller.tasks}
+        )
         io.atomic_write_json(out / "prediction.json", res)
         survival_vs_loss(train_loss, survived, res, out / "survival_vs_loss.png")
     return res
@@ -388,24 +400,23 @@ SUMMARY_KEYS = ("envelope_fraction_median", "envelope_fraction_min", "survival_r
                 "sim_steps", "wall_s")  # fmt: skip
 
 
-def run(hc: HeldoutConfig | None = None, *, progress: bool = True, robot_name: str = "icub") -> dict:
+def run(hc: HeldoutConfig | None = None, *, progress: bool = True) -> dict:
     """The ``wbc-jax heldout`` job: the gain sets of ``hc.sets`` held out into ``hc.out`` (resumable):
     heldout.json, envelope_polar.png. Returns {name: the summary row}."""
-    from wbc_jax.robot import model as model_lib
-
     hc = heldout_default_config() if hc is None else hc
     out = pathlib.Path(hc.out)
     if not hc.sets:  # (wbc-jax tune adds its own sets; the heldout job has only these)
         raise ValueError("--sets: give at least one gain set ('default', 'critical' or NAME=FILE)")
     runs.check_output_dir(out, "heldout")
-    files = set_files(hc.sets)
-    sets = load_sets(hc.sets, model_lib.load_robot(robot_name).index.n, scenario.float_dtype())
-    fp = runs.fingerprint({"heldout": dataclasses.asdict(hc), "dtype": str(scenario.float_dtype())},
-                          [*files.values(), hc.tasks])  # fmt: skip
+    robot = describe(hc.robot)
+    files = set_files(hc.sets, robot)
+    sets = load_sets(hc.sets, robot, scenario.float_dtype())
+    fp = runs.fingerprint({"heldout": flat_dict(hc), "dtype": str(scenario.float_dtype())},
+                          [*files.values(), hc.controller.tasks], hc.robot)  # fmt: skip
     runs.claim_output_dir(out, "heldout", fp, resume=True)
-    results = heldout(sets, hc, out / "parts", progress=progress, robot_name=robot_name)
-    rep = write_heldout(out / "heldout.json", results, {}, extra={"config": dataclasses.asdict(hc)},
-                        inputs={**files, "tasks": hc.tasks})  # fmt: skip
+    results = heldout(sets, hc, out / "parts", progress=progress)
+    rep = write_heldout(out / "heldout.json", results, {}, extra={"config": flat_dict(hc)},
+                        inputs={**files, "tasks": hc.controller.tasks})  # fmt: skip
     runs.record_output(out / "heldout.json")
     tuning_plots.envelope_polar(rep, out / "envelope_polar.png")
     return {n: {k: rep[n][k] for k in SUMMARY_KEYS} for n in sets}

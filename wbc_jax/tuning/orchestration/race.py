@@ -111,7 +111,7 @@ def write(out, problem: tp.Problem, rep: dict, index: dict, histories: dict) -> 
                                                  "sinusoid_com_rmse_m")} for n in ("default", "critical") if n in rep},
         "verdict": verdict(pts), "recommended": recommended(rep, [n for n in rep if isinstance(rep[n], dict)
                                                                  and "envelope_fraction_median" in rep[n]]),
-        "provenance": provenance.record({"init_gains": tc.init_gains, "tasks": tc.tasks}),
+        "provenance": provenance.record({"init_gains": tc.init_gains, "tasks": tc.controller.tasks}),
     }  # fmt: skip
     io.atomic_write_json(out / "race.json", result)
     tuning_plots.race_curves(pts, out / "race.png", reference=result["reference"])
