@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from wbc_jax.core import io, provenance
+from wbc_jax.core.options import flat_dict
 from wbc_jax.jobs import runs
 from wbc_jax.tuning.algorithms import loss as tuning_loss
 from wbc_jax.tuning.algorithms.baselines import NOT_SEARCH
@@ -29,7 +30,8 @@ def test_rekey_matches_the_moved_config_key(tmp_path, monkeypatch):
     tc_old, tc_new, lc = TuneConfig(init_gains=str(old)), TuneConfig(init_gains=str(new)), tuning_loss.LossConfig()
     run = tmp_path / "run"
     (run / "cmaes").mkdir(parents=True)
-    (run / "config.json").write_text(json.dumps({"tune": dataclasses.asdict(tc_old), "loss": dataclasses.asdict(lc)},
+    # config.json as the tuning job writes it (tuning/orchestration/campaign.py: flat_dict of each config)
+    (run / "config.json").write_text(json.dumps({"tune": flat_dict(tc_old), "loss": dataclasses.asdict(lc)},
                                                 default=io.jsonable))  # fmt: skip
     record = {"kind": "tune", "fingerprint": {"config": {"tune": {"init_gains": f"sha256:{provenance.sha256(new)}"}}}}
     (run / runs.MANIFEST).write_text(json.dumps(record))

@@ -21,7 +21,7 @@ def _old_run(tmp_path, gains_text: str):
     old.parent.mkdir()
     old.write_text(gains_text)
     config = {"tune": {"init_gains": str(old), "lr": 0.1}}
-    fp = runs.fingerprint(config, [old])
+    fp = runs.fingerprint(config, [old], "icub")
     legacy = {"config": json.loads(json.dumps(config)), "files": {str(old): fp[runs.INPUT_PATHS][str(old.resolve())]
                                                                      .removeprefix("sha256:")},
               "model": fp["model"], "version": fp["version"]}  # fmt: skip
@@ -37,7 +37,7 @@ def _old_run(tmp_path, gains_text: str):
 
 def test_old_run_resumes_after_upgrade_and_still_refuses_other_inputs(tmp_path):
     run, new = _old_run(tmp_path, '{"kp_com": 1.0}')
-    fp = runs.fingerprint({"tune": {"init_gains": str(new), "lr": 0.1}}, [new])
+    fp = runs.fingerprint({"tune": {"init_gains": str(new), "lr": 0.1}}, [new], "icub")
     with pytest.raises(ValueError, match="made with other inputs"):  # the old record: refused once moved
         runs.check_output_dir(run, "tune", fp)
     assert upgrade_run.main([str(run)]) == 0
@@ -46,7 +46,11 @@ def test_old_run_resumes_after_upgrade_and_still_refuses_other_inputs(tmp_path):
     other = tmp_path / "other.json"
     other.write_text('{"kp_com": 2.0}')
     with pytest.raises(ValueError, match="init_gains"):
-        runs.check_output_dir(run, "tune", runs.fingerprint({"tune": {"init_gains": str(other), "lr": 0.1}}, [other]))
+        runs.check_output_dir(
+            run, "tune", runs.fingerprint({"tune": {"init_gains": str(other), "lr": 0.1}}, [other], "icub")
+        )
     with pytest.raises(ValueError, match="made with other inputs"):
-        runs.check_output_dir(run, "tune", runs.fingerprint({"tune": {"init_gains": str(new), "lr": 0.2}}, [new]))
+        runs.check_output_dir(
+            run, "tune", runs.fingerprint({"tune": {"init_gains": str(new), "lr": 0.2}}, [new], "icub")
+        )
     assert upgrade_run.main([str(run)]) == 1  # already of today's kind: nothing to do, said so
