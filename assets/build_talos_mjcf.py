@@ -39,18 +39,13 @@ import xml.etree.ElementTree as ET
 import mujoco
 import numpy as np
 
+from wbc_jax.robot.talos import DESCRIPTION
+
 OUT = pathlib.Path(__file__).resolve().parent / "talos" / "talos_22dof.xml"
 GAINS_DIR = OUT.parent / "gains"
 
-DRIVEN_JOINTS = (
-    "torso_1_joint", "torso_2_joint",
-    "arm_left_1_joint", "arm_left_2_joint", "arm_left_3_joint", "arm_left_4_joint",
-    "arm_right_1_joint", "arm_right_2_joint", "arm_right_3_joint", "arm_right_4_joint",
-    "leg_left_1_joint", "leg_left_2_joint", "leg_left_3_joint", "leg_left_4_joint", "leg_left_5_joint",
-    "leg_left_6_joint",
-    "leg_right_1_joint", "leg_right_2_joint", "leg_right_3_joint", "leg_right_4_joint", "leg_right_5_joint",
-    "leg_right_6_joint",
-)  # fmt: skip
+# The controller's joints, in its order: the robot description is their one declaration.
+DRIVEN_JOINTS = DESCRIPTION.joints
 FIXED_JOINTS = ("head_1_joint", "head_2_joint", "gripper_left_joint", "gripper_right_joint") + tuple(
     f"arm_{side}_{k}_joint" for side in ("left", "right") for k in (5, 6, 7)
 )
