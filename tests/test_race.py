@@ -1,6 +1,6 @@
 """Issue 35's pieces without compiling the closed loop: the gradient estimators against known gradients,
 the gain schedule (bounds, stability, files), the window loss, the race's verdict and files, the
-campaign's gain files, and data-parallel programs on two host devices against one. The closed-loop
+campaign's gain files (two devices against one: tests/test_tune_devices.py). The closed-loop
 runs of all of it (gradient, windows, searches, held-out, report) are the slow end-to-end test at the
 end (`pytest -m slow`)."""
 
@@ -276,53 +276,6 @@ def test_write_once_refuses_other_contents(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------
-# Several devices: the same result as one within float noise (two host CPU devices, a subprocess)
-
-SHARDED = r"""
-import json, jax, jax.numpy as jnp, numpy as np
-jax.config.update("jax_enable_x64", True)
-from jax.sharding import Mesh
-from wbc_jax.tuning.algorithms import estimators, objectives
-
-def env_objective(p, x):  # a nonlinear per-rollout objective with a rollout that diverges
-    return jnp.log1p(jnp.sum((p["a"] * x) ** 2) + jnp.sum(jnp.sin(p["b"] * x[:2]))) / jnp.where(x[0] > 1.95, 0.0, 1.0)
-
-def fn(params_b, xs):
-    return jax.vmap(jax.value_and_grad(env_objective))(params_b, xs)
-
-devices = jax.devices()
-out = {"devices": len(devices)}
-params = {"a": jnp.linspace(0.1, 1.0, 3), "b": jnp.array([0.3, -0.2])}
-for n in (1, 2):
-    mesh = Mesh(np.asarray(devices[:n]), ("batch",))
-    pb, eps = estimators.antithetic(params, jax.random.key(0), 4, 0.1)
-    xs = objectives.shard(jnp.arange(24.0).reshape(8, 3) / 10, mesh)
-    values, grads = jax.jit(objectives.data_parallel(fn, mesh))(pb, xs)
-    grad, stats = jax.jit(lambda v, g, e: estimators.combine("interpolated", v, g, e, sigma=0.1, clip_factor=3.0,
-                                                             bias_factor=2.0))(values, grads, eps)
-    out[n] = {"values": np.asarray(values).tolist(), "grad": np.asarray(estimators.rows(
-        jax.tree_util.tree_map(lambda x: x[None], grad))[0]).tolist(), "alpha": float(stats["alpha"]),
-        "nonfinite": int(stats["nonfinite_envs"]), "shards": len(values.sharding.device_set)}
-print(json.dumps(out))
-"""
-
-
-def test_data_parallel_programs_on_two_devices_match_one():
-    env = {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
-           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}  # fmt: skip
-    proc = subprocess.run([sys.executable, "-c", SHARDED], capture_output=True, text=True, timeout=240, env=env)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    res = json.loads(proc.stdout.strip().splitlines()[-1])
-    one, two = res["1"], res["2"]
-    assert res["devices"] == 2 and one["shards"] == 1 and two["shards"] == 2  # the batch did split
-    assert one["nonfinite"] == two["nonfinite"] == 1
-    # Two devices vs one (two programs): measured bit-equal values, 1.5e-16 relative gradients.
-    np.testing.assert_allclose(two["values"], one["values"], rtol=1e-12)
-    np.testing.assert_allclose(two["grad"], one["grad"], rtol=1e-10)
-    assert two["alpha"] == pytest.approx(one["alpha"], rel=1e-10) and 0.0 <= one["alpha"] <= 1.0
-
-
-# ---------------------------------------------------------------------------------------------
 # The whole pipeline at tiny sizes (slow: compiles the gradient, window and population programs)
 
 TINY_RUN = ["--horizon", "0.3", "--push-onset", "0.05", "--duration-range", "0.05", "0.1", "--eval-horizon", "0.3",
@@ -391,52 +344,3 @@ def test_race_pipeline_end_to_end(tmp_path, extra):
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert json.loads((out / "gains" / "provenance.json").read_text()).keys() == index.keys()
     assert (out / "heldout.json").read_text() == before
-
-
-CLOSED_LOOP_SHARDED = r"""
-import json, jax, jax.numpy as jnp, numpy as np
-jax.config.update("jax_enable_x64", True)
-from jax.sharding import Mesh
-from wbc_jax.tuning import config
-from wbc_jax.tuning.algorithms import estimators, objectives, gradient
-from wbc_jax.tuning.algorithms import problem as tp
-from wbc_jax.robot.icub import DESCRIPTION as ICUB
-
-tc = config.TuneConfig(horizon=0.05, push_onset=0.0, duration_range=(0.02, 0.04), eval_horizon=0.1, batch=2,
-                       quality_pushes=2, population=1, es_batch=1)
-problem = tp.make_problem(tc)
-params = problem.init_params()
-scen = objectives.cast_batch(gradient.training_batch(problem, 0)[0], problem.setup.dtype)
-out = {}
-for n in (1, 2):  # one environment per device (XLA:CPU deadlocks with several: runner.batch_devices)
-    mesh = Mesh(np.asarray(jax.devices()[:n]), ("batch",))
-    values, grads, _, _ = jax.jit(objectives.make_rollout_grads(problem, mesh))(estimators.repeated(params, 2),
-                                                                               objectives.shard(scen, mesh))
-    grad, _ = estimators.robust_mean_gradient(grads, 3.0)
-    pop = jax.tree_util.tree_map(lambda x: jnp.stack([x, x + 0.2]), params)
-    obj, _, _ = jax.jit(objectives.make_population_objective(problem, 2, 1, mesh))(
-        pop, jax.tree_util.tree_map(lambda x: x[:1], scen))
-    out[n] = {"values": np.asarray(values).tolist(), "grad": np.asarray(estimators.rows(
-        jax.tree_util.tree_map(lambda x: x[None], grad))[0]).tolist(), "population": np.asarray(obj).tolist(),
-        "shards": len(values.sharding.device_set)}
-print(json.dumps(out))
-"""
-
-
-@pytest.mark.slow
-@pytest.mark.timeout(2400)  # the subprocess's own limit: two gradient and two population compiles
-def test_closed_loop_gradient_and_population_on_two_devices_match_one():
-    """The tuning programs themselves (closed loop, 0.05 s, float64) on two host devices, one rollout each."""
-    env = {**os.environ, "JAX_PLATFORMS": "cpu",
-           "XLA_FLAGS": "--xla_force_host_platform_device_count=2 --xla_backend_optimization_level=0 "
-                        "--xla_llvm_disable_expensive_passes=true",
-           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}  # fmt: skip
-    proc = subprocess.run([sys.executable, "-c", CLOSED_LOOP_SHARDED], capture_output=True, text=True, timeout=2400,
-                          env=env)  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    res = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert res["1"]["shards"] == 1 and res["2"]["shards"] == 2
-    np.testing.assert_allclose(res["2"]["values"], res["1"]["values"], rtol=1e-9)
-    np.testing.assert_allclose(res["2"]["grad"], res["1"]["grad"], rtol=1e-6, atol=1e-12)
-    np.testing.assert_allclose(res["2"]["population"], res["1"]["population"], rtol=1e-9)
-    assert np.linalg.norm(res["1"]["grad"]) > 0

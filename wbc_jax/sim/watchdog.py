@@ -63,13 +63,15 @@ class Watchdog:
     (:func:`stall_bound`). warm: a chunk of this run finished in this process (the programs are
     compiled: C MuJoCo's run then gets ``bound_s`` alone). simulate_stall: the test hook (chunk,
     device index): that device's share of that chunk's run blocks until the watchdog gives up
-    (``--simulate-stall``). rows: one dict per device and phase, seconds from the phase's start."""
+    (``--simulate-stall``). rows: one dict per device and phase, seconds from the phase's start.
+    unit: what ``chunk`` counts, as the error names it (the tuning programs count their calls)."""
 
     chunk: int
     bound_s: float
     warm: bool = False
     simulate_stall: tuple[int, int] | None = None
     rows: list = dataclasses.field(default_factory=list)
+    unit: str = "chunk"
 
     def bound(self, phase: str, compiles: bool = False) -> float:
         """Seconds ``phase`` may take; ``compiles``: the run compiles its program too."""
@@ -129,9 +131,9 @@ def run_watched(tasks: Sequence[tuple[str, Callable[[dict], Any]]], watch: Watch
         gave_up.set()
         finished = len(tasks) - len(stalled)
         raise DeviceStalled(
-            f"chunk {watch.chunk}: device {', '.join(stalled)} did not finish its {phase} within {bound:g} s "
-            f"({finished} of {len(tasks)} device(s) did; bound: --stall-timeout-s); the chunks finished before are "
-            f"kept: rerun the same command to resume"
+            f"{watch.unit} {watch.chunk}: device {', '.join(stalled)} did not finish its {phase} within {bound:g} s "
+            f"({finished} of {len(tasks)} device(s) did; bound: --stall-timeout-s); the {watch.unit}s finished before "
+            f"are kept: rerun the same command to resume"
         )
     for err in errors:
         if err is not None:

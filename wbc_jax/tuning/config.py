@@ -8,6 +8,7 @@ import dataclasses
 import hashlib
 import json
 import pathlib
+from typing import ClassVar
 
 import numpy as np
 
@@ -18,7 +19,7 @@ from wbc_jax.jobs.grids import MAX_GRID_AXIS, azimuths, magnitude_grid, show_mag
 from wbc_jax.jobs.sweep_config import ONE_FOOT_WINDOW
 from wbc_jax.robot import model
 from wbc_jax.robot.robots import robot_option
-from wbc_jax.sim import physics
+from wbc_jax.sim import physics, watchdog
 
 CHECKPOINTS = ("tick", "none", "dots")
 PUSH_SCALES = ("envelope", "lip")
@@ -165,6 +166,16 @@ class TuneConfig:
                                      "on the quality pushes (0: from the antithetic pairs of the gradient program "
                                      "instead, one push each; no population program, no descent check)", ge=0,
                                      le=MAX_BATCH)  # fmt: skip
+    stall_timeout_s: float | None = option(
+        None, "seconds a call of a tuning program may run on a device (one program per local GPU) before the run "
+        "stops with an error naming the device and the call (default: max("
+        f"{watchdog.MIN_STALL_S:g} s, {watchdog.STALL_FACTOR:g}x that program's slowest finished call), "
+        f"{watchdog.FIRST_CHUNK_STALL_S:g} s for its first; compiling gets at least {watchdog.COMPILE_STALL_S:g} s)",
+        gt=0.0, le=watchdog.MAX_STALL_S, unit="s",
+    )  # fmt: skip
+
+    # Fields that bound how a run proceeds, not what it computes: no part of its fingerprint or checkpoint keys.
+    PROCEDURE: ClassVar[tuple[str, ...]] = ("stall_timeout_s",)
 
     def __post_init__(self):
         self.check()
@@ -231,7 +242,8 @@ def default_config() -> TuneConfig:
 
 # Fields that do not change what the gradient training computes.
 NOT_TRAINING = ("out", "phases", "population", "es_batch", "es_sigma", "wall_budget", "eval_pushes", "eval_horizon",
-                "search_backend", "snapshots_s", "quality_pushes", "quality_directions")  # fmt: skip
+                "search_backend", "snapshots_s", "quality_pushes", "quality_directions",
+                *TuneConfig.PROCEDURE)  # fmt: skip
 
 
 def config_key(*configs, exclude=()) -> str:

@@ -31,7 +31,6 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from wbc_jax.sim import runner
 from wbc_jax.tuning import config, store
 from wbc_jax.tuning.algorithms import objectives
 from wbc_jax.tuning.algorithms import problem as tp
@@ -111,7 +110,7 @@ def budget_generations(problem: tp.Problem, sim_steps: int) -> int:
 
 NOT_SEARCH = ("out", "phases", "steps", "wall_budget", "eval_pushes", "eval_horizon", "snapshots_s", "lr",
               "clip_norm", "estimator", "smoothing_sigma", "bias_factor", "window_s", "windows", "terminal_weight",
-              "checkpoint", "env_clip", "quality_pushes", "quality_directions")  # fmt: skip
+              "checkpoint", "env_clip", "quality_pushes", "quality_directions", *config.TuneConfig.PROCEDURE)  # fmt: skip
 
 
 def search(problem: tp.Problem, kind: str, out, *, budget: dict, progress: bool = True,
@@ -148,7 +147,7 @@ def search(problem: tp.Problem, kind: str, out, *, budget: dict, progress: bool 
     per_gen = (tc.population + 1) * b * problem.steps_per_rollout
     if evaluate_fn is None:
         fwd = tp.with_backend(problem, forward_backend(tc))
-        evaluate = jax.jit(objectives.make_population_objective(fwd, tc.population + 1, b, mesh))
+        evaluate = objectives.make_population_objective(fwd, tc.population + 1, b, mesh)
     else:
         evaluate = evaluate_fn
 
@@ -165,11 +164,10 @@ def search(problem: tp.Problem, kind: str, out, *, budget: dict, progress: bool 
             spent = g * per_gen >= budget["sim_steps"] and wall_spent
         return spent or (max_generations is not None and g >= max_generations)
 
-    if not done(start) and hasattr(evaluate, "lower"):  # ahead of time: the compile timed apart
+    if not done(start) and isinstance(evaluate, objectives.DevicePrograms):  # ahead of time: timed apart
         pop_like = jax.vmap(unravel)(jnp.zeros((tc.population + 1, p0.size), p0.dtype))
-        t0 = time.perf_counter()
-        evaluate = runner.compile_ahead(evaluate, pop_like, batch(start))  # keyed by the program alone
-        compile_s = time.perf_counter() - t0 if compile_s is None else compile_s  # the first one counts
+        seconds = evaluate.compile(pop_like, batch(start))  # one device: keyed by the program alone
+        compile_s = seconds if compile_s is None else compile_s  # the first one counts
     compile_s = compile_s or 0.0
     wall = float(rows[-1]["wall_s"]) if rows else compile_s
     g = start

@@ -40,6 +40,7 @@ from jax.flatten_util import ravel_pytree
 
 from wbc_jax.core import io, provenance
 from wbc_jax.sim import runner
+from wbc_jax.sim.per_device import PerDevice
 from wbc_jax.tuning import store
 from wbc_jax.tuning.algorithms import estimators, objectives
 from wbc_jax.tuning.algorithms import problem as tp
@@ -102,11 +103,11 @@ class GradientStep:
                 raise ValueError(
                     f"window mode: {self.rollouts} forward rollouts per step must divide by {n_dev} devices"
                 )
-            self.sampler = jax.jit(tw.make_sampler(self.fwd, self.rollouts, tc.windows, mesh))
-            self.grads = jax.jit(tw.make_window_grads(problem, mesh))
+            self.sampler = tw.make_sampler(self.fwd, self.rollouts, tc.windows, mesh)
+            self.grads = tw.make_window_grads(problem, mesh)
             self.W = tw.window_ticks(problem)
         else:
-            self.grads = jax.jit(objectives.make_rollout_grads(problem, mesh))
+            self.grads = objectives.make_rollout_grads(problem, mesh)
         self.update = jax.jit(self._update)
         self.perturb = jax.jit(estimators.antithetic, static_argnums=(2, 3))
         self.compiled = False
@@ -135,10 +136,10 @@ class GradientStep:
             params_b, eps = estimators.repeated(params, tc.batch), None
         scen = objectives.cast_batch(training_batch(problem, k)[0], problem.setup.dtype)
         if not self.windowed:
-            return params_b, eps, objectives.shard(pair_rows(scen, tc.pairs), self.mesh), None, 0
+            return params_b, eps, pair_rows(scen, tc.pairs), None, 0
         rng = tp.batch_rng(tc.seed, 5, k)
         ticks = tw.sample_starts(rng, self.rollouts, tc.windows, problem.loop.n_ticks, self.W)
-        starts, terms, metrics = self.sampler(params, objectives.shard(scen, self.mesh), ticks)
+        starts, terms, metrics = self.sampler(params, scen, ticks)
         fwd_steps = self.rollouts * problem.steps_per_rollout
         return params_b, eps, pair_rows(starts, tc.pairs), (terms, metrics), fwd_steps
 
@@ -149,13 +150,15 @@ class GradientStep:
         self.compiled = True
         t0 = time.perf_counter()
         params_b, eps, rollouts, _, _ = self.rows_of(params, 0)
-        out = jax.eval_shape(self.grads, params_b, rollouts)
-        self.grads = runner.compile_ahead(self.grads, params_b, rollouts)  # keyed by the program alone
+        out = self.grads.eval_shape(params_b, rollouts)
+        self.grads.compile(params_b, rollouts)  # one device: keyed in the persistent cache by the program alone
         self.update = runner.compile_ahead(self.update, params, opt_state, out[0], out[1], eps, out[2])
         return time.perf_counter() - t0
 
     def memory_mb(self):
-        ma = self.grads.memory_analysis() if hasattr(self.grads, "memory_analysis") else None
+        program = self.grads.program  # several devices: each device's program is alike; the first one's
+        program = next(iter(program.compiled.values()), None) if isinstance(program, PerDevice) else program
+        ma = program.memory_analysis() if hasattr(program, "memory_analysis") else None
         return None if ma is None else {"temp_mb": ma.temp_size_in_bytes / 2**20,
                                         "argument_mb": ma.argument_size_in_bytes / 2**20}  # fmt: skip
 
@@ -239,7 +242,7 @@ def train(problem: Problem, out, *, progress: bool = True, step_fn=None, mesh=No
         compile_s = step_fn.compile(*state)
         info.setdefault("compile_s", round(compile_s, 2))  # the first compile counts in the wall budget
         info.update(last_compile_s=round(compile_s, 2), device=provenance.device_label(),
-                    n_devices=int(objectives.mesh_of(mesh).devices.size), batch=tc.batch, horizon_s=tc.horizon,
+                    n_devices=step_fn.grads.n_devices, batch=tc.batch, horizon_s=tc.horizon,
                     steps_per_rollout=problem.steps_per_rollout, estimator=tc.estimator, window_s=tc.window_s,
                     checkpoint=tc.checkpoint, parameterisation=tc.parameterisation, budget_s=budget,
                     parameters=int(flat0.size), **(step_fn.memory_mb() or {}))  # fmt: skip
@@ -274,6 +277,8 @@ def train(problem: Problem, out, *, progress: bool = True, step_fn=None, mesh=No
         info["step_s_median"] = float(np.median(steady))
         info["gradient_physics_steps_per_s"] = float(rows[-1]["grad_sim_steps"]) / info["step_s_median"]
         info["physics_steps_per_s"] = (int(rows[-1]["sim_steps"]) / len(rows)) / info["step_s_median"]
+        if isinstance(step_fn, GradientStep) and step_fn.grads.ran_on:  # the devices the last step's rollouts ran on
+            info["ran_on"] = step_fn.grads.ran_on
         io.atomic_write_json(info_path, info)
     return controls, problem.regularisation(reg), rows, info
 

@@ -81,10 +81,10 @@ def sample_starts(rng: np.random.Generator, rollouts: int, windows: int, n_ticks
     return rng.integers(0, n_ticks - w + 1, size=(rollouts, windows)).astype(np.int32)
 
 
-def make_sampler(fwd: tp.Problem, rollouts: int, windows: int, mesh=None):
-    """Forward rollouts that record the window starts, unjitted: ``fn(params, scen (R,), ticks (R, K)) ->
-    (WindowStart (R K,), loss terms {name: (R,)}, Metrics (R,))`` on ``fwd``'s engine, data-parallel over
-    the rollouts (R a multiple of the device count)."""
+def make_sampler(fwd: tp.Problem, rollouts: int, windows: int, mesh=None) -> objectives.DevicePrograms:
+    """Forward rollouts that record the window starts: ``fn(params, scen (R,), ticks (R, K)) ->
+    (WindowStart (R K,), loss terms {name: (R,)}, Metrics (R,))`` on ``fwd``'s engine, one program per
+    device over the rollouts (R a multiple of the device count)."""
     loop = recording_loop(fwd.loop)
     st = fwd.setup
     qpos0 = jnp.asarray(st.qpos0, st.dtype)
@@ -109,19 +109,20 @@ def make_sampler(fwd: tp.Problem, rollouts: int, windows: int, mesh=None):
     def batch(scen, ticks, controls, reg):
         return jax.vmap(one, in_axes=(None, None, 0, 0))(controls, reg, scen, ticks)
 
-    run = objectives.data_parallel(batch, mesh, replicated=2)
+    def gains(params, scen, ticks):
+        return (scen, ticks, *tp.controls_cast(fwd, params))
 
-    def fn(params, scen, ticks):
-        start, terms, metrics = run(scen, ticks, *tp.controls_cast(fwd, params))
-        start = jax.tree_util.tree_map(lambda x: x.reshape((-1, *x.shape[2:])), start)
-        return start, terms, metrics
+    def flat(out):
+        start, terms, metrics = out
+        return jax.tree_util.tree_map(lambda x: x.reshape((-1, *x.shape[2:])), start), terms, metrics
 
-    return fn
+    return objectives.DevicePrograms(batch, mesh, (True, True, False, False), pre=gains, post=flat,
+                                     unit="window-start program call", stall_timeout_s=fwd.tc.stall_timeout_s)  # fmt: skip
 
 
-def make_window_grads(problem: tp.Problem, mesh=None):
-    """Per-window value and gradient, unjitted: ``fn(params_b {group: (B, ...)}, starts WindowStart (B,))
-    -> (values (B,), grads {group: (B, ...)}, terms {name: (B,)}, Metrics (B,))``, on MJX-JAX, data-parallel."""
+def make_window_grads(problem: tp.Problem, mesh=None) -> objectives.DevicePrograms:
+    """Per-window value and gradient: ``fn(params_b {group: (B, ...)}, starts WindowStart (B,)) -> (values
+    (B,), grads {group: (B, ...)}, terms {name: (B,)}, Metrics (B,))``, on MJX-JAX, one program per device."""
     loop, st, lc, tc = problem.loop, problem.setup, problem.lc, problem.tc
     nominal = physics.device_model(st.robot.mj_model, "jax", loop.cfg.physics)
     W = window_ticks(problem)
@@ -148,4 +149,5 @@ def make_window_grads(problem: tp.Problem, mesh=None):
             (values, (terms, metrics)), grads = per_env(params_b, starts)
         return values, grads, terms, metrics
 
-    return objectives.data_parallel(fn, mesh)
+    return objectives.DevicePrograms(fn, mesh, (True, True), unit="gradient program call",
+                                     stall_timeout_s=tc.stall_timeout_s)  # fmt: skip

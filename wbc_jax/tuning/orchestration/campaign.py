@@ -156,7 +156,8 @@ def run(cfg: TuneConfig | None = None, hc: HeldoutConfig | None = None, *, lc: L
     problem = tp.make_problem(tc, lc)
     reference = tuning_eval.load_sets(hc.sets, problem.robot.description, problem.setup.dtype)  # checked first
     files = _inputs(tc, hc)
-    fp = runs.fingerprint({"tune": {k: v for k, v in flat_dict(tc).items() if k not in ("out", "phases")},
+    fp = runs.fingerprint({"tune": {k: v for k, v in flat_dict(tc).items()
+                                    if k not in ("out", "phases", *tc.PROCEDURE)},
                            "heldout": {k: v for k, v in flat_dict(hc).items() if k != "out"},
                            "loss": dataclasses.asdict(lc), "dtype": str(scenario.float_dtype())},
                           list(files.values()), tc.robot)  # fmt: skip

@@ -125,7 +125,7 @@ def measure(problem: tp.Problem, out, *, mesh=None, progress: bool = True, step=
             scen = jax.tree_util.tree_map(lambda x: x[k * n_p : (k + 1) * n_p], scen_all)
             ticks = tw.sample_starts(tp.batch_rng(tc.seed, STREAM + 1, k), n_p, tc.windows, problem.loop.n_ticks,
                                      step.W)  # fmt: skip
-            starts, _, _ = step.sampler(params, objectives.shard(scen, mesh), ticks)
+            starts, _, _ = step.sampler(params, scen, ticks)
             rows_in = jax.tree_util.tree_map(lambda x: x[: half if paired else B], starts)
         else:
             n_p = half if paired else B
@@ -138,7 +138,7 @@ def measure(problem: tp.Problem, out, *, mesh=None, progress: bool = True, step=
         n_p = step.rollouts if step.windowed else (half if perturbed or tc.pairs else B)
         for k in range(N // n_p):
             pb, eps, rows_in, _ = call_rows(k, perturbed)
-            v, g, _, _ = step.grads(pb, objectives.shard(rows_in, mesh))
+            v, g, _, _ = step.grads(pb, rows_in)
             vals.append(np.asarray(v))
             grads.append(np.asarray(estimators.rows(g)))
             epss.append(None if eps is None else np.asarray(eps))
@@ -173,7 +173,7 @@ def measure(problem: tp.Problem, out, *, mesh=None, progress: bool = True, step=
             print(json.dumps({"quality": "zeroth-order", "candidates": 2 * M + 1, "pushes": N}), flush=True)
         P = candidates_per_call(2 * M + 1, N)
         fwd = tp.with_backend(problem, tuning.forward_backend(tc))
-        pop = jax.jit(objectives.make_population_objective(fwd, P, N, mesh))
+        pop = objectives.make_population_objective(fwd, P, N, mesh)
         e = np.asarray(jax.random.normal(jax.random.key(tc.seed * 1000 + 13), (M, D), flat0.dtype))
         cands = np.concatenate([np.asarray(flat0)[None], np.asarray(flat0) + sigma * e, np.asarray(flat0) - sigma * e])
         t0 = time.perf_counter()
