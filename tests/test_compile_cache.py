@@ -31,7 +31,8 @@ def test_gradient_program_lowers_to_the_same_text_whatever_was_traced_before():
         params = unravel(jnp.asarray(np.asarray(flat0) + shift, flat0.dtype))  # the hybrid's other starts
         step = gradient.GradientStep(problem, opt)
         params_b, _, rollouts, _, _ = step.rows_of(params, 0)
-        lowered = runner.lower_fresh(step.grads, params_b, rollouts) if fresh else step.grads.lower(params_b, rollouts)
+        program = step.grads.program  # one device: the jitted program
+        lowered = runner.lower_fresh(program, params_b, rollouts) if fresh else program.lower(params_b, rollouts)
         return hashlib.sha256(lowered.as_text().encode()).hexdigest()
 
     first = text(0.0, fresh=True)

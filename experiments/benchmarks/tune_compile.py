@@ -32,6 +32,8 @@ def main() -> None:
     args = p.parse_args()
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
     import jax
+    import numpy as np
+    from jax.sharding import Mesh
 
     from wbc_jax.core import provenance
     from wbc_jax.sim import runner
@@ -48,9 +50,11 @@ def main() -> None:
                        checkpoint=args.checkpoint, solver_iterations=args.solver_iterations)  # fmt: skip
     problem = tp.make_problem(tc)
     p0 = problem.init_params()
-    scen = objectives.shard(objectives.cast_batch(gradient.training_batch(problem, 0)[0], problem.setup.dtype))
-    if args.mode == "grad":  # the training's gradient program: per-rollout value and gradient
-        f, fargs = jax.jit(objectives.make_rollout_grads(problem)), (estimators.repeated(p0, tc.batch), scen)
+    scen = jax.device_put(objectives.cast_batch(gradient.training_batch(problem, 0)[0], problem.setup.dtype))
+    if args.mode == "grad":  # the training's gradient program on one device: per-rollout value and gradient
+        one_device = Mesh(np.asarray(jax.devices()[:1]), ("batch",))
+        f = objectives.make_rollout_grads(problem, one_device).program
+        fargs = (estimators.repeated(p0, tc.batch), scen)
     else:
         loss = tp.make_batched_loss(problem, fixed_solver=False)
         f, fargs = jax.jit(lambda q, s: loss(*problem.controls(q), s)[0]), (p0, scen)

@@ -22,6 +22,7 @@ one device, so the result is the one-device result up to the rollouts' own float
 
 from __future__ import annotations
 
+import functools
 import time
 
 import jax
@@ -84,8 +85,12 @@ class DevicePrograms:
         pre = _identity if pre is None else pre
         finish = _same if post is None else post
 
-        def fn(*args):  # named as the single-device program always was: its persistent-cache key stays
+        @functools.wraps(core if pre is _identity else pre)  # the arguments' names: part of the lowered text
+        def fn(*args):
             return finish(core(*pre(*args)))
+
+        # Named as the single-device program always was: its lowered text, the persistent cache's key, stays.
+        fn.__name__ = fn.__qualname__ = "fn"
 
         self.whole = fn
         if self.n_devices == 1:
