@@ -97,6 +97,11 @@ for job in "$@"; do
         --chunk-size 32768 --push-onset 0.5 --push-duration 0.1 --stall-timeout-s 240
       mkdir -p "$OUT/$job"; cp /tmp/scaling4/scaling.json "$OUT/$job/"
       find /tmp/scaling4/runs -name timeline.json | tar -czf "$OUT/$job/timelines.tgz" -T - ;;
+    tune_gpus)  # issue 45: the tune job's gradient step and a CMA-ES generation at the race's settings on 1 GPU and on
+            # all of them (loss, gradient, their difference, step seconds, speed-up). A call cut off by its limit
+            # leaves the compiled programs in $WBC_JAX_CACHE: the same call on the warm machine goes on from them.
+      run tune_gpus env XLA_FLAGS="${TUNE_GPUS_XLA_FLAGS---xla_gpu_autotune_level=0}" timeout ${TUNE_GPUS_WALL:-560} \
+        python3 experiments/checks/tune_gpus_check.py --out "$OUT/tune_gpus" ${TUNE_GPUS_FLAGS:-} ;;
     limit|limit_root)  # issue 37: the physical limit of push recovery, 32 directions, pushes of 0.1 s at 0.5 s (limit:
             # chest; limit_root: root_link). Time-capped (LIMIT_TIME s from the job's start: no new round, the round
             # in flight stops at its next judge, its C MuJoCo replays still run) and written into $OUT round by round,

@@ -27,6 +27,7 @@ SCRIPTS = {
     "grad_check": "experiments/checks/grad_check.py",
     "bad_input": "experiments/checks/bad_input.py",
     "memory_estimate": "experiments/checks/memory_estimate.py",
+    "tune_gpus_check": "experiments/checks/tune_gpus_check.py",
     "benchmark": "benchmarks/benchmark.py",
     "cpu_targets": "experiments/acceptance/cpu_targets.py",
 }
@@ -263,3 +264,21 @@ def test_memory_estimate_bar_is_no_measurement_above_the_estimate():
     bad["rows"][-1]["measured_over_estimate"] = 1.2
     assert len(me.failures(bad)) == 1 and "1.2 x the estimate" in me.failures(bad)[0]
     assert me.failures({"rows": []}) == ["nothing was measured"]
+
+
+def test_tune_gpus_check_bar_is_the_gradient_within_the_bound_on_every_device():
+    tg = script("tune_gpus_check")
+    run = {"values": [1.0, 2.0, float("nan"), 4.0], "gradient": [0.5, -2.0, 1e-9], "loss": 2.0, "step_s_median": 4.0,
+           "cmaes": {"gen_s_median": 3.0, "generation_0": {"loss": 1.0}}, "devices": 1, "ran_on": ["gpu:0"]}  # fmt: skip
+    two = {**run, "gradient": [0.5, -2.0 + 1e-4, 2e-9], "step_s_median": 2.5, "devices": 2,
+           "ran_on": ["gpu:0", "gpu:1"]}  # fmt: skip
+    cmp = tg.compare(run, two, 1e-3)
+    assert cmp["gradient_max_rel_diff"] == pytest.approx(5e-5) and cmp["step_speedup"] == 1.6
+    assert cmp["rollout_values_max_rel_diff"] == 0.0 and cmp["finiteness_differs"] == 0
+    assert tg.failures({"comparison": cmp, "all": two}) == []
+    off = {**two, "gradient": [0.5, -2.01, 0.0], "ran_on": ["gpu:0"]}
+    assert tg.failures({"comparison": tg.compare(run, off, 1e-3), "all": off}) == [
+        "the 2-device gradient differs from one device's by 0.005 of its largest entry (bound 0.001)",
+        "the 2-device step's last call finished on ['gpu:0'] only"]  # fmt: skip
+    nan = {**two, "gradient": [float("nan"), -2.0, 0.0]}
+    assert "differs from one device's by inf" in tg.failures({"comparison": tg.compare(run, nan, 1e-3), "all": nan})[0]

@@ -1,0 +1,179 @@
+"""Gain tuning on every local GPU against one GPU: the same loss and gradient, and the speed-up (issue 45).
+
+    python experiments/checks/tune_gpus_check.py --out DIR [--repeats 3] [--max-rel-diff 1e-3] [-- TUNE FLAGS]
+
+At the race's settings (experiments/campaigns/race_piece.sh: batch 2,048 rollouts of 2 s, the implicit solver
+gradient, a checkpoint per tick, CMA-ES with 16 candidates x 60 pushes on --search-backend auto; TUNE FLAGS,
+``wbc-jax tune``'s, come after them and win), in one process, first on the first device alone and then on all N
+local devices (one single-device program per device, :class:`wbc_jax.tuning.algorithms.objectives.DevicePrograms`):
+
+* the gradient step of the training (``GradientStep``): its compile, the gradient of step 0 (its rollouts'
+  values and gradients combined by the estimator) and its loss; then ``--repeats`` whole steps (push sampling,
+  the gradient program, the optimiser step, the transfer), their median the step's seconds;
+* the CMA-ES search (``baselines.search``): its compile, then 1 + ``--repeats`` generations; generation 0's
+  objective of the mean and its best and median candidates, the median of the later generations' seconds.
+
+DIR/tune_gpus.json holds per device count the figures above, the devices that ran the last call, and the
+comparison: the largest difference of the N-device gradient from the one-device one relative to the latter's
+largest entry, the losses' and objectives' relative differences, the speed-ups (one device's seconds over N's),
+with provenance (command, device names). Exits 1 when the gradients differ by more than ``--max-rel-diff``
+(float32 rounding of other per-device batch shapes grown through the closed loop's ticks; the same check on
+two host CPU devices in float64 is bit-equal, tests/test_tune_devices.py) or fewer than two devices are there.
+Compiled programs go to JAX's persistent cache (``$WBC_JAX_CACHE``): a call cut off by a time limit leaves them
+for the next. On a CPU, host devices: ``XLA_FLAGS=--xla_force_host_platform_device_count=2``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+from wbc_jax.core import checks, io, provenance
+
+MAX_REL_DIFF = 1e-3  # default bound: float32 rounding of other per-device batch shapes through the closed loop
+BAR = (f"the N-device gradient within --max-rel-diff (default {MAX_REL_DIFF:g}) of one device's, relative to its "
+       "largest entry; every device's share of the last step finished")  # fmt: skip
+RACE_FLAGS = ["--batch", "2048", "--horizon", "2", "--solver-gradient", "implicit", "--checkpoint", "tick",
+              "--lr", "0.1", "--push-scale", "lip", "--magnitude-range", "0.3", "1.0", "--init-gains",
+              "assets/gains/com_critical_100.json", "--population", "16", "--es-batch", "60",
+              "--search-backend", "auto"]  # fmt: skip
+
+
+def tune_config(flags: list[str]):
+    """The checked config of ``wbc-jax tune RACE_FLAGS FLAGS`` (later flags win)."""
+    from wbc_jax import cli
+    from wbc_jax.tuning import config
+
+    return cli.config_from_args(cli.build_parser().parse_args(["tune", *RACE_FLAGS, *flags]), config.TuneConfig())
+
+
+def measure(problem, devices: list, repeats: int, work: pathlib.Path) -> dict:
+    """The gradient step's and a CMA-ES generation's figures on ``devices`` (module docstring)."""
+    import jax
+    import jax.numpy as jnp
+    from jax.flatten_util import ravel_pytree
+    from jax.sharding import Mesh
+
+    from wbc_jax.tuning.algorithms import baselines, estimators, gradient
+
+    tc = problem.tc
+    mesh = Mesh(np.asarray(devices), ("batch",))
+    step = gradient.GradientStep(problem, gradient.make_optimizer(tc.lr, tc.clip_norm), mesh)
+    params = problem.init_params()
+    opt_state = step.optimizer.init(params)
+    compile_s = step.compile(params, opt_state)
+    params_b, eps, rollouts, _, _ = step.rows_of(params, 0)
+    values, grads, _, _ = step.grads(params_b, rollouts)
+    combine = jax.jit(lambda v, g, e: estimators.combine(tc.estimator, v, g, e, sigma=tc.smoothing_sigma,
+                                                         clip_factor=tc.env_clip, bias_factor=tc.bias_factor))  # fmt: skip
+    grad, stats = combine(jnp.asarray(values), jax.tree_util.tree_map(jnp.asarray, grads), eps)
+    values = np.asarray(values, float)
+    _, _, first = step(params, opt_state, 0)  # its first call: what compiles lazily (the host-side programs)
+    step_s = []
+    for k in range(1, repeats + 1):
+        t0 = time.perf_counter()
+        step(params, opt_state, k)
+        step_s.append(time.perf_counter() - t0)
+    ran_on = list(step.grads.ran_on)
+    found = baselines.search(problem, "cmaes", work / f"cmaes_{len(devices)}", budget={"sim_steps": 10**15, "wall_s": 0.0},
+                             max_generations=1 + repeats, progress=False, mesh=mesh)  # fmt: skip
+    gens = found["history"]
+    return {"devices": len(devices), "ran_on": ran_on, "compile_s": round(compile_s, 2),
+            "loss": float(first["loss"]), "finite_rollouts": int(np.isfinite(values).sum()),
+            "values": values.tolist(), "gradient": np.asarray(ravel_pytree(grad)[0], float).tolist(),
+            "nonfinite_envs": int(stats["nonfinite_envs"]), "step_s": [round(s, 4) for s in step_s],
+            "step_s_median": float(np.median(step_s)),
+            "cmaes": {"compile_s": found["compile_s"], "gen_s": [float(r["gen_s"]) for r in gens],
+                      "gen_s_median": float(np.median([float(r["gen_s"]) for r in gens[1:]] or [np.nan])),
+                      "generation_0": {k: float(gens[0][k]) for k in ("loss", "best_candidate_loss",
+                                                                      "median_candidate_loss")}}}  # fmt: skip
+
+
+def relative(a, b) -> float:
+    """max |a - b| / max |b| over finite entries of b (NaN when b has none)."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    ok = np.isfinite(b)
+    if not ok.any():
+        return float("nan")
+    scale = max(float(np.max(np.abs(b[ok]))), 1e-300)
+    return float(np.max(np.abs(a[ok] - b[ok])) / scale) if np.isfinite(a[ok]).all() else float("inf")
+
+
+def compare(one: dict, many: dict, bound: float) -> dict:
+    """The N-device figures against one device's: relative differences and speed-ups."""
+    return {"gradient_max_rel_diff": relative(many["gradient"], one["gradient"]),
+            "loss_rel_diff": relative([many["loss"]], [one["loss"]]),
+            "rollout_values_max_rel_diff": relative(many["values"], one["values"]),
+            "finiteness_differs": int(np.sum(np.isfinite(many["values"]) != np.isfinite(one["values"]))),
+            "cmaes_generation_0_rel_diff": {k: relative([many["cmaes"]["generation_0"][k]],
+                                                        [one["cmaes"]["generation_0"][k]])
+                                            for k in one["cmaes"]["generation_0"]},
+            "step_speedup": one["step_s_median"] / many["step_s_median"],
+            "cmaes_generation_speedup": one["cmaes"]["gen_s_median"] / many["cmaes"]["gen_s_median"],
+            "max_rel_diff_bound": bound}  # fmt: skip
+
+
+def failures(result: dict) -> list[str]:
+    """The gradients apart by more than the bound (or not finite); a device whose share did not run."""
+    cmp, many = result["comparison"], result["all"]
+    out = []
+    if not cmp["gradient_max_rel_diff"] <= cmp["max_rel_diff_bound"]:  # NaN fails too
+        out.append(f"the {many['devices']}-device gradient differs from one device's by {cmp['gradient_max_rel_diff']:.3g}"
+                   f" of its largest entry (bound {cmp['max_rel_diff_bound']:g})")  # fmt: skip
+    if len(set(many["ran_on"])) != many["devices"]:
+        out.append(f"the {many['devices']}-device step's last call finished on {many['ran_on']} only")
+    return out
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog=f"Check: {BAR}; exit status 1 otherwise.")  # fmt: skip
+    parser.add_argument("--out", required=True, help="folder of tune_gpus.json")
+    parser.add_argument("--repeats", type=int, default=3, help="timed steps and generations after the first")
+    parser.add_argument("--max-rel-diff", type=float, default=MAX_REL_DIFF,
+                        help="bound of the gradients' largest difference relative to the one-device gradient's "
+                             "largest entry")  # fmt: skip
+    raw = list(sys.argv[1:] if argv is None else argv)
+    split = raw.index("--") if "--" in raw else len(raw)
+    args = parser.parse_args(raw[:split])
+    if args.repeats < 1 or not 0.0 < args.max_rel_diff < 1.0:
+        parser.error(f"--repeats must be >= 1 (got {args.repeats}) and --max-rel-diff in (0, 1) "
+                     f"(got {args.max_rel_diff:g})")  # fmt: skip
+    tc = tune_config(raw[split + 1 :])  # a bad tune flag: the job's own one-line error, before anything compiles
+
+    import jax
+
+    from wbc_jax.sim import runner
+    from wbc_jax.tuning.algorithms import problem as tp
+
+    devices = jax.devices()
+    if len(devices) < 2:
+        parser.error(f"needs at least 2 devices, this machine has {len(devices)} ({devices[0].platform}); on a CPU "
+                     "set XLA_FLAGS=--xla_force_host_platform_device_count=2")  # fmt: skip
+    runner.enable_compilation_cache()
+    problem = tp.make_problem(tc)
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as work:
+        one = measure(problem, devices[:1], args.repeats, pathlib.Path(work))
+        print(json.dumps({"devices": 1, "step_s_median": one["step_s_median"], "loss": one["loss"]}), flush=True)
+        many = measure(problem, devices, args.repeats, pathlib.Path(work))
+    result = {"comparison": compare(one, many, args.max_rel_diff), "one": one, "all": many,
+              "device_names": sorted({d.device_kind for d in devices}), "tune_flags": [*RACE_FLAGS, *raw[split + 1 :]],
+              "provenance": provenance.record({"init_gains": tc.init_gains})}  # fmt: skip
+    result["check"] = checks.verdict(failures(result), BAR)
+    io.atomic_write_json(out / "tune_gpus.json", result)
+    summary = {k: result["comparison"][k] for k in ("gradient_max_rel_diff", "loss_rel_diff", "step_speedup",
+                                                    "cmaes_generation_speedup")}  # fmt: skip
+    print(json.dumps({**summary, "passed": result["check"]["passed"]}))
+    return result
+
+
+if __name__ == "__main__":
+    sys.exit(checks.exit_status(main()))
