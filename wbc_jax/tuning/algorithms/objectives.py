@@ -96,7 +96,7 @@ class DevicePrograms:
         if self.n_devices == 1:
             self.program = jax.jit(fn)
         else:
-            self.pre = jax.jit(pre)
+            self.pre = None if pre is _identity else jax.jit(pre)
             self.post = None if post is None else jax.jit(post)
             self.program = PerDevice(core, self.mesh, batched)
         self.compiled = False
@@ -127,6 +127,9 @@ class DevicePrograms:
                 placed.append(host(arg))
         return placed
 
+    def _core_args(self, args) -> tuple:
+        return args if self.pre is None else self.pre(*args)
+
     def eval_shape(self, *args):
         """The outputs' shapes and dtypes for ``args``."""
         return jax.eval_shape(self.whole, *args)
@@ -139,8 +142,9 @@ class DevicePrograms:
         t0 = time.perf_counter()
         if self.n_devices == 1:
             self.program = runner.compile_ahead(self.program, *args)  # keyed by the program alone
-        else:
-            self.program.compile(*self._place(self.pre(*args)), watch=self.watch())
+        else:  # as runner.lower_fresh: each device's lowered text (its persistent-cache key) is the program's alone
+            jax.clear_caches()
+            self.program.compile(*self._place(self._core_args(args)), watch=self.watch())
         self.compiled = True
         return time.perf_counter() - t0
 
@@ -149,7 +153,7 @@ class DevicePrograms:
             self.ran_on = [watchdog.device_label(self.mesh.devices.flat[0])]
             return self.program(*args)
         self.compile(*args)
-        core_args = self._place(self.pre(*args))
+        core_args = self._place(self._core_args(args))
         watch = self.watch()
         self.calls += 1
         t0 = time.perf_counter()
