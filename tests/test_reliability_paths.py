@@ -101,7 +101,7 @@ def test_window_sampler_traces_through_the_driver(window_problem):
     scen = objectives.cast_batch(gradient.training_batch(problem, 0)[0], problem.setup.dtype)
     ticks = tw.sample_starts(np.random.default_rng(0), R, K, problem.loop.n_ticks, W)
     assert ticks.shape == (R, K) and ticks.max() <= problem.loop.n_ticks - W
-    starts, terms, metrics = jax.eval_shape(tw.make_sampler(problem, R, K), params, scen, ticks)
+    starts, terms, metrics = tw.make_sampler(problem, R, K).eval_shape(params, scen, ticks)
     nq, nv = problem.robot.mj_model.nq, problem.robot.mj_model.nv
     assert starts.qpos.shape == (R * K, nq) and starts.qvel.shape == (R * K, nv) and starts.tick.shape == (R * K,)
     assert starts.normal0.shape == (R * K, 2, 3) and terms["total"].shape == (R,)
