@@ -160,3 +160,17 @@ def test_closed_loop_gradient_and_population_on_two_devices_match_one():
     np.testing.assert_allclose(res["2"]["values"], res["1"]["values"], rtol=1e-9)
     np.testing.assert_allclose(res["2"]["grad"], res["1"]["grad"], rtol=1e-6, atol=1e-12)
     np.testing.assert_allclose(res["2"]["population"], res["1"]["population"], rtol=1e-9)
+
+
+def test_tune_refuses_several_processes_before_writing_anything(tmp_path, monkeypatch):
+    """Under jax.distributed (class 9 of issue 41): one line naming the way out, no run folder; the devices of
+    one process are what the tuning programs split over."""
+    import jax
+
+    from wbc_jax.tuning.orchestration import campaign
+
+    monkeypatch.setattr(jax, "process_count", lambda: 2)
+    with pytest.raises(ValueError, match=r"^wbc-jax tune runs in one process on its local devices \(every local GPU\), "
+                                         r"not in 2 processes: run it without --distributed$"):  # fmt: skip
+        campaign.run(config.TuneConfig(out=str(tmp_path / "run")), progress=False)
+    assert not (tmp_path / "run").exists()

@@ -75,9 +75,6 @@ class DevicePrograms:
     def __init__(self, core, mesh: Mesh | None, batched: tuple[bool, ...], *, pre=None, post=None,
                  unit: str = "tuning program call", stall_timeout_s: float | None = None,
                  simulate_stall: tuple[int, int] | None = None):  # fmt: skip
-        if jax.process_count() > 1:
-            raise ValueError(f"gain tuning runs on the devices of one process, not {jax.process_count()} processes "
-                             "(jax.distributed): run wbc-jax tune without --distributed; it uses every local GPU")  # fmt: skip
         self.mesh = mesh_of(mesh)
         self.n_devices = int(self.mesh.devices.size)
         self.batched, self.unit = batched, unit

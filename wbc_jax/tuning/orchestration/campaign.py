@@ -29,6 +29,7 @@ import json
 import pathlib
 import time
 
+import jax
 import numpy as np
 
 from wbc_jax.core import io, options, provenance
@@ -148,6 +149,9 @@ def run(cfg: TuneConfig | None = None, hc: HeldoutConfig | None = None, *, lc: L
         progress: bool = True, mesh=None, **overrides) -> dict:  # fmt: skip
     """The ``tune`` job (module docstring). ``overrides``: fields of :class:`TuneConfig`. Returns the
     summary of what ran (phase timings, and the held-out rows once reported)."""
+    if jax.process_count() > 1:  # each device's share comes back to this process's host (objectives.DevicePrograms)
+        raise ValueError(f"wbc-jax tune runs in one process on its local devices (every local GPU), not in "
+                         f"{jax.process_count()} processes: run it without --distributed")  # fmt: skip
     tc = options.replace(tuning.default_config() if cfg is None else cfg, **overrides)
     hc = dataclasses.replace(heldout_default_config() if hc is None else hc, robot=tc.robot, controller=tc.controller)
     lc = LossConfig() if lc is None else lc
