@@ -88,13 +88,17 @@ def lip_bound(m: mujoco.MjModel, qpos: np.ndarray, directions_deg, mass: float |
     for az in directions_deg:
         u = np.array([math.cos(math.radians(az)), math.sin(math.radians(az))])
         dist = min((-(eq[:2] @ com[:2] + eq[2]) / (eq[:2] @ u)) for eq in hull.equations if eq[:2] @ u > 1e-12)
-        out[float(az)] = {"edge_distance_m": dist, "velocity_bound_mps": omega * dist,
-                          "impulse_bound_ns": mass * omega * dist}  # fmt: skip
+        out[float(az)] = {
+            "edge_distance_m": dist,
+            "velocity_bound_mps": omega * dist,
+            "impulse_bound_ns": mass * omega * dist,
+        }
     return out
 
 
-def bisect(impulses: np.ndarray, survives: Callable[[np.ndarray, np.ndarray], np.ndarray], searches: int,
-           resolution: float) -> dict:  # fmt: skip
+def bisect(
+    impulses: np.ndarray, survives: Callable[[np.ndarray, np.ndarray], np.ndarray], searches: int, resolution: float
+) -> dict:
     """The two-phase search of ``wbc_jax.jobs.envelope.bisect``: per search, the bracket of grid indices
     [lo, hi] starts at (-1: no push, M - 1: taken as a fall) and is halved until adjacent over the
     sorted distinct ``impulses`` (M,) N s, then the bracket inside that grid step is halved until at
@@ -142,8 +146,14 @@ def _survived(peer: tb.TsidPeer, config, magnitude, azimuth, args) -> tuple[bool
     solver that never returns holds the GIL, so no Python-level timer could stop it)."""
     faulthandler.dump_traceback_later(args.rollout_timeout, exit=True)
     try:
-        r = peer.simulate("stand", duration=args.horizon, push=push_of(magnitude, azimuth, args.push_onset,
-                          args.push_duration), push_body=args.body, config=config, record=False)  # fmt: skip
+        r = peer.simulate(
+            "stand",
+            duration=args.horizon,
+            push=push_of(magnitude, azimuth, args.push_onset, args.push_duration),
+            push_body=args.body,
+            config=config,
+            record=False,
+        )
     finally:
         faulthandler.cancel_dump_traceback_later()
     return bool(r["summary"]["survived"]), r["summary"]
@@ -170,21 +180,29 @@ def envelope(peer: tb.TsidPeer, config, args, log=print) -> dict:
     for j, az in enumerate(azimuths.tolist()):
         b = bound[az]["impulse_bound_ns"]
         rows[f"{az:g}"] = {
-            "impulse_ns": float(found["lo"][j]), "bracket_ns": [float(found["lo"][j]), float(found["hi"][j])],
-            "grid_impulse_ns": float(found["grid_lo"][j]), "at_cap": bool(found["at_cap"][j]),
-            "bound_impulse_ns": b, "fraction_of_bound": float(found["lo"][j]) / b,
-        }  # fmt: skip
+            "impulse_ns": float(found["lo"][j]),
+            "bracket_ns": [float(found["lo"][j]), float(found["hi"][j])],
+            "grid_impulse_ns": float(found["grid_lo"][j]),
+            "at_cap": bool(found["at_cap"][j]),
+            "bound_impulse_ns": b,
+            "fraction_of_bound": float(found["lo"][j]) / b,
+        }
     frac = np.array([r["fraction_of_bound"] for r in rows.values()])
     imp = np.array([r["impulse_ns"] for r in rows.values()])
     return {
-        "fraction_of_bound_median": float(np.median(frac)), "fraction_of_bound_min": float(np.min(frac)),
-        "impulse_ns_median": float(np.median(imp)), "impulse_ns_min": float(np.min(imp)),
+        "fraction_of_bound_median": float(np.median(frac)),
+        "fraction_of_bound_min": float(np.min(frac)),
+        "impulse_ns_median": float(np.median(imp)),
+        "impulse_ns_min": float(np.min(imp)),
         "min_at_azimuth_deg": float(azimuths[int(np.argmin(frac))]),
-        "rollouts": int(found["rollouts"]), "rounds": int(found["rounds"]),
+        "rollouts": int(found["rollouts"]),
+        "rounds": int(found["rounds"]),
         "grid_rollouts": int(impulses.size * azimuths.size),
-        "run_s": round(run_s, 2), "grid_impulses": int(impulses.size), "resolution_ns": args.resolution,
+        "run_s": round(run_s, 2),
+        "grid_impulses": int(impulses.size),
+        "resolution_ns": args.resolution,
         "directions": rows,
-    }  # fmt: skip
+    }
 
 
 def full_grid(peer: tb.TsidPeer, config, args, log=print) -> dict:
@@ -212,18 +230,24 @@ def full_grid(peer: tb.TsidPeer, config, args, log=print) -> dict:
         b = bound[az]["impulse_bound_ns"]
         rows[f"{az:g}"] = {
             "largest_survived_impulse_ns": float(impulses[alive].max()) if alive.any() else 0.0,
-            "monotone_impulse_ns": monotone, "islands": int(alive[first_fail:].sum()),
-            "bound_impulse_ns": b, "monotone_fraction_of_bound": monotone / b,
-        }  # fmt: skip
+            "monotone_impulse_ns": monotone,
+            "islands": int(alive[first_fail:].sum()),
+            "bound_impulse_ns": b,
+            "monotone_fraction_of_bound": monotone / b,
+        }
     frac = np.array([r["monotone_fraction_of_bound"] for r in rows.values()])
     return {
-        "survival_rate": float(survived.mean()), "upright_rate": float(upright.mean()),
+        "survival_rate": float(survived.mean()),
+        "upright_rate": float(upright.mean()),
         "monotone_fraction_of_bound_median": float(np.median(frac)),
         "monotone_fraction_of_bound_min": float(np.min(frac)),
-        "rollouts": int(survived.size), "run_s": round(run_s, 2), "directions": rows,
-        "survived": survived.astype(int).tolist(), "magnitudes_n": magnitudes.tolist(),
+        "rollouts": int(survived.size),
+        "run_s": round(run_s, 2),
+        "directions": rows,
+        "survived": survived.astype(int).tolist(),
+        "magnitudes_n": magnitudes.tolist(),
         "azimuths_deg": azimuths.tolist(),
-    }  # fmt: skip
+    }
 
 
 # Settings without a WBC counterpart (and the posture's damping), one at a time against the
@@ -251,12 +275,14 @@ def sensitivity(peer: tb.TsidPeer, args, log=print) -> dict:
         e = envelope(peer, config, args, log=lambda _: None)
         out[name] = {
             "change": {k: list(v) if isinstance(v, tuple) else v for k, v in change.items()},
-            "sinusoid_com_rmse_m": sin["com_rmse_m"], "sinusoid_survived": sin["survived"],
+            "sinusoid_com_rmse_m": sin["com_rmse_m"],
+            "sinusoid_survived": sin["survived"],
             "fraction_of_bound_median": e["fraction_of_bound_median"],
             "fraction_of_bound_min": e["fraction_of_bound_min"],
             "fraction_of_bound": {az: round(r["fraction_of_bound"], 4) for az, r in e["directions"].items()},
-            "rollouts": e["rollouts"], "run_s": e["run_s"],
-        }  # fmt: skip
+            "rollouts": e["rollouts"],
+            "run_s": e["run_s"],
+        }
     return out
 
 
@@ -298,8 +324,10 @@ def measure(args, log=print) -> dict:
     peer = tb.TsidPeer()
     config = tb.TsidConfig()
     log(f"sinusoid x {args.timing_repeats} (timing)")
-    runs = [peer.simulate("sinusoid", duration=args.sinusoid_duration, timing=True, record=False, config=config)
-            for _ in range(args.timing_repeats)]  # fmt: skip
+    runs = [
+        peer.simulate("sinusoid", duration=args.sinusoid_duration, timing=True, record=False, config=config)
+        for _ in range(args.timing_repeats)
+    ]
     sin = runs[0]
     if any(r["summary"] != sin["summary"] for r in runs[1:]):
         raise RuntimeError("the sinusoid's repeats differ: the closed loop is not deterministic")
@@ -332,12 +360,20 @@ def measure(args, log=print) -> dict:
             "mu": tb.floor_friction(peer.mj_model) if config.mu is None else config.mu,
             "solver": "tsid.SolverHQuadProgFast (eiquadprog), one solve per 10 ms tick",
         },
-        "timing": {"command": command, "task": f"sinusoid, {args.sinusoid_duration} s, one robot, one thread, "
-                   f"median of {args.timing_repeats} runs (microseconds per 10 ms tick)", **timing},
+        "timing": {
+            "command": command,
+            "task": f"sinusoid, {args.sinusoid_duration} s, one robot, one thread, "
+            f"median of {args.timing_repeats} runs (microseconds per 10 ms tick)",
+            **timing,
+        },
         "sinusoid": {"command": command, "duration_s": args.sinusoid_duration, **_rounded(sin["summary"])},
-        "stand": {"command": command, "duration_s": args.stand_duration, "com_drift_m": drift,
-                  **_rounded(stand["summary"])},
-    }  # fmt: skip
+        "stand": {
+            "command": command,
+            "duration_s": args.stand_duration,
+            "com_drift_m": drift,
+            **_rounded(stand["summary"]),
+        },
+    }
     if args.no_envelope:
         out["load_average"] = {
             "start": [round(x, 2) for x in load_start],
@@ -345,16 +381,25 @@ def measure(args, log=print) -> dict:
         }
         return out
     log("envelope (bisection)")
-    grid_def = {"magnitudes_n": list(args.magnitudes), "directions": args.directions, "push_onset_s": args.push_onset,
-                "push_duration_s": args.push_duration, "horizon_s": args.horizon, "body": args.body,
-                "survival": "strict (constants.SURVIVAL_CRITERION)"}  # fmt: skip
+    grid_def = {
+        "magnitudes_n": list(args.magnitudes),
+        "directions": args.directions,
+        "push_onset_s": args.push_onset,
+        "push_duration_s": args.push_duration,
+        "horizon_s": args.horizon,
+        "body": args.body,
+        "survival": "strict (constants.SURVIVAL_CRITERION)",
+    }
     out["envelope"] = {"command": command, **grid_def, **envelope(peer, config, args, log)}
     if args.full_grid:
         log("full grid")
         out["grid"] = {"command": command, **grid_def, **full_grid(peer, config, args, log)}
     if args.sensitivity:
-        out["sensitivity"] = {"command": command, "what": "one setting changed from the defaults; the envelope "
-                              "by the same bisection and grid", **sensitivity(peer, args, log)}  # fmt: skip
+        out["sensitivity"] = {
+            "command": command,
+            "what": "one setting changed from the defaults; the envelope by the same bisection and grid",
+            **sensitivity(peer, args, log),
+        }
     out["load_average"] = {"start": [round(x, 2) for x in load_start], "end": [round(x, 2) for x in os.getloadavg()]}
     return out
 
@@ -365,8 +410,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     p.add_argument("--out", default=str(HERE.parent / "docs" / "peers" / "tsid.json"), help="JSON file to write")
     p.add_argument("--cpu", type=int, default=None, help="pin the process to this core (default: no pinning)")
-    p.add_argument("--magnitudes", type=float, nargs=3, default=MAGNITUDES, metavar=("LO", "HI", "N"),
-                   help="push force grid [N]")  # fmt: skip
+    p.add_argument(
+        "--magnitudes", type=float, nargs=3, default=MAGNITUDES, metavar=("LO", "HI", "N"), help="push force grid [N]"
+    )
     p.add_argument("--directions", type=int, default=DIRECTIONS, help="azimuths over 360 deg")
     p.add_argument("--push-onset", type=float, default=PUSH_ONSET)
     p.add_argument("--push-duration", type=float, default=PUSH_DURATION)
@@ -376,12 +422,19 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--sinusoid-duration", type=float, default=tb.TASK_DURATION["sinusoid"])
     p.add_argument("--stand-duration", type=float, default=tb.TASK_DURATION["stand"])
     p.add_argument("--timing-repeats", type=int, default=5, help="sinusoid runs for the tick timing (median)")
-    p.add_argument("--no-envelope", action="store_true",
-                   help="timing, sinusoid and stand only (no pushes): the tick beside benchmarks/cpu_loop.py's")  # fmt: skip
+    p.add_argument(
+        "--no-envelope",
+        action="store_true",
+        help="timing, sinusoid and stand only (no pushes): the tick beside benchmarks/cpu_loop.py's",
+    )
     p.add_argument("--full-grid", action="store_true", help="also run every push of the grid")
     p.add_argument("--sensitivity", action="store_true", help="also the envelope of each SENSITIVITY variant")
-    p.add_argument("--rollout-timeout", type=float, default=120.0,
-                   help="seconds one push rollout may take before the process ends with a traceback")  # fmt: skip
+    p.add_argument(
+        "--rollout-timeout",
+        type=float,
+        default=120.0,
+        help="seconds one push rollout may take before the process ends with a traceback",
+    )
     args = p.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
     lo, hi, n = args.magnitudes

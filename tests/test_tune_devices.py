@@ -19,8 +19,11 @@ from wbc_jax.tuning import config
 from wbc_jax.tuning.algorithms.baselines import NOT_SEARCH
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-TWO_DEVICES = {"JAX_PLATFORMS": "cpu", "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
-               "XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2"}  # fmt: skip
+TWO_DEVICES = {
+    "JAX_PLATFORMS": "cpu",
+    "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    "XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2",
+}
 
 # The tuning programs with the rollout replaced by a closed form of each row's gains and push, nonlinear in both,
 # diverging (division by zero) on floors of friction > 1: what is under test is how the batch is split over the
@@ -87,8 +90,13 @@ def test_tuning_on_two_devices_gives_the_one_device_loss_gradient_and_search_and
     """The 2-device gradient step and random search equal the 1-device ones (measured: bit-equal on two host
     CPU devices; the bound leaves room for float summation order only); the training record names both
     devices, whose shares finished; device 1 blocked in a gradient call is one line naming it and the call."""
-    proc = subprocess.run([sys.executable, "-c", CLOSED_FORM], capture_output=True, text=True, timeout=300,
-                          env={**os.environ, **TWO_DEVICES})  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-c", CLOSED_FORM],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, **TWO_DEVICES},
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = json.loads(proc.stdout.strip().splitlines()[-1])
     one, two = res["1"], res["2"]
@@ -100,9 +108,11 @@ def test_tuning_on_two_devices_gives_the_one_device_loss_gradient_and_search_and
     assert np.isfinite(one["grad"]).all() and np.linalg.norm(one["grad"]) > 0
     np.testing.assert_allclose(two["steps"], one["steps"], rtol=1e-12)  # two training steps: loss, gradient norm
     np.testing.assert_allclose(two["search"], one["search"], rtol=1e-12)  # (P + 1) x b = 9 rollouts, padded to 10
-    assert res["stall"] == ("gradient program call 3: device cpu:1 did not finish its run within 1 s (1 of 2 "
-                            "device(s) did; bound: --stall-timeout-s); the gradient program calls finished before "
-                            "are kept: rerun the same command to resume")  # fmt: skip
+    assert res["stall"] == (
+        "gradient program call 3: device cpu:1 did not finish its run within 1 s (1 of 2 "
+        "device(s) did; bound: --stall-timeout-s); the gradient program calls finished before "
+        "are kept: rerun the same command to resume"
+    )
     assert 1.0 <= res["stall_after_s"] < 10.0
 
 
@@ -150,9 +160,12 @@ print(json.dumps(out))
 @pytest.mark.timeout(2400)  # the subprocess's own limit: two gradient and two population compiles
 def test_closed_loop_gradient_and_population_on_two_devices_match_one():
     """The tuning programs themselves (closed loop, 0.05 s, float64) on two host devices, one rollout each."""
-    env = {**os.environ, **TWO_DEVICES,
-           "XLA_FLAGS": f"{TWO_DEVICES['XLA_FLAGS']} --xla_backend_optimization_level=0 "
-                        "--xla_llvm_disable_expensive_passes=true"}  # fmt: skip
+    env = {
+        **os.environ,
+        **TWO_DEVICES,
+        "XLA_FLAGS": f"{TWO_DEVICES['XLA_FLAGS']} --xla_backend_optimization_level=0 "
+        "--xla_llvm_disable_expensive_passes=true",
+    }
     proc = subprocess.run([sys.executable, "-c", CLOSED_LOOP], capture_output=True, text=True, timeout=2400, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = json.loads(proc.stdout.strip().splitlines()[-1])
@@ -170,7 +183,10 @@ def test_tune_refuses_several_processes_before_writing_anything(tmp_path, monkey
     from wbc_jax.tuning.orchestration import campaign
 
     monkeypatch.setattr(jax, "process_count", lambda: 2)
-    with pytest.raises(ValueError, match=r"^wbc-jax tune runs in one process on its local devices \(every local GPU\), "
-                                         r"not in 2 processes: run it without --distributed$"):  # fmt: skip
+    with pytest.raises(
+        ValueError,
+        match=r"^wbc-jax tune runs in one process on its local devices \(every local GPU\), "
+        r"not in 2 processes: run it without --distributed$",
+    ):
         campaign.run(config.TuneConfig(out=str(tmp_path / "run")), progress=False)
     assert not (tmp_path / "run").exists()

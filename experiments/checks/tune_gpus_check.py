@@ -37,12 +37,35 @@ import numpy as np
 from wbc_jax.core import checks, io, provenance
 
 MAX_REL_DIFF = 1e-3  # default bound: float32 rounding of other per-device batch shapes through the closed loop
-BAR = (f"the N-device gradient within --max-rel-diff (default {MAX_REL_DIFF:g}) of one device's, relative to its "
-       "largest entry; every device's share of the last step finished")  # fmt: skip
-RACE_FLAGS = ["--batch", "2048", "--horizon", "2", "--solver-gradient", "implicit", "--checkpoint", "tick",
-              "--lr", "0.1", "--push-scale", "lip", "--magnitude-range", "0.3", "1.0", "--init-gains",
-              "assets/gains/com_critical_100.json", "--population", "16", "--es-batch", "60",
-              "--search-backend", "auto"]  # fmt: skip
+BAR = (
+    f"the N-device gradient within --max-rel-diff (default {MAX_REL_DIFF:g}) of one device's, relative to its "
+    "largest entry; every device's share of the last step finished"
+)
+RACE_FLAGS = [
+    "--batch",
+    "2048",
+    "--horizon",
+    "2",
+    "--solver-gradient",
+    "implicit",
+    "--checkpoint",
+    "tick",
+    "--lr",
+    "0.1",
+    "--push-scale",
+    "lip",
+    "--magnitude-range",
+    "0.3",
+    "1.0",
+    "--init-gains",
+    "assets/gains/com_critical_100.json",
+    "--population",
+    "16",
+    "--es-batch",
+    "60",
+    "--search-backend",
+    "auto",
+]
 
 
 def tune_config(flags: list[str]):
@@ -70,8 +93,11 @@ def measure(problem, devices: list, repeats: int, work: pathlib.Path) -> dict:
     compile_s = step.compile(params, opt_state)
     params_b, eps, rollouts, _, _ = step.rows_of(params, 0)
     values, grads, _, _ = step.grads(params_b, rollouts)
-    combine = jax.jit(lambda v, g, e: estimators.combine(tc.estimator, v, g, e, sigma=tc.smoothing_sigma,
-                                                         clip_factor=tc.env_clip, bias_factor=tc.bias_factor))  # fmt: skip
+    combine = jax.jit(
+        lambda v, g, e: estimators.combine(
+            tc.estimator, v, g, e, sigma=tc.smoothing_sigma, clip_factor=tc.env_clip, bias_factor=tc.bias_factor
+        )
+    )
     grad, stats = combine(jnp.asarray(values), jax.tree_util.tree_map(jnp.asarray, grads), eps)
     values = np.asarray(values, float)
     _, _, first = step(params, opt_state, 0)  # its first call: what compiles lazily (the host-side programs)
@@ -81,18 +107,34 @@ def measure(problem, devices: list, repeats: int, work: pathlib.Path) -> dict:
         step(params, opt_state, k)
         step_s.append(time.perf_counter() - t0)
     ran_on = list(step.grads.ran_on)
-    found = baselines.search(problem, "cmaes", work / f"cmaes_{len(devices)}", budget={"sim_steps": 10**15, "wall_s": 0.0},
-                             max_generations=1 + repeats, progress=False, mesh=mesh)  # fmt: skip
+    found = baselines.search(
+        problem,
+        "cmaes",
+        work / f"cmaes_{len(devices)}",
+        budget={"sim_steps": 10**15, "wall_s": 0.0},
+        max_generations=1 + repeats,
+        progress=False,
+        mesh=mesh,
+    )
     gens = found["history"]
-    return {"devices": len(devices), "ran_on": ran_on, "compile_s": round(compile_s, 2),
-            "loss": float(first["loss"]), "finite_rollouts": int(np.isfinite(values).sum()),
-            "values": values.tolist(), "gradient": np.asarray(ravel_pytree(grad)[0], float).tolist(),
-            "nonfinite_envs": int(stats["nonfinite_envs"]), "step_s": [round(s, 4) for s in step_s],
-            "step_s_median": float(np.median(step_s)),
-            "cmaes": {"compile_s": found["compile_s"], "gen_s": [float(r["gen_s"]) for r in gens],
-                      "gen_s_median": float(np.median([float(r["gen_s"]) for r in gens[1:]] or [np.nan])),
-                      "generation_0": {k: float(gens[0][k]) for k in ("loss", "best_candidate_loss",
-                                                                      "median_candidate_loss")}}}  # fmt: skip
+    return {
+        "devices": len(devices),
+        "ran_on": ran_on,
+        "compile_s": round(compile_s, 2),
+        "loss": float(first["loss"]),
+        "finite_rollouts": int(np.isfinite(values).sum()),
+        "values": values.tolist(),
+        "gradient": np.asarray(ravel_pytree(grad)[0], float).tolist(),
+        "nonfinite_envs": int(stats["nonfinite_envs"]),
+        "step_s": [round(s, 4) for s in step_s],
+        "step_s_median": float(np.median(step_s)),
+        "cmaes": {
+            "compile_s": found["compile_s"],
+            "gen_s": [float(r["gen_s"]) for r in gens],
+            "gen_s_median": float(np.median([float(r["gen_s"]) for r in gens[1:]] or [np.nan])),
+            "generation_0": {k: float(gens[0][k]) for k in ("loss", "best_candidate_loss", "median_candidate_loss")},
+        },
+    }
 
 
 def relative(a, b) -> float:
@@ -107,16 +149,19 @@ def relative(a, b) -> float:
 
 def compare(one: dict, many: dict, bound: float) -> dict:
     """The N-device figures against one device's: relative differences and speed-ups."""
-    return {"gradient_max_rel_diff": relative(many["gradient"], one["gradient"]),
-            "loss_rel_diff": relative([many["loss"]], [one["loss"]]),
-            "rollout_values_max_rel_diff": relative(many["values"], one["values"]),
-            "finiteness_differs": int(np.sum(np.isfinite(many["values"]) != np.isfinite(one["values"]))),
-            "cmaes_generation_0_rel_diff": {k: relative([many["cmaes"]["generation_0"][k]],
-                                                        [one["cmaes"]["generation_0"][k]])
-                                            for k in one["cmaes"]["generation_0"]},
-            "step_speedup": one["step_s_median"] / many["step_s_median"],
-            "cmaes_generation_speedup": one["cmaes"]["gen_s_median"] / many["cmaes"]["gen_s_median"],
-            "max_rel_diff_bound": bound}  # fmt: skip
+    return {
+        "gradient_max_rel_diff": relative(many["gradient"], one["gradient"]),
+        "loss_rel_diff": relative([many["loss"]], [one["loss"]]),
+        "rollout_values_max_rel_diff": relative(many["values"], one["values"]),
+        "finiteness_differs": int(np.sum(np.isfinite(many["values"]) != np.isfinite(one["values"]))),
+        "cmaes_generation_0_rel_diff": {
+            k: relative([many["cmaes"]["generation_0"][k]], [one["cmaes"]["generation_0"][k]])
+            for k in one["cmaes"]["generation_0"]
+        },
+        "step_speedup": one["step_s_median"] / many["step_s_median"],
+        "cmaes_generation_speedup": one["cmaes"]["gen_s_median"] / many["cmaes"]["gen_s_median"],
+        "max_rel_diff_bound": bound,
+    }
 
 
 def failures(result: dict) -> list[str]:
@@ -124,27 +169,36 @@ def failures(result: dict) -> list[str]:
     cmp, many = result["comparison"], result["all"]
     out = []
     if not cmp["gradient_max_rel_diff"] <= cmp["max_rel_diff_bound"]:  # NaN fails too
-        out.append(f"the {many['devices']}-device gradient differs from one device's by {cmp['gradient_max_rel_diff']:.3g}"
-                   f" of its largest entry (bound {cmp['max_rel_diff_bound']:g})")  # fmt: skip
+        out.append(
+            f"the {many['devices']}-device gradient differs from one device's by {cmp['gradient_max_rel_diff']:.3g}"
+            f" of its largest entry (bound {cmp['max_rel_diff_bound']:g})"
+        )
     if len(set(many["ran_on"])) != many["devices"]:
         out.append(f"the {many['devices']}-device step's last call finished on {many['ran_on']} only")
     return out
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
-                                     epilog=f"Check: {BAR}; exit status 1 otherwise.")  # fmt: skip
+    parser = argparse.ArgumentParser(
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=f"Check: {BAR}; exit status 1 otherwise.",
+    )
     parser.add_argument("--out", required=True, help="folder of tune_gpus.json")
     parser.add_argument("--repeats", type=int, default=3, help="timed steps and generations after the first")
-    parser.add_argument("--max-rel-diff", type=float, default=MAX_REL_DIFF,
-                        help="bound of the gradients' largest difference relative to the one-device gradient's "
-                             "largest entry")  # fmt: skip
+    parser.add_argument(
+        "--max-rel-diff",
+        type=float,
+        default=MAX_REL_DIFF,
+        help="bound of the gradients' largest difference relative to the one-device gradient's largest entry",
+    )
     raw = list(sys.argv[1:] if argv is None else argv)
     split = raw.index("--") if "--" in raw else len(raw)
     args = parser.parse_args(raw[:split])
     if args.repeats < 1 or not 0.0 < args.max_rel_diff < 1.0:
-        parser.error(f"--repeats must be >= 1 (got {args.repeats}) and --max-rel-diff in (0, 1) "
-                     f"(got {args.max_rel_diff:g})")  # fmt: skip
+        parser.error(
+            f"--repeats must be >= 1 (got {args.repeats}) and --max-rel-diff in (0, 1) (got {args.max_rel_diff:g})"
+        )
     tc = tune_config(raw[split + 1 :])  # a bad tune flag: the job's own one-line error, before anything compiles
 
     import jax
@@ -154,8 +208,10 @@ def main(argv=None) -> dict:
 
     devices = jax.devices()
     if len(devices) < 2:
-        parser.error(f"needs at least 2 devices, this machine has {len(devices)} ({devices[0].platform}); on a CPU "
-                     "set XLA_FLAGS=--xla_force_host_platform_device_count=2")  # fmt: skip
+        parser.error(
+            f"needs at least 2 devices, this machine has {len(devices)} ({devices[0].platform}); on a CPU "
+            "set XLA_FLAGS=--xla_force_host_platform_device_count=2"
+        )
     runner.enable_compilation_cache()
     problem = tp.make_problem(tc)
     out = pathlib.Path(args.out)
@@ -164,13 +220,20 @@ def main(argv=None) -> dict:
         one = measure(problem, devices[:1], args.repeats, pathlib.Path(work))
         print(json.dumps({"devices": 1, "step_s_median": one["step_s_median"], "loss": one["loss"]}), flush=True)
         many = measure(problem, devices, args.repeats, pathlib.Path(work))
-    result = {"comparison": compare(one, many, args.max_rel_diff), "one": one, "all": many,
-              "device_names": sorted({d.device_kind for d in devices}), "tune_flags": [*RACE_FLAGS, *raw[split + 1 :]],
-              "provenance": provenance.record({"init_gains": tc.init_gains})}  # fmt: skip
+    result = {
+        "comparison": compare(one, many, args.max_rel_diff),
+        "one": one,
+        "all": many,
+        "device_names": sorted({d.device_kind for d in devices}),
+        "tune_flags": [*RACE_FLAGS, *raw[split + 1 :]],
+        "provenance": provenance.record({"init_gains": tc.init_gains}),
+    }
     result["check"] = checks.verdict(failures(result), BAR)
     io.atomic_write_json(out / "tune_gpus.json", result)
-    summary = {k: result["comparison"][k] for k in ("gradient_max_rel_diff", "loss_rel_diff", "step_speedup",
-                                                    "cmaes_generation_speedup")}  # fmt: skip
+    summary = {
+        k: result["comparison"][k]
+        for k in ("gradient_max_rel_diff", "loss_rel_diff", "step_speedup", "cmaes_generation_speedup")
+    }
     print(json.dumps({**summary, "passed": result["check"]["passed"]}))
     return result
 

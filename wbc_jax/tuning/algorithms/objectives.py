@@ -72,9 +72,18 @@ class DevicePrograms:
         from this program's slowest finished call). simulate_stall: the watchdog's test hook (call, device).
     """
 
-    def __init__(self, core, mesh: Mesh | None, batched: tuple[bool, ...], *, pre=None, post=None,
-                 unit: str = "tuning program call", stall_timeout_s: float | None = None,
-                 simulate_stall: tuple[int, int] | None = None):  # fmt: skip
+    def __init__(
+        self,
+        core,
+        mesh: Mesh | None,
+        batched: tuple[bool, ...],
+        *,
+        pre=None,
+        post=None,
+        unit: str = "tuning program call",
+        stall_timeout_s: float | None = None,
+        simulate_stall: tuple[int, int] | None = None,
+    ):
         self.mesh = mesh_of(mesh)
         self.n_devices = int(self.mesh.devices.size)
         self.batched, self.unit = batched, unit
@@ -172,8 +181,9 @@ def make_rollout_grads(problem: tp.Problem, mesh: Mesh | None = None) -> DeviceP
             (values, (terms, metrics)), grads = per_env(params_b, scen)
         return values, grads, terms, metrics
 
-    return DevicePrograms(fn, mesh, (True, True), unit="gradient program call",
-                          stall_timeout_s=problem.tc.stall_timeout_s)  # fmt: skip
+    return DevicePrograms(
+        fn, mesh, (True, True), unit="gradient program call", stall_timeout_s=problem.tc.stall_timeout_s
+    )
 
 
 def padded_size(n: int, mesh: Mesh | None = None) -> int:
@@ -182,8 +192,9 @@ def padded_size(n: int, mesh: Mesh | None = None) -> int:
     return n + (-n) % d
 
 
-def make_population_objective(problem: tp.Problem, population: int, pushes: int,
-                              mesh: Mesh | None = None) -> DevicePrograms:  # fmt: skip
+def make_population_objective(
+    problem: tp.Problem, population: int, pushes: int, mesh: Mesh | None = None
+) -> DevicePrograms:
     """Forward objective of ``population`` candidates on the same ``pushes`` pushes, on the problem's
     engine: ``fn(params {group: (P, ...)}, scen (b,)) -> (objective (P,), terms {name: (P, b)},
     Metrics (P, b))``. One flat batch of P b rollouts (padded to the device count), one program per
@@ -201,19 +212,32 @@ def make_population_objective(problem: tp.Problem, population: int, pushes: int,
         controls, reg = jax.vmap(lambda p: tp.controls_cast(problem, p))(params)
         take = lambda x: jnp.repeat(x, pushes, axis=0)  # noqa: E731  env e: candidate e // b, push e % b
         tile = lambda x: jnp.tile(jnp.asarray(x), (population,) + (1,) * (jnp.ndim(x) - 1))  # noqa: E731
-        per_env = (jax.tree_util.tree_map(take, controls), None if reg is None else jax.tree_util.tree_map(take, reg),
-                   jax.tree_util.tree_map(tile, scen))  # fmt: skip
+        per_env = (
+            jax.tree_util.tree_map(take, controls),
+            None if reg is None else jax.tree_util.tree_map(take, reg),
+            jax.tree_util.tree_map(tile, scen),
+        )
         per_env = jax.tree_util.tree_map(lambda x: _pad(x, size), per_env)
-        return (tp.cast(dtype, per_env[0]), per_env[1] if per_env[1] is None else tp.cast(dtype, per_env[1]),
-                per_env[2])  # fmt: skip
+        return (
+            tp.cast(dtype, per_env[0]),
+            per_env[1] if per_env[1] is None else tp.cast(dtype, per_env[1]),
+            per_env[2],
+        )
 
     def objective(out):
         unflat = lambda x: x[:n_env].reshape((population, pushes) + x.shape[1:])  # noqa: E731
         terms, metrics = jax.tree_util.tree_map(unflat, out)
         return tuning_loss.batch_objective_rows(terms["total"], problem.lc), terms, metrics
 
-    return DevicePrograms(flat, mesh, (True, True, True), pre=spread, post=objective, unit="population program call",
-                          stall_timeout_s=problem.tc.stall_timeout_s)  # fmt: skip
+    return DevicePrograms(
+        flat,
+        mesh,
+        (True, True, True),
+        pre=spread,
+        post=objective,
+        unit="population program call",
+        stall_timeout_s=problem.tc.stall_timeout_s,
+    )
 
 
 def _pad(x, size: int):
