@@ -238,7 +238,8 @@ def test_the_icub_word_list_catches_a_name():
 
 # Gain tuning's folders, each importing only those before it: the shared configs and store, the
 # problem and its methods, what runs and judges them.
-TUNING_PARTS = (("wbc_jax.tuning.config", "wbc_jax.tuning.store"), ("wbc_jax.tuning.algorithms",),
+TUNING_PARTS = (("wbc_jax.tuning.config", "wbc_jax.tuning.heldout_config", "wbc_jax.tuning.store"),
+                ("wbc_jax.tuning.algorithms",),
                 ("wbc_jax.tuning.orchestration",))  # fmt: skip
 
 

@@ -43,9 +43,10 @@ from wbc_jax.tuning.algorithms import gradient as tuning
 from wbc_jax.tuning.algorithms import problem as tp
 from wbc_jax.tuning.algorithms.loss import LossConfig
 from wbc_jax.tuning.algorithms.params import nava_conditions
-from wbc_jax.tuning.config import HeldoutConfig, TuneConfig, heldout_default_config
+from wbc_jax.tuning.config import TuneConfig
+from wbc_jax.tuning.heldout_config import HeldoutConfig, heldout_default_config
 from wbc_jax.tuning.orchestration import heldout as tuning_eval
-from wbc_jax.tuning.orchestration import race
+from wbc_jax.tuning.orchestration import heldout_report, prediction, race
 
 
 def _search_times(tc: TuneConfig, kind: str) -> list:
@@ -181,7 +182,7 @@ def run(cfg: TuneConfig | None = None, hc: HeldoutConfig | None = None, *, lc: L
 
     summary: dict = {"phases": list(tc.phases)}
     if "predict" in tc.phases:
-        pred = timed("predict", lambda: tuning_eval.survival_prediction(problem, tc.eval_pushes, out=out))
+        pred = timed("predict", lambda: prediction.survival_prediction(problem, tc.eval_pushes, out=out))
         summary["predict"] = {k: pred[k] for k in ("n", "survival_rate", "spearman_train_horizon", "auc_train_horizon")}
     # One gradient program for training and the quality figures (compiled once).
     step = None
@@ -244,14 +245,14 @@ def report(problem: tp.Problem, out: pathlib.Path, hc: HeldoutConfig, reference:
         if (out / f"{name}.json").exists():
             extra[name] = {k: v for k, v in json.loads((out / f"{name}.json").read_text()).items()
                            if not isinstance(v, list)}  # fmt: skip
-    rep = tuning_eval.write_heldout(out / "heldout.json", results, budgets, extra=extra,
+    rep = heldout_report.write_heldout(out / "heldout.json", results, budgets, extra=extra,
                                     inputs={**files, "tasks": tc.controller.tasks, "init_gains": tc.init_gains})  # fmt: skip
     tuning_plots.envelope_polar({n: rep[n] for n in sets if n in rep and "_t" not in n}, out / "envelope_polar.png")
     histories = {k: store.read_csv(out / k / "history.csv") for k in ("gradient", *baselines.KINDS)
                  if (out / k / "history.csv").exists()}  # fmt: skip
     histories.update(hybrid.histories(out, index))
     tuning_plots.learning_curves(histories, out / "learning_curves.png")
-    line = {n: {k: rep[n][k] for k in tuning_eval.SUMMARY_KEYS} for n in sets if n in rep}
+    line = {n: {k: rep[n][k] for k in heldout_report.SUMMARY_KEYS} for n in sets if n in rep}
     if tc.budget_s > 0:
         race_report = race.write(out, problem, rep, index, histories)
         line = {"sets": line, "race": race_report["verdict"], "recommended": race_report["recommended"]}
