@@ -98,8 +98,10 @@ def measure(args, log=print) -> dict:
     peer = tb.TsidPeer()
     config = tb.TsidConfig()
     log(f"sinusoid x {args.timing_repeats} (timing)")
-    runs = [peer.simulate("sinusoid", duration=args.sinusoid_duration, timing=True, record=False, config=config)
-            for _ in range(args.timing_repeats)]  # fmt: skip
+    runs = [
+        peer.simulate("sinusoid", duration=args.sinusoid_duration, timing=True, record=False, config=config)
+        for _ in range(args.timing_repeats)
+    ]
     sin = runs[0]
     if any(r["summary"] != sin["summary"] for r in runs[1:]):
         raise RuntimeError("the sinusoid's repeats differ: the closed loop is not deterministic")
@@ -132,12 +134,20 @@ def measure(args, log=print) -> dict:
             "mu": tb.floor_friction(peer.mj_model) if config.mu is None else config.mu,
             "solver": "tsid.SolverHQuadProgFast (eiquadprog), one solve per 10 ms tick",
         },
-        "timing": {"command": command, "task": f"sinusoid, {args.sinusoid_duration} s, one robot, one thread, "
-                   f"median of {args.timing_repeats} runs (microseconds per 10 ms tick)", **timing},
+        "timing": {
+            "command": command,
+            "task": f"sinusoid, {args.sinusoid_duration} s, one robot, one thread, "
+            f"median of {args.timing_repeats} runs (microseconds per 10 ms tick)",
+            **timing,
+        },
         "sinusoid": {"command": command, "duration_s": args.sinusoid_duration, **_rounded(sin["summary"])},
-        "stand": {"command": command, "duration_s": args.stand_duration, "com_drift_m": drift,
-                  **_rounded(stand["summary"])},
-    }  # fmt: skip
+        "stand": {
+            "command": command,
+            "duration_s": args.stand_duration,
+            "com_drift_m": drift,
+            **_rounded(stand["summary"]),
+        },
+    }
     if args.no_envelope:
         out["load_average"] = {
             "start": [round(x, 2) for x in load_start],
@@ -145,16 +155,25 @@ def measure(args, log=print) -> dict:
         }
         return out
     log("envelope (bisection)")
-    grid_def = {"magnitudes_n": list(args.magnitudes), "directions": args.directions, "push_onset_s": args.push_onset,
-                "push_duration_s": args.push_duration, "horizon_s": args.horizon, "body": args.body,
-                "survival": "strict (constants.SURVIVAL_CRITERION)"}  # fmt: skip
+    grid_def = {
+        "magnitudes_n": list(args.magnitudes),
+        "directions": args.directions,
+        "push_onset_s": args.push_onset,
+        "push_duration_s": args.push_duration,
+        "horizon_s": args.horizon,
+        "body": args.body,
+        "survival": "strict (constants.SURVIVAL_CRITERION)",
+    }
     out["envelope"] = {"command": command, **grid_def, **envelope(peer, config, args, log)}
     if args.full_grid:
         log("full grid")
         out["grid"] = {"command": command, **grid_def, **full_grid(peer, config, args, log)}
     if args.sensitivity:
-        out["sensitivity"] = {"command": command, "what": "one setting changed from the defaults; the envelope "
-                              "by the same bisection and grid", **sensitivity(peer, args, log)}  # fmt: skip
+        out["sensitivity"] = {
+            "command": command,
+            "what": "one setting changed from the defaults; the envelope by the same bisection and grid",
+            **sensitivity(peer, args, log),
+        }
     out["load_average"] = {"start": [round(x, 2) for x in load_start], "end": [round(x, 2) for x in os.getloadavg()]}
     return out
 
@@ -165,8 +184,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     p.add_argument("--out", default=str(HERE.parent / "docs" / "peers" / "tsid.json"), help="JSON file to write")
     p.add_argument("--cpu", type=int, default=None, help="pin the process to this core (default: no pinning)")
-    p.add_argument("--magnitudes", type=float, nargs=3, default=MAGNITUDES, metavar=("LO", "HI", "N"),
-                   help="push force grid [N]")  # fmt: skip
+    p.add_argument(
+        "--magnitudes", type=float, nargs=3, default=MAGNITUDES, metavar=("LO", "HI", "N"), help="push force grid [N]"
+    )
     p.add_argument("--directions", type=int, default=DIRECTIONS, help="azimuths over 360 deg")
     p.add_argument("--push-onset", type=float, default=PUSH_ONSET)
     p.add_argument("--push-duration", type=float, default=PUSH_DURATION)
@@ -176,12 +196,19 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--sinusoid-duration", type=float, default=tb.TASK_DURATION["sinusoid"])
     p.add_argument("--stand-duration", type=float, default=tb.TASK_DURATION["stand"])
     p.add_argument("--timing-repeats", type=int, default=5, help="sinusoid runs for the tick timing (median)")
-    p.add_argument("--no-envelope", action="store_true",
-                   help="timing, sinusoid and stand only (no pushes): the tick beside benchmarks/cpu_loop.py's")  # fmt: skip
+    p.add_argument(
+        "--no-envelope",
+        action="store_true",
+        help="timing, sinusoid and stand only (no pushes): the tick beside benchmarks/cpu_loop.py's",
+    )
     p.add_argument("--full-grid", action="store_true", help="also run every push of the grid")
     p.add_argument("--sensitivity", action="store_true", help="also the envelope of each SENSITIVITY variant")
-    p.add_argument("--rollout-timeout", type=float, default=120.0,
-                   help="seconds one push rollout may take before the process ends with a traceback")  # fmt: skip
+    p.add_argument(
+        "--rollout-timeout",
+        type=float,
+        default=120.0,
+        help="seconds one push rollout may take before the process ends with a traceback",
+    )
     args = p.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
     lo, hi, n = args.magnitudes

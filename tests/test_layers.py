@@ -208,8 +208,15 @@ def _icub_specific_words() -> tuple[set[str], list[str]]:
     others = set().union(*(names(r) for r in DESCRIPTIONS if r != "icub"))
     icub = DESCRIPTIONS["icub"]
     mass = model.load_robot("icub").index.mass
-    numbers = [f"{mass:.2f}", f"{mass:.0f} kg", "23-joint", "23 joints", str(icub.sole_cop[0]), str(icub.sole_cop[1]),
-               str(icub.gains.kp_postural[-6:])]  # fmt: skip
+    numbers = [
+        f"{mass:.2f}",
+        f"{mass:.0f} kg",
+        "23-joint",
+        "23 joints",
+        str(icub.sole_cop[0]),
+        str(icub.sole_cop[1]),
+        str(icub.gains.kp_postural[-6:]),
+    ]
     return (names("icub") - others) | {"icub"}, numbers
 
 
@@ -238,9 +245,11 @@ def test_the_icub_word_list_catches_a_name():
 
 # Gain tuning's folders, each importing only those before it: the shared configs and store, the
 # problem and its methods, what runs and judges them.
-TUNING_PARTS = (("wbc_jax.tuning.config", "wbc_jax.tuning.heldout_config", "wbc_jax.tuning.store"),
-                ("wbc_jax.tuning.algorithms",),
-                ("wbc_jax.tuning.orchestration",))  # fmt: skip
+TUNING_PARTS = (
+    ("wbc_jax.tuning.config", "wbc_jax.tuning.heldout_config", "wbc_jax.tuning.store"),
+    ("wbc_jax.tuning.algorithms",),
+    ("wbc_jax.tuning.orchestration",),
+)
 
 
 def _tuning_part(module: str) -> int | None:

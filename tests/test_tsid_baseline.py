@@ -27,8 +27,9 @@ def _load(name: str, path: pathlib.Path):
     """A script of benchmarks/ (not a package), or a package of it from its folder, imported once."""
     if name not in sys.modules:
         if path.is_dir():
-            spec = importlib.util.spec_from_file_location(name, path / "__init__.py",
-                                                          submodule_search_locations=[str(path)])  # fmt: skip
+            spec = importlib.util.spec_from_file_location(
+                name, path / "__init__.py", submodule_search_locations=[str(path)]
+            )
         else:
             spec = importlib.util.spec_from_file_location(name, path)
         module = importlib.util.module_from_spec(spec)
@@ -254,8 +255,24 @@ def test_config_checks():
 @needs_tsid
 def test_measurement_script_writes_its_json(tmp_path):
     out = tmp_path / "tsid.json"
-    argv = ["--out", str(out), "--directions", "2", "--magnitudes", "10", "400", "4", "--horizon", "1.5",
-            "--sinusoid-duration", "2", "--stand-duration", "1", "--resolution", "20"]  # fmt: skip
+    argv = [
+        "--out",
+        str(out),
+        "--directions",
+        "2",
+        "--magnitudes",
+        "10",
+        "400",
+        "4",
+        "--horizon",
+        "1.5",
+        "--sinusoid-duration",
+        "2",
+        "--stand-duration",
+        "1",
+        "--resolution",
+        "20",
+    ]
     result = tp.main(argv)
     saved = json.loads(out.read_text())
     assert saved["command"] == "python benchmarks/tsid_peer.py " + " ".join(argv)
@@ -275,8 +292,19 @@ def test_measurement_script_writes_its_json(tmp_path):
 
 def test_measurement_script_without_pushes_writes_the_tick_only(tmp_path):
     out = tmp_path / "tsid_timing.json"
-    tp.main(["--out", str(out), "--no-envelope", "--sinusoid-duration", "1", "--stand-duration", "0.5",
-             "--timing-repeats", "2"])  # fmt: skip
+    tp.main(
+        [
+            "--out",
+            str(out),
+            "--no-envelope",
+            "--sinusoid-duration",
+            "1",
+            "--stand-duration",
+            "0.5",
+            "--timing-repeats",
+            "2",
+        ]
+    )
     saved = json.loads(out.read_text())
     assert "envelope" not in saved and "grid" not in saved
     assert len(saved["timing"]["repeats"]["controller_us_per_tick"]) == 2

@@ -114,12 +114,34 @@ from .model import (
     non_foot_bodies,
     sole_contact_rectangle,
     tsid_problem,
-)  # fmt: skip
+)
 from .peer import TsidPeer, simulate
 
 __all__ = [
-    "DRIVEN_JOINTS", "FEET", "FOOT_SIZE", "FZ_MAX", "FZ_MIN", "MODEL_XML", "SINE_AMPLITUDE", "SINE_AXIS",
-    "SINE_FREQUENCY", "TASK_DURATION", "TASKS", "TSID_PINOCCHIO", "TaskSchedule", "TsidConfig", "TsidController",
-    "TsidPeer", "bc", "body_id", "constants", "floor_friction", "load_mj_model", "make_schedule",
-    "non_foot_bodies", "simulate", "sole_contact_rectangle", "tsid_problem",
-]  # fmt: skip
+    "DRIVEN_JOINTS",
+    "FEET",
+    "FOOT_SIZE",
+    "FZ_MAX",
+    "FZ_MIN",
+    "MODEL_XML",
+    "SINE_AMPLITUDE",
+    "SINE_AXIS",
+    "SINE_FREQUENCY",
+    "TASK_DURATION",
+    "TASKS",
+    "TSID_PINOCCHIO",
+    "TaskSchedule",
+    "TsidConfig",
+    "TsidController",
+    "TsidPeer",
+    "bc",
+    "body_id",
+    "constants",
+    "floor_friction",
+    "load_mj_model",
+    "make_schedule",
+    "non_foot_bodies",
+    "simulate",
+    "sole_contact_rectangle",
+    "tsid_problem",
+]

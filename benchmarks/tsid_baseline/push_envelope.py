@@ -46,13 +46,17 @@ def lip_bound(m: mujoco.MjModel, qpos: np.ndarray, directions_deg, mass: float |
     for az in directions_deg:
         u = np.array([math.cos(math.radians(az)), math.sin(math.radians(az))])
         dist = min((-(eq[:2] @ com[:2] + eq[2]) / (eq[:2] @ u)) for eq in hull.equations if eq[:2] @ u > 1e-12)
-        out[float(az)] = {"edge_distance_m": dist, "velocity_bound_mps": omega * dist,
-                          "impulse_bound_ns": mass * omega * dist}  # fmt: skip
+        out[float(az)] = {
+            "edge_distance_m": dist,
+            "velocity_bound_mps": omega * dist,
+            "impulse_bound_ns": mass * omega * dist,
+        }
     return out
 
 
-def bisect(impulses: np.ndarray, survives: Callable[[np.ndarray, np.ndarray], np.ndarray], searches: int,
-           resolution: float) -> dict:  # fmt: skip
+def bisect(
+    impulses: np.ndarray, survives: Callable[[np.ndarray, np.ndarray], np.ndarray], searches: int, resolution: float
+) -> dict:
     """The two-phase search of ``wbc_jax.jobs.envelope.bisect``: per search, the bracket of grid indices
     [lo, hi] starts at (-1: no push, M - 1: taken as a fall) and is halved until adjacent over the
     sorted distinct ``impulses`` (M,) N s, then the bracket inside that grid step is halved until at
@@ -100,8 +104,14 @@ def _survived(peer: TsidPeer, config, magnitude, azimuth, args) -> tuple[bool, d
     solver that never returns holds the GIL, so no Python-level timer could stop it)."""
     faulthandler.dump_traceback_later(args.rollout_timeout, exit=True)
     try:
-        r = peer.simulate("stand", duration=args.horizon, push=push_of(magnitude, azimuth, args.push_onset,
-                          args.push_duration), push_body=args.body, config=config, record=False)  # fmt: skip
+        r = peer.simulate(
+            "stand",
+            duration=args.horizon,
+            push=push_of(magnitude, azimuth, args.push_onset, args.push_duration),
+            push_body=args.body,
+            config=config,
+            record=False,
+        )
     finally:
         faulthandler.cancel_dump_traceback_later()
     return bool(r["summary"]["survived"]), r["summary"]
@@ -128,21 +138,29 @@ def envelope(peer: TsidPeer, config, args, log=print) -> dict:
     for j, az in enumerate(azimuths.tolist()):
         b = bound[az]["impulse_bound_ns"]
         rows[f"{az:g}"] = {
-            "impulse_ns": float(found["lo"][j]), "bracket_ns": [float(found["lo"][j]), float(found["hi"][j])],
-            "grid_impulse_ns": float(found["grid_lo"][j]), "at_cap": bool(found["at_cap"][j]),
-            "bound_impulse_ns": b, "fraction_of_bound": float(found["lo"][j]) / b,
-        }  # fmt: skip
+            "impulse_ns": float(found["lo"][j]),
+            "bracket_ns": [float(found["lo"][j]), float(found["hi"][j])],
+            "grid_impulse_ns": float(found["grid_lo"][j]),
+            "at_cap": bool(found["at_cap"][j]),
+            "bound_impulse_ns": b,
+            "fraction_of_bound": float(found["lo"][j]) / b,
+        }
     frac = np.array([r["fraction_of_bound"] for r in rows.values()])
     imp = np.array([r["impulse_ns"] for r in rows.values()])
     return {
-        "fraction_of_bound_median": float(np.median(frac)), "fraction_of_bound_min": float(np.min(frac)),
-        "impulse_ns_median": float(np.median(imp)), "impulse_ns_min": float(np.min(imp)),
+        "fraction_of_bound_median": float(np.median(frac)),
+        "fraction_of_bound_min": float(np.min(frac)),
+        "impulse_ns_median": float(np.median(imp)),
+        "impulse_ns_min": float(np.min(imp)),
         "min_at_azimuth_deg": float(azimuths[int(np.argmin(frac))]),
-        "rollouts": int(found["rollouts"]), "rounds": int(found["rounds"]),
+        "rollouts": int(found["rollouts"]),
+        "rounds": int(found["rounds"]),
         "grid_rollouts": int(impulses.size * azimuths.size),
-        "run_s": round(run_s, 2), "grid_impulses": int(impulses.size), "resolution_ns": args.resolution,
+        "run_s": round(run_s, 2),
+        "grid_impulses": int(impulses.size),
+        "resolution_ns": args.resolution,
         "directions": rows,
-    }  # fmt: skip
+    }
 
 
 def full_grid(peer: TsidPeer, config, args, log=print) -> dict:
@@ -170,18 +188,24 @@ def full_grid(peer: TsidPeer, config, args, log=print) -> dict:
         b = bound[az]["impulse_bound_ns"]
         rows[f"{az:g}"] = {
             "largest_survived_impulse_ns": float(impulses[alive].max()) if alive.any() else 0.0,
-            "monotone_impulse_ns": monotone, "islands": int(alive[first_fail:].sum()),
-            "bound_impulse_ns": b, "monotone_fraction_of_bound": monotone / b,
-        }  # fmt: skip
+            "monotone_impulse_ns": monotone,
+            "islands": int(alive[first_fail:].sum()),
+            "bound_impulse_ns": b,
+            "monotone_fraction_of_bound": monotone / b,
+        }
     frac = np.array([r["monotone_fraction_of_bound"] for r in rows.values()])
     return {
-        "survival_rate": float(survived.mean()), "upright_rate": float(upright.mean()),
+        "survival_rate": float(survived.mean()),
+        "upright_rate": float(upright.mean()),
         "monotone_fraction_of_bound_median": float(np.median(frac)),
         "monotone_fraction_of_bound_min": float(np.min(frac)),
-        "rollouts": int(survived.size), "run_s": round(run_s, 2), "directions": rows,
-        "survived": survived.astype(int).tolist(), "magnitudes_n": magnitudes.tolist(),
+        "rollouts": int(survived.size),
+        "run_s": round(run_s, 2),
+        "directions": rows,
+        "survived": survived.astype(int).tolist(),
+        "magnitudes_n": magnitudes.tolist(),
         "azimuths_deg": azimuths.tolist(),
-    }  # fmt: skip
+    }
 
 
 # Settings without a WBC counterpart (and the posture's damping), one at a time against the
@@ -209,10 +233,12 @@ def sensitivity(peer: TsidPeer, args, log=print) -> dict:
         e = envelope(peer, config, args, log=lambda _: None)
         out[name] = {
             "change": {k: list(v) if isinstance(v, tuple) else v for k, v in change.items()},
-            "sinusoid_com_rmse_m": sin["com_rmse_m"], "sinusoid_survived": sin["survived"],
+            "sinusoid_com_rmse_m": sin["com_rmse_m"],
+            "sinusoid_survived": sin["survived"],
             "fraction_of_bound_median": e["fraction_of_bound_median"],
             "fraction_of_bound_min": e["fraction_of_bound_min"],
             "fraction_of_bound": {az: round(r["fraction_of_bound"], 4) for az, r in e["directions"].items()},
-            "rollouts": e["rollouts"], "run_s": e["run_s"],
-        }  # fmt: skip
+            "rollouts": e["rollouts"],
+            "run_s": e["run_s"],
+        }
     return out

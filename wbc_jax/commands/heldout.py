@@ -12,5 +12,10 @@ def run(cfg: heldout_config.HeldoutConfig, progress: bool) -> dict:
     return heldout.run(cfg, progress=progress)  # cfg checked when it was made
 
 
-COMMAND = Command("heldout", "gain files on the held-out grid, variations, one-foot task and sinusoid",
-                  heldout_config.heldout_default_config, run, resumable=True)  # fmt: skip
+COMMAND = Command(
+    "heldout",
+    "gain files on the held-out grid, variations, one-foot task and sinusoid",
+    heldout_config.heldout_default_config,
+    run,
+    resumable=True,
+)

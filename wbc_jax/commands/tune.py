@@ -29,7 +29,11 @@ def run(cfg: TuneJob, progress: bool) -> dict:
 
 
 COMMAND = Command(
-    "tune", "gain tuning in phases: gradient, CMA-ES, random search, held-out evaluation, the race's report",
-    config.default_config, run, resumable=True,
-    shared=((heldout_config.heldout_default_config, ("out", "robot", "controller")),), combine=combine,
-)  # fmt: skip
+    "tune",
+    "gain tuning in phases: gradient, CMA-ES, random search, held-out evaluation, the race's report",
+    config.default_config,
+    run,
+    resumable=True,
+    shared=((heldout_config.heldout_default_config, ("out", "robot", "controller")),),
+    combine=combine,
+)

@@ -41,35 +41,58 @@ class HeldoutConfig:
 
     robot: str = robot_option()
     out: str = option("runs/heldout", "output folder (resumes a run there)")
-    sets: tuple[str, ...] = option(("default", "critical"), "gain sets held out: 'default' (the robot's gains), "
-                                   "'critical' (the robot's hand-set row, e.g. assets/gains/com_critical_100.json) or "
-                                   "NAME=FILE (a gains file or a gain-schedule file); wbc-jax tune adds its own",
-                                   nargs="*")  # fmt: skip
-    grid_magnitudes: tuple[float, ...] = option(magnitude_grid((10.0, 400.0, 64)), "held-out grid of trunk push forces [N]: "
-                                                "LO HI N", nargs=3, metavar=("LO", "HI", "N"), parse=magnitude_grid,
-                                                show=show_magnitude_grid, ge=0.0, le=constants.MAX_PUSH_N, unit="N",
-                                                nonempty=True)  # fmt: skip
-    grid_directions: tuple[float, ...] = option(azimuths(32), "held-out push azimuths over 360 deg",
-                                                metavar="N", parse=azimuths, show=len, ge=-360.0, le=360.0,
-                                                unit="deg", nonempty=True)  # fmt: skip
+    sets: tuple[str, ...] = option(
+        ("default", "critical"),
+        "gain sets held out: 'default' (the robot's gains), "
+        "'critical' (the robot's hand-set row, e.g. assets/gains/com_critical_100.json) or "
+        "NAME=FILE (a gains file or a gain-schedule file); wbc-jax tune adds its own",
+        nargs="*",
+    )
+    grid_magnitudes: tuple[float, ...] = option(
+        magnitude_grid((10.0, 400.0, 64)),
+        "held-out grid of trunk push forces [N]: LO HI N",
+        nargs=3,
+        metavar=("LO", "HI", "N"),
+        parse=magnitude_grid,
+        show=show_magnitude_grid,
+        ge=0.0,
+        le=constants.MAX_PUSH_N,
+        unit="N",
+        nonempty=True,
+    )
+    grid_directions: tuple[float, ...] = option(
+        azimuths(32),
+        "held-out push azimuths over 360 deg",
+        metavar="N",
+        parse=azimuths,
+        show=len,
+        ge=-360.0,
+        le=360.0,
+        unit="deg",
+        nonempty=True,
+    )
     grid_duration: float = option(
         0.1, "held-out push length [s]", ge=constants.MIN_PUSH_DURATION_S, le=constants.MAX_PUSH_DURATION_S, unit="s"
     )
     grid_onset: float = option(0.5, "held-out push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
     grid_horizon: float = option(3.0, "seconds per held-out rollout", gt=0.0, le=constants.MAX_HORIZON_S, unit="s")
-    variations: tuple[str, ...] = option(tuple(VARIATIONS), "unseen variations of the grid's pushes",
-                                         nargs="*", choices=tuple(VARIATIONS))  # fmt: skip
+    variations: tuple[str, ...] = option(
+        tuple(VARIATIONS), "unseen variations of the grid's pushes", nargs="*", choices=tuple(VARIATIONS)
+    )
     variation_magnitudes: int = option(16, "impulses per direction of each variation", ge=1, le=MAX_GRID_AXIS)
-    variation_directions: int = option(16, "directions of each variation and of the one-foot pushes", ge=1,
-                                       le=MAX_GRID_AXIS)  # fmt: skip
+    variation_directions: int = option(
+        16, "directions of each variation and of the one-foot pushes", ge=1, le=MAX_GRID_AXIS
+    )
     one_foot: bool = option(True, "also push during the one-foot task's single-support phase")
     one_foot_onset: float = option(7.5, "one-foot push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
     one_foot_horizon: float = option(9.0, "seconds per one-foot rollout", gt=0.0, le=constants.MAX_HORIZON_S, unit="s")
-    sinusoid_s: float = option(20.0, "seconds of the seed's CoM sinusoid (its RMSE; 0: skip)", ge=0.0,
-                               le=constants.MAX_HORIZON_S, unit="s")  # fmt: skip
+    sinusoid_s: float = option(
+        20.0, "seconds of the seed's CoM sinusoid (its RMSE; 0: skip)", ge=0.0, le=constants.MAX_HORIZON_S, unit="s"
+    )
     sinusoid_backend: str = option("mujoco", "physics of the sinusoid", choices=physics.BACKENDS)
-    heldout_backend: str = option("auto", "physics of the held-out pushes (auto: warp on a GPU, C MuJoCo on a CPU)",
-                                  choices=physics.BACKENDS)  # fmt: skip
+    heldout_backend: str = option(
+        "auto", "physics of the held-out pushes (auto: warp on a GPU, C MuJoCo on a CPU)", choices=physics.BACKENDS
+    )
     chunk_size: int = option(16384, "held-out environments per compiled batch", ge=1, le=MAX_BATCH)
     controller: ControllerFlags = nested(ControllerFlags())
 
@@ -81,11 +104,15 @@ class HeldoutConfig:
         check_options(self)
         longest = max([self.grid_duration] + [VARIATIONS[v][1] for v in self.variations])
         if self.grid_horizon <= self.grid_onset + longest:
-            raise ValueError(f"held-out horizon {self.grid_horizon} s ends before the pushes "
-                             f"({self.grid_onset} + {longest} s)")  # fmt: skip
+            raise ValueError(
+                f"held-out horizon {self.grid_horizon} s ends before the pushes ({self.grid_onset} + {longest} s)"
+            )
         lo, hi = ONE_FOOT_WINDOW
-        if self.one_foot and not (lo <= self.one_foot_onset and self.one_foot_onset + self.grid_duration <= hi
-                                  and self.one_foot_horizon > self.one_foot_onset + self.grid_duration):  # fmt: skip
+        if self.one_foot and not (
+            lo <= self.one_foot_onset
+            and self.one_foot_onset + self.grid_duration <= hi
+            and self.one_foot_horizon > self.one_foot_onset + self.grid_duration
+        ):
             raise ValueError(f"one-foot pushes must fall in the single-support phase {ONE_FOOT_WINDOW} s")
         seen = set()
         for spec in self.sets:

@@ -127,17 +127,29 @@ def _scenarios(robot, rows: dict, stacked, dtype) -> Scenario:
     u = np.stack([np.cos(np.deg2rad(az)), np.sin(np.deg2rad(az)), np.zeros(B)], 1)
     g = np.asarray(rows["gain_set"], int)
     return Scenario(
-        push=Push(force=(np.asarray(rows["magnitude_n"])[:, None] * u)[:, None, :].astype(dtype),
-                  onset=np.full((B, 1), rows["onset"], dtype), duration=np.asarray(rows["duration_s"], dtype)[:, None],
-                  body=np.asarray(rows["body"], np.int32)[:, None]),
+        push=Push(
+            force=(np.asarray(rows["magnitude_n"])[:, None] * u)[:, None, :].astype(dtype),
+            onset=np.full((B, 1), rows["onset"], dtype),
+            duration=np.asarray(rows["duration_s"], dtype)[:, None],
+            body=np.asarray(rows["body"], np.int32)[:, None],
+        ),
         gains=jax.tree_util.tree_map(lambda x: x[g], stacked),
-        joint_offset=np.zeros((B, robot.index.n), dtype), friction=np.asarray(rows["friction"], dtype),
+        joint_offset=np.zeros((B, robot.index.n), dtype),
+        friction=np.asarray(rows["friction"], dtype),
         mass_scale=np.ones(B, dtype),
-    )  # fmt: skip
+    )
 
 
-def _run_table(st: scenario.Setup, scen: Scenario, cols: dict, folder: pathlib.Path, chunk: int, tag: str,
-               progress: bool, push_end: float) -> tuple:  # fmt: skip
+def _run_table(
+    st: scenario.Setup,
+    scen: Scenario,
+    cols: dict,
+    folder: pathlib.Path,
+    chunk: int,
+    tag: str,
+    progress: bool,
+    push_end: float,
+) -> tuple:
     """Run a batch with the sweep's chunk runner (:func:`wbc_jax.jobs.chunks.run_chunks`: Parquet
     parts in ``folder``, named by ``tag`` and reused when they are the run's own): (DataFrame of
     columns + metrics, {compile_s, run_s, envs, physics_steps_per_s})."""
@@ -145,11 +157,16 @@ def _run_table(st: scenario.Setup, scen: Scenario, cols: dict, folder: pathlib.P
 
     B = len(cols["gain_set"])
     columns = {k: v for k, v in cols.items() if k != "onset"}
-    ran = chunks.run_chunks(st, scen, columns, folder, batch=min(chunk, B), push_end=push_end, tag=tag,
-                            progress=progress, label=folder.name)  # fmt: skip
+    ran = chunks.run_chunks(
+        st, scen, columns, folder, batch=min(chunk, B), push_end=push_end, tag=tag, progress=progress, label=folder.name
+    )
     steps = st.loop.n_ticks * st.loop.n_sub
-    timing = {"compile_s": round(ran.compile_s, 2), "run_s": round(ran.run_s, 2), "envs": B,
-              "physics_steps_per_s": ran.done_envs * steps / ran.run_s if ran.run_s > 0 else None}  # fmt: skip
+    timing = {
+        "compile_s": round(ran.compile_s, 2),
+        "run_s": round(ran.run_s, 2),
+        "envs": B,
+        "physics_steps_per_s": ran.done_envs * steps / ran.run_s if ran.run_s > 0 else None,
+    }
     return pd.concat(ran.tables, ignore_index=True), timing
 
 
@@ -159,13 +176,25 @@ def _envelope(table, cfg: sweep_config.SweepConfig, robot) -> dict:
     s = sweep_table.summarize_table(t, cfg, robot)
     frac = np.array([e["fraction_of_bound"] for e in s["envelope"].values()])
     mono = np.array([e["fraction_of_bound_monotone"] for e in s["envelope"].values()])
-    return {"survival_rate": s["survival_rate"], "upright_rate": s["upright_rate"], "n_envs": s["n_envs"],
-            "nan_envs": s["nan_envs"], "envelope_fraction_median": float(np.median(frac)),
-            "envelope_fraction_min": float(np.min(frac)), "envelope_fraction_monotone_median": float(np.median(mono)),
-            "envelope_fraction_monotone_min": float(np.min(mono)),
-            "peak_torque_nm_median": float(np.median(table["max_abs_torque_nm"])),
-            "envelope": {str(a): {"impulse_ns": e["largest_survived_impulse_ns"], "fraction": e["fraction_of_bound"],
-                                  "bound_impulse_ns": e["bound_impulse_ns"]} for a, e in s["envelope"].items()}}  # fmt: skip
+    return {
+        "survival_rate": s["survival_rate"],
+        "upright_rate": s["upright_rate"],
+        "n_envs": s["n_envs"],
+        "nan_envs": s["nan_envs"],
+        "envelope_fraction_median": float(np.median(frac)),
+        "envelope_fraction_min": float(np.min(frac)),
+        "envelope_fraction_monotone_median": float(np.median(mono)),
+        "envelope_fraction_monotone_min": float(np.min(mono)),
+        "peak_torque_nm_median": float(np.median(table["max_abs_torque_nm"])),
+        "envelope": {
+            str(a): {
+                "impulse_ns": e["largest_survived_impulse_ns"],
+                "fraction": e["fraction_of_bound"],
+                "bound_impulse_ns": e["bound_impulse_ns"],
+            }
+            for a, e in s["envelope"].items()
+        },
+    }
 
 
 def heldout(sets: dict, hc: HeldoutConfig, out, *, progress: bool = True) -> dict:
@@ -181,13 +210,24 @@ def heldout(sets: dict, hc: HeldoutConfig, out, *, progress: bool = True) -> dic
     for gi, ((kind, *reg), names) in enumerate(_groups(sets).items()):
         controls = [sets[n][0] for n in names]
         stacked = _stack(controls, dtype)
-        tag = hashlib.sha256(json.dumps([flat_dict(hc), [store.controls_dict(c) for c in controls], reg],
-                                        sort_keys=True, default=io.jsonable).encode()).hexdigest()[:10]  # fmt: skip
+        tag = hashlib.sha256(
+            json.dumps(
+                [flat_dict(hc), [store.controls_dict(c) for c in controls], reg], sort_keys=True, default=io.jsonable
+            ).encode()
+        ).hexdigest()[:10]
         # Stand: the grid and the variations, one program (per-env plant: friction varies).
-        cfg = sweep_config.SweepConfig(robot=hc.robot, controller=hc.controller, magnitudes=tuple(hc.grid_magnitudes), directions=tuple(hc.grid_directions),
-                                       push_duration=hc.grid_duration, push_onset=hc.grid_onset,
-                                       horizon=hc.grid_horizon, friction=(0.5, 1.0), backend=hc.heldout_backend,
-                                       out=None)  # fmt: skip
+        cfg = sweep_config.SweepConfig(
+            robot=hc.robot,
+            controller=hc.controller,
+            magnitudes=tuple(hc.grid_magnitudes),
+            directions=tuple(hc.grid_directions),
+            push_duration=hc.grid_duration,
+            push_onset=hc.grid_onset,
+            horizon=hc.grid_horizon,
+            friction=(0.5, 1.0),
+            backend=hc.heldout_backend,
+            out=None,
+        )
         nominal = _nominal(controls[0], dtype)
         st = _with_kind(sweep.make_setup(cfg, nominal, controller=_controller(reg, hc)), kind)
         robot = st.robot
@@ -198,24 +238,38 @@ def heldout(sets: dict, hc: HeldoutConfig, out, *, progress: bool = True) -> dic
             body, dur, fr = VARIATIONS[v]
             blocks.append((v, body, dur, fr, vimp, vdirs))
         cols = _block_columns(robot, blocks, len(controls), hc.grid_onset)
-        table, timing[f"stand_{gi}"] = _run_table(st, _scenarios(robot, cols, stacked, dtype), cols,
-                                                  out / f"stand_{gi}", hc.chunk_size, tag, progress,
-                                                  hc.grid_onset + hc.grid_duration)  # fmt: skip
+        table, timing[f"stand_{gi}"] = _run_table(
+            st,
+            _scenarios(robot, cols, stacked, dtype),
+            cols,
+            out / f"stand_{gi}",
+            hc.chunk_size,
+            tag,
+            progress,
+            hc.grid_onset + hc.grid_duration,
+        )
         for s, name in enumerate(names):
             mine = table[table["gain_set"] == s]
             result[name]["grid"] = _envelope(mine[mine["block"] == "grid"], cfg, robot)
             for v in hc.variations:
                 result[name]["variations"][v] = _envelope(mine[mine["block"] == v], cfg, robot)
         if hc.one_foot:
-            of = dataclasses.replace(cfg, task="one-foot", push_onset=hc.one_foot_onset, horizon=hc.one_foot_horizon,
-                                     friction=(1.0, 1.0))  # fmt: skip
-            st1 = _with_kind(sweep.make_setup(of, nominal, controller=_controller(reg, hc)),
-                             kind)  # fmt: skip
+            of = dataclasses.replace(
+                cfg, task="one-foot", push_onset=hc.one_foot_onset, horizon=hc.one_foot_horizon, friction=(1.0, 1.0)
+            )
+            st1 = _with_kind(sweep.make_setup(of, nominal, controller=_controller(reg, hc)), kind)
             blocks = [("one_foot", "trunk", hc.grid_duration, 1.0, vimp, vdirs)]
             cols = _block_columns(robot, blocks, len(controls), hc.one_foot_onset)
-            table1, timing[f"one_foot_{gi}"] = _run_table(st1, _scenarios(robot, cols, stacked, dtype), cols,
-                                                          out / f"one_foot_{gi}", hc.chunk_size, tag, progress,
-                                                          hc.one_foot_onset + hc.grid_duration)  # fmt: skip
+            table1, timing[f"one_foot_{gi}"] = _run_table(
+                st1,
+                _scenarios(robot, cols, stacked, dtype),
+                cols,
+                out / f"one_foot_{gi}",
+                hc.chunk_size,
+                tag,
+                progress,
+                hc.one_foot_onset + hc.grid_duration,
+            )
             for s, name in enumerate(names):
                 result[name]["one_foot"] = _envelope(table1[table1["gain_set"] == s], of, robot)
         if hc.sinusoid_s > 0:
@@ -228,8 +282,20 @@ def heldout(sets: dict, hc: HeldoutConfig, out, *, progress: bool = True) -> dic
 
 def _block_columns(robot, blocks, n_sets: int, onset: float) -> dict:
     """Columns of every (block, gain set, impulse, azimuth) row."""
-    cols: dict = {k: [] for k in ("block", "gain_set", "impulse_ns", "magnitude_n", "azimuth_deg", "duration_s",
-                                  "body", "friction", "mass_scale")}  # fmt: skip
+    cols: dict = {
+        k: []
+        for k in (
+            "block",
+            "gain_set",
+            "impulse_ns",
+            "magnitude_n",
+            "azimuth_deg",
+            "duration_s",
+            "body",
+            "friction",
+            "mass_scale",
+        )
+    }
     for name, body, dur, fr, imps, azs in blocks:
         s, imp, az = (a.ravel() for a in np.meshgrid(np.arange(n_sets), imps, azs, indexing="ij"))
         cols["block"] += [name] * s.size
@@ -252,16 +318,25 @@ def sinusoid(controls: list, reg, hc: HeldoutConfig) -> tuple[list, dict]:
     only), all sets as one batch."""
     sim = SimConfig(record=False, physics=physics.PhysicsConfig(backend=hc.sinusoid_backend))
     dtype = scenario.float_dtype()
-    st = scenario.setup("sinusoid", duration=hc.sinusoid_s, controller=_controller(reg, hc), sim=sim,
-                        gains=_nominal(controls[0], dtype), scene=scenario.load_scene(hc.robot, hc.controller.tasks))  # fmt: skip
+    st = scenario.setup(
+        "sinusoid",
+        duration=hc.sinusoid_s,
+        controller=_controller(reg, hc),
+        sim=sim,
+        gains=_nominal(controls[0], dtype),
+        scene=scenario.load_scene(hc.robot, hc.controller.tasks),
+    )
     st = _with_kind(st, _kind(controls[0]))
     one = scenario.single(st)
     scen = jax.tree_util.tree_map(lambda x: np.repeat(np.asarray(x), len(controls), 0), one)
     scen = scen.replace(gains=_stack(controls, st.dtype))
     res = runner.run(st, scen)
     cols = metrics_lib.summarize(res.metrics)
-    return [float(x) for x in cols["com_rmse_m"]], {"compile_s": round(res.compile_s, 2), "run_s": round(res.run_s, 2),
-                                                    "backend": st.backend}  # fmt: skip
+    return [float(x) for x in cols["com_rmse_m"]], {
+        "compile_s": round(res.compile_s, 2),
+        "run_s": round(res.run_s, 2),
+        "backend": st.backend,
+    }
 
 
 def run(hc: HeldoutConfig | None = None, *, progress: bool = True) -> dict:
@@ -275,12 +350,20 @@ def run(hc: HeldoutConfig | None = None, *, progress: bool = True) -> dict:
     robot = describe(hc.robot)
     files = set_files(hc.sets, robot)
     sets = load_sets(hc.sets, robot, scenario.float_dtype())
-    fp = runs.fingerprint({"heldout": flat_dict(hc), "dtype": str(scenario.float_dtype())},
-                          [*files.values(), hc.controller.tasks], hc.robot)  # fmt: skip
+    fp = runs.fingerprint(
+        {"heldout": flat_dict(hc), "dtype": str(scenario.float_dtype())},
+        [*files.values(), hc.controller.tasks],
+        hc.robot,
+    )
     runs.claim_output_dir(out, "heldout", fp, resume=True)
     results = heldout(sets, hc, out / "parts", progress=progress)
-    rep = write_heldout(out / "heldout.json", results, {}, extra={"config": flat_dict(hc)},
-                        inputs={**files, "tasks": hc.controller.tasks})  # fmt: skip
+    rep = write_heldout(
+        out / "heldout.json",
+        results,
+        {},
+        extra={"config": flat_dict(hc)},
+        inputs={**files, "tasks": hc.controller.tasks},
+    )
     runs.record_output(out / "heldout.json")
     tuning_plots.envelope_polar(rep, out / "envelope_polar.png")
     return {n: {k: rep[n][k] for k in SUMMARY_KEYS} for n in sets}

@@ -16,12 +16,16 @@ def targets(summary: dict) -> dict:
         return {}
     gd, dd = g["grid_envelope"], d["grid_envelope"]
     below = [a for a in gd if gd[a]["fraction"] < dd[a]["fraction"] - 1e-9]
-    out = {"median_fraction_ge_0.8": g["envelope_fraction_median"] >= 0.8,
-           "min_fraction_ge_0.6": g["envelope_fraction_min"] >= 0.6,
-           "no_direction_below_default": not below, "directions_below_default": below,
-           "survival_ge_1.5x_default": g["survival_rate"] >= 1.5 * d["survival_rate"],
-           "sinusoid_rmse_le_1.5mm": (g.get("sinusoid_com_rmse_m") is not None
-                                      and g["sinusoid_com_rmse_m"] <= constants.SINUSOID_MAX_COM_RMSE_M)}  # fmt: skip
+    out = {
+        "median_fraction_ge_0.8": g["envelope_fraction_median"] >= 0.8,
+        "min_fraction_ge_0.6": g["envelope_fraction_min"] >= 0.6,
+        "no_direction_below_default": not below,
+        "directions_below_default": below,
+        "survival_ge_1.5x_default": g["survival_rate"] >= 1.5 * d["survival_rate"],
+        "sinusoid_rmse_le_1.5mm": (
+            g.get("sinusoid_com_rmse_m") is not None and g["sinusoid_com_rmse_m"] <= constants.SINUSOID_MAX_COM_RMSE_M
+        ),
+    }
     hand = [n for n in ("critical",) if n in summary]
     if hand:
         best = max(hand, key=lambda n: summary[n]["survival_rate"])
@@ -56,15 +60,28 @@ def write_heldout(path, results: dict, budgets: dict, *, extra: dict | None = No
             "envelope_fraction_monotone_median": grid["envelope_fraction_monotone_median"],
             "envelope_fraction_monotone_min": grid["envelope_fraction_monotone_min"],
             "grid_envelope": grid["envelope"],
-            "unseen": {v: {k: e[k] for k in ("survival_rate", "envelope_fraction_median", "envelope_fraction_min")}
-                       for v, e in {**r["variations"], **({"one_foot": r["one_foot"]} if "one_foot" in r else {})}.items()},
-        }  # fmt: skip
-    report = {**summary, "targets": targets(summary), "survival_criterion": dict(constants.SURVIVAL_CRITERION),
-              "timing": results.get("_timing", {}), **(extra or {}),
-              "provenance": provenance.record(inputs)}  # fmt: skip
+            "unseen": {
+                v: {k: e[k] for k in ("survival_rate", "envelope_fraction_median", "envelope_fraction_min")}
+                for v, e in {**r["variations"], **({"one_foot": r["one_foot"]} if "one_foot" in r else {})}.items()
+            },
+        }
+    report = {
+        **summary,
+        "targets": targets(summary),
+        "survival_criterion": dict(constants.SURVIVAL_CRITERION),
+        "timing": results.get("_timing", {}),
+        **(extra or {}),
+        "provenance": provenance.record(inputs),
+    }
     io.atomic_write_json(pathlib.Path(path), report)
     return report
 
 
-SUMMARY_KEYS = ("envelope_fraction_median", "envelope_fraction_min", "survival_rate", "sinusoid_com_rmse_m",
-                "sim_steps", "wall_s")  # fmt: skip
+SUMMARY_KEYS = (
+    "envelope_fraction_median",
+    "envelope_fraction_min",
+    "survival_rate",
+    "sinusoid_com_rmse_m",
+    "sim_steps",
+    "wall_s",
+)

@@ -49,21 +49,38 @@ def survival_prediction(problem: tp.Problem, n: int, *, gains=None, reg=None, ou
     rel = cols["impulse_ns"] / tp.interp_periodic(*problem.table, cols["azimuth_deg"])
     edges = np.linspace(*tc.magnitude_range, 5)
     bins = np.clip(np.searchsorted(edges, rel, side="right") - 1, 0, 3)
-    by_size = [{"impulse_fraction": [float(edges[i]), float(edges[i + 1])], "n": int(np.sum(bins == i)),
-                "survival_rate": float(survived[bins == i].mean()) if np.any(bins == i) else None} for i in range(4)]  # fmt: skip
-    res = {"n": n, "survival_rate": float(survived.mean()), "horizon_s": tc.eval_horizon, "train_horizon_s": tc.horizon,
-           "spearman_train_horizon": tuning_loss.spearman(train_loss, survived),
-           "spearman_full": tuning_loss.spearman(full_loss, survived),
-           "auc_train_horizon": tuning_loss.auc(train_loss, survived), "auc_full": tuning_loss.auc(full_loss, survived),
-           "spearman_impulse_fraction": tuning_loss.spearman(rel, survived),
-           "auc_impulse_fraction": tuning_loss.auc(rel, survived), "wall_s": round(wall, 1),
-           "loss_train_horizon": train_loss.tolist(), "loss_full": full_loss.tolist(), "survived": survived.tolist(),
-           "impulse_fraction_of_envelope": rel.tolist(), "per_term_train_horizon": per_term, "device": provenance.device_label(),
-           "terms_train_horizon": {k: np.asarray(v).tolist() for k, v in terms.items()},
-           "terms_full": {k: np.asarray(v).tolist() for k, v in full_terms.items()},
-           "outcome": {k: np.asarray(v, float).tolist() for k, v in outcome.items()},
-           "survival_by_impulse_fraction": by_size,
-           "failure_rates": {k: float(np.mean(v)) for k, v in metrics_lib.failed_tests(outcome).items()}}  # fmt: skip
+    by_size = [
+        {
+            "impulse_fraction": [float(edges[i]), float(edges[i + 1])],
+            "n": int(np.sum(bins == i)),
+            "survival_rate": float(survived[bins == i].mean()) if np.any(bins == i) else None,
+        }
+        for i in range(4)
+    ]
+    res = {
+        "n": n,
+        "survival_rate": float(survived.mean()),
+        "horizon_s": tc.eval_horizon,
+        "train_horizon_s": tc.horizon,
+        "spearman_train_horizon": tuning_loss.spearman(train_loss, survived),
+        "spearman_full": tuning_loss.spearman(full_loss, survived),
+        "auc_train_horizon": tuning_loss.auc(train_loss, survived),
+        "auc_full": tuning_loss.auc(full_loss, survived),
+        "spearman_impulse_fraction": tuning_loss.spearman(rel, survived),
+        "auc_impulse_fraction": tuning_loss.auc(rel, survived),
+        "wall_s": round(wall, 1),
+        "loss_train_horizon": train_loss.tolist(),
+        "loss_full": full_loss.tolist(),
+        "survived": survived.tolist(),
+        "impulse_fraction_of_envelope": rel.tolist(),
+        "per_term_train_horizon": per_term,
+        "device": provenance.device_label(),
+        "terms_train_horizon": {k: np.asarray(v).tolist() for k, v in terms.items()},
+        "terms_full": {k: np.asarray(v).tolist() for k, v in full_terms.items()},
+        "outcome": {k: np.asarray(v, float).tolist() for k, v in outcome.items()},
+        "survival_by_impulse_fraction": by_size,
+        "failure_rates": {k: float(np.mean(v)) for k, v in metrics_lib.failed_tests(outcome).items()},
+    }
     if out is not None:
         out = pathlib.Path(out)
         res["provenance"] = provenance.record(
@@ -77,5 +94,6 @@ def survival_prediction(problem: tp.Problem, n: int, *, gains=None, reg=None, ou
 def _env_args(problem: tp.Problem, s):
     st, loop = problem.setup, problem.loop
     nominal = physics.device_model(st.robot.mj_model, "jax", loop.cfg.physics)
-    return physics.plant_model(nominal, s.friction, s.mass_scale), loop.initial_qpos(jax.numpy.asarray(st.qpos0, st.dtype),
-                                                                                     s.joint_offset)  # fmt: skip
+    return physics.plant_model(nominal, s.friction, s.mass_scale), loop.initial_qpos(
+        jax.numpy.asarray(st.qpos0, st.dtype), s.joint_offset
+    )
