@@ -81,10 +81,23 @@ def main(argv=None) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = pathlib.Path(tmp)
         subprocess.run(
-            [*pip, "download", f"libtsid=={LIBTSID}", "--no-deps", "--only-binary=:all:", "--python-version", "3.14",
-             "--implementation", "cp", "--abi", "cp314", "--dest", str(tmp / "dl")],
+            [
+                *pip,
+                "download",
+                f"libtsid=={LIBTSID}",
+                "--no-deps",
+                "--only-binary=:all:",
+                "--python-version",
+                "3.14",
+                "--implementation",
+                "cp",
+                "--abi",
+                "cp314",
+                "--dest",
+                str(tmp / "dl"),
+            ],
             check=True,
-        )  # fmt: skip
+        )
         (wheel,) = (tmp / "dl").glob("libtsid-*.whl")
         fixed = retag(wheel, tmp)
         subprocess.run([*pip, "install", str(fixed), f"libpinocchio=={LIBPINOCCHIO}"], check=True)

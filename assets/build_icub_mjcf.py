@@ -32,12 +32,30 @@ ROBOT_NAME = "iCubGazeboV2_5"
 OUT = pathlib.Path(__file__).resolve().parent / "icub" / "icub_23dof.xml"
 
 DRIVEN_JOINTS = (
-    "torso_pitch", "torso_roll", "torso_yaw",
-    "l_shoulder_pitch", "l_shoulder_roll", "l_shoulder_yaw", "l_elbow",
-    "r_shoulder_pitch", "r_shoulder_roll", "r_shoulder_yaw", "r_elbow",
-    "l_hip_pitch", "l_hip_roll", "l_hip_yaw", "l_knee", "l_ankle_pitch", "l_ankle_roll",
-    "r_hip_pitch", "r_hip_roll", "r_hip_yaw", "r_knee", "r_ankle_pitch", "r_ankle_roll",
-)  # fmt: skip
+    "torso_pitch",
+    "torso_roll",
+    "torso_yaw",
+    "l_shoulder_pitch",
+    "l_shoulder_roll",
+    "l_shoulder_yaw",
+    "l_elbow",
+    "r_shoulder_pitch",
+    "r_shoulder_roll",
+    "r_shoulder_yaw",
+    "r_elbow",
+    "l_hip_pitch",
+    "l_hip_roll",
+    "l_hip_yaw",
+    "l_knee",
+    "l_ankle_pitch",
+    "l_ankle_roll",
+    "r_hip_pitch",
+    "r_hip_roll",
+    "r_hip_yaw",
+    "r_knee",
+    "r_ankle_pitch",
+    "r_ankle_roll",
+)
 FIXED_JOINTS = ("neck_pitch", "neck_roll", "neck_yaw") + tuple(
     f"{side}_wrist_{j}" for side in "lr" for j in ("prosup", "pitch", "yaw")
 )
@@ -107,11 +125,12 @@ def _sole_frames():
         p_sole = d.xpos[sole]
         # Bottom face of the real sole mesh, in the sole frame.
         mesh_geom = [
-            g for g in range(m.ngeom)
+            g
+            for g in range(m.ngeom)
             if m.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH
             and "sole" in m.mesh(m.geom_dataid[g]).name
             and m.mesh(m.geom_dataid[g]).name.split("_")[-3] == side
-        ]  # fmt: skip
+        ]
         assert len(mesh_geom) == 1, mesh_geom
         g = mesh_geom[0]
         mid = m.geom_dataid[g]
@@ -169,9 +188,13 @@ def build() -> str:
         geom.contype, geom.conaffinity, geom.group = 0, 0, 2
 
     floor = spec.worldbody.add_geom(
-        name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 0.05],
-        contype=0, conaffinity=0, rgba=[0.55, 0.6, 0.65, 1],
-    )  # fmt: skip
+        name="floor",
+        type=mujoco.mjtGeom.mjGEOM_PLANE,
+        size=[0, 0, 0.05],
+        contype=0,
+        conaffinity=0,
+        rgba=[0.55, 0.6, 0.65, 1],
+    )
     spec.worldbody.add_light(pos=[0, 0, 3], dir=[0, 0, -1])
 
     for side in "lr":
@@ -184,22 +207,35 @@ def build() -> str:
             p = fr["pos"] + fr["mat"] @ np.array([x, y, SPHERE_RADIUS])
             name = f"{side}_foot_contact_{k}"
             body.add_geom(
-                name=name, type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[SPHERE_RADIUS, 0, 0],
-                pos=p, contype=0, conaffinity=0, group=3, mass=0.0, rgba=[0.9, 0.3, 0.2, 1],
-            )  # fmt: skip
+                name=name,
+                type=mujoco.mjtGeom.mjGEOM_SPHERE,
+                size=[SPHERE_RADIUS, 0, 0],
+                pos=p,
+                contype=0,
+                conaffinity=0,
+                group=3,
+                mass=0.0,
+                rgba=[0.9, 0.3, 0.2, 1],
+            )
             spec.add_pair(
-                name=f"{name}_floor", geomname1="floor", geomname2=name, condim=3,
+                name=f"{name}_floor",
+                geomname1="floor",
+                geomname2=name,
+                condim=3,
                 friction=[FLOOR_FRICTION, FLOOR_FRICTION, 0.005, 1e-4, 1e-4],
                 solref=list(CONTACT_SOLREF),
-            )  # fmt: skip
+            )
     spec.body(frames["chest"]["parent"]).add_site(name="chest", pos=[0, 0, 0], size=[0.02])
     del floor
 
     for joint in DRIVEN_JOINTS:
         spec.add_actuator(
-            name=joint, target=joint, trntype=mujoco.mjtTrn.mjTRN_JOINT,
-            ctrlrange=[-TORQUE_LIMIT, TORQUE_LIMIT], ctrllimited=True,
-        )  # fmt: skip
+            name=joint,
+            target=joint,
+            trntype=mujoco.mjtTrn.mjTRN_JOINT,
+            ctrlrange=[-TORQUE_LIMIT, TORQUE_LIMIT],
+            ctrllimited=True,
+        )
 
     # Home keyframe: posture, base yawed 180 deg (root_link x points backward), soles at z=0.
     m = spec.compile()

@@ -102,8 +102,9 @@ def half_sitting() -> dict[str, float]:
 def effort_limits() -> dict[str, float]:
     """The URDF's effort limit (N m) by joint name."""
     root = ET.fromstring(talos_paths()[0].read_text())
-    return {j.get("name"): float(j.find("limit").get("effort")) for j in root.iter("joint")
-            if j.find("limit") is not None}  # fmt: skip
+    return {
+        j.get("name"): float(j.find("limit").get("effort")) for j in root.iter("joint") if j.find("limit") is not None
+    }
 
 
 def _sole_frames() -> dict:
@@ -158,9 +159,13 @@ def build() -> str:
         spec.delete(geom)
 
     spec.worldbody.add_geom(
-        name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 0.05],
-        contype=0, conaffinity=0, rgba=[0.55, 0.6, 0.65, 1],
-    )  # fmt: skip
+        name="floor",
+        type=mujoco.mjtGeom.mjGEOM_PLANE,
+        size=[0, 0, 0.05],
+        contype=0,
+        conaffinity=0,
+        rgba=[0.55, 0.6, 0.65, 1],
+    )
     spec.worldbody.add_light(pos=[0, 0, 3], dir=[0, 0, -1])
     hx, hy = FOOT_BOX_HALF
     for side in "lr":
@@ -171,20 +176,34 @@ def build() -> str:
             p = fr["pos"] + fr["mat"] @ np.array([x, y, SPHERE_RADIUS])
             name = f"{side}_foot_contact_{k}"
             body.add_geom(
-                name=name, type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[SPHERE_RADIUS, 0, 0],
-                pos=p, contype=0, conaffinity=0, group=3, mass=0.0, rgba=[0.9, 0.3, 0.2, 1],
-            )  # fmt: skip
+                name=name,
+                type=mujoco.mjtGeom.mjGEOM_SPHERE,
+                size=[SPHERE_RADIUS, 0, 0],
+                pos=p,
+                contype=0,
+                conaffinity=0,
+                group=3,
+                mass=0.0,
+                rgba=[0.9, 0.3, 0.2, 1],
+            )
             spec.add_pair(
-                name=f"{name}_floor", geomname1="floor", geomname2=name, condim=3,
-                friction=[FLOOR_FRICTION, FLOOR_FRICTION, 0.005, 1e-4, 1e-4], solref=list(CONTACT_SOLREF),
-            )  # fmt: skip
+                name=f"{name}_floor",
+                geomname1="floor",
+                geomname2=name,
+                condim=3,
+                friction=[FLOOR_FRICTION, FLOOR_FRICTION, 0.005, 1e-4, 1e-4],
+                solref=list(CONTACT_SOLREF),
+            )
 
     effort = effort_limits()
     for joint in DRIVEN_JOINTS:
         spec.add_actuator(
-            name=joint, target=joint, trntype=mujoco.mjtTrn.mjTRN_JOINT,
-            ctrlrange=[-effort[joint], effort[joint]], ctrllimited=True,
-        )  # fmt: skip
+            name=joint,
+            target=joint,
+            trntype=mujoco.mjtTrn.mjTRN_JOINT,
+            ctrlrange=[-effort[joint], effort[joint]],
+            ctrllimited=True,
+        )
 
     # Home keyframe: half_sitting, soles at z = 0, feet centred on the world origin.
     m = spec.compile()
@@ -208,9 +227,14 @@ def gains_files() -> dict[str, dict]:
     """The hand-set gains file (``com_critical_100.json``) by name (module docstring)."""
     kp = np.array(POSTURAL_GAINS, float)
     critical = {
-        "kp_com": [100.0] * 3, "kd_com": [20.0] * 3, "ki_com": [0.0] * 3, "kp_ang": [1.0] * 3,
-        "ki_ang": [0.25] * 3, "kp_postural": kp.tolist(), "kd_postural": (2 * np.sqrt(kp) / 20).tolist(),
-    }  # fmt: skip
+        "kp_com": [100.0] * 3,
+        "kd_com": [20.0] * 3,
+        "ki_com": [0.0] * 3,
+        "kp_ang": [1.0] * 3,
+        "ki_ang": [0.25] * 3,
+        "kp_postural": kp.tolist(),
+        "kd_postural": (2 * np.sqrt(kp) / 20).tolist(),
+    }
     return {"com_critical_100.json": critical}
 
 

@@ -39,11 +39,27 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 BACKENDS = ("jax", "warp", "mujoco")
 EQUIVALENCE_BAR_M = 1e-3  # the MJX closed loop against the C MuJoCo + NumPy baseline, CoM over 1 s
-BAR = (f"the MJX closed loop's CoM within {EQUIVALENCE_BAR_M * 1e3:g} mm of the C MuJoCo + NumPy baseline's over "
-       "1 s (the trajectory check; skipped with --skip-equivalence)")  # fmt: skip
-JSON_KEYS = ("device", "date", "backend", "solver_iterations", "batch", "closed_loop_steps_per_s",
-             "physics_only_steps_per_s", "cpu_baseline_steps_per_s", "cpu_baseline_workers", "ratio",
-             "n_devices", "command", "sweep_name", "sweep_run_s", "sweep_envs")  # fmt: skip
+BAR = (
+    f"the MJX closed loop's CoM within {EQUIVALENCE_BAR_M * 1e3:g} mm of the C MuJoCo + NumPy baseline's over "
+    "1 s (the trajectory check; skipped with --skip-equivalence)"
+)
+JSON_KEYS = (
+    "device",
+    "date",
+    "backend",
+    "solver_iterations",
+    "batch",
+    "closed_loop_steps_per_s",
+    "physics_only_steps_per_s",
+    "cpu_baseline_steps_per_s",
+    "cpu_baseline_workers",
+    "ratio",
+    "n_devices",
+    "command",
+    "sweep_name",
+    "sweep_run_s",
+    "sweep_envs",
+)
 JSON_ROW_KEY = ("device", "backend", "solver_iterations", "batch", "n_devices", "sweep_name")
 
 
@@ -69,19 +85,24 @@ def equivalence_check(horizon: float = 1.0, iterations: int | None = None) -> di
     com_mjx, com_cpu = np.asarray(run.records.com[0], float), base["com"][0]
     diff = np.linalg.norm(com_mjx - com_cpu, axis=1)
     return {
-        "horizon_s": horizon, "mjx_backend": "jax", "mjx_dtype": str(st.dtype),
+        "horizon_s": horizon,
+        "mjx_backend": "jax",
+        "mjx_dtype": str(st.dtype),
         "solver_iterations": int(spec.mj_model.opt.iterations),
         "com_max_diff_m": float(diff.max()),
         "com_excursion_m": float(np.abs(com_cpu - com_cpu[0]).max()),
         "same_within_1mm": bool(diff.max() < EQUIVALENCE_BAR_M),
-    }  # fmt: skip
+    }
 
 
 def failures(result: dict) -> list[str]:
     """The trajectory checks whose CoM differs by EQUIVALENCE_BAR_M or more (or not finitely)."""
-    return [f"trajectory check at {eq['solver_iterations']} solver iterations: the CoM differs by "
-            f"{eq['com_max_diff_m']:.3g} m from the baseline's (bar {EQUIVALENCE_BAR_M:g} m)"
-            for eq in result.get("equivalence", []) if not eq["com_max_diff_m"] < EQUIVALENCE_BAR_M]  # fmt: skip
+    return [
+        f"trajectory check at {eq['solver_iterations']} solver iterations: the CoM differs by "
+        f"{eq['com_max_diff_m']:.3g} m from the baseline's (bar {EQUIVALENCE_BAR_M:g} m)"
+        for eq in result.get("equivalence", [])
+        if not eq["com_max_diff_m"] < EQUIVALENCE_BAR_M
+    ]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -107,8 +128,7 @@ def json_rows(result: dict) -> list[dict]:
         if "closed_loop_steps_per_s" not in row:
             continue  # a batch that failed (out of memory)
         entry = {k: row.get(k) for k in JSON_KEYS}
-        entry.update(date=result["date"], command=result["command"], sweep_name=None, sweep_run_s=None,
-                     sweep_envs=None)  # fmt: skip
+        entry.update(date=result["date"], command=result["command"], sweep_name=None, sweep_run_s=None, sweep_envs=None)
         rows.append(entry)
     return rows
 
@@ -136,8 +156,11 @@ def update_json_rows(path: pathlib.Path, rows: list[dict]) -> list[dict]:
 
 
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
-                                     epilog=f"Check: {BAR}; exit status 1 otherwise.")  # fmt: skip
+    parser = argparse.ArgumentParser(
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=f"Check: {BAR}; exit status 1 otherwise.",
+    )
     parser.add_argument("--out", default=str(ROOT / "runs" / "bench"), help="folder of bench.json")
     parser.add_argument(
         "--json",
@@ -214,7 +237,7 @@ def main(argv=None) -> dict:
         push_batch,
         time_closed_loop,
         time_physics_only,
-    )  # fmt: skip
+    )
 
     from wbc_jax.core import checks, io, provenance
     from wbc_jax.sim import physics
@@ -226,17 +249,29 @@ def main(argv=None) -> dict:
     push_end = args.push_onset + args.push_duration
     record = provenance.record(argv=provenance.script_argv(__file__, argv))
     result = {
-        "command": record["command"], "date": record["date"], "device": record["device"]["label"],
-        "provenance": record, "jax": jax.__version__,
-        "jax_devices": [str(d) for d in jax.devices()], "n_devices": len(jax.devices()),
-        "host_cpu": baseline_cpu.cpu_name(), "cpu_count": os.cpu_count(),
-        "push": {"magnitude_n": PUSH_MAGNITUDE, "onset_s": args.push_onset, "duration_s": args.push_duration,
-                 "within_horizon": args.push_onset < args.horizon},
+        "command": record["command"],
+        "date": record["date"],
+        "device": record["device"]["label"],
+        "provenance": record,
+        "jax": jax.__version__,
+        "jax_devices": [str(d) for d in jax.devices()],
+        "n_devices": len(jax.devices()),
+        "host_cpu": baseline_cpu.cpu_name(),
+        "cpu_count": os.cpu_count(),
+        "push": {
+            "magnitude_n": PUSH_MAGNITUDE,
+            "onset_s": args.push_onset,
+            "duration_s": args.push_duration,
+            "within_horizon": args.push_onset < args.horizon,
+        },
         "runs": [],
-    }  # fmt: skip
+    }
     if args.push_onset >= args.horizon:
-        print(f"note: the push (onset {args.push_onset} s) starts after the horizon ({args.horizon} s): "
-              "the closed loops run without it", file=sys.stderr)  # fmt: skip
+        print(
+            f"note: the push (onset {args.push_onset} s) starts after the horizon ({args.horizon} s): "
+            "the closed loops run without it",
+            file=sys.stderr,
+        )
 
     def save():
         io.atomic_write_json(out / "bench.json", result)
@@ -260,12 +295,20 @@ def main(argv=None) -> dict:
             iterations = int(physics.solver_mj_model(st.robot.mj_model, st.loop.cfg.physics).opt.iterations)
             tau = None if args.skip_physics_only else hold_torques(st)
             for batch in batches:
-                row = {"backend": backend, "device": device_description(backend), "batch": batch,
-                       "solver_iterations": iterations, "horizon_s": args.horizon,
-                       "n_devices": 1 if backend == "mujoco" else len(jax.devices())}  # fmt: skip
+                row = {
+                    "backend": backend,
+                    "device": device_description(backend),
+                    "batch": batch,
+                    "solver_iterations": iterations,
+                    "horizon_s": args.horizon,
+                    "n_devices": 1 if backend == "mujoco" else len(jax.devices()),
+                }
                 try:
-                    row.update(time_closed_loop(st, push_batch(st, batch, args.push_onset, args.push_duration),
-                                                push_end, args.repeats))  # fmt: skip
+                    row.update(
+                        time_closed_loop(
+                            st, push_batch(st, batch, args.push_onset, args.push_duration), push_end, args.repeats
+                        )
+                    )
                     row["peak_memory_bytes"] = peak_memory()
                     row["memory_per_env_bytes"] = row["peak_memory_bytes"] / batch if row["peak_memory_bytes"] else None
                     if backend == "mujoco":  # C threads and XLA's controller share the host's cores
@@ -290,9 +333,13 @@ def main(argv=None) -> dict:
             workers_list = sorted(set(args.cpu_workers)) if k == 0 else [max(args.cpu_workers)]
             for workers in workers_list:
                 base = baseline_cpu.benchmark(
-                    n_envs=args.cpu_baseline_envs * workers, n_workers=workers, horizon=args.horizon,
-                    push_onset=args.push_onset, push_duration=args.push_duration, solver_iterations=it,
-                )  # fmt: skip
+                    n_envs=args.cpu_baseline_envs * workers,
+                    n_workers=workers,
+                    horizon=args.horizon,
+                    push_onset=args.push_onset,
+                    push_duration=args.push_duration,
+                    solver_iterations=it,
+                )
                 base["steps_per_s_per_core"] = base["physics_steps_per_s"] / base["n_workers"]
                 emit(base)
                 result.setdefault("cpu_baseline", []).append(base)
@@ -306,9 +353,21 @@ def main(argv=None) -> dict:
                     row["ratio"] = row["closed_loop_steps_per_s"] / ref["physics_steps_per_s"]
                     if "closed_loop_steps_per_s_per_core" in row:
                         row["ratio_per_core"] = row["closed_loop_steps_per_s_per_core"] / ref["steps_per_s_per_core"]
-                    emit({k: row[k] for k in ("backend", "batch", "solver_iterations", "closed_loop_steps_per_s",
-                                              "cpu_baseline_steps_per_s", "cpu_baseline_workers", "ratio")
-                          if k in row})  # fmt: skip
+                    emit(
+                        {
+                            k: row[k]
+                            for k in (
+                                "backend",
+                                "batch",
+                                "solver_iterations",
+                                "closed_loop_steps_per_s",
+                                "cpu_baseline_steps_per_s",
+                                "cpu_baseline_workers",
+                                "ratio",
+                            )
+                            if k in row
+                        }
+                    )
             save()
 
     if args.json:

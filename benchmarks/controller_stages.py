@@ -44,15 +44,25 @@ import tempfile
 import time
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-STAGES = ("dynamics terms", "contact terms + momentum task", "torque law (seed postural)",
-          "postural projector (stable)", "force distribution (QP)", "saturation, metrics, records")  # fmt: skip
+STAGES = (
+    "dynamics terms",
+    "contact terms + momentum task",
+    "torque law (seed postural)",
+    "postural projector (stable)",
+    "force distribution (QP)",
+    "saturation, metrics, records",
+)
 
 
 def op_counts(compiled) -> dict:
     """What XLA runs: fusions, dots, library (custom) calls and while loops of a compiled program."""
     hlo = compiled.as_text()
-    return {"fusions": hlo.count(" fusion("), "dots": hlo.count(" dot("),
-            "library_calls": hlo.count(" custom-call("), "while_loops": hlo.count(" while(")}  # fmt: skip
+    return {
+        "fusions": hlo.count(" fusion("),
+        "dots": hlo.count(" dot("),
+        "library_calls": hlo.count(" custom-call("),
+        "while_loops": hlo.count(" while("),
+    }
 
 
 def sinusoid_states(ticks: int):
@@ -80,8 +90,9 @@ def programs(ticks: int, pkg: str = "wbc_jax"):
     import jax
     import jax.numpy as jnp
 
-    constraints, forces, momentum, torques = (importlib.import_module(f"{pkg}.control.{name}")
-                                              for name in ("constraints", "forces", "momentum", "torques"))  # fmt: skip
+    constraints, forces, momentum, torques = (
+        importlib.import_module(f"{pkg}.control.{name}") for name in ("constraints", "forces", "momentum", "torques")
+    )
     contacts = importlib.import_module(f"{pkg}.robot.contacts")
     scenario = importlib.import_module(f"{pkg}.sim.scenario")
     physics, state = importlib.import_module(f"{pkg}.sim.physics"), importlib.import_module(f"{pkg}.sim.state")
@@ -100,18 +111,37 @@ def programs(ticks: int, pkg: str = "wbc_jax"):
         ref = loop.schedule.at(time_now, dtype)
         ct = contacts.contact_terms(cset, t, time_now, jnp.clip(ref.activation, 0.0, 1.0))
         Ldot_star = momentum.momentum_rate_reference(
-            mass=mass, W_p_CoM=t.W_p_CoM, W_v_CoM=t.W_v_CoM, L_ang=t.L_G[3:], com_pos_des=ref.com_pos,
-            com_vel_des=ref.com_vel, com_acc_des=ref.com_acc, com_err_integral=jnp.zeros(3, dtype),
-            ang_integral=state0.controller.centroidal_jacobian_ref[0] @ (t.s - ref.s_des), kp_com=gains.kp_com,
-            kd_com=gains.kd_com, ki_com=gains.ki_com, kp_ang=gains.kp_ang, ki_ang=gains.ki_ang)  # fmt: skip
+            mass=mass,
+            W_p_CoM=t.W_p_CoM,
+            W_v_CoM=t.W_v_CoM,
+            L_ang=t.L_G[3:],
+            com_pos_des=ref.com_pos,
+            com_vel_des=ref.com_vel,
+            com_acc_des=ref.com_acc,
+            com_err_integral=jnp.zeros(3, dtype),
+            ang_integral=state0.controller.centroidal_jacobian_ref[0] @ (t.s - ref.s_des),
+            kp_com=gains.kp_com,
+            kd_com=gains.kd_com,
+            ki_com=gains.ki_com,
+            kp_ang=gains.kp_ang,
+            ki_ang=gains.ki_ang,
+        )
         if depth == 2:
             return Ldot_star, ct.J
         rows = contacts.row_activation(cset, ct.activation)
         tt = torques.torque_terms(
-            t, ct.J * rows[:, None], ct.Jdot_nu * rows, postural="seed" if depth == 3 else cfg.postural,
-            kp_postural=gains.kp_postural, kd_postural=gains.kd_postural, s_des=ref.s_des,
-            pinv_damping=cfg.pinv_damping, pinv_tol=cfg.pinv_tol, kp_postural_reg=cfg.kp_postural_reg,
-            compensate_passive=cfg.compensate_passive)  # fmt: skip
+            t,
+            ct.J * rows[:, None],
+            ct.Jdot_nu * rows,
+            postural="seed" if depth == 3 else cfg.postural,
+            kp_postural=gains.kp_postural,
+            kd_postural=gains.kd_postural,
+            s_des=ref.s_des,
+            pinv_damping=cfg.pinv_damping,
+            pinv_tol=cfg.pinv_tol,
+            kp_postural_reg=cfg.kp_postural_reg,
+            compensate_passive=cfg.compensate_passive,
+        )
         if depth <= 4:
             return Ldot_star, tt.Sigma, tt.tau_model
         A = constraints.wrench_map(cset, ct.W_p, t.W_p_CoM).astype(dtype)
@@ -157,8 +187,9 @@ def import_commit(ref: str) -> str:
         path.write_text(re.sub(r"\bwbc_jax\b", name, text))
     (work / "assets").symlink_to(ROOT / "assets")  # the model files, read beside the package
     # Imported by location (the scripts leave sys.path alone): its submodules follow the package's path.
-    spec = importlib.util.spec_from_file_location(name, work / name / "__init__.py",
-                                                  submodule_search_locations=[str(work / name)])  # fmt: skip
+    spec = importlib.util.spec_from_file_location(
+        name, work / name / "__init__.py", submodule_search_locations=[str(work / name)]
+    )
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
     spec.loader.exec_module(module)
@@ -181,12 +212,20 @@ def qp_newton_steps(st, qs, vs) -> dict:
         t = loop.terms(q, v)
         ref = loop.schedule.at(k * loop.cfg.control_dt, dtype)
         ct = contacts.contact_terms(cset, t, k * loop.cfg.control_dt, jnp.clip(ref.activation, 0.0, 1.0))
-        tt = torques.torque_terms(t, ct.J, ct.Jdot_nu, postural=cfg.postural, kp_postural=gains.kp_postural,
-                                  kd_postural=gains.kd_postural, s_des=ref.s_des)  # fmt: skip
+        tt = torques.torque_terms(
+            t,
+            ct.J,
+            ct.Jdot_nu,
+            postural=cfg.postural,
+            kp_postural=gains.kp_postural,
+            kd_postural=gains.kd_postural,
+            s_des=ref.s_des,
+        )
         A = constraints.wrench_map(cset, ct.W_p, t.W_p_CoM).astype(dtype)
         w = jnp.asarray([0.0, 0.0, 9.81 * st.robot.index.mass, 0.0, 0.0, 0.0], dtype)
-        _, info = forces.momentum_equality_qp(cset, jnp.ones(len(cset.contacts), dtype), A, w, tt, ct.W_R,
-                                              cfg.force_settings)  # fmt: skip
+        _, info = forces.momentum_equality_qp(
+            cset, jnp.ones(len(cset.contacts), dtype), A, w, tt, ct.W_R, cfg.force_settings
+        )
         return info.iterations, info.converged
 
     it, conv = jax.jit(jax.vmap(steps))(qs, vs, jnp.arange(qs.shape[0], dtype=jnp.int32))
@@ -200,10 +239,14 @@ def split(cpu_us: list[list[float]]) -> dict:
     stages = {}
     for i, name in enumerate(STAGES):
         diffs = [c - (cpu_us[i - 1][r] if i else 0.0) for r, c in enumerate(cpu_us[i])]
-        stages[name] = {"median_us": round(medians[i] - (medians[i - 1] if i else 0.0), 1),
-                        "range_us": [round(min(diffs), 1), round(max(diffs), 1)]}  # fmt: skip
-    stages["whole tick"] = {"median_us": round(medians[-1], 1),
-                            "range_us": [round(min(cpu_us[-1]), 1), round(max(cpu_us[-1]), 1)]}  # fmt: skip
+        stages[name] = {
+            "median_us": round(medians[i] - (medians[i - 1] if i else 0.0), 1),
+            "range_us": [round(min(diffs), 1), round(max(diffs), 1)],
+        }
+    stages["whole tick"] = {
+        "median_us": round(medians[-1], 1),
+        "range_us": [round(min(cpu_us[-1]), 1), round(max(cpu_us[-1]), 1)],
+    }
     return stages
 
 
@@ -213,8 +256,12 @@ def main(argv=None) -> dict:
     p.add_argument("--out", default=str(ROOT / "runs" / "controller_stages.json"))
     p.add_argument("--ticks", type=int, default=2000, help="ticks of the sinusoid (10 ms each)")
     p.add_argument("--repeats", type=int, default=7)
-    p.add_argument("--before", default=None, metavar="REF",
-                   help="also the stages of git commit REF's controller, interleaved with this checkout's")  # fmt: skip
+    p.add_argument(
+        "--before",
+        default=None,
+        metavar="REF",
+        help="also the stages of git commit REF's controller, interleaved with this checkout's",
+    )
     args = p.parse_args(argv)
     if args.ticks < 2 or args.repeats < 1:
         p.error("--ticks must be >= 2 and --repeats >= 1")
@@ -244,14 +291,17 @@ def main(argv=None) -> dict:
     result = {
         "command": "python benchmarks/controller_stages.py " + " ".join(argv),
         "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "device": provenance.device_label(), "dtype": str(st.dtype), "ticks": args.ticks,
-        "repeats": args.repeats, "affinity": sorted(os.sched_getaffinity(0)),
+        "device": provenance.device_label(),
+        "dtype": str(st.dtype),
+        "ticks": args.ticks,
+        "repeats": args.repeats,
+        "affinity": sorted(os.sched_getaffinity(0)),
         "load_average": [round(x, 2) for x in os.getloadavg()],
         "stages_cpu_us_per_tick": {name: split(cpu_us[name]) for name in variants},
         "whole_tick_program": {name: op_counts(compiled[name][-1]) for name in variants},
         "qp_newton_steps": qp_newton_steps(st, qs, vs),
         "provenance": provenance.record(argv=[__file__, *argv]),
-    }  # fmt: skip
+    }
     io.atomic_write_json(pathlib.Path(args.out), result)
     print(json.dumps(result), flush=True)
     return result

@@ -107,8 +107,11 @@ def profile(repeats: int, ticks: int) -> dict:
     timers = Timers()
     key = next(k for k in PROGRAMS if k[0] == "host" and k[1] == st.loop.structure_key)
     saved = dict(PROGRAMS[key])
-    PROGRAMS[key] = {**saved, "control": timers.wrap("controller call (dispatch + XLA)", saved["control"], True),
-                     "measure": timers.wrap("measured wrenches (XLA call)", saved["measure"], True)}  # fmt: skip
+    PROGRAMS[key] = {
+        **saved,
+        "control": timers.wrap("controller call (dispatch + XLA)", saved["control"], True),
+        "measure": timers.wrap("measured wrenches (XLA call)", saved["measure"], True),
+    }
     originals = {name: getattr(physics.HostBatch, name) for name in ("state", "step", "contacts")}
     labels = {"state": "read the state", "step": "C MuJoCo: 10 mj_step", "contacts": "contact slots"}
     original_xfrc = host_loop.host_xfrc
@@ -129,7 +132,7 @@ def profile(repeats: int, ticks: int) -> dict:
     stages["the Python between (casts to JAX arrays, trees, the loop)"] = {
         "wall_us": us(wall - sum(t[0] for t in timers.total.values())),
         "cpu_us": us(cpu - sum(t[1] for t in timers.total.values())),
-    }  # fmt: skip
+    }
     out["python_loop"] = {"per_tick_wall_us": us(wall), "per_tick_cpu_us": us(cpu), "stages": stages}
 
     # The compiled loop: the whole horizon in one program, C MuJoCo timed inside it.
@@ -142,8 +145,12 @@ def profile(repeats: int, ticks: int) -> dict:
         return native.physics_cpu()[0]
 
     wall, cpu, physics_cpu = _best(compiled_run, repeats)
-    out["compiled_loop"] = {"per_tick_wall_us": us(wall), "per_tick_cpu_us": us(cpu),
-                            "physics_cpu_us": us(physics_cpu), "rest_cpu_us": us(cpu - physics_cpu)}  # fmt: skip
+    out["compiled_loop"] = {
+        "per_tick_wall_us": us(wall),
+        "per_tick_cpu_us": us(cpu),
+        "physics_cpu_us": us(physics_cpu),
+        "rest_cpu_us": us(cpu - physics_cpu),
+    }
 
     # The controller's tick alone (controller, metrics, records) in a scan: no physics, no calls.
     loop, dtype = st.loop, st.dtype
@@ -155,8 +162,9 @@ def profile(repeats: int, ticks: int) -> dict:
 
         def tick(carry, k):
             state, q = carry
-            state, ctrl, record = loop.control(one.gains, state, q, jnp.zeros(loop.idx.nv, dtype), k,
-                                               jnp.bool_(True), one.push)  # fmt: skip
+            state, ctrl, record = loop.control(
+                one.gains, state, q, jnp.zeros(loop.idx.nv, dtype), k, jnp.bool_(True), one.push
+            )
             return (state, q.at[0].add(1e-9 * ctrl[0])), record.com
 
         return jax.lax.scan(tick, (state, q), jnp.arange(ticks, dtype=jnp.int32))[1]
@@ -164,19 +172,26 @@ def profile(repeats: int, ticks: int) -> dict:
     alone = jax.jit(ticks_alone).lower(q0).compile()
     wall, cpu, _ = _best(lambda: jax.block_until_ready(alone(q0)), repeats)
     hlo = alone.as_text()  # what XLA runs: many small kernels, each a call of the CPU runtime
-    out["controller_alone"] = {"per_tick_wall_us": us(wall), "per_tick_cpu_us": us(cpu),
-                               "what": "loop.control at the standing state in a lax.scan, records kept",
-                               "program": {"fusions": hlo.count(" fusion("), "dots": hlo.count(" dot("),
-                                           "library_calls": hlo.count(" custom-call("),
-                                           "while_loops": hlo.count(" while(")}}  # fmt: skip
+    out["controller_alone"] = {
+        "per_tick_wall_us": us(wall),
+        "per_tick_cpu_us": us(cpu),
+        "what": "loop.control at the standing state in a lax.scan, records kept",
+        "program": {
+            "fusions": hlo.count(" fusion("),
+            "dots": hlo.count(" dot("),
+            "library_calls": hlo.count(" custom-call("),
+            "while_loops": hlo.count(" while("),
+        },
+    }
     return out
 
 
 def _cli(args: list[str], env: dict) -> tuple[float, dict]:
     """Run ``wbc-jax ARGS`` (this checkout); (wall seconds, its JSON line)."""
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "wbc_jax.cli", *args], capture_output=True, text=True, env=env,
-                          cwd=ROOT, timeout=3600)  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-m", "wbc_jax.cli", *args], capture_output=True, text=True, env=env, cwd=ROOT, timeout=3600
+    )
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         raise RuntimeError(f"wbc-jax {' '.join(args)} failed:\n{proc.stderr[-3000:]}")
@@ -191,17 +206,26 @@ def sinusoid(work: pathlib.Path) -> dict:
     """The ``sinusoid`` part: each loop after a warm-up run that fills the cache; the compiled loop
     also with XLA's CPU pool of one thread per core (``PJRT_NPROC`` = the core count)."""
     out = {}
-    variants = {"compiled": ("compiled", "1"), "python": ("python", "1"),
-                "compiled, a pool thread per core": ("compiled", str(os.cpu_count() or 1))}  # fmt: skip
+    variants = {
+        "compiled": ("compiled", "1"),
+        "python": ("python", "1"),
+        "compiled, a pool thread per core": ("compiled", str(os.cpu_count() or 1)),
+    }
     for name, (driver, threads) in variants.items():
         args = ["balance", "--task", "sinusoid", "--duration", "20", "--host-loop", driver, "--no-plots", "--quiet"]
         env = {**_env(work / "xla"), "PJRT_NPROC": threads}
         _cli([*args, "--out", str(work / f"sin_{driver}_{threads}_0")], env)
         wall, s = _cli([*args, "--out", str(work / f"sin_{driver}_{threads}_1")], env)
-        out[name] = {"command": f"PJRT_NPROC={threads} wbc-jax " + " ".join(args), "loop_s": s["loop_s"],
-                     "real_time_factor": s["real_time_factor"], "com_rmse_mm": round(1e3 * s["com_rmse_m"], 5),
-                     "compile_s": s["compile_s"], "started_s": s["started_s"], "wall_s": round(wall, 2),
-                     "host_loop": s["host_loop"]}  # fmt: skip
+        out[name] = {
+            "command": f"PJRT_NPROC={threads} wbc-jax " + " ".join(args),
+            "loop_s": s["loop_s"],
+            "real_time_factor": s["real_time_factor"],
+            "com_rmse_mm": round(1e3 * s["com_rmse_m"], 5),
+            "compile_s": s["compile_s"],
+            "started_s": s["started_s"],
+            "wall_s": round(wall, 2),
+            "host_loop": s["host_loop"],
+        }
     c = out["compiled"]
     out["target"] = "compiled loop <= 1 s (20x real time), CoM RMSE 1.00 mm"
     out["met"] = bool(c["loop_s"] <= 1.0 and abs(c["com_rmse_mm"] - 1.00) < 0.01)
@@ -224,12 +248,16 @@ def rerun(work: pathlib.Path) -> dict:
         for k in range(2):
             wall, s = _cli([*args, "--out", str(work / f"{args[0]}_{k}")], _env(cache))
             rows.append({"wall_s": round(wall, 2), "started_s": s.get("started_s"), "compile_s": s.get("compile_s")})
-        out[name] = {"command": "wbc-jax " + " ".join(args) + " (empty cache, then again)", "first": rows[0],
-                     "second": rows[1]}  # fmt: skip
+        out[name] = {
+            "command": "wbc-jax " + " ".join(args) + " (empty cache, then again)",
+            "first": rows[0],
+            "second": rows[1],
+        }
     main = out["push-sweep (README main job)"]["second"]
     out["target"] = "a second run starts simulating within 3 s; the main job's second run within 10 s"
-    out["met"] = bool(all(v["second"]["started_s"] <= 3.0 for v in out.values() if isinstance(v, dict))
-                      and main["wall_s"] <= 10.0)  # fmt: skip
+    out["met"] = bool(
+        all(v["second"]["started_s"] <= 3.0 for v in out.values() if isinstance(v, dict)) and main["wall_s"] <= 10.0
+    )
     return out
 
 
@@ -247,11 +275,15 @@ def notebook() -> dict:
     gains = jax.tree_util.tree_map(lambda g: np.asarray(g) * 1.2, st.gains)
     t0 = time.perf_counter()
     again = wbc_jax.run(st, wbc_jax.single(st, gains=gains))
-    return {"command": "wbc_jax.run(st, wbc_jax.single(st, gains=new)) after a first run (5 s sinusoid)",
-            "first_compile_s": round(first.compile_s, 2), "again_compile_s": again.compile_s,
-            "again_wall_s": round(time.perf_counter() - t0, 3),
-            "com_moved_m": float(np.abs(again.records.com - first.records.com).max()),
-            "target": "no compilation (compile_s 0)", "met": again.compile_s == 0.0}  # fmt: skip
+    return {
+        "command": "wbc_jax.run(st, wbc_jax.single(st, gains=new)) after a first run (5 s sinusoid)",
+        "first_compile_s": round(first.compile_s, 2),
+        "again_compile_s": again.compile_s,
+        "again_wall_s": round(time.perf_counter() - t0, 3),
+        "com_moved_m": float(np.abs(again.records.com - first.records.com).max()),
+        "target": "no compilation (compile_s 0)",
+        "met": again.compile_s == 0.0,
+    }
 
 
 def _differences(a, b, path: list) -> list:
@@ -281,15 +313,24 @@ def acceptance(work: pathlib.Path, baseline: pathlib.Path, summary: pathlib.Path
     """The ``acceptance`` part."""
     if summary is None:
         summary = work / "balance_acceptance.json"
-        cmd = [sys.executable, str(ROOT / "experiments" / "balance_acceptance.py"), "--out", str(work / "acceptance"),
-               "--summary", str(summary)]  # fmt: skip
+        cmd = [
+            sys.executable,
+            str(ROOT / "experiments" / "balance_acceptance.py"),
+            "--out",
+            str(work / "acceptance"),
+            "--summary",
+            str(summary),
+        ]
         proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=7200, env=_env(work / "xla"))
         if proc.returncode != 0:
             raise RuntimeError(f"balance_acceptance.py failed:\n{proc.stderr[-3000:]}")
     old, new = json.loads(baseline.read_text()), json.loads(summary.read_text())
-    return {"command": "python experiments/acceptance/balance_acceptance.py (every scenario), compared with " + str(baseline),
-            "largest_differences": compare_figures(old, new),
-            "drivers": sorted({v.get("host_loop") for v in new.values() if isinstance(v, dict) and "task" in v})}  # fmt: skip
+    return {
+        "command": "python experiments/acceptance/balance_acceptance.py (every scenario), compared with "
+        + str(baseline),
+        "largest_differences": compare_figures(old, new),
+        "drivers": sorted({v.get("host_loop") for v in new.values() if isinstance(v, dict) and "task" in v}),
+    }
 
 
 def main(argv=None) -> dict:
@@ -306,9 +347,17 @@ def main(argv=None) -> dict:
         p.error("--repeats and --ticks must be >= 1")
     out = pathlib.Path(args.out)
     result = json.loads(out.read_text()) if out.exists() else {}
-    result.update({"command": "python benchmarks/cpu_loop.py " + " ".join(argv), "date": time.strftime("%Y-%m-%d"),
-                   "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
-                               "xla_flags": os.environ.get("XLA_FLAGS", "")}})  # fmt: skip
+    result.update(
+        {
+            "command": "python benchmarks/cpu_loop.py " + " ".join(argv),
+            "date": time.strftime("%Y-%m-%d"),
+            "machine": {
+                "cpu": platform.processor() or platform.machine(),
+                "cores": os.cpu_count(),
+                "xla_flags": os.environ.get("XLA_FLAGS", ""),
+            },
+        }
+    )
     work = pathlib.Path(tempfile.mkdtemp(prefix="wbc_cpu_loop_"))
 
     def save(part, value):

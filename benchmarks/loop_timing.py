@@ -28,9 +28,13 @@ def push_batch(st, batch: int, onset: float, duration: float):
     from wbc_jax.jobs import sweep, sweep_config
 
     cfg = sweep_config.SweepConfig(
-        magnitudes=(PUSH_MAGNITUDE,), directions=tuple(float(a) for a in np.linspace(0, 360, batch, endpoint=False)),
-        horizon=st.loop.cfg.duration, push_onset=onset, push_duration=duration, chunk_size=batch,
-    )  # fmt: skip
+        magnitudes=(PUSH_MAGNITUDE,),
+        directions=tuple(float(a) for a in np.linspace(0, 360, batch, endpoint=False)),
+        horizon=st.loop.cfg.duration,
+        push_onset=onset,
+        push_duration=duration,
+        chunk_size=batch,
+    )
     scen, _ = sweep.build_scenarios(cfg, st.gains, st.robot.index.n, st.dtype)
     return scen
 
@@ -117,8 +121,11 @@ def time_physics_only(st, batch: int, tau, repeats: int = 1) -> dict:
                 times.append(time.perf_counter() - t0)
             finally:
                 host.close()
-        return {"physics_only_steps_per_s": batch * steps / min(times), "physics_only_compile_s": 0.0,
-                "physics_only_threads": host.threads}  # fmt: skip
+        return {
+            "physics_only_steps_per_s": batch * steps / min(times),
+            "physics_only_compile_s": 0.0,
+            "physics_only_threads": host.threads,
+        }
     dtype = st.dtype
     m = physics.device_model(robot.mj_model, loop.backend, cfg)
     ctrl = jnp.asarray(tau, dtype)

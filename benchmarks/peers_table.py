@@ -38,19 +38,27 @@ def _pair(a, b, spec: str, scale: float = 1.0) -> str:
 
 def columns(tsid: dict, wbc: dict) -> dict:
     """{column title: the figures of one controller}, TSID first, then each of our gain sets."""
-    cols = {"TSID": {
-        "controller": _get(tsid, "timing", "controller_cpu_us_per_tick"),
-        "physics": _get(tsid, "timing", "physics_cpu_us_per_tick"),
-        "rtf": _get(tsid, "timing", "real_time_factor_cpu"), "sinusoid": tsid.get("sinusoid", {}),
-        "stand": tsid.get("stand", {}), "envelope": tsid.get("envelope", {}), "grid": tsid.get("grid", {}),
-    }}  # fmt: skip
+    cols = {
+        "TSID": {
+            "controller": _get(tsid, "timing", "controller_cpu_us_per_tick"),
+            "physics": _get(tsid, "timing", "physics_cpu_us_per_tick"),
+            "rtf": _get(tsid, "timing", "real_time_factor_cpu"),
+            "sinusoid": tsid.get("sinusoid", {}),
+            "stand": tsid.get("stand", {}),
+            "envelope": tsid.get("envelope", {}),
+            "grid": tsid.get("grid", {}),
+        }
+    }
     for name, entry in wbc.get("gain_sets", {}).items():
         cols[f"wbc_jax {name}"] = {
             "controller": _get(entry, "timing", "controller_cpu_us_per_tick"),
             "physics": _get(entry, "timing", "physics_cpu_us_per_tick"),
-            "rtf": _get(entry, "timing", "real_time_factor_cpu"), "sinusoid": entry.get("sinusoid", {}),
-            "stand": entry.get("stand", {}), "envelope": entry.get("envelope", {}), "grid": entry.get("grid", {}),
-        }  # fmt: skip
+            "rtf": _get(entry, "timing", "real_time_factor_cpu"),
+            "sinusoid": entry.get("sinusoid", {}),
+            "stand": entry.get("stand", {}),
+            "envelope": entry.get("envelope", {}),
+            "grid": entry.get("grid", {}),
+        }
     for col in cols.values():
         c, p = col["controller"], col["physics"]
         col["loop"] = None if c is None or p is None else c + p
@@ -63,15 +71,27 @@ def summary_table(cols: dict) -> str:
         ("physics per tick (10 `mj_step`), CPU time (us)", lambda c: _fmt(c["physics"], ".0f")),
         ("closed loop per tick, CPU time (us)", lambda c: _fmt(c["loop"], ".0f")),
         ("real-time factor of the closed loop, CPU time", lambda c: _fmt(c["rtf"], ".1f")),
-        ("20 s sinusoid: CoM RMSE (max), mm", lambda c: _pair(c["sinusoid"].get("com_rmse_m"),
-                                                              c["sinusoid"].get("com_max_err_m"), ".2f", 1e3)),
+        (
+            "20 s sinusoid: CoM RMSE (max), mm",
+            lambda c: _pair(c["sinusoid"].get("com_rmse_m"), c["sinusoid"].get("com_max_err_m"), ".2f", 1e3),
+        ),
         ("10 s stand: CoM drift, mm", lambda c: _fmt(c["stand"].get("com_drift_m"), ".3f", 1e3)),
-        ("strict envelope / LIP bound, median (min), bisection", lambda c: _pair(
-            c["envelope"].get("fraction_of_bound_median"), c["envelope"].get("fraction_of_bound_min"), ".3f")),
+        (
+            "strict envelope / LIP bound, median (min), bisection",
+            lambda c: _pair(
+                c["envelope"].get("fraction_of_bound_median"), c["envelope"].get("fraction_of_bound_min"), ".3f"
+            ),
+        ),
         ("64 x 32 grid: strict survival", lambda c: _fmt(c["grid"].get("survival_rate"), ".1%")),
-        ("64 x 32 grid: monotone envelope / LIP bound, median (min)", lambda c: _pair(
-            c["grid"].get("monotone_fraction_of_bound_median"), c["grid"].get("monotone_fraction_of_bound_min"), ".3f")),
-    ]  # fmt: skip
+        (
+            "64 x 32 grid: monotone envelope / LIP bound, median (min)",
+            lambda c: _pair(
+                c["grid"].get("monotone_fraction_of_bound_median"),
+                c["grid"].get("monotone_fraction_of_bound_min"),
+                ".3f",
+            ),
+        ),
+    ]
     lines = ["| figure | " + " | ".join(cols) + " |", "|---|" + "---:|" * len(cols)]
     lines += [f"| {title} | " + " | ".join(fn(c) for c in cols.values()) + " |" for title, fn in rows]
     return "\n".join(lines)
@@ -84,8 +104,10 @@ def direction_table(cols: dict) -> str:
     ours = names[1] if len(names) > 1 else None
     azimuths = sorted({float(a) for c in cols.values() for a in c["envelope"].get("directions", {})})
     pair = f" TSID vs {ours} |" if ours else ""
-    lines = ["| azimuth (deg) | " + " | ".join(names) + " | largest |" + pair,
-             "|---:|" + "---:|" * len(names) + "---|" + ("---|" if ours else "")]  # fmt: skip
+    lines = [
+        "| azimuth (deg) | " + " | ".join(names) + " | largest |" + pair,
+        "|---:|" + "---:|" * len(names) + "---|" + ("---|" if ours else ""),
+    ]
     for az in azimuths:
         values = [_get(c["envelope"], "directions", f"{az:g}", "fraction_of_bound") for c in cols.values()]
         known = [(v, n) for v, n in zip(values, names, strict=True) if v is not None]
@@ -118,10 +140,12 @@ def main(argv=None) -> str:
         except json.JSONDecodeError as err:
             raise SystemExit(f"error: --{name}: {path} is not JSON ({err})") from None
     cols = columns(*docs)
-    text = (f"Measured by `{docs[0].get('command', '?')}` ({docs[0].get('date', '?')}) and "
-            f"`{docs[1].get('command', '?')}` ({docs[1].get('date', '?')}).\n\n"
-            f"{summary_table(cols)}\n\nStrict envelope by direction (fraction of the LIP bound, bisection):\n\n"
-            f"{direction_table(cols)}\n")  # fmt: skip
+    text = (
+        f"Measured by `{docs[0].get('command', '?')}` ({docs[0].get('date', '?')}) and "
+        f"`{docs[1].get('command', '?')}` ({docs[1].get('date', '?')}).\n\n"
+        f"{summary_table(cols)}\n\nStrict envelope by direction (fraction of the LIP bound, bisection):\n\n"
+        f"{direction_table(cols)}\n"
+    )
     if args.out:
         pathlib.Path(args.out).write_text(text)
     sys.stdout.write(text)

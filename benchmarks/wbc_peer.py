@@ -105,16 +105,22 @@ def timing(gains: str, repeats: int) -> dict:
     out["repeats"] = {k: [round(x, 3) for x in v] for k, v in per_tick.items()}
     out["ticks"] = T
     out["driver"] = driver
-    out["what"] = ("the 20 s sinusoid of `wbc-jax balance --task sinusoid` (trajectories recorded) by the compiled "
-                   "loop, one core; controller = the loop's process CPU time less the physics' (controller, metrics, "
-                   f"records and the program's own work); medians of {repeats} runs after a warm-up")  # fmt: skip
+    out["what"] = (
+        "the 20 s sinusoid of `wbc-jax balance --task sinusoid` (trajectories recorded) by the compiled "
+        "loop, one core; controller = the loop's process CPU time less the physics' (controller, metrics, "
+        f"records and the program's own work); medians of {repeats} runs after a warm-up"
+    )
     sinusoid = {"duration_s": 20.0, **_summary(run.metrics)}
     stand_st = balance.make_setup(balance.BalanceConfig(task="stand", duration=10.0, gains=file, backend="mujoco"))
     stand = runner.run(stand_st, scenario.single(stand_st))
     com, ref = stand.records.com[0], stand.records.com_ref[0]
     stand_row = {"duration_s": 10.0, "com_drift_m": float(np.linalg.norm(com[-1] - ref[-1])), **_summary(stand.metrics)}
-    return {"timing": out, "sinusoid": sinusoid, "stand": stand_row,
-            "affinity": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None}  # fmt: skip
+    return {
+        "timing": out,
+        "sinusoid": sinusoid,
+        "stand": stand_row,
+        "affinity": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+    }
 
 
 def _sweep_config(gains: str, out: str | None):
@@ -126,11 +132,18 @@ def _sweep_config(gains: str, out: str | None):
     from wbc_jax.jobs import envelope
 
     return dataclasses.replace(
-        envelope.default_config(), magnitudes=tuple(float(x) for x in np.linspace(*MAGNITUDES[:2], MAGNITUDES[2])),
-        directions=tuple(k * 360.0 / DIRECTIONS for k in range(DIRECTIONS)), push_onset=PUSH_ONSET,
-        push_duration=PUSH_DURATION, horizon=HORIZON, body="chest", gains=None if gains == "default" else gains,
-        backend="mujoco", out=out, chunk_size=512,
-    )  # fmt: skip
+        envelope.default_config(),
+        magnitudes=tuple(float(x) for x in np.linspace(*MAGNITUDES[:2], MAGNITUDES[2])),
+        directions=tuple(k * 360.0 / DIRECTIONS for k in range(DIRECTIONS)),
+        push_onset=PUSH_ONSET,
+        push_duration=PUSH_DURATION,
+        horizon=HORIZON,
+        body="chest",
+        gains=None if gains == "default" else gains,
+        backend="mujoco",
+        out=out,
+        chunk_size=512,
+    )
 
 
 def envelope_part(gains: str) -> dict:
@@ -148,13 +161,21 @@ def envelope_part(gains: str) -> dict:
     imp = np.array([r["impulse_ns"] for r in rows.values()])
     azimuths = list(found["envelope"][0])
     return {
-        "fraction_of_bound_median": float(np.median(frac)), "fraction_of_bound_min": float(np.min(frac)),
-        "impulse_ns_median": float(np.median(imp)), "impulse_ns_min": float(np.min(imp)),
-        "min_at_azimuth_deg": float(azimuths[int(np.argmin(frac))]), "rollouts": found["rollouts"],
-        "rounds": found["rounds"], "grid_rollouts": found["grid_rollouts"], "run_s": round(time.perf_counter() - t0, 2),
-        "compile_s": found["compile_s"], "grid_impulses": found["grid_impulses"], "resolution_ns": RESOLUTION,
-        "backend": found["backend"], "directions": rows,
-    }  # fmt: skip
+        "fraction_of_bound_median": float(np.median(frac)),
+        "fraction_of_bound_min": float(np.min(frac)),
+        "impulse_ns_median": float(np.median(imp)),
+        "impulse_ns_min": float(np.min(imp)),
+        "min_at_azimuth_deg": float(azimuths[int(np.argmin(frac))]),
+        "rollouts": found["rollouts"],
+        "rounds": found["rounds"],
+        "grid_rollouts": found["grid_rollouts"],
+        "run_s": round(time.perf_counter() - t0, 2),
+        "compile_s": found["compile_s"],
+        "grid_impulses": found["grid_impulses"],
+        "resolution_ns": RESOLUTION,
+        "backend": found["backend"],
+        "directions": rows,
+    }
 
 
 def grid_part(gains: str, out: pathlib.Path) -> dict:
@@ -173,28 +194,39 @@ def grid_part(gains: str, out: pathlib.Path) -> dict:
     rows = {}
     for az, e in summary["envelope"].items():
         rows[f"{float(az):g}"] = {
-            "largest_survived_impulse_ns": e["largest_survived_impulse_ns"], "monotone_impulse_ns": e["monotone_impulse_ns"],
-            "islands": e["survival_islands"], "bound_impulse_ns": e["bound_impulse_ns"],
+            "largest_survived_impulse_ns": e["largest_survived_impulse_ns"],
+            "monotone_impulse_ns": e["monotone_impulse_ns"],
+            "islands": e["survival_islands"],
+            "bound_impulse_ns": e["bound_impulse_ns"],
             "monotone_fraction_of_bound": e["fraction_of_bound_monotone"],
-        }  # fmt: skip
+        }
     frac = np.array([r["monotone_fraction_of_bound"] for r in rows.values()])
     return {
-        "survival_rate": summary["survival_rate"], "upright_rate": summary["upright_rate"],
-        "monotone_fraction_of_bound_median": float(np.median(frac)), "monotone_fraction_of_bound_min": float(np.min(frac)),
-        "rollouts": summary["n_envs"], "run_s": round(time.perf_counter() - t0, 2), "sweep_run_s": summary["run_s"],
-        "compile_s": summary["compile_s"], "backend": summary["backend"], "directions": rows,
-        "survived": survived.to_numpy().astype(int).tolist(), "magnitudes_n": survived.index.tolist(),
+        "survival_rate": summary["survival_rate"],
+        "upright_rate": summary["upright_rate"],
+        "monotone_fraction_of_bound_median": float(np.median(frac)),
+        "monotone_fraction_of_bound_min": float(np.min(frac)),
+        "rollouts": summary["n_envs"],
+        "run_s": round(time.perf_counter() - t0, 2),
+        "sweep_run_s": summary["run_s"],
+        "compile_s": summary["compile_s"],
+        "backend": summary["backend"],
+        "directions": rows,
+        "survived": survived.to_numpy().astype(int).tolist(),
+        "magnitudes_n": survived.index.tolist(),
         "azimuths_deg": [float(a) for a in survived.columns],
-    }  # fmt: skip
+    }
 
 
 def _versions() -> dict:
     import platform
     from importlib import metadata
 
-    return {"python": platform.python_version(),
-            **{n: metadata.version(n) for n in ("jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy", "icub-models")},
-            "wbc_jax": __import__("wbc_jax").__version__}  # fmt: skip
+    return {
+        "python": platform.python_version(),
+        **{n: metadata.version(n) for n in ("jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy", "icub-models")},
+        "wbc_jax": __import__("wbc_jax").__version__,
+    }
 
 
 def _code() -> dict:
@@ -214,8 +246,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    p.add_argument("--gains", nargs="+", default=["default", "experiments/gains/tuned_gradient.json"],
-                   help="gain sets: 'default' (the WBC gains) or gains JSON files")  # fmt: skip
+    p.add_argument(
+        "--gains",
+        nargs="+",
+        default=["default", "experiments/gains/tuned_gradient.json"],
+        help="gain sets: 'default' (the WBC gains) or gains JSON files",
+    )
     p.add_argument("--parts", nargs="+", default=list(PARTS), choices=PARTS)
     p.add_argument("--cpu", type=int, default=None, help="the core the timing runs on (default: no pinning)")
     p.add_argument("--timing-repeats", type=int, default=5)
@@ -244,35 +280,60 @@ def main(argv=None) -> dict:
     out = pathlib.Path(args.out)
     command = "python benchmarks/wbc_peer.py " + " ".join(shlex.quote(a) for a in argv)
     result = json.loads(out.read_text()) if out.exists() else {}
-    result.update({
-        "peer": "wbc_jax: the momentum-based whole-body controller (JAX, compiled by XLA) on C MuJoCo",
-        "command": command, "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "cpu": provenance.device_label(), "cpu_count": os.cpu_count(),
-        "provenance": provenance.record({f"gains {gain_label(g)}": g for g in args.gains if g != "default"}, argv=[__file__, *argv]),
-        "threads": {"OMP_NUM_THREADS": "1 (timing)", "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")},
-        "versions": _versions(), "code": _code(),
-        "definitions": {"magnitudes_n": list(MAGNITUDES), "directions": DIRECTIONS, "push_onset_s": PUSH_ONSET,
-                        "push_duration_s": PUSH_DURATION, "horizon_s": HORIZON, "body": "chest",
-                        "resolution_ns": RESOLUTION, "survival": "strict (constants.SURVIVAL_CRITERION)"},
-    })  # fmt: skip
+    result.update(
+        {
+            "peer": "wbc_jax: the momentum-based whole-body controller (JAX, compiled by XLA) on C MuJoCo",
+            "command": command,
+            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+            "cpu": provenance.device_label(),
+            "cpu_count": os.cpu_count(),
+            "provenance": provenance.record(
+                {f"gains {gain_label(g)}": g for g in args.gains if g != "default"}, argv=[__file__, *argv]
+            ),
+            "threads": {"OMP_NUM_THREADS": "1 (timing)", "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")},
+            "versions": _versions(),
+            "code": _code(),
+            "definitions": {
+                "magnitudes_n": list(MAGNITUDES),
+                "directions": DIRECTIONS,
+                "push_onset_s": PUSH_ONSET,
+                "push_duration_s": PUSH_DURATION,
+                "horizon_s": HORIZON,
+                "body": "chest",
+                "resolution_ns": RESOLUTION,
+                "survival": "strict (constants.SURVIVAL_CRITERION)",
+            },
+        }
+    )
     load_start = os.getloadavg()
     sets = result.setdefault("gain_sets", {})
 
     def save():
         from wbc_jax.core import io
 
-        result["load_average"] = {"start": [round(x, 2) for x in load_start],
-                                  "end": [round(x, 2) for x in os.getloadavg()]}  # fmt: skip
+        result["load_average"] = {
+            "start": [round(x, 2) for x in load_start],
+            "end": [round(x, 2) for x in os.getloadavg()],
+        }
         io.atomic_write_json(out, result)
 
     for gains in args.gains:
         entry = sets.setdefault(gain_label(gains), {})
         entry["gains"] = None if gains == "default" else gains
         if "timing" in args.parts:
-            cmd = [sys.executable, str(pathlib.Path(__file__).resolve()), "--timing-worker", "--gains", gains,
-                   "--timing-repeats", str(args.timing_repeats), *(["--cpu", str(args.cpu)] if args.cpu is not None else [])]  # fmt: skip
-            proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=3600,
-                                  env={**os.environ, "JAX_PLATFORMS": "cpu"})  # fmt: skip
+            cmd = [
+                sys.executable,
+                str(pathlib.Path(__file__).resolve()),
+                "--timing-worker",
+                "--gains",
+                gains,
+                "--timing-repeats",
+                str(args.timing_repeats),
+                *(["--cpu", str(args.cpu)] if args.cpu is not None else []),
+            ]
+            proc = subprocess.run(
+                cmd, capture_output=True, text=True, cwd=ROOT, timeout=3600, env={**os.environ, "JAX_PLATFORMS": "cpu"}
+            )
             if proc.returncode != 0:
                 raise SystemExit(f"error: the timing of {gains} failed:\n{proc.stderr[-3000:]}")
             part = json.loads([line for line in proc.stdout.splitlines() if line.startswith("{")][-1])
@@ -285,8 +346,12 @@ def main(argv=None) -> dict:
             entry["envelope"] = {"command": command, "code": result["code"], **envelope_part(gains)}
             save()
             e = entry["envelope"]
-            print(json.dumps({gain_label(gains): {k: e[k] for k in ("fraction_of_bound_median", "fraction_of_bound_min")}}),
-                  flush=True)  # fmt: skip
+            print(
+                json.dumps(
+                    {gain_label(gains): {k: e[k] for k in ("fraction_of_bound_median", "fraction_of_bound_min")}}
+                ),
+                flush=True,
+            )
         if "grid" in args.parts:
             entry["grid"] = {
                 "command": command,

@@ -44,16 +44,50 @@ def pytest_configure(config):
 # loop loaded), test_controller 27, test_tune 23 (the loop loaded), test_race 17. test_reliability_runs compiles the
 # short sweep that test_cli's resume test then loads. The MJX modules were measured only by wall time on the loaded
 # machine (test_mjx_physics the longest): its 256-environment subprocess is a unit of its own (_OWN_UNITS).
-_LONGEST_FIRST = ["test_rollout", "test_mjx_physics", "test_viz", "test_forces", "test_reliability_runs",
-                  "test_contacts", "test_limit", "test_hierarchy", "test_reliability_paths",
-                  "test_vmapped_rollout_of_256_envs_completes_on_cpu", "test_sweep", "test_baseline_cpu", "test_cli",
-                  "test_controller", "test_tune", "test_dynamics", "test_wheel", "test_race", "04_gain_tuning",
-                  "test_tsid_baseline", "test_watchdog", "test_distributed"]  # fmt: skip
+_LONGEST_FIRST = [
+    "test_rollout",
+    "test_mjx_physics",
+    "test_viz",
+    "test_forces",
+    "test_reliability_runs",
+    "test_contacts",
+    "test_limit",
+    "test_hierarchy",
+    "test_reliability_paths",
+    "test_vmapped_rollout_of_256_envs_completes_on_cpu",
+    "test_sweep",
+    "test_baseline_cpu",
+    "test_cli",
+    "test_controller",
+    "test_tune",
+    "test_dynamics",
+    "test_wheel",
+    "test_race",
+    "04_gain_tuning",
+    "test_tsid_baseline",
+    "test_watchdog",
+    "test_distributed",
+]
 # `-m slow` (the nightly set): the race's end-to-end runs start first (_OWN_UNITS_FIRST), then test_tune's closed-loop
 # gradient check and notebook 04's pipeline, then the modules whose slow tests compile MJX loops.
-_LONGEST_FIRST_SLOW = ["test_tune", "04_gain_tuning-run_tuning", "test_distributed", "test_rollout", "test_contacts",
-                       "test_viz", "test_dynamics", "test_forces", "test_controller", "test_sweep", "test_mjx_physics",
-                       "02_balancing", "03_push_recovery", "test_cli", "test_baseline_cpu", "01_dynamics"]  # fmt: skip
+_LONGEST_FIRST_SLOW = [
+    "test_tune",
+    "04_gain_tuning-run_tuning",
+    "test_distributed",
+    "test_rollout",
+    "test_contacts",
+    "test_viz",
+    "test_dynamics",
+    "test_forces",
+    "test_controller",
+    "test_sweep",
+    "test_mjx_physics",
+    "02_balancing",
+    "03_push_recovery",
+    "test_cli",
+    "test_baseline_cpu",
+    "01_dynamics",
+]
 
 
 # Slow tests that share no module fixture and each take 20+ minutes on the loaded 2-core machine (a whole `tune` race

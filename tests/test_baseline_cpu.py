@@ -31,8 +31,9 @@ def _load_baseline():
     name = "baseline_cpu"
     if name not in sys.modules:
         folder = ROOT / "benchmarks" / name
-        spec = importlib.util.spec_from_file_location(name, folder / "__init__.py",
-                                                      submodule_search_locations=[str(folder)])  # fmt: skip
+        spec = importlib.util.spec_from_file_location(
+            name, folder / "__init__.py", submodule_search_locations=[str(folder)]
+        )
         module = importlib.util.module_from_spec(spec)
         sys.modules[name] = module  # dataclasses look their module up by name
         spec.loader.exec_module(module)
@@ -110,13 +111,19 @@ def test_dynamics_terms_match_jax(robot, stand, terms_fn):
         tj = terms_fn(_mjx_data(robot, qpos, qvel))
         sole_R = np.einsum("kij,kjl->kil", np.asarray(tj.W_R_frames), rot)  # body -> sole frame
         pairs = {
-            "nu": (t.nu, tj.nu), "s": (t.s, tj.s), "M": (t.M, tj.M), "h": (t.h, tj.h),
-            "tau_passive": (t.tau_passive, tj.tau_passive), "J_frames": (t.J_feet, tj.J_frames),
+            "nu": (t.nu, tj.nu),
+            "s": (t.s, tj.s),
+            "M": (t.M, tj.M),
+            "h": (t.h, tj.h),
+            "tau_passive": (t.tau_passive, tj.tau_passive),
+            "J_frames": (t.J_feet, tj.J_frames),
             "Jdot_nu_frames": (t.Jdot_nu_feet, tj.Jdot_nu_frames),
-            "W_p_frames": (t.W_p_feet, tj.W_p_frames), "sole frames": (t.W_R_feet, sole_R),
-            "W_p_CoM": (t.W_p_CoM, tj.W_p_CoM), "W_v_CoM": (t.W_v_CoM, tj.W_v_CoM),
+            "W_p_frames": (t.W_p_feet, tj.W_p_frames),
+            "sole frames": (t.W_R_feet, sole_R),
+            "W_p_CoM": (t.W_p_CoM, tj.W_p_CoM),
+            "W_v_CoM": (t.W_v_CoM, tj.W_v_CoM),
             "L_ang": (t.L_ang, tj.L_G[3:]),
-        }  # fmt: skip
+        }
         for name, (a, b) in pairs.items():
             assert _rel(a[0], b) < 1e-9, f"seed {seed}: {name} rel err {_rel(a[0], b):.2e}"
 
@@ -158,23 +165,25 @@ def test_controller_tick_matches_jax(robot, stand, terms_fn, step_fn, forces_mod
     spec = bc.BaselineSpec(**{**spec.to_dict(), "forces": forces_mode})
     qpos, qvel = _near_home_state(robot, 3)
     ref = spec.reference(0)
-    ref = {**ref, "activation": np.array(activation),
-           "com_pos": ref["com_pos"] + np.array([0.01, offset, 0.0])}  # fmt: skip
+    ref = {**ref, "activation": np.array(activation), "com_pos": ref["com_pos"] + np.array([0.01, offset, 0.0])}
     integral = np.array([[0.001, -0.002, 0.0005]])
     ctrl = bc.NumpyController(spec)
     out, new_state = ctrl([c_data(robot, qpos, qvel)], bc.gains_to_numpy(st.gains, 1, spec.n), ref, integral)
     out_j, state_j = step_fn(forces_mode)(
-        st.gains, state0.replace(com_err_integral=jnp.asarray(integral[0])),
+        st.gains,
+        state0.replace(com_err_integral=jnp.asarray(integral[0])),
         terms_fn(_mjx_data(robot, qpos, qvel)),
-        references.Reference(**{k: jnp.asarray(v) for k, v in ref.items()}), jnp.asarray(0.0),
-    )  # fmt: skip
+        references.Reference(**{k: jnp.asarray(v) for k, v in ref.items()}),
+        jnp.asarray(0.0),
+    )
     errs = {
         "tau": _rel(out["tau"][0], out_j.tau),
         "tau_unsat": _rel(out["tau_unsat"][0], out_j.tau_unsat),
-        "f": _rel(out["f"][0], out_j.f), "Ldot_star": _rel(out["Ldot_star"][0], out_j.Ldot_star),
+        "f": _rel(out["f"][0], out_j.f),
+        "Ldot_star": _rel(out["Ldot_star"][0], out_j.Ldot_star),
         "Ldot_cmd": _rel(out["Ldot_cmd"][0], out_j.Ldot_cmd),
         "state": _rel(new_state[0], state_j.com_err_integral),
-    }  # fmt: skip
+    }
     print(forces_mode, activation, offset, {k: f"{v:.1e}" for k, v in errs.items()})
     for name, err in errs.items():
         assert err < 1e-6, f"{name}: relative error {err:.2e}"
@@ -190,8 +199,13 @@ def test_schedule_table_matches_schedule(robot, stand, terms_fn):
     """The NumPy references equal Schedule.at for the tasks with every kind of segment."""
     st = stand[0]
     t0 = terms_fn(_mjx_data(robot, st.qpos0, np.zeros(robot.index.nv)))
-    kwargs = dict(com0=np.asarray(t0.W_p_CoM), s0=np.asarray(t0.s), left_sole=np.asarray(t0.W_p_frames[0]),
-                  joints=robot.index.joints, foot_lift_deg=robot.description.foot_lift_deg)  # fmt: skip
+    kwargs = dict(
+        com0=np.asarray(t0.W_p_CoM),
+        s0=np.asarray(t0.s),
+        left_sole=np.asarray(t0.W_p_frames[0]),
+        joints=robot.index.joints,
+        foot_lift_deg=robot.description.foot_lift_deg,
+    )
     sched = references.make_schedule("one-foot", **kwargs)
     sine = references.make_schedule("sinusoid", **kwargs)
     times = np.array([0.0, 1.7, 4.5, 6.0, 8.0, 10.2, 12.0, 14.0, 15.99])
@@ -200,8 +214,7 @@ def test_schedule_table_matches_schedule(robot, stand, terms_fn):
         refs = jax.jit(jax.vmap(lambda t, s=s: s.at(t, jnp.float64)))(jnp.asarray(times))
         for k in table:
             # NumPy vs JAX: measured 1.9e-16 relative, here and with XLA held to AVX2 (OpenBLAS Haswell).
-            np.testing.assert_allclose(table[k], getattr(refs, k), rtol=1e-12, atol=1e-14,
-                                       err_msg=f"{s.name} {k}")  # fmt: skip
+            np.testing.assert_allclose(table[k], getattr(refs, k), rtol=1e-12, atol=1e-14, err_msg=f"{s.name} {k}")
 
 
 def test_make_spec_matches_setup(robot, stand):
@@ -237,8 +250,10 @@ def test_closed_loop_matches_the_jax_closed_loop(stand):
     com_j, com_n = np.asarray(run.records.com[0]), res["com"][0]
     diff = np.linalg.norm(com_j - com_n, axis=1)
     excursion = np.abs(com_j - com_j[0]).max()
-    print(f"max CoM difference vs the JAX loop over {spec.n_ticks} ticks: {diff.max():.3e} m "
-          f"(CoM excursion {excursion:.3e} m); compile {run.compile_s:.1f} s; timing {res['timing']}")  # fmt: skip
+    print(
+        f"max CoM difference vs the JAX loop over {spec.n_ticks} ticks: {diff.max():.3e} m "
+        f"(CoM excursion {excursion:.3e} m); compile {run.compile_s:.1f} s; timing {res['timing']}"
+    )
     assert com_j.shape == com_n.shape == (spec.n_ticks, 3)
     assert excursion > 5e-3  # the push does move the robot
     # Two controllers (NumPy, JAX) on one physics: they differ by rounding alone. Measured against the MJX loop:
@@ -264,13 +279,15 @@ def test_batch_environments_are_independent(stand):
     st, _, spec = stand
     g = bc.gains_to_numpy(st.gains, 3, spec.n)
     g["kp_com"] = g["kp_com"] * np.array([[1.0], [1.5], [0.7]])
-    push = {"force": np.array([[[0.0, 40.0, 0.0]], [[0.0, 0.0, 0.0]], [[30.0, -20.0, 0.0]]]),
-            "onset": np.full((3, 1), 0.05), "duration": np.full((3, 1), 0.1)}  # fmt: skip
+    push = {
+        "force": np.array([[[0.0, 40.0, 0.0]], [[0.0, 0.0, 0.0]], [[30.0, -20.0, 0.0]]]),
+        "onset": np.full((3, 1), 0.05),
+        "duration": np.full((3, 1), 0.1),
+    }
     batch = bc.simulate(spec, g, push, n_ticks=25)
     assert batch["com"].shape == (3, 25, 3)
     for i in range(3):
-        alone = bc.simulate(spec, {k: v[i] for k, v in g.items()},
-                            {k: v[i] for k, v in push.items()}, n_ticks=25)  # fmt: skip
+        alone = bc.simulate(spec, {k: v[i] for k, v in g.items()}, {k: v[i] for k, v in push.items()}, n_ticks=25)
         # NumPy batch vs alone (other BLAS calls): measured 6.7e-16 m here, 1.3e-15 m with OpenBLAS's Haswell kernels.
         np.testing.assert_allclose(batch["com"][i], alone["com"][0], rtol=0, atol=1e-12)
     assert np.abs(batch["com"][0] - batch["com"][1]).max() > 1e-4  # the pushes differ

@@ -64,9 +64,17 @@ def test_flywheel_bound_closed_form_on_a_square():
     g, omega, mass = constants.GRAVITY, 2.0, 10.0
     t1 = math.log(2.0) / omega
     tau = 0.5 * mass * g
-    wheel = bounds.Flywheel(mass=mass, com_height=g / omega**2, inertia_pitch=1.0, inertia_roll=1.0,
-                            torque_pitch=tau, torque_roll=tau, flexion=tau * t1**2, extension=tau * t1**2 / 4,
-                            roll=tau * t1**2)  # fmt: skip
+    wheel = bounds.Flywheel(
+        mass=mass,
+        com_height=g / omega**2,
+        inertia_pitch=1.0,
+        inertia_roll=1.0,
+        torque_pitch=tau,
+        torque_roll=tau,
+        flexion=tau * t1**2,
+        extension=tau * t1**2 / 4,
+        roll=tau * t1**2,
+    )
     assert wheel.omega == pytest.approx(2.0)
     square = np.array([[0.1, 0.1], [0.1, -0.1], [-0.1, 0.1], [-0.1, -0.1]])
     origin = np.zeros(2)
@@ -120,10 +128,15 @@ def _optimal_shift(wheel, spin0: float, steps: int = 300, horizon: float = 2.0) 
     integrate = np.tril(np.ones((steps, steps))) * dt
     angle = integrate @ integrate / wheel.inertia_pitch
     drift = spin0 * np.cumsum(np.full(steps, dt)) / wheel.inertia_pitch
-    res = linprog(-weight, A_ub=np.vstack([angle, -angle]),
-                  b_ub=np.concatenate([wheel.flexion - drift, wheel.extension + drift]),
-                  A_eq=np.full((1, steps), dt), b_eq=[-spin0], bounds=[(-wheel.torque_pitch, wheel.torque_pitch)] * steps,
-                  method="highs")  # fmt: skip
+    res = linprog(
+        -weight,
+        A_ub=np.vstack([angle, -angle]),
+        b_ub=np.concatenate([wheel.flexion - drift, wheel.extension + drift]),
+        A_eq=np.full((1, steps), dt),
+        b_eq=[-spin0],
+        bounds=[(-wheel.torque_pitch, wheel.torque_pitch)] * steps,
+        method="highs",
+    )
     assert res.success, res.message
     return -res.fun
 
@@ -148,8 +161,12 @@ def test_limit_table_rows_carry_the_flywheel_bound(robot):
     from wbc_jax.jobs import limit_table
 
     envelopes = {"tuned": {"envelope": {"0": {"0.0": {"impulse_ns": 8.0}, "90.0": {"impulse_ns": 9.0}}}}}
-    found = {"directions": {"0.0": {"limit_ns": 10.0, "bracket_ns": [10.0, 12.0]},
-                            "90.0": {"limit_ns": 20.0, "bracket_ns": [20.0, 21.0]}}}  # fmt: skip
+    found = {
+        "directions": {
+            "0.0": {"limit_ns": 10.0, "bracket_ns": [10.0, 12.0]},
+            "90.0": {"limit_ns": 20.0, "bracket_ns": [20.0, 21.0]},
+        }
+    }
     rows = limit_table.body_table(found, envelopes, [0.0, 90.0], robot, "chest")
     fly = bounds.flywheel_bound(robot, [0.0, 90.0], "chest")
     lip = sweep_table.lip_bound(robot, [0.0, 90.0])
@@ -178,10 +195,19 @@ def test_limit_table_takes_the_best_optimiser_per_direction(robot):
     from wbc_jax.jobs import limit_table
 
     envelopes = {"tuned": {"envelope": {"0": {"0.0": {"impulse_ns": 8.0}, "90.0": {"impulse_ns": 9.0}}}}}
-    mjx = {"directions": {"0.0": {"limit_ns": 10.0, "bracket_ns": [10.0, 15.0]},
-                          "90.0": {"limit_ns": 20.0, "bracket_ns": [20.0, 21.0]}}}  # fmt: skip
-    ddp = {"config": {}, "directions": {"0.0": {"limit_ns": 11.0, "bracket_ns": [11.0, 11.5]},
-                          "90.0": {"limit_ns": 18.0, "bracket_ns": [18.0, 19.0]}}}  # fmt: skip
+    mjx = {
+        "directions": {
+            "0.0": {"limit_ns": 10.0, "bracket_ns": [10.0, 15.0]},
+            "90.0": {"limit_ns": 20.0, "bracket_ns": [20.0, 21.0]},
+        }
+    }
+    ddp = {
+        "config": {},
+        "directions": {
+            "0.0": {"limit_ns": 11.0, "bracket_ns": [11.0, 11.5]},
+            "90.0": {"limit_ns": 18.0, "bracket_ns": [18.0, 19.0]},
+        },
+    }
     rows = limit_table.body_table(mjx, envelopes, [0.0, 90.0], robot, "chest", [ddp])
     assert (rows[0.0]["limit_ns"], rows[0.0]["found_by"], rows[0.0]["bracket_ns"]) == (11.0, "crocoddyl", [11.0, 15.0])
     assert (rows[90.0]["limit_ns"], rows[90.0]["found_by"], rows[90.0]["bracket_ns"]) == (20.0, "mjx", [20.0, 21.0])

@@ -98,8 +98,11 @@ def test_envelope_check_bar_is_one_grid_step_in_every_direction():
 
 def _grid(survived: dict) -> pd.DataFrame:
     """A sweep table (gain set 0): {azimuth: [survived at 10, 20, ..., 100 N]}."""
-    rows = [{"gain_set": 0, "azimuth_deg": az, "magnitude_n": 10.0 * (k + 1), "survived": bool(v)}
-            for az, outcome in survived.items() for k, v in enumerate(outcome)]  # fmt: skip
+    rows = [
+        {"gain_set": 0, "azimuth_deg": az, "magnitude_n": 10.0 * (k + 1), "survived": bool(v)}
+        for az, outcome in survived.items()
+        for k, v in enumerate(outcome)
+    ]
     return pd.DataFrame(rows)
 
 
@@ -119,7 +122,7 @@ def test_island_check_passes_flips_near_the_boundary_and_fails_far_ones():
         "cells_differing": 4,
         "outside_the_first_sweeps_band": 1,
         "max_steps_from_the_first_sweeps_band": 1.0,
-    }  # fmt: skip  (90 deg at 60 N: one step above)
+    }  # (90 deg at 60 N: one step above)
     far = ic.compare(ref, _grid(FAR), band, 10.0)
     assert far["cells_differing"] == 1 and far["max_steps_from_the_first_sweeps_band"] == 3.0
     assert ic.failures({"flips": {"near": near}}) == []
@@ -141,15 +144,19 @@ def test_island_check_script_exits_1_on_a_far_flip(tmp_path):
     )
     assert ok.returncode == 0, ok.stderr[-2000:]
     assert json.loads((tmp_path / "ok.json").read_text())["check"]["passed"]
-    bad = subprocess.run([*run, str(tmp_path / "near"), str(tmp_path / "far"), "--out", str(tmp_path / "bad.json")],
-                         capture_output=True, text=True)  # fmt: skip
+    bad = subprocess.run(
+        [*run, str(tmp_path / "near"), str(tmp_path / "far"), "--out", str(tmp_path / "bad.json")],
+        capture_output=True,
+        text=True,
+    )
     assert bad.returncode == 1 and "check failed: far:" in bad.stderr
     written = json.loads((tmp_path / "bad.json").read_text())
     assert not written["check"]["passed"] and written["provenance"]["inputs"]["sweep:far"]["sha256"]
 
 
-@pytest.mark.parametrize("path", ["docs/gpu_h200/queue/queue_check.json",
-                                  "docs/gpu_h200/queue/constant_activation/queue_check_32.json"])  # fmt: skip
+@pytest.mark.parametrize(
+    "path", ["docs/gpu_h200/queue/queue_check.json", "docs/gpu_h200/queue/constant_activation/queue_check_32.json"]
+)
 def test_queue_check_passes_the_measured_floor(path):
     assert script("queue_check").failures(doc(path)) == []
 
@@ -170,8 +177,12 @@ def test_queue_check_fails_over_the_bar_and_any_nan_difference():
 def test_margin_precision_check_bar():
     mp = script("margin_precision_check")
     exact = {"max_abs_err_m": 1.19e-7, "sign_flips": 0}  # the H200 after the fix (tf32_check.json: new_default)
-    ok = {"n": 256, "current_default": exact, "current_highest": exact,
-          "old_default": {"max_abs_err_m": 0.267, "sign_flips": 32}}  # fmt: skip
+    ok = {
+        "n": 256,
+        "current_default": exact,
+        "current_highest": exact,
+        "old_default": {"max_abs_err_m": 0.267, "sign_flips": 32},
+    }
     assert mp.failures(ok) == []  # the old function is shown, not checked
     tf32 = dict(ok, current_default=doc("docs/gpu_h200/margin_fix/tf32_check.json")["old_default"])
     assert len(mp.failures(tf32)) == 2  # 32 sign flips, 0.27 m off
@@ -249,10 +260,17 @@ def test_bad_input_bar_is_every_case_failing_fast_and_clearly():
     assert bi.failures({"cases_run": []}) == ["no case was run"]
     # The judge of one case: each way of misbehaving is named.
     assert bi.judge(2, "wbc-jax x: error: --a must be 1\n", 1.0, "--a must", False, 30.0) == []
-    assert bi.judge(0, "", 1.0, "--a", True, 30.0) == ["exit code 0", "0 error lines", "message does not match",
-                                                        "wrote --out"]  # fmt: skip
+    assert bi.judge(0, "", 1.0, "--a", True, 30.0) == [
+        "exit code 0",
+        "0 error lines",
+        "message does not match",
+        "wrote --out",
+    ]
     assert bi.judge(2, "Traceback\n  x\nValueError: --a\n", 40.0, "--a", False, 30.0) == [
-        "traceback", "3 error lines", "40.0 s > 30 s"]  # fmt: skip
+        "traceback",
+        "3 error lines",
+        "40.0 s > 30 s",
+    ]
 
 
 def test_memory_estimate_bar_is_no_measurement_above_the_estimate():

@@ -18,7 +18,7 @@ from wbc_jax.control.gains import default_gains, gains_to_dict
 from wbc_jax.core import options
 from wbc_jax.jobs import sweep_config
 from wbc_jax.robot.icub import DESCRIPTION as ICUB
-from wbc_jax.tuning import config as tune_config
+from wbc_jax.tuning import heldout_config
 from wbc_jax.tuning.algorithms import gradient  # noqa: F401  (before the tripwire: optax applies jax.jit when imported)
 
 _spec = importlib.util.spec_from_file_location(
@@ -49,11 +49,15 @@ def test_flags_are_generated_from_the_configs(capsys):
 def test_tune_and_heldout_share_the_held_out_flags(tmp_path):
     """tune and heldout: the held-out flags from one config, with the same names and defaults; tune's
     own --tasks is the held-out evaluation's."""
-    heldout = tune_config.heldout_default_config()
+    heldout = heldout_config.heldout_default_config()
     parser = cli.build_parser()
     for command in ("tune", "heldout"):
-        hc = cli.config_from_args(parser.parse_args([command, "--grid-magnitudes", "10", "30", "3",
-                                                     "--grid-directions", "4", "--chunk-size", "7"]), heldout)  # fmt: skip
+        hc = cli.config_from_args(
+            parser.parse_args(
+                [command, "--grid-magnitudes", "10", "30", "3", "--grid-directions", "4", "--chunk-size", "7"]
+            ),
+            heldout,
+        )
         assert hc.grid_magnitudes == (10.0, 20.0, 30.0) and hc.grid_directions == (0.0, 90.0, 180.0, 270.0)
         assert hc.chunk_size == 7 and hc.sinusoid_s == heldout.sinusoid_s
     tasks = str(tmp_path / "t.yaml")
@@ -69,9 +73,15 @@ def test_heldout_reeval_takes_the_heldout_jobs_flags():
 
     script = load_script("experiments/campaigns/heldout_reeval.py")
     hc, previous = script.parse(["--grid-directions", "4", "--chunk-size", "7", "--no-one-foot"])
-    job = tune_config.heldout_default_config()
-    assert hc == options.replace(job, sets=script.DEFAULT_SETS, out="runs/heldout_reeval",
-                                     grid_directions=(0.0, 90.0, 180.0, 270.0), chunk_size=7, one_foot=False)  # fmt: skip
+    job = heldout_config.heldout_default_config()
+    assert hc == options.replace(
+        job,
+        sets=script.DEFAULT_SETS,
+        out="runs/heldout_reeval",
+        grid_directions=(0.0, 90.0, 180.0, 270.0),
+        chunk_size=7,
+        one_foot=False,
+    )
     assert previous.endswith("docs/tuning/heldout.json")
     with pytest.raises(ValueError, match=r"--chunk-size must be a whole number in \[1, "):
         script.parse(["--chunk-size", "0"])
@@ -194,9 +204,28 @@ def test_resume_binds_the_run_to_its_inputs(tmp_path, capsys):
     gains = tmp_path / "g.json"
     gains.write_text(json.dumps(gains_to_dict(default_gains(ICUB))))
     out = tmp_path / "sw"
-    argv = ["push-sweep", "--magnitudes", "20", "40", "2", "--directions", "1", "--horizon", "0.05",
-            "--push-onset", "0", "--push-duration", "0.02", "--chunk-size", "1", "--gains", str(gains),
-            "--out", str(out), "--quiet"]  # fmt: skip
+    argv = [
+        "push-sweep",
+        "--magnitudes",
+        "20",
+        "40",
+        "2",
+        "--directions",
+        "1",
+        "--horizon",
+        "0.05",
+        "--push-onset",
+        "0",
+        "--push-duration",
+        "0.02",
+        "--chunk-size",
+        "1",
+        "--gains",
+        str(gains),
+        "--out",
+        str(out),
+        "--quiet",
+    ]
     assert cli.main(argv) == 0, capsys.readouterr().err
     import pandas as pd
 
@@ -228,8 +257,19 @@ def test_memory_is_estimated_before_a_chunk_is_allocated(tmp_path, capsys, tripw
 
     assert sweep_config.SweepConfig(chunk_size=100_000, out=None).batch_size == 12
     monkeypatch.setattr(runner, "available_memory", lambda: (200e6, "host"))
-    argv = ["push-sweep", "--magnitudes", "10", "100", "100", "--directions", "4", "--chunk-size", "400",
-            "--out", str(tmp_path / "out")]  # fmt: skip
+    argv = [
+        "push-sweep",
+        "--magnitudes",
+        "10",
+        "100",
+        "100",
+        "--directions",
+        "4",
+        "--chunk-size",
+        "400",
+        "--out",
+        str(tmp_path / "out"),
+    ]
     assert cli.main(argv) == 2
     err = capsys.readouterr().err
     per_env = runner.HOST_ENV_BYTES  # at least: C MuJoCo on the CPU

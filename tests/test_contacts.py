@@ -26,8 +26,16 @@ FEET = [
     {"name": "left_foot", "frame": "l_sole", "normal": [0, 0, 1]},
     {"name": "right_foot", "frame": "r_sole", "normal": [0, 0, 1]},
 ]
-HAND = {"name": "left_hand", "frame": "l_hand", "type": "point", "normal": [0, 0, 1], "touches": "table",
-        "mu": 0.5, "fz_min": 1.0, "normal_force": 5.0}  # fmt: skip
+HAND = {
+    "name": "left_hand",
+    "frame": "l_hand",
+    "type": "point",
+    "normal": [0, 0, 1],
+    "touches": "table",
+    "mu": 0.5,
+    "fz_min": 1.0,
+    "normal_force": 5.0,
+}
 TABLE = {"name": "table", "size": [0.15, 0.3, 0.02], "under": "left_hand", "shift": [0.05, -0.1, 0.0]}
 
 
@@ -118,16 +126,29 @@ def distribution(hand_scene):
         t = dynamics.terms(robot.mjx_model, _data(robot, qpos), robot.index, cset.frames)
         ct = contacts.contact_terms(cset, t, 2.0, jnp.ones(2))
         rows = contacts.row_activation(cset, ct.activation)
-        tt = torques.torque_terms(t, ct.J * rows[:, None], ct.Jdot_nu * rows, postural="stable",
-                                  kp_postural=g.kp_postural, kd_postural=g.kd_postural, s_des=t.s)  # fmt: skip
+        tt = torques.torque_terms(
+            t,
+            ct.J * rows[:, None],
+            ct.Jdot_nu * rows,
+            postural="stable",
+            kp_postural=g.kp_postural,
+            kd_postural=g.kd_postural,
+            s_des=t.s,
+        )
         A = constraints.wrench_map(cset, ct.W_p, t.W_p_CoM)
         f, infeasible = forces.wbc_qp(cset, jnp.ones(3), A, wrench, tt, ct.W_R, cfg.force_settings)
         f_bad, infeasible_bad = forces.wbc_qp(cset, jnp.ones(3), A, -wrench, tt, ct.W_R, cfg.force_settings)
-        return {"t": t, "ct": ct, "A": A, "f": f, "infeasible": infeasible, "f_bad": f_bad,
-                "infeasible_bad": infeasible_bad}  # fmt: skip
+        return {
+            "t": t,
+            "ct": ct,
+            "A": A,
+            "f": f,
+            "infeasible": infeasible,
+            "f_bad": f_bad,
+            "infeasible_bad": infeasible_bad,
+        }
 
-    return {**compute(jnp.asarray(qpos, jnp.float64), wrench), "robot": robot, "cset": cset, "wrench": wrench,
-            "g": g}  # fmt: skip
+    return {**compute(jnp.asarray(qpos, jnp.float64), wrench), "robot": robot, "cset": cset, "wrench": wrench, "g": g}
 
 
 def test_force_distribution_meets_its_constraints(distribution):
@@ -166,8 +187,13 @@ def test_feet_from_a_spec_file_are_the_default_contact_set(robot):
 
         def first_output(qpos, qvel):
             t = dynamics.terms(robot.mjx_model, _data(robot, qpos, qvel), robot.index)
-            ref = Reference(com_pos=t.W_p_CoM + jnp.array([0.01, -0.005, 0.0]), com_vel=jnp.zeros(3),
-                            com_acc=jnp.zeros(3), s_des=t.s, activation=jnp.ones(2))  # fmt: skip
+            ref = Reference(
+                com_pos=t.W_p_CoM + jnp.array([0.01, -0.005, 0.0]),
+                com_vel=jnp.zeros(3),
+                com_acc=jnp.zeros(3),
+                s_des=t.s,
+                activation=jnp.ones(2),
+            )
             return ctrl.step(g, ctrl.init(t), t, ref, 0.0)[0]
 
         return jax.jit(first_output)(jnp.asarray(robot.home_qpos()), jnp.asarray(qvel))
@@ -207,10 +233,17 @@ def test_plant_friction_keeps_the_table(hand_scene):
 
 def test_activation_ramps():
     c = contacts.ResolvedContact(
-        name="h", type="point", body=1, point=(0, 0, 0), R_body_contact=tuple(np.eye(3).ravel()),
-        params=contacts.ContactParams(), normal_force=math.nan,
-        activation=contacts.ContactActivation(start=1.0, stop=3.0, ramp=0.5), foot=-1, geoms=(),
-    )  # fmt: skip
+        name="h",
+        type="point",
+        body=1,
+        point=(0, 0, 0),
+        R_body_contact=tuple(np.eye(3).ravel()),
+        params=contacts.ContactParams(),
+        normal_force=math.nan,
+        activation=contacts.ContactActivation(start=1.0, stop=3.0, ramp=0.5),
+        foot=-1,
+        geoms=(),
+    )
     a = [float(contacts.activation_at(c, t, jnp.ones(2), jnp.float64)) for t in (0.9, 1.25, 1.5, 2.9, 3.25, 3.6)]
     np.testing.assert_allclose(a, [0, 0.5, 1, 1, 0.5, 0], atol=1e-12)
     # On from before the first tick and never off: 1, and not a function of a batched time (a
@@ -298,8 +331,7 @@ def test_contact_detection_gates_the_hand(hand_scene, distribution):
     assert ctrl.config.contact_detection
     t = distribution["t"]  # the terms at the scene's home state
     g = default_gains(robot.description, jnp.float64)
-    ref = Reference(com_pos=t.W_p_CoM, com_vel=jnp.zeros(3), com_acc=jnp.zeros(3), s_des=t.s,
-                    activation=jnp.ones(2))  # fmt: skip
+    ref = Reference(com_pos=t.W_p_CoM, com_vel=jnp.zeros(3), com_acc=jnp.zeros(3), s_des=t.s, activation=jnp.ones(2))
     step = jax.jit(ctrl.step)
     seen, unseen = jnp.array([300.0, 300.0, 5.0]), jnp.array([300.0, 300.0, 0.0])
     state = ctrl.init(t)

@@ -40,9 +40,15 @@ def _torque_terms(t, damping, postural="stable", rows=None):
     if rows is not None:  # contact rows scaled by their activations
         J_c, Jdot_nu_c = J_c * rows[:, None], Jdot_nu_c * rows
     return torques.torque_terms(
-        t, J_c, Jdot_nu_c, postural=postural, kp_postural=gains.kp_postural,
-        kd_postural=gains.kd_postural, s_des=t.s + 0.05, pinv_damping=damping,
-    )  # fmt: skip
+        t,
+        J_c,
+        Jdot_nu_c,
+        postural=postural,
+        kp_postural=gains.kp_postural,
+        kd_postural=gains.kd_postural,
+        s_des=t.s + 0.05,
+        pinv_damping=damping,
+    )
 
 
 @pytest.mark.parametrize("postural", ["stable", "seed"])
@@ -82,8 +88,11 @@ def test_postural_projector_equals_pinv_of_the_svd(state_terms, damping, active,
     # Against NumPy's float64 SVD (another path): measured <= 3e-14 in float64, 5.5e-7 in float32; bars ~100x that.
     np.testing.assert_allclose(P, P_ref, atol=3e-12 if dtype == jnp.float64 else 5e-5)
     # X's own pseudo-inverse, the definition, in float64.
-    np.testing.assert_allclose(np.asarray(torques.postural_projector(tt.Lambda, tt.Mbar, damping, 1e-5)),
-                               np.linalg.pinv(X, rcond=1e-5 / s[0]) @ X, atol=1e-10)  # fmt: skip
+    np.testing.assert_allclose(
+        np.asarray(torques.postural_projector(tt.Lambda, tt.Mbar, damping, 1e-5)),
+        np.linalg.pinv(X, rcond=1e-5 / s[0]) @ X,
+        atol=1e-10,
+    )
 
 
 @pytest.mark.parametrize("damping", [1.0, 0.01])
@@ -126,8 +135,9 @@ def test_torque_law_blocks_from_one_cholesky_equal_the_direct_solves(state_terms
     # The projector with Mbar's factor handed over equals the one that factorises Mbar itself.
     L_s = jnp.linalg.cholesky(jnp.asarray(Mbar))
     P_given = torques.postural_projector(tt.Lambda, tt.Mbar, 1.0, 1e-5, L_s)
-    np.testing.assert_allclose(np.asarray(P_given), np.asarray(torques.postural_projector(tt.Lambda, tt.Mbar, 1.0, 1e-5)),
-                               atol=1e-10)  # fmt: skip
+    np.testing.assert_allclose(
+        np.asarray(P_given), np.asarray(torques.postural_projector(tt.Lambda, tt.Mbar, 1.0, 1e-5)), atol=1e-10
+    )
 
 
 @pytest.fixture(scope="module")
@@ -142,9 +152,12 @@ def standing_terms(robot):
 
 def _reference(t) -> Reference:
     return Reference(
-        com_pos=t.W_p_CoM + jnp.array([0.0, 0.01, 0.0]), com_vel=jnp.zeros(3),
-        com_acc=jnp.zeros(3), s_des=t.s, activation=jnp.ones(2),
-    )  # fmt: skip
+        com_pos=t.W_p_CoM + jnp.array([0.0, 0.01, 0.0]),
+        com_vel=jnp.zeros(3),
+        com_acc=jnp.zeros(3),
+        s_des=t.s,
+        activation=jnp.ones(2),
+    )
 
 
 @functools.cache
@@ -202,9 +215,13 @@ def test_wrench_map_matches_moment_arithmetic(robot):
 
 @pytest.mark.parametrize(
     "field,value,match",
-    [("kp_com", [1.0, np.nan, 1.0], "NaN"), ("kd_com", [1.0, -1.0, 1.0], "negative"),
-     ("kp_postural", [1.0] * 5, "23 entries"), ("kp_com", [1e30, 1.0, 1.0], r"above its range \[0, 10000\]")],
-)  # fmt: skip
+    [
+        ("kp_com", [1.0, np.nan, 1.0], "NaN"),
+        ("kd_com", [1.0, -1.0, 1.0], "negative"),
+        ("kp_postural", [1.0] * 5, "23 entries"),
+        ("kp_com", [1e30, 1.0, 1.0], r"above its range \[0, 10000\]"),
+    ],
+)
 def test_bad_gains_rejected(field, value, match):
     gains = G.default_gains(ICUB).replace(**{field: jnp.asarray(value)})
     with pytest.raises(ValueError, match=match):

@@ -9,11 +9,29 @@ distributed = load_script("experiments/checks/multihost_check.py")
 # 4 magnitudes x 2 directions: 8 envs over 0.6 s, two of which fall (their trajectories amplify
 # rounding, so float64: the tables then agree to ~1e-8). The analytic force distribution (no QP)
 # compiles in a fraction of the time and is as good a witness of the sharding.
-SWEEP = ["--magnitudes", "20", "300", "4", "--directions", "2", "--horizon", "0.6", "--push-onset", "0.1",
-         "--chunk-size", "8", "--backend", "jax", "--forces", "analytic"]  # fmt: skip
+SWEEP = [
+    "--magnitudes",
+    "20",
+    "300",
+    "4",
+    "--directions",
+    "2",
+    "--horizon",
+    "0.6",
+    "--push-onset",
+    "0.1",
+    "--chunk-size",
+    "8",
+    "--backend",
+    "jax",
+    "--forces",
+    "analytic",
+]
 # Compile-time flags only (XLA's own optimisation level): the programs compute the same values.
-FAST_COMPILE = {"JAX_ENABLE_X64": "1",
-                "XLA_FLAGS": "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"}  # fmt: skip
+FAST_COMPILE = {
+    "JAX_ENABLE_X64": "1",
+    "XLA_FLAGS": "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true",
+}
 
 
 @pytest.mark.slow  # two processes compile the sweep side by side (about 250 s on the 2-core CI machine); the

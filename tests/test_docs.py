@@ -78,8 +78,9 @@ def test_each_subpackage_docstring_lists_its_modules():
         if folder.name == "commands":
             named = set(importlib.import_module("wbc_jax.commands").MODULES)
         if named - _modules(folder):
-            problems.append(f"{folder.relative_to(PACKAGE)}: names modules that do not exist: "
-                            f"{sorted(named - _modules(folder))}")  # fmt: skip
+            problems.append(
+                f"{folder.relative_to(PACKAGE)}: names modules that do not exist: {sorted(named - _modules(folder))}"
+            )
         if _modules(folder) - named:
             problems.append(f"{folder.relative_to(PACKAGE)}: does not name {sorted(_modules(folder) - named)}")
     assert not problems, "\n".join(problems)

@@ -103,8 +103,7 @@ def _pinocchio_model(robot):
 
     urdf = str(icub_models.get_model_file("iCubGazeboV2_5"))
     full = pin.buildModelFromUrdf(urdf, pin.JointModelFreeFlyer())
-    locked = [full.getJointId(n) for n in full.names if n not in ("universe", "root_joint")
-              and n not in ICUB.joints]  # fmt: skip
+    locked = [full.getJointId(n) for n in full.names if n not in ("universe", "root_joint") and n not in ICUB.joints]
     reduced = pin.buildReducedModel(full, locked, pin.neutral(full))
     return pin, reduced
 

@@ -70,8 +70,10 @@ def test_bad_search_input():
     with pytest.raises(ValueError, match=r"--resolution must be a number in \[0.001, 1000\] N s, got 0"):
         envelope.search(sweep_config.SweepConfig(out=None), resolution=0.0, progress=False)
     with pytest.raises(ValueError, match=r"--resolution 0.001 N s needs 22 bisection rounds inside a grid step"):
-        envelope.search(envelope.EnvelopeConfig(magnitudes=(5000.0,), push_duration=0.5, horizon=2.0, resolution=1e-3,
-                                                out=None), progress=False)  # fmt: skip
+        envelope.search(
+            envelope.EnvelopeConfig(magnitudes=(5000.0,), push_duration=0.5, horizon=2.0, resolution=1e-3, out=None),
+            progress=False,
+        )
 
 
 @pytest.mark.slow  # 40 CPU s on the 2-core CI machine; the default set keeps the bisection's own tests
@@ -79,8 +81,7 @@ def test_search_matches_a_grid_sweep_on_c_mujoco(tmp_path):
     """Two directions, pushes of 1-8 N s in 1 N s steps: the search's grid bracket is the grid's
     monotone envelope, its answer within the step above it, in 5 rounds (10 rollouts, 16 for the grid);
     each round's searches run in batches of --chunk-size 1 (one compiled shape for both)."""
-    common = dict(magnitudes=tuple(np.linspace(10.0, 80.0, 8)), directions=(0.0, 180.0), backend="mujoco",
-                  chunk_size=1)  # fmt: skip
+    common = dict(magnitudes=tuple(np.linspace(10.0, 80.0, 8)), directions=(0.0, 180.0), backend="mujoco", chunk_size=1)
     grid = sweep.run_sweep(sweep_config.SweepConfig(**common, out=str(tmp_path / "grid")), progress=False)
     found = envelope.search(envelope.EnvelopeConfig(**common, out=str(tmp_path / "env")), progress=False)
     table = pd.read_parquet(tmp_path / "grid" / "results.parquet")

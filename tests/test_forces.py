@@ -184,7 +184,7 @@ def contact_set(count: int) -> contacts.ContactSet:
                 activation=contacts.ContactActivation(),
                 foot=k,
                 geoms=(),
-            )  # fmt: skip
+            )
             for k in range(count)
         )
     )

@@ -28,23 +28,32 @@ def state(robot):
     qpos[robot.index.qpos_joints] += rng.uniform(-0.15, 0.15, robot.index.n)
     qvel = rng.normal(scale=0.5, size=robot.mj_model.nv)
     dx = mjx.make_data(robot.mj_model).replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel))
-    stack = tasks.resolve(robot, [
-        tasks.MotionTask("r_hand", "position", frame="r_hand", kp=50.0),
-        tasks.MotionTask("l_hand", "position", frame="l_hand", kp=50.0),
-        tasks.MotionTask("chest", "orientation", frame="chest", kp=20.0),
-        tasks.MotionTask("posture", "postural"),
-    ], qpos=robot.home_qpos())  # fmt: skip
+    stack = tasks.resolve(
+        robot,
+        [
+            tasks.MotionTask("r_hand", "position", frame="r_hand", kp=50.0),
+            tasks.MotionTask("l_hand", "position", frame="l_hand", kp=50.0),
+            tasks.MotionTask("chest", "orientation", frame="chest", kp=20.0),
+            tasks.MotionTask("posture", "postural"),
+        ],
+        qpos=robot.home_qpos(),
+    )
     # The soles' frames first (the contacts), then the stack's.
     frames = dynamics.sole_frames(robot.index) + stack.frames
     t = jax.jit(lambda m, d: dynamics.terms(m, d, robot.index, frames))(robot.mjx_model, dx)
     g = default_gains(robot.description, jnp.float64)
-    tt = torques.torque_terms(t, t.J_frames[:2].reshape(12, -1), t.Jdot_nu_frames[:2].reshape(12),
-                              postural="stable", kp_postural=g.kp_postural,
-                              kd_postural=g.kd_postural, s_des=jnp.asarray(t.s) * 0.9)  # fmt: skip
+    tt = torques.torque_terms(
+        t,
+        t.J_frames[:2].reshape(12, -1),
+        t.Jdot_nu_frames[:2].reshape(12),
+        postural="stable",
+        kp_postural=g.kp_postural,
+        kd_postural=g.kd_postural,
+        s_des=jnp.asarray(t.s) * 0.9,
+    )
     # Feet wrenches: the weight split between the feet plus a random part.
     f = np.tile([0, 0, 9.81 * robot.index.mass / 2, 0, 0, 0], 2) + rng.normal(scale=5.0, size=12)
-    return {"qpos": qpos, "qvel": qvel, "t": t, "tt": tt, "f": jnp.asarray(f),
-            "stack": stack, "rng": rng}  # fmt: skip
+    return {"qpos": qpos, "qvel": qvel, "t": t, "tt": tt, "f": jnp.asarray(f), "stack": stack, "rng": rng}
 
 
 def _levels(state, time=0.3):
@@ -158,8 +167,12 @@ def test_matches_an_independent_hierarchical_least_squares(state):
     ref = _reference_hls(t, tt, f, L)
     np.testing.assert_allclose(sol.tau, ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
     # ... and with the postural task alone (two-level problem of the seed paper).
-    np.testing.assert_allclose(hierarchy.solve(t, tt, f, (), effort_damping=0.0).tau, _reference_hls(t, tt, f, ()),
-                               rtol=1e-8, atol=1e-8 * np.abs(ref).max())  # fmt: skip
+    np.testing.assert_allclose(
+        hierarchy.solve(t, tt, f, (), effort_damping=0.0).tau,
+        _reference_hls(t, tt, f, ()),
+        rtol=1e-8,
+        atol=1e-8 * np.abs(ref).max(),
+    )
 
 
 def test_equal_priority_weights(robot, state):
@@ -167,12 +180,21 @@ def test_equal_priority_weights(robot, state):
     t, tt, f = state["t"], state["tt"], state["f"]
     errors = []
     for w in (1.0, 100.0):
-        stack = tasks.resolve(robot, [
-            tasks.MotionTask("a", "position", frame="r_hand", priority=0, weight=w),
-            tasks.MotionTask("b", "position", frame="r_hand", offset=(0.0, 0.0, 0.0), priority=0,
-                             reference=tasks.TaskReference(target=(0.3, -0.2, 0.8))),
-            tasks.MotionTask("posture", "postural", priority=1),
-        ])  # fmt: skip
+        stack = tasks.resolve(
+            robot,
+            [
+                tasks.MotionTask("a", "position", frame="r_hand", priority=0, weight=w),
+                tasks.MotionTask(
+                    "b",
+                    "position",
+                    frame="r_hand",
+                    offset=(0.0, 0.0, 0.0),
+                    priority=0,
+                    reference=tasks.TaskReference(target=(0.3, -0.2, 0.8)),
+                ),
+                tasks.MotionTask("posture", "postural", priority=1),
+            ],
+        )
         assert stack.n_levels == 1
         L = task_rows.levels(stack, t, jnp.asarray(0.0), FRAME0)  # r_hand is the stack's frame 0 in both
         sol = hierarchy.solve(t, tt, f, L)
@@ -185,19 +207,29 @@ def test_gradients_are_finite_at_a_singular_level(state):
     """Two copies of one task in a level (rank-deficient): torques and gradients stay finite."""
     t, tt, f = state["t"], state["tt"], state["f"]
     L0 = _levels(state)[0]
-    singular = TaskLevel(J=jnp.concatenate([L0.J, L0.J]), Jdot_nu=jnp.concatenate([L0.Jdot_nu] * 2),
-                         nu_dot_star=jnp.concatenate([L0.nu_dot_star, L0.nu_dot_star + 1.0]))  # fmt: skip
+    singular = TaskLevel(
+        J=jnp.concatenate([L0.J, L0.J]),
+        Jdot_nu=jnp.concatenate([L0.Jdot_nu] * 2),
+        nu_dot_star=jnp.concatenate([L0.nu_dot_star, L0.nu_dot_star + 1.0]),
+    )
     loss = lambda ff: jnp.sum(hierarchy.solve(t, tt, ff, (singular, _levels(state)[2])).tau ** 2)  # noqa: E731
     value, grad = jax.value_and_grad(loss)(f)
     assert np.isfinite(float(value)) and bool(jnp.all(jnp.isfinite(grad)))
 
 
 def test_circle_reference_derivatives(robot):
-    stack = tasks.resolve(robot, [
-        tasks.MotionTask("hand", "position", frame="r_hand", reference=tasks.TaskReference(
-            kind="circle", radius=0.05, frequency=0.5, ramp=1.0)),
-        tasks.MotionTask("posture", "postural"),
-    ])  # fmt: skip
+    stack = tasks.resolve(
+        robot,
+        [
+            tasks.MotionTask(
+                "hand",
+                "position",
+                frame="r_hand",
+                reference=tasks.TaskReference(kind="circle", radius=0.05, frequency=0.5, ramp=1.0),
+            ),
+            tasks.MotionTask("posture", "postural"),
+        ],
+    )
     task = stack.tasks[0]
     p0, v0, a0 = task_rows.reference_at(task, 0.0, jnp.float64)
     np.testing.assert_allclose(p0, task.target, atol=1e-12)  # starts at the hand, at rest
@@ -226,24 +258,50 @@ POSTURE = tasks.MotionTask("posture", "postural")
     "stack, message",
     [
         ([tasks.MotionTask("h", "position", frame="r_palm"), POSTURE], "unknown frame 'r_palm'"),
-        ([tasks.MotionTask("h", "position", frame="r_hand", reference=tasks.TaskReference(target=(0.1, 0.2))),
-          POSTURE], "must have 3 finite entries"),
-        ([tasks.MotionTask("h", "position", frame="r_hand"), tasks.MotionTask("h", "com"), POSTURE],
-         "duplicate task names ['h']"),
+        (
+            [
+                tasks.MotionTask("h", "position", frame="r_hand", reference=tasks.TaskReference(target=(0.1, 0.2))),
+                POSTURE,
+            ],
+            "must have 3 finite entries",
+        ),
+        (
+            [tasks.MotionTask("h", "position", frame="r_hand"), tasks.MotionTask("h", "com"), POSTURE],
+            "duplicate task names ['h']",
+        ),
         ([tasks.MotionTask("h", "position", frame="r_hand")], "must end with the postural task"),
         ([POSTURE, tasks.MotionTask("h", "position", frame="r_hand")], "must end with the postural task"),
         ([tasks.MotionTask("h", "pose", frame="r_hand"), POSTURE], "unknown kind 'pose'"),
         ([tasks.MotionTask("j", "joints", joints=("r_elbow", "r_wrist")), POSTURE], "unknown joint 'r_wrist'"),
         ([tasks.MotionTask("h", "position", frame="r_hand", kp=-1.0), POSTURE], "task gain kp"),
-        ([tasks.MotionTask("h", "position", frame="r_hand", weight=0.0), POSTURE], "weight must be in (0, 1e+06], got 0.0"),
-        ([tasks.MotionTask("h", "com", reference=tasks.TaskReference(kind="circle", radius=0.05, frequency=0.5, plane=("-y", "y"))),
-          POSTURE], "circle plane must be two different axes"),
-        ([tasks.MotionTask("h", "com", reference=tasks.TaskReference(kind="spiral")), POSTURE],
-         "unknown reference kind 'spiral'"),
-        ([tasks.MotionTask("h", "position", frame="r_hand", priority=2), tasks.MotionTask("posture", "postural", priority=1)],
-         "lowest priority"),
+        (
+            [tasks.MotionTask("h", "position", frame="r_hand", weight=0.0), POSTURE],
+            "weight must be in (0, 1e+06], got 0.0",
+        ),
+        (
+            [
+                tasks.MotionTask(
+                    "h",
+                    "com",
+                    reference=tasks.TaskReference(kind="circle", radius=0.05, frequency=0.5, plane=("-y", "y")),
+                ),
+                POSTURE,
+            ],
+            "circle plane must be two different axes",
+        ),
+        (
+            [tasks.MotionTask("h", "com", reference=tasks.TaskReference(kind="spiral")), POSTURE],
+            "unknown reference kind 'spiral'",
+        ),
+        (
+            [
+                tasks.MotionTask("h", "position", frame="r_hand", priority=2),
+                tasks.MotionTask("posture", "postural", priority=1),
+            ],
+            "lowest priority",
+        ),
     ],
-)  # fmt: skip
+)
 def test_bad_stacks_are_named(robot, stack, message):
     with pytest.raises(ValueError) as err:
         tasks.resolve(robot, stack)
@@ -251,26 +309,41 @@ def test_bad_stacks_are_named(robot, stack, message):
 
 
 def test_stack_from_dicts(robot):
-    stack = tasks.resolve(robot, [
-        {"name": "hand", "kind": "position", "frame": "r_hand", "kp": [10, 20, 30],
-         "reference": {"kind": "circle", "radius": 0.05, "frequency": 0.5}},
-        {"name": "posture", "kind": "postural"},
-    ])  # fmt: skip
+    stack = tasks.resolve(
+        robot,
+        [
+            {
+                "name": "hand",
+                "kind": "position",
+                "frame": "r_hand",
+                "kp": [10, 20, 30],
+                "reference": {"kind": "circle", "radius": 0.05, "frequency": 0.5},
+            },
+            {"name": "posture", "kind": "postural"},
+        ],
+    )
     assert stack.tasks[0].kp == (10.0, 20.0, 30.0) and stack.tasks[0].reference.kind == "circle"
     with pytest.raises(ValueError, match="unknown keys"):
         tasks.resolve(robot, [{"name": "hand", "kind": "position", "frame": "r_hand", "gain": 3}, POSTURE])
 
 
 def test_joints_all_is_every_joint_at_home(robot):
-    stack = tasks.resolve(robot, [{"name": "all_joints", "kind": "joints", "joints": "all", "kp": 100.0},
-                                  {"name": "posture", "kind": "postural"}])  # fmt: skip
+    stack = tasks.resolve(
+        robot,
+        [
+            {"name": "all_joints", "kind": "joints", "joints": "all", "kp": 100.0},
+            {"name": "posture", "kind": "postural"},
+        ],
+    )
     task = stack.tasks[0]
     assert len(task.kp) == robot.index.n == 23
     home = robot.home_qpos()
     np.testing.assert_allclose(task.target, [home[robot.index.qpos_joints[k]] for k in range(robot.index.n)])
     # The Python API with a bare string (not a list): the same task, not one-letter joint names.
-    bare = tasks.resolve(robot, [tasks.MotionTask("all_joints", "joints", joints="all", kp=100.0),
-                                 tasks.MotionTask("posture", "postural")])  # fmt: skip
+    bare = tasks.resolve(
+        robot,
+        [tasks.MotionTask("all_joints", "joints", joints="all", kp=100.0), tasks.MotionTask("posture", "postural")],
+    )
     assert bare.tasks[0].dofs == task.dofs == tuple(range(23))
     one = tasks.resolve(
         robot, [tasks.MotionTask("elbow", "joints", joints="r_elbow"), tasks.MotionTask("p", "postural")]

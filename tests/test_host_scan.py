@@ -83,8 +83,9 @@ def test_native_step_checks_its_arrays(robot):
 def test_host_loop_settings_are_checked_before_compiling(monkeypatch):
     with pytest.raises(ValueError, match="unknown host_loop 'fast'"):
         SimConfig(host_loop="fast")
-    st = scenario.setup("stand", duration=0.05, sim=SimConfig(host_loop="compiled",
-                        physics=physics.PhysicsConfig(backend="mujoco")))  # fmt: skip
+    st = scenario.setup(
+        "stand", duration=0.05, sim=SimConfig(host_loop="compiled", physics=physics.PhysicsConfig(backend="mujoco"))
+    )
     assert host_loop.driver(st.loop, 1) == "compiled"
     monkeypatch.setattr(native, "available", lambda: "no C++ compiler found")
     with pytest.raises(ValueError, match="host_loop='compiled' cannot run here: no C\\+\\+ compiler found"):
@@ -122,9 +123,14 @@ def test_a_saved_program_loads_in_a_new_process_with_the_same_outputs(tmp_path):
     executables.compiled("solve", "test", (a, a[0]), lower, tmp_path)
     assert len(calls) == 1  # loaded, not compiled
     root = pathlib.Path(__file__).resolve().parent.parent
-    proc = subprocess.run([sys.executable, "-c", _LOAD, str(tmp_path), str(tmp_path / "out.npy")], cwd=root,
-                          capture_output=True, text=True, timeout=300, env={**__import__("os").environ,
-                          "PYTHONPATH": str(root), "JAX_PLATFORMS": "cpu"})  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-c", _LOAD, str(tmp_path), str(tmp_path / "out.npy")],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**__import__("os").environ, "PYTHONPATH": str(root), "JAX_PLATFORMS": "cpu"},
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     np.testing.assert_array_equal(np.load(tmp_path / "out.npy"), here)
     (saved,) = (p for p in tmp_path.iterdir() if p.name.startswith("solve"))

@@ -109,8 +109,11 @@ BAD = [
 @pytest.mark.parametrize("k", range(len(BAD)))
 def test_bad_input_fails_before_compiling(k, tmp_path, capsys, tripwire):
     flags, message = BAD[k]
-    files = {"ENV_ROOT": _envelope_file(tmp_path, "root_link"), "ENV_FEW": _envelope_file(tmp_path, "chest", (0.0, 180.0)),
-             "MISSING": str(tmp_path / "none.json")}  # fmt: skip
+    files = {
+        "ENV_ROOT": _envelope_file(tmp_path, "root_link"),
+        "ENV_FEW": _envelope_file(tmp_path, "chest", (0.0, 180.0)),
+        "MISSING": str(tmp_path / "none.json"),
+    }
     flags = [files.get(f, f) for f in flags]
     rc = cli.main(["limit", *flags, "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err
@@ -202,9 +205,18 @@ def test_optimiser_recovers_a_push_the_controller_cannot(tmp_path):
     (strict failure); the optimised torques around it pass the strict criterion on MJX and in the
     C MuJoCo replay. A rerun resumes (nothing to do), another config is refused."""
     cfg = limit.LimitConfig(
-        directions=(0.0,), gains="experiments/gains/tuned_gradient.json", window=0.5, tail=0.3, candidates=1,
-        rounds=1, iterations=60, judge_every=10, lower_fraction=0.5, upper_fraction=0.673, out=str(tmp_path / "lim"),
-    )  # fmt: skip
+        directions=(0.0,),
+        gains="experiments/gains/tuned_gradient.json",
+        window=0.5,
+        tail=0.3,
+        candidates=1,
+        rounds=1,
+        iterations=60,
+        judge_every=10,
+        lower_fraction=0.5,
+        upper_fraction=0.673,
+        out=str(tmp_path / "lim"),
+    )
     summary = limit_rounds.run(cfg, progress=False)
     (cand,) = summary["candidates"]
     assert abs(cand["impulse_ns"] - 11.0) < 0.05

@@ -18,9 +18,14 @@ GAINS = "experiments/gains/tuned_gradient.json"
 
 @pytest.mark.parametrize(
     ("field", "value", "message"),
-    [("ddp_horizon", 0.0, "--ddp-horizon"), ("max_iterations", 0, "--max-iterations"),
-     ("directions", (), "--directions"), ("body", "nose", "--body"), ("cop_scale", 1.2, "--cop-scale")],
-)  # fmt: skip
+    [
+        ("ddp_horizon", 0.0, "--ddp-horizon"),
+        ("max_iterations", 0, "--max-iterations"),
+        ("directions", (), "--directions"),
+        ("body", "nose", "--body"),
+        ("cop_scale", 1.2, "--cop-scale"),
+    ],
+)
 def test_bad_input_is_named_before_anything_solves(field, value, message):
     cfg = limit_ddp.DdpConfig(**{field: value})
     with pytest.raises(ValueError, match=message) as err:
@@ -66,8 +71,10 @@ def test_bisect_resumes_where_it_stopped():
 
 def test_resume_refuses_a_file_of_other_settings():
     cfg = limit_ddp.DdpConfig(max_iterations=20, tests=6, directions=(90.0,))
-    previous = {"config": {**{k: getattr(cfg, k) for k in cfg.__dataclass_fields__}, "tests": 4,
-                           "directions": [0.0]}, "directions": {"0.0": {"tests": [{"impulse_ns": 1.0}]}}}  # fmt: skip
+    previous = {
+        "config": {**{k: getattr(cfg, k) for k in cfg.__dataclass_fields__}, "tests": 4, "directions": [0.0]},
+        "directions": {"0.0": {"tests": [{"impulse_ns": 1.0}]}},
+    }
     assert limit_ddp.resumed_tests(previous, cfg, "ddp.json") == {0.0: [{"impulse_ns": 1.0}]}  # more tests, directions
     assert limit_ddp.resumed_tests(None, cfg, "ddp.json") == {}
     del previous["config"]["cop_scale"]  # a file older than the field: its default
@@ -85,8 +92,9 @@ def test_joint_torque_limits_are_the_plants():
     from wbc_jax.robot import model
 
     m = model.load_robot().mj_model
-    np.testing.assert_allclose(bounds.joint_torque_limits(m, ("l_hip_pitch", "r_hip_roll", "l_elbow")),
-                               [55.5, 37.0, 60.0])  # fmt: skip
+    np.testing.assert_allclose(
+        bounds.joint_torque_limits(m, ("l_hip_pitch", "r_hip_roll", "l_elbow")), [55.5, 37.0, 60.0]
+    )
     with pytest.raises(ValueError, match="lacks a joint"):
         bounds.joint_torque_limits(m, ("l_hip_pitch", "tail"))
 

@@ -27,10 +27,17 @@ MARGIN_S = 30  # past the budget, pytest-timeout stops a hung run (the assertion
 
 def _runs() -> list:
     """(path, environment, budget) per notebook run: each notebook as committed, and its slow variant if any."""
-    runs = [pytest.param(p, {}, NOTEBOOK_TIMEOUT_S, id=p.stem,
-                         marks=[pytest.mark.timeout(NOTEBOOK_TIMEOUT_S + MARGIN_S)]
-                         + ([pytest.mark.slow] if p.name in NIGHTLY_ONLY else []))
-            for p in NOTEBOOKS]  # fmt: skip
+    runs = [
+        pytest.param(
+            p,
+            {},
+            NOTEBOOK_TIMEOUT_S,
+            id=p.stem,
+            marks=[pytest.mark.timeout(NOTEBOOK_TIMEOUT_S + MARGIN_S)]
+            + ([pytest.mark.slow] if p.name in NIGHTLY_ONLY else []),
+        )
+        for p in NOTEBOOKS
+    ]
     for p in NOTEBOOKS:
         if p.name in VARIANTS:
             name, env, budget = VARIANTS[p.name]
@@ -49,8 +56,9 @@ def test_there_are_notebooks():
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
 def test_committed_without_outputs(path):
     nb = nbformat.read(path, as_version=4)
-    dirty = [i for i, c in enumerate(nb.cells)
-             if c.cell_type == "code" and (c.outputs or c.execution_count is not None)]  # fmt: skip
+    dirty = [
+        i for i, c in enumerate(nb.cells) if c.cell_type == "code" and (c.outputs or c.execution_count is not None)
+    ]
     assert not dirty, f"{path.name}: cells {dirty} have outputs; clear them before committing"
 
 
@@ -64,9 +72,11 @@ def test_notebook_runs(path, env, budget, tmp_path, monkeypatch):
     monkeypatch.setenv("TMPDIR", str(tmp_path))
     monkeypatch.setenv("MPLBACKEND", "module://matplotlib_inline.backend_inline")
     client = nbclient.NotebookClient(
-        nb, timeout=budget, kernel_name="python3",  # per cell; the whole notebook is checked below
+        nb,
+        timeout=budget,
+        kernel_name="python3",  # per cell; the whole notebook is checked below
         resources={"metadata": {"path": str(path.parent)}},  # cwd: relative paths as in Jupyter
-    )  # fmt: skip
+    )
     start = time.perf_counter()
     client.execute()  # raises CellExecutionError, naming the cell, on any error
     elapsed = time.perf_counter() - start

@@ -63,24 +63,38 @@ def test_a_result_whose_gains_file_changed_or_is_unrecorded_fails(tmp_path):
 
 
 def test_inputs_outside_the_repository_are_not_checked():
-    result = {"provenance": {"inputs": {"gains": {"path": "runs/tune/gains/gradient.json", "sha256": "0" * 64},
-                                        "tasks": {"path": "/tmp/x.yaml", "sha256": "0" * 64}}}}  # fmt: skip
+    result = {
+        "provenance": {
+            "inputs": {
+                "gains": {"path": "runs/tune/gains/gradient.json", "sha256": "0" * 64},
+                "tasks": {"path": "/tmp/x.yaml", "sha256": "0" * 64},
+            }
+        }
+    }
     assert provenance.check_inputs(result) == []
     assert not provenance.in_repository("runs/x.json") and provenance.in_repository("experiments/gains/x.json")
 
 
 def test_mentioned_files_finds_relative_and_absolute_spellings():
-    result = {"command": "python x.py --sets g=/work/main/experiments/gains/a.json c=experiments/gains/b.json.",
-              "runs": ["(docs/tuning/heldout.json)", "runs/experiments/c.json", "docs/reliability_soak_chunks.jsonl"]}  # fmt: skip
-    assert provenance.mentioned_files(result) == {"experiments/gains/a.json", "experiments/gains/b.json",
-                                                  "docs/tuning/heldout.json"}  # fmt: skip
+    result = {
+        "command": "python x.py --sets g=/work/main/experiments/gains/a.json c=experiments/gains/b.json.",
+        "runs": ["(docs/tuning/heldout.json)", "runs/experiments/c.json", "docs/reliability_soak_chunks.jsonl"],
+    }
+    assert provenance.mentioned_files(result) == {
+        "experiments/gains/a.json",
+        "experiments/gains/b.json",
+        "docs/tuning/heldout.json",
+    }
 
 
 def test_record_names_its_inputs_by_sha256(tmp_path):
     f = tmp_path / "g.json"
     f.write_text("{}")
-    rec = provenance.record({"gains": f, "tasks": None, "gone": tmp_path / "none.json"}, argv=[str(ROOT / "experiments" / "x.py"), "--a", "b c"],
-                            with_device=False)  # fmt: skip
+    rec = provenance.record(
+        {"gains": f, "tasks": None, "gone": tmp_path / "none.json"},
+        argv=[str(ROOT / "experiments" / "x.py"), "--a", "b c"],
+        with_device=False,
+    )
     assert rec["command"] == "python experiments/x.py --a 'b c'"  # relative to the repository, as typed again
     assert rec["inputs"] == {"gains": {"path": f.as_posix(), "sha256": provenance.sha256(f)}}
     assert provenance.script_argv("s.py", ["--x"]) == ["s.py", "--x"]
@@ -104,8 +118,12 @@ def _index() -> dict:
 
 
 def _repository_gains_files() -> set[str]:
-    return {provenance.display_path(p) for folder in ("experiments", "docs", "assets")
-            for p in (ROOT / folder).rglob("*.json") if loader.is_gains_file(p)}  # fmt: skip
+    return {
+        provenance.display_path(p)
+        for folder in ("experiments", "docs", "assets")
+        for p in (ROOT / folder).rglob("*.json")
+        if loader.is_gains_file(p)
+    }
 
 
 def test_every_gains_file_is_indexed_and_every_indexed_one_is_there():

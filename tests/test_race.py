@@ -119,8 +119,7 @@ def bounds():
 
 def _schedule(bounds, scale):
     base = C.default_gains(ICUB)
-    plain = tuning_params.controls_to_params(base, tuning_params.default_regularisation(), bounds,
-                                             regularisation=False)  # fmt: skip
+    plain = tuning_params.controls_to_params(base, tuning_params.default_regularisation(), bounds, regularisation=False)
     p = gs.init_params(plain)
     rng = np.random.default_rng(4)
     p["weights"] = {k: jnp.asarray(scale * rng.normal(size=v.shape)) for k, v in p["weights"].items()}
@@ -189,11 +188,14 @@ def _trace(T=20, com_x=0.0, vx=0.0, tilt=0.0):
     n = np.array([np.sin(tilt), 0.0, np.cos(tilt)])
     normals = np.repeat(np.stack([[0, 0, 1.0], n])[None], T, 0)
     base = tuning_loss.LossTrace(
-        com=jnp.asarray(np.tile([com_x, 0.0, 0.5], (T, 1))), com_ref=jnp.zeros((T, 3)).at[:, 2].set(0.5),
-        com_vel=jnp.asarray(np.tile([vx, 0.0, 0.0], (T, 1))), tau=jnp.zeros((T, 23)),
-        support_xy=jnp.asarray(np.repeat(corners[None], T, 0)), com_height0=jnp.full(T, 0.5),
+        com=jnp.asarray(np.tile([com_x, 0.0, 0.5], (T, 1))),
+        com_ref=jnp.zeros((T, 3)).at[:, 2].set(0.5),
+        com_vel=jnp.asarray(np.tile([vx, 0.0, 0.0], (T, 1))),
+        tau=jnp.zeros((T, 23)),
+        support_xy=jnp.asarray(np.repeat(corners[None], T, 0)),
+        com_height0=jnp.full(T, 0.5),
         foot_normal=jnp.asarray(normals),
-    )  # fmt: skip
+    )
     return tuning_loss.TuneTrace(base=base, foot_normal=jnp.asarray(normals), qp_infeasible=jnp.zeros(T, bool))
 
 
@@ -236,20 +238,43 @@ def test_seeded_carry_keeps_a_non_finite_cotangent_of_the_initial_state_out_of_t
 def _rep(entries):
     rep = {}
     for name, (med, mn, rmse) in entries.items():
-        env = {"0.0": {"impulse_ns": 10 * med, "fraction": med, "bound_impulse_ns": 10.0},
-               "90.0": {"impulse_ns": 10 * mn, "fraction": mn, "bound_impulse_ns": 10.0}}  # fmt: skip
-        rep[name] = {"envelope_fraction_median": med, "envelope_fraction_min": mn, "survival_rate": med / 3,
-                     "sinusoid_com_rmse_m": rmse, "grid_envelope": env}  # fmt: skip
+        env = {
+            "0.0": {"impulse_ns": 10 * med, "fraction": med, "bound_impulse_ns": 10.0},
+            "90.0": {"impulse_ns": 10 * mn, "fraction": mn, "bound_impulse_ns": 10.0},
+        }
+        rep[name] = {
+            "envelope_fraction_median": med,
+            "envelope_fraction_min": mn,
+            "survival_rate": med / 3,
+            "sinusoid_com_rmse_m": rmse,
+            "grid_envelope": env,
+        }
     return rep
 
 
 def test_race_verdict_recommendation_and_files(tmp_path):
-    rep = _rep({"gradient_t120": (0.40, 0.30, 1.0e-3), "gradient": (0.60, 0.42, 1.2e-3),
-                "cmaes_t120": (0.50, 0.35, 1.0e-3), "cmaes": (0.52, 0.40, 1.0e-3),
-                "random_t120": (0.45, 0.31, 1.0e-3), "random": (0.62, 0.45, 2.0e-3),
-                "default": (0.25, 0.17, 1.0e-3), "critical": (0.41, 0.29, 0.3e-3)})  # fmt: skip
-    index = {n: {"method": n.split("_")[0], "budget_s": 120.0 if n.endswith("t120") else 300.0, "wall_s": 100.0,
-                 "sim_steps": 1000} for n in rep if n.split("_")[0] in race.METHODS}  # fmt: skip
+    rep = _rep(
+        {
+            "gradient_t120": (0.40, 0.30, 1.0e-3),
+            "gradient": (0.60, 0.42, 1.2e-3),
+            "cmaes_t120": (0.50, 0.35, 1.0e-3),
+            "cmaes": (0.52, 0.40, 1.0e-3),
+            "random_t120": (0.45, 0.31, 1.0e-3),
+            "random": (0.62, 0.45, 2.0e-3),
+            "default": (0.25, 0.17, 1.0e-3),
+            "critical": (0.41, 0.29, 0.3e-3),
+        }
+    )
+    index = {
+        n: {
+            "method": n.split("_")[0],
+            "budget_s": 120.0 if n.endswith("t120") else 300.0,
+            "wall_s": 100.0,
+            "sim_steps": 1000,
+        }
+        for n in rep
+        if n.split("_")[0] in race.METHODS
+    }
     pts = race.points(rep, index)
     assert [p["budget_s"] for p in pts["gradient"]] == [120.0, 300.0]
     v = race.verdict(pts)
@@ -308,8 +333,12 @@ print(json.dumps(out))
 
 
 def test_data_parallel_programs_on_two_devices_match_one():
-    env = {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
-           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}  # fmt: skip
+    env = {
+        **os.environ,
+        "JAX_PLATFORMS": "cpu",
+        "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    }
     proc = subprocess.run([sys.executable, "-c", SHARDED], capture_output=True, text=True, timeout=240, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = json.loads(proc.stdout.strip().splitlines()[-1])
@@ -325,33 +354,96 @@ def test_data_parallel_programs_on_two_devices_match_one():
 # ---------------------------------------------------------------------------------------------
 # The whole pipeline at tiny sizes (slow: compiles the gradient, window and population programs)
 
-TINY_RUN = ["--horizon", "0.3", "--push-onset", "0.05", "--duration-range", "0.05", "0.1", "--eval-horizon", "0.3",
-            "--batch", "4", "--steps", "2", "--population", "2", "--es-batch", "1", "--quality-pushes", "4",
-            "--quality-directions", "2", "--eval-pushes", "2", "--grid-magnitudes", "20", "200", "3",
-            "--grid-directions", "2", "--variation-magnitudes", "2", "--variation-directions", "2", "--variations",
-            "left_hand", "--grid-onset", "0.1", "--grid-horizon", "0.4", "--one-foot-onset", "7.5", "--one-foot-horizon",
-            "7.7", "--sinusoid-s", "0.3", "--quiet"]  # fmt: skip
+TINY_RUN = [
+    "--horizon",
+    "0.3",
+    "--push-onset",
+    "0.05",
+    "--duration-range",
+    "0.05",
+    "0.1",
+    "--eval-horizon",
+    "0.3",
+    "--batch",
+    "4",
+    "--steps",
+    "2",
+    "--population",
+    "2",
+    "--es-batch",
+    "1",
+    "--quality-pushes",
+    "4",
+    "--quality-directions",
+    "2",
+    "--eval-pushes",
+    "2",
+    "--grid-magnitudes",
+    "20",
+    "200",
+    "3",
+    "--grid-directions",
+    "2",
+    "--variation-magnitudes",
+    "2",
+    "--variation-directions",
+    "2",
+    "--variations",
+    "left_hand",
+    "--grid-onset",
+    "0.1",
+    "--grid-horizon",
+    "0.4",
+    "--one-foot-onset",
+    "7.5",
+    "--one-foot-horizon",
+    "7.7",
+    "--sinusoid-s",
+    "0.3",
+    "--quiet",
+]
 
 
 # pytest's 1200 s is too short for the race on the loaded 2-core machine (1204 s when stopped): the gradient, window,
 # population and held-out programs compile whatever the sizes; the limit covers both calls' subprocess timeouts.
 @pytest.mark.slow
 @pytest.mark.timeout(3000 + 1500)
-@pytest.mark.parametrize("extra", [["--parameterisation", "gains"],
-                                   ["--parameterisation", "scheduled", "--window-s", "0.1", "--windows", "2",
-                                    "--estimator", "interpolated"]], ids=["gains", "scheduled-windows"])  # fmt: skip
+@pytest.mark.parametrize(
+    "extra",
+    [
+        ["--parameterisation", "gains"],
+        ["--parameterisation", "scheduled", "--window-s", "0.1", "--windows", "2", "--estimator", "interpolated"],
+    ],
+    ids=["gains", "scheduled-windows"],
+)
 def test_race_pipeline_end_to_end(tmp_path, extra):
     """wbc-jax tune with a wall budget: every phase runs, each method's sets at the snapshot and at the
     budget are written once and held out (with their sinusoid RMSE), race.json names a recommendation;
     the hybrid starts from CMA-ES's set at half of each budget (kept for it) and adds both halves; a
     second call resumes without redoing anything."""
     out = tmp_path / "run"
-    env = {**os.environ, "JAX_PLATFORMS": "cpu", "WBC_JAX_CACHE": os.environ.get("WBC_JAX_CACHE", ""),
-           "XLA_FLAGS": "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true",
-           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}  # fmt: skip
+    env = {
+        **os.environ,
+        "JAX_PLATFORMS": "cpu",
+        "WBC_JAX_CACHE": os.environ.get("WBC_JAX_CACHE", ""),
+        "XLA_FLAGS": "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true",
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    }
     phases = ["train", "quality", "cmaes", "random", "hybrid", "heldout", "report"]
-    cmd = [sys.executable, "-m", "wbc_jax.cli", "tune", "--out", str(out), *TINY_RUN, *extra, "--budget-s", "30",
-           "--snapshots-s", "5"]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "wbc_jax.cli",
+        "tune",
+        "--out",
+        str(out),
+        *TINY_RUN,
+        *extra,
+        "--budget-s",
+        "30",
+        "--snapshots-s",
+        "5",
+    ]
     proc = subprocess.run([*cmd, "--phases", *phases], capture_output=True, text=True, timeout=3000, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     names = {f"{m}{t}" for m in race.METHODS for t in ("", "_t5")} | {"cmaes_t2.5", "cmaes_t15"}
@@ -381,13 +473,15 @@ def test_race_pipeline_end_to_end(tmp_path, extra):
     assert [p["budget_s"] for p in rc["methods"]["cmaes"]["points"]] == [2.5, 5.0, 15.0, 30.0]
     assert rc["recommended"] in held and "hybrid_minus_cmaes_median" in rc["verdict"]["30"]
     q = json.loads((out / "quality.json").read_text())
-    assert set(q["estimates"]) >= {"first-order", "zeroth-order"} and q["parameters"] == (348 if "scheduled" in extra
-                                                                                          else 58)  # fmt: skip
+    assert set(q["estimates"]) >= {"first-order", "zeroth-order"} and q["parameters"] == (
+        348 if "scheduled" in extra else 58
+    )
     assert (out / "race.png").stat().st_size > 0
     # Resumed: nothing left to do, the same files.
     before = (out / "heldout.json").read_text()
-    proc = subprocess.run([*cmd, "--phases", "train", "cmaes", "random", "hybrid"], capture_output=True, text=True,
-                          timeout=1500, env=env)  # fmt: skip
+    proc = subprocess.run(
+        [*cmd, "--phases", "train", "cmaes", "random", "hybrid"], capture_output=True, text=True, timeout=1500, env=env
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert json.loads((out / "gains" / "provenance.json").read_text()).keys() == index.keys()
     assert (out / "heldout.json").read_text() == before
@@ -427,12 +521,16 @@ print(json.dumps(out))
 @pytest.mark.timeout(2400)  # the subprocess's own limit: two gradient and two population compiles
 def test_closed_loop_gradient_and_population_on_two_devices_match_one():
     """The tuning programs themselves (closed loop, 0.05 s, float64) on two host devices, one rollout each."""
-    env = {**os.environ, "JAX_PLATFORMS": "cpu",
-           "XLA_FLAGS": "--xla_force_host_platform_device_count=2 --xla_backend_optimization_level=0 "
-                        "--xla_llvm_disable_expensive_passes=true",
-           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}  # fmt: skip
-    proc = subprocess.run([sys.executable, "-c", CLOSED_LOOP_SHARDED], capture_output=True, text=True, timeout=2400,
-                          env=env)  # fmt: skip
+    env = {
+        **os.environ,
+        "JAX_PLATFORMS": "cpu",
+        "XLA_FLAGS": "--xla_force_host_platform_device_count=2 --xla_backend_optimization_level=0 "
+        "--xla_llvm_disable_expensive_passes=true",
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    }
+    proc = subprocess.run(
+        [sys.executable, "-c", CLOSED_LOOP_SHARDED], capture_output=True, text=True, timeout=2400, env=env
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = json.loads(proc.stdout.strip().splitlines()[-1])
     assert res["1"]["shards"] == 1 and res["2"]["shards"] == 2

@@ -30,9 +30,14 @@ def test_min_jerk_derivatives_match_finite_differences():
 def _schedule(task, **kw):
     robot = model.load_robot()
     return references.make_schedule(
-        task, com0=np.array([0.0, 0.0, 0.55]), s0=np.zeros(robot.index.n), left_sole=np.array([0.0, 0.07, 0.0]),
-        joints=robot.index.joints, foot_lift_deg=robot.description.foot_lift_deg, **kw,
-    )  # fmt: skip
+        task,
+        com0=np.array([0.0, 0.0, 0.55]),
+        s0=np.zeros(robot.index.n),
+        left_sole=np.array([0.0, 0.07, 0.0]),
+        joints=robot.index.joints,
+        foot_lift_deg=robot.description.foot_lift_deg,
+        **kw,
+    )
 
 
 def test_sinusoid_reference_is_consistent():
@@ -60,9 +65,12 @@ def test_one_foot_schedule():
 
 @pytest.mark.parametrize(
     "task, kw, message",
-    [("walk", {}, "unknown task 'walk'; valid tasks"), ("stand", {"duration": -1.0}, "duration must be positive"),
-     ("sinusoid", {"frequency": 0.0}, "frequency > 0")],
-)  # fmt: skip
+    [
+        ("walk", {}, "unknown task 'walk'; valid tasks"),
+        ("stand", {"duration": -1.0}, "duration must be positive"),
+        ("sinusoid", {"frequency": 0.0}, "frequency > 0"),
+    ],
+)
 def test_bad_schedules_are_named(task, kw, message):
     with pytest.raises(ValueError, match=message):
         _schedule(task, **kw)

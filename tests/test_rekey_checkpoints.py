@@ -31,8 +31,9 @@ def test_rekey_matches_the_moved_config_key(tmp_path, monkeypatch):
     run = tmp_path / "run"
     (run / "cmaes").mkdir(parents=True)
     # config.json as the tuning job writes it (tuning/orchestration/campaign.py: flat_dict of each config)
-    (run / "config.json").write_text(json.dumps({"tune": flat_dict(tc_old), "loss": dataclasses.asdict(lc)},
-                                                default=io.jsonable))  # fmt: skip
+    (run / "config.json").write_text(
+        json.dumps({"tune": flat_dict(tc_old), "loss": dataclasses.asdict(lc)}, default=io.jsonable)
+    )
     record = {"kind": "tune", "fingerprint": {"config": {"tune": {"init_gains": f"sha256:{provenance.sha256(new)}"}}}}
     (run / runs.MANIFEST).write_text(json.dumps(record))
     train_old = config_key(tc_old, lc, exclude=NOT_TRAINING)
@@ -43,8 +44,9 @@ def test_rekey_matches_the_moved_config_key(tmp_path, monkeypatch):
 
     assert rekey.main([str(run), "--init-gains", str(new)]) == 0
     with np.load(ckpt) as z:
-        assert str(z["key"]) == (f"{config_key(tc_new, lc, exclude=NOT_TRAINING)}-9c9af26c-cmaes-"
-                                 f"{config_key(tc_new, exclude=NOT_SEARCH)}")  # fmt: skip
+        assert str(z["key"]) == (
+            f"{config_key(tc_new, lc, exclude=NOT_TRAINING)}-9c9af26c-cmaes-{config_key(tc_new, exclude=NOT_SEARCH)}"
+        )
         assert int(z["step"]) == 3
     assert runs.output_changed(ckpt) is None  # still the run's own
     assert rekey.main([str(run), "--init-gains", str(new)]) == 1  # already re-keyed: refused, unchanged

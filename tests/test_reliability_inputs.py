@@ -57,25 +57,51 @@ def _refusal(tmp_path, name: str, text: str) -> str:
 
 UNPHYSICAL = [
     ("lifted.yaml", _feet(posture=LIFTED), r"contact 'l': sole l_sole is 4\.1 cm above the floor .*at most 5 mm"),
-    ("tilted.yaml", _feet(posture={"l_ankle_roll": 8}), r"sole l_sole is tilted 8\.0 deg against the floor .*at most 3"),
+    (
+        "tilted.yaml",
+        _feet(posture={"l_ankle_roll": 8}),
+        r"sole l_sole is tilted 8\.0 deg against the floor .*at most 3",
+    ),
     ("pitched.yaml", _feet(posture={"r_ankle_pitch": -20}), r"contact 'r': sole r_sole is tilted 10\.0 deg"),
-    ("normal.yaml", _feet(normal="[0, 0.1, 1]"), r"contact 'l': normal \[0.0, 0.1, 0.995\] is 5\.7 deg from the "
-     r"normal \[0.0, 0.0, 1.0\] of the surface of 'floor'"),
+    (
+        "normal.yaml",
+        _feet(normal="[0, 0.1, 1]"),
+        r"contact 'l': normal \[0.0, 0.1, 0.995\] is 5\.7 deg from the "
+        r"normal \[0.0, 0.0, 1.0\] of the surface of 'floor'",
+    ),
     ("down.yaml", _feet(normal="[0, 0, -1]"), r"contact 'l': normal \[0.0, 0.0, -1.0\] points into 'floor'"),
-    ("cop.yaml", _feet(extra=", cop: [[-0.3, 0.3], [-0.1, 0.1]]"), r"contact 'l': CoP rectangle \[\[-0.3, 0.3\], "
-     r"\[-0.1, 0.1\]\] m is larger than the foot: its contact spheres span x \[-0.073, 0.136\]"),
+    (
+        "cop.yaml",
+        _feet(extra=", cop: [[-0.3, 0.3], [-0.1, 0.1]]"),
+        r"contact 'l': CoP rectangle \[\[-0.3, 0.3\], "
+        r"\[-0.1, 0.1\]\] m is larger than the foot: its contact spheres span x \[-0.073, 0.136\]",
+    ),
     ("cop_toe.yaml", _feet(extra=", cop: [[-0.07, 0.2], [-0.045, 0.045]]"), r"is larger than the foot"),
-    ("crate.yaml", _feet(scene="scene:\n  - {name: crate, size: [0.1, 0.1, 0.1], pos: [0, 0, 0.5]}\n"),
-     r"scene object 'crate' intersects the robot at the initial posture: body '\w+' is \d+\.\d cm inside it"),
-    ("shin.yaml", _feet(scene="scene:\n  - {name: step, size: [0.05, 0.3, 0.1], pos: [0.0, 0.0, 0.1]}\n"),
-     r"scene object 'step' intersects the robot"),
-    ("palm.yaml", _feet(scene="  - {name: h, frame: l_hand, type: surface, normal: [0, 0, 1], touches: table, "
-                              "cop: [[-0.2, 0.2], [-0.2, 0.2]]}\nscene:\n  - {name: table, size: [0.1, 0.1, 0.02], "
-                              "under: h}\n"),
-     r"contact 'h': CoP corner \(-0.2, -0.2\) m is 14\.1 cm off the surface of 'table'"),
-    ("default_feet.yaml", "tasks: [{name: posture, kind: postural}]\ninitial_posture_deg: {r_ankle_pitch: 15}\n",
-     r"contact 'r_sole': sole r_sole is tilted 25\.0 deg"),
-]  # fmt: skip
+    (
+        "crate.yaml",
+        _feet(scene="scene:\n  - {name: crate, size: [0.1, 0.1, 0.1], pos: [0, 0, 0.5]}\n"),
+        r"scene object 'crate' intersects the robot at the initial posture: body '\w+' is \d+\.\d cm inside it",
+    ),
+    (
+        "shin.yaml",
+        _feet(scene="scene:\n  - {name: step, size: [0.05, 0.3, 0.1], pos: [0.0, 0.0, 0.1]}\n"),
+        r"scene object 'step' intersects the robot",
+    ),
+    (
+        "palm.yaml",
+        _feet(
+            scene="  - {name: h, frame: l_hand, type: surface, normal: [0, 0, 1], touches: table, "
+            "cop: [[-0.2, 0.2], [-0.2, 0.2]]}\nscene:\n  - {name: table, size: [0.1, 0.1, 0.02], "
+            "under: h}\n"
+        ),
+        r"contact 'h': CoP corner \(-0.2, -0.2\) m is 14\.1 cm off the surface of 'table'",
+    ),
+    (
+        "default_feet.yaml",
+        "tasks: [{name: posture, kind: postural}]\ninitial_posture_deg: {r_ankle_pitch: 15}\n",
+        r"contact 'r_sole': sole r_sole is tilted 25\.0 deg",
+    ),
+]
 
 
 @pytest.mark.parametrize("name, text, pattern", UNPHYSICAL, ids=[u[0] for u in UNPHYSICAL])
@@ -99,8 +125,14 @@ def test_the_refusals_report_the_geometry(robot, tmp_path):
     )
 
 
-@pytest.mark.parametrize("text", [_feet(posture={"l_ankle_roll": 2}), _feet(normal="[0, 0.035, 1]"),
-                                  _feet(extra=", cop: [[-0.0635, 0.1255], [-0.0425, 0.0505]]")])  # fmt: skip
+@pytest.mark.parametrize(
+    "text",
+    [
+        _feet(posture={"l_ankle_roll": 2}),
+        _feet(normal="[0, 0.035, 1]"),
+        _feet(extra=", cop: [[-0.0635, 0.1255], [-0.0425, 0.0505]]"),
+    ],
+)
 def test_set_ups_within_the_tolerances_are_accepted(tmp_path, text):
     """A 2 deg ankle roll (the sole's edge 3.5 mm up), a normal 2 deg off, the model's own sole
     rectangle: inside the tolerances (3 deg, the spheres' 5 mm), so they run."""
@@ -119,8 +151,9 @@ def test_box_distance_and_surface_normal():
     assert placement.box_distance(np.array([0.3, 0.0, 0.0]), centre, half) == pytest.approx(0.2)
     assert placement.box_distance(np.zeros(3), centre, half) == pytest.approx(-0.1)
     np.testing.assert_allclose(placement.surface_normal(np.array([0.0, 0.0, 0.3]), centre, half), [0, 0, 1], atol=1e-9)
-    np.testing.assert_allclose(placement.surface_normal(np.array([-0.1, 0.05, 0.0]), centre, half), [-1, 0, 0],
-                               atol=1e-9)  # fmt: skip
+    np.testing.assert_allclose(
+        placement.surface_normal(np.array([-0.1, 0.05, 0.0]), centre, half), [-1, 0, 0], atol=1e-9
+    )
 
 
 # ---- Class 2: the simulated impulse is the reported one ---------------------------------------
@@ -137,8 +170,9 @@ def test_each_physics_step_carries_its_share_of_the_push(onset, duration):
     """Summed over the physics steps, the push's force gives force x duration for any onset and
     duration, also off the 1 ms grid (on/off per step would add or drop whole steps: 2x for a
     1.5 ms push)."""
-    push = Push(force=np.array([[0.0, 250.0, 0.0]]), onset=np.array([onset]), duration=np.array([duration]),
-                body=np.array([-1]))  # fmt: skip
+    push = Push(
+        force=np.array([[0.0, 250.0, 0.0]]), onset=np.array([onset]), duration=np.array([duration]), body=np.array([-1])
+    )
     np.testing.assert_allclose(_impulse(push, 0.001, 0.6, 0.001), [0.0, 250.0 * duration, 0.0], rtol=1e-9, atol=1e-12)
     if duration == 0.0015 and onset == 0.3:  # what a per-step on/off test simulated
         assert _impulse(push, 0.001, 0.6, None)[1] == pytest.approx(250.0 * 0.002)
@@ -159,8 +193,9 @@ def test_a_free_body_gains_the_tables_impulse(stand, duration, onset):
     (ClosedLoop.step_push_forces, every engine's one source), integrated by C MuJoCo on a free 2 kg
     body without gravity: its momentum change is the table's impulse to 1e-9."""
     cfg = sweep_config.SweepConfig(push_duration=duration, push_onset=onset)
-    scen, cols = sweep.scenarios_at(cfg, [stand.gains], [180.0], [90.0], [0], [1.0], [1.0], np.zeros((1, 23)),
-                                    np.float64)  # fmt: skip
+    scen, cols = sweep.scenarios_at(
+        cfg, [stand.gains], [180.0], [90.0], [0], [1.0], [1.0], np.zeros((1, 23)), np.float64
+    )
     push = jax.tree_util.tree_map(lambda x: jnp.asarray(x[0]), scen.push)
     loop = stand.loop
     m = mujoco.MjModel.from_xml_string(
@@ -189,12 +224,25 @@ def _summary(trunk_tilt_deg: float, com_z: float = 0.55, nan: bool = False) -> d
     up = jnp.asarray([[0.0, 0.0, 1.0]] * 2)
     square = jnp.asarray([[x, y] for x in (-0.07, 0.12) for y in (-0.115, 0.115)])
     met = jax.jit(metrics_lib.update)(
-        met, com=jnp.asarray([0.0, 0.0, com_z]), com_ref=jnp.asarray([0.0, 0.0, 0.55]), com_vel=jnp.zeros(3),
-        tau=jnp.full(23, jnp.nan if nan else 1.0), violation=jnp.asarray(0.0), infeasible=jnp.asarray(False),
-        contact_pos=feet, normals=up, anchors=feet, anchor_normals=up, fully_active=jnp.ones(2, bool),
-        body_heights=jnp.asarray([0.3, 0.5]), trunk_z=jnp.asarray([0.0, -math.sin(a), math.cos(a)]),
-        support=square, com0_height=jnp.asarray(0.55), t_now=jnp.asarray(0.01), physics_ok=jnp.asarray(True),
-    )  # fmt: skip
+        met,
+        com=jnp.asarray([0.0, 0.0, com_z]),
+        com_ref=jnp.asarray([0.0, 0.0, 0.55]),
+        com_vel=jnp.zeros(3),
+        tau=jnp.full(23, jnp.nan if nan else 1.0),
+        violation=jnp.asarray(0.0),
+        infeasible=jnp.asarray(False),
+        contact_pos=feet,
+        normals=up,
+        anchors=feet,
+        anchor_normals=up,
+        fully_active=jnp.ones(2, bool),
+        body_heights=jnp.asarray([0.3, 0.5]),
+        trunk_z=jnp.asarray([0.0, -math.sin(a), math.cos(a)]),
+        support=square,
+        com0_height=jnp.asarray(0.55),
+        t_now=jnp.asarray(0.01),
+        physics_ok=jnp.asarray(True),
+    )
     return metrics_lib.summarize(met)
 
 
@@ -249,7 +297,7 @@ HOSTILE = [
     ("big.json", '{"tasks": [' + "0, " * (2 * 2**20) + "0]}", r"is larger than 4 MiB, the limit of an input file"),
     ("big.yaml", "tasks: [" + "0, " * 400_000 + "0]\n", r"is larger than 1 MiB"),
     ("digits.json", '{"tasks": ' + "9" * 5000 + "}", r"is not valid JSON: .*4300"),
-]  # fmt: skip
+]
 
 
 @pytest.mark.parametrize("name, text, pattern", HOSTILE, ids=[h[0] for h in HOSTILE])
@@ -294,8 +342,12 @@ def test_a_device_is_read_only_up_to_the_limit():
 
 def test_aliases_within_the_limits_are_read(tmp_path):
     path = tmp_path / "anchors.yaml"
-    path.write_text(_feet().replace("normal: [0, 0, 1]}", "normal: &up [0, 0, 1], mu: &mu 0.4}", 1)
-                    .replace("r_sole, normal: [0, 0, 1]}", "r_sole, normal: *up, mu: *mu}") + "# 1e3 is a number\n")  # fmt: skip
+    path.write_text(
+        _feet()
+        .replace("normal: [0, 0, 1]}", "normal: &up [0, 0, 1], mu: &mu 0.4}", 1)
+        .replace("r_sole, normal: [0, 0, 1]}", "r_sole, normal: *up, mu: *mu}")
+        + "# 1e3 is a number\n"
+    )
     spec = task_files.load_spec_file(path)
     assert spec["contacts"][1]["normal"] == [0, 0, 1] and spec["contacts"][1]["mu"] == 0.4
     assert loader.parse_yaml("x: 1e3\n", path, "task") == {"x": 1000.0}

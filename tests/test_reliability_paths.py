@@ -39,8 +39,21 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 
 def _join(rank: int, port: int, timeout_s: float) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "wbc_jax.cli", "--distributed", "--coordinator", f"localhost:{port}",
-           "--num-processes", "2", "--process-id", str(rank), "--initialization-timeout", f"{timeout_s:g}", "info"]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "wbc_jax.cli",
+        "--distributed",
+        "--coordinator",
+        f"localhost:{port}",
+        "--num-processes",
+        "2",
+        "--process-id",
+        str(rank),
+        "--initialization-timeout",
+        f"{timeout_s:g}",
+        "info",
+    ]
     env = {
         **os.environ,
         "JAX_PLATFORMS": "cpu",
@@ -75,9 +88,18 @@ def test_processes_whose_peers_never_come_exit_within_the_timeout_naming_the_coo
 @pytest.fixture(scope="module")
 def window_problem():
     """The problem of ``wbc-jax tune --parameterisation scheduled --window-s 0.02 --windows 2`` at tiny size."""
-    tc = config.TuneConfig(horizon=0.1, push_onset=0.0, duration_range=(0.02, 0.05), eval_horizon=0.1, batch=4,
-                           parameterisation="scheduled", window_s=0.02, windows=2, estimator="first-order",
-                           search_backend="jax")  # fmt: skip
+    tc = config.TuneConfig(
+        horizon=0.1,
+        push_onset=0.0,
+        duration_range=(0.02, 0.05),
+        eval_horizon=0.1,
+        batch=4,
+        parameterisation="scheduled",
+        window_s=0.02,
+        windows=2,
+        estimator="first-order",
+        search_backend="jax",
+    )
     return tp.make_problem(tc)
 
 
@@ -124,8 +146,13 @@ def test_a_gain_schedule_traces_in_every_driver_with_a_feedforward(window_proble
     metrics, _ = jax.eval_shape(lambda s: mjx_loop.rollout(loop, plant, qpos, s, push, feedforward=ff), sched)
     assert metrics.ticks.shape == ()
     state = jax.eval_shape(loop.init, qpos)
-    out = jax.eval_shape(lambda s, x: host_loop.control_host(loop, s, x, qpos, qpos[: loop.idx.nv], jnp.int32(0),
-                                                             jnp.ones((), bool), push, ff), sched, state)  # fmt: skip
+    out = jax.eval_shape(
+        lambda s, x: host_loop.control_host(
+            loop, s, x, qpos, qpos[: loop.idx.nv], jnp.int32(0), jnp.ones((), bool), push, ff
+        ),
+        sched,
+        state,
+    )
     assert out[1].shape == (st.robot.mj_model.nu,)
 
 

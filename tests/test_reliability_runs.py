@@ -30,8 +30,24 @@ from wbc_jax.sim import physics
 from wbc_jax.tuning.algorithms import gradient  # noqa: F401  (before a tripwire: optax applies jax.jit when imported)
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-SWEEP = ["push-sweep", "--magnitudes", "20", "40", "2", "--directions", "1", "--horizon", "0.05", "--push-onset",
-         "0", "--push-duration", "0.02", "--chunk-size", "1", "--quiet"]  # fmt: skip
+SWEEP = [
+    "push-sweep",
+    "--magnitudes",
+    "20",
+    "40",
+    "2",
+    "--directions",
+    "1",
+    "--horizon",
+    "0.05",
+    "--push-onset",
+    "0",
+    "--push-duration",
+    "0.02",
+    "--chunk-size",
+    "1",
+    "--quiet",
+]
 
 
 @pytest.fixture(scope="module")
@@ -127,8 +143,9 @@ def test_a_finished_rerun_leaves_its_summary_alone(finished, tmp_path, monkeypat
     # From Python too: the summary as the run wrote it, its envelope keyed by azimuth (a float) as a fresh run's.
     from wbc_jax.jobs import sweep
 
-    cfg = cli.config_from_args(cli.build_parser().parse_args([*SWEEP, "--gains", "g.json", "--out", "sw"]),
-                               sweep_config.default_config())  # fmt: skip
+    cfg = cli.config_from_args(
+        cli.build_parser().parse_args([*SWEEP, "--gains", "g.json", "--out", "sw"]), sweep_config.default_config()
+    )
     again = sweep.run_sweep(cfg, progress=False)
     assert list(again["envelope"]) == [0.0] and again["run_s"] == measured["run_s"]
 
@@ -167,10 +184,15 @@ def test_view_refuses_a_changed_run_and_writes_none_of_its_files(finished, tmp_p
 
 def _envelope_summary(path: pathlib.Path, impulse) -> str:
     """An envelope summary.json of the default limit search's push (chest, 0.1 s at 0.5 s)."""
-    path.write_text(json.dumps({"config": {"body": "chest", "push_duration": 0.1, "push_onset": 0.5, "elevation": 0.0},
-                                "envelope": {"0": {str(a): {"impulse_ns": impulse} for a in (0.0, 90.0, 180.0,
-                                                                                             270.0)}}},
-                               allow_nan=True))  # fmt: skip
+    path.write_text(
+        json.dumps(
+            {
+                "config": {"body": "chest", "push_duration": 0.1, "push_onset": 0.5, "elevation": 0.0},
+                "envelope": {"0": {str(a): {"impulse_ns": impulse} for a in (0.0, 90.0, 180.0, 270.0)}},
+            },
+            allow_nan=True,
+        )
+    )
     return str(path)
 
 
@@ -192,8 +214,16 @@ def test_limit_with_no_round_claims_nothing(tmp_path, capsys, tripwire, monkeypa
     assert "--time-limit 0 summarises the rounds on disk" in _error(capsys) and not out.exists()
 
     lip = {0.0: {"impulse_bound_ns": 20.0}, 90.0: {"impulse_bound_ns": 15.0}}
-    fake = types.SimpleNamespace(azimuths=[0.0, 90.0], lip=lip, envelopes={}, base=default_gains(ICUB), steps=0,
-                                 timing={}, dtype=np.float32, physics_steps_per_candidate_step=1)  # fmt: skip
+    fake = types.SimpleNamespace(
+        azimuths=[0.0, 90.0],
+        lip=lip,
+        envelopes={},
+        base=default_gains(ICUB),
+        steps=0,
+        timing={},
+        dtype=np.float32,
+        physics_steps_per_candidate_step=1,
+    )
     monkeypatch.setattr(limit_rounds, "Search", lambda cfg: fake)
     cfg = limit.LimitConfig(directions=(0.0, 90.0), time_limit=1e-9, out=str(out))
     with pytest.raises(ValueError, match=r"ran out before round 1 finished: nothing was measured"):
@@ -201,8 +231,10 @@ def test_limit_with_no_round_claims_nothing(tmp_path, capsys, tripwire, monkeypa
     assert not (out / "summary.json").exists()
 
     cut = {"round": 0, "verified": False, "time_cut": True}
-    records = [{**cut, "direction": 0, "impulse_ns": 5.0},
-               {**cut, "direction": 1, "impulse_ns": 5.0, "verified": True, "time_cut": True}]  # fmt: skip
+    records = [
+        {**cut, "direction": 0, "impulse_ns": 5.0},
+        {**cut, "direction": 1, "impulse_ns": 5.0, "verified": True, "time_cut": True},
+    ]
     summary = limit_rounds.summarize(dataclasses.replace(cfg, time_limit=None), fake, records, 1.0)
     assert summary["directions"][0.0]["limit_ns"] is None and not summary["directions"][0.0]["measured"]
     assert summary["directions"][90.0]["limit_ns"] == 5.0
@@ -213,8 +245,9 @@ def test_limit_with_no_round_claims_nothing(tmp_path, capsys, tripwire, monkeypa
 def test_heldout_with_no_sets_writes_nothing(tmp_path, capsys, tripwire):
     out = tmp_path / "held"
     assert cli.main(["heldout", "--sets", "--out", str(out)]) == 2
-    assert _error(capsys) == ("wbc-jax heldout: error: --sets: give at least one gain set ('default', 'critical' "
-                              "or NAME=FILE)")  # fmt: skip
+    assert _error(capsys) == (
+        "wbc-jax heldout: error: --sets: give at least one gain set ('default', 'critical' or NAME=FILE)"
+    )
     assert not out.exists()
 
 
@@ -247,16 +280,21 @@ def test_broken_out_paths_fail_in_one_line(tmp_path, capsys, tripwire):
 def test_view_into_an_unwritable_place_or_of_a_foreign_summary(finished, tmp_path, capsys):
     out, _ = finished
     (tmp_path / "file").write_text("x")
-    for rrd, message in ((tmp_path / "file" / "e.rrd", "is a file, not a folder"),
-                         (pathlib.Path("/proc/e.rrd"), "cannot write in /proc"),
-                         (tmp_path / ("n" * 300 + ".rrd"), "names are at most 255 bytes")):  # fmt: skip
+    for rrd, message in (
+        (tmp_path / "file" / "e.rrd", "is a file, not a folder"),
+        (pathlib.Path("/proc/e.rrd"), "cannot write in /proc"),
+        (tmp_path / ("n" * 300 + ".rrd"), "names are at most 255 bytes"),
+    ):
         assert cli.main(["view", str(out), "--env", "1", "--out", str(rrd)]) == 2
         assert message in _error(capsys)
     foreign = tmp_path / "foreign"
     foreign.mkdir()
     shutil.copy(out / "results.parquet", foreign / "results.parquet")
-    for text in ('{"envelope": {}}', "[1, 2]", json.dumps({"config": {"horizon": "long"}, "gains": {},
-                                                          "backend": "mujoco"})):  # fmt: skip
+    for text in (
+        '{"envelope": {}}',
+        "[1, 2]",
+        json.dumps({"config": {"horizon": "long"}, "gains": {}, "backend": "mujoco"}),
+    ):
         (foreign / "summary.json").write_text(text)
         assert cli.main(["view", str(foreign), "--env", "0", "--out", str(tmp_path / "f.rrd")]) == 2
         assert f"{foreign / 'summary.json'} is not the summary of a push sweep" in _error(capsys)
@@ -311,10 +349,12 @@ def test_fingerprints_compare_inputs_by_content_not_by_spelling(tmp_path, capsys
     (tmp_path / "link.json").symlink_to(gains)
     first = balance.BalanceConfig(duration=0.1, gains=str(gains), out=str(tmp_path / "b"))
     runs.claim_output_dir(first.out, "balance", first.fingerprint())
-    same = [dataclasses.replace(first, out=f"{first.out}/", plots=False),
-            dataclasses.replace(first, backend=physics.resolve_backend("auto")),  # what auto runs here
-            dataclasses.replace(first, gains=str(tmp_path / "d" / ".." / "g.json")),
-            dataclasses.replace(first, gains=str(tmp_path / "link.json"))]  # fmt: skip
+    same = [
+        dataclasses.replace(first, out=f"{first.out}/", plots=False),
+        dataclasses.replace(first, backend=physics.resolve_backend("auto")),  # what auto runs here
+        dataclasses.replace(first, gains=str(tmp_path / "d" / ".." / "g.json")),
+        dataclasses.replace(first, gains=str(tmp_path / "link.json")),
+    ]
     for cfg in same:
         assert runs.differences(runs._compared(first.fingerprint()), runs._compared(cfg.fingerprint())) == []
         cfg.check()  # the folder is accepted
@@ -322,8 +362,12 @@ def test_fingerprints_compare_inputs_by_content_not_by_spelling(tmp_path, capsys
     dataclasses.replace(first, out=str(tmp_path / "copy")).check()
     values = gains_to_dict(default_gains(ICUB))
     (tmp_path / "other.json").write_text(json.dumps({**values, "kp_com": [60.0, 60.0, 10.0]}))
-    assert cli.main(["balance", "--duration", "0.1", "--gains", str(tmp_path / "other.json"), "--out",
-                     str(tmp_path / "b")]) == 2  # fmt: skip
+    assert (
+        cli.main(
+            ["balance", "--duration", "0.1", "--gains", str(tmp_path / "other.json"), "--out", str(tmp_path / "b")]
+        )
+        == 2
+    )
     assert f"made with other inputs (config.gains ({(tmp_path / 'other.json').resolve()}): contents changed)" in _error(
         capsys
     )
@@ -332,8 +376,7 @@ def test_fingerprints_compare_inputs_by_content_not_by_spelling(tmp_path, capsys
 # ---- issue 45: a stalled device is an error; where each chunk's time went ----------------------
 
 
-def test_a_stalled_chunk_is_one_line_naming_the_device_and_the_chunk_and_the_run_resumes(finished, tmp_path,
-                                                                                          capsys):  # fmt: skip
+def test_a_stalled_chunk_is_one_line_naming_the_device_and_the_chunk_and_the_run_resumes(finished, tmp_path, capsys):
     """Chunk 1 blocked on its device (--simulate-stall 1 0) with --stall-timeout-s 2: exit status 3
     within the bound and one line naming the chunk and the device; chunk 0's part kept, the timeline
     of both written; the command without the test hook (another --stall-timeout-s: no part of the
@@ -343,9 +386,11 @@ def test_a_stalled_chunk_is_one_line_naming_the_device_and_the_chunk_and_the_run
     started = time.perf_counter()
     assert cli.main([*argv, "--stall-timeout-s", "2", "--simulate-stall", "1", "0"]) == 3
     assert time.perf_counter() - started < 60  # chunk 0 (compiled by the fixture), then the 2 s bound
-    assert _error(capsys) == ("wbc-jax push-sweep: error: chunk 1: device cpu:0 (C MuJoCo) did not finish its run "
-                              "within 2 s (0 of 1 device(s) did; bound: --stall-timeout-s); the chunks finished "
-                              "before are kept: rerun the same command to resume")  # fmt: skip
+    assert _error(capsys) == (
+        "wbc-jax push-sweep: error: chunk 1: device cpu:0 (C MuJoCo) did not finish its run "
+        "within 2 s (0 of 1 device(s) did; bound: --stall-timeout-s); the chunks finished "
+        "before are kept: rerun the same command to resume"
+    )
     parts = tmp_path / "sw" / "parts"
     assert sorted(p.name for p in parts.iterdir()) == ["part-00000.parquet"]
     rows = json.loads((tmp_path / "sw" / "timeline.json").read_text())["rows"]
@@ -375,19 +420,33 @@ def test_the_timeline_has_a_row_per_chunk_and_device_within_its_wall_time(finish
     assert totals["wait_s"] == pytest.approx(sum(r["wait_s"] for r in rows), abs=1e-3)
 
 
-SCALING = [sys.executable, str(ROOT / "experiments" / "benchmarks" / "scaling.py"), "--gpus", "1", "--backends",
-           "mujoco", "--repeats", "2"]  # fmt: skip
+SCALING = [
+    sys.executable,
+    str(ROOT / "experiments" / "benchmarks" / "scaling.py"),
+    "--gpus",
+    "1",
+    "--backends",
+    "mujoco",
+    "--repeats",
+    "2",
+]
 
 
 def test_scaling_refuses_a_scaling_json_it_did_not_write_before_running(tmp_path):
     """The default suite's sibling of the next test (20-30 s here, two calls: nightly): a --out whose
     scaling.json another tool wrote is refused in one line, nothing run, nothing written."""
     (tmp_path / "scaling.json").write_text(json.dumps({"rows": []}))
-    proc = subprocess.run([*SCALING, "--out", str(tmp_path), "--", *SWEEP[1:-1]], capture_output=True, text=True,
-                          env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=120)  # fmt: skip
+    proc = subprocess.run(
+        [*SCALING, "--out", str(tmp_path), "--", *SWEEP[1:-1]],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        timeout=120,
+    )
     assert proc.returncode == 1 and proc.stderr.strip() == (
         f"scaling.py: error: --out {tmp_path}: its scaling.json was not written by scaling.py (no 'calls'); "
-        "give another --out"), proc.stderr  # fmt: skip
+        "give another --out"
+    ), proc.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scaling.json"]
 
 

@@ -37,7 +37,11 @@ def test_reset_removes_only_the_method(tmp_path, capsys):
     before = {p: p.read_bytes() for p in (run / "cmaes").rglob("*") if p.is_file()}
     assert reset_method.main([str(run), "--method", "hybrid"]) == 0
     assert sorted(p.name for p in (run / "gains").iterdir()) == [
-        "cmaes.json", "cmaes_t60.json", "hybrid_extra.json", "provenance.json"]  # fmt: skip
+        "cmaes.json",
+        "cmaes_t60.json",
+        "hybrid_extra.json",
+        "provenance.json",
+    ]
     assert sorted(json.loads((run / "gains" / "provenance.json").read_text())) == ["cmaes", "cmaes_t60", "hybrid_extra"]
     assert not (run / "hybrid").exists()
     assert list(json.loads((run / runs.MANIFEST).read_text())["outputs"]) == ["cmaes/t120/history.csv"]

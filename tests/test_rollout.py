@@ -81,8 +81,11 @@ def test_pipelined_host_batch_equals_environments_run_alone(runs):
     the other half's physics): each environment's metrics equal those of the same environment run
     alone, a diverged one (NaN joints) is flagged and poisons nothing. The Python loop of ticks and
     the compiled loop (one program, C MuJoCo called from XLA) give the same metrics to float noise."""
-    st = scenario.setup("stand", duration=1.0, sim=SimConfig(record=False, host_loop="python",
-                        physics=physics.PhysicsConfig(backend="mujoco")))  # fmt: skip
+    st = scenario.setup(
+        "stand",
+        duration=1.0,
+        sim=SimConfig(record=False, host_loop="python", physics=physics.PhysicsConfig(backend="mujoco")),
+    )
     pushed = scenario.single(st, scenario.make_push(*PUSH, st.dtype))
     broken = pushed.replace(joint_offset=np.full_like(pushed.joint_offset, np.nan))
     both = jax.tree_util.tree_map(lambda a, b: np.concatenate([np.asarray(a), np.asarray(b)]), pushed, broken)
@@ -100,8 +103,13 @@ def test_pipelined_host_batch_equals_environments_run_alone(runs):
     # real difference (a tick's push, a sub-step) moves these metrics by > 1e-4. The halves above run the program
     # of one environment alone on the same inputs: bit-equal (measured 0 here and with AVX2).
     for name, value in vars(alone[0]).items():
-        np.testing.assert_allclose(np.asarray(getattr(compiled.metrics, name), float), np.asarray(value, float),
-                                   rtol=1e-7, atol=3e-9, err_msg=name)  # fmt: skip
+        np.testing.assert_allclose(
+            np.asarray(getattr(compiled.metrics, name), float),
+            np.asarray(value, float),
+            rtol=1e-7,
+            atol=3e-9,
+            err_msg=name,
+        )
 
 
 def test_a_rerun_with_new_gains_compiles_nothing(runs):
@@ -122,8 +130,11 @@ def test_recorded_push_and_host_wrenches(runs):
     np.testing.assert_allclose(traj.push[0][on], [PUSH[0]] * on.sum(), atol=1e-9)
     # The host scatters the tick's push forces onto their bodies as the traced physics does:
     # two pushes (one on the default body, one on the pelvis) over the push's first tick.
-    two = jax.tree_util.tree_map(lambda a, b: np.concatenate([a, b]), scenario.make_push(*PUSH),
-                                 scenario.make_push([5.0, 0.0, 0.0], 0.3, 0.05, body=st.robot.index.body_id("root_link")))  # fmt: skip
+    two = jax.tree_util.tree_map(
+        lambda a, b: np.concatenate([a, b]),
+        scenario.make_push(*PUSH),
+        scenario.make_push([5.0, 0.0, 0.0], 0.3, 0.05, body=st.robot.index.body_id("root_link")),
+    )
     for k in (29, 30, 34, 35, 39, 40):
         traced = np.asarray(st.loop.xfrc(two, k))
         forces = np.asarray(st.loop.step_push_forces(two, k))[None]
@@ -194,8 +205,10 @@ def _dot_precisions(sim: SimConfig) -> list[str]:
     loop = st.loop
     tick = lambda q: mjx_loop.chunk(loop, loop.mx, one.gains, one.push, mjx_loop.start(loop, q), 0, 1)  # noqa: E731
     jaxpr = str(jax.make_jaxpr(tick)(st.qpos0))
-    return [line.split("precision=")[1].split(")")[0] if "precision=" in line else "None"
-            for line in jaxpr.split("dot_general[")[1:]]  # fmt: skip
+    return [
+        line.split("precision=")[1].split(")")[0] if "precision=" in line else "None"
+        for line in jaxpr.split("dot_general[")[1:]
+    ]
 
 
 @pytest.mark.slow  # traces the MJX loop twice (21 CPU s); the GPU set checks the float32 loop against float64
@@ -233,18 +246,32 @@ def test_fall_thresholds_are_70_percent_of_the_com_height_and_5_cm():
     and ankles below 5 cm; just above either threshold is no fall."""
     assert (constants.FALL_COM_HEIGHT, constants.BODY_FLOOR_HEIGHT) == (0.7, 0.05)
     z = jax.numpy.zeros(3)
-    state = dict(com_ref=z, com_vel=z, tau=jax.numpy.zeros(23), violation=0.0, infeasible=jax.numpy.asarray(False),
-                 contact_pos=jax.numpy.zeros((2, 3)), normals=jax.numpy.tile(jax.numpy.eye(3)[2], (2, 1)),
-                 anchors=jax.numpy.zeros((2, 3)), anchor_normals=jax.numpy.tile(jax.numpy.eye(3)[2], (2, 1)),
-                 fully_active=jax.numpy.ones(2, bool), support=jax.numpy.asarray([[0, 0], [1, 0], [0, 1.0]]),
-                 com0_height=0.5, t_now=0.0, physics_ok=jax.numpy.asarray(True))  # fmt: skip
+    state = dict(
+        com_ref=z,
+        com_vel=z,
+        tau=jax.numpy.zeros(23),
+        violation=0.0,
+        infeasible=jax.numpy.asarray(False),
+        contact_pos=jax.numpy.zeros((2, 3)),
+        normals=jax.numpy.tile(jax.numpy.eye(3)[2], (2, 1)),
+        anchors=jax.numpy.zeros((2, 3)),
+        anchor_normals=jax.numpy.tile(jax.numpy.eye(3)[2], (2, 1)),
+        fully_active=jax.numpy.ones(2, bool),
+        support=jax.numpy.asarray([[0, 0], [1, 0], [0, 1.0]]),
+        com0_height=0.5,
+        t_now=0.0,
+        physics_ok=jax.numpy.asarray(True),
+    )
 
     def fell(com_z, lowest_body, trunk_deg=0.0):
         met = metrics_lib.initial(jax.numpy.asarray(0.5), jax.numpy.float64)
         heights = jax.numpy.asarray([0.3, lowest_body, 0.9])
         trunk = jax.numpy.asarray([np.sin(np.radians(trunk_deg)), 0.0, np.cos(np.radians(trunk_deg))])
-        return bool(metrics_lib.update(met, com=jax.numpy.asarray([0, 0, com_z]), body_heights=heights,
-                                       trunk_z=trunk, **state).fell)  # fmt: skip
+        return bool(
+            metrics_lib.update(
+                met, com=jax.numpy.asarray([0, 0, com_z]), body_heights=heights, trunk_z=trunk, **state
+            ).fell
+        )
 
     assert not fell(0.351, 0.051) and fell(0.349, 0.051) and fell(0.351, 0.049)
     # The trunk (issue 41): tilted past FALL_TRUNK_TILT_DEG is a fall, however high the CoM.
@@ -297,8 +324,12 @@ def test_a_differentiated_loop_is_composed_with_its_trace_and_remat():
     traced = loop_lib.compose(plain, trace=loop_lib.smooth_trace)
     remat = loop_lib.compose(traced, remat="checkpoint_dots")
     recorded = loop_lib.compose(plain, recorder=loop_lib.smooth_trace)  # a recorder alone: no gains function
-    assert (traced.trace, traced.remat, remat.trace, remat.remat) == (loop_lib.smooth_trace, False,
-                                                                      loop_lib.smooth_trace, "checkpoint_dots")  # fmt: skip
+    assert (traced.trace, traced.remat, remat.trace, remat.remat) == (
+        loop_lib.smooth_trace,
+        False,
+        loop_lib.smooth_trace,
+        "checkpoint_dots",
+    )
     assert len({loop.structure_key for loop in (plain, traced, remat, recorded)}) == 4
     recording = scenario.setup("stand", duration=0.1, sim=SimConfig(record=True)).loop
     with pytest.raises(ValueError, match="a trace and SimConfig.record are exclusive"):
@@ -311,8 +342,10 @@ def _float32_com(backend: str, platforms: str, out: pathlib.Path) -> np.ndarray:
     """The benchmark scenario's CoM (T, 3) in float32 on ``backend``, in a process of its own: a
     float32 program traced in this float64 session mixes int64 index constants with int32 sizes,
     which JAX 0.11 refuses (docs/nightly/gpu_before_fix.log)."""
-    code = ("import numpy as np, sys; from tests.test_rollout import _run; "  # `python -c` puts its cwd first on sys.path
-            "np.save(sys.argv[2], np.asarray(_run(sys.argv[1])[1].records.com[0], np.float64))")  # fmt: skip
+    code = (
+        "import numpy as np, sys; from tests.test_rollout import _run; "  # `python -c` puts its cwd first on sys.path
+        "np.save(sys.argv[2], np.asarray(_run(sys.argv[1])[1].records.com[0], np.float64))"
+    )
     env = {**os.environ, "JAX_ENABLE_X64": "0", "JAX_PLATFORMS": platforms}
     subprocess.run([sys.executable, "-c", code, backend, str(out)], cwd=ROOT, env=env, check=True, timeout=900)
     return np.load(out)

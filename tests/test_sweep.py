@@ -141,13 +141,15 @@ def test_sweep_isolates_nan_and_resumes(tmp_path, backend):
     """MJX with two host devices present, and C MuJoCo: the run finishes (a chunk of 8 sharded over
     two CPU devices used to hang), one env from NaN joints is flagged, the other is not; a finished
     sweep resumes from its parts; a changed input is refused."""
-    env = {**os.environ, "JAX_PLATFORMS": "cpu",
-           "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}  # fmt: skip
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
     out = tmp_path / "sweep"
     run = lambda mode: subprocess.run(  # noqa: E731
-        [sys.executable, "-c", SHARDED, str(out), mode, backend], capture_output=True, text=True,
-        timeout=600, env=env,  # a hang fails here (a normal run takes 1-3 minutes)
-    )  # fmt: skip
+        [sys.executable, "-c", SHARDED, str(out), mode, backend],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=env,  # a hang fails here (a normal run takes 1-3 minutes)
+    )
     proc = run("nan")
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = json.loads(proc.stdout.strip().splitlines()[-1])
@@ -160,8 +162,16 @@ def test_sweep_isolates_nan_and_resumes(tmp_path, backend):
     assert not res["fell"][0] and res["com_max"][0] < 0.05 and not res["recompiled"]
     if backend == "jax":  # a queue of 2 scenarios per slot: the fallen and the diverged robot retire early
         q = res["queue"]
-        assert q["outcomes"][0] == q["outcomes"][1] == [[False, True, False, True], [False, True, False, True],
-                                                        [True, False, False, False], [False, False, True, False]]  # fmt: skip
+        assert (
+            q["outcomes"][0]
+            == q["outcomes"][1]
+            == [
+                [False, True, False, True],
+                [False, True, False, True],
+                [True, False, False, False],
+                [False, False, True, False],
+            ]
+        )
         assert q["ticks"][0] == [80] * 4  # 0.8 s at 100 Hz
         fall_ticks, survivor, nan_ticks, refilled = q["ticks"][1]
         assert fall_ticks < 80 and fall_ticks % 20 == 0 and nan_ticks == 20  # decided at a check (every 20 ticks)

@@ -38,9 +38,7 @@ def test_description_agrees_with_the_model(talos):
     posture stands both soles flat on the floor; the motors' limits are the URDF's efforts."""
     idx, m = talos.index, talos.mj_model
     assert idx.joints == TALOS.joints and idx.n == 22 == len(TALOS.gains.kp_postural)
-    assert {r: idx.pushable_body_id(r) for r in TALOS.bodies} == {
-        r: idx.body_id(b) for r, b in TALOS.bodies.items()
-    }  # fmt: skip
+    assert {r: idx.pushable_body_id(r) for r in TALOS.bodies} == {r: idx.body_id(b) for r, b in TALOS.bodies.items()}
     d = mujoco.MjData(m)
     d.qpos[:] = talos.home_qpos()
     mujoco.mj_forward(m, d)

@@ -27,8 +27,9 @@ def _load(name: str, path: pathlib.Path):
     """A script of benchmarks/ (not a package), or a package of it from its folder, imported once."""
     if name not in sys.modules:
         if path.is_dir():
-            spec = importlib.util.spec_from_file_location(name, path / "__init__.py",
-                                                          submodule_search_locations=[str(path)])  # fmt: skip
+            spec = importlib.util.spec_from_file_location(
+                name, path / "__init__.py", submodule_search_locations=[str(path)]
+            )
         else:
             spec = importlib.util.spec_from_file_location(name, path)
         module = importlib.util.module_from_spec(spec)
@@ -39,6 +40,7 @@ def _load(name: str, path: pathlib.Path):
 
 tb = _load("tsid_baseline", ROOT / "benchmarks" / "tsid_baseline")
 tp = _load("tsid_peer", ROOT / "benchmarks" / "tsid_peer.py")
+pe = sys.modules["tsid_baseline.push_envelope"]  # (tsid_peer imports it)
 bc = sys.modules["baseline_cpu"]
 
 TSID_PROBLEM = tb.tsid_problem()
@@ -169,7 +171,7 @@ def test_copies_match_wbc_jax(robot):
 
 def test_lip_bound_and_bisection_match_wbc_jax(robot):
     azimuths = [0.0, 45.0, 90.0, 191.25]
-    ours = tp.lip_bound(tb.load_mj_model(), robot.home_qpos(), azimuths)
+    ours = pe.lip_bound(tb.load_mj_model(), robot.home_qpos(), azimuths)
     theirs = sweep_table.lip_bound(robot, azimuths)
     for az in azimuths:
         assert ours[az]["impulse_bound_ns"] == pytest.approx(theirs[az]["impulse_bound_ns"], rel=1e-12)
@@ -177,7 +179,7 @@ def test_lip_bound_and_bisection_match_wbc_jax(robot):
     grid = np.linspace(10.0, 400.0, 64) * 0.1
     thresholds = np.random.default_rng(5).uniform(0.0, 41.0, 40)
     oracle = lambda k, impulse: impulse <= thresholds[k]  # noqa: E731
-    a, b = tp.bisect(grid, oracle, thresholds.size, 0.25), envelope.bisect(grid, oracle, thresholds.size, 0.25)
+    a, b = pe.bisect(grid, oracle, thresholds.size, 0.25), envelope.bisect(grid, oracle, thresholds.size, 0.25)
     for key in ("lo", "hi", "grid_lo", "at_cap", "rollouts", "rounds"):
         np.testing.assert_array_equal(a[key], b[key])
     assert a["rollouts"] <= 8 * thresholds.size  # 6 grid rounds + 2 refinements per direction
@@ -227,10 +229,10 @@ def test_sinusoid_20s_tracks_the_com(peer):
 
 @needs_tsid
 def test_pushes_act_on_the_named_body(peer):
-    push = tp.push_of(40.0, 90.0, 0.5, 0.1)  # 40 N to the left on the chest: recovered
+    push = pe.push_of(40.0, 90.0, 0.5, 0.1)  # 40 N to the left on the chest: recovered
     s = peer.simulate("stand", duration=3.0, push=push, record=False)["summary"]
     assert s["survived"] and s["com_max_err_m"] > 2e-3, s  # it moved the CoM, and the robot recovered
-    s = peer.simulate("stand", duration=3.0, push=tp.push_of(400.0, 0.0, 0.5, 0.1), record=False)["summary"]
+    s = peer.simulate("stand", duration=3.0, push=pe.push_of(400.0, 0.0, 0.5, 0.1), record=False)["summary"]
     assert s["fell"] and not s["survived"], s  # 40 N s forward: over twice the LIP bound
     with pytest.raises(ValueError, match="unknown body 'torso'; valid bodies: .*'chest'"):
         peer.simulate("stand", duration=1.0, push=push, push_body="torso")
@@ -253,8 +255,24 @@ def test_config_checks():
 @needs_tsid
 def test_measurement_script_writes_its_json(tmp_path):
     out = tmp_path / "tsid.json"
-    argv = ["--out", str(out), "--directions", "2", "--magnitudes", "10", "400", "4", "--horizon", "1.5",
-            "--sinusoid-duration", "2", "--stand-duration", "1", "--resolution", "20"]  # fmt: skip
+    argv = [
+        "--out",
+        str(out),
+        "--directions",
+        "2",
+        "--magnitudes",
+        "10",
+        "400",
+        "4",
+        "--horizon",
+        "1.5",
+        "--sinusoid-duration",
+        "2",
+        "--stand-duration",
+        "1",
+        "--resolution",
+        "20",
+    ]
     result = tp.main(argv)
     saved = json.loads(out.read_text())
     assert saved["command"] == "python benchmarks/tsid_peer.py " + " ".join(argv)
@@ -274,8 +292,19 @@ def test_measurement_script_writes_its_json(tmp_path):
 
 def test_measurement_script_without_pushes_writes_the_tick_only(tmp_path):
     out = tmp_path / "tsid_timing.json"
-    tp.main(["--out", str(out), "--no-envelope", "--sinusoid-duration", "1", "--stand-duration", "0.5",
-             "--timing-repeats", "2"])  # fmt: skip
+    tp.main(
+        [
+            "--out",
+            str(out),
+            "--no-envelope",
+            "--sinusoid-duration",
+            "1",
+            "--stand-duration",
+            "0.5",
+            "--timing-repeats",
+            "2",
+        ]
+    )
     saved = json.loads(out.read_text())
     assert "envelope" not in saved and "grid" not in saved
     assert len(saved["timing"]["repeats"]["controller_us_per_tick"]) == 2

@@ -46,11 +46,15 @@ TINY = dict(horizon=0.1, push_onset=0.0, duration_range=(0.02, 0.05), eval_horiz
 
 @pytest.fixture(scope="module")
 def grad_check():
-    env = {**os.environ, "JAX_PLATFORMS": "cpu",
-           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
-           "XLA_FLAGS": "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"}  # fmt: skip
-    proc = subprocess.run([sys.executable, str(GRAD_CHECK), "24"], capture_output=True, text=True,
-                          timeout=1500, env=env)  # fmt: skip
+    env = {
+        **os.environ,
+        "JAX_PLATFORMS": "cpu",
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+        "XLA_FLAGS": "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true",
+    }
+    proc = subprocess.run(
+        [sys.executable, str(GRAD_CHECK), "24"], capture_output=True, text=True, timeout=1500, env=env
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
@@ -123,10 +127,12 @@ def test_hand_set_critical_gains_are_inside_the_bounds_and_stable():
 
 def test_out_of_bound_init_gains_are_a_clear_error_before_compiling(tmp_path):
     good = C.gains_to_dict(C.default_gains(ICUB))
-    cases = [({**good, "kp_com": [5000.0, 50.0, 10.0]}, r"kp_com is outside its bounds at entries \[0\]"),
-             ({**good, "kd_com": [1e-6, 0.7, 0.3]}, r"zeta_com is outside its bounds at entries \[0\]"),
-             ({**good, "kp_postural": [float("nan")] * 23}, r"NaN or infinite"),
-             ({**good, "ki_ang": [-1.0, 0.25, 0.25]}, r"negative entries")]  # fmt: skip
+    cases = [
+        ({**good, "kp_com": [5000.0, 50.0, 10.0]}, r"kp_com is outside its bounds at entries \[0\]"),
+        ({**good, "kd_com": [1e-6, 0.7, 0.3]}, r"zeta_com is outside its bounds at entries \[0\]"),
+        ({**good, "kp_postural": [float("nan")] * 23}, r"NaN or infinite"),
+        ({**good, "ki_ang": [-1.0, 0.25, 0.25]}, r"negative entries"),
+    ]
     for values, message in cases:
         path = tmp_path / "g.json"
         path.write_text(json.dumps(values))
@@ -134,30 +140,33 @@ def test_out_of_bound_init_gains_are_a_clear_error_before_compiling(tmp_path):
             tp.make_problem(config.TuneConfig(init_gains=str(path), **TINY))
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    ({"batch": 0}, r"--batch must be a whole number in \[1, "),
-    ({"population": 0}, r"--population must be a whole number in \[2, "),
-    ({"steps": 0}, r"--steps must be a whole number in \[1, "),
-    ({"horizon": 0.3}, r"--horizon 0.3 s must end after the push"),
-    ({"eval_horizon": 0.4}, r"--eval-horizon 0.4 s must end after the push"),
-    ({"magnitude_range": (0.0, 1.4)}, r"--magnitude-range must be a number in \(0, 100\], got 0"),
-    ({"zeta_range": (2.0, 0.5)}, r"--zeta-range LO HI must be ordered"),
-    ({"phases": ("train", "pso")}, r"--phases must be among \['predict', 'train'.*got 'pso'"),
-    ({"estimator": "smoothed", "batch": 3, "quality_pushes": 3}, r"--batch must be even"),
-    ({"window_s": 0.005}, r"--window-s 0.005 must be at least one tick"),
-    ({"window_s": 0.05, "windows": 3}, r"--batch 4 must be a multiple of --windows 3"),
-    ({"quality_pushes": 6}, r"--quality-pushes 6 must be a multiple of the 4 pushes of one gradient program call"),
-    ({"snapshots_s": (-1.0,)}, r"--snapshots-s must be a number in \(0, "),
-    ({"parameterisation": "scheduled", "tune_regularisation": True}, r"schedules the gains only"),
-    ({"envelope": "/nonexistent.json"}, r"--envelope file /nonexistent.json does not exist"),
-    ({"env_clip": float("nan")}, r"--env-clip must be a number in \[0, 1,000,000\], got nan"),
-    ({"env_clip": -1.0}, r"--env-clip must be a number in \[0, "),
-    ({"push_scale": "lipp"}, r"--push-scale must be one of \['envelope', 'lip'\]"),
-    ({"angular_weight_soft": 0.0}, r"--angular-weight-soft must be a number in \(0, 10000\]"),
-    ({"tasks": "/nonexistent.yaml"}, r"--tasks file /nonexistent.yaml does not exist"),
-    ({"train_bodies": ("world",)}, r"--train-bodies 'world' is not a valid name here"),
-    ({"phases": ("cmaes", "hybrid")}, r"--phases hybrid is a method of the race: give --budget-s"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"batch": 0}, r"--batch must be a whole number in \[1, "),
+        ({"population": 0}, r"--population must be a whole number in \[2, "),
+        ({"steps": 0}, r"--steps must be a whole number in \[1, "),
+        ({"horizon": 0.3}, r"--horizon 0.3 s must end after the push"),
+        ({"eval_horizon": 0.4}, r"--eval-horizon 0.4 s must end after the push"),
+        ({"magnitude_range": (0.0, 1.4)}, r"--magnitude-range must be a number in \(0, 100\], got 0"),
+        ({"zeta_range": (2.0, 0.5)}, r"--zeta-range LO HI must be ordered"),
+        ({"phases": ("train", "pso")}, r"--phases must be among \['predict', 'train'.*got 'pso'"),
+        ({"estimator": "smoothed", "batch": 3, "quality_pushes": 3}, r"--batch must be even"),
+        ({"window_s": 0.005}, r"--window-s 0.005 must be at least one tick"),
+        ({"window_s": 0.05, "windows": 3}, r"--batch 4 must be a multiple of --windows 3"),
+        ({"quality_pushes": 6}, r"--quality-pushes 6 must be a multiple of the 4 pushes of one gradient program call"),
+        ({"snapshots_s": (-1.0,)}, r"--snapshots-s must be a number in \(0, "),
+        ({"parameterisation": "scheduled", "tune_regularisation": True}, r"schedules the gains only"),
+        ({"envelope": "/nonexistent.json"}, r"--envelope file /nonexistent.json does not exist"),
+        ({"env_clip": float("nan")}, r"--env-clip must be a number in \[0, 1,000,000\], got nan"),
+        ({"env_clip": -1.0}, r"--env-clip must be a number in \[0, "),
+        ({"push_scale": "lipp"}, r"--push-scale must be one of \['envelope', 'lip'\]"),
+        ({"angular_weight_soft": 0.0}, r"--angular-weight-soft must be a number in \(0, 10000\]"),
+        ({"tasks": "/nonexistent.yaml"}, r"--tasks file /nonexistent.yaml does not exist"),
+        ({"train_bodies": ("world",)}, r"--train-bodies 'world' is not a valid name here"),
+        ({"phases": ("cmaes", "hybrid")}, r"--phases hybrid is a method of the race: give --budget-s"),
+    ],
+)
 def test_bad_tune_config_is_a_clear_error(kwargs, message):
     with pytest.raises((ValueError, FileNotFoundError), match=message):
         options.replace(config.TuneConfig(), **kwargs)
@@ -257,10 +266,23 @@ def test_lip_push_scale_draws_impulses_as_fractions_of_m_omega_d(robot):
 
 def _metrics(B):
     z = np.zeros(B)
-    return metrics_lib.Metrics(com_sq_err_sum=z, com_max_err=z, max_abs_torque=z, max_violation=z, max_slip=z,
-                               max_tilt=z, max_trunk_tilt=z, qp_infeasible_ticks=z.astype(int), fell=z.astype(bool),
-                               nan=z.astype(bool), last_time_off=z, min_com_height=z + 0.5, end_com_speed=z,
-                               end_support_margin=z + 0.01, ticks=z.astype(int) + 1)  # fmt: skip
+    return metrics_lib.Metrics(
+        com_sq_err_sum=z,
+        com_max_err=z,
+        max_abs_torque=z,
+        max_violation=z,
+        max_slip=z,
+        max_tilt=z,
+        max_trunk_tilt=z,
+        qp_infeasible_ticks=z.astype(int),
+        fell=z.astype(bool),
+        nan=z.astype(bool),
+        last_time_off=z,
+        min_com_height=z + 0.5,
+        end_com_speed=z,
+        end_support_margin=z + 0.01,
+        ticks=z.astype(int) + 1,
+    )
 
 
 class _Interrupt(Exception):
@@ -270,8 +292,10 @@ class _Interrupt(Exception):
 def _target_loss(problem, target):
     def loss(p):
         g, _ = problem.controls(p)
-        return sum(jnp.sum((jnp.log(getattr(g, k)) - jnp.log(getattr(target, k))) ** 2) for k in
-                   ("kp_com", "kd_com", "kp_postural"))  # fmt: skip
+        return sum(
+            jnp.sum((jnp.log(getattr(g, k)) - jnp.log(getattr(target, k))) ** 2)
+            for k in ("kp_com", "kd_com", "kp_postural")
+        )
 
     return loss
 
@@ -296,10 +320,18 @@ def _fake_step(problem, optimizer, target, stop_at=None, nan_at=(), sleep=0.0):
             grad = jax.tree_util.tree_map(lambda x: x * jnp.nan, grad)
         updates, opt_state = optimizer.update(grad, opt_state, params)
         finite = all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree_util.tree_leaves(grad))
-        row = {"loss": float(value), "rollout_loss": float(value), **{n: float(value) for n in tuning_loss.TERMS},
-               "grad_norm": float(optax.global_norm(grad)), "finite": finite,
-               "skipped_total": gradient.skipped_count(opt_state), "grad_sim_steps": per_step, "sim_steps_delta": per_step,
-               **{n: 0.0 for n in gradient.ESTIMATOR_STATS}, **tp.survival_stats(_metrics(problem.tc.batch))}  # fmt: skip
+        row = {
+            "loss": float(value),
+            "rollout_loss": float(value),
+            **{n: float(value) for n in tuning_loss.TERMS},
+            "grad_norm": float(optax.global_norm(grad)),
+            "finite": finite,
+            "skipped_total": gradient.skipped_count(opt_state),
+            "grad_sim_steps": per_step,
+            "sim_steps_delta": per_step,
+            **{n: 0.0 for n in gradient.ESTIMATOR_STATS},
+            **tp.survival_stats(_metrics(problem.tc.batch)),
+        }
         return optax.apply_updates(params, updates), opt_state, row
 
     return step
@@ -336,8 +368,9 @@ def test_robust_mean_gradient_drops_diverged_rollouts_and_clips_outliers():
 
 @pytest.fixture(scope="module")
 def small_problem():
-    return tp.make_problem(config.TuneConfig(steps=6, batch=2, lr=0.2, clip_norm=10.0, population=3, es_batch=1,
-                                         **TINY))  # fmt: skip
+    return tp.make_problem(
+        config.TuneConfig(steps=6, batch=2, lr=0.2, clip_norm=10.0, population=3, es_batch=1, **TINY)
+    )
 
 
 def test_training_loop_guard_resume_and_gains_file(small_problem, tmp_path):
@@ -346,8 +379,9 @@ def test_training_loop_guard_resume_and_gains_file(small_problem, tmp_path):
     base = problem.base
     target = base.replace(kp_com=base.kp_com * 2.0, kd_com=base.kd_com * 3.0, kp_postural=base.kp_postural * 0.5)
     opt = gradient.make_optimizer(tc.lr, tc.clip_norm)
-    full, _, rows_full, _ = gradient.train(problem, tmp_path / "a", progress=False,
-                                       step_fn=_fake_step(problem, opt, target, nan_at=(2,)))  # fmt: skip
+    full, _, rows_full, _ = gradient.train(
+        problem, tmp_path / "a", progress=False, step_fn=_fake_step(problem, opt, target, nan_at=(2,))
+    )
     losses = [float(r["loss"]) for r in rows_full]
     assert losses[-1] < 0.5 * losses[0]  # it optimises
     assert [r["finite"] for r in rows_full] == [True, True, False, True, True, True]
@@ -436,8 +470,9 @@ def test_baselines_spend_the_budget_resume_and_improve(search_problem, tmp_path,
     again = baselines.search(problem, kind, tmp_path / "b", budget=budget, progress=False, evaluate_fn=ev)
     assert [int(r["generation"]) for r in again["history"]] == list(range(10))
     for k in GAIN_FIELDS:
-        np.testing.assert_allclose(getattr(again["equal_steps"]["controls"][0], k),
-                                   getattr(res["equal_steps"]["controls"][0], k), rtol=1e-5)  # fmt: skip
+        np.testing.assert_allclose(
+            getattr(again["equal_steps"]["controls"][0], k), getattr(res["equal_steps"]["controls"][0], k), rtol=1e-5
+        )
     assert baselines.budget_generations(problem, budget["sim_steps"]) == 10
 
 
@@ -461,8 +496,17 @@ def test_hybrid_starts_from_cmaes_at_half_budget_adds_both_halves_and_resumes(tm
     from wbc_jax.tuning.algorithms import hybrid
     from wbc_jax.tuning.orchestration import campaign, race
 
-    tc = config.TuneConfig(batch=2, steps=3, population=16, es_batch=1, es_sigma=0.2, budget_s=600.0,
-                           snapshots_s=(300.0,), phases=("cmaes", "hybrid"), **TINY)  # fmt: skip
+    tc = config.TuneConfig(
+        batch=2,
+        steps=3,
+        population=16,
+        es_batch=1,
+        es_sigma=0.2,
+        budget_s=600.0,
+        snapshots_s=(300.0,),
+        phases=("cmaes", "hybrid"),
+        **TINY,
+    )
     problem = tp.make_problem(tc)
     flat0, unravel = ravel_pytree(problem.init_params())
     target = problem.base.replace(kp_com=problem.base.kp_com * 2.0, kd_com=problem.base.kd_com * 3.0)
@@ -471,8 +515,16 @@ def test_hybrid_starts_from_cmaes_at_half_budget_adds_both_halves_and_resumes(tm
     times = campaign._search_times(tc, "cmaes")
     assert times == [150.0, 300.0, 600.0] and race.budgets(tc) == [300.0, 600.0]
     out = tmp_path / "a"
-    res = baselines.search(problem, "cmaes", out / "cmaes", budget=budget, progress=False, evaluate_fn=evaluate,
-                           times=times, max_generations=2)  # fmt: skip
+    res = baselines.search(
+        problem,
+        "cmaes",
+        out / "cmaes",
+        budget=budget,
+        progress=False,
+        evaluate_fn=evaluate,
+        times=times,
+        max_generations=2,
+    )
     campaign._search_sets(problem, out, "cmaes", res)
     index = json.loads((out / "gains" / "provenance.json").read_text())
     assert set(index) == {"cmaes_t150", "cmaes_t300", "cmaes"} and index["cmaes_t150"]["generation"] == 1
@@ -493,8 +545,9 @@ def test_hybrid_starts_from_cmaes_at_half_budget_adds_both_halves_and_resumes(tm
             start, steps = z["extra_start"], z["extra_snapshots"]
         np.testing.assert_array_equal(start, cma_snapshots[parent["generation"]])  # the parent's parameters
         parent_controls, _ = problem.controls(unravel(jnp.asarray(start, flat0.dtype)))
-        assert store.controls_dict(parent_controls) == json.loads((out / "gains" / f"{origin['parent']}.json")
-                                                                  .read_text())  # fmt: skip
+        assert store.controls_dict(parent_controls) == json.loads(
+            (out / "gains" / f"{origin['parent']}.json").read_text()
+        )
         rows = store.read_csv(hybrid.folder(out, budget_s) / "history.csv")
         i = origin["step"]
         assert i == len(rows) - 1 == len(steps) - 1 == tc.steps - 1 and float(rows[i]["wall_s"]) <= budget_s / 2
@@ -511,16 +564,24 @@ def test_hybrid_starts_from_cmaes_at_half_budget_adds_both_halves_and_resumes(tm
         campaign._write(out, problem, name, controls, reg, origin)
     # Stopped after the first step of the 600 s budget's run, then resumed: the unstopped run's result.
     with pytest.raises(_Interrupt):
-        hybrid.run(problem, tmp_path / "b", [600.0], progress=False,
-                   step_fn=_fake_step(problem, opt, target, stop_at=1))  # fmt: skip
+        hybrid.run(
+            problem, tmp_path / "b", [600.0], progress=False, step_fn=_fake_step(problem, opt, target, stop_at=1)
+        )
     assert len(store.read_csv(hybrid.folder(tmp_path / "b", 600.0) / "history.csv")) == 1
     again = hybrid.run(problem, tmp_path / "b", [600.0], progress=False, step_fn=step)["hybrid"]
     assert store.controls_dict(again[0]) == store.controls_dict(refined["hybrid"][0])
     assert again[2]["sim_steps"] == refined["hybrid"][2]["sim_steps"]
     # race.json: one row per method and budget, the hybrid's with its parts; the verdict sets it against CMA-ES.
     index = json.loads((out / "gains" / "provenance.json").read_text())
-    rep = {n: {"envelope_fraction_median": 0.5 + 0.1 * (index[n]["method"] == "hybrid"), "envelope_fraction_min": 0.4,
-               "survival_rate": 0.2, "sinusoid_com_rmse_m": 1.0e-3} for n in index}  # fmt: skip
+    rep = {
+        n: {
+            "envelope_fraction_median": 0.5 + 0.1 * (index[n]["method"] == "hybrid"),
+            "envelope_fraction_min": 0.4,
+            "survival_rate": 0.2,
+            "sinusoid_com_rmse_m": 1.0e-3,
+        }
+        for n in index
+    }
     curves = hybrid.histories(out, index)  # the learning curves: the gradient half after its parent's
     assert set(curves) == {"hybrid_t300", "hybrid"}
     assert curves["hybrid"][0]["sim_steps"] == index["hybrid"]["parent_sim_steps"] + per_step
@@ -549,9 +610,16 @@ def test_heldout_json_and_targets(tmp_path):
         env = {
             str(a): {"impulse_ns": f * 20, "fraction": f, "bound_impulse_ns": 20.0} for a, f in zip((0.0, 90.0), frac)
         }
-        grid = {"envelope_fraction_median": float(np.median(frac)), "envelope_fraction_min": min(frac),
-                "survival_rate": surv, "upright_rate": surv, "peak_torque_nm_median": 30.0, "envelope": env,
-                "envelope_fraction_monotone_median": 0.5, "envelope_fraction_monotone_min": 0.4}  # fmt: skip
+        grid = {
+            "envelope_fraction_median": float(np.median(frac)),
+            "envelope_fraction_min": min(frac),
+            "survival_rate": surv,
+            "upright_rate": surv,
+            "peak_torque_nm_median": 30.0,
+            "envelope": env,
+            "envelope_fraction_monotone_median": 0.5,
+            "envelope_fraction_monotone_min": 0.4,
+        }
         return {"grid": grid, "variations": {"left_hand": grid}, "sinusoid_com_rmse_m": 1e-3}
 
     results = {
@@ -562,8 +630,15 @@ def test_heldout_json_and_targets(tmp_path):
     rep = tuning_eval.write_heldout(tmp_path / "heldout.json", results, {"gradient": {"sim_steps": 5, "wall_s": 2.0}})
     saved = json.loads((tmp_path / "heldout.json").read_text())
     for name in results:
-        assert {"envelope_fraction_median", "envelope_fraction_min", "survival_rate", "sinusoid_com_rmse_m",
-                "sim_steps", "wall_s", "device"} <= set(saved[name])  # fmt: skip
+        assert {
+            "envelope_fraction_median",
+            "envelope_fraction_min",
+            "survival_rate",
+            "sinusoid_com_rmse_m",
+            "sim_steps",
+            "wall_s",
+            "device",
+        } <= set(saved[name])
     assert saved["survival_criterion"] == json.loads(json.dumps(constants.SURVIVAL_CRITERION))
     t = rep["targets"]
     assert t["median_fraction_ge_0.8"] is False and t["min_fraction_ge_0.6"] and t["no_direction_below_default"]
@@ -629,9 +704,30 @@ def test_tuned_gains_file_runs_in_balance(tmp_path, capsys):
 @pytest.mark.slow  # compiles the sweep's program for one env (about 60 CPU s); the balance path stays in the default set
 def test_tuned_gains_file_runs_in_push_sweep(tmp_path, capsys):
     path, gains = _tuned_gains_file(tmp_path)
-    rc = cli.main(["push-sweep", "--gains", str(path), "--magnitudes", "20", "20", "1", "--directions", "1",
-                   "--horizon", "0.05", "--push-onset", "0.0", "--push-duration", "0.02", "--chunk-size", "1",
-                   "--out", str(tmp_path / "sw"), "--quiet"])  # fmt: skip
+    rc = cli.main(
+        [
+            "push-sweep",
+            "--gains",
+            str(path),
+            "--magnitudes",
+            "20",
+            "20",
+            "1",
+            "--directions",
+            "1",
+            "--horizon",
+            "0.05",
+            "--push-onset",
+            "0.0",
+            "--push-duration",
+            "0.02",
+            "--chunk-size",
+            "1",
+            "--out",
+            str(tmp_path / "sw"),
+            "--quiet",
+        ]
+    )
     assert rc == 0, capsys.readouterr().err
     summary = json.loads((tmp_path / "sw" / "summary.json").read_text())
     np.testing.assert_allclose(summary["gains"]["kp_com"], np.asarray(gains.kp_com), rtol=1e-6)

@@ -22,9 +22,12 @@ def _old_run(tmp_path, gains_text: str):
     old.write_text(gains_text)
     config = {"tune": {"init_gains": str(old), "lr": 0.1}}
     fp = runs.fingerprint(config, [old], "icub")
-    legacy = {"config": json.loads(json.dumps(config)), "files": {str(old): fp[runs.INPUT_PATHS][str(old.resolve())]
-                                                                     .removeprefix("sha256:")},
-              "model": fp["model"], "version": fp["version"]}  # fmt: skip
+    legacy = {
+        "config": json.loads(json.dumps(config)),
+        "files": {str(old): fp[runs.INPUT_PATHS][str(old.resolve())].removeprefix("sha256:")},
+        "model": fp["model"],
+        "version": fp["version"],
+    }
     run = tmp_path / "run"
     (run / "cmaes").mkdir(parents=True)
     (run / "cmaes" / "history.csv").write_text("generation,loss\n0,1.0\n")

@@ -20,10 +20,18 @@ from rerun.chunk import RrdReader  # noqa: E402
 # Two envs that differ in every scenario axis but the push: gain set 0 (default) and 1 (scaled),
 # random joint offsets, friction and mass scale of the plant.
 CFG = sweep_config.SweepConfig(
-    magnitudes=(150.0,), directions=(90.0,), gain_sets=2, horizon=0.3, push_onset=0.05,
-    push_duration=0.1, joint_noise=0.01, friction=(0.5, 1.0), mass_scale=(0.9, 1.1), chunk_size=2,
+    magnitudes=(150.0,),
+    directions=(90.0,),
+    gain_sets=2,
+    horizon=0.3,
+    push_onset=0.05,
+    push_duration=0.1,
+    joint_noise=0.01,
+    friction=(0.5, 1.0),
+    mass_scale=(0.9, 1.1),
+    chunk_size=2,
     seed=3,
-)  # fmt: skip
+)
 COMPARED = ("com_max_err_m", "com_rmse_m", "max_abs_torque_nm", "min_com_height_m", "max_foot_slip_m")
 
 
@@ -88,11 +96,26 @@ def test_rrd_of_a_sweep_env(sweep_dir, replays, robot):
     m = viz.visual_model()
     bodies = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b) for b in range(1, m.nbody)]
     expected = {f"/world/robot/{b}" for b in bodies} | {
-        f"/{p}" for p in ("world/com", "world/com_ref", "world/com/trail", "world/com_ref/trail",
-                          "world/support_polygon", "world/contacts/f_meas", "world/contacts/f_cmd",
-                          "world/contacts/normals", "world/push", "plots/com_error_mm", "plots/Ldot_star",
-                          "plots/Ldot_meas", "plots/tau", "plots/f_cmd", "plots/f_meas", "plots/activation")
-    }  # fmt: skip
+        f"/{p}"
+        for p in (
+            "world/com",
+            "world/com_ref",
+            "world/com/trail",
+            "world/com_ref/trail",
+            "world/support_polygon",
+            "world/contacts/f_meas",
+            "world/contacts/f_cmd",
+            "world/contacts/normals",
+            "world/push",
+            "plots/com_error_mm",
+            "plots/Ldot_star",
+            "plots/Ldot_meas",
+            "plots/tau",
+            "plots/f_cmd",
+            "plots/f_meas",
+            "plots/activation",
+        )
+    }
     assert expected <= set(times), sorted(expected - set(times))
     want = {int(round(t * 1e9)) for t in traj["t"]}
     for entity in expected:
@@ -116,8 +139,9 @@ def test_rrd_of_a_sweep_env(sweep_dir, replays, robot):
     err = column_by_time(batches["/plots/com_error_mm"], "Scalars:scalars")
     np.testing.assert_allclose(
         [err[int(round(t * 1e9))][0] for t in traj["t"]],
-        1e3 * np.linalg.norm(traj["com"] - traj["com_ref"], axis=1), rtol=1e-5,
-    )  # fmt: skip
+        1e3 * np.linalg.norm(traj["com"] - traj["com_ref"], axis=1),
+        rtol=1e-5,
+    )
 
 
 def test_rrd_of_a_balance_run_dir(replays, robot, tmp_path):

@@ -57,8 +57,11 @@ def test_a_stalled_device_of_four_is_an_error_naming_it_and_the_chunk():
     test hook) gives DeviceStalled naming cpu:2 and chunk 5 after the 1.5 s bound, not a hang; the
     other devices' rows say they finished. Another chunk runs on all four, its values the program's,
     each device's row of waits non-negative and within the call's wall time."""
-    env = {**os.environ, "JAX_PLATFORMS": "cpu",
-           "XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=4"}  # fmt: skip
+    env = {
+        **os.environ,
+        "JAX_PLATFORMS": "cpu",
+        "XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=4",
+    }
     proc = subprocess.run([sys.executable, "-c", FOUR_DEVICES], capture_output=True, text=True, timeout=120, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = json.loads(proc.stdout.strip().splitlines()[-1])
@@ -66,7 +69,11 @@ def test_a_stalled_device_of_four_is_an_error_naming_it_and_the_chunk():
     assert "\n" not in out["error"] and "3 of 4 device(s) did" in out["error"]
     assert 1.5 <= out["error_after_s"] < 5.0, out["error_after_s"]
     assert [(r["device"], r["finished"]) for r in out["stalled_rows"]] == [
-        ("cpu:0", True), ("cpu:1", True), ("cpu:2", False), ("cpu:3", True)]  # fmt: skip
+        ("cpu:0", True),
+        ("cpu:1", True),
+        ("cpu:2", False),
+        ("cpu:3", True),
+    ]
     assert out["values"] == [2.0 * k + 1.0 for k in range(8)]
     assert [r["device"] for r in out["timeline"]] == ["cpu:0", "cpu:1", "cpu:2", "cpu:3"]
     for row in out["timeline"]:

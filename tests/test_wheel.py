@@ -36,8 +36,11 @@ def _run(cmd, **kw) -> subprocess.CompletedProcess:
 
 def _files(folder: pathlib.Path) -> dict[str, str]:
     """{relative path: sha256} of the files under a folder, bytecode caches left out."""
-    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file() and "__pycache__" not in p.parts}  # fmt: skip
+    return {
+        p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and "__pycache__" not in p.parts
+    }
 
 
 @pytest.fixture(scope="module")
@@ -91,15 +94,18 @@ def test_installed_package_runs_info_and_balance_from_another_folder(installed):
     before = _files(site)
     # The native C MuJoCo step built from the installed source into a fresh cache folder (the user's cache in a job).
     native_cache = work.parent / "native_cache"
-    where = (f"import json, jax, wbc_jax; jax.config.update('jax_compilation_cache_dir', {str(native_cache)!r}); "
-             "from wbc_jax.core import assets, provenance; from wbc_jax.sim import native; "
-             "from wbc_jax.robot.robots import describe; d = describe('icub'); g = d.asset_path(d.hand_set_gains); "
-             "why_not = native.available(); "
-             "record = {'provenance': provenance.record({'gains': g}, with_device=False)}; "
-             "print(json.dumps([why_not, record, sorted(provenance.mentioned_files(str(g))), "
-             "provenance.check_inputs(record), wbc_jax.__file__, str(assets.ASSETS), str(native.SOURCE)]))")  # fmt: skip
-    why_not, record, mentioned, changed, *paths = json.loads(_run([sys.executable, "-c", where], cwd=work,
-                                                                  env=env).stdout)  # fmt: skip
+    where = (
+        f"import json, jax, wbc_jax; jax.config.update('jax_compilation_cache_dir', {str(native_cache)!r}); "
+        "from wbc_jax.core import assets, provenance; from wbc_jax.sim import native; "
+        "from wbc_jax.robot.robots import describe; d = describe('icub'); g = d.asset_path(d.hand_set_gains); "
+        "why_not = native.available(); "
+        "record = {'provenance': provenance.record({'gains': g}, with_device=False)}; "
+        "print(json.dumps([why_not, record, sorted(provenance.mentioned_files(str(g))), "
+        "provenance.check_inputs(record), wbc_jax.__file__, str(assets.ASSETS), str(native.SOURCE)]))"
+    )
+    why_not, record, mentioned, changed, *paths = json.loads(
+        _run([sys.executable, "-c", where], cwd=work, env=env).stdout
+    )
     for path in map(pathlib.Path, paths):
         assert path.is_relative_to(site), f"{path} is not the installed copy under {site}"
     assert why_not is None, why_not

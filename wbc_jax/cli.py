@@ -174,8 +174,15 @@ def main(argv: list[str] | None = None) -> int:
 
             runner.enable_compilation_cache()
         line = command.run(cfg, not getattr(args, "quiet", False))
-    except (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError,
-            ImportError, MemoryError) as err:  # fmt: skip
+    except (
+        ValueError,
+        FileNotFoundError,
+        NotADirectoryError,
+        IsADirectoryError,
+        PermissionError,
+        ImportError,
+        MemoryError,
+    ) as err:
         print(f"wbc-jax {args.command}: error: {err}", file=sys.stderr)
         return 2
     except TimeoutError as err:  # a device stalled (wbc_jax/sim/watchdog.py): its thread cannot be stopped

@@ -73,14 +73,38 @@ from .spec import (
     constants,
     schedule_table,
     solver_model,
-)  # fmt: skip
+)
 from .tasks import centroidal_jacobian_ref, gains_to_numpy, make_spec, push_to_numpy, spec_from_setup
 from .workers import benchmark, cpu_name, run_parallel
 
 __all__ = [
-    "FORCE_MODES", "GAIN_FIELDS", "GRAVITY", "METRIC_NAMES", "POSTURAL_VARIANTS", "QP_FALLBACK_TOL",
-    "RECOVERY_THRESHOLD", "BaselineSpec", "LoopMetrics", "NumpyController", "Terms", "benchmark",
-    "centroidal_jacobian_ref", "constants", "cpu_name", "gains_to_numpy", "make_spec", "polygon_margin",
-    "push_force", "push_to_numpy", "rectangle_corners", "run_parallel", "schedule_table", "simulate",
-    "solve_qp", "solver_model", "spec_from_setup", "summarize", "summary_columns",
-]  # fmt: skip
+    "FORCE_MODES",
+    "GAIN_FIELDS",
+    "GRAVITY",
+    "METRIC_NAMES",
+    "POSTURAL_VARIANTS",
+    "QP_FALLBACK_TOL",
+    "RECOVERY_THRESHOLD",
+    "BaselineSpec",
+    "LoopMetrics",
+    "NumpyController",
+    "Terms",
+    "benchmark",
+    "centroidal_jacobian_ref",
+    "constants",
+    "cpu_name",
+    "gains_to_numpy",
+    "make_spec",
+    "polygon_margin",
+    "push_force",
+    "push_to_numpy",
+    "rectangle_corners",
+    "run_parallel",
+    "schedule_table",
+    "simulate",
+    "solve_qp",
+    "solver_model",
+    "spec_from_setup",
+    "summarize",
+    "summary_columns",
+]

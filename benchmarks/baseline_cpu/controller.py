@@ -128,12 +128,20 @@ class NumpyController:
     def _alloc(self, B: int):
         nv, nq = self.spec.nv, self.spec.nq
         self._buffers = dict(
-            M=np.zeros((B, nv, nv)), J=np.zeros((B, 2, 6, nv)), Jd=np.zeros((B, 2, 6, nv)),
-            qpos=np.zeros((B, nq)), qvel=np.zeros((B, nv)), bias=np.zeros((B, nv)),
-            passive=np.zeros((B, nv)), xmat=np.zeros((B, 9)), site_xpos=np.zeros((B, 2, 3)),
-            site_xmat=np.zeros((B, 2, 9)), com=np.zeros((B, 3)), vcom=np.zeros((B, 3)),
+            M=np.zeros((B, nv, nv)),
+            J=np.zeros((B, 2, 6, nv)),
+            Jd=np.zeros((B, 2, 6, nv)),
+            qpos=np.zeros((B, nq)),
+            qvel=np.zeros((B, nv)),
+            bias=np.zeros((B, nv)),
+            passive=np.zeros((B, nv)),
+            xmat=np.zeros((B, 9)),
+            site_xpos=np.zeros((B, 2, 3)),
+            site_xmat=np.zeros((B, 2, 9)),
+            com=np.zeros((B, 3)),
+            vcom=np.zeros((B, 3)),
             angmom=np.zeros((B, 3)),
-        )  # fmt: skip
+        )
 
     def terms(self, datas: Sequence[mujoco.MjData]) -> Terms:
         """Gather the dynamics terms of each MjData (C calls), then convert in batch."""
@@ -185,11 +193,21 @@ class NumpyController:
         J = buf["J"][..., perm]
         J[..., 3:6] = J[..., 3:6] @ Rt[:, None]
         return Terms(
-            nu=nu, s=buf["qpos"][:, sp.qpos_joints], s_dot=nu[:, 6:], W_R_B=R, M=M, h=h,
-            tau_passive=tp, J_feet=J, Jdot_nu_feet=_mv(buf["Jd"], qvel[:, None]),
-            W_p_feet=buf["site_xpos"].copy(), W_R_feet=buf["site_xmat"].reshape(B, 2, 3, 3).copy(),
-            W_p_CoM=buf["com"].copy(), W_v_CoM=buf["vcom"].copy(), L_ang=buf["angmom"].copy(),
-        )  # fmt: skip
+            nu=nu,
+            s=buf["qpos"][:, sp.qpos_joints],
+            s_dot=nu[:, 6:],
+            W_R_B=R,
+            M=M,
+            h=h,
+            tau_passive=tp,
+            J_feet=J,
+            Jdot_nu_feet=_mv(buf["Jd"], qvel[:, None]),
+            W_p_feet=buf["site_xpos"].copy(),
+            W_R_feet=buf["site_xmat"].reshape(B, 2, 3, 3).copy(),
+            W_p_CoM=buf["com"].copy(),
+            W_v_CoM=buf["vcom"].copy(),
+            L_ang=buf["angmom"].copy(),
+        )
 
     def __call__(self, datas, gains: dict, ref: dict, state: np.ndarray):
         return self.step(self.terms(datas), gains, ref, state)
@@ -279,10 +297,14 @@ class NumpyController:
         tau_unsat = tau_model + mv(Sigma, f)
         tau = np.clip(tau_unsat, -sp.torque_limit, sp.torque_limit)
         out = {
-            "tau": tau, "tau_unsat": tau_unsat, "f": f, "Ldot_star": Ldot_star,
-            "Ldot_cmd": mv(A, f) + self.f_grav, "qp_infeasible": infeasible,
+            "tau": tau,
+            "tau_unsat": tau_unsat,
+            "f": f,
+            "Ldot_star": Ldot_star,
+            "Ldot_cmd": mv(A, f) + self.f_grav,
+            "qp_infeasible": infeasible,
             "qp_violation": self.constraint_violation(f, t.W_R_feet, act, C_feet),
-        }  # fmt: skip
+        }
         return out, new_state
 
     def formulation(self, mask, A, wrench_des, Sigma, tau_model, C_feet, W_p_feet):

@@ -31,8 +31,7 @@ def push_force(push: dict, t, step: float | None = None) -> np.ndarray:
 def _batch_size(gains, push) -> int:
     """Leading axis of batched (2-D) gains or (3-D) push forces; 1 if none is batched."""
     get = lambda x, k: x[k] if isinstance(x, dict) else getattr(x, k)  # noqa: E731
-    sizes = [] if gains is None else [np.shape(get(gains, k))[0] for k in GAIN_FIELDS
-                                      if np.ndim(get(gains, k)) == 2]  # fmt: skip
+    sizes = [] if gains is None else [np.shape(get(gains, k))[0] for k in GAIN_FIELDS if np.ndim(get(gains, k)) == 2]
     if push is not None and np.ndim(get(push, "force")) == 3:
         sizes.append(np.shape(get(push, "force"))[0])
     if len(set(sizes)) > 1:
@@ -92,13 +91,21 @@ class LoopMetrics:
         self.com0_height = np.array(com0_height, float)
         B = self.com0_height.shape[0]
         self.metrics = {
-            "com_sq_err_sum": np.zeros(B), "com_max_err": np.zeros(B), "max_abs_torque": np.zeros(B),
-            "max_violation": np.zeros(B), "max_slip": np.zeros(B), "max_tilt": np.zeros(B),
-            "qp_infeasible_ticks": np.zeros(B, np.int64), "fell": np.zeros(B, bool),
-            "nan": np.zeros(B, bool), "last_time_off": np.zeros(B),
-            "min_com_height": self.com0_height.copy(), "end_com_speed": np.zeros(B),
-            "end_support_margin": np.zeros(B), "ticks": np.zeros(B, np.int64),
-        }  # fmt: skip
+            "com_sq_err_sum": np.zeros(B),
+            "com_max_err": np.zeros(B),
+            "max_abs_torque": np.zeros(B),
+            "max_violation": np.zeros(B),
+            "max_slip": np.zeros(B),
+            "max_tilt": np.zeros(B),
+            "qp_infeasible_ticks": np.zeros(B, np.int64),
+            "fell": np.zeros(B, bool),
+            "nan": np.zeros(B, bool),
+            "last_time_off": np.zeros(B),
+            "min_com_height": self.com0_height.copy(),
+            "end_com_speed": np.zeros(B),
+            "end_support_margin": np.zeros(B),
+            "ticks": np.zeros(B, np.int64),
+        }
 
     def update(
         self,
@@ -208,8 +215,12 @@ def simulate(
     tracker = LoopMetrics(sp.foot_size, t0.W_p_feet, t0.W_R_feet, t0.W_p_CoM[:, 2])
     rec = None
     if record:
-        rec = {"com": np.zeros((B, T, 3)), "tau": np.zeros((B, T, sp.n)),
-               "f_cmd": np.zeros((B, T, 12)), "qp_infeasible": np.zeros((B, T), bool)}  # fmt: skip
+        rec = {
+            "com": np.zeros((B, T, 3)),
+            "tau": np.zeros((B, T, sp.n)),
+            "f_cmd": np.zeros((B, T, 12)),
+            "qp_infeasible": np.zeros((B, T), bool),
+        }
     t_phys = t_ctrl = 0.0
     clock = time.perf_counter
     saved = [None] * B
@@ -262,9 +273,19 @@ def simulate(
 
         # Metrics (wbc_jax.sim.loop.ClosedLoop._metrics), at the tick's state.
         tracker.update(
-            t_now, ref["com_pos"], ref["activation"], terms.W_p_CoM, terms.W_v_CoM, terms.W_p_feet,
-            terms.W_R_feet, tau, out["qp_violation"], out["qp_infeasible"], finite, body_low,
-        )  # fmt: skip
+            t_now,
+            ref["com_pos"],
+            ref["activation"],
+            terms.W_p_CoM,
+            terms.W_v_CoM,
+            terms.W_p_feet,
+            terms.W_R_feet,
+            tau,
+            out["qp_violation"],
+            out["qp_infeasible"],
+            finite,
+            body_low,
+        )
         com = terms.W_p_CoM
         if record:
             rec["com"][:, k] = com

@@ -131,10 +131,12 @@ class BaselineSpec:
     def reference(self, k: int) -> dict:
         """References at tick k (shared by all environments)."""
         return {
-            "com_pos": self.ref_com_pos[k], "com_vel": self.ref_com_vel[k],
-            "com_acc": self.ref_com_acc[k], "s_des": self.ref_s_des[k],
+            "com_pos": self.ref_com_pos[k],
+            "com_vel": self.ref_com_vel[k],
+            "com_acc": self.ref_com_acc[k],
+            "s_des": self.ref_s_des[k],
             "activation": self.ref_activation[k],
-        }  # fmt: skip
+        }
 
     def to_dict(self) -> dict:
         """Plain dict (picklable without importing this module)."""
@@ -178,8 +180,7 @@ def schedule_table(schedule, times: np.ndarray) -> dict:
     return {"com_pos": com, "com_vel": com_v, "com_acc": com_a, "s_des": s_des, "activation": act}
 
 
-def solver_model(m: mujoco.MjModel, iterations: int | None = None,
-                 ls_iterations: int | None = None) -> mujoco.MjModel:  # fmt: skip
+def solver_model(m: mujoco.MjModel, iterations: int | None = None, ls_iterations: int | None = None) -> mujoco.MjModel:
     """A copy of the C model with the solver overrides, never resetting a diverged state on its
     own (as :func:`wbc_jax.sim.physics.solver_mj_model`; the loop restores and flags it)."""
     m = copy.copy(m)

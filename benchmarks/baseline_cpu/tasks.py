@@ -32,8 +32,10 @@ def _check_feet_only(st) -> None:
     for k, c in enumerate(cset.contacts[:2]):
         if c.type != "surface" or c.foot != k or c.body != int(idx.foot_bodies[k]):
             problems.append(f"contact {k} ({c.name}) is not the {('left', 'right')[k]} sole")
-        elif not (np.allclose(c.point, idx.foot_points[k]) and
-                  np.allclose(np.reshape(c.R_body_contact, (3, 3)), idx.foot_rotations[k])):  # fmt: skip
+        elif not (
+            np.allclose(c.point, idx.foot_points[k])
+            and np.allclose(np.reshape(c.R_body_contact, (3, 3)), idx.foot_rotations[k])
+        ):
             problems.append(f"contact {c.name} is not at the sole site")
         if not math.isnan(c.normal_force):
             problems.append(f"contact {c.name} has a desired normal force")
@@ -75,30 +77,53 @@ def spec_from_setup(st, controller_state=None) -> BaselineSpec:
         d = mujoco.MjData(robot.mj_model)
         d.qpos[:] = qpos0
         mujoco.mj_forward(robot.mj_model, d)
-        J_G = centroidal_jacobian_ref(robot.mj_model, d, idx.dof_perm, idx.foot_sites, idx.base_body,
-                                      config.base_vel_damping)  # fmt: skip
+        J_G = centroidal_jacobian_ref(
+            robot.mj_model, d, idx.dof_perm, idx.foot_sites, idx.base_body, config.base_vel_damping
+        )
     else:
         J_G = np.asarray(controller_state.centroidal_jacobian_ref, float)
     return BaselineSpec(
-        mj_model=m, nq=idx.nq, nv=idx.nv, n=idx.n,
-        qpos_joints=np.asarray(idx.qpos_joints), dof_joints=np.asarray(idx.dof_joints),
-        actuators=np.asarray(idx.actuators), dof_perm=np.asarray(idx.dof_perm),
-        base_body=int(idx.base_body), foot_sites=np.asarray(idx.foot_sites),
-        foot_bodies=np.asarray(idx.foot_bodies), mass=float(idx.mass),
-        push_body=int(loop.push_body), non_foot_bodies=np.asarray(loop.non_foot_bodies),
-        forces=config.forces, postural=config.postural, pinv_damping=float(config.pinv_damping),
-        pinv_tol=float(config.pinv_tol), kp_postural_reg=float(config.kp_postural_reg),
-        hessian_reg=float(config.hessian_reg), torque_limit=np.asarray(config.saturation(idx), float),
-        torque_weight_soft=float(config.torque_weight_soft), angular_weight_soft=float(config.angular_weight_soft),
+        mj_model=m,
+        nq=idx.nq,
+        nv=idx.nv,
+        n=idx.n,
+        qpos_joints=np.asarray(idx.qpos_joints),
+        dof_joints=np.asarray(idx.dof_joints),
+        actuators=np.asarray(idx.actuators),
+        dof_perm=np.asarray(idx.dof_perm),
+        base_body=int(idx.base_body),
+        foot_sites=np.asarray(idx.foot_sites),
+        foot_bodies=np.asarray(idx.foot_bodies),
+        mass=float(idx.mass),
+        push_body=int(loop.push_body),
+        non_foot_bodies=np.asarray(loop.non_foot_bodies),
+        forces=config.forces,
+        postural=config.postural,
+        pinv_damping=float(config.pinv_damping),
+        pinv_tol=float(config.pinv_tol),
+        kp_postural_reg=float(config.kp_postural_reg),
+        hessian_reg=float(config.hessian_reg),
+        torque_limit=np.asarray(config.saturation(idx), float),
+        torque_weight_soft=float(config.torque_weight_soft),
+        angular_weight_soft=float(config.angular_weight_soft),
         compensate_passive=bool(config.compensate_passive),
-        C_foot=C_foot, b_foot=b_foot, fz_row=int(constraints.constraint_rows(params, "surface").unilateral),
-        fz_min=float(params.fz_min), foot_size=params.foot_size,
+        C_foot=C_foot,
+        b_foot=b_foot,
+        fz_row=int(constraints.constraint_rows(params, "surface").unilateral),
+        fz_min=float(params.fz_min),
+        foot_size=params.foot_size,
         centroidal_jacobian_ref=J_G,
-        control_dt=float(cfg.control_dt), physics_dt=float(loop.physics_dt),
-        n_sub=int(loop.n_sub), n_ticks=int(loop.n_ticks), qpos0=qpos0,
-        ref_com_pos=ref["com_pos"], ref_com_vel=ref["com_vel"], ref_com_acc=ref["com_acc"],
-        ref_s_des=ref["s_des"], ref_activation=ref["activation"],
-    )  # fmt: skip
+        control_dt=float(cfg.control_dt),
+        physics_dt=float(loop.physics_dt),
+        n_sub=int(loop.n_sub),
+        n_ticks=int(loop.n_ticks),
+        qpos0=qpos0,
+        ref_com_pos=ref["com_pos"],
+        ref_com_vel=ref["com_vel"],
+        ref_com_acc=ref["com_acc"],
+        ref_s_des=ref["s_des"],
+        ref_activation=ref["activation"],
+    )
 
 
 def make_spec(
@@ -124,11 +149,13 @@ def make_spec(
     from wbc_jax.sim.state import SimConfig
 
     sim = SimConfig(
-        record=False, push_body=push_body,
+        record=False,
+        push_body=push_body,
         # No compilation either way; 'mujoco' is valid on every machine.
-        physics=physics.PhysicsConfig(backend="mujoco", solver_iterations=solver_iterations,
-                                      ls_iterations=ls_iterations),
-    )  # fmt: skip
+        physics=physics.PhysicsConfig(
+            backend="mujoco", solver_iterations=solver_iterations, ls_iterations=ls_iterations
+        ),
+    )
     config = ControllerConfig(forces=forces, postural=postural, **(controller or {}))
     st = scenario.setup(task, duration=duration, controller=config, sim=sim, robot_name=robot_name)
     spec = spec_from_setup(st)
@@ -199,8 +226,7 @@ def push_to_numpy(push, n_envs: int) -> dict:
     """Push (wbc_jax.sim.state.Push, dict with force/onset/duration, or None) -> force (B, P, 3), onset
     (B, P), duration (B, P) float64; unbatched pushes are broadcast to every environment."""
     if push is None:
-        return {"force": np.zeros((n_envs, 1, 3)), "onset": np.zeros((n_envs, 1)),
-                "duration": np.zeros((n_envs, 1))}  # fmt: skip
+        return {"force": np.zeros((n_envs, 1, 3)), "onset": np.zeros((n_envs, 1)), "duration": np.zeros((n_envs, 1))}
     get = (lambda k: push[k]) if isinstance(push, dict) else (lambda k: getattr(push, k))
     force = np.asarray(get("force"), float)
     onset, dur = np.asarray(get("onset"), float), np.asarray(get("duration"), float)

@@ -27,14 +27,20 @@ def worker_main(job: dict, conn, start_event) -> None:
     try:
         t_ready = time.monotonic()
         spec = BaselineSpec(**job["spec"])
-        info = {"worker": job["worker"], "jax_imported": "jax" in sys.modules,
-                "startup_s": t_ready - job["t_launch"]}  # fmt: skip
+        info = {"worker": job["worker"], "jax_imported": "jax" in sys.modules, "startup_s": t_ready - job["t_launch"]}
         conn.send(("ready", info))
         if not start_event.wait(job["timeout"]):
             raise TimeoutError("start signal never came")
         t0 = time.monotonic()
-        res = simulate(spec, job["gains"], job["push"], n_envs=job["n_envs"],
-                       record=job["record"], timing=True, n_ticks=job["n_ticks"])  # fmt: skip
+        res = simulate(
+            spec,
+            job["gains"],
+            job["push"],
+            n_envs=job["n_envs"],
+            record=job["record"],
+            timing=True,
+            n_ticks=job["n_ticks"],
+        )
         t1 = time.monotonic()
         res.update(info, t_start=t0, t_end=t1, sim_wall_s=t1 - t0)
         conn.send(("ok", res))
@@ -133,20 +139,26 @@ def run_parallel(
         os.environ.update({k: "1" for k in _THREAD_ENV})
         for w, share in enumerate(shares):
             job = {
-                "worker": w, "spec": spec_dict, "n_envs": len(share),
+                "worker": w,
+                "spec": spec_dict,
+                "n_envs": len(share),
                 "gains": {k: v[share] for k, v in g.items()},
                 "push": {k: v[share] for k, v in pu.items()},
-                "record": record, "n_ticks": n_ticks, "timeout": timeout,
+                "record": record,
+                "n_ticks": n_ticks,
+                "timeout": timeout,
                 "t_launch": time.monotonic(),
-            }  # fmt: skip
+            }
             parent_conn, child_conn = ctx.Pipe(duplex=False)
             p = ctx.Process(
                 target=runpy.run_path,
                 args=(str(WORKER_SCRIPT),),
-                kwargs={"run_name": WORKER_RUN_NAME, "init_globals": {
-                    "_WORKER_JOB": job, "_WORKER_CONN": child_conn, "_WORKER_START": start_event}},
+                kwargs={
+                    "run_name": WORKER_RUN_NAME,
+                    "init_globals": {"_WORKER_JOB": job, "_WORKER_CONN": child_conn, "_WORKER_START": start_event},
+                },
                 daemon=True,
-            )  # fmt: skip
+            )
             p.start()
             child_conn.close()
             procs.append(p)
@@ -186,7 +198,7 @@ def run_parallel(
         "steps_per_s_per_worker": [r["physics_steps"] / r["sim_wall_s"] for r in results],
         "timing": results[0]["timing"],
         "workers": [
-            {k: r[k] for k in ("worker", "n_envs", "startup_s", "sim_wall_s", "jax_imported", "timing")}  # fmt: skip
+            {k: r[k] for k in ("worker", "n_envs", "startup_s", "sim_wall_s", "jax_imported", "timing")}
             for r in results
         ],
         "metrics": {k: np.concatenate([r["metrics"][k] for r in results]) for k in results[0]["metrics"]},
@@ -218,8 +230,11 @@ def benchmark(
     spec, gains = make_spec("stand", duration=horizon, solver_iterations=solver_iterations)
     azimuth = np.deg2rad(np.linspace(0.0, 360.0, n_envs, endpoint=False))
     force = magnitude * np.stack([np.cos(azimuth), np.sin(azimuth), np.zeros(n_envs)], 1)
-    push = {"force": force[:, None, :], "onset": np.full((n_envs, 1), push_onset),
-            "duration": np.full((n_envs, 1), push_duration)}  # fmt: skip
+    push = {
+        "force": force[:, None, :],
+        "onset": np.full((n_envs, 1), push_onset),
+        "duration": np.full((n_envs, 1), push_duration),
+    }
     r = run_parallel(n_envs, n_workers, spec=spec, gains=gains, push=push, timeout=timeout)
     cols = summary_columns(r["metrics"], push_onset + push_duration)
     t0 = r["timing"]

@@ -1,8 +1,9 @@
 """[TSID peer] The iCub balanced by TSID (Pinocchio + eiquadprog, C++) on C MuJoCo physics.
 
-    model.py       the packages, the plant's C model and contacts, wbc_jax's numbers, the task references
-    controller.py  the TSID controller and its settings
-    peer.py        the closed loop on C MuJoCo
+    model.py          the packages, the plant's C model and contacts, wbc_jax's numbers, the task references
+    controller.py     the TSID controller and its settings
+    peer.py           the closed loop on C MuJoCo
+    push_envelope.py  pushes: the LIP bound, the strict envelope by bisection, the full grid, the sensitivity
 
 A real peer of wbc_jax on the CPU: the controller a user of this robot would otherwise write with
 TSID (stack-of-tasks/tsid), on the same plant, tasks, pushes and metrics as the rest of the project,
@@ -113,12 +114,34 @@ from .model import (
     non_foot_bodies,
     sole_contact_rectangle,
     tsid_problem,
-)  # fmt: skip
+)
 from .peer import TsidPeer, simulate
 
 __all__ = [
-    "DRIVEN_JOINTS", "FEET", "FOOT_SIZE", "FZ_MAX", "FZ_MIN", "MODEL_XML", "SINE_AMPLITUDE", "SINE_AXIS",
-    "SINE_FREQUENCY", "TASK_DURATION", "TASKS", "TSID_PINOCCHIO", "TaskSchedule", "TsidConfig", "TsidController",
-    "TsidPeer", "bc", "body_id", "constants", "floor_friction", "load_mj_model", "make_schedule",
-    "non_foot_bodies", "simulate", "sole_contact_rectangle", "tsid_problem",
-]  # fmt: skip
+    "DRIVEN_JOINTS",
+    "FEET",
+    "FOOT_SIZE",
+    "FZ_MAX",
+    "FZ_MIN",
+    "MODEL_XML",
+    "SINE_AMPLITUDE",
+    "SINE_AXIS",
+    "SINE_FREQUENCY",
+    "TASK_DURATION",
+    "TASKS",
+    "TSID_PINOCCHIO",
+    "TaskSchedule",
+    "TsidConfig",
+    "TsidController",
+    "TsidPeer",
+    "bc",
+    "body_id",
+    "constants",
+    "floor_friction",
+    "load_mj_model",
+    "make_schedule",
+    "non_foot_bodies",
+    "simulate",
+    "sole_contact_rectangle",
+    "tsid_problem",
+]

@@ -98,8 +98,15 @@ class TsidController:
       s_des (n,): the posture reference (``DRIVEN_JOINTS`` order). config: :class:`TsidConfig`.
     """
 
-    def __init__(self, pin_model, state_map: StateMap, mj_model: mujoco.MjModel, qpos0: np.ndarray,
-                 s_des: np.ndarray, config: TsidConfig | None = None):  # fmt: skip
+    def __init__(
+        self,
+        pin_model,
+        state_map: StateMap,
+        mj_model: mujoco.MjModel,
+        qpos0: np.ndarray,
+        s_des: np.ndarray,
+        config: TsidConfig | None = None,
+    ):
         tsid = import_tsid()
         self.tsid = tsid
         self.config = cfg = TsidConfig() if config is None else config

@@ -25,8 +25,9 @@ def _load_by_path(name: str, path: pathlib.Path):
     module = sys.modules.get(name)
     if module is None:
         if path.is_dir():
-            spec = importlib.util.spec_from_file_location(name, path / "__init__.py",
-                                                          submodule_search_locations=[str(path)])  # fmt: skip
+            spec = importlib.util.spec_from_file_location(
+                name, path / "__init__.py", submodule_search_locations=[str(path)]
+            )
         else:
             spec = importlib.util.spec_from_file_location(name, path)
         module = importlib.util.module_from_spec(spec)

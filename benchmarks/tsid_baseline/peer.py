@@ -152,10 +152,19 @@ class TsidPeer:
             if not finite:  # freeze at the tick's start, as baseline_cpu.simulate
                 d.qpos[:], d.qvel[:], d.qacc_warmstart[:], d.time = qpos_, qvel_, warm, time_
             tracker.update(
-                t_now, ref["com_pos"][k], ref["activation"][k], com[None], com_vel[None], W_p_feet[None],
-                W_R_feet[None], tau[None], np.array([violation]), np.array([infeasible]), np.array([finite]),
+                t_now,
+                ref["com_pos"][k],
+                ref["activation"][k],
+                com[None],
+                com_vel[None],
+                W_p_feet[None],
+                W_R_feet[None],
+                tau[None],
+                np.array([violation]),
+                np.array([infeasible]),
+                np.array([finite]),
                 np.array([body_low]),
-            )  # fmt: skip
+            )
             if record:
                 rec["com"][k], rec["tau"][k], rec["status"][k] = com, tau, sol.status
         push_end = float(np.max(pu["onset"] + pu["duration"])) if push is not None else 0.0
@@ -171,14 +180,18 @@ class TsidPeer:
         if timing:
             out["timing"] = {"ticks": T}
             for j, kind in enumerate(("", "cpu_")):  # wall clock; CPU time of this thread
-                out["timing"].update({
-                    f"state_map_{kind}s": t_map[j], f"tsid_{kind}s": t_tsid[j], f"physics_{kind}s": t_phys[j],
-                    f"state_map_{kind}us_per_tick": 1e6 * t_map[j] / T,
-                    f"tsid_{kind}us_per_tick": 1e6 * t_tsid[j] / T,
-                    f"controller_{kind}us_per_tick": 1e6 * (t_map[j] + t_tsid[j]) / T,
-                    f"physics_{kind}us_per_tick": 1e6 * t_phys[j] / T,
-                    f"physics_{kind}us_per_mj_step": 1e6 * t_phys[j] / (T * n_sub),
-                })  # fmt: skip
+                out["timing"].update(
+                    {
+                        f"state_map_{kind}s": t_map[j],
+                        f"tsid_{kind}s": t_tsid[j],
+                        f"physics_{kind}s": t_phys[j],
+                        f"state_map_{kind}us_per_tick": 1e6 * t_map[j] / T,
+                        f"tsid_{kind}us_per_tick": 1e6 * t_tsid[j] / T,
+                        f"controller_{kind}us_per_tick": 1e6 * (t_map[j] + t_tsid[j]) / T,
+                        f"physics_{kind}us_per_tick": 1e6 * t_phys[j] / T,
+                        f"physics_{kind}us_per_mj_step": 1e6 * t_phys[j] / (T * n_sub),
+                    }
+                )
         return out
 
 

@@ -77,8 +77,11 @@ def main(argv=None) -> None:
     parser.add_argument("--only", nargs="*", default=list(SCENARIOS), choices=list(SCENARIOS))
     parser.add_argument("--robot", default=DEFAULT_ROBOT, choices=list(ROBOT_NAMES))
     parser.add_argument("--out", default=str(ROOT / "runs" / "acceptance"))
-    parser.add_argument("--summary", default=None, help="default: docs/balance_acceptance.json, another robot's "
-                        "docs/<robot>/balance_acceptance.json")  # fmt: skip
+    parser.add_argument(
+        "--summary",
+        default=None,
+        help="default: docs/balance_acceptance.json, another robot's docs/<robot>/balance_acceptance.json",
+    )
     parser.add_argument("--backend", default="auto", help="physics backend (wbc_jax.sim.physics.BACKENDS)")
     parser.add_argument(
         "--solver-iterations",
@@ -97,8 +100,14 @@ def main(argv=None) -> None:
     for name in args.only:
         key = name if it is None else f"{name}-it{it}"
         key += "-mjx" if args.robot != DEFAULT_ROBOT and args.backend == "jax" else ""
-        result = balance.run(out=str(out / key), progress=False, solver_iterations=it, backend=args.backend,
-                             robot=args.robot, **SCENARIOS[name])  # fmt: skip
+        result = balance.run(
+            out=str(out / key),
+            progress=False,
+            solver_iterations=it,
+            backend=args.backend,
+            robot=args.robot,
+            **SCENARIOS[name],
+        )
         print(key, json.dumps(result), flush=True)
         # Merge (re-read: other processes may have written other scenarios meanwhile).
         current = json.loads(summary_path.read_text()) if summary_path.exists() else {}

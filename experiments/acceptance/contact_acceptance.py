@@ -67,18 +67,35 @@ POSTURE_JOINTS = 7  # the joints task of reach_below_upper_body.yaml
 
 def sizes(quick: bool) -> dict:
     if quick:
-        return dict(magnitudes=(100.0, 200.0, 300.0, 400.0), directions=(0.0, 90.0, 180.0, 270.0), horizon=2.0,
-                    posture_s=6.0, wall_s=10.0, wall_magnitudes=tuple(np.arange(100.0, 401.0, 50.0)),
-                    wall_directions=(0.0,))  # fmt: skip
-    return dict(magnitudes=tuple(np.linspace(20.0, 600.0, 30)), directions=tuple(np.arange(8) * 45.0), horizon=3.0,
-                posture_s=20.0, wall_s=10.0, wall_magnitudes=tuple(np.linspace(20.0, 600.0, 30)),
-                wall_directions=tuple(np.arange(8) * 45.0))  # fmt: skip
+        return dict(
+            magnitudes=(100.0, 200.0, 300.0, 400.0),
+            directions=(0.0, 90.0, 180.0, 270.0),
+            horizon=2.0,
+            posture_s=6.0,
+            wall_s=10.0,
+            wall_magnitudes=tuple(np.arange(100.0, 401.0, 50.0)),
+            wall_directions=(0.0,),
+        )
+    return dict(
+        magnitudes=tuple(np.linspace(20.0, 600.0, 30)),
+        directions=tuple(np.arange(8) * 45.0),
+        horizon=3.0,
+        posture_s=20.0,
+        wall_s=10.0,
+        wall_magnitudes=tuple(np.linspace(20.0, 600.0, 30)),
+        wall_directions=tuple(np.arange(8) * 45.0),
+    )
 
 
 def entry(value, prov: dict, **details) -> dict:
     """One figure: its value, the device (provenance.device_label), the precision, its provenance."""
-    return {"value": value, "device": prov["device"]["label"], "dtype": str(scenario.float_dtype()),
-            "provenance": prov, **details}  # fmt: skip
+    return {
+        "value": value,
+        "device": prov["device"]["label"],
+        "dtype": str(scenario.float_dtype()),
+        "provenance": prov,
+        **details,
+    }
 
 
 def as_dict(records) -> dict:
@@ -99,8 +116,11 @@ def single_run(scene: scenario.Scene, duration: float, backend: str):
     run = runner.run(st, scenario.single(st))
     traj = {k: v[0] for k, v in as_dict(run.records).items()}
     metrics = metrics_lib.summarize(jax.tree_util.tree_map(lambda x: x[0], run.metrics))
-    print(f"  {pathlib.Path(scene.tasks_file or 'feet').stem}: {duration} s, {run.compile_s:.0f} s compiling, "
-          f"{run.run_s:.0f} s running", flush=True)  # fmt: skip
+    print(
+        f"  {pathlib.Path(scene.tasks_file or 'feet').stem}: {duration} s, {run.compile_s:.0f} s compiling, "
+        f"{run.run_s:.0f} s running",
+        flush=True,
+    )
     return st, traj, metrics
 
 
@@ -116,16 +136,24 @@ def longest_run(mask: np.ndarray) -> np.ndarray:
 
 def push_sweep(spec: pathlib.Path, backend: str, magnitudes, directions, horizon: float, record: bool):
     """A chest-push sweep of a contact file: (setup, metrics dict of columns, records or None)."""
-    cfg = sweep_config.SweepConfig(magnitudes=tuple(magnitudes), directions=tuple(directions), horizon=horizon,
-                            push_onset=0.5, push_duration=0.1, backend=backend)  # fmt: skip
+    cfg = sweep_config.SweepConfig(
+        magnitudes=tuple(magnitudes),
+        directions=tuple(directions),
+        horizon=horizon,
+        push_onset=0.5,
+        push_duration=0.1,
+        backend=backend,
+    )
     cfg = options.replace(cfg, tasks=str(spec))
     dtype = scenario.float_dtype()
     st = sweep.make_setup(cfg, sweep.base_gains(cfg, 23, dtype), record=record)
     scen, columns = sweep.build_scenarios(cfg, st.gains, st.robot.index.n, dtype)
     run = runner.run(st, scen)
     table = {**columns, **metrics_lib.summarize(run.metrics, cfg.push_onset + cfg.push_duration)}
-    print(f"  {spec.stem}: {len(table['survived'])} envs, {run.compile_s:.0f} s compiling, {run.run_s:.0f} s running",
-          flush=True)  # fmt: skip
+    print(
+        f"  {spec.stem}: {len(table['survived'])} envs, {run.compile_s:.0f} s compiling, {run.run_s:.0f} s running",
+        flush=True,
+    )
     return st, table, run.records
 
 
@@ -145,27 +173,40 @@ def part_sweep(args, sz, prov: dict) -> dict:
         counted = rec["activation"][:, :, k] > 0.0
         ticks = longest_run(counted & ~seen)
         phantom = np.maximum(phantom, ticks * dt)
-        per_contact[c.name] = {"phantom_max_s": float(ticks.max() * dt),
-                               "envs_leaving": int(np.any(~seen, axis=1).sum())}  # fmt: skip
-    grid = {"magnitudes_n": [float(sz["magnitudes"][0]), float(sz["magnitudes"][-1]), len(sz["magnitudes"])],
-            "directions_deg": list(sz["directions"]), "horizon_s": sz["horizon"], "push_s": [0.5, 0.1]}  # fmt: skip
+        per_contact[c.name] = {
+            "phantom_max_s": float(ticks.max() * dt),
+            "envs_leaving": int(np.any(~seen, axis=1).sum()),
+        }
+    grid = {
+        "magnitudes_n": [float(sz["magnitudes"][0]), float(sz["magnitudes"][-1]), len(sz["magnitudes"])],
+        "directions_deg": list(sz["directions"]),
+        "horizon_s": sz["horizon"],
+        "push_s": [0.5, 0.1],
+    }
     return {
         "hand_sweep_max_violation_rel": entry(
-            float(viol[upright].max()) if upright.any() else None, prov,
+            float(viol[upright].max()) if upright.any() else None,
+            prov,
             definition="max over ticks and contacts of the commanded wrench's constraint violation relative to the "
-                       "contact's normal force, over the environments that did not fall",
+            "contact's normal force, over the environments that did not fall",
             survived_only=float(viol[survived].max()) if survived.any() else None,
-            all_envs=float(viol.max()), n_envs=int(len(upright)), n_upright=int(upright.sum()),
-            n_survived=int(survived.sum()), qp_infeasible_envs=int((np.asarray(table["qp_infeasible_ticks"]) > 0).sum()),
+            all_envs=float(viol.max()),
+            n_envs=int(len(upright)),
+            n_upright=int(upright.sum()),
+            n_survived=int(survived.sum()),
+            qp_infeasible_envs=int((np.asarray(table["qp_infeasible_ticks"]) > 0).sum()),
             grid=grid,
         ),
         "phantom_contact_max_s": entry(
-            float(phantom.max()), prov,
+            float(phantom.max()),
+            prov,
             definition="longest time an environment's controller counted a contact (activation > 0) while MuJoCo's "
-                       "normal force on it was zero, over every environment", per_contact=per_contact,
-            upright_only=float(phantom[upright].max()) if upright.any() else None, grid=grid,
+            "normal force on it was zero, over every environment",
+            per_contact=per_contact,
+            upright_only=float(phantom[upright].max()) if upright.any() else None,
+            grid=grid,
         ),
-    }  # fmt: skip
+    }
 
 
 RAMP = {"start": 0.5, "stop": 1.5, "ramp": 0.5}  # s, the hand's schedule in the ramp part
@@ -204,15 +245,25 @@ def part_ramp(args, sz, prov: dict) -> dict:
             }
             continue
         mean = float(meas[window].mean())
-        out[c.name] = {"ripple_rel": ripple(meas) / mean, "cmd_ripple_rel": ripple(cmd) / mean, "mean_n": mean,
-                       "tick_jump_max_rel": float(np.abs(np.diff(meas[window])).max() / mean),
-                       "range_n": [float(meas[window].min()), float(meas[window].max())]}  # fmt: skip
+        out[c.name] = {
+            "ripple_rel": ripple(meas) / mean,
+            "cmd_ripple_rel": ripple(cmd) / mean,
+            "mean_n": mean,
+            "tick_jump_max_rel": float(np.abs(np.diff(meas[window])).max() / mean),
+            "range_n": [float(meas[window].min()), float(meas[window].max())],
+        }
         worst = max(worst, out[c.name]["ripple_rel"])
-    return {"ramp_feet_ripple_rel": entry(
-        worst, prov, backend=st.backend, contacts=out, hand_schedule_s=RAMP,
-        definition="feet measured normal forces from the ramp-in's start to 0.3 s after the ramp-out, less their 0.1 s "
-                   "moving average, peak to peak, relative to their mean; the larger foot's",
-    )}  # fmt: skip
+    return {
+        "ramp_feet_ripple_rel": entry(
+            worst,
+            prov,
+            backend=st.backend,
+            contacts=out,
+            hand_schedule_s=RAMP,
+            definition="feet measured normal forces from the ramp-in's start to 0.3 s after the ramp-out, less their 0.1 s "
+            "moving average, peak to peak, relative to their mean; the larger foot's",
+        )
+    }
 
 
 def part_posture(args, sz, prov: dict) -> dict:
@@ -220,15 +271,23 @@ def part_posture(args, sz, prov: dict) -> dict:
     tracking = balance.task_tracking(st.loop.controller.stack, traj)
     err = traj["task_err"][:, :POSTURE_JOINTS]
     return {
-        "posture_below_hand_fell": entry(bool(m["fell"] or m["nan"]), prov, duration_s=sz["posture_s"],
-                                         com_rmse_m=m["com_rmse_m"], max_abs_torque_nm=m["max_abs_torque_nm"]),
+        "posture_below_hand_fell": entry(
+            bool(m["fell"] or m["nan"]),
+            prov,
+            duration_s=sz["posture_s"],
+            com_rmse_m=m["com_rmse_m"],
+            max_abs_torque_nm=m["max_abs_torque_nm"],
+        ),
         "posture_below_hand_rmse_rad": entry(
-            tracking["posture_joints"]["rmse"], prov, duration_s=sz["posture_s"],
+            tracking["posture_joints"]["rmse"],
+            prov,
+            duration_s=sz["posture_s"],
             definition="RMSE over ticks of the norm of the 7 posture joints' error (torso, right arm)",
-            max_rad=tracking["posture_joints"]["max"], per_joint_rmse_max_rad=float(np.sqrt((err**2).mean(0)).max()),
+            max_rad=tracking["posture_joints"]["max"],
+            per_joint_rmse_max_rad=float(np.sqrt((err**2).mean(0)).max()),
             hand_rmse_m=tracking["right_hand"]["rmse"],
         ),
-    }  # fmt: skip
+    }
 
 
 def part_wall(args, sz, prov: dict) -> dict:
@@ -237,8 +296,9 @@ def part_wall(args, sz, prov: dict) -> dict:
     envelope = {}
     tables = {}
     for name, spec in (("hand", WALL), ("feet", FEET)):
-        _, tables[name], _ = push_sweep(spec, args.backend, sz["wall_magnitudes"], sz["wall_directions"],
-                                        sz["horizon"], record=False)  # fmt: skip
+        _, tables[name], _ = push_sweep(
+            spec, args.backend, sz["wall_magnitudes"], sz["wall_directions"], sz["horizon"], record=False
+        )
     import pandas as pd
 
     for az in sz["wall_directions"]:
@@ -250,17 +310,30 @@ def part_wall(args, sz, prov: dict) -> dict:
             row[f"{name}_survival_rate"] = float(group["survived"].mean())
         row["gain"] = row["hand_impulse_ns"] / row["feet_impulse_ns"] if row["feet_impulse_ns"] > 0 else None
         envelope[str(float(az))] = row
-    return {"wall_hand_force_max_err_n": entry(
-        hand["normal_force_err_max_n"], prov, duration_s=sz["wall_s"], fell=bool(m["fell"] or m["nan"]),
-        definition="max over ticks after 1 s of |MuJoCo's hand normal force - 5 N|",
-        normal_force_meas_median_n=hand["normal_force_meas_median_n"], max_drift_m=hand["max_drift_m"],
-        com_rmse_m=m["com_rmse_m"], max_constraint_violation=m["max_constraint_violation"],
-        push_envelope_toward_wall=envelope,
-        envelope_definition="largest impulse (N s) survived below the first failure of chest pushes of 0.1 s at "
-                            "0.5 s (azimuth 0: forward, into the wall), with the hand vs the feet alone; gain = ratio",
-        envelope_grid={"magnitudes_n": [float(sz["wall_magnitudes"][0]), float(sz["wall_magnitudes"][-1]),
-                                        len(sz["wall_magnitudes"])], "horizon_s": sz["horizon"]},
-    )}  # fmt: skip
+    return {
+        "wall_hand_force_max_err_n": entry(
+            hand["normal_force_err_max_n"],
+            prov,
+            duration_s=sz["wall_s"],
+            fell=bool(m["fell"] or m["nan"]),
+            definition="max over ticks after 1 s of |MuJoCo's hand normal force - 5 N|",
+            normal_force_meas_median_n=hand["normal_force_meas_median_n"],
+            max_drift_m=hand["max_drift_m"],
+            com_rmse_m=m["com_rmse_m"],
+            max_constraint_violation=m["max_constraint_violation"],
+            push_envelope_toward_wall=envelope,
+            envelope_definition="largest impulse (N s) survived below the first failure of chest pushes of 0.1 s at "
+            "0.5 s (azimuth 0: forward, into the wall), with the hand vs the feet alone; gain = ratio",
+            envelope_grid={
+                "magnitudes_n": [
+                    float(sz["wall_magnitudes"][0]),
+                    float(sz["wall_magnitudes"][-1]),
+                    len(sz["wall_magnitudes"]),
+                ],
+                "horizon_s": sz["horizon"],
+            },
+        )
+    }
 
 
 def main(argv=None) -> dict:

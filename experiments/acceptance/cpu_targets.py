@@ -73,10 +73,11 @@ def main(argv=None) -> dict:
     cli = [sys.executable, "-m", "wbc_jax.cli"]
     record = provenance.record(argv=provenance.script_argv(__file__, argv))
     result: dict = {
-        "date": record["date"], "device": record["device"]["label"],
+        "date": record["date"],
+        "device": record["device"]["label"],
         "machine": {"python": platform.python_version(), "xla_flags": os.environ.get("XLA_FLAGS", "")},
         "provenance": record,
-    }  # fmt: skip
+    }
 
     def save():
         from wbc_jax.core import io
@@ -91,11 +92,14 @@ def main(argv=None) -> dict:
         s2 = last_json(stdout)
         result["main_job"] = {
             "command": "wbc-jax push-sweep (empty compilation cache, then the same again with a new --out)",
-            "first_run_s": round(first, 1), "second_run_s": round(second, 1),
-            "compile_s": [s1.get("compile_s"), s2.get("compile_s")], "run_s": [s1.get("run_s"), s2.get("run_s")],
+            "first_run_s": round(first, 1),
+            "second_run_s": round(second, 1),
+            "compile_s": [s1.get("compile_s"), s2.get("compile_s")],
+            "run_s": [s1.get("run_s"), s2.get("run_s")],
             "physics_steps_per_s": [s1.get("physics_steps_per_s"), s2.get("physics_steps_per_s")],
-            "target": "first <= 90 s, second <= 30 s", "met": first <= 90 and second <= 30,
-        }  # fmt: skip
+            "target": "first <= 90 s, second <= 30 s",
+            "met": first <= 90 and second <= 30,
+        }
         print(json.dumps({"main_job": result["main_job"]}), flush=True)
         save()
 
@@ -108,33 +112,54 @@ def main(argv=None) -> dict:
         rmse_mm = 1e3 * s["com_rmse_m"]
         result["sinusoid"] = {
             "command": "wbc-jax balance --task sinusoid --duration 20",
-            "loop_s": s.get("loop_s"), "real_time_factor": rtf, "wall_s": round(wall, 1),
-            "com_rmse_mm": round(rmse_mm, 5), "backend": s.get("backend"),
+            "loop_s": s.get("loop_s"),
+            "real_time_factor": rtf,
+            "wall_s": round(wall, 1),
+            "com_rmse_mm": round(rmse_mm, 5),
+            "backend": s.get("backend"),
             "target": ">= 2x real time (loop <= 10 s), CoM RMSE 1.00 mm",
             "met": bool(rtf is not None and rtf >= 2.0 and abs(rmse_mm - 1.00) < 0.01),
-        }  # fmt: skip
+        }
         print(json.dumps({"sinusoid": result["sinusoid"]}), flush=True)
         save()
 
     if "sweep64" not in args.skip:
         workers = [str(w) for w in sorted({1, os.cpu_count() or 1})]
-        cmd = [sys.executable, str(ROOT / "benchmarks" / "benchmark.py"), "--out", str(work / "bench"),
-               "--backends", "mujoco", "--batches", "64", "--horizon", "1.0", "--cpu-baseline-envs", "32",
-               "--cpu-workers", *workers, "--repeats", "2", "--skip-equivalence"]  # fmt: skip
+        cmd = [
+            sys.executable,
+            str(ROOT / "benchmarks" / "benchmark.py"),
+            "--out",
+            str(work / "bench"),
+            "--backends",
+            "mujoco",
+            "--batches",
+            "64",
+            "--horizon",
+            "1.0",
+            "--cpu-baseline-envs",
+            "32",
+            "--cpu-workers",
+            *workers,
+            "--repeats",
+            "2",
+            "--skip-equivalence",
+        ]
         wall, _ = timed(cmd, env, ROOT)
         bench = json.loads((work / "bench" / "bench.json").read_text())
         row = bench["runs"][0]
         share = row["ratio_per_core"]
         result["sweep64"] = {
             "command": "python benchmarks/benchmark.py --backends mujoco --batches 64 --horizon 1.0 "
-                       f"--cpu-baseline-envs 32 --cpu-workers {' '.join(workers)} --repeats 2 --skip-equivalence",
+            f"--cpu-baseline-envs 32 --cpu-workers {' '.join(workers)} --repeats 2 --skip-equivalence",
             "closed_loop_steps_per_s": row["closed_loop_steps_per_s"],
             "closed_loop_steps_per_s_per_core": row["closed_loop_steps_per_s_per_core"],
             "cpu_baseline_steps_per_s_per_core": row["cpu_baseline_steps_per_s_per_core"],
             "cpu_baseline_workers": row["cpu_baseline_workers"],
-            "share_of_baseline_per_core": round(share, 3), "wall_s": round(wall, 1),
-            "target": ">= 50 % of the baseline's steps/s per core", "met": share >= 0.5,
-        }  # fmt: skip
+            "share_of_baseline_per_core": round(share, 3),
+            "wall_s": round(wall, 1),
+            "target": ">= 50 % of the baseline's steps/s per core",
+            "met": share >= 0.5,
+        }
         print(json.dumps({"sweep64": result["sweep64"]}), flush=True)
         save()
 
@@ -142,16 +167,20 @@ def main(argv=None) -> dict:
         nbs = {}
         for nb in sorted((ROOT / "notebooks").glob("*.ipynb")):
             # nbclient (what tests/test_notebooks.py uses): the notebook executed top to bottom.
-            code = ("import sys, nbformat, nbclient; nb = nbformat.read(sys.argv[1], as_version=4); "
-                    "nbclient.NotebookClient(nb, timeout=1200, resources={'metadata': {'path': sys.argv[2]}})"
-                    ".execute()")  # fmt: skip
+            code = (
+                "import sys, nbformat, nbclient; nb = nbformat.read(sys.argv[1], as_version=4); "
+                "nbclient.NotebookClient(nb, timeout=1200, resources={'metadata': {'path': sys.argv[2]}})"
+                ".execute()"
+            )
             wall, _ = timed([sys.executable, "-c", code, str(nb), str(ROOT / "notebooks")], env, ROOT)
             nbs[nb.stem] = round(wall, 1)
             print(json.dumps({"notebook": nb.stem, "wall_s": nbs[nb.stem]}), flush=True)
         result["notebooks"] = {
             "command": "each notebook executed alone with nbclient (as tests/test_notebooks.py), warm cache",
-            "wall_s": nbs, "target": "<= 90 s each", "met": all(v <= 90 for v in nbs.values()),
-        }  # fmt: skip
+            "wall_s": nbs,
+            "target": "<= 90 s each",
+            "met": all(v <= 90 for v in nbs.values()),
+        }
         save()
     save()
     print(json.dumps(result, indent=1), flush=True)

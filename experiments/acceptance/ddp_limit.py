@@ -37,9 +37,14 @@ def main() -> None:
     parser.add_argument("--cop-scale", type=float, default=1.0, help="the DDP's CoP rectangle / the controller's")
     parser.add_argument("--batch", type=int, default=4, help="directions per batch (one C MuJoCo replay batch)")
     parser.add_argument("--out", help="default: docs/limit/ddp_<body>.json")
-    parser.add_argument("--recheck", nargs="*", type=float, metavar="AZ",
-                        help="each direction's limit again in a batch of its own (these azimuths; none: all): the "
-                             "stored witness replayed, or (none stored) solved and replayed anew")  # fmt: skip
+    parser.add_argument(
+        "--recheck",
+        nargs="*",
+        type=float,
+        metavar="AZ",
+        help="each direction's limit again in a batch of its own (these azimuths; none: all): the "
+        "stored witness replayed, or (none stored) solved and replayed anew",
+    )
     args = parser.parse_args()
     out = pathlib.Path(args.out or f"docs/limit/ddp_{args.body}.json")
     if args.batch < 1:
@@ -47,12 +52,15 @@ def main() -> None:
     table = json.loads(LIMIT_JSON.read_text())["bodies"][args.body]["directions"]
     missing = [a for a in args.directions if str(float(a)) not in table]
     if missing:
-        sys.exit(f"--directions {missing}: not in {LIMIT_JSON} (its {args.body} directions: "
-                 f"{', '.join(sorted(table, key=float))})")  # fmt: skip
+        sys.exit(
+            f"--directions {missing}: not in {LIMIT_JSON} (its {args.body} directions: "
+            f"{', '.join(sorted(table, key=float))})"
+        )
     previous = loader.read_json(out, "crocoddyl cross-check") if out.exists() else None
     try:
-        settings = dict(body=args.body, gains=GAINS, tests=args.tests, max_iterations=args.max_iterations,
-                        cop_scale=args.cop_scale)  # fmt: skip
+        settings = dict(
+            body=args.body, gains=GAINS, tests=args.tests, max_iterations=args.max_iterations, cop_scale=args.cop_scale
+        )
         done = limit_ddp.resumed_tests(previous, limit_ddp.DdpConfig(**settings), out)
         azimuths = sorted(set(done) | {float(a) for a in args.directions})
         cfg = limit_ddp.DdpConfig(directions=tuple(azimuths), **settings)
@@ -62,8 +70,11 @@ def main() -> None:
     rows = {a: table[str(a)] for a in azimuths}
     witness_path = out.with_name(out.stem + "_witness.npz")  # the verified tests' replayed torques
     witnesses = dict(np.load(witness_path)) if witness_path.exists() else {}
-    alone = {float(a): r["limit_replayed_alone"] for a, r in (previous or {}).get("directions", {}).items()
-             if r.get("limit_replayed_alone")}  # fmt: skip
+    alone = {
+        float(a): r["limit_replayed_alone"]
+        for a, r in (previous or {}).get("directions", {}).items()
+        if r.get("limit_replayed_alone")
+    }
     tested = {a: list(done.get(a, [])) for a in azimuths}
     command = "python experiments/acceptance/ddp_limit.py " + " ".join(sys.argv[1:])
     commands = (previous or {}).get("commands", [(previous or {}).get("command")] if previous else [])
@@ -77,22 +88,29 @@ def main() -> None:
             row = rows[a]
             lo, hi = limit.bracket([(r["impulse_ns"], r["verified"]) for r in tested[a]])
             directions[str(a)] = {
-                "limit_ns": lo, "bracket_ns": [lo, None if np.isinf(hi) else hi],
+                "limit_ns": lo,
+                "bracket_ns": [lo, None if np.isinf(hi) else hi],
                 "controller_envelopes_ns": {k: v["impulse_ns"] for k, v in row["envelopes"].items()},
                 "mjx_limit_ns": (row.get("limit_by_optimiser_ns") or {}).get("mjx"),
-                "flywheel_bound_ns": row["flywheel_bound_ns"], "lip_bound_ns": row["lip_bound_ns"],
+                "flywheel_bound_ns": row["flywheel_bound_ns"],
+                "lip_bound_ns": row["lip_bound_ns"],
                 "tests": tested[a],
-            }  # fmt: skip
+            }
             if a in alone and alone[a]["impulse_ns"] == lo:
                 directions[str(a)]["limit_replayed_alone"] = alone[a]
-        io.atomic_write_json(out, {
-            "what": "crocoddyl BoxFDDP from the C MuJoCo post-push state, tracked in C MuJoCo by the tuned controller "
-                    "with feedforward torques, strict criterion; limit_ns: the largest impulse whose tracked DDP "
-                    "trajectory passed (0: none did); bracket_ns: [limit, smallest failed impulse above it]",
-            "commands": commands + [command], "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
-            "directions": directions, "wall_s": round(wall0 + time.perf_counter() - t0, 1),
-            "provenance": provenance.record({"gains": GAINS}),
-        })  # fmt: skip
+        io.atomic_write_json(
+            out,
+            {
+                "what": "crocoddyl BoxFDDP from the C MuJoCo post-push state, tracked in C MuJoCo by the tuned controller "
+                "with feedforward torques, strict criterion; limit_ns: the largest impulse whose tracked DDP "
+                "trajectory passed (0: none did); bracket_ns: [limit, smallest failed impulse above it]",
+                "commands": commands + [command],
+                "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
+                "directions": directions,
+                "wall_s": round(wall0 + time.perf_counter() - t0, 1),
+                "provenance": provenance.record({"gains": GAINS}),
+            },
+        )
 
     order = list(dict.fromkeys([float(a) for a in args.directions] + azimuths))  # as given first, then the file's
     if args.recheck is not None:
@@ -116,8 +134,9 @@ def main() -> None:
     for i in range(0, len(todo), args.batch):
         part = todo[i : i + args.batch]
         check = limit_ddp.CrossCheck(limit_ddp.DdpConfig(directions=tuple(part), **settings))
-        start = np.array([max([rows[a]["limit_ns"] or 0.0] + [e["impulse_ns"] for e in rows[a]["envelopes"].values()])
-                          for a in part])  # fmt: skip
+        start = np.array(
+            [max([rows[a]["limit_ns"] or 0.0] + [e["impulse_ns"] for e in rows[a]["envelopes"].values()]) for a in part]
+        )
         cap = np.array([rows[a]["flywheel_bound_ns"] for a in part])
 
         def on_test(batch_tests, part=part):
@@ -130,8 +149,11 @@ def main() -> None:
             np.savez_compressed(buffer, **witnesses)
             io.atomic_write_bytes(witness_path, buffer.getvalue())
             write()
-            print(f"{time.perf_counter() - t0:.0f} s:", {a: (round(tested[a][-1]["impulse_ns"], 2),
-                                                            tested[a][-1]["verified"]) for a in part}, flush=True)  # fmt: skip
+            print(
+                f"{time.perf_counter() - t0:.0f} s:",
+                {a: (round(tested[a][-1]["impulse_ns"], 2), tested[a][-1]["verified"]) for a in part},
+                flush=True,
+            )
 
         limit_ddp.bisect(check, start, cap, [tested[a] for a in part], on_test=on_test)
 

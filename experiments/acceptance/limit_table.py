@@ -36,8 +36,12 @@ def main() -> None:
         default=(),
         help="the chest's crocoddyl cross-checks (experiments/acceptance/ddp_limit.py), one per setting",
     )
-    parser.add_argument("--ddp-root-link", nargs="+", default=(),
-                        help="root_link's crocoddyl cross-checks (ddp_limit.py --body root_link)")  # fmt: skip
+    parser.add_argument(
+        "--ddp-root-link",
+        nargs="+",
+        default=(),
+        help="root_link's crocoddyl cross-checks (ddp_limit.py --body root_link)",
+    )
     parser.add_argument("--out", default="docs/limit")
     args = parser.parse_args()
     bodies = {}
@@ -52,10 +56,11 @@ def main() -> None:
             kept = pathlib.Path(args.out) / f"limit_{body}.json"
             io.atomic_write_bytes(kept, summary.read_bytes())
             summary = kept
-        bodies[body] = {"limit": summary,
-                        "envelopes": {label: ENVELOPES / f"{name}_{body}" / "summary.json"
-                                      for label, name in GAIN_SETS.items()},
-                        "ddp": ddp}  # fmt: skip
+        bodies[body] = {
+            "limit": summary,
+            "envelopes": {label: ENVELOPES / f"{name}_{body}" / "summary.json" for label, name in GAIN_SETS.items()},
+            "ddp": ddp,
+        }
     try:
         result = limit_table.write(args.out, bodies, COMMANDS, "icub")
     except ValueError as err:

@@ -36,19 +36,35 @@ def main() -> None:
     args = p.parse_args()
     size = 8 if jax.config.jax_enable_x64 else 4
     rows = []
-    for tasks, dt, it, reg, damp in itertools.product(args.tasks, args.control_dt, args.solver_iterations,
-                                                      args.projector_reg, args.damping):  # fmt: skip
+    for tasks, dt, it, reg, damp in itertools.product(
+        args.tasks, args.control_dt, args.solver_iterations, args.projector_reg, args.damping
+    ):
         controller = ControllerConfig(projector_reg=reg, solution_damping=damp)
-        r = balance.run(task="stand", duration=args.duration, out=None, progress=False, plots=False,
-                        tasks=None if tasks == "none" else tasks, control_dt=dt, solver_iterations=it,
-                        controller=controller)  # fmt: skip
-        row = {"dtype": f"float{8 * size}", "tasks": pathlib.Path(tasks).stem, "control_dt": dt,
-               "solver_iterations": it, "projector_reg": hierarchy.PROJECTOR_REG[size] if reg is None else reg,
-               "damping": hierarchy.SOLUTION_DAMPING[size] if damp is None else damp, "fell": r["fell"] or r["nan"],
-               "com_rmse_m": r["com_rmse_m"], "max_foot_slip_m": r["max_foot_slip_m"],
-               "force_rel_err_median": r["force_rel_err_median"],
-               "tasks_rmse": {k: v["rmse"] for k, v in r.get("tasks", {}).items()},
-               "wall_time_s": r["wall_time_s"]}  # fmt: skip
+        r = balance.run(
+            task="stand",
+            duration=args.duration,
+            out=None,
+            progress=False,
+            plots=False,
+            tasks=None if tasks == "none" else tasks,
+            control_dt=dt,
+            solver_iterations=it,
+            controller=controller,
+        )
+        row = {
+            "dtype": f"float{8 * size}",
+            "tasks": pathlib.Path(tasks).stem,
+            "control_dt": dt,
+            "solver_iterations": it,
+            "projector_reg": hierarchy.PROJECTOR_REG[size] if reg is None else reg,
+            "damping": hierarchy.SOLUTION_DAMPING[size] if damp is None else damp,
+            "fell": r["fell"] or r["nan"],
+            "com_rmse_m": r["com_rmse_m"],
+            "max_foot_slip_m": r["max_foot_slip_m"],
+            "force_rel_err_median": r["force_rel_err_median"],
+            "tasks_rmse": {k: v["rmse"] for k, v in r.get("tasks", {}).items()},
+            "wall_time_s": r["wall_time_s"],
+        }
         print(json.dumps(row), flush=True)
         rows.append(row)
     io.atomic_write_json(pathlib.Path(args.out) / f"diagnose_float{8 * size}.json", rows)

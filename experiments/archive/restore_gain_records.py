@@ -35,14 +35,18 @@ ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 EVALUATED = {  # result: {gain set: the copy in experiments/gains/ of the run's gains file}
     "docs/tuning/heldout.json": {"gradient": "tuned_gradient", "cmaes": "tuned_cmaes", "random": "tuned_random"},
-    "docs/tuning/keep_tracking/heldout.json": {"gradient": "tuned_gradient_keep_tracking",
-                                               "cmaes": "tuned_cmaes_keep_tracking",
-                                               "random": "tuned_random_keep_tracking"},
-    "docs/tuning/envelope_scaled/before_margin_fix/heldout.json": {"gradient": "tuned_gradient_envelope_scaled",
-                                                                   "cmaes": "tuned_cmaes_envelope_scaled",
-                                                                   "random": "tuned_random_envelope_scaled"},
+    "docs/tuning/keep_tracking/heldout.json": {
+        "gradient": "tuned_gradient_keep_tracking",
+        "cmaes": "tuned_cmaes_keep_tracking",
+        "random": "tuned_random_keep_tracking",
+    },
+    "docs/tuning/envelope_scaled/before_margin_fix/heldout.json": {
+        "gradient": "tuned_gradient_envelope_scaled",
+        "cmaes": "tuned_cmaes_envelope_scaled",
+        "random": "tuned_random_envelope_scaled",
+    },
     "docs/tuning/from_critical/heldout.json": {"gradient": "tuned_gradient_from_critical"},
-}  # fmt: skip
+}
 
 
 def git(*args: str) -> str:
@@ -144,15 +148,21 @@ def repair(path: pathlib.Path, known: dict[str, str], dry_run: bool) -> dict | N
     for name in checked:  # today's files, checked against the result's own damping ratios
         inputs[f"gains:{pathlib.Path(name).stem}"] = {"path": name, "sha256": provenance.sha256(ROOT / name)}
     date = git("log", "-1", "--format=%ad", "--date=short", commit).strip()
-    note = (f"the gains files' contents at {commit[:7]} ({date}), the commit that wrote this result; "
-            "recorded on 2026-11-25 by experiments/archive/restore_gain_records.py")  # fmt: skip
+    note = (
+        f"the gains files' contents at {commit[:7]} ({date}), the commit that wrote this result; "
+        "recorded on 2026-11-25 by experiments/archive/restore_gain_records.py"
+    )
     if checked:
-        note += ("; the tuned sets evaluated (" + ", ".join(checked) + ") by their CoM damping ratios, which this "
-                 "result records under nava_2016")  # fmt: skip
+        note += (
+            "; the tuned sets evaluated (" + ", ".join(checked) + ") by their CoM damping ratios, which this "
+            "result records under nava_2016"
+        )
     if moved:
         # The old names without their folder: a path here would name the overwritten file again.
-        note += "; the sets were named " + ", ".join(f"{pathlib.Path(a).name} (overwritten since; these contents: "
-                                                     f"{pathlib.Path(b).name})" for a, b in moved.items())  # fmt: skip
+        note += "; the sets were named " + ", ".join(
+            f"{pathlib.Path(a).name} (overwritten since; these contents: {pathlib.Path(b).name})"
+            for a, b in moved.items()
+        )
     entry = result.setdefault("provenance", {})
     entry.setdefault("inputs", {}).update(inputs)
     entry["inputs_restored"] = note

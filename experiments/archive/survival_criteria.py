@@ -49,14 +49,26 @@ def probe(backend: str, batch: int) -> dict:
     fails = metrics_lib.failed_tests(cols)
     idx = np.linspace(0, batch - 1, min(16, batch)).astype(int)
     return {
-        "backend": backend, "batch": batch, "dtype": str(st.dtype), "device": provenance.device_label(),
-        "wall_s": round(time.perf_counter() - t0, 1), "survived_rate": float(np.mean(cols["survived"])),
+        "backend": backend,
+        "batch": batch,
+        "dtype": str(st.dtype),
+        "device": provenance.device_label(),
+        "wall_s": round(time.perf_counter() - t0, 1),
+        "survived_rate": float(np.mean(cols["survived"])),
         "failing": {k: int(v.sum()) for k, v in fails.items()},
-        "quantiles_0_50_90_99_100": {k: np.quantile(cols[k], [0, 0.5, 0.9, 0.99, 1]).round(5).tolist() for k in QUANTITIES},
+        "quantiles_0_50_90_99_100": {
+            k: np.quantile(cols[k], [0, 0.5, 0.9, 0.99, 1]).round(5).tolist() for k in QUANTITIES
+        },
         "failed_per_45deg": np.histogram(azimuth[~cols["survived"].astype(bool)], bins=8, range=(0, 360))[0].tolist(),
-        "samples": [{"azimuth_deg": float(azimuth[i]), "survived": bool(cols["survived"][i]),
-                     **{k: round(float(cols[k][i]), 5) for k in QUANTITIES}} for i in idx],
-    }  # fmt: skip
+        "samples": [
+            {
+                "azimuth_deg": float(azimuth[i]),
+                "survived": bool(cols["survived"][i]),
+                **{k: round(float(cols[k][i]), 5) for k in QUANTITIES},
+            }
+            for i in idx
+        ],
+    }
 
 
 def main(argv=None) -> dict:

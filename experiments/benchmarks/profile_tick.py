@@ -70,8 +70,15 @@ def main(argv=None) -> dict:
         ref = ref_at(0.5)
         ct = contacts.contact_terms(cset, t, 0.5, ref.activation)
         rows = contacts.row_activation(cset, ct.activation)
-        return torques.torque_terms(t, ct.J * rows[:, None], ct.Jdot_nu * rows, postural="stable",
-                                    kp_postural=gains.kp_postural, kd_postural=gains.kd_postural, s_des=ref.s_des)  # fmt: skip
+        return torques.torque_terms(
+            t,
+            ct.J * rows[:, None],
+            ct.Jdot_nu * rows,
+            postural="stable",
+            kp_postural=gains.kp_postural,
+            kd_postural=gains.kd_postural,
+            s_des=ref.s_des,
+        )
 
     def stage_forces(t, tt):
         ref = ref_at(0.5)

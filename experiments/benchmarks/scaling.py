@@ -84,8 +84,10 @@ def earlier_calls(path: pathlib.Path) -> dict:
     except (OSError, ValueError, AttributeError):
         calls = None
     if not isinstance(calls, dict):
-        raise SystemExit(f"scaling.py: error: --out {path.parent}: its scaling.json was not written by scaling.py "
-                         "(no 'calls'); give another --out")  # fmt: skip
+        raise SystemExit(
+            f"scaling.py: error: --out {path.parent}: its scaling.json was not written by scaling.py "
+            "(no 'calls'); give another --out"
+        )
     return calls
 
 
@@ -97,8 +99,10 @@ def check(rows: list[dict]) -> list[str]:
         if r.get("error"):
             failures.append(f"{r['backend']} on {r['gpus']} GPU(s): {r['error']}")
         elif r["gpus"] > 1 and r["flips_vs_one_gpu"] > r["repeat_floor_one_gpu"] + 1:
-            failures.append(f"{r['backend']} on {r['gpus']} GPUs: {r['flips_vs_one_gpu']} survival flips vs one GPU, "
-                            f"repeat floor {r['repeat_floor_one_gpu']}")  # fmt: skip
+            failures.append(
+                f"{r['backend']} on {r['gpus']} GPUs: {r['flips_vs_one_gpu']} survival flips vs one GPU, "
+                f"repeat floor {r['repeat_floor_one_gpu']}"
+            )
     return failures
 
 
@@ -114,8 +118,14 @@ def main(argv=None) -> int:
     p.add_argument("--gpus", type=int, nargs="+", default=[1, 2])
     # mujoco: C MuJoCo on the host (one device), for a check of the script on a CPU
     p.add_argument("--backends", nargs="+", default=["warp", "jax"], choices=["warp", "jax", "mujoco"])
-    p.add_argument("--repeats", type=int, default=3, choices=range(2, 11), metavar="2..10",
-                   help="runs of each configuration in its process (the repeat floor needs two or more)")  # fmt: skip
+    p.add_argument(
+        "--repeats",
+        type=int,
+        default=3,
+        choices=range(2, 11),
+        metavar="2..10",
+        help="runs of each configuration in its process (the repeat floor needs two or more)",
+    )
     p.add_argument("--timeout", type=float, default=1500.0)
     args = p.parse_args(own)
     out = pathlib.Path(args.out)
@@ -138,11 +148,21 @@ def main(argv=None) -> int:
                 runs = json.loads(line[-1][len("RESULT ") :])
                 tables[n] = [_outcomes(folder / f"run{k}") for k in range(args.repeats)]
                 last = runs[-1]
-                row.update({"run_s": last["run_s"], "run_s_each": [r["run_s"] for r in runs],
-                            "compile_s": runs[0]["compile_s"], "survival_rate": last["survival_rate"],
-                            "n_devices": last["n_devices"], "device": last["device"], "envs": last["n_envs"],
-                            "physics_steps_per_s": last["physics_steps_per_s"], "timeline_last_run": last["timeline"],
-                            "repeats": args.repeats, "repeat_flips": repeat_floor(tables[n])})  # fmt: skip
+                row.update(
+                    {
+                        "run_s": last["run_s"],
+                        "run_s_each": [r["run_s"] for r in runs],
+                        "compile_s": runs[0]["compile_s"],
+                        "survival_rate": last["survival_rate"],
+                        "n_devices": last["n_devices"],
+                        "device": last["device"],
+                        "envs": last["n_envs"],
+                        "physics_steps_per_s": last["physics_steps_per_s"],
+                        "timeline_last_run": last["timeline"],
+                        "repeats": args.repeats,
+                        "repeat_flips": repeat_floor(tables[n]),
+                    }
+                )
             except (RuntimeError, subprocess.TimeoutExpired) as err:
                 row["error"] = str(err)
             rows.append(row)
@@ -169,11 +189,18 @@ def main(argv=None) -> int:
     kept = [r for r in calls.get(ident, {}).get("rows", []) if (r["backend"], r["gpus"]) not in done]
     rows = sorted(kept + rows, key=lambda r: (r["backend"], r["gpus"]))
     failures = check(rows)
-    calls[ident] = {"sweep_flags": flags, "rows": rows, "failures": failures,
-                    "provenance": provenance.record(argv=["experiments/benchmarks/scaling.py", *argv])}  # fmt: skip
+    calls[ident] = {
+        "sweep_flags": flags,
+        "rows": rows,
+        "failures": failures,
+        "provenance": provenance.record(argv=["experiments/benchmarks/scaling.py", *argv]),
+    }
     every = list(calls.values())
-    result = {"calls": calls, "rows": [{**r, "sweep_flags": c["sweep_flags"]} for c in every for r in c["rows"]],
-              "failures": [f for c in every for f in c["failures"]]}  # fmt: skip
+    result = {
+        "calls": calls,
+        "rows": [{**r, "sweep_flags": c["sweep_flags"]} for c in every for r in c["rows"]],
+        "failures": [f for c in every for f in c["failures"]],
+    }
     out.mkdir(parents=True, exist_ok=True)
     io.atomic_write_json(out / "scaling.json", result)
     print(json.dumps({"failures": failures}), flush=True)

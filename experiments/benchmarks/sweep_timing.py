@@ -41,18 +41,32 @@ def main(argv=None) -> dict:
         shutil.rmtree(target, ignore_errors=True)
         t0 = time.perf_counter()
         s = sweep.run_sweep(dataclasses.replace(base, out=str(target)), progress=False)
-        runs.append({"repeat": k, "compile_s": s["compile_s"], "run_s": s["run_s"], "wall_s": round(time.perf_counter() - t0, 2),
-                     "physics_steps_per_s": s["physics_steps_per_s"], "survival_rate": s["survival_rate"],
-                     "physics_steps_simulated": s.get("physics_steps_simulated"),
-                     "upright_rate": s["upright_rate"]})  # fmt: skip
+        runs.append(
+            {
+                "repeat": k,
+                "compile_s": s["compile_s"],
+                "run_s": s["run_s"],
+                "wall_s": round(time.perf_counter() - t0, 2),
+                "physics_steps_per_s": s["physics_steps_per_s"],
+                "survival_rate": s["survival_rate"],
+                "physics_steps_simulated": s.get("physics_steps_simulated"),
+                "upright_rate": s["upright_rate"],
+            }
+        )
         print(json.dumps(runs[-1]), flush=True)
     first = out / "run_0"
     for name in ("summary.json", "survival.png", "envelope.png"):
         shutil.copy(first / name, out / name)
     s = json.loads((first / "summary.json").read_text())
-    result = {"runs": runs, "n_envs": s["n_envs"], "backend": s["backend"], "device": s["device"],
-              "provenance": provenance.record({"gains": base.gains, "tasks": base.controller.tasks},
-                                              argv=provenance.script_argv(__file__, given))}  # fmt: skip
+    result = {
+        "runs": runs,
+        "n_envs": s["n_envs"],
+        "backend": s["backend"],
+        "device": s["device"],
+        "provenance": provenance.record(
+            {"gains": base.gains, "tasks": base.controller.tasks}, argv=provenance.script_argv(__file__, given)
+        ),
+    }
     io.atomic_write_json(out / "timing.json", result)
     print(json.dumps(result), flush=True)
     return result

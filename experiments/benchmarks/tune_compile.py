@@ -43,9 +43,15 @@ def main() -> None:
         runner.enable_compilation_cache(args.cache)
     tp.SEED_CARRY = not args.no_seed_carry
     short = args.horizon < 0.6
-    tc = config.TuneConfig(batch=args.batch, horizon=args.horizon, push_onset=0.0 if short else 0.2,
-                       duration_range=(0.02, 0.05) if short else (0.05, 0.3), eval_horizon=max(args.horizon, 0.6),
-                       checkpoint=args.checkpoint, solver_iterations=args.solver_iterations)  # fmt: skip
+    tc = config.TuneConfig(
+        batch=args.batch,
+        horizon=args.horizon,
+        push_onset=0.0 if short else 0.2,
+        duration_range=(0.02, 0.05) if short else (0.05, 0.3),
+        eval_horizon=max(args.horizon, 0.6),
+        checkpoint=args.checkpoint,
+        solver_iterations=args.solver_iterations,
+    )
     problem = tp.make_problem(tc)
     p0 = problem.init_params()
     scen = objectives.shard(objectives.cast_batch(gradient.training_batch(problem, 0)[0], problem.setup.dtype))
@@ -54,9 +60,17 @@ def main() -> None:
     else:
         loss = tp.make_batched_loss(problem, fixed_solver=False)
         f, fargs = jax.jit(lambda q, s: loss(*problem.controls(q), s)[0]), (p0, scen)
-    res = {"mode": args.mode, "batch": args.batch, "horizon_s": args.horizon, "seed_carry": tp.SEED_CARRY,
-           "checkpoint": args.checkpoint, "solver_iterations": problem.iterations, "device": provenance.device_label(),
-           "xla_flags": os.environ.get("XLA_FLAGS", ""), "cache": args.cache}  # fmt: skip
+    res = {
+        "mode": args.mode,
+        "batch": args.batch,
+        "horizon_s": args.horizon,
+        "seed_carry": tp.SEED_CARRY,
+        "checkpoint": args.checkpoint,
+        "solver_iterations": problem.iterations,
+        "device": provenance.device_label(),
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "cache": args.cache,
+    }
     t0 = time.perf_counter()
     traced = f.trace(*fargs)
     res["trace_s"] = round(time.perf_counter() - t0, 1)

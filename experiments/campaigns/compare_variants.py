@@ -40,9 +40,21 @@ def main(argv=None) -> None:
         extra = list(VARIANTS[name])
         # Two feet: push at 0.5 s; one foot: at 7.5 s (single support 7-9 s), ending at 9 s.
         horizon = 9.0 if "one-foot" in name else args.horizon
-        argv = ["push-sweep", "--out", str(out / name), "--quiet", "--magnitudes",
-                *[str(x) for x in args.magnitudes], "--directions", str(args.directions),
-                "--horizon", str(horizon), "--chunk-size", "64", *extra]  # fmt: skip
+        argv = [
+            "push-sweep",
+            "--out",
+            str(out / name),
+            "--quiet",
+            "--magnitudes",
+            *[str(x) for x in args.magnitudes],
+            "--directions",
+            str(args.directions),
+            "--horizon",
+            str(horizon),
+            "--chunk-size",
+            "64",
+            *extra,
+        ]
         if cli.main(argv) != 0:
             raise SystemExit(f"variant {name} failed")
         summary = json.loads((out / name / "summary.json").read_text())
@@ -59,8 +71,12 @@ def main(argv=None) -> None:
             "provenance": record,
         }
         io.atomic_write_json(out / "comparison.json", comparison)
-        print(json.dumps({name: {k: comparison[name][k] for k in
-                                 ("survival_rate", "mean_fraction_of_bound", "nan_envs")}}), flush=True)  # fmt: skip
+        print(
+            json.dumps(
+                {name: {k: comparison[name][k] for k in ("survival_rate", "mean_fraction_of_bound", "nan_envs")}}
+            ),
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

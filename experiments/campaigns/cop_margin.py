@@ -63,8 +63,10 @@ def scaled(rect, scale: float) -> list[list[float]]:
 
 
 def task_file(rectangles: dict[str, tuple], scale: float) -> str:
-    feet = [{"name": f"{side}_foot", "frame": f"{side[0]}_sole", "normal": [0, 0, 1], "cop": scaled(rect, scale)}
-            for side, rect in rectangles.items()]  # fmt: skip
+    feet = [
+        {"name": f"{side}_foot", "frame": f"{side[0]}_sole", "normal": [0, 0, 1], "cop": scaled(rect, scale)}
+        for side, rect in rectangles.items()
+    ]
     return json.dumps({"contacts": feet}, indent=1)
 
 
@@ -76,10 +78,19 @@ def main(argv=None) -> dict:
     p.add_argument("--scales", nargs="+", type=float, default=[1.0, 0.9, 0.8, 0.7, 0.6])
     p.add_argument("--directions", type=int, default=8)
     p.add_argument("--backend", default="mujoco")
-    p.add_argument("--rectangle", choices=("wbc", "sole"), default="wbc",
-                   help="the rectangle scaled: the QP's default (wbc) or each foot's contact spheres (sole)")  # fmt: skip
-    p.add_argument("--angular-weights", nargs="+", type=float, default=[1.0],
-                   help="the soft momentum QP's angular_weight_soft of each run (1: WBC)")  # fmt: skip
+    p.add_argument(
+        "--rectangle",
+        choices=("wbc", "sole"),
+        default="wbc",
+        help="the rectangle scaled: the QP's default (wbc) or each foot's contact spheres (sole)",
+    )
+    p.add_argument(
+        "--angular-weights",
+        nargs="+",
+        type=float,
+        default=[1.0],
+        help="the soft momentum QP's angular_weight_soft of each run (1: WBC)",
+    )
     p.add_argument("--body", default="chest", help="pushed body")
     p.add_argument("--out", default="runs/cop_margin")
     args = p.parse_args(argv)
@@ -90,8 +101,14 @@ def main(argv=None) -> dict:
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     runner.enable_compilation_cache()
-    base = dataclasses.replace(envelope.default_config(), horizon=3.0, backend=args.backend, out=None, body=args.body,
-                               directions=tuple(float(a) for a in np.arange(args.directions) * 360.0 / args.directions))  # fmt: skip
+    base = dataclasses.replace(
+        envelope.default_config(),
+        horizon=3.0,
+        backend=args.backend,
+        out=None,
+        body=args.body,
+        directions=tuple(float(a) for a in np.arange(args.directions) * 360.0 / args.directions),
+    )
     robot = model.load_robot()
     robot.index.body_id(args.body)  # an unknown body: the error lists the bodies
     if args.rectangle == "wbc":
@@ -115,12 +132,21 @@ def main(argv=None) -> dict:
                 frac = {az: e["fraction_of_bound"] for az, e in found["envelope"][0].items()}
                 key = f"{name}@{scale:g}" + ("" if weight == 1.0 else f"@w{weight:g}")
                 result["runs"][key] = {
-                    "gains": path, "cop_scale": scale, "angular_weight_soft": weight, "fraction_of_bound": frac,
-                    "median": float(np.median(list(frac.values()))), "min": float(np.min(list(frac.values()))),
-                    "rollouts": found["rollouts"], "run_s": found["run_s"],
-                }  # fmt: skip
-                print(json.dumps({"run": key, "median": result["runs"][key]["median"],
-                                  "min": result["runs"][key]["min"]}), flush=True)  # fmt: skip
+                    "gains": path,
+                    "cop_scale": scale,
+                    "angular_weight_soft": weight,
+                    "fraction_of_bound": frac,
+                    "median": float(np.median(list(frac.values()))),
+                    "min": float(np.min(list(frac.values()))),
+                    "rollouts": found["rollouts"],
+                    "run_s": found["run_s"],
+                }
+                print(
+                    json.dumps(
+                        {"run": key, "median": result["runs"][key]["median"], "min": result["runs"][key]["min"]}
+                    ),
+                    flush=True,
+                )
     result["device"] = prov["device"]["label"]
     result["provenance"] = prov
     io.atomic_write_json(out / "cop_margin.json", result)

@@ -48,13 +48,19 @@ def limits(run_dir: pathlib.Path) -> dict:
                 first_failures[n] += 1
         per_direction[float(az)] = row
     fractions = {
-        c: {"median": float(np.median([r[c] for r in per_direction.values()])),
-            "min": float(np.min([r[c] for r in per_direction.values()]))}
+        c: {
+            "median": float(np.median([r[c] for r in per_direction.values()])),
+            "min": float(np.min([r[c] for r in per_direction.values()])),
+        }
         for c in criteria
-    }  # fmt: skip
-    return {"envelope_fraction_of_lip_bound": fractions, "tests_failing_at_the_boundary": first_failures,
-            "directions": per_direction, "survival_rate": float(table["survived"].mean()),
-            "upright_rate": float(table["upright"].mean())}  # fmt: skip
+    }
+    return {
+        "envelope_fraction_of_lip_bound": fractions,
+        "tests_failing_at_the_boundary": first_failures,
+        "directions": per_direction,
+        "survival_rate": float(table["survived"].mean()),
+        "upright_rate": float(table["upright"].mean()),
+    }
 
 
 def main(argv=None) -> dict:
@@ -74,8 +80,10 @@ def main(argv=None) -> dict:
     }
     result["provenance"] = provenance.record(inputs, argv=provenance.script_argv(__file__, argv), with_device=False)
     io.atomic_write_json(pathlib.Path(args.out), result)
-    brief = {n: {**s["envelope_fraction_of_lip_bound"], "at_boundary": s["tests_failing_at_the_boundary"]}
-             for n, s in result["sweeps"].items()}  # fmt: skip
+    brief = {
+        n: {**s["envelope_fraction_of_lip_bound"], "at_boundary": s["tests_failing_at_the_boundary"]}
+        for n, s in result["sweeps"].items()
+    }
     print(json.dumps(brief, indent=1))
     return result
 

@@ -21,14 +21,19 @@ import sys
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 GAINS = ROOT / "experiments" / "gains"
-DEFAULT_SETS = ("default", f"gradient={GAINS / 'tuned_gradient.json'}", f"cmaes={GAINS / 'tuned_cmaes.json'}",
-                f"random={GAINS / 'tuned_random.json'}", f"critical={ROOT / 'assets' / 'gains' / 'com_critical_100.json'}")  # fmt: skip
+DEFAULT_SETS = (
+    "default",
+    f"gradient={GAINS / 'tuned_gradient.json'}",
+    f"cmaes={GAINS / 'tuned_cmaes.json'}",
+    f"random={GAINS / 'tuned_random.json'}",
+    f"critical={ROOT / 'assets' / 'gains' / 'com_critical_100.json'}",
+)
 
 
 def defaults():
     """The held-out job's config (``wbc-jax heldout``'s flags and defaults) with this script's sets and
     folder."""
-    from wbc_jax.tuning.config import heldout_default_config
+    from wbc_jax.tuning.heldout_config import heldout_default_config
 
     return dataclasses.replace(heldout_default_config(), sets=DEFAULT_SETS, out="runs/heldout_reeval")
 
@@ -41,8 +46,11 @@ def parse(argv=None):
     base = defaults()
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     cli.add_config_arguments(p, base)
-    p.add_argument("--previous", default=str(ROOT / "docs" / "tuning" / "heldout.json"),
-                   help="heldout.json whose budgets (and sinusoid RMSE, with --sinusoid-s 0) are kept")  # fmt: skip
+    p.add_argument(
+        "--previous",
+        default=str(ROOT / "docs" / "tuning" / "heldout.json"),
+        help="heldout.json whose budgets (and sinusoid RMSE, with --sinusoid-s 0) are kept",
+    )
     args = p.parse_args(argv)
     hc = cli.config_from_args(args, base)
     hc.check()
@@ -69,14 +77,24 @@ def main(argv=None) -> int:
             results[name]["sinusoid_com_rmse_m"] = prev[name].get("sinusoid_com_rmse_m")
     budgets = {n: {"sim_steps": prev[n]["sim_steps"], "wall_s": prev[n]["wall_s"]} for n in sets if n in prev}
     shown = [f"{n}={provenance.display_path(f)}" if f else n for n, _, f in (x.partition("=") for x in hc.sets)]
-    extra = {"provenance": prov, "sets": shown,
-             "budgets_and_sinusoid_from": previous if prev else None}  # fmt: skip
+    extra = {"provenance": prov, "sets": shown, "budgets_and_sinusoid_from": previous if prev else None}
     if "nava_2016" in prev:  # the stability conditions depend on the gains alone
         extra["nava_2016"] = {n: v for n, v in prev["nava_2016"].items() if n in sets}
     rep = tuning_eval.write_heldout(out / "heldout.json", results, budgets, extra=extra)
     tuning_plots.envelope_polar(rep, out / "envelope_polar.png")
-    line = {n: {k: rep[n][k] for k in ("envelope_fraction_median", "envelope_fraction_min", "survival_rate",
-                                       "upright_rate", "sinusoid_com_rmse_m")} for n in sets}  # fmt: skip
+    line = {
+        n: {
+            k: rep[n][k]
+            for k in (
+                "envelope_fraction_median",
+                "envelope_fraction_min",
+                "survival_rate",
+                "upright_rate",
+                "sinusoid_com_rmse_m",
+            )
+        }
+        for n in sets
+    }
     print(json.dumps({"heldout": line, "targets": rep["targets"]}), flush=True)
     return 0
 

@@ -56,11 +56,25 @@ def throughput(run: pathlib.Path) -> dict | None:
         return None
     steady = [float(r["step_s"]) for r in rows[1:]] or [float(r["step_s"]) for r in rows]
     step_s = statistics.median(steady)
-    keys = ("device", "batch", "horizon_s", "steps_per_rollout", "checkpoint", "estimator", "compile_s",
-            "temp_mb", "argument_mb")  # fmt: skip
-    return {**{k: info.get(k) for k in keys}, "solver_gradient": _solver_gradient(run), "steps": len(rows),
-            "step_s": [float(r["step_s"]) for r in rows], "step_s_median": step_s,
-            "gradient_physics_steps_per_s": float(rows[-1]["grad_sim_steps"]) / step_s}  # fmt: skip
+    keys = (
+        "device",
+        "batch",
+        "horizon_s",
+        "steps_per_rollout",
+        "checkpoint",
+        "estimator",
+        "compile_s",
+        "temp_mb",
+        "argument_mb",
+    )
+    return {
+        **{k: info.get(k) for k in keys},
+        "solver_gradient": _solver_gradient(run),
+        "steps": len(rows),
+        "step_s": [float(r["step_s"]) for r in rows],
+        "step_s_median": step_s,
+        "gradient_physics_steps_per_s": float(rows[-1]["grad_sim_steps"]) / step_s,
+    }
 
 
 def _solver_gradient(run: pathlib.Path) -> str | None:
@@ -75,9 +89,11 @@ def summarize(runs: pathlib.Path) -> dict:
     before = old
     if before is None and BEFORE.is_file():
         b = _json(BEFORE)
-        before = {"source": str(BEFORE.relative_to(ROOT)), "solver_gradient": "unrolled",
-                  **{k: b.get(k) for k in ("device", "batch", "horizon_s", "step_s_median",
-                                           "gradient_physics_steps_per_s")}}  # fmt: skip
+        before = {
+            "source": str(BEFORE.relative_to(ROOT)),
+            "solver_gradient": "unrolled",
+            **{k: b.get(k) for k in ("device", "batch", "horizon_s", "step_s_median", "gradient_physics_steps_per_s")},
+        }
     out: dict = {"throughput": {"new": new, "old": before, "target_steps_per_s": TARGET_STEPS_PER_S}}
     if new is not None:
         rate = new["gradient_physics_steps_per_s"]
@@ -87,19 +103,29 @@ def summarize(runs: pathlib.Path) -> dict:
             out["throughput"]["same_device"] = before.get("device") == new.get("device")
     q = _json(runs / "new" / "quality.json")
     if q is not None:
-        out["quality"] = {"estimates": {name: {k: e[k] for k in QUALITY_KEYS if k in e}
-                                        for name, e in q["estimates"].items()},
-                          **{k: q[k] for k in ("parameters", "pushes", "directions", "sigma", "exact_gradient_cosine")
-                             if k in q}}  # fmt: skip
+        out["quality"] = {
+            "estimates": {name: {k: e[k] for k in QUALITY_KEYS if k in e} for name, e in q["estimates"].items()},
+            **{k: q[k] for k in ("parameters", "pushes", "directions", "sigma", "exact_gradient_cosine") if k in q},
+        }
     p = _json(runs / "new" / "profile.json")
     if p is not None:
         out["profile"] = p["summary"]
     r = _json(runs / "race" / "race.json")
     if r is not None:
         out["race"] = {k: r[k] for k in ("verdict", "recommended", "budgets_s", "methods") if k in r}
-    files = {f"{run}/{rel}": runs / run / rel for run in ("new", "old", "race")
-             for rel in ("gradient/train_info.json", "gradient/history.csv", "quality.json", "profile.json",
-                         "race.json", "heldout.json") if (runs / run / rel).is_file()}  # fmt: skip
+    files = {
+        f"{run}/{rel}": runs / run / rel
+        for run in ("new", "old", "race")
+        for rel in (
+            "gradient/train_info.json",
+            "gradient/history.csv",
+            "quality.json",
+            "profile.json",
+            "race.json",
+            "heldout.json",
+        )
+        if (runs / run / rel).is_file()
+    }
     out["provenance"] = provenance.record(files)
     return out
 
@@ -108,8 +134,16 @@ def fold(runs: pathlib.Path, docs: pathlib.Path) -> None:
     """Copy the run files into ``docs`` (flat names) and race.json beside it (``docs/../race.json``)."""
     docs.mkdir(parents=True, exist_ok=True)
     for run in ("new", "old", "race"):
-        for rel in ("gradient/train_info.json", "gradient/history.csv", "quality.json", "profile.json", "race.json",
-                    "race.png", "heldout.json", "envelope_polar.png"):  # fmt: skip
+        for rel in (
+            "gradient/train_info.json",
+            "gradient/history.csv",
+            "quality.json",
+            "profile.json",
+            "race.json",
+            "race.png",
+            "heldout.json",
+            "envelope_polar.png",
+        ):
             src = runs / run / rel
             if src.is_file():
                 shutil.copyfile(src, docs / f"{run}_{pathlib.Path(rel).name}")
@@ -117,9 +151,21 @@ def fold(runs: pathlib.Path, docs: pathlib.Path) -> None:
         shutil.copyfile(runs / "race" / "race.json", docs.parent / "race.json")
 
 
-PIECE_FILES = ("race.json", "race.png", "heldout.json", "summary.json", "timings.json", "learning_curves.png",
-               "envelope_polar.png", "config.json", "gradient/train_info.json", "gradient/history.csv",
-               "cmaes/history.csv", "random/history.csv", "hybrid/history.csv")  # fmt: skip
+PIECE_FILES = (
+    "race.json",
+    "race.png",
+    "heldout.json",
+    "summary.json",
+    "timings.json",
+    "learning_curves.png",
+    "envelope_polar.png",
+    "config.json",
+    "gradient/train_info.json",
+    "gradient/history.csv",
+    "cmaes/history.csv",
+    "random/history.csv",
+    "hybrid/history.csv",
+)
 
 
 def race_rows(run: pathlib.Path) -> list[dict]:
@@ -133,12 +179,24 @@ def race_rows(run: pathlib.Path) -> list[dict]:
     for method, m in race["methods"].items():
         for pt in m["points"]:
             origin = gains.get(pt["name"], {})
-            rows.append({"method": method, "parameterisation": race["parameterisation"], "budget_s": pt["budget_s"],
-                         "engine": m["engine"], "device": device, "name": pt["name"],
-                         "envelope_fraction_median": pt["envelope_fraction_median"],
-                         "envelope_fraction_min": pt["envelope_fraction_min"], "survival": pt["survival_rate"],
-                         "sinusoid_com_rmse_m": pt["sinusoid_com_rmse_m"], "physics_steps": pt["sim_steps"],
-                         "wall_s": pt["wall_s"], "gradient_physics_steps_per_s": None if method in ("cmaes", "random") else rate, "gains_sha256": origin.get("sha256")})  # fmt: skip
+            rows.append(
+                {
+                    "method": method,
+                    "parameterisation": race["parameterisation"],
+                    "budget_s": pt["budget_s"],
+                    "engine": m["engine"],
+                    "device": device,
+                    "name": pt["name"],
+                    "envelope_fraction_median": pt["envelope_fraction_median"],
+                    "envelope_fraction_min": pt["envelope_fraction_min"],
+                    "survival": pt["survival_rate"],
+                    "sinusoid_com_rmse_m": pt["sinusoid_com_rmse_m"],
+                    "physics_steps": pt["sim_steps"],
+                    "wall_s": pt["wall_s"],
+                    "gradient_physics_steps_per_s": None if method in ("cmaes", "random") else rate,
+                    "gains_sha256": origin.get("sha256"),
+                }
+            )
     return rows
 
 
@@ -187,8 +245,10 @@ def table_plot(rows: list[dict], path: pathlib.Path) -> None:
         methods = sorted({r["method"] for r in rows if r["parameterisation"] == param})
         for method in methods:
             color = f"C{('gradient', 'cmaes', 'random', 'hybrid').index(method)}"  # one colour per method
-            pts = sorted((r for r in rows if r["parameterisation"] == param and r["method"] == method),
-                         key=lambda r: r["budget_s"])  # fmt: skip
+            pts = sorted(
+                (r for r in rows if r["parameterisation"] == param and r["method"] == method),
+                key=lambda r: r["budget_s"],
+            )
             x = [r["budget_s"] for r in pts]
             ax.plot(x, [r["envelope_fraction_median"] for r in pts], "o-", color=color, label=f"{method} median")
             ax.plot(x, [r["envelope_fraction_min"] for r in pts], "x--", color=color, alpha=0.6)

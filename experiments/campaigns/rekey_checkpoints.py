@@ -45,8 +45,10 @@ def swaps(run_dir: pathlib.Path, new_init_gains: str) -> dict[str, str]:
     if recorded != f"sha256:{provenance.sha256(new_init_gains)}":
         raise ValueError(f"--init-gains {new_init_gains} differs from the content the run recorded ({recorded})")
     moved = {**tune, "init_gains": new_init_gains}
-    return {_key([tune, loss], NOT_TRAINING): _key([moved, loss], NOT_TRAINING),
-            _key([tune], NOT_SEARCH): _key([moved], NOT_SEARCH)}  # fmt: skip
+    return {
+        _key([tune, loss], NOT_TRAINING): _key([moved, loss], NOT_TRAINING),
+        _key([tune], NOT_SEARCH): _key([moved], NOT_SEARCH),
+    }
 
 
 def rekey(run_dir, new_init_gains: str, *, dry_run: bool = False) -> list[tuple[str, str, str]]:

@@ -82,8 +82,10 @@ def main(argv=None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 1
     verb = "would remove" if args.dry_run else "removed"
-    print(f"{verb}: {len(done['paths'])} paths ({', '.join(done['paths'])}), sets {', '.join(done['sets'])}, "
-          f"{len(done['outputs'])} recorded outputs")  # fmt: skip
+    print(
+        f"{verb}: {len(done['paths'])} paths ({', '.join(done['paths'])}), sets {', '.join(done['sets'])}, "
+        f"{len(done['outputs'])} recorded outputs"
+    )
     return 0
 
 

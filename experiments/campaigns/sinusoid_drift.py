@@ -28,8 +28,15 @@ def gains_file(name: str) -> pathlib.Path:
     return HAND_SET if name == HAND_SET.stem else GAINS / f"{name}.json"
 
 
-SETS = ("com_critical_100", "tuned_gradient", "tuned_cmaes", "tuned_random", "tuned_gradient_stiff_com",
-        "tuned_cmaes_stiff_com", "tuned_random_stiff_com")  # fmt: skip
+SETS = (
+    "com_critical_100",
+    "tuned_gradient",
+    "tuned_cmaes",
+    "tuned_random",
+    "tuned_gradient_stiff_com",
+    "tuned_cmaes_stiff_com",
+    "tuned_random_stiff_com",
+)
 WINDOWS = ((0.0, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 15.0), (15.0, 20.0))
 
 
@@ -41,8 +48,13 @@ def windowed(traj, windows=WINDOWS, top: int = 4) -> dict:
     rows = []
     for a, b in windows:
         m = (t >= a) & (t < b)
-        rows.append({"window_s": [a, b], "com_rms_m_xyz": np.sqrt(np.mean(err[m] ** 2, 0)).tolist(),
-                     "posture_rms_rad": float(np.sqrt(np.mean(ds[m] ** 2)))})  # fmt: skip
+        rows.append(
+            {
+                "window_s": [a, b],
+                "com_rms_m_xyz": np.sqrt(np.mean(err[m] ** 2, 0)).tolist(),
+                "posture_rms_rad": float(np.sqrt(np.mean(ds[m] ** 2))),
+            }
+        )
     last = t >= windows[-1][0]
     per_joint = np.sqrt(np.mean(ds[last] ** 2, 0))
     order = np.argsort(-per_joint)[:top]
@@ -81,17 +93,28 @@ def main(argv=None) -> int:
     drift = {}
     for n in args.windowed:
         with tempfile.TemporaryDirectory() as tmp:
-            balance.run(task="sinusoid", duration=20.0, gains=str(gains_file(n)), out=tmp, plots=False,
-                        progress=False)  # fmt: skip
+            balance.run(task="sinusoid", duration=20.0, gains=str(gains_file(n)), out=tmp, plots=False, progress=False)
             drift[n] = windowed(dict(np.load(pathlib.Path(tmp) / "trajectory.npz")))
-    report = {"sinusoid_com_rmse_m_by_duration": rmse, "drift_20s": drift, "backend": "mujoco",
-              "device": prov["device"]["label"], "provenance": prov}  # fmt: skip
+    report = {
+        "sinusoid_com_rmse_m_by_duration": rmse,
+        "drift_20s": drift,
+        "backend": "mujoco",
+        "device": prov["device"]["label"],
+        "provenance": prov,
+    }
     out = pathlib.Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     io.atomic_write_json(out, report)
-    print(json.dumps({"rmse_mm": {n: {d: round(v * 1e3, 2) for d, v in r.items()} for n, r in rmse.items()},
-                      "posture_rms_rad": {n: [round(w["posture_rms_rad"], 3) for w in d["windows"]]
-                                          for n, d in drift.items()}}))  # fmt: skip
+    print(
+        json.dumps(
+            {
+                "rmse_mm": {n: {d: round(v * 1e3, 2) for d, v in r.items()} for n, r in rmse.items()},
+                "posture_rms_rad": {
+                    n: [round(w["posture_rms_rad"], 3) for w in d["windows"]] for n, d in drift.items()
+                },
+            }
+        )
+    )
     return 0
 
 

@@ -68,8 +68,12 @@ def main(argv=None) -> int:
     p.add_argument("--floors", type=float, nargs="+", default=[30.0, 50.0, 70.0, 85.0, 100.0])
     p.add_argument("--sinusoid-s", type=float, default=20.0)
     p.add_argument("--write-gains", action="store_true", help="write experiments/gains/tuned_{set}{suffix}.json")
-    p.add_argument("--suffix", default=None, help="of the gains files written (default: _stiff_com, with "
-                   "--restore-yaw _stiff_com_yaw); an existing file with other gains is never overwritten")  # fmt: skip
+    p.add_argument(
+        "--suffix",
+        default=None,
+        help="of the gains files written (default: _stiff_com, with "
+        "--restore-yaw _stiff_com_yaw); an existing file with other gains is never overwritten",
+    )
     p.add_argument("--restore-yaw", action="store_true", help="first raise K_P,w z and K_I,w z to the WBC defaults")
     args = p.parse_args(argv)
     if not args.floors or any(not (np.isfinite(f) and f > 0) for f in args.floors):
@@ -81,8 +85,9 @@ def main(argv=None) -> int:
         tuned = {s: with_yaw_floor(g, default_gains(ICUB, np.asarray(g.kp_ang).dtype)) for s, g in tuned.items()}
     suffix = args.suffix or ("_stiff_com_yaw" if args.restore_yaw else "_stiff_com")
     targets = {s: GAINS / f"tuned_{s}{suffix}.json" for s in args.sets}
-    prov = provenance.record({f"gains:{s}": GAINS / f"tuned_{s}.json" for s in args.sets},
-                             argv=provenance.script_argv(__file__, argv))  # fmt: skip
+    prov = provenance.record(
+        {f"gains:{s}": GAINS / f"tuned_{s}.json" for s in args.sets}, argv=provenance.script_argv(__file__, argv)
+    )
     rows = [(s, f, with_com_floor(g, f)) for s, g in tuned.items() for f in floors]
     hc = tuning_eval.HeldoutConfig(sinusoid_s=args.sinusoid_s, sinusoid_backend="mujoco")
     rmse, timing = tuning_eval.sinusoid([g for _, _, g in rows], tuning_params.default_regularisation(), hc)
@@ -97,17 +102,28 @@ def main(argv=None) -> int:
         chosen[s]["sinusoid_com_rmse_m"] = table[s][f"{chosen[s]['floor']:g}"]
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    report = {"sinusoid_com_rmse_m": table, "chosen": chosen, "bound_m": bound, "sinusoid_s": args.sinusoid_s,
-              "restore_yaw": args.restore_yaw,
-              "backend": "mujoco", "timing": timing, "device": prov["device"]["label"], "provenance": prov}  # fmt: skip
+    report = {
+        "sinusoid_com_rmse_m": table,
+        "chosen": chosen,
+        "bound_m": bound,
+        "sinusoid_s": args.sinusoid_s,
+        "restore_yaw": args.restore_yaw,
+        "backend": "mujoco",
+        "timing": timing,
+        "device": prov["device"]["label"],
+        "provenance": prov,
+    }
     io.atomic_write_json(out / "sinusoid_cpu.json", report)
     if args.write_gains:  # after the report: a name taken by other gains loses no measurement
         for s, c in chosen.items():
             io.write_new_json(targets[s], gains_to_dict(with_com_floor(tuned[s], c["floor"])))
         report["gains_written"] = {s: provenance.display_path(t) for s, t in targets.items()}
         io.atomic_write_json(out / "sinusoid_cpu.json", report)
-    print(json.dumps({"chosen": chosen, "rmse_mm": {s: {f: round(v * 1e3, 3) for f, v in t.items()}
-                                                    for s, t in table.items()}}))  # fmt: skip
+    print(
+        json.dumps(
+            {"chosen": chosen, "rmse_mm": {s: {f: round(v * 1e3, 3) for f, v in t.items()} for s, t in table.items()}}
+        )
+    )
     return 0
 
 

@@ -46,8 +46,11 @@ def upgraded(record: dict, run_dir: pathlib.Path) -> dict:
     new_fp = {k: v for k, v in fp.items() if k != "files"}
     new_fp["config"] = canonical(fp["config"])
     new_fp[runs.INPUT_PATHS] = dict(files)  # where they lay then (kept, never compared)
-    outputs = {f.relative_to(run_dir).as_posix(): provenance.sha256(f) for f in sorted(run_dir.rglob("*"))
-               if f.is_file() and f.name != runs.MANIFEST}  # fmt: skip
+    outputs = {
+        f.relative_to(run_dir).as_posix(): provenance.sha256(f)
+        for f in sorted(run_dir.rglob("*"))
+        if f.is_file() and f.name != runs.MANIFEST
+    }
     return {**record, "fingerprint": new_fp, runs.OUTPUTS: outputs}
 
 
@@ -63,8 +66,16 @@ def main(argv=None) -> int:
     except (OSError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
-    print(json.dumps({"run": str(run_dir), "inputs": new["fingerprint"][runs.INPUT_PATHS],
-                      "outputs_adopted": len(new[runs.OUTPUTS]), "written": not args.dry_run}))  # fmt: skip
+    print(
+        json.dumps(
+            {
+                "run": str(run_dir),
+                "inputs": new["fingerprint"][runs.INPUT_PATHS],
+                "outputs_adopted": len(new[runs.OUTPUTS]),
+                "written": not args.dry_run,
+            }
+        )
+    )
     if not args.dry_run:
         io.atomic_write_json(run_dir / runs.MANIFEST, new)
     return 0

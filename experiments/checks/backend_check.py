@@ -55,15 +55,24 @@ def main(argv=None) -> dict:
         run = runner.run(st, scenario.single(st, scenario.make_push(*PUSH, st.dtype)))
         com[b] = np.asarray(run.records.com[0], float)
         m = metrics_lib.summarize(jax.tree_util.tree_map(lambda x: x[0], run.metrics), PUSH[1] + PUSH[2])
-        summary[b] = {"compile_s": round(run.compile_s, 2), "com_max_err_m": m["com_max_err_m"],
-                      "max_foot_slip_m": m["max_foot_slip_m"], "upright": bool(m["upright"]),
-                      "com_excursion_m": float(np.linalg.norm(com[b] - com[b][0], axis=1).max())}  # fmt: skip
+        summary[b] = {
+            "compile_s": round(run.compile_s, 2),
+            "com_max_err_m": m["com_max_err_m"],
+            "max_foot_slip_m": m["max_foot_slip_m"],
+            "upright": bool(m["upright"]),
+            "com_excursion_m": float(np.linalg.norm(com[b] - com[b][0], axis=1).max()),
+        }
     pairs = {
         f"{a}-{b}": float(np.linalg.norm(com[a] - com[b], axis=1).max()) for a, b in itertools.combinations(backends, 2)
     }
-    result = {"max_com_difference_m": pairs, "backends": summary, "dtype": str(scenario.float_dtype()),
-              "device": provenance.device_label(), "scenario": "stand, 40 N lateral chest push 0.3-0.4 s, 1 s",
-              "provenance": provenance.record(argv=provenance.script_argv(__file__, argv))}  # fmt: skip
+    result = {
+        "max_com_difference_m": pairs,
+        "backends": summary,
+        "dtype": str(scenario.float_dtype()),
+        "device": provenance.device_label(),
+        "scenario": "stand, 40 N lateral chest push 0.3-0.4 s, 1 s",
+        "provenance": provenance.record(argv=provenance.script_argv(__file__, argv)),
+    }
     result["check"] = checks.verdict(failures(result), BAR)
     io.atomic_write_json(pathlib.Path(args.out) / "backend_check.json", result)
     print(json.dumps(result), flush=True)

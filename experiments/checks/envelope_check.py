@@ -63,12 +63,21 @@ def main(argv=None) -> dict:
     runner.enable_compilation_cache()
     found = envelope.search(cfg, resolution=args.resolution, progress=False)
     comparison = envelope.compare_with_grid(found, grid_summary, step)
-    result = {**comparison, "bisection_rollouts": found["rollouts"], "grid_rollouts": grid_rollouts,
-              "rollout_ratio": grid_rollouts * cfg.gain_sets / found["rollouts"], "rounds": found["rounds"],
-              "run_s": found["run_s"], "compile_s": found["compile_s"], "backend": found["backend"],
-              "device": provenance.device_label(),
-              "provenance": provenance.record({"grid": pathlib.Path(args.grid) / "results.parquet", "gains": cfg.gains,
-                                               "tasks": cfg.controller.tasks}, argv=provenance.script_argv(__file__, given))}  # fmt: skip
+    result = {
+        **comparison,
+        "bisection_rollouts": found["rollouts"],
+        "grid_rollouts": grid_rollouts,
+        "rollout_ratio": grid_rollouts * cfg.gain_sets / found["rollouts"],
+        "rounds": found["rounds"],
+        "run_s": found["run_s"],
+        "compile_s": found["compile_s"],
+        "backend": found["backend"],
+        "device": provenance.device_label(),
+        "provenance": provenance.record(
+            {"grid": pathlib.Path(args.grid) / "results.parquet", "gains": cfg.gains, "tasks": cfg.controller.tasks},
+            argv=provenance.script_argv(__file__, given),
+        ),
+    }
     result["check"] = checks.verdict(failures(result), BAR)
     out = pathlib.Path(args.out)
     io.atomic_write_json(out / "envelope_check.json", result)

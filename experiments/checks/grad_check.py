@@ -32,8 +32,10 @@ from wbc_jax.core import checks, provenance
 
 FD_STEPS = (1e-3, 1e-4, 1e-5)  # central-difference steps in the (unconstrained) parameters
 MAX_REL_ERR = 0.05
-BAR = (f"no non-finite loss or gradient; per parameter group a smooth scenario, and the gradient within "
-       f"{100 * MAX_REL_ERR:g} % of the central differences on every smooth one")  # fmt: skip
+BAR = (
+    f"no non-finite loss or gradient; per parameter group a smooth scenario, and the gradient within "
+    f"{100 * MAX_REL_ERR:g} % of the central differences on every smooth one"
+)
 
 
 def failures(result: dict) -> list[str]:
@@ -45,15 +47,21 @@ def failures(result: dict) -> list[str]:
         smooth = [r for r in rows if r["smooth"]]
         if not smooth:
             out.append(f"{group}: the central differences disagree between steps on every scenario checked")
-        out += [f"{group}, scenario {r['scenario']}: gradient {r['ad']:.6g} vs central difference "
-                f"{r['fd'][str(FD_STEPS[2])]:.6g} ({100 * r['rel_err']:.2f} % > {100 * MAX_REL_ERR:g} %)"
-                for r in smooth if not r["rel_err"] < MAX_REL_ERR]  # fmt: skip
+        out += [
+            f"{group}, scenario {r['scenario']}: gradient {r['ad']:.6g} vs central difference "
+            f"{r['fd'][str(FD_STEPS[2])]:.6g} ({100 * r['rel_err']:.2f} % > {100 * MAX_REL_ERR:g} %)"
+            for r in smooth
+            if not r["rel_err"] < MAX_REL_ERR
+        ]
     return out
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
-                                     epilog=f"Check: {BAR}; exit status 1 otherwise.")  # fmt: skip
+    parser = argparse.ArgumentParser(
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=f"Check: {BAR}; exit status 1 otherwise.",
+    )
     parser.add_argument("n", type=int, help="number of random scenarios")
     parser.add_argument("--out", default=None, help="also write the JSON here")
     parser.add_argument("--fd-scenarios", type=int, default=3, help="scenarios checked by central differences")
@@ -72,20 +80,38 @@ def main(argv=None) -> dict:
     from wbc_jax.tuning.algorithms import problem as tp
 
     rng = np.random.default_rng(7)
-    tc = config.TuneConfig(horizon=0.1, push_onset=0.02, duration_range=(0.05, 0.05), joint_noise=0.02,
-                       friction_range=(0.6, 1.2), mass_range=(0.9, 1.1), tune_regularisation=True,
-                       eval_horizon=0.1)  # fmt: skip
+    tc = config.TuneConfig(
+        horizon=0.1,
+        push_onset=0.02,
+        duration_range=(0.05, 0.05),
+        joint_noise=0.02,
+        friction_range=(0.6, 1.2),
+        mass_range=(0.9, 1.1),
+        tune_regularisation=True,
+        eval_horizon=0.1,
+    )
     problem = tp.make_problem(tc, checkpoint=True)
     robot = problem.robot
     # Random push magnitudes (0-150 N) and azimuths on the chest; random plant and posture.
     az, mag = rng.uniform(0, 360, n), rng.uniform(0, 150, n)
-    scen, _ = tp.pushes_at(robot, az, mag * 0.05, np.full(n, robot.index.body_id("chest")), np.full(n, 0.05),
-                           tc.push_onset, rng.uniform(0.6, 1.2, n), rng.uniform(0.9, 1.1, n),
-                           rng.normal(scale=0.02, size=(n, robot.index.n)), np.float64)  # fmt: skip
+    scen, _ = tp.pushes_at(
+        robot,
+        az,
+        mag * 0.05,
+        np.full(n, robot.index.body_id("chest")),
+        np.full(n, 0.05),
+        tc.push_onset,
+        rng.uniform(0.6, 1.2, n),
+        rng.uniform(0.9, 1.1, n),
+        rng.normal(scale=0.02, size=(n, robot.index.n)),
+        np.float64,
+    )
     # Random parameters of every group inside the bounds, around the start.
     p0 = problem.init_params()
-    params = {k: jnp.asarray(v + rng.normal(scale=0.3 if k == "regularisation" else 0.7, size=(n,) + v.shape))
-              for k, v in p0.items()}  # fmt: skip
+    params = {
+        k: jnp.asarray(v + rng.normal(scale=0.3 if k == "regularisation" else 0.7, size=(n,) + v.shape))
+        for k, v in p0.items()
+    }
     loss_fn = tp.make_batched_loss(problem, fixed_solver=True)
 
     def one(p, s):
@@ -94,8 +120,10 @@ def main(argv=None) -> dict:
 
     loss, grad = jax.jit(jax.vmap(jax.value_and_grad(one)))(params, scen)
     # Scenarios with any non-finite gradient entry, plus non-finite losses.
-    nonfinite = int(sum(np.sum(~np.isfinite(np.asarray(g)).reshape(n, -1).all(1)) for g in grad.values())
-                    + np.sum(~np.isfinite(np.asarray(loss))))  # fmt: skip
+    nonfinite = int(
+        sum(np.sum(~np.isfinite(np.asarray(g)).reshape(n, -1).all(1)) for g in grad.values())
+        + np.sum(~np.isfinite(np.asarray(loss)))
+    )
     # Central differences along a random direction per group, on the first K scenarios, at three
     # step sizes: where they agree (within 1 %) the loss is smooth at that scale and the gradient
     # must match them; where they do not, a contact or active-set change lies within the step and
@@ -115,12 +143,25 @@ def main(argv=None) -> dict:
             a, b = fds[str(FD_STEPS[1])], fds[str(FD_STEPS[2])]
             smooth = abs(a - b) <= 0.01 * max(abs(a), abs(b)) and abs(b) > 1e-9
             ad = float(np.vdot(grad[k][j], d))
-            rows.append({"scenario": j, "ad": ad, "fd": fds, "smooth": bool(smooth),
-                         "rel_err": abs(ad - b) / max(abs(b), 1e-300)})  # fmt: skip
+            rows.append(
+                {
+                    "scenario": j,
+                    "ad": ad,
+                    "fd": fds,
+                    "smooth": bool(smooth),
+                    "rel_err": abs(ad - b) / max(abs(b), 1e-300),
+                }
+            )
         fd[k] = rows
-    result = {"nonfinite": nonfinite, "n": n, "loss": np.asarray(loss).tolist(), "fd": fd,
-              "groups": list(tuning_params.PARAM_GROUPS), "device": provenance.device_label(),
-              "provenance": provenance.record(argv=provenance.script_argv(__file__, argv))}  # fmt: skip
+    result = {
+        "nonfinite": nonfinite,
+        "n": n,
+        "loss": np.asarray(loss).tolist(),
+        "fd": fd,
+        "groups": list(tuning_params.PARAM_GROUPS),
+        "device": provenance.device_label(),
+        "provenance": provenance.record(argv=provenance.script_argv(__file__, argv)),
+    }
     result["check"] = checks.verdict(failures(result), BAR)
     print(json.dumps(result))
     if args.out:

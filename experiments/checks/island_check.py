@@ -38,9 +38,12 @@ def bar(max_steps: float = MAX_STEPS) -> str:
 
 def failures(result: dict, max_steps: float = MAX_STEPS) -> list[str]:
     """The sweeps with a differing cell further than ``max_steps`` from the reference's band."""
-    out = [f"{name}: {f['outside_the_first_sweeps_band']} differing cells outside the first sweep's transition band, "
-           f"the furthest {f['max_steps_from_the_first_sweeps_band']:g} grid steps from it (> {max_steps:g})"
-           for name, f in result["flips"].items() if not f["max_steps_from_the_first_sweeps_band"] <= max_steps]  # fmt: skip
+    out = [
+        f"{name}: {f['outside_the_first_sweeps_band']} differing cells outside the first sweep's transition band, "
+        f"the furthest {f['max_steps_from_the_first_sweeps_band']:g} grid steps from it (> {max_steps:g})"
+        for name, f in result["flips"].items()
+        if not f["max_steps_from_the_first_sweeps_band"] <= max_steps
+    ]
     return out if result["flips"] else ["one sweep only: nothing compared (give two or more)"]
 
 
@@ -74,18 +77,26 @@ def steps_from_band(magnitude: float, first_fail: float, last_survived: float, s
 def compare(reference: pd.DataFrame, other: pd.DataFrame, band: dict, step: float) -> dict:
     """The cells of ``other`` whose outcome differs from ``reference`` (same grid, same order), and
     how far from the reference's transition band they lie."""
-    if not (np.array_equal(reference.azimuth_deg, other.azimuth_deg)
-            and np.allclose(reference.magnitude_n, other.magnitude_n)):  # fmt: skip
+    if not (
+        np.array_equal(reference.azimuth_deg, other.azimuth_deg)
+        and np.allclose(reference.magnitude_n, other.magnitude_n)
+    ):
         raise ValueError("the sweeps do not cover the same grid (directions and magnitudes)")
     diff = reference[reference.survived.to_numpy() != other.survived.to_numpy()]
     steps = [steps_from_band(r.magnitude_n, *band[float(r.azimuth_deg)], step) for r in diff.itertuples()]
-    return {"cells_differing": int(len(diff)), "outside_the_first_sweeps_band": int(sum(d > 1e-9 for d in steps)),
-            "max_steps_from_the_first_sweeps_band": float(max(steps, default=0.0))}  # fmt: skip
+    return {
+        "cells_differing": int(len(diff)),
+        "outside_the_first_sweeps_band": int(sum(d > 1e-9 for d in steps)),
+        "max_steps_from_the_first_sweeps_band": float(max(steps, default=0.0)),
+    }
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
-                                     epilog=f"Check: {bar()} (--max-steps); exit status 1 otherwise.")  # fmt: skip
+    parser = argparse.ArgumentParser(
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=f"Check: {bar()} (--max-steps); exit status 1 otherwise.",
+    )
     parser.add_argument("sweeps", nargs="+")
     parser.add_argument("--max-steps", type=float, default=MAX_STEPS, help="the bar, in grid steps")
     parser.add_argument("--out", required=True)
@@ -108,9 +119,14 @@ def main(argv=None) -> dict:
     first = next(iter(tables))
     flips = {name: compare(tables[first], t, bands[first], step) for name, t in tables.items() if name != first}
     inputs = {f"sweep:{pathlib.Path(path).name}": pathlib.Path(path) / "results.parquet" for path in args.sweeps}
-    result = {"grid_step_n": step, "n_cells": int(len(tables[first])), "reference": first, "sweeps": per_sweep,
-              "flips": flips,
-              "provenance": provenance.record(inputs, argv=provenance.script_argv(__file__, argv), with_device=False)}  # fmt: skip
+    result = {
+        "grid_step_n": step,
+        "n_cells": int(len(tables[first])),
+        "reference": first,
+        "sweeps": per_sweep,
+        "flips": flips,
+        "provenance": provenance.record(inputs, argv=provenance.script_argv(__file__, argv), with_device=False),
+    }
     result["check"] = checks.verdict(failures(result, args.max_steps), bar(args.max_steps))
     io.atomic_write_json(pathlib.Path(args.out), result)
     print(json.dumps(result, indent=1))

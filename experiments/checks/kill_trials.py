@@ -36,12 +36,49 @@ ROOT = pathlib.Path(__file__).resolve().parents[2]
 BAR = "every resumed run's results equal the uninterrupted reference's, and at least one trial was killed"
 
 JOBS = {
-    "sweep": ["push-sweep", "--magnitudes", "20", "120", "6", "--directions", "8", "--horizon", "1.0",
-              "--push-onset", "0.3", "--chunk-size", "4", "--joint-noise", "0.01", "--friction", "0.7", "1.0",
-              "--quiet"],
-    "tune": ["tune", "--phases", "train", "--steps", "6", "--batch", "2", "--horizon", "0.4", "--push-onset", "0.1",
-             "--duration-range", "0.05", "0.1", "--quality-pushes", "2", "--eval-horizon", "0.4", "--quiet"],
-}  # fmt: skip
+    "sweep": [
+        "push-sweep",
+        "--magnitudes",
+        "20",
+        "120",
+        "6",
+        "--directions",
+        "8",
+        "--horizon",
+        "1.0",
+        "--push-onset",
+        "0.3",
+        "--chunk-size",
+        "4",
+        "--joint-noise",
+        "0.01",
+        "--friction",
+        "0.7",
+        "1.0",
+        "--quiet",
+    ],
+    "tune": [
+        "tune",
+        "--phases",
+        "train",
+        "--steps",
+        "6",
+        "--batch",
+        "2",
+        "--horizon",
+        "0.4",
+        "--push-onset",
+        "0.1",
+        "--duration-range",
+        "0.05",
+        "0.1",
+        "--quality-pushes",
+        "2",
+        "--eval-horizon",
+        "0.4",
+        "--quiet",
+    ],
+}
 
 
 def run_job(job: str, out: pathlib.Path, kill_after: float | None, env: dict) -> tuple[int, float]:
@@ -134,14 +171,19 @@ def main(argv=None) -> dict:
             if code not in (0, -signal.SIGKILL):
                 break
         diffs = compare(args.job, ref, target) if code == 0 else [f"exit {code}"]
-        trials.append({"trial": k, "kill_after_s": round(delay, 2), "killed": bool(kills), "starts": starts,
-                       "differences": diffs})  # fmt: skip
+        trials.append(
+            {"trial": k, "kill_after_s": round(delay, 2), "killed": bool(kills), "starts": starts, "differences": diffs}
+        )
         print(json.dumps(trials[-1]), flush=True)
     result = {
-        "kill_job": args.job, "kill_trials": len(trials), "kill_killed": sum(t["killed"] for t in trials),
-        "kill_mismatches": sum(bool(t["differences"]) for t in trials), "trials": trials,
-        "device": provenance.device_label(), "provenance": provenance.record(argv=provenance.script_argv(__file__, argv)),
-    }  # fmt: skip
+        "kill_job": args.job,
+        "kill_trials": len(trials),
+        "kill_killed": sum(t["killed"] for t in trials),
+        "kill_mismatches": sum(bool(t["differences"]) for t in trials),
+        "trials": trials,
+        "device": provenance.device_label(),
+        "provenance": provenance.record(argv=provenance.script_argv(__file__, argv)),
+    }
     result["check"] = checks.verdict(failures(result), BAR)
     from wbc_jax.core import io
 

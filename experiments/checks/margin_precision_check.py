@@ -62,8 +62,11 @@ def failures(result: dict) -> list[str]:
 
 
 def main(argv=None) -> dict:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
-                                epilog=f"Check: {BAR}; exit status 1 otherwise.")  # fmt: skip
+    p = argparse.ArgumentParser(
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=f"Check: {BAR}; exit status 1 otherwise.",
+    )
     p.add_argument("--old", help="a metrics.py of an earlier revision")
     p.add_argument("--n", type=int, default=256)
     p.add_argument("--out", default="runs/margin_precision.json")

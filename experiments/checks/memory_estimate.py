@@ -62,9 +62,16 @@ def mjx_bytes_per_env(backend: str, batch: int) -> dict:
     from wbc_jax.sim import loop as loop_lib
     from wbc_jax.sim import scenario
 
-    cfg = sweep_config.SweepConfig(magnitudes=(20.0,), directions=tuple(np.linspace(0, 360, batch, endpoint=False)),
-                                   horizon=0.2, push_onset=0.05, push_duration=0.05, backend=backend,
-                                   chunk_size=batch, out=None)  # fmt: skip
+    cfg = sweep_config.SweepConfig(
+        magnitudes=(20.0,),
+        directions=tuple(np.linspace(0, 360, batch, endpoint=False)),
+        horizon=0.2,
+        push_onset=0.05,
+        push_duration=0.05,
+        backend=backend,
+        chunk_size=batch,
+        out=None,
+    )
     dtype = scenario.float_dtype()
     base = sweep.base_gains(cfg, 23, dtype)
     st = sweep.make_setup(cfg, base)
@@ -73,8 +80,10 @@ def mjx_bytes_per_env(backend: str, batch: int) -> dict:
     runner.run(st, scen, batch_size=batch)
     (key,) = set(loop_lib.PROGRAMS) - before
     per_device = loop_lib.PROGRAMS[key].compiled.values()  # per_device.PerDevice: one program per device
-    compiled = sum(ma.temp_size_in_bytes + ma.argument_size_in_bytes + ma.output_size_in_bytes
-                   for ma in (c.memory_analysis() for c in per_device))  # fmt: skip
+    compiled = sum(
+        ma.temp_size_in_bytes + ma.argument_size_in_bytes + ma.output_size_in_bytes
+        for ma in (c.memory_analysis() for c in per_device)
+    )
     out = {"compiled_per_env": compiled / batch, "estimate_per_env": runner.memory_estimate(st, batch)["per_env"]}
     stats = jax.devices()[0].memory_stats() if jax.devices()[0].platform != "cpu" else None
     if stats and "peak_bytes_in_use" in stats:
@@ -86,8 +95,11 @@ def failures(result: dict) -> list[str]:
     """One line per measurement above its estimate; none measured is a failure too."""
     if not result.get("rows"):
         return ["nothing was measured"]
-    return [f"{r['backend']} batch {r['batch']}: measured {r['measured_over_estimate']:g} x the estimate"
-            for r in result["rows"] if r["measured_over_estimate"] > 1.0]  # fmt: skip
+    return [
+        f"{r['backend']} batch {r['batch']}: measured {r['measured_over_estimate']:g} x the estimate"
+        for r in result["rows"]
+        if r["measured_over_estimate"] > 1.0
+    ]
 
 
 def main(argv=None) -> dict:
@@ -105,12 +117,23 @@ def main(argv=None) -> dict:
             else:
                 measured = mjx_bytes_per_env(backend, batch)
                 estimate = measured.pop("estimate_per_env")
-            rows.append({"backend": backend, "batch": batch, **{k: round(v) for k, v in measured.items()},
-                         "estimate_per_env": round(estimate),
-                         "measured_over_estimate": round(max(measured.values()) / estimate, 3)})  # fmt: skip
+            rows.append(
+                {
+                    "backend": backend,
+                    "batch": batch,
+                    **{k: round(v) for k, v in measured.items()},
+                    "estimate_per_env": round(estimate),
+                    "measured_over_estimate": round(max(measured.values()) / estimate, 3),
+                }
+            )
             print(json.dumps(rows[-1]), flush=True)
-    result = {"rows": rows, "mjx_env_factor": runner.MJX_ENV_FACTOR, "host_env_bytes": runner.HOST_ENV_BYTES,
-              "device": provenance.device_label(), "provenance": provenance.record()}  # fmt: skip
+    result = {
+        "rows": rows,
+        "mjx_env_factor": runner.MJX_ENV_FACTOR,
+        "host_env_bytes": runner.HOST_ENV_BYTES,
+        "device": provenance.device_label(),
+        "provenance": provenance.record(),
+    }
     result["check"] = checks.verdict(failures(result), BAR)
     io.atomic_write_json(pathlib.Path(args.out) / "memory_estimate.json", result)
     return result

@@ -69,13 +69,23 @@ def compare_tables(a, b, rtol: float, atol: float) -> list[str]:
             continue
         bad = ~np.isclose(x, y, rtol=rtol, atol=atol, equal_nan=True)
         if bad.any():
-            problems.append(f"{col}: {int(bad.sum())} entries beyond atol {atol:g} + rtol {rtol:g} "
-                            f"(largest difference {np.nanmax(np.abs(x - y)):.3g})")  # fmt: skip
+            problems.append(
+                f"{col}: {int(bad.sum())} entries beyond atol {atol:g} + rtol {rtol:g} "
+                f"(largest difference {np.nanmax(np.abs(x - y)):.3g})"
+            )
     return problems
 
 
-def compare_processes(sweep_flags: list[str], out, *, processes: int = 2, timeout_s: float = 1200.0,
-                      rtol: float = 1e-6, atol: float = 1e-6, env: dict | None = None) -> dict:  # fmt: skip
+def compare_processes(
+    sweep_flags: list[str],
+    out,
+    *,
+    processes: int = 2,
+    timeout_s: float = 1200.0,
+    rtol: float = 1e-6,
+    atol: float = 1e-6,
+    env: dict | None = None,
+) -> dict:
     """Run the sweep in one process and in ``processes`` processes and compare the tables.
 
     Args:
@@ -97,18 +107,33 @@ def compare_processes(sweep_flags: list[str], out, *, processes: int = 2, timeou
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
     failures = []
-    one = subprocess.run(_command(sweep_flags, out / "one", []), env=_env(env), capture_output=True, text=True,
-                         timeout=timeout_s)  # fmt: skip
+    one = subprocess.run(
+        _command(sweep_flags, out / "one", []), env=_env(env), capture_output=True, text=True, timeout=timeout_s
+    )
     result = {"one": {"rc": one.returncode, "stderr": _tail(one.stderr)}, "processes": processes}
     if one.returncode != 0:
         failures.append(f"the one-process run failed (rc {one.returncode}): {_tail(one.stderr)}")
     port = free_port()
     procs = []
     for rank in range(processes):
-        dist = ["--distributed", "--coordinator", f"localhost:{port}", "--num-processes", str(processes),
-                "--process-id", str(rank)]  # fmt: skip
-        procs.append(subprocess.Popen(_command(sweep_flags, out / "many", dist), env=_env(env), text=True,
-                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE))  # fmt: skip
+        dist = [
+            "--distributed",
+            "--coordinator",
+            f"localhost:{port}",
+            "--num-processes",
+            str(processes),
+            "--process-id",
+            str(rank),
+        ]
+        procs.append(
+            subprocess.Popen(
+                _command(sweep_flags, out / "many", dist),
+                env=_env(env),
+                text=True,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+            )
+        )
     many = []
     for rank, proc in enumerate(procs):
         try:
@@ -136,16 +161,33 @@ def compare_processes(sweep_flags: list[str], out, *, processes: int = 2, timeou
     return result
 
 
-SWEEP = ["--magnitudes", "20", "300", "4", "--directions", "2", "--horizon", "0.6", "--push-onset", "0.1",
-         "--chunk-size", "8", "--backend", "jax"]  # fmt: skip
+SWEEP = [
+    "--magnitudes",
+    "20",
+    "300",
+    "4",
+    "--directions",
+    "2",
+    "--horizon",
+    "0.6",
+    "--push-onset",
+    "0.1",
+    "--chunk-size",
+    "8",
+    "--backend",
+    "jax",
+]
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", default="runs/multihost")
     p.add_argument("--processes", type=int, default=2)
-    p.add_argument("--float32", action="store_true", help="float32 (default float64: rounding of the per-device "
-                   "batch shapes stays ~1e-8 on the falling robots)")  # fmt: skip
+    p.add_argument(
+        "--float32",
+        action="store_true",
+        help="float32 (default float64: rounding of the per-device batch shapes stays ~1e-8 on the falling robots)",
+    )
     p.add_argument("--rtol", type=float, default=1e-6, help="bar: relative tolerance of the continuous columns")
     p.add_argument("--atol", type=float, default=1e-6, help="bar: absolute tolerance of the continuous columns")
     p.add_argument("--timeout", type=float, default=1800.0, help="seconds each run may take (bar: no hang)")
@@ -153,8 +195,9 @@ def main(argv=None) -> int:
     if args.processes < 2:
         p.error("--processes must be at least 2")
     env = {} if args.float32 else {"JAX_ENABLE_X64": "1"}
-    result = compare_processes(SWEEP, args.out, processes=args.processes, timeout_s=args.timeout,
-                               rtol=args.rtol, atol=args.atol, env=env)  # fmt: skip
+    result = compare_processes(
+        SWEEP, args.out, processes=args.processes, timeout_s=args.timeout, rtol=args.rtol, atol=args.atol, env=env
+    )
     result["provenance"] = provenance.record(argv=["experiments/checks/multihost_check.py", *(argv or sys.argv[1:])])
     io.atomic_write_json(pathlib.Path(args.out) / "multihost.json", result)
     print(json.dumps({"failures": result["failures"], "envs": result.get("envs")}), flush=True)

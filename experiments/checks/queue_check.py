@@ -36,8 +36,10 @@ MAX_DIFFER = 0.015  # of the environments: a survived or upright outcome that di
 
 
 def bar(max_differ: float = MAX_DIFFER) -> str:
-    return (f"no NaN outcome differs from the plain sweep's, and at most {100 * max_differ:g} % of the environments' "
-            "survived or upright outcomes do (each other sweep, and the plain sweep's repeat)")  # fmt: skip
+    return (
+        f"no NaN outcome differs from the plain sweep's, and at most {100 * max_differ:g} % of the environments' "
+        "survived or upright outcomes do (each other sweep, and the plain sweep's repeat)"
+    )
 
 
 def failures(result: dict, max_differ: float = MAX_DIFFER) -> list[str]:
@@ -56,8 +58,10 @@ def failures(result: dict, max_differ: float = MAX_DIFFER) -> list[str]:
         for column in ("survived", "upright"):
             rate = outcomes[column]["differ"] / n
             if not rate <= max_differ:
-                out.append(f"{name}: {outcomes[column]['differ']} of {n} {column} outcomes differ "
-                           f"({100 * rate:.2f} % > {100 * max_differ:g} %)")  # fmt: skip
+                out.append(
+                    f"{name}: {outcomes[column]['differ']} of {n} {column} outcomes differ "
+                    f"({100 * rate:.2f} % > {100 * max_differ:g} %)"
+                )
     return out
 
 
@@ -93,14 +97,21 @@ def compare(plain: pd.DataFrame, queued: pd.DataFrame) -> dict:
         differ = plain[column].to_numpy() != queued[column].to_numpy()
         rows = plain[differ]
         inside = [in_band(plain, r, column) for r in rows.itertuples()] if column in ("survived", "upright") else []
-        out[column] = {"differ": int(differ.sum()), "inside_band": int(sum(inside)), "rate_plain": float(plain[column].mean()),
-                       "rate_queued": float(queued[column].mean())}  # fmt: skip
+        out[column] = {
+            "differ": int(differ.sum()),
+            "inside_band": int(sum(inside)),
+            "rate_plain": float(plain[column].mean()),
+            "rate_queued": float(queued[column].mean()),
+        }
     return out
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
-                                     epilog=f"Check: {bar()} (--max-differ); exit status 1 otherwise.")  # fmt: skip
+    parser = argparse.ArgumentParser(
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=f"Check: {bar()} (--max-differ); exit status 1 otherwise.",
+    )
     parser.add_argument("plain")
     parser.add_argument("queued", nargs="+")
     parser.add_argument("--max-differ", type=float, default=MAX_DIFFER, help="the bar, a fraction of the environments")
@@ -109,21 +120,34 @@ def main(argv=None) -> dict:
     if not 0 <= args.max_differ < 1:
         parser.error(f"--max-differ must lie in [0, 1), got {args.max_differ}")
     plain, ps = load(args.plain)
-    result = {"plain": {"dir": args.plain, "queue": ps["config"].get("queue", 1), "run_s": ps["run_s"],
-                        "chunk_size": ps["config"]["chunk_size"],
-                        "physics_steps_simulated": ps.get("physics_steps_simulated"), "n_envs": ps["n_envs"],
-                        "backend": ps["backend"], "device": ps["device"]},
-              "queued": []}  # fmt: skip
+    result = {
+        "plain": {
+            "dir": args.plain,
+            "queue": ps["config"].get("queue", 1),
+            "run_s": ps["run_s"],
+            "chunk_size": ps["config"]["chunk_size"],
+            "physics_steps_simulated": ps.get("physics_steps_simulated"),
+            "n_envs": ps["n_envs"],
+            "backend": ps["backend"],
+            "device": ps["device"],
+        },
+        "queued": [],
+    }
     if (pathlib.Path(args.plain) / "run_1" / "results.parquet").exists():
         result["plain"]["repeat_outcomes"] = compare(plain, load(args.plain, repeat=1)[0])
     for path in args.queued:
         table, s = load(path)
-        result["queued"].append({
-            "dir": path, "queue": s["config"].get("queue", 1), "chunk_size": s["config"]["chunk_size"], "run_s": s["run_s"],
-            "physics_steps_simulated": s.get("physics_steps_simulated"),
-            "speedup_run": ps["run_s"] / s["run_s"] if s["run_s"] else None,
-            "outcomes": compare(plain, table),
-        })  # fmt: skip
+        result["queued"].append(
+            {
+                "dir": path,
+                "queue": s["config"].get("queue", 1),
+                "chunk_size": s["config"]["chunk_size"],
+                "run_s": s["run_s"],
+                "physics_steps_simulated": s.get("physics_steps_simulated"),
+                "speedup_run": ps["run_s"] / s["run_s"] if s["run_s"] else None,
+                "outcomes": compare(plain, table),
+            }
+        )
     inputs = {f"sweep:{i}": results_path(d) for i, d in enumerate([args.plain, *args.queued])}
     result["provenance"] = provenance.record(inputs, argv=provenance.script_argv(__file__, argv), with_device=False)
     result["check"] = checks.verdict(failures(result, args.max_differ), bar(args.max_differ))

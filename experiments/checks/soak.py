@@ -74,16 +74,30 @@ def random_scenarios(rng: np.random.Generator, n: int, robot, dtype) -> Scenario
     home = robot.home_qpos()[idx.qpos_joints]
     offset = np.clip(home + rng.normal(scale=0.05, size=(n, idx.n)), lo_lim, hi_lim) - home
     return Scenario(
-        push=Push(force=force[:, None].astype(dtype), onset=rng.uniform(0.05, 0.3, (n, 1)).astype(dtype),
-                          duration=duration[:, None].astype(dtype), body=body[:, None].astype(np.int32)),
+        push=Push(
+            force=force[:, None].astype(dtype),
+            onset=rng.uniform(0.05, 0.3, (n, 1)).astype(dtype),
+            duration=duration[:, None].astype(dtype),
+            body=body[:, None].astype(np.int32),
+        ),
         gains=Gains(**{k: v.astype(dtype) for k, v in gains.items()}),
-        joint_offset=offset.astype(dtype), friction=rng.uniform(0.05, 2.0, n).astype(dtype),
+        joint_offset=offset.astype(dtype),
+        friction=rng.uniform(0.05, 2.0, n).astype(dtype),
         mass_scale=rng.uniform(0.5, 1.5, n).astype(dtype),
-    )  # fmt: skip
+    )
 
 
-FINITE = ("com_rmse_m", "com_max_err_m", "max_constraint_violation", "max_foot_slip_m", "max_foot_tilt_deg",
-          "max_abs_torque_nm", "min_com_height_m", "end_com_speed_mps", "end_com_support_margin_m")  # fmt: skip
+FINITE = (
+    "com_rmse_m",
+    "com_max_err_m",
+    "max_constraint_violation",
+    "max_foot_slip_m",
+    "max_foot_tilt_deg",
+    "max_abs_torque_nm",
+    "min_com_height_m",
+    "end_com_speed_mps",
+    "end_com_support_margin_m",
+)
 
 
 def _records(log: pathlib.Path) -> list[dict]:
@@ -151,16 +165,34 @@ def main(argv=None) -> dict:
             bad = int(np.sum(~np.isfinite(np.asarray(cols[name], float)) & ~flagged))
             if bad:
                 by_column[name] = bad
-        rec = dict(key, envs=n, nan_leaks=sum(by_column.values()), by_column=by_column, flagged=int(flagged.sum()),
-                   fell=int(np.sum(cols["fell"])), upright=int(np.sum(cols["upright"])),
-                   compile_s=round(run.compile_s, 2), run_s=round(run.run_s, 3),
-                   chunk_s=round(time.perf_counter() - t0, 2))  # fmt: skip
+        rec = dict(
+            key,
+            envs=n,
+            nan_leaks=sum(by_column.values()),
+            by_column=by_column,
+            flagged=int(flagged.sum()),
+            fell=int(np.sum(cols["fell"])),
+            upright=int(np.sum(cols["upright"])),
+            compile_s=round(run.compile_s, 2),
+            run_s=round(run.run_s, 3),
+            chunk_s=round(time.perf_counter() - t0, 2),
+        )
         with open(log, "a") as f:
             f.write(json.dumps(rec) + "\n")
         done[c] = rec
         print(json.dumps(rec), flush=True)
-    totals = {"envs": 0, "hangs": 0, "nan_leaks": 0, "diverged_flagged": 0, "fell": 0, "upright": 0,
-              "compile_s": 0.0, "run_s": 0.0, "max_chunk_s": 0.0, "leaks_by_column": {}}  # fmt: skip
+    totals = {
+        "envs": 0,
+        "hangs": 0,
+        "nan_leaks": 0,
+        "diverged_flagged": 0,
+        "fell": 0,
+        "upright": 0,
+        "compile_s": 0.0,
+        "run_s": 0.0,
+        "max_chunk_s": 0.0,
+        "leaks_by_column": {},
+    }
     for rec in (done[c] for c in range(n_chunks)):  # this soak's chunks (a longer earlier one may have logged more)
         for k in ("envs", "nan_leaks", "fell", "upright", "compile_s", "run_s"):
             totals[k] += rec[k]
@@ -174,16 +206,23 @@ def main(argv=None) -> dict:
     aggregate_ok = all(math.isfinite(v) for v in rates.values())
 
     result = {
-        "soak_envs": totals["envs"], "soak_envs_requested": args.envs, "soak_hangs": totals["hangs"],
+        "soak_envs": totals["envs"],
+        "soak_envs_requested": args.envs,
+        "soak_hangs": totals["hangs"],
         "soak_nan_leaks": totals["nan_leaks"] + (0 if aggregate_ok else 1),
-        "soak_diverged_flagged": totals["diverged_flagged"], "soak_rates": rates,
+        "soak_diverged_flagged": totals["diverged_flagged"],
+        "soak_rates": rates,
         "soak_nan_leaks_by_column": totals["leaks_by_column"],
-        "soak_horizon_s": args.horizon, "soak_backend": st.backend,
-        "soak_compile_s": round(totals["compile_s"], 1), "soak_run_s": round(totals["run_s"], 1),
-        "soak_max_chunk_s": totals["max_chunk_s"], "soak_chunk_timeout_s": args.chunk_timeout,
+        "soak_horizon_s": args.horizon,
+        "soak_backend": st.backend,
+        "soak_compile_s": round(totals["compile_s"], 1),
+        "soak_run_s": round(totals["run_s"], 1),
+        "soak_max_chunk_s": totals["max_chunk_s"],
+        "soak_chunk_timeout_s": args.chunk_timeout,
         "soak_physics_steps_per_s": totals["envs"] * st.loop.n_ticks * st.loop.n_sub / max(totals["run_s"], 1e-9),
-        "device": provenance.device_label(), "provenance": provenance.record(argv=provenance.script_argv(__file__, argv)),
-    }  # fmt: skip
+        "device": provenance.device_label(),
+        "provenance": provenance.record(argv=provenance.script_argv(__file__, argv)),
+    }
     result["check"] = checks.verdict(failures(result), BAR)
     io.atomic_write_json(out / "soak.json", result)
     if args.record:

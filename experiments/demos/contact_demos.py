@@ -48,8 +48,11 @@ def main(argv=None) -> dict:
     grid = dict(
         magnitudes=tuple(float(x) for x in np.linspace(lo, hi, int(n))),
         directions=tuple(float(x) for x in np.arange(args.directions) * 360.0 / args.directions),
-        horizon=args.horizon, push_onset=0.5, push_duration=0.1, chunk_size=512,
-    )  # fmt: skip
+        horizon=args.horizon,
+        push_onset=0.5,
+        push_duration=0.1,
+        chunk_size=512,
+    )
     sweeps = {}
     for name, spec in (("hand", HAND), ("feet", FEET)):
         cfg = options.replace(sweep_config.SweepConfig(**grid, out=str(out / f"sweep_{name}")), tasks=str(spec))
@@ -58,8 +61,7 @@ def main(argv=None) -> dict:
     for az in sweeps["feet"]["envelope"]:
         feet = sweeps["feet"]["envelope"][az]["monotone_impulse_ns"]
         hand = sweeps["hand"]["envelope"][az]["monotone_impulse_ns"]
-        envelope[az] = {"feet_impulse_ns": feet, "hand_impulse_ns": hand,
-                        "gain": hand / feet if feet > 0 else None}  # fmt: skip
+        envelope[az] = {"feet_impulse_ns": feet, "hand_impulse_ns": hand, "gain": hand / feet if feet > 0 else None}
     result = {
         "device": provenance.device_label(),
         "provenance": provenance.record({"hand": HAND, "feet": FEET}, argv=provenance.script_argv(__file__, argv)),
@@ -76,7 +78,7 @@ def main(argv=None) -> dict:
                 "duration_s",
                 "device",
             )
-        },  # fmt: skip
+        },
         "push_envelope": envelope,
         "survival_rate": {k: v["survival_rate"] for k, v in sweeps.items()},
         "max_qp_violation_hand_sweep": None,

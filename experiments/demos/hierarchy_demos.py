@@ -49,10 +49,11 @@ def summarize(out: pathlib.Path, duration: float) -> dict:
         "task_rmse_m": {k: {t: v["rmse"] for t, v in r.get("tasks", {}).items()} for k, r in runs.items()},
         "com_rmse_m": {k: r["com_rmse_m"] for k, r in runs.items()},
         "com_rmse_change_with_hand_task_m": {
-            k: r["com_rmse_m"] - none["com_rmse_m"] for k, r in runs.items() if none and k != "no_hand_task"},
+            k: r["com_rmse_m"] - none["com_rmse_m"] for k, r in runs.items() if none and k != "no_hand_task"
+        },
         "fell": {k: bool(r["fell"] or r["nan"]) for k, r in runs.items()},
         "runs": runs,
-    }  # fmt: skip
+    }
 
 
 def main(argv=None) -> None:
@@ -65,8 +66,13 @@ def main(argv=None) -> None:
     out = pathlib.Path(args.out)
     for name in args.runs:
         task_file = RUNS[name]
-        result = balance.run(task="stand", duration=args.duration, out=str(out / name), progress=not args.quiet,
-                             tasks=None if task_file is None else str(task_file))  # fmt: skip
+        result = balance.run(
+            task="stand",
+            duration=args.duration,
+            out=str(out / name),
+            progress=not args.quiet,
+            tasks=None if task_file is None else str(task_file),
+        )
         print(name, json.dumps(result), flush=True)
     summary = summarize(out, args.duration)
     files = {f"tasks:{name}": RUNS[name] for name in args.runs if RUNS[name] is not None}

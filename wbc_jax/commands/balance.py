@@ -10,5 +10,6 @@ def run(cfg: balance.BalanceConfig, progress: bool) -> dict:
     return balance.run(cfg, progress=progress)  # checks cfg first
 
 
-COMMAND = Command("balance", "closed-loop balancing run: metrics, trajectory, plots", balance.default_config, run,
-                  one_robot=True)  # fmt: skip
+COMMAND = Command(
+    "balance", "closed-loop balancing run: metrics, trajectory, plots", balance.default_config, run, one_robot=True
+)

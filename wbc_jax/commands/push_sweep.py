@@ -6,8 +6,19 @@ from wbc_jax.commands import Command
 from wbc_jax.jobs import sweep_config
 
 # The summary's entries on the command's JSON line.
-LINE_KEYS = ("n_envs", "survival_rate", "upright_rate", "nan_envs", "qp_infeasible_envs", "backend",
-             "physics_steps_per_s", "compile_s", "run_s", "started_s", "n_devices")  # fmt: skip
+LINE_KEYS = (
+    "n_envs",
+    "survival_rate",
+    "upright_rate",
+    "nan_envs",
+    "qp_infeasible_envs",
+    "backend",
+    "physics_steps_per_s",
+    "compile_s",
+    "run_s",
+    "started_s",
+    "n_devices",
+)
 
 
 def run(cfg: sweep_config.SweepConfig, progress: bool) -> dict:
@@ -17,5 +28,6 @@ def run(cfg: sweep_config.SweepConfig, progress: bool) -> dict:
     return {k: summary[k] for k in LINE_KEYS}
 
 
-COMMAND = Command("push-sweep", "batched push-recovery sweep (the main job)", sweep_config.default_config, run,
-                  resumable=True)  # fmt: skip
+COMMAND = Command(
+    "push-sweep", "batched push-recovery sweep (the main job)", sweep_config.default_config, run, resumable=True
+)

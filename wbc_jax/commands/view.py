@@ -12,5 +12,6 @@ def run(cfg: view.ViewConfig, progress: bool) -> dict:
     return {"rrd": None if path is None else str(path), "spawned": bool(cfg.spawn)}
 
 
-COMMAND = Command("view", "log a run (or one env of a push sweep) to rerun: .rrd or viewer", view.default_config,
-                  run, compiles=False)  # fmt: skip
+COMMAND = Command(
+    "view", "log a run (or one env of a push sweep) to rerun: .rrd or viewer", view.default_config, run, compiles=False
+)

@@ -214,8 +214,9 @@ def row_weights(cset: ContactSet) -> np.ndarray | None:
     return (fz_min.max() / fz_min)[constraint_contact(cset)]
 
 
-def measured_wrenches(cset: ContactSet, contact_pos: Array, contact_force: Array, contact_geom: Array,
-                      ngeom: int, W_p: Array) -> Array:  # fmt: skip
+def measured_wrenches(
+    cset: ContactSet, contact_pos: Array, contact_force: Array, contact_geom: Array, ngeom: int, W_p: Array
+) -> Array:
     """The contact wrenches (D,) that the simulator applies on each contact (world axes, at the
     contact points W_p (K, 3); a point contact: the force only), summed over its collision geoms.
 

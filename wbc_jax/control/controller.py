@@ -107,9 +107,19 @@ class ControllerConfig:
             raise ValueError(f"unknown forces mode {self.forces!r}; valid: {list(FORCE_MODES)}")
         if self.postural not in torques.POSTURAL_VARIANTS:
             raise ValueError(f"unknown postural variant {self.postural!r}; valid: {list(torques.POSTURAL_VARIANTS)}")
-        positive = ("pinv_damping", "pinv_tol", "hessian_reg", "base_vel_damping", "torque_limit",
-                    "torque_weight_soft", "angular_weight_soft", "normal_force_weight", "detection_threshold", "detection_ramp_out",
-                    "detection_ramp_in")  # fmt: skip
+        positive = (
+            "pinv_damping",
+            "pinv_tol",
+            "hessian_reg",
+            "base_vel_damping",
+            "torque_limit",
+            "torque_weight_soft",
+            "angular_weight_soft",
+            "normal_force_weight",
+            "detection_threshold",
+            "detection_ramp_out",
+            "detection_ramp_in",
+        )
         for name in positive:
             value = getattr(self, name)
             if name == "torque_limit" and value is None:  # the robot's motor limits
@@ -120,13 +130,17 @@ class ControllerConfig:
                 or not (math.isfinite(value) and value > 0)
             ):
                 raise ValueError(f"controller setting {name} must be positive and finite, got {value!r}")
-        if not (isinstance(self.kp_postural_reg, (int, float)) and math.isfinite(self.kp_postural_reg)
-                and self.kp_postural_reg >= 0):  # fmt: skip
+        if not (
+            isinstance(self.kp_postural_reg, (int, float))
+            and math.isfinite(self.kp_postural_reg)
+            and self.kp_postural_reg >= 0
+        ):
             raise ValueError(f"controller setting kp_postural_reg must be >= 0, got {self.kp_postural_reg!r}")
         if isinstance(self.qp_iterations, bool) or not isinstance(self.qp_iterations, int) or self.qp_iterations < 1:
             raise ValueError(f"controller setting qp_iterations must be an integer >= 1, got {self.qp_iterations!r}")
-        if isinstance(self.effort_damping, bool) or not (isinstance(self.effort_damping, (int, float))
-                                                        and 0.0 <= self.effort_damping < math.inf):  # fmt: skip
+        if isinstance(self.effort_damping, bool) or not (
+            isinstance(self.effort_damping, (int, float)) and 0.0 <= self.effort_damping < math.inf
+        ):
             raise ValueError(f"controller setting effort_damping must be >= 0 and finite, got {self.effort_damping!r}")
         for name in ("solution_damping", "projector_reg", "violation_tol"):
             value = getattr(self, name)
@@ -136,11 +150,14 @@ class ControllerConfig:
     @property
     def force_settings(self) -> forces.ForceSettings:
         return forces.ForceSettings(
-            mode=self.forces, hessian_reg=self.hessian_reg, qp_iterations=self.qp_iterations,
-            torque_weight_soft=self.torque_weight_soft, angular_weight_soft=self.angular_weight_soft,
+            mode=self.forces,
+            hessian_reg=self.hessian_reg,
+            qp_iterations=self.qp_iterations,
+            torque_weight_soft=self.torque_weight_soft,
+            angular_weight_soft=self.angular_weight_soft,
             normal_force_weight=self.normal_force_weight,
             violation_tol=self.violation_tol,
-        )  # fmt: skip
+        )
 
 
 @pytree_dataclass
@@ -279,24 +296,40 @@ def make_controller(
         ang_integral = state.centroidal_jacobian_ref[stance] @ (t.s - ref.s_des)
         com_err_integral = state.com_err_integral + control_dt * (t.W_p_CoM - ref.com_pos)
         Ldot_star = momentum.momentum_rate_reference(
-            mass=mass, W_p_CoM=t.W_p_CoM, W_v_CoM=t.W_v_CoM, L_ang=t.L_G[3:],
-            com_pos_des=ref.com_pos, com_vel_des=ref.com_vel, com_acc_des=ref.com_acc,
-            com_err_integral=com_err_integral, ang_integral=ang_integral,
-            kp_com=gains.kp_com, kd_com=gains.kd_com, ki_com=gains.ki_com,
-            kp_ang=gains.kp_ang, ki_ang=gains.ki_ang,
-        )  # fmt: skip
+            mass=mass,
+            W_p_CoM=t.W_p_CoM,
+            W_v_CoM=t.W_v_CoM,
+            L_ang=t.L_G[3:],
+            com_pos_des=ref.com_pos,
+            com_vel_des=ref.com_vel,
+            com_acc_des=ref.com_acc,
+            com_err_integral=com_err_integral,
+            ang_integral=ang_integral,
+            kp_com=gains.kp_com,
+            kd_com=gains.kd_com,
+            ki_com=gains.ki_com,
+            kp_ang=gains.kp_ang,
+            ki_ang=gains.ki_ang,
+        )
         wrench_des = Ldot_star - f_grav
 
         # Torque law, affine in f, with each contact's rows scaled by its activation.
         rows = contacts_lib.row_activation(cset, act)
         with jax.named_scope("torque_law"):
             tt = torques.torque_terms(
-            t, cterms.J * rows[:, None], cterms.Jdot_nu * rows, postural=config.postural,
-            kp_postural=gains.kp_postural, kd_postural=gains.kd_postural, s_des=ref.s_des,
-            pinv_damping=state.pinv_damping, pinv_tol=config.pinv_tol,
-            kp_postural_reg=state.kp_postural_reg, compensate_passive=config.compensate_passive,
-            freeze_projector=config.freeze_postural_projector,
-        )  # fmt: skip
+                t,
+                cterms.J * rows[:, None],
+                cterms.Jdot_nu * rows,
+                postural=config.postural,
+                kp_postural=gains.kp_postural,
+                kd_postural=gains.kd_postural,
+                s_des=ref.s_des,
+                pinv_damping=state.pinv_damping,
+                pinv_tol=config.pinv_tol,
+                kp_postural_reg=state.kp_postural_reg,
+                compensate_passive=config.compensate_passive,
+                freeze_projector=config.freeze_postural_projector,
+            )
 
         # Force task: the contact wrenches.
         A = constraints.wrench_map(cset, cterms.W_p, t.W_p_CoM).astype(dtype)
@@ -309,10 +342,15 @@ def make_controller(
             levels = task_rows.levels(stack, t, time, frame0)
             task_err = jnp.concatenate(list(task_rows.task_errors(stack, t, time, frame0).values()))
             tau_unsat = hierarchy.solve(
-                t, tt, f, levels, solution_damping=config.solution_damping,
-                projector_reg=config.projector_reg, compensate_passive=config.compensate_passive,
+                t,
+                tt,
+                f,
+                levels,
+                solution_damping=config.solution_damping,
+                projector_reg=config.projector_reg,
+                compensate_passive=config.compensate_passive,
                 effort_damping=config.effort_damping,
-            ).tau  # fmt: skip
+            ).tau
         else:
             tau_unsat = tt.tau_model + tt.Sigma @ f
         out = ControlOutput(

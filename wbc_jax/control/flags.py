@@ -19,20 +19,28 @@ class ControllerFlags:
     :class:`~wbc_jax.control.controller.ControllerConfig` keeps its defaults)."""
 
     tasks: str | None = option(
-        None, "task/contact file (JSON/YAML): motion tasks, contacts, scene objects, initial posture; "
-        "e.g. experiments/tasks/reach_circle.yaml, experiments/tasks/hand_on_table.yaml", metavar="FILE",
+        None,
+        "task/contact file (JSON/YAML): motion tasks, contacts, scene objects, initial posture; "
+        "e.g. experiments/tasks/reach_circle.yaml, experiments/tasks/hand_on_table.yaml",
+        metavar="FILE",
         input_file=True,
-    )  # fmt: skip
+    )
     forces: str = option("qp", "force distribution", choices=FORCE_MODES)
     postural: str = option("stable", "postural task variant", choices=POSTURAL_VARIANTS)
     angular_weight_soft: float = option(
-        1.0, "soft momentum QP: weight of the angular-momentum rate against the linear one where a push asks for "
+        1.0,
+        "soft momentum QP: weight of the angular-momentum rate against the linear one where a push asks for "
         "more than the feet can give (1: WBC; < 1: the CoM first, the upper body absorbs the rest)",
-        gt=constants.ANGULAR_WEIGHT_RANGE[0], le=constants.ANGULAR_WEIGHT_RANGE[1],
-    )  # fmt: skip
+        gt=constants.ANGULAR_WEIGHT_RANGE[0],
+        le=constants.ANGULAR_WEIGHT_RANGE[1],
+    )
 
     def config(self, base: ControllerConfig | None = None) -> ControllerConfig:
         """``base`` (default: the defaults) with these settings (the jobs' configs check the declared
         ranges first; :class:`ControllerConfig` checks the values again)."""
-        return dataclasses.replace(base or ControllerConfig(), forces=self.forces, postural=self.postural,
-                                   angular_weight_soft=self.angular_weight_soft)  # fmt: skip
+        return dataclasses.replace(
+            base or ControllerConfig(),
+            forces=self.forces,
+            postural=self.postural,
+            angular_weight_soft=self.angular_weight_soft,
+        )

@@ -118,8 +118,9 @@ def _normal_force_scaling(NZ: Array, weight: float) -> Array:
     return jnp.eye(NZ.shape[1], dtype=NZ.dtype) + (Vt.T * (scale - 1.0)) @ Vt
 
 
-def momentum_equality_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: Array,
-                         settings: ForceSettings) -> tuple[Array, qp.QPInfo]:  # fmt: skip
+def momentum_equality_qp(
+    cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: Array, settings: ForceSettings
+) -> tuple[Array, qp.QPInfo]:
     """The WBC QP (module docstring) over the contacts with ``mask`` = 1, the others' wrenches 0::
 
         min |tau_model + Sigma f|^2 + w_n |S_n f - F_n|^2   s.t.  A f = wrench_des,  C f <= b
@@ -148,8 +149,13 @@ def momentum_equality_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Ar
         violation = jnp.max(excess)
         infeasible = violation > qp.default_tolerances(dtype)[1] * (1.0 + jnp.max(jnp.abs(f1)))
         zero = jnp.zeros((), dtype)
-        return f1, qp.QPInfo(converged=~infeasible, infeasible=infeasible, max_violation=jnp.maximum(violation, 0.0),
-                             kkt_residual=zero, iterations=jnp.zeros((), jnp.int32))  # fmt: skip
+        return f1, qp.QPInfo(
+            converged=~infeasible,
+            infeasible=infeasible,
+            max_violation=jnp.maximum(violation, 0.0),
+            kkt_residual=zero,
+            iterations=jnp.zeros((), jnp.int32),
+        )
     S_n = S_n * keep[None, :]
     w_n = settings.normal_force_weight
     if S_n.shape[0]:
@@ -158,13 +164,20 @@ def momentum_equality_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Ar
     H = SZ.T @ SZ + w_n * NZ.T @ NZ + jnp.diag(settings.hessian_reg + spare.astype(dtype))
     g = SZ.T @ (tt.tau_model + tt.Sigma @ f1) + w_n * NZ.T @ (S_n @ f1 - F_n)
     # Rows of dropped contacts: 0 <= 1, trivially met (their wrench is zero).
-    y, info = qp.solve_qp(H, g, C @ Z, jnp.where(row_kept, b - C @ f1, 1.0), iterations=settings.qp_iterations,
-                          row_weight=row_weights(cset))  # fmt: skip
+    y, info = qp.solve_qp(
+        H,
+        g,
+        C @ Z,
+        jnp.where(row_kept, b - C @ f1, 1.0),
+        iterations=settings.qp_iterations,
+        row_weight=row_weights(cset),
+    )
     return f1 + Z @ y, info
 
 
-def soft_momentum_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: Array,
-                     settings: ForceSettings) -> tuple[Array, qp.QPInfo]:  # fmt: skip
+def soft_momentum_qp(
+    cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: Array, settings: ForceSettings
+) -> tuple[Array, qp.QPInfo]:
     """The soft momentum QP over the contacts with ``mask`` = 1 (always feasible)::
 
         min |A f - wrench_des|_W^2 + c (|tau_model + Sigma f|^2 + w_n |S_n f - F_n|^2) + eps |f|^2
@@ -183,13 +196,20 @@ def soft_momentum_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array,
     rows = jnp.asarray([1.0, 1.0, 1.0] + [settings.angular_weight_soft] * 3, dtype)
     H = Ak.T @ (rows[:, None] * Ak) + c * (Sk.T @ Sk + w_n * Nk.T @ Nk) + jnp.diag(settings.hessian_reg + 1.0 - keep)
     g = -Ak.T @ (rows * wrench_des) + c * (Sk.T @ tt.tau_model - w_n * Nk.T @ F_n)
-    x, info = qp.solve_qp(H, g, C * keep[None, :], jnp.where(row_kept, b, 1.0), iterations=settings.qp_iterations,
-                          row_weight=row_weights(cset))  # fmt: skip
+    x, info = qp.solve_qp(
+        H,
+        g,
+        C * keep[None, :],
+        jnp.where(row_kept, b, 1.0),
+        iterations=settings.qp_iterations,
+        row_weight=row_weights(cset),
+    )
     return keep * x, info
 
 
-def wbc_qp(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: Array,
-           settings: ForceSettings) -> tuple[Array, Array]:  # fmt: skip
+def wbc_qp(
+    cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: Array, settings: ForceSettings
+) -> tuple[Array, Array]:
     """:func:`momentum_equality_qp`, or :func:`soft_momentum_qp` where the equality is infeasible
     (a push asks for a momentum rate that no feasible wrench realises).
 
@@ -234,8 +254,9 @@ def analytic(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, set
     return f1 + Z @ y
 
 
-def distribute(cset: ContactSet, activation: Array, A: Array, wrench_des: Array, tt, W_R: Array,
-               settings: ForceSettings) -> tuple[Array, Array]:  # fmt: skip
+def distribute(
+    cset: ContactSet, activation: Array, A: Array, wrench_des: Array, tt, W_R: Array, settings: ForceSettings
+) -> tuple[Array, Array]:
     """Contact wrenches f (D,) for the momentum rate ``wrench_des`` (6,) = L_dot* - f_grav, with the
     blend of the module docstring over the activations (K,).
 

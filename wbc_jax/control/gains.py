@@ -85,8 +85,11 @@ def gains_from_dict(values: dict, n: int = 23, dtype=jnp.float32, source: str = 
         validate_gains(gains, n)
     except ValueError as err:
         raise ValueError(f"{source}: {err}") from None
-    zero = {k: np.flatnonzero(arrays[k] <= 0).tolist() for k in GAIN_FIELDS
-            if k not in NON_NEGATIVE_GAINS and np.any(arrays[k] <= 0)}  # fmt: skip
+    zero = {
+        k: np.flatnonzero(arrays[k] <= 0).tolist()
+        for k in GAIN_FIELDS
+        if k not in NON_NEGATIVE_GAINS and np.any(arrays[k] <= 0)
+    }
     if zero:
         raise ValueError(f"{source}: gains must be positive: non-positive entries (indices) {zero}")
     return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), gains)

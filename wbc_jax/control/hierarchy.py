@@ -198,8 +198,9 @@ def solve(
         A_hat, A_0 = A_S @ N_S, A_S @ N_0
         scale = jnp.sum(A_S * A_S) / A_S.shape[0] + _TINY[size]
         # Effort-bounded pseudo-inverse (module docstring); the first level (A_hat = A_0): plain.
-        W = _effort_gain(A_hat @ A_hat.T, A_0 @ A_0.T + damping * scale * jnp.eye(A_hat.shape[0], dtype=dtype), mu,
-                         damping)  # fmt: skip
+        W = _effort_gain(
+            A_hat @ A_hat.T, A_0 @ A_0.T + damping * scale * jnp.eye(A_hat.shape[0], dtype=dtype), mu, damping
+        )
         x = x + A_hat.T @ (W @ (b - A_S @ x))
         N_S = null_space_step(N_S, A_hat, scale)
         A_Q, scale_P = A @ N_Q, jnp.sum(A * A) / A.shape[0] + _TINY[size]
@@ -208,5 +209,4 @@ def solve(
     tau0 = tau0_model + x + N_P @ tt.u0
     nu_dot = nu_dot_c + G @ (tau0 - tau0_model)
     task_acc = tuple(level.J @ nu_dot + level.Jdot_nu for level in levels)
-    return HierarchySolution(tau=tau_c + tt.N_Lambda @ tau0, tau0=tau0, tau_motion=x, nu_dot=nu_dot,
-                             task_acc=task_acc)  # fmt: skip
+    return HierarchySolution(tau=tau_c + tt.N_Lambda @ tau0, tau0=tau0, tau_motion=x, nu_dot=nu_dot, task_acc=task_acc)

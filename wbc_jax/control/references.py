@@ -122,17 +122,22 @@ def make_schedule(
         if not (amplitude >= 0 and frequency > 0):
             raise ValueError("sinusoid amplitude must be >= 0 and frequency > 0")
         return Schedule(
-            "sinusoid", duration or DEFAULT_DURATIONS["sinusoid"], com0, s0,
-            sine_amplitude=amplitude, sine_frequency=frequency,
-        )  # fmt: skip
+            "sinusoid",
+            duration or DEFAULT_DURATIONS["sinusoid"],
+            com0,
+            s0,
+            sine_amplitude=amplitude,
+            sine_frequency=frequency,
+        )
     # One-foot sequence (WBC YOGA state machine, simplified), seconds:
     # 1-4 CoM over the left sole; 4-5 unload the right foot; 5.5-7 lift it; 7-9 balance on the
     # left foot; 9-11 put it back; 11.5-12.5 load it; 12.5-15.5 CoM back to the middle.
     over_left = np.array([com0[0], left_sole[1], com0[2]])
     shift = over_left - com0
     if not foot_lift_deg:
-        raise ValueError("the one-foot task needs foot_lift_deg: the joint angles that lift the right foot "
-                         "(the robot description's)")  # fmt: skip
+        raise ValueError(
+            "the one-foot task needs foot_lift_deg: the joint angles that lift the right foot (the robot description's)"
+        )
     lift = np.zeros(len(s0))
     for joint, degrees in foot_lift_deg.items():  # hip and knee flexion, the ankle keeping the sole flat
         lift[joints.index(joint)] = np.deg2rad(degrees)
@@ -140,6 +145,11 @@ def make_schedule(
     post_seg = ((5.5, 9.0), (1.5, 2.0), np.stack([lift, -lift]))
     act_seg = ((4.0, 11.5), (1.0, 1.0), np.array([[0.0, -1.0], [0.0, 1.0]]))
     return Schedule(
-        "one-foot", duration or DEFAULT_DURATIONS["one-foot"], com0, s0,
-        com_segments=com_seg, posture_segments=post_seg, activation_segments=act_seg,
-    )  # fmt: skip
+        "one-foot",
+        duration or DEFAULT_DURATIONS["one-foot"],
+        com0,
+        s0,
+        com_segments=com_seg,
+        posture_segments=post_seg,
+        activation_segments=act_seg,
+    )

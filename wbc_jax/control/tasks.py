@@ -147,13 +147,22 @@ def check_types(task: MotionTask) -> None:
         "name": (lambda v: isinstance(v, str) and v, "a non-empty string"),
         "kind": (lambda v: isinstance(v, str), f"one of {list(TASK_KINDS)}"),
         "frame": (lambda v: v is None or isinstance(v, str), "a body, site or named point"),
-        "offset": (lambda v: isinstance(v, (tuple, list)) and len(v) == 3 and all(_is_number(x) for x in v), "3 numbers"),
-        "joints": (lambda v: isinstance(v, (tuple, list)) and all(isinstance(j, str) for j in v), "joint names, or 'all'"),
+        "offset": (
+            lambda v: isinstance(v, (tuple, list)) and len(v) == 3 and all(_is_number(x) for x in v),
+            "3 numbers",
+        ),
+        "joints": (
+            lambda v: isinstance(v, (tuple, list)) and all(isinstance(j, str) for j in v),
+            "joint names, or 'all'",
+        ),
         "kp": (_numbers, "a number or a list of numbers"),
         "kd": (lambda v: v is None or _numbers(v), "a number, a list of numbers or null"),
-        "priority": (lambda v: v is None or (isinstance(v, (int, np.integer)) and not isinstance(v, bool)), "a whole number"),
+        "priority": (
+            lambda v: v is None or (isinstance(v, (int, np.integer)) and not isinstance(v, bool)),
+            "a whole number",
+        ),
         "weight": (_is_number, "a positive number"),
-    }  # fmt: skip
+    }
     for name, (ok, what) in expected.items():
         value = getattr(task, name)
         if not ok(value):
@@ -169,9 +178,11 @@ def check_types(task: MotionTask) -> None:
         "radius": (_is_number, "a number (m)"),
         "frequency": (_is_number, "a number (Hz)"),
         "ramp": (_is_number, "a number (s)"),
-        "plane": (lambda v: isinstance(v, (tuple, list)) and len(v) == 2 and all(isinstance(a, str) for a in v),
-                  "two axis names, e.g. [y, z]"),
-    }  # fmt: skip
+        "plane": (
+            lambda v: isinstance(v, (tuple, list)) and len(v) == 2 and all(isinstance(a, str) for a in v),
+            "two axis names, e.g. [y, z]",
+        ),
+    }
     for name, (ok, what) in ref_expected.items():
         value = getattr(ref, name)
         if not ok(value):
@@ -290,11 +301,16 @@ def resolve(robot: Robot, stack, qpos: np.ndarray | None = None) -> TaskStack:
         if ref.kind == "circle":
             if task.kind not in ("position", "com"):
                 raise ValueError(f"task {echo(task.name)}: a circle reference needs a position or com task")
-            if not (0 < ref.radius <= MAX_CIRCLE_RADIUS_M and 0 < ref.frequency <= MAX_CIRCLE_FREQUENCY_HZ
-                    and 0 <= ref.ramp <= MAX_RAMP_S):  # fmt: skip
-                raise ValueError(f"task {echo(task.name)}: circle needs radius in (0, {MAX_CIRCLE_RADIUS_M:g}] m, "
-                                 f"frequency in (0, {MAX_CIRCLE_FREQUENCY_HZ:g}] Hz and ramp in [0, {MAX_RAMP_S:g}] "
-                                 f"s, got {ref.radius}, {ref.frequency}, {ref.ramp}")  # fmt: skip
+            if not (
+                0 < ref.radius <= MAX_CIRCLE_RADIUS_M
+                and 0 < ref.frequency <= MAX_CIRCLE_FREQUENCY_HZ
+                and 0 <= ref.ramp <= MAX_RAMP_S
+            ):
+                raise ValueError(
+                    f"task {echo(task.name)}: circle needs radius in (0, {MAX_CIRCLE_RADIUS_M:g}] m, "
+                    f"frequency in (0, {MAX_CIRCLE_FREQUENCY_HZ:g}] Hz and ramp in [0, {MAX_RAMP_S:g}] "
+                    f"s, got {ref.radius}, {ref.frequency}, {ref.ramp}"
+                )
             axes = [a.lstrip("+-") for a in ref.plane]
             if len(ref.plane) != 2 or any(a not in AXES for a in axes) or axes[0] == axes[1]:
                 raise ValueError(
@@ -323,7 +339,7 @@ def resolve(robot: Robot, stack, qpos: np.ndarray | None = None) -> TaskStack:
                 weight=float(task.weight),
                 reference=ref,
                 target=target,
-            )  # fmt: skip
+            )
         )
     return TaskStack(
         tasks=tuple(resolved),
@@ -364,8 +380,10 @@ def task_from_dict(values: dict) -> MotionTask:
         raise ValueError(f"a task must be a mapping, got {echo(values)}")
     unknown = sorted(map(str, set(values) - fields))
     if unknown or "name" not in values or "kind" not in values:
-        raise ValueError(f"task {echo(values.get('name'))}: unknown keys {unknown} (valid: {sorted(fields)}); "
-                         "'name' and 'kind' are required")  # fmt: skip
+        raise ValueError(
+            f"task {echo(values.get('name'))}: unknown keys {unknown} (valid: {sorted(fields)}); "
+            "'name' and 'kind' are required"
+        )
     values = dict(values)
     ref = values.pop("reference", {}) or {}
     ref_fields = {f.name for f in dataclasses.fields(TaskReference)}

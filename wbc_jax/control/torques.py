@@ -68,8 +68,9 @@ class TorqueTerms:
     tau_0: Array
 
 
-def postural_projector(Lambda: Array, Mbar: Array, pinv_damping: Array | float, pinv_tol: float,
-                       Mbar_factor: Array | None = None) -> Array:  # fmt: skip
+def postural_projector(
+    Lambda: Array, Mbar: Array, pinv_damping: Array | float, pinv_tol: float, Mbar_factor: Array | None = None
+) -> Array:
     """P (n, n) = pinv(X, tol) X for X = N_Lambda Mbar: the projector on X's right singular
     vectors whose singular values exceed ``pinv_tol`` (absolute, as MATLAB's ``pinv(X, tol)``).
 

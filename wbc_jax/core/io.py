@@ -55,8 +55,10 @@ def write_new_json(path: pathlib.Path, obj) -> None:
     if path.exists():
         if path.read_bytes() == data:
             return
-        raise FileExistsError(f"{path} exists with other contents; results name it by its sha256, so it is never "
-                              "overwritten: write a new, named file")  # fmt: skip
+        raise FileExistsError(
+            f"{path} exists with other contents; results name it by its sha256, so it is never "
+            "overwritten: write a new, named file"
+        )
     atomic_write_bytes(path, data)
 
 

@@ -151,8 +151,10 @@ def _check_expanded(root, path, what: str) -> None:
             size[key] = 1 + sum(size[id(c)] for c in children)
             depth[key] = 1 + max((depth[id(c)] for c in children), default=0)
             if size[key] > MAX_NODES:
-                raise ValueError(f"{what} file {path} expands to more than {MAX_NODES:,} values (YAML aliases "
-                                 "counted expanded); at most that many are read")  # fmt: skip
+                raise ValueError(
+                    f"{what} file {path} expands to more than {MAX_NODES:,} values (YAML aliases "
+                    "counted expanded); at most that many are read"
+                )
             if depth[key] > MAX_DEPTH:
                 raise _too_deep(what, path, depth[key])
             continue

@@ -73,8 +73,21 @@ def _fmt(x: float) -> str:
     return f"{int(x):,}" if x == int(x) and abs(x) >= 1e6 else f"{x:g}"
 
 
-def option(default: Any, help: str, *, ge=None, gt=None, le=None, lt=None, unit: str = "", ordered: bool = False,
-           nonempty: bool = False, input_file: bool = False, names=None, **cli: Any) -> Any:  # fmt: skip
+def option(
+    default: Any,
+    help: str,
+    *,
+    ge=None,
+    gt=None,
+    le=None,
+    lt=None,
+    unit: str = "",
+    ordered: bool = False,
+    nonempty: bool = False,
+    input_file: bool = False,
+    names=None,
+    **cli: Any,
+) -> Any:
     """A job-config field with its command-line help and its valid values (module docstring).
 
     ``cli`` entries shape the generated flag: ``choices`` (also checked), ``metavar``, ``nargs``,
@@ -82,8 +95,18 @@ def option(default: Any, help: str, *, ge=None, gt=None, le=None, lt=None, unit:
     flag's default), ``flag`` (another flag name), ``positional`` (an argument, not a flag)."""
     if isinstance(default, (list, dict)):
         raise TypeError("mutable defaults are not allowed; use a tuple")
-    valid = Valid(ge=ge, gt=gt, le=le, lt=lt, unit=unit, choices=tuple(cli["choices"]) if "choices" in cli else None,
-                  ordered=ordered, nonempty=nonempty, input_file=input_file, names=names)  # fmt: skip
+    valid = Valid(
+        ge=ge,
+        gt=gt,
+        le=le,
+        lt=lt,
+        unit=unit,
+        choices=tuple(cli["choices"]) if "choices" in cli else None,
+        ordered=ordered,
+        nonempty=nonempty,
+        input_file=input_file,
+        names=names,
+    )
     return dataclasses.field(default=default, metadata={"help": help, "valid": valid, **cli})
 
 

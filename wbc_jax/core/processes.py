@@ -31,29 +31,43 @@ TIMEOUT_EXIT_CODE = 2
 class DistributedConfig:
     """The command line's flags of several processes (before the job's name)."""
 
-    distributed: bool = option(False, "join the processes with jax.distributed.initialize() before the job (under "
-                               "SLURM or Open MPI the addresses and ranks are read from the environment)")  # fmt: skip
+    distributed: bool = option(
+        False,
+        "join the processes with jax.distributed.initialize() before the job (under "
+        "SLURM or Open MPI the addresses and ranks are read from the environment)",
+    )
     coordinator: str | None = option(None, "process 0's address (with --distributed)", metavar="HOST:PORT")
     num_processes: int | None = option(None, "processes in all (with --distributed)", ge=1)
     process_id: int | None = option(None, "this process's rank, 0..N-1 (with --distributed)", ge=0)
     initialization_timeout: float = option(
-        120.0, "seconds each process waits for all of them to join the coordinator before it exits with one "
-        "line naming it (with --distributed)", gt=0, le=3600, unit="s",
-    )  # fmt: skip
+        120.0,
+        "seconds each process waits for all of them to join the coordinator before it exits with one "
+        "line naming it (with --distributed)",
+        gt=0,
+        le=3600,
+        unit="s",
+    )
 
     def check(self) -> None:
         """Raise ValueError (one line naming the flag) for flags that cannot join processes."""
         check_options(self)
-        given = {"--coordinator": self.coordinator, "--num-processes": self.num_processes,
-                 "--process-id": self.process_id}  # fmt: skip
+        given = {
+            "--coordinator": self.coordinator,
+            "--num-processes": self.num_processes,
+            "--process-id": self.process_id,
+        }
         named = [flag for flag, value in given.items() if value is not None]
         if named and not self.distributed:
             verb = "needs" if len(named) == 1 else "need"
-            raise ValueError(f"{' '.join(named)} {verb} --distributed (they say how processes join; without it the "
-                             "job runs in this process alone)")  # fmt: skip
+            raise ValueError(
+                f"{' '.join(named)} {verb} --distributed (they say how processes join; without it the "
+                "job runs in this process alone)"
+            )
         if named and len(named) < len(given):
-            raise ValueError("--coordinator, --num-processes and --process-id go together (or none: from SLURM/MPI); "
-                             f"got only {' '.join(named)}")  # fmt: skip
+            raise ValueError(
+                "--coordinator, --num-processes and --process-id go together (or none: from SLURM/MPI); "
+                f"got only {' '.join(named)}"
+            )
         if self.num_processes is not None and self.process_id >= self.num_processes:
             raise ValueError(f"--process-id must be in 0..{self.num_processes - 1}, got {self.process_id}")
         if self.coordinator is not None:
@@ -82,13 +96,19 @@ def initialize(cfg: DistributedConfig, prog: str) -> None:
     def give_up() -> None:
         if joined.wait(cfg.initialization_timeout):
             return
-        print(f"{prog}: error: {rank}the processes did not all join the coordinator at {cfg.where()} within "
-              f"{cfg.initialization_timeout:g} s (--initialization-timeout); start process 0 and every other "
-              "with the same --coordinator and --num-processes", file=sys.stderr, flush=True)  # fmt: skip
+        print(
+            f"{prog}: error: {rank}the processes did not all join the coordinator at {cfg.where()} within "
+            f"{cfg.initialization_timeout:g} s (--initialization-timeout); start process 0 and every other "
+            "with the same --coordinator and --num-processes",
+            file=sys.stderr,
+            flush=True,
+        )
         os._exit(TIMEOUT_EXIT_CODE)  # JAX's wait cannot be interrupted from Python
 
     threading.Thread(target=give_up, name="distributed-timeout", daemon=True).start()
     given = {"coordinator_address": cfg.coordinator, "num_processes": cfg.num_processes, "process_id": cfg.process_id}
-    jax.distributed.initialize(**{k: v for k, v in given.items() if v is not None},
-                               initialization_timeout=math.ceil(cfg.initialization_timeout) + _JAX_TIMEOUT_MARGIN_S)  # fmt: skip
+    jax.distributed.initialize(
+        **{k: v for k, v in given.items() if v is not None},
+        initialization_timeout=math.ceil(cfg.initialization_timeout) + _JAX_TIMEOUT_MARGIN_S,
+    )
     joined.set()

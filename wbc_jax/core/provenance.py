@@ -116,8 +116,13 @@ def device() -> dict:
     devices = jax.devices()
     first = devices[0]
     kind = cpu_name() if first.platform == "cpu" else first.device_kind
-    return {"platform": first.platform, "kind": kind, "count": len(devices),
-            "processes": jax.process_count(), "host_cores": os.cpu_count()}  # fmt: skip
+    return {
+        "platform": first.platform,
+        "kind": kind,
+        "count": len(devices),
+        "processes": jax.process_count(),
+        "host_cores": os.cpu_count(),
+    }
 
 
 def device_label(info: dict | None = None) -> str:
@@ -134,8 +139,11 @@ def record(inputs: dict | None = None, *, argv: list[str] | None = None, with_de
     named input file (None: skipped), its path and sha256."""
     from wbc_jax import __version__
 
-    out = {"command": command(argv), "version": __version__,
-           "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d")}  # fmt: skip
+    out = {
+        "command": command(argv),
+        "version": __version__,
+        "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d"),
+    }
     if with_device:
         info = device()
         out["device"] = {**info, "label": device_label(info)}

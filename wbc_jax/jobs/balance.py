@@ -32,28 +32,43 @@ class BalanceConfig:
 
     robot: str = robot_option()
     task: str = option("stand", "balance task", choices=references.TASKS)
-    duration: float | None = option(None, "seconds (default: the task's: stand 10, sinusoid 20, one-foot 16)",
-                                    gt=0.0, le=limits.MAX_HORIZON_S, unit="s")  # fmt: skip
+    duration: float | None = option(
+        None,
+        "seconds (default: the task's: stand 10, sinusoid 20, one-foot 16)",
+        gt=0.0,
+        le=limits.MAX_HORIZON_S,
+        unit="s",
+    )
     controller: ControllerFlags = nested(ControllerFlags())
-    gains: str | None = option(None, "gains JSON file (default: the robot's, wbc_jax/robot/<name>.py)", metavar="FILE",
-                               input_file=True)  # fmt: skip
+    gains: str | None = option(
+        None, "gains JSON file (default: the robot's, wbc_jax/robot/<name>.py)", metavar="FILE", input_file=True
+    )
     push_force: tuple[float, float, float] | None = option(
-        None, "push on the trunk (the robot's 'trunk' body), world axes [N]", nargs=3, metavar=("FX", "FY", "FZ"),
-        ge=-limits.MAX_PUSH_N, le=limits.MAX_PUSH_N, unit="N",
-    )  # fmt: skip
+        None,
+        "push on the trunk (the robot's 'trunk' body), world axes [N]",
+        nargs=3,
+        metavar=("FX", "FY", "FZ"),
+        ge=-limits.MAX_PUSH_N,
+        le=limits.MAX_PUSH_N,
+        unit="N",
+    )
     push_onset: float = option(1.0, "push start [s]", ge=0.0, lt=limits.MAX_HORIZON_S, unit="s")
     push_duration: float = option(
         0.1, "push length [s]", ge=limits.MIN_PUSH_DURATION_S, le=limits.MAX_PUSH_DURATION_S, unit="s"
     )
-    control_dt: float = option(0.01, "controller period [s], a multiple of the 1 ms physics step", ge=0.001, le=0.1,
-                               unit="s")  # fmt: skip
-    solver_iterations: int | None = option(None, "contact solver Newton iterations (default: the model's, 4)",
-                                           ge=1, le=limits.MAX_SOLVER_ITERATIONS)  # fmt: skip
+    control_dt: float = option(
+        0.01, "controller period [s], a multiple of the 1 ms physics step", ge=0.001, le=0.1, unit="s"
+    )
+    solver_iterations: int | None = option(
+        None, "contact solver Newton iterations (default: the model's, 4)", ge=1, le=limits.MAX_SOLVER_ITERATIONS
+    )
     backend: str = option("auto", "physics engine (auto: C MuJoCo on a CPU, MJX on a GPU)", choices=physics.BACKENDS)
     host_loop: str = option(
-        "auto", "C MuJoCo engine: the horizon as one compiled program, or a Python loop of ticks (auto: compiled "
-        "where the native step builds)", choices=HOST_LOOPS,
-    )  # fmt: skip
+        "auto",
+        "C MuJoCo engine: the horizon as one compiled program, or a Python loop of ticks (auto: compiled "
+        "where the native step builds)",
+        choices=HOST_LOOPS,
+    )
     out: str | None = option("runs/balance", "output folder")
     plots: bool = option(True, "write PNG plots")
 
@@ -62,16 +77,21 @@ class BalanceConfig:
         check_options(self)
         duration = self.duration or references.DEFAULT_DURATIONS[self.task]
         if self.push_force is not None and self.push_onset + self.push_duration >= duration:
-            raise ValueError(f"the push (--push-onset {self.push_onset:g} + --push-duration {self.push_duration:g} s) "
-                             f"must end inside the run (--duration {duration:g} s)")  # fmt: skip
+            raise ValueError(
+                f"the push (--push-onset {self.push_onset:g} + --push-duration {self.push_duration:g} s) "
+                f"must end inside the run (--duration {duration:g} s)"
+            )
         physics.resolve_backend(self.backend)
         self.controller_config()
         runs.check_output_dir(self.out, "balance", self.fingerprint())
 
     def fingerprint(self) -> dict:
         # The engine as it resolves here (auto on a CPU is mujoco): the same run whichever was named.
-        return runs.fingerprint({**flat_dict(self), "backend": physics.resolve_backend(self.backend)},
-                                [self.gains, self.controller.tasks], self.robot)  # fmt: skip
+        return runs.fingerprint(
+            {**flat_dict(self), "backend": physics.resolve_backend(self.backend)},
+            [self.gains, self.controller.tasks],
+            self.robot,
+        )
 
     def controller_config(self, base: ControllerConfig | None = None) -> ControllerConfig:
         """``base`` (default: the defaults) with this run's controller settings."""
@@ -90,18 +110,24 @@ def make_setup(cfg: BalanceConfig, controller: ControllerConfig | None = None) -
     dtype = scenario.float_dtype()
     gains = load_gains(cfg.gains, scene.robot.index.n, dtype) if cfg.gains else None
     sim = SimConfig(
-        control_dt=cfg.control_dt, record=True, host_loop=cfg.host_loop,
+        control_dt=cfg.control_dt,
+        record=True,
+        host_loop=cfg.host_loop,
         physics=physics.PhysicsConfig(backend=cfg.backend, solver_iterations=cfg.solver_iterations),
-    )  # fmt: skip
+    )
     return scenario.setup(
-        cfg.task, duration=cfg.duration,
+        cfg.task,
+        duration=cfg.duration,
         controller=cfg.controller_config(controller),
-        sim=sim, gains=gains, scene=scene,
-    )  # fmt: skip
+        sim=sim,
+        gains=gains,
+        scene=scene,
+    )
 
 
-def run(cfg: BalanceConfig | None = None, *, progress: bool = True, controller: ControllerConfig | None = None,
-        **overrides) -> dict:  # fmt: skip
+def run(
+    cfg: BalanceConfig | None = None, *, progress: bool = True, controller: ControllerConfig | None = None, **overrides
+) -> dict:
     """Run the balance job; write metrics.json, trajectory.npz and PNG plots into ``cfg.out``
     (None: nothing written). ``overrides``: fields of :class:`BalanceConfig`; ``controller``:
     further controller settings (hierarchy damping, ...).
@@ -128,10 +154,16 @@ def run(cfg: BalanceConfig | None = None, *, progress: bool = True, controller: 
     wall = time.time() - start
     metrics = jax.tree_util.tree_map(lambda x: x[0], result_run.metrics)
     traj = {name: np.asarray(v)[0] for name, v in dataclasses.asdict(result_run.records).items()}
-    result = {"task": cfg.task, "forces": cfg.controller.forces, "postural": cfg.controller.postural, "duration_s": loop.cfg.duration,
-              "solver_iterations": int(cfg.solver_iterations or st.robot.mj_model.opt.iterations),
-              "control_dt_s": loop.cfg.control_dt, "backend": st.backend,
-              "host_loop": host_loop.driver(loop, 1) if st.backend == "mujoco" else None}  # fmt: skip
+    result = {
+        "task": cfg.task,
+        "forces": cfg.controller.forces,
+        "postural": cfg.controller.postural,
+        "duration_s": loop.cfg.duration,
+        "solver_iterations": int(cfg.solver_iterations or st.robot.mj_model.opt.iterations),
+        "control_dt_s": loop.cfg.control_dt,
+        "backend": st.backend,
+        "host_loop": host_loop.driver(loop, 1) if st.backend == "mujoco" else None,
+    }
     result.update(metrics_lib.summarize(metrics, push_end))
     result.update(force_task_error(traj))
     if loop.controller.stack is not None:
@@ -146,14 +178,23 @@ def run(cfg: BalanceConfig | None = None, *, progress: bool = True, controller: 
     result["device"] = provenance.device_label()
     result = _jsonable(result)
     if out is not None:
-        io.atomic_write_json(out / "metrics.json", {**result, "gains": gains_to_dict(st.gains),
-                                                   "provenance": provenance.record({"gains": cfg.gains,
-                                                                                    "tasks": cfg.controller.tasks}),
-                                                   "config": flat_dict(cfg),
-                                                   "controller": dataclasses.asdict(st.loop.controller.config)})  # fmt: skip
-        io.atomic_save_npz(out / "trajectory.npz", joints=np.array(st.robot.index.joints),
-                           contact_names=np.array(loop.contact_set.names),
-                           contact_dims=np.array([c.dim for c in loop.contact_set.contacts]), **traj)  # fmt: skip
+        io.atomic_write_json(
+            out / "metrics.json",
+            {
+                **result,
+                "gains": gains_to_dict(st.gains),
+                "provenance": provenance.record({"gains": cfg.gains, "tasks": cfg.controller.tasks}),
+                "config": flat_dict(cfg),
+                "controller": dataclasses.asdict(st.loop.controller.config),
+            },
+        )
+        io.atomic_save_npz(
+            out / "trajectory.npz",
+            joints=np.array(st.robot.index.joints),
+            contact_names=np.array(loop.contact_set.names),
+            contact_dims=np.array([c.dim for c in loop.contact_set.contacts]),
+            **traj,
+        )
         for name in ("metrics.json", "trajectory.npz"):
             runs.record_output(out / name)
         if cfg.plots:
@@ -161,8 +202,13 @@ def run(cfg: BalanceConfig | None = None, *, progress: bool = True, controller: 
 
             title = f"{cfg.robot} {cfg.task}, forces={cfg.controller.forces}, postural={cfg.controller.postural}"
             plots.com_tracking(traj, out / "com.png", title)
-            plots.contact_forces(traj, list(loop.contact_set.names), [c.dim for c in loop.contact_set.contacts],
-                                 out / "contact_forces.png", title)  # fmt: skip
+            plots.contact_forces(
+                traj,
+                list(loop.contact_set.names),
+                [c.dim for c in loop.contact_set.contacts],
+                out / "contact_forces.png",
+                title,
+            )
             plots.joint_torques(traj, list(st.robot.index.joints), out / "torques.png", title)
     return result
 
@@ -215,8 +261,10 @@ def contact_tracking(cset, traj: dict, after: float = 1.0) -> dict:
         n = traj["contact_normal"][sel, k]
         meas = np.einsum("ti,ti->t", traj["f_meas"][sel, sl.start : sl.start + 3], n)
         cmd = np.einsum("ti,ti->t", traj["f_cmd"][sel, sl.start : sl.start + 3], n)
-        entry = {"normal_force_meas_median_n": float(np.median(meas)),
-                 "normal_force_cmd_median_n": float(np.median(cmd))}  # fmt: skip
+        entry = {
+            "normal_force_meas_median_n": float(np.median(meas)),
+            "normal_force_cmd_median_n": float(np.median(cmd)),
+        }
         if math.isfinite(c.normal_force):
             desired = c.normal_force * traj["activation"][sel, k]
             entry["normal_force_desired_n"] = c.normal_force

@@ -80,11 +80,22 @@ class Chunks:
     todo: list[bool]
 
 
-def run_chunks(st: scenario.Setup, scen: Scenario, columns: dict, parts: pathlib.Path, *, batch: int,
-               push_end: float, tag: str = "", queue: int = 1,
-               watch: Callable[[int, list], watchdog.Watchdog] | None = None,
-               timeline: Callable[[watchdog.Watchdog | None, float, float, list], None] | None = None,
-               writer: bool = True, progress: bool = True, label: str = "run") -> Chunks:  # fmt: skip
+def run_chunks(
+    st: scenario.Setup,
+    scen: Scenario,
+    columns: dict,
+    parts: pathlib.Path,
+    *,
+    batch: int,
+    push_end: float,
+    tag: str = "",
+    queue: int = 1,
+    watch: Callable[[int, list], watchdog.Watchdog] | None = None,
+    timeline: Callable[[watchdog.Watchdog | None, float, float, list], None] | None = None,
+    writer: bool = True,
+    progress: bool = True,
+    label: str = "run",
+) -> Chunks:
     """Run the scenarios ``scen`` (B,) in chunks of ``batch`` into Parquet parts in ``parts``.
 
     Args:
@@ -107,9 +118,12 @@ def run_chunks(st: scenario.Setup, scen: Scenario, columns: dict, parts: pathlib
     stored = [read_part(parts / part_name(c, tag), lo, hi) for c, (lo, hi) in enumerate(bounds)]
     replaced = [part_name(c, tag) for c, t in enumerate(stored) if t is None and (parts / part_name(c, tag)).exists()]
     if replaced and writer:
-        print(f"{label} --out {parts.parent}: {len(replaced)} part file(s) not the run's own (changed or copied in), "
-              f"recomputed: "
-              f"{replaced[:3]}", file=sys.stderr)  # fmt: skip
+        print(
+            f"{label} --out {parts.parent}: {len(replaced)} part file(s) not the run's own (changed or copied in), "
+            f"recomputed: "
+            f"{replaced[:3]}",
+            file=sys.stderr,
+        )
     # Every process must run the same chunks (each run is a collective): process 0's parts decide.
     todo = agreed([t is None for t in stored])
     done = Chunks([], 0.0, 0.0, 0, None, replaced, todo)
@@ -136,8 +150,14 @@ def run_chunks(st: scenario.Setup, scen: Scenario, columns: dict, parts: pathlib
                 done.run_s += result.run_s
                 done.done_envs += hi - lo
                 metrics = metrics_lib.summarize(result.metrics, push_end)
-                table = pd.DataFrame({"env": np.arange(lo, hi), **{k: np.asarray(v)[lo:hi] for k, v in columns.items()},
-                                      **metrics, "ticks_simulated": np.asarray(result.metrics.ticks)})  # fmt: skip
+                table = pd.DataFrame(
+                    {
+                        "env": np.arange(lo, hi),
+                        **{k: np.asarray(v)[lo:hi] for k, v in columns.items()},
+                        **metrics,
+                        "ticks_simulated": np.asarray(result.metrics.ticks),
+                    }
+                )
                 if writer:
                     part = parts / part_name(c, tag)
                     io.atomic_write_parquet(part, table)

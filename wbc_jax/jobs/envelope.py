@@ -51,12 +51,24 @@ class EnvelopeConfig(sweep_config.SweepConfig):
     these fields."""
 
     magnitudes: tuple[float, ...] = option(
-        DEFAULT_MAGNITUDES, "push force grid [N]: LO HI N (the impulses searched: each x --push-duration)", nargs=3,
-        metavar=("LO", "HI", "N"), parse=grids.magnitude_grid, show=grids.show_magnitude_grid, gt=0.0,
-        le=constants.MAX_PUSH_N, unit="N", nonempty=True,
-    )  # fmt: skip
-    chunk_size: int = option(1024, "searches per compiled batch (at most the searches; its memory is estimated and "
-                             "checked before it is allocated)", ge=1, le=sweep_config.MAX_ENVS)  # fmt: skip
+        DEFAULT_MAGNITUDES,
+        "push force grid [N]: LO HI N (the impulses searched: each x --push-duration)",
+        nargs=3,
+        metavar=("LO", "HI", "N"),
+        parse=grids.magnitude_grid,
+        show=grids.show_magnitude_grid,
+        gt=0.0,
+        le=constants.MAX_PUSH_N,
+        unit="N",
+        nonempty=True,
+    )
+    chunk_size: int = option(
+        1024,
+        "searches per compiled batch (at most the searches; its memory is estimated and "
+        "checked before it is allocated)",
+        ge=1,
+        le=sweep_config.MAX_ENVS,
+    )
     out: str | None = option("runs/envelope", "output folder")
     KIND: ClassVar[str] = "envelope"
     resolution: float = option(0.25, "bracket width to reach [N s]", ge=1e-3, le=1e3, unit="N s")
@@ -66,8 +78,10 @@ class EnvelopeConfig(sweep_config.SweepConfig):
         impulses = np.unique(np.asarray(self.magnitudes, float)) * self.push_duration
         _, refine = rounds_needed(impulses, self.resolution)
         if refine > MAX_REFINE_ROUNDS:
-            raise ValueError(f"--resolution {self.resolution:g} N s needs {refine} bisection rounds inside a grid step "
-                             f"of this grid, more than {MAX_REFINE_ROUNDS}; use a coarser resolution")  # fmt: skip
+            raise ValueError(
+                f"--resolution {self.resolution:g} N s needs {refine} bisection rounds inside a grid step "
+                f"of this grid, more than {MAX_REFINE_ROUNDS}; use a coarser resolution"
+            )
 
 
 def default_config() -> EnvelopeConfig:
@@ -82,8 +96,13 @@ def rounds_needed(impulses: np.ndarray, resolution: float) -> tuple[int, int]:
     return grid_rounds, max(0, math.ceil(math.log2(widest / resolution)))
 
 
-def bisect(impulses: np.ndarray, survives: Callable[[np.ndarray, np.ndarray], np.ndarray], searches: int,
-           resolution: float, on_round: Callable[[], None] | None = None) -> dict:  # fmt: skip
+def bisect(
+    impulses: np.ndarray,
+    survives: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    searches: int,
+    resolution: float,
+    on_round: Callable[[], None] | None = None,
+) -> dict:
     """Largest survived impulse of each of ``searches`` searches, by the two phases of this
     module over the sorted distinct ``impulses`` (M,) N s.
 
@@ -141,8 +160,9 @@ def search(cfg: sweep_config.SweepConfig, *, resolution: float | None = None, pr
 
     if not isinstance(cfg, EnvelopeConfig):  # a sweep's grid and settings; its chunk size is the grid's, not ours
         fields = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)}  # nested groups kept whole
-        cfg = EnvelopeConfig(**{**fields, "chunk_size": EnvelopeConfig.chunk_size},
-                             resolution=0.25 if resolution is None else resolution)  # fmt: skip
+        cfg = EnvelopeConfig(
+            **{**fields, "chunk_size": EnvelopeConfig.chunk_size}, resolution=0.25 if resolution is None else resolution
+        )
     elif resolution is not None:
         cfg = dataclasses.replace(cfg, resolution=resolution)
     cfg.check()
@@ -172,8 +192,9 @@ def search(cfg: sweep_config.SweepConfig, *, resolution: float | None = None, pr
     finished_run_s: list[float] = []  # each batch's run: the watchdog's default bound (--stall-timeout-s)
 
     def survives(k: np.ndarray, impulse: np.ndarray) -> np.ndarray:
-        scen, _ = sweep.scenarios_at(cfg, sets, impulse / cfg.push_duration, azi[k], gset[k], friction[k],
-                                     mass_scale[k], joint_offset[k], dtype)  # fmt: skip
+        scen, _ = sweep.scenarios_at(
+            cfg, sets, impulse / cfg.push_duration, azi[k], gset[k], friction[k], mass_scale[k], joint_offset[k], dtype
+        )
         alive = []
         for lo in range(0, k.size, batch):  # one compiled shape for every round
             part = jax.tree_util.tree_map(lambda x, lo=lo: np.asarray(x)[lo : lo + batch], scen)
@@ -186,8 +207,12 @@ def search(cfg: sweep_config.SweepConfig, *, resolution: float | None = None, pr
             alive.append(np.asarray(metrics_lib.summarize(result.metrics, push_end)["survived"]))
         return np.concatenate(alive)
 
-    bar = tqdm(total=sum(rounds_needed(impulses, resolution)), unit="round", disable=not progress,
-               desc=f"envelope ({st.backend})")  # fmt: skip
+    bar = tqdm(
+        total=sum(rounds_needed(impulses, resolution)),
+        unit="round",
+        disable=not progress,
+        desc=f"envelope ({st.backend})",
+    )
     found = bisect(impulses, survives, K, resolution, on_round=lambda: bar.update(1))
     bar.close()
     support = "left-foot" if cfg.task == "one-foot" else "two-feet"
@@ -196,19 +221,30 @@ def search(cfg: sweep_config.SweepConfig, *, resolution: float | None = None, pr
     for k in range(K):
         b = bound[float(azi[k])]["impulse_bound_ns"]
         envelope.setdefault(int(gset[k]), {})[float(azi[k])] = {
-            "impulse_ns": float(found["lo"][k]), "bracket_ns": [float(found["lo"][k]), float(found["hi"][k])],
-            "grid_impulse_ns": float(found["grid_lo"][k]), "at_cap": bool(found["at_cap"][k]),
-            "bound_impulse_ns": b, "fraction_of_bound": sweep_table.fraction(float(found["lo"][k]), b),
-        }  # fmt: skip
+            "impulse_ns": float(found["lo"][k]),
+            "bracket_ns": [float(found["lo"][k]), float(found["hi"][k])],
+            "grid_impulse_ns": float(found["grid_lo"][k]),
+            "at_cap": bool(found["at_cap"][k]),
+            "bound_impulse_ns": b,
+            "fraction_of_bound": sweep_table.fraction(float(found["lo"][k]), b),
+        }
     summary = {
-        "envelope": envelope, "rounds": found["rounds"], "rollouts": int(found["rollouts"]), "searches": K,
-        "grid_impulses": int(impulses.size), "grid_rollouts": int(K * impulses.size),
-        "resolution_ns": resolution, "backend": st.backend, "device": provenance.device_label(),
-        "compile_s": round(timing["compile_s"], 2), "run_s": round(timing["run_s"], 2),
+        "envelope": envelope,
+        "rounds": found["rounds"],
+        "rollouts": int(found["rollouts"]),
+        "searches": K,
+        "grid_impulses": int(impulses.size),
+        "grid_rollouts": int(K * impulses.size),
+        "resolution_ns": resolution,
+        "backend": st.backend,
+        "device": provenance.device_label(),
+        "compile_s": round(timing["compile_s"], 2),
+        "run_s": round(timing["run_s"], 2),
         "started_s": round(timing["started"] - provenance.process_started(), 2),
-        "config": flat_dict(cfg), "gains": gains_to_dict(base),
+        "config": flat_dict(cfg),
+        "gains": gains_to_dict(base),
         "provenance": provenance.record({"gains": cfg.gains, "tasks": cfg.controller.tasks}),
-    }  # fmt: skip
+    }
     if cfg.out is not None:
         io.atomic_write_json(pathlib.Path(cfg.out) / "summary.json", summary)
         runs.record_output(pathlib.Path(cfg.out) / "summary.json")
@@ -229,7 +265,14 @@ def compare_with_grid(found: dict, grid_summary: dict, grid_step_ns: float) -> d
             "grid_monotone_ns": g["monotone_impulse_ns"],
             "difference_ns": diff,
         }
-    return {"directions": rows, "max_abs_difference_ns": worst, "grid_step_ns": grid_step_ns,
-            "within_one_grid_step": worst <= grid_step_ns + 1e-9,
-            "grid_cell_agrees": sum(1 for r in rows.values() if r["bisection_grid_ns"] is not None
-                                    and abs(r["bisection_grid_ns"] - r["grid_monotone_ns"]) < 1e-9)}  # fmt: skip
+    return {
+        "directions": rows,
+        "max_abs_difference_ns": worst,
+        "grid_step_ns": grid_step_ns,
+        "within_one_grid_step": worst <= grid_step_ns + 1e-9,
+        "grid_cell_agrees": sum(
+            1
+            for r in rows.values()
+            if r["bisection_grid_ns"] is not None and abs(r["bisection_grid_ns"] - r["grid_monotone_ns"]) < 1e-9
+        ),
+    }

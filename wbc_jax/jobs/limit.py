@@ -58,55 +58,106 @@ class LimitConfig:
 
     robot: str = robot_option()
     directions: tuple[float, ...] = option(
-        (0.0, 90.0, 180.0, 270.0), "number of push azimuths over 360 deg (0 = forward, 90 = left)",
-        metavar="N", parse=grids.azimuths, show=len, ge=-360.0, le=360.0, unit="deg", nonempty=True,
-    )  # fmt: skip
+        (0.0, 90.0, 180.0, 270.0),
+        "number of push azimuths over 360 deg (0 = forward, 90 = left)",
+        metavar="N",
+        parse=grids.azimuths,
+        show=len,
+        ge=-360.0,
+        le=360.0,
+        unit="deg",
+        nonempty=True,
+    )
     elevation: float = option(0.0, "push elevation [deg]", ge=-90.0, le=90.0, unit="deg")
     push_duration: float = option(
         0.1, "push length [s]", ge=constants.MIN_PUSH_DURATION_S, le=constants.MAX_PUSH_DURATION_S, unit="s"
     )
     push_onset: float = option(0.5, "push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
-    body: str = option("trunk", "pushed body: a body of the robot or a role (trunk, pelvis, left_hand, right_thigh)",
-                       names=model.pushable_bodies)  # fmt: skip
-    gains: str | None = option(None, "gains JSON file of the balancing controller around which torques are optimised",
-                               metavar="FILE", input_file=True)  # fmt: skip
-    horizon: float = option(3.0, "seconds per rollout (the strict criterion is judged at its end)", gt=0.0,
-                            le=MAX_HORIZON_S, unit="s")  # fmt: skip
-    window: float = option(0.6, "seconds of optimised torques from the push onset (the controller alone after)",
-                           gt=0.0, le=MAX_WINDOW_S, unit="s")  # fmt: skip
-    tail: float = option(0.2, "seconds of controller-only ticks after the window in the optimiser's cost", ge=0.0,
-                         le=MAX_WINDOW_S, unit="s")  # fmt: skip
+    body: str = option(
+        "trunk",
+        "pushed body: a body of the robot or a role (trunk, pelvis, left_hand, right_thigh)",
+        names=model.pushable_bodies,
+    )
+    gains: str | None = option(
+        None,
+        "gains JSON file of the balancing controller around which torques are optimised",
+        metavar="FILE",
+        input_file=True,
+    )
+    horizon: float = option(
+        3.0, "seconds per rollout (the strict criterion is judged at its end)", gt=0.0, le=MAX_HORIZON_S, unit="s"
+    )
+    window: float = option(
+        0.6,
+        "seconds of optimised torques from the push onset (the controller alone after)",
+        gt=0.0,
+        le=MAX_WINDOW_S,
+        unit="s",
+    )
+    tail: float = option(
+        0.2,
+        "seconds of controller-only ticks after the window in the optimiser's cost",
+        ge=0.0,
+        le=MAX_WINDOW_S,
+        unit="s",
+    )
     candidates: int = option(4, "impulses per direction in each round (all optimised in one batch)", ge=1, le=64)
     rounds: int = option(3, "rounds of the bisection", ge=1, le=20)
-    knot_interval: float = option(0.05, "seconds between the knots of the optimised torques (linear between; "
-                                  "0.01: every control tick free)", ge=0.01, le=MAX_WINDOW_S, unit="s")  # fmt: skip
-    method: str = option("es", "optimiser: es (evolution-strategies gradient, forward rollouts) or gradient (exact, "
-                         "through the closed loop)", choices=trajopt.METHODS)  # fmt: skip
+    knot_interval: float = option(
+        0.05,
+        "seconds between the knots of the optimised torques (linear between; 0.01: every control tick free)",
+        ge=0.01,
+        le=MAX_WINDOW_S,
+        unit="s",
+    )
+    method: str = option(
+        "es",
+        "optimiser: es (evolution-strategies gradient, forward rollouts) or gradient (exact, through the closed loop)",
+        choices=trajopt.METHODS,
+    )
     iterations: int = option(40, "optimiser (Adam) steps per round", ge=1, le=100_000)
     learning_rate: float = option(1.0, "Adam's step [N m]", gt=0.0, le=60.0, unit="N m")
     es_pairs: int = option(8, "es: antithetic sample pairs per candidate and step", ge=1, le=1024)
     es_sigma: float = option(2.0, "es: spread of the samples [N m]", gt=0.0, le=60.0, unit="N m")
     clip_norm: float = option(10.0, "gradient: per-candidate gradient clip (global norm)", gt=0.0, le=1e6)
-    judge_every: int = option(10, "optimiser steps between strict checks on MJX (a passing trajectory is kept)",
-                              ge=1, le=100_000)  # fmt: skip
+    judge_every: int = option(
+        10, "optimiser steps between strict checks on MJX (a passing trajectory is kept)", ge=1, le=100_000
+    )
     envelopes: tuple[str, ...] = option(
-        (), "strict envelope summaries of controllers (wbc-jax envelope --out DIR: DIR/summary.json) to compare; "
-        "the best one per direction starts the search", nargs="*", metavar="FILE", parse=_files, input_file=True,
-    )  # fmt: skip
-    lower_fraction: float = option(0.3, "first impulse of the search without --envelopes, x the LIP bound", gt=0.0,
-                                   le=10.0)  # fmt: skip
+        (),
+        "strict envelope summaries of controllers (wbc-jax envelope --out DIR: DIR/summary.json) to compare; "
+        "the best one per direction starts the search",
+        nargs="*",
+        metavar="FILE",
+        parse=_files,
+        input_file=True,
+    )
+    lower_fraction: float = option(
+        0.3, "first impulse of the search without --envelopes, x the LIP bound", gt=0.0, le=10.0
+    )
     upper_fraction: float = option(1.3, "last impulse of round 1, x the LIP bound", gt=0.0, le=10.0)
-    slip_margin: float = option(0.01, "the optimiser's slip margin [m] (strict test: 0.02)", gt=0.0,
-                                lt=constants.SURVIVAL_MAX_SLIP_M, unit="m")  # fmt: skip
-    tilt_margin_deg: float = option(3.0, "the optimiser's sole tilt margin [deg] (strict test: 5)", gt=0.0,
-                                    lt=constants.SURVIVAL_MAX_TILT_DEG, unit="deg")  # fmt: skip
-    solver_iterations: int | None = option(None, "contact solver Newton iterations (default: the model's, 4)",
-                                           ge=1, le=constants.MAX_SOLVER_ITERATIONS)  # fmt: skip
+    slip_margin: float = option(
+        0.01, "the optimiser's slip margin [m] (strict test: 0.02)", gt=0.0, lt=constants.SURVIVAL_MAX_SLIP_M, unit="m"
+    )
+    tilt_margin_deg: float = option(
+        3.0,
+        "the optimiser's sole tilt margin [deg] (strict test: 5)",
+        gt=0.0,
+        lt=constants.SURVIVAL_MAX_TILT_DEG,
+        unit="deg",
+    )
+    solver_iterations: int | None = option(
+        None, "contact solver Newton iterations (default: the model's, 4)", ge=1, le=constants.MAX_SOLVER_ITERATIONS
+    )
     time_limit: float | None = option(
-        None, "wall-clock seconds after which no new round starts and a round's optimisation stops at its next "
+        None,
+        "wall-clock seconds after which no new round starts and a round's optimisation stops at its next "
         "judge (what passed is still replayed and saved; a rerun resumes; 0: only the summary of what is there); "
-        "none: no limit", ge=0.0, le=1e7, unit="s",
-    )  # fmt: skip
+        "none: no limit",
+        ge=0.0,
+        le=1e7,
+        unit="s",
+    )
     out: str = option("runs/limit", "output folder (a search resumes there)")
 
     def check(self) -> None:
@@ -119,22 +170,34 @@ class LimitConfig:
             )
         if self.push_onset + max(self.push_duration, self.window + self.tail) >= self.horizon:
             ends = f"{self.push_onset:g} + max({self.push_duration:g}, {self.window:g} + {self.tail:g}) s"
-            raise ValueError(f"--horizon {self.horizon:g} s must end after the push and the optimised window and tail "
-                             f"({ends})")  # fmt: skip
+            raise ValueError(
+                f"--horizon {self.horizon:g} s must end after the push and the optimised window and tail ({ends})"
+            )
         self.sweep("mujoco").check()
         load_envelopes(self)
         runs.check_output_dir(self.out, "limit", fingerprint(self))
         if self.time_limit == 0 and not (pathlib.Path(self.out) / "state.json").exists():
-            raise ValueError(f"--time-limit 0 summarises the rounds on disk, and --out {self.out} holds none: nothing "
-                             "was measured; give --time-limit > 0 (or none) to run a round")  # fmt: skip
+            raise ValueError(
+                f"--time-limit 0 summarises the rounds on disk, and --out {self.out} holds none: nothing "
+                "was measured; give --time-limit > 0 (or none) to run a round"
+            )
 
     def sweep(self, backend: str, body: str | None = None) -> sweep_config.SweepConfig:
         """The sweep config that pushes and simulates alike (its setups and scenarios)."""
         return sweep_config.SweepConfig(
-            robot=self.robot, magnitudes=(1.0,), directions=self.directions, elevation=self.elevation, push_duration=self.push_duration,
-            push_onset=self.push_onset, body=body or self.body, gains=self.gains, horizon=self.horizon,
-            solver_iterations=self.solver_iterations, backend=backend, out=None,
-        )  # fmt: skip
+            robot=self.robot,
+            magnitudes=(1.0,),
+            directions=self.directions,
+            elevation=self.elevation,
+            push_duration=self.push_duration,
+            push_onset=self.push_onset,
+            body=body or self.body,
+            gains=self.gains,
+            horizon=self.horizon,
+            solver_iterations=self.solver_iterations,
+            backend=backend,
+            out=None,
+        )
 
     def cost(self) -> trajopt.Cost:
         return trajopt.Cost(slip_margin=self.slip_margin, tilt_margin_deg=self.tilt_margin_deg)
@@ -177,12 +240,15 @@ def load_envelopes(cfg: LimitConfig) -> dict:
             raise ValueError(f"--envelopes {path}: not the summary.json of wbc-jax envelope ({err})") from None
         desc = describe(cfg.robot)
         if desc.body(str(pushed.get("body"))) != desc.body(cfg.body):  # a role and its body are the same push
-            raise ValueError(f"--envelopes {path}: its pushes have body {desc.body(str(pushed.get('body')))!r}, "
-                             f"the search {desc.body(cfg.body)!r}")  # fmt: skip
+            raise ValueError(
+                f"--envelopes {path}: its pushes have body {desc.body(str(pushed.get('body')))!r}, "
+                f"the search {desc.body(cfg.body)!r}"
+            )
         for key in ("robot", "push_duration", "push_onset", "elevation"):
             if pushed.get(key, DEFAULT_ROBOT if key == "robot" else None) != getattr(cfg, key):
-                raise ValueError(f"--envelopes {path}: its pushes have {key} {pushed.get(key)!r}, the search "
-                                 f"{getattr(cfg, key)!r}")  # fmt: skip
+                raise ValueError(
+                    f"--envelopes {path}: its pushes have {key} {pushed.get(key)!r}, the search {getattr(cfg, key)!r}"
+                )
         try:
             table = {float(a): float(e["impulse_ns"]) for a, e in env.items()}
         except (KeyError, TypeError, ValueError) as err:
@@ -190,12 +256,16 @@ def load_envelopes(cfg: LimitConfig) -> dict:
         bad = {a: j for a, j in table.items() if not (math.isfinite(j) and j >= 0.0)}
         if bad:
             a, j = next(iter(bad.items()))
-            raise ValueError(f"--envelopes {path}: the envelope at azimuth {a:g} deg is {j!r} N s; an envelope is a "
-                             "finite impulse >= 0 N s")  # fmt: skip
+            raise ValueError(
+                f"--envelopes {path}: the envelope at azimuth {a:g} deg is {j!r} N s; an envelope is a "
+                "finite impulse >= 0 N s"
+            )
         missing = [a for a in cfg.directions if float(a) not in table]
         if missing:
-            raise ValueError(f"--envelopes {path}: no envelope at azimuths {missing[:4]} of the search "
-                             f"(it has {sorted(table)[:4]}...); use the same --directions")  # fmt: skip
+            raise ValueError(
+                f"--envelopes {path}: no envelope at azimuths {missing[:4]} of the search "
+                f"(it has {sorted(table)[:4]}...); use the same --directions"
+            )
         label = path.parent.name if path.name == "summary.json" else path.stem
         out[label] = {float(a): table[float(a)] for a in cfg.directions}
     return out

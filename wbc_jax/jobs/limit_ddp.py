@@ -58,27 +58,44 @@ class DdpConfig:
     """The crocoddyl cross-check: the pushes (as ``wbc-jax limit``'s), the DDP problem, the bisection."""
 
     directions: tuple[float, ...] = option(
-        (0.0, 90.0, 180.0, 270.0), "number of push azimuths over 360 deg (0 = forward, 90 = left)",
-        metavar="N", parse=grids.azimuths, show=len, ge=-360.0, le=360.0, unit="deg", nonempty=True,
-    )  # fmt: skip
+        (0.0, 90.0, 180.0, 270.0),
+        "number of push azimuths over 360 deg (0 = forward, 90 = left)",
+        metavar="N",
+        parse=grids.azimuths,
+        show=len,
+        ge=-360.0,
+        le=360.0,
+        unit="deg",
+        nonempty=True,
+    )
     robot: str = robot_option()
-    body: str = option("trunk", "pushed body: a body of the robot or a role (trunk, pelvis, left_hand, right_thigh)",
-                       names=model.pushable_bodies)  # fmt: skip
+    body: str = option(
+        "trunk",
+        "pushed body: a body of the robot or a role (trunk, pelvis, left_hand, right_thigh)",
+        names=model.pushable_bodies,
+    )
     push_duration: float = option(
         0.1, "push length [s]", ge=constants.MIN_PUSH_DURATION_S, le=constants.MAX_PUSH_DURATION_S, unit="s"
     )
     push_onset: float = option(0.5, "push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
     gains: str | None = option(None, "gains JSON file of the tracking controller", metavar="FILE", input_file=True)
-    horizon: float = option(3.0, "seconds per replay (the strict criterion is judged at its end)", gt=0.0,
-                            le=limit.MAX_HORIZON_S, unit="s")  # fmt: skip
-    ddp_horizon: float = option(1.0, "seconds of the DDP problem from the post-push state", gt=0.0,
-                                le=limit.MAX_WINDOW_S, unit="s")  # fmt: skip
+    horizon: float = option(
+        3.0, "seconds per replay (the strict criterion is judged at its end)", gt=0.0, le=limit.MAX_HORIZON_S, unit="s"
+    )
+    ddp_horizon: float = option(
+        1.0, "seconds of the DDP problem from the post-push state", gt=0.0, le=limit.MAX_WINDOW_S, unit="s"
+    )
     max_iterations: int = option(100, "DDP iterations per solve", ge=1, le=10_000)
     w_state: float = option(1.0, "weight of the state regularisation toward standing", gt=0.0, le=1e6)
     w_com: float = option(100.0, "weight of the CoM toward its standing position", ge=0.0, le=1e6)
     w_wrench_cone: float = option(100.0, "weight of the wrench-cone barrier (friction, CoP)", gt=0.0, le=1e9)
-    cop_scale: float = option(1.0, "the barrier's CoP rectangle as a fraction of the controller's, about its centre "
-                              "(below 1: a margin for the tracking)", gt=0.0, le=1.0)  # fmt: skip
+    cop_scale: float = option(
+        1.0,
+        "the barrier's CoP rectangle as a fraction of the controller's, about its centre "
+        "(below 1: a margin for the tracking)",
+        gt=0.0,
+        le=1.0,
+    )
     w_control: float = option(1e-3, "weight of the torque regularisation", ge=0.0, le=1e6)
     w_terminal: float = option(100.0, "terminal weight multiplier of state and CoM", ge=1.0, le=1e6)
     tests: int = option(5, "impulses tested per direction (the bisection's steps)", ge=1, le=50)
@@ -100,10 +117,20 @@ class DdpConfig:
         """The limit search's config whose pushes, setups and judge the cross-check shares: the
         feedforward window from the onset through the push and the DDP's horizon, every tick free."""
         return limit.LimitConfig(
-            robot=self.robot, directions=self.directions, body=self.body, push_duration=self.push_duration, push_onset=self.push_onset,
-            gains=self.gains, horizon=self.horizon, window=self.push_duration + self.ddp_horizon, tail=0.0,
-            knot_interval=constants.CONTROL_DT, candidates=1, rounds=1, out="/nonexistent/limit_ddp",
-        )  # fmt: skip
+            robot=self.robot,
+            directions=self.directions,
+            body=self.body,
+            push_duration=self.push_duration,
+            push_onset=self.push_onset,
+            gains=self.gains,
+            horizon=self.horizon,
+            window=self.push_duration + self.ddp_horizon,
+            tail=0.0,
+            knot_interval=constants.CONTROL_DT,
+            candidates=1,
+            rounds=1,
+            out="/nonexistent/limit_ddp",
+        )
 
 
 class CrossCheck:
@@ -133,8 +160,9 @@ class CrossCheck:
         for foot in self.feet:  # the CoP rectangle's centre, where the wrench cone is centred
             sole = self.pin_model.getFrameId(foot)
             parent = self.pin_model.frames[sole]
-            frame = pin.Frame(f"{foot}_cop_centre", parent.parentJoint, sole, parent.placement * centre,
-                              pin.FrameType.OP_FRAME)  # fmt: skip
+            frame = pin.Frame(
+                f"{foot}_cop_centre", parent.parentJoint, sole, parent.placement * centre, pin.FrameType.OP_FRAME
+            )
             self.contact_frames.append(self.pin_model.addFrame(frame))
         self.pin_data = self.pin_model.createData()
         limits = bounds.joint_torque_limits(m, self.map.joints)
@@ -163,8 +191,9 @@ class CrossCheck:
                 if k == self.k0:
                     onset = host.state()
                 q, v = host.state()
-                state, ctrl, _, forces, bodies = fns["control"](gains, state, cast(q), cast(v), np.int32(k),
-                                                                ~host.diverged, push, None)  # fmt: skip
+                state, ctrl, _, forces, bodies = fns["control"](
+                    gains, state, cast(q), cast(v), np.int32(k), ~host.diverged, push, None
+                )
                 host.step(np.asarray(ctrl, float), host_loop.host_xfrc(loop, forces, bodies))
             after = host.state()
             if host.diverged.any():
@@ -180,8 +209,9 @@ class CrossCheck:
         out = []
         ok = np.ones(plan_qpos.shape[0], bool)
         for i in range(plan_qpos.shape[1]):
-            state, ctrl, *_ = fns["control"](gains, state, cast(plan_qpos[:, i]), cast(plan_qvel[:, i]),
-                                             np.int32(self.k1 + i), ok, push, None)  # fmt: skip
+            state, ctrl, *_ = fns["control"](
+                gains, state, cast(plan_qpos[:, i]), cast(plan_qvel[:, i]), np.int32(self.k1 + i), ok, push, None
+            )
             out.append(np.asarray(ctrl, float)[:, self.loop.idx.actuators])
         return np.stack(out, 1)
 
@@ -206,23 +236,35 @@ class CrossCheck:
                 # Baumgarte damping 0.5 / dt: Euler halves a contact-velocity error per tick (at
                 # 2 / dt it flips sign every tick and the contact forces ring).
                 placement = self.pin_data.oMf[frame]
-                contact.addContact(f"{foot}_contact", croc.ContactModel6D(
-                    self.state, frame, placement, pin.LOCAL, nu, np.array([0.0, 0.5 / self.dt])))  # fmt: skip
+                contact.addContact(
+                    f"{foot}_contact",
+                    croc.ContactModel6D(self.state, frame, placement, pin.LOCAL, nu, np.array([0.0, 0.5 / self.dt])),
+                )
                 if terminal:  # no torques at the terminal node: its contact forces are no decision
                     continue
                 cone = croc.WrenchCone(np.eye(3), self.params.mu, self.box, 4, True, self.params.fz_min)
                 residual = croc.ResidualModelContactWrenchCone(self.state, frame, cone, nu)
                 barrier = croc.ActivationModelQuadraticBarrier(croc.ActivationBounds(cone.lb, cone.ub))
-                costs.addCost(f"{foot}_wrench_cone", croc.CostModelResidual(self.state, barrier, residual),
-                              cfg.w_wrench_cone)  # fmt: skip
+                costs.addCost(
+                    f"{foot}_wrench_cone", croc.CostModelResidual(self.state, barrier, residual), cfg.w_wrench_cone
+                )
             reg = croc.ResidualModelState(self.state, x_stand, nu)
-            costs.addCost("state", croc.CostModelResidual(
-                self.state, croc.ActivationModelWeightedQuad(state_w**2), reg), cfg.w_state * weight)  # fmt: skip
-            costs.addCost("com", croc.CostModelResidual(self.state, croc.ResidualModelCoMPosition(
-                self.state, com_stand, nu)), cfg.w_com * weight)  # fmt: skip
+            costs.addCost(
+                "state",
+                croc.CostModelResidual(self.state, croc.ActivationModelWeightedQuad(state_w**2), reg),
+                cfg.w_state * weight,
+            )
+            costs.addCost(
+                "com",
+                croc.CostModelResidual(self.state, croc.ResidualModelCoMPosition(self.state, com_stand, nu)),
+                cfg.w_com * weight,
+            )
             if not terminal:
-                costs.addCost("torque", croc.CostModelResidual(self.state, croc.ResidualModelControl(self.state, nu)),
-                              cfg.w_control)  # fmt: skip
+                costs.addCost(
+                    "torque",
+                    croc.CostModelResidual(self.state, croc.ResidualModelControl(self.state, nu)),
+                    cfg.w_control,
+                )
             dam = croc.DifferentialActionModelContactFwdDynamics(self.state, self.actuation, contact, costs, 0.0, True)
             dam.u_lb, dam.u_ub = -self.torque_limit, self.torque_limit
             return croc.IntegratedActionModelEuler(dam, 0.0 if terminal else self.dt)
@@ -240,9 +282,16 @@ class CrossCheck:
         us = problem.quasiStatic([x0] * problem.T)
         t0, cpu0 = time.perf_counter(), time.process_time()
         converged = solver.solve(xs, us, self.cfg.max_iterations, False)
-        return {"xs": np.array(solver.xs), "us": np.array(solver.us), "iterations": int(solver.iter),
-                "cost": float(solver.cost), "converged": bool(converged), "solve_s": time.perf_counter() - t0,
-                "solve_cpu_s": time.process_time() - cpu0, "solver": solver}  # fmt: skip
+        return {
+            "xs": np.array(solver.xs),
+            "us": np.array(solver.us),
+            "iterations": int(solver.iter),
+            "cost": float(solver.cost),
+            "converged": bool(converged),
+            "solve_s": time.perf_counter() - t0,
+            "solve_cpu_s": time.process_time() - cpu0,
+            "solver": solver,
+        }
 
     def contact_forces(self, solver) -> np.ndarray:
         """(T, 2, 6) the DDP's contact wrenches [force, torque] per sole in its contact frame."""
@@ -299,9 +348,13 @@ class CrossCheck:
         out = []
         for b, sol in enumerate(solves):
             rec = {k: sol[k] for k in ("iterations", "cost", "converged", "solve_s", "solve_cpu_s")}
-            rec.update(verified=bool(cols["survived"][b]), failed=cols["failed"][b], impulse_ns=float(impulse[b]),
-                       feedforward=u[b],
-                       **{f"replay_{k}": float(cols[k][b]) for k in limit_rounds.REPLAY_COLUMNS})  # fmt: skip
+            rec.update(
+                verified=bool(cols["survived"][b]),
+                failed=cols["failed"][b],
+                impulse_ns=float(impulse[b]),
+                feedforward=u[b],
+                **{f"replay_{k}": float(cols[k][b]) for k in limit_rounds.REPLAY_COLUMNS},
+            )
             out.append(rec)
         return out
 
@@ -311,8 +364,11 @@ class CrossCheck:
         judge's columns of that push."""
         scen = self.search.scenarios(np.array([d]), np.array([float(impulse)]))
         cols = self.search.judge(scen, np.asarray(feedforward)[None], "mujoco")
-        return {"verified": bool(cols["survived"][0]), "failed": cols["failed"][0],
-                **{f"replay_{k}": float(cols[k][0]) for k in limit_rounds.REPLAY_COLUMNS}}  # fmt: skip
+        return {
+            "verified": bool(cols["survived"][0]),
+            "failed": cols["failed"][0],
+            **{f"replay_{k}": float(cols[k][0]) for k in limit_rounds.REPLAY_COLUMNS},
+        }
 
 
 def next_impulse(tests: list[dict], start: float, cap: float) -> float:
@@ -329,8 +385,9 @@ def next_impulse(tests: list[dict], start: float, cap: float) -> float:
     return float(0.5 * (lo + hi))
 
 
-def bisect(check: CrossCheck, start: np.ndarray, cap: np.ndarray, tested: list[list[dict]] | None = None,
-           on_test=None) -> list[list[dict]]:  # fmt: skip
+def bisect(
+    check: CrossCheck, start: np.ndarray, cap: np.ndarray, tested: list[list[dict]] | None = None, on_test=None
+) -> list[list[dict]]:
     """Per direction ``cfg.tests`` impulses (:func:`next_impulse`) from ``start`` (D,) N s, capped at
     ``cap`` (D,); ``tested``: each direction's tests already made (a resumed run), which are kept and
     continued. The directions still short of ``cfg.tests`` run in one batch a step; ``on_test``
@@ -357,6 +414,8 @@ def resumed_tests(previous: dict | None, cfg: DdpConfig, path) -> dict[float, li
             continue
         was, now = previous["config"].get(name, cfg.__dataclass_fields__[name].default), getattr(cfg, name)
         if was != now:
-            raise ValueError(f"{path} was written with {name}={was!r}, this run has {now!r}: pass the same settings "
-                             "to resume it, or another --out")  # fmt: skip
+            raise ValueError(
+                f"{path} was written with {name}={was!r}, this run has {now!r}: pass the same settings "
+                "to resume it, or another --out"
+            )
     return {float(a): row["tests"] for a, row in previous["directions"].items()}

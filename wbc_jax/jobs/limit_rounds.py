@@ -34,8 +34,14 @@ from wbc_jax.sim.state import Feedforward
 
 # The setups' push body; the pushed body travels in Push.body, so all bodies share the programs.
 SETUP_BODY = "trunk"
-REPLAY_COLUMNS = ("max_foot_slip_m", "max_foot_tilt_deg", "end_com_speed_mps", "end_com_support_margin_m",
-                  "min_com_height_m", "max_abs_torque_nm")  # fmt: skip
+REPLAY_COLUMNS = (
+    "max_foot_slip_m",
+    "max_foot_tilt_deg",
+    "end_com_speed_mps",
+    "end_com_support_margin_m",
+    "min_com_height_m",
+    "max_abs_torque_nm",
+)
 
 
 class Search:
@@ -55,13 +61,25 @@ class Search:
 
         # The optimiser's loop: a smooth trace per tick, the tick rematerialised for exact gradients.
         grad_setup = setup("jax")
-        self.grad_setup = dataclasses.replace(grad_setup, loop=loop_lib.compose(
-            grad_setup.loop, trace=loop_lib.smooth_trace, remat=cfg.method == "gradient"))  # fmt: skip
+        self.grad_setup = dataclasses.replace(
+            grad_setup,
+            loop=loop_lib.compose(grad_setup.loop, trace=loop_lib.smooth_trace, remat=cfg.method == "gradient"),
+        )
         self.judge_setup, self.replay_setup = setup("jax"), setup("mujoco")
         self.k0, self.T, self.tail, knot = cfg.ticks(self.grad_setup.loop.cfg.control_dt)
-        self.opt = trajopt.Optimiser(self.grad_setup, self.k0, self.T, self.tail, method=cfg.method,
-                                     learning_rate=cfg.learning_rate, clip_norm=cfg.clip_norm, knot=knot,
-                                     pairs=cfg.es_pairs, sigma=cfg.es_sigma, cost=cfg.cost())  # fmt: skip
+        self.opt = trajopt.Optimiser(
+            self.grad_setup,
+            self.k0,
+            self.T,
+            self.tail,
+            method=cfg.method,
+            learning_rate=cfg.learning_rate,
+            clip_norm=cfg.clip_norm,
+            knot=knot,
+            pairs=cfg.es_pairs,
+            sigma=cfg.es_sigma,
+            cost=cfg.cost(),
+        )
         self.Kn = self.opt.W.shape[1]
         self.azimuths = [float(a) for a in cfg.directions]
         self.lip = sweep_table.lip_bound(robot, self.azimuths)
@@ -82,9 +100,17 @@ class Search:
         """Scenarios (B,) of the pushes of directions ``d`` (B,) (indices) with ``impulse`` (B,) N s."""
         cfg = self.cfg
         B = d.size
-        scen, _ = sweep.scenarios_at(cfg.sweep("jax"), [self.base], impulse / cfg.push_duration,
-                                     np.asarray(self.azimuths)[d], np.zeros(B, int), np.ones(B), np.ones(B),
-                                     np.zeros((B, self.n)), self.dtype)  # fmt: skip
+        scen, _ = sweep.scenarios_at(
+            cfg.sweep("jax"),
+            [self.base],
+            impulse / cfg.push_duration,
+            np.asarray(self.azimuths)[d],
+            np.zeros(B, int),
+            np.ones(B),
+            np.ones(B),
+            np.zeros((B, self.n)),
+            self.dtype,
+        )
         return scen.replace(push=scen.push.replace(body=np.full((B, 1), self.body_id, np.int32)))
 
     def _feedforward(self, u) -> Feedforward:
@@ -103,8 +129,9 @@ class Search:
         cols["failed"] = [sorted(k for k, v in metrics_lib.failed_tests(cols).items() if v[b]) for b in range(len(z))]
         return cols
 
-    def round(self, impulses: np.ndarray, warm: np.ndarray, on_step=None, on_judge=None,
-              deadline: float | None = None) -> tuple[dict, np.ndarray]:  # fmt: skip
+    def round(
+        self, impulses: np.ndarray, warm: np.ndarray, on_step=None, on_judge=None, deadline: float | None = None
+    ) -> tuple[dict, np.ndarray]:
         """One round over all directions: ``impulses`` (D, K) N s, warm starts (D * K, Kn, n);
         the optimisation stops at its first judge after ``deadline`` (``time.perf_counter()``;
         None: never). Returns (per-candidate columns (D * K,), the knots kept (D * K, Kn, n):
@@ -119,9 +146,15 @@ class Search:
         # edge, e.g. the controller's own trajectory at its envelope's impulse).
         tries = [np.asarray(state.pass_z), np.asarray(state.z), np.asarray(warm)]
         replay, kept = self._replay(scen, tries, [passed, ~passed, ~passed])
-        columns = {"direction": d, "impulse_ns": impulses.ravel(), "mjx_passed": passed,
-                   "passed_step": np.asarray(state.passed_step), **info,
-                   "verified": replay.pop("survived"), **replay}  # fmt: skip
+        columns = {
+            "direction": d,
+            "impulse_ns": impulses.ravel(),
+            "mjx_passed": passed,
+            "passed_step": np.asarray(state.passed_step),
+            **info,
+            "verified": replay.pop("survived"),
+            **replay,
+        }
         return columns, kept
 
     def _optimise(self, scen, warm: np.ndarray, on_step, on_judge, deadline: float | None = None):
@@ -156,9 +189,15 @@ class Search:
         self.steps += steps
         if on_step is not None:
             on_step(cfg.iterations - steps)
-        info = {"warm_failed": first_failed, "mjx_failed": failed, "objective_first": obj0, "objective_last": obj,
-                "steps": np.full(B, steps), "time_cut": np.full(B, cut),
-                **{f"cost_{k}": np.asarray(v) for k, v in terms.items()}}  # fmt: skip
+        info = {
+            "warm_failed": first_failed,
+            "mjx_failed": failed,
+            "objective_first": obj0,
+            "objective_last": obj,
+            "steps": np.full(B, steps),
+            "time_cut": np.full(B, cut),
+            **{f"cost_{k}": np.asarray(v) for k, v in terms.items()},
+        }
         return state, info
 
     def _judge_open(self, scen, state, step: int, failed: list):
@@ -189,8 +228,12 @@ class Search:
         sub = jax.tree_util.tree_map(lambda x: np.asarray(x)[b_idx], scen)
         size = max(2 * B, len(entries))
         cols = self.judge(runner.pad_batch(sub, size), runner.pad_batch(z, size), "mujoco")
-        out = {"survived": np.zeros(B, bool), "replayed": np.full(B, -1), "replay_failed": [None] * B,
-               **{f"replay_{k}": np.full(B, np.nan) for k in REPLAY_COLUMNS}}  # fmt: skip
+        out = {
+            "survived": np.zeros(B, bool),
+            "replayed": np.full(B, -1),
+            "replay_failed": [None] * B,
+            **{f"replay_{k}": np.full(B, np.nan) for k in REPLAY_COLUMNS},
+        }
         kept = np.zeros_like(tries[0])
         for j, (b, i) in enumerate(entries):
             first = out["replay_failed"][b] is None
@@ -243,8 +286,14 @@ def _save_state(out: pathlib.Path, search: Search, records: list, witnesses: dic
     impulse), then state.json (every candidate), atomically."""
     keys = sorted(witnesses)
     z = np.array([witnesses[k] for k in keys]).reshape(len(keys), search.Kn, search.n)
-    io.atomic_save_npz(out / "witness.npz", z=z, u=search.opt.torques(z), direction=np.array([k[0] for k in keys], int),
-                       impulse_ns=np.array([k[1] for k in keys]), onset_tick=np.asarray(search.k0))  # fmt: skip
+    io.atomic_save_npz(
+        out / "witness.npz",
+        z=z,
+        u=search.opt.torques(z),
+        direction=np.array([k[0] for k in keys], int),
+        impulse_ns=np.array([k[1] for k in keys]),
+        onset_tick=np.asarray(search.k0),
+    )
     runs.record_output(out / "witness.npz")
     io.atomic_write_json(out / "state.json", {"candidates": records})
     runs.record_output(out / "state.json")
@@ -264,14 +313,20 @@ def run(cfg: limit.LimitConfig, *, progress: bool = True) -> dict:
     records, witnesses = _load_state(out)
     D = len(search.azimuths)
     done = max((r["round"] for r in records), default=-1) + 1
-    bar = tqdm(total=cfg.rounds * cfg.iterations, initial=done * cfg.iterations, unit="step",
-               disable=not progress, desc=f"limit {cfg.body}")  # fmt: skip
+    bar = tqdm(
+        total=cfg.rounds * cfg.iterations,
+        initial=done * cfg.iterations,
+        unit="step",
+        disable=not progress,
+        desc=f"limit {cfg.body}",
+    )
     for r in range(done, cfg.rounds):
         if deadline is not None and time.perf_counter() >= deadline:
             break
         tested = [_tested(records, d) for d in range(D)]
-        impulses = np.stack([limit.next_impulses(tested[d], cfg.candidates, search.lower[d], search.upper[d])
-                             for d in range(D)])  # fmt: skip
+        impulses = np.stack(
+            [limit.next_impulses(tested[d], cfg.candidates, search.lower[d], search.upper[d]) for d in range(D)]
+        )
         pairs = [(d, float(J)) for d in range(D) for J in impulses[d]]
         by_dir = [[(J, z) for (dd, J), z in witnesses.items() if dd == d] for d in range(D)]
         warm = trajopt.warm_starts(by_dir, pairs, search.Kn, search.n)
@@ -290,8 +345,10 @@ def run(cfg: limit.LimitConfig, *, progress: bool = True) -> dict:
         _save_state(out, search, records, witnesses)
     bar.close()
     if not records:  # no round finished: nothing was measured, so no limit is claimed
-        raise ValueError(f"--time-limit {cfg.time_limit:g} s ran out before round 1 finished: nothing was measured; "
-                         "give a longer --time-limit (a rerun resumes)")  # fmt: skip
+        raise ValueError(
+            f"--time-limit {cfg.time_limit:g} s ran out before round 1 finished: nothing was measured; "
+            "give a longer --time-limit (a rerun resumes)"
+        )
     summary = summarize(cfg, search, records, time.perf_counter() - t_start)
     if done >= cfg.rounds and runs.output_changed(out / "summary.json") is None:
         # A re-run of a finished search: its summary.json (the timings measured when it ran) stays as it
@@ -308,8 +365,11 @@ def run(cfg: limit.LimitConfig, *, progress: bool = True) -> dict:
 def _tested(records: list, d: int) -> list:
     """[(impulse, verified)] of direction ``d``: a failure of a round cut by the time limit is no
     evidence (its optimisation stopped early), so only its verified candidates count."""
-    return [(x["impulse_ns"], x["verified"]) for x in records
-            if x["direction"] == d and (x["verified"] or not x.get("time_cut", False))]  # fmt: skip
+    return [
+        (x["impulse_ns"], x["verified"])
+        for x in records
+        if x["direction"] == d and (x["verified"] or not x.get("time_cut", False))
+    ]
 
 
 def summarize(cfg: limit.LimitConfig, search: Search, records: list, wall_s: float) -> dict:
@@ -320,24 +380,40 @@ def summarize(cfg: limit.LimitConfig, search: Search, records: list, wall_s: flo
         mine = [x for x in records if x["direction"] == d]
         evidence = _tested(records, d)
         if not evidence:  # every candidate's optimisation was cut by the time limit: nothing measured
-            directions[az] = {"limit_ns": None, "bracket_ns": [None, None], "at_cap": False, "measured": False,
-                              "lip_bound_ns": search.lip[az]["impulse_bound_ns"], "fraction_of_lip": None,
-                              "limit_at_least_envelopes": False, "witness": None,
-                              "envelopes": {k: {"impulse_ns": e[az], "fraction_of_limit": None}
-                                            for k, e in search.envelopes.items()}}  # fmt: skip
+            directions[az] = {
+                "limit_ns": None,
+                "bracket_ns": [None, None],
+                "at_cap": False,
+                "measured": False,
+                "lip_bound_ns": search.lip[az]["impulse_bound_ns"],
+                "fraction_of_lip": None,
+                "limit_at_least_envelopes": False,
+                "witness": None,
+                "envelopes": {k: {"impulse_ns": e[az], "fraction_of_limit": None} for k, e in search.envelopes.items()},
+            }
             continue
         lo, hi = limit.bracket(evidence)
         bound = search.lip[az]["impulse_bound_ns"]
         witness = max((x for x in mine if x["verified"]), key=lambda x: x["impulse_ns"], default=None)
-        envs = {k: {"impulse_ns": e[az], "fraction_of_limit": e[az] / lo if lo > 0 else None}
-                for k, e in search.envelopes.items()}  # fmt: skip
+        envs = {
+            k: {"impulse_ns": e[az], "fraction_of_limit": e[az] / lo if lo > 0 else None}
+            for k, e in search.envelopes.items()
+        }
         directions[az] = {
-            "limit_ns": lo, "bracket_ns": [lo, None if np.isinf(hi) else hi], "at_cap": bool(np.isinf(hi)),
-            "lip_bound_ns": bound, "fraction_of_lip": lo / bound, "envelopes": envs, "measured": True,
+            "limit_ns": lo,
+            "bracket_ns": [lo, None if np.isinf(hi) else hi],
+            "at_cap": bool(np.isinf(hi)),
+            "lip_bound_ns": bound,
+            "fraction_of_lip": lo / bound,
+            "envelopes": envs,
+            "measured": True,
             "limit_at_least_envelopes": all(e[az] <= lo + 1e-9 for e in search.envelopes.values()),
-            "witness": None if witness is None else {k: witness[k] for k in witness if k.startswith("replay_")
-                                                     or k in ("round", "passed_step", "impulse_ns")},
-        }  # fmt: skip
+            "witness": None
+            if witness is None
+            else {
+                k: witness[k] for k in witness if k.startswith("replay_") or k in ("round", "passed_step", "impulse_ns")
+            },
+        }
     fractions = [v["fraction_of_lip"] for v in directions.values() if v["measured"]]
     B = len(search.azimuths) * cfg.candidates
     return {
@@ -346,19 +422,26 @@ def summarize(cfg: limit.LimitConfig, search: Search, records: list, wall_s: flo
         # A target is met only where every direction was measured.
         "targets": {
             "limit_at_least_every_envelope": all(v["limit_at_least_envelopes"] for v in directions.values()),
-            "every_limit_replayed_in_c_mujoco": all(v["measured"] and (v["witness"] is not None or v["limit_ns"] == 0)
-                                                    for v in directions.values()),
-        },  # fmt: skip
-        "rounds": cfg.rounds, "rounds_done": 1 + max((x["round"] for x in records), default=-1),
-        "time_cut": any(x.get("time_cut", False) for x in records), "candidates": records, "batch": B,
+            "every_limit_replayed_in_c_mujoco": all(
+                v["measured"] and (v["witness"] is not None or v["limit_ns"] == 0) for v in directions.values()
+            ),
+        },
+        "rounds": cfg.rounds,
+        "rounds_done": 1 + max((x["round"] for x in records), default=-1),
+        "time_cut": any(x.get("time_cut", False) for x in records),
+        "candidates": records,
+        "batch": B,
         "optimiser_steps": search.steps,
         "physics_steps_optimiser": search.steps * B * search.physics_steps_per_candidate_step,
         "wall_s": round(wall_s, 1),
         **{k: round(v, 1) for k, v in search.timing.items()},
         "survival_criterion": constants.SURVIVAL_CRITERION,
-        "device": provenance.device_label(), "devices": sorted({x.get("device", "?") for x in records}),
-        "dtype": str(search.dtype), "config": dataclasses.asdict(cfg),
+        "device": provenance.device_label(),
+        "devices": sorted({x.get("device", "?") for x in records}),
+        "dtype": str(search.dtype),
+        "config": dataclasses.asdict(cfg),
         "gains": gains_to_dict(search.base),
-        "provenance": provenance.record({"gains": cfg.gains,
-                                         **{f"envelope_{i}": p for i, p in enumerate(cfg.envelopes)}}),
-    }  # fmt: skip
+        "provenance": provenance.record(
+            {"gains": cfg.gains, **{f"envelope_{i}": p for i, p in enumerate(cfg.envelopes)}}
+        ),
+    }

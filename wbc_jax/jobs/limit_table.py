@@ -45,8 +45,9 @@ def ddp_label(ddp: dict) -> str:
     return "crocoddyl" if scale == 1.0 else f"crocoddyl cop x{scale:g}"
 
 
-def body_table(limit_summary: dict | None, envelopes: dict, azimuths, robot, body: str,
-               ddps: list | tuple = ()) -> dict:  # fmt: skip
+def body_table(
+    limit_summary: dict | None, envelopes: dict, azimuths, robot, body: str, ddps: list | tuple = ()
+) -> dict:
     """{azimuth: row} of pushes on ``body``: ``limit_summary`` (a limit run's summary.json or None),
     ``envelopes`` {label: envelope summary.json dict} (gain set 0), the LIP and flywheel bounds
     (``wbc_jax.robot.bounds``) at ``azimuths``; ``ddps``: the crocoddyl cross-checks' results
@@ -66,20 +67,27 @@ def body_table(limit_summary: dict | None, envelopes: dict, azimuths, robot, bod
         envs = {}
         for label, summary in envelopes.items():
             e = summary["envelope"].get("0", summary["envelope"].get(0))[str(float(az))]["impulse_ns"]
-            envs[label] = {"impulse_ns": e, "fraction_of_lip": e / lip[az]["impulse_bound_ns"],
-                           "fraction_of_limit": e / lim if lim else None}  # fmt: skip
+            envs[label] = {
+                "impulse_ns": e,
+                "fraction_of_lip": e / lip[az]["impulse_bound_ns"],
+                "fraction_of_limit": e / lim if lim else None,
+            }
         fly = flywheel[az]["impulse_bound_ns"]
         rows[float(az)] = {
-            "lip_bound_ns": lip[az]["impulse_bound_ns"], "flywheel_bound_ns": fly, "limit_ns": lim,
+            "lip_bound_ns": lip[az]["impulse_bound_ns"],
+            "flywheel_bound_ns": fly,
+            "limit_ns": lim,
             "fraction_of_lip": None if lim is None else lim / lip[az]["impulse_bound_ns"],
             "fraction_of_flywheel": None if lim is None else lim / fly,
             "lip_fraction_of_flywheel": lip[az]["impulse_bound_ns"] / fly,
-            "bracket_ns": bracket, "found_by": found_by,
+            "bracket_ns": bracket,
+            "found_by": found_by,
             "limit_by_optimiser_ns": {k: v["limit_ns"] for k, v in by.items()} or None,
-            "limit_at_least_envelopes": None if lim is None
+            "limit_at_least_envelopes": None
+            if lim is None
             else all(v["impulse_ns"] <= lim + 1e-9 for v in envs.values()),
             "envelopes": envs,
-        }  # fmt: skip
+        }
     return rows
 
 
@@ -98,8 +106,9 @@ def medians(rows: dict) -> dict:
         "lip_bound": {"fraction_of_flywheel": stat([r["lip_fraction_of_flywheel"] for r in rows.values()])},
     }
     for label in labels:
-        out[label] = {k: stat([r["envelopes"][label][k] for r in rows.values()])
-                      for k in ("fraction_of_lip", "fraction_of_limit")}  # fmt: skip
+        out[label] = {
+            k: stat([r["envelopes"][label][k] for r in rows.values()]) for k in ("fraction_of_lip", "fraction_of_limit")
+        }
     return out
 
 
@@ -108,17 +117,24 @@ def _targets(rows: dict, summary: dict | None) -> dict:
     every controller's envelope in every direction; every limit from a trajectory replayed in C
     MuJoCo; the limit within 10 % of the flywheel bound in the median over directions."""
     if summary is None:
-        return {"limit_at_least_every_envelope": None, "every_limit_replayed_in_c_mujoco": None,
-                "limit_within_10pct_of_flywheel_bound_median": None}  # fmt: skip
+        return {
+            "limit_at_least_every_envelope": None,
+            "every_limit_replayed_in_c_mujoco": None,
+            "limit_within_10pct_of_flywheel_bound_median": None,
+        }
     below = [az for az, r in rows.items() if r["limit_at_least_envelopes"] is False]
     measured = sum(r["limit_ns"] is not None for r in rows.values())
     of_flywheel = [r["fraction_of_flywheel"] for r in rows.values() if r["fraction_of_flywheel"] is not None]
-    return {"limit_at_least_every_envelope": not below, "directions_below_an_envelope": below,
-            "limit_within_10pct_of_flywheel_bound_median": bool(of_flywheel) and float(np.median(of_flywheel)) >= 0.9,
-            "directions_measured": f"{measured} of {len(rows)}",
-            "every_limit_replayed_in_c_mujoco": summary["targets"]["every_limit_replayed_in_c_mujoco"],
-            "time_cut": summary.get("time_cut"), "rounds_done": summary.get("rounds_done"),
-            "devices": summary.get("devices")}  # fmt: skip
+    return {
+        "limit_at_least_every_envelope": not below,
+        "directions_below_an_envelope": below,
+        "limit_within_10pct_of_flywheel_bound_median": bool(of_flywheel) and float(np.median(of_flywheel)) >= 0.9,
+        "directions_measured": f"{measured} of {len(rows)}",
+        "every_limit_replayed_in_c_mujoco": summary["targets"]["every_limit_replayed_in_c_mujoco"],
+        "time_cut": summary.get("time_cut"),
+        "rounds_done": summary.get("rounds_done"),
+        "devices": summary.get("devices"),
+    }
 
 
 def write(out_dir, bodies: dict, commands: dict, robot: str) -> dict:
@@ -151,11 +167,13 @@ def write(out_dir, bodies: dict, commands: dict, robot: str) -> dict:
         "m omega d, the LIP + flywheel bound (wbc_jax.robot.bounds, Pratt et al. 2006) and the strict envelopes of "
         "controllers, as fractions of the LIP bound and of the limit",
         "bodies": {body: {"medians": medians(rows), "directions": rows} for body, rows in tables.items()},
-        "targets": {body: _targets(rows, _read(bodies[body]["limit"]) if bodies[body].get("limit") else None)
-                    for body, rows in tables.items()},
+        "targets": {
+            body: _targets(rows, _read(bodies[body]["limit"]) if bodies[body].get("limit") else None)
+            for body, rows in tables.items()
+        },
         "missing": missing or None,
         "provenance": provenance.record(inputs),
-    }  # fmt: skip
+    }
     out_dir = pathlib.Path(out_dir)
     io.atomic_write_json(out_dir / "limit.json", result)
     limit_plots.polar_bodies(tables, out_dir / "limit.png")

@@ -87,14 +87,18 @@ def check_out_path(path, flag: str = "--out") -> pathlib.Path:
     path = pathlib.Path(path)
     for part in path.parts:
         if len(os.fsencode(part)) > NAME_MAX:
-            raise ValueError(f"{flag} {str(path)[:60]}...: a name of {len(os.fsencode(part))} bytes; names are at "
-                             f"most {NAME_MAX} bytes")  # fmt: skip
+            raise ValueError(
+                f"{flag} {str(path)[:60]}...: a name of {len(os.fsencode(part))} bytes; names are at "
+                f"most {NAME_MAX} bytes"
+            )
     try:
         probe = path.absolute()
         while not probe.exists():
             if probe.is_symlink():
-                raise ValueError(f"{flag} {path}: {probe} is a symlink to a missing target or in a loop; give a "
-                                 "folder that exists or can be made")  # fmt: skip
+                raise ValueError(
+                    f"{flag} {path}: {probe} is a symlink to a missing target or in a loop; give a "
+                    "folder that exists or can be made"
+                )
             probe = probe.parent
         if probe != path.absolute() and not probe.is_dir():
             raise ValueError(f"{flag} {path}: {probe} is a file, not a folder; give a path under a folder")
@@ -136,8 +140,10 @@ def check_output_dir(path, kind: str, fp: dict | None = None) -> pathlib.Path:
             names = {sha: where for where, sha in (fp.get(INPUT_PATHS) or {}).items()}
             diff = differences(_compared(old if isinstance(old, dict) else {}), _compared(fp), names=names)
             if diff:
-                raise ValueError(f"--out {path} holds {with_article(kind)} run made with other inputs "
-                                 f"({'; '.join(diff)}); use another --out, or remove the folder to start over")  # fmt: skip
+                raise ValueError(
+                    f"--out {path} holds {with_article(kind)} run made with other inputs "
+                    f"({'; '.join(diff)}); use another --out, or remove the folder to start over"
+                )
     elif path.is_dir():
         others = sorted(p.name for p in path.iterdir() if not p.name.startswith("."))
         if others:

@@ -37,8 +37,9 @@ def gain_sets(base: Gains, count: int, scale_range, rng: np.random.Generator) ->
     sets = [base]
     lo, hi = np.log(scale_range[0]), np.log(scale_range[1])
     for k in range(1, count):
-        scaled = Gains(**{name: np.asarray(getattr(base, name)) * np.exp(rng.uniform(lo, hi))
-                          for name in constants.GAIN_FIELDS})  # fmt: skip
+        scaled = Gains(
+            **{name: np.asarray(getattr(base, name)) * np.exp(rng.uniform(lo, hi)) for name in constants.GAIN_FIELDS}
+        )
         try:  # a scaling can take a gain out of its range: named before anything compiles
             validate_gains(scaled, np.asarray(base.kp_postural).shape[-1])
         except ValueError as err:
@@ -47,8 +48,9 @@ def gain_sets(base: Gains, count: int, scale_range, rng: np.random.Generator) ->
     return sets
 
 
-def scenarios_at(cfg: SweepConfig, sets: list, mag, azi, gset, friction, mass_scale, joint_offset,
-                 dtype=np.float32) -> tuple[Scenario, dict]:  # fmt: skip
+def scenarios_at(
+    cfg: SweepConfig, sets: list, mag, azi, gset, friction, mass_scale, joint_offset, dtype=np.float32
+) -> tuple[Scenario, dict]:
     """Scenarios (leading axis B) of pushes of magnitude ``mag`` (B,) N at azimuth ``azi`` (B,) deg
     (the config's elevation, duration, onset, body) with gain set ``gset`` (B,) of ``sets``, and the
     plant and initial-posture perturbations given. Returns (Scenario, dict of numpy columns)."""
@@ -98,24 +100,34 @@ def build_scenarios(cfg: SweepConfig, base_gains: Gains, n: int, dtype=np.float3
     return scenarios_at(cfg, sets, mag.ravel(), azi.ravel(), gset.ravel(), friction, mass_scale, joint_offset, dtype)
 
 
-def make_setup(cfg: SweepConfig, base_gains: Gains | None = None, *, record: bool = False,
-               controller: ControllerConfig | None = None) -> scenario.Setup:  # fmt: skip
+def make_setup(
+    cfg: SweepConfig,
+    base_gains: Gains | None = None,
+    *,
+    record: bool = False,
+    controller: ControllerConfig | None = None,
+) -> scenario.Setup:
     """The closed loop of a sweep's environments (replays with ``record``; the limit job composes a
     traced loop from it). ``controller``: further controller settings (forces, postural, angular_weight_soft
     from ``cfg``)."""
     scene = scenario.load_scene(cfg.robot, cfg.controller.tasks)
     sim = SimConfig(
-        record=record, push_body=cfg.body,
+        record=record,
+        push_body=cfg.body,
         perturb_plant=cfg.perturbs_plant,
         # the engine as it resolves here: "auto" and the engine it picks build the same programs (one cache entry)
-        physics=physics.PhysicsConfig(backend=physics.resolve_backend(cfg.backend),
-                                      solver_iterations=cfg.solver_iterations),
-    )  # fmt: skip
+        physics=physics.PhysicsConfig(
+            backend=physics.resolve_backend(cfg.backend), solver_iterations=cfg.solver_iterations
+        ),
+    )
     return scenario.setup(
-        cfg.task, duration=cfg.horizon,
+        cfg.task,
+        duration=cfg.horizon,
         controller=cfg.controller_config(controller),
-        sim=sim, gains=base_gains, scene=scene,
-    )  # fmt: skip
+        sim=sim,
+        gains=base_gains,
+        scene=scene,
+    )
 
 
 def base_gains(cfg: SweepConfig, n: int, dtype) -> Gains:
@@ -161,9 +173,20 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, **overri
         timeline += watchdog.timeline_rows(watch, host_s, wall_s)
         _write_timeline(out, st.backend, devices, timeline, todo)
 
-    ran = chunks.run_chunks(st, scen, columns, out / "parts", batch=cfg.batch_size,
-                            push_end=cfg.push_onset + cfg.push_duration, queue=cfg.queue, watch=cfg.watchdog,
-                            timeline=record_timeline, writer=writer, progress=progress, label="sweep")  # fmt: skip
+    ran = chunks.run_chunks(
+        st,
+        scen,
+        columns,
+        out / "parts",
+        batch=cfg.batch_size,
+        push_end=cfg.push_onset + cfg.push_duration,
+        queue=cfg.queue,
+        watch=cfg.watchdog,
+        timeline=record_timeline,
+        writer=writer,
+        progress=progress,
+        label="sweep",
+    )
     tables, compile_s, run_s, done_envs, started = ran.tables, ran.compile_s, ran.run_s, ran.done_envs, ran.started
     replaced = ran.replaced
     if writer and done_envs == 0 and _finished(out):
@@ -177,28 +200,33 @@ def run_sweep(cfg: SweepConfig | None = None, *, progress: bool = True, **overri
         runs.record_output(out / "results.parquet")
     steps_per_env = st.loop.n_ticks * st.loop.n_sub
     summary = summarize_table(table, cfg, st.robot)
-    summary.update({
-        "config": options.flat_dict(cfg),
-        "backend": st.backend,
-        "survival_criterion": constants.SURVIVAL_CRITERION,
-        "device": provenance.device_label(),
-        "n_devices": len(devices),
-        "versions": {"jax": jax.__version__, "mujoco": __import__("mujoco").__version__,
-                     "wbc_jax": __import__("wbc_jax").__version__},
-        # Seconds of this process's simulation (None: nothing was simulated, every part was on disk).
-        "compile_s": round(compile_s, 2) if done_envs else None,
-        # from the process's start to the first chunk's first tick (None: every chunk was on disk)
-        "started_s": None if started is None else round(started - provenance.process_started(), 2),
-        "run_s": round(run_s, 2) if done_envs else None,
-        # Steps of the grid run now per second of run (with a queue, fewer were simulated).
-        "physics_steps_per_s": (done_envs * steps_per_env / run_s) if run_s > 0 else None,
-        # Over every part, those of an earlier (interrupted) run included; resumed_envs came from there.
-        "physics_steps_simulated": int(table["ticks_simulated"].sum()) * st.loop.n_sub,
-        "resumed_envs": int(cfg.size - done_envs),
-        "recomputed_parts": replaced,
-        "gains": gains_to_dict(base),
-        "provenance": provenance.record({"gains": cfg.gains, "tasks": cfg.controller.tasks}),
-    })  # fmt: skip
+    summary.update(
+        {
+            "config": options.flat_dict(cfg),
+            "backend": st.backend,
+            "survival_criterion": constants.SURVIVAL_CRITERION,
+            "device": provenance.device_label(),
+            "n_devices": len(devices),
+            "versions": {
+                "jax": jax.__version__,
+                "mujoco": __import__("mujoco").__version__,
+                "wbc_jax": __import__("wbc_jax").__version__,
+            },
+            # Seconds of this process's simulation (None: nothing was simulated, every part was on disk).
+            "compile_s": round(compile_s, 2) if done_envs else None,
+            # from the process's start to the first chunk's first tick (None: every chunk was on disk)
+            "started_s": None if started is None else round(started - provenance.process_started(), 2),
+            "run_s": round(run_s, 2) if done_envs else None,
+            # Steps of the grid run now per second of run (with a queue, fewer were simulated).
+            "physics_steps_per_s": (done_envs * steps_per_env / run_s) if run_s > 0 else None,
+            # Over every part, those of an earlier (interrupted) run included; resumed_envs came from there.
+            "physics_steps_simulated": int(table["ticks_simulated"].sum()) * st.loop.n_sub,
+            "resumed_envs": int(cfg.size - done_envs),
+            "recomputed_parts": replaced,
+            "gains": gains_to_dict(base),
+            "provenance": provenance.record({"gains": cfg.gains, "tasks": cfg.controller.tasks}),
+        }
+    )
     if writer:
         io.atomic_write_json(out / "summary.json", summary)
         runs.record_output(out / "summary.json")
@@ -215,8 +243,9 @@ def check_simulated_stall(cfg: SweepConfig, n_chunks: int, n_devices: int) -> No
         return
     chunk, device = cfg.simulate_stall
     if chunk >= n_chunks or device >= n_devices:
-        raise ValueError(f"--simulate-stall {chunk} {device}: this run has chunks 0..{n_chunks - 1} and devices "
-                         f"0..{n_devices - 1}")  # fmt: skip
+        raise ValueError(
+            f"--simulate-stall {chunk} {device}: this run has chunks 0..{n_chunks - 1} and devices 0..{n_devices - 1}"
+        )
 
 
 def _write_timeline(out: pathlib.Path, backend: str, devices: list, rows: list[dict], todo: list[bool]) -> None:
@@ -227,12 +256,17 @@ def _write_timeline(out: pathlib.Path, backend: str, devices: list, rows: list[d
         device = totals.setdefault(row["device"], dict.fromkeys(watchdog.TIMED, 0.0))
         for key in watchdog.TIMED:
             device[key] = round(device[key] + row[key], 4)
-    io.atomic_write_json(out / "timeline.json", {
-        "backend": backend, "device": provenance.device_label(),
-        "devices": [watchdog.device_label(d) for d in devices],
-        "chunks_on_disk": [c for c, t in enumerate(todo) if not t],
-        "rows": rows, "totals_by_device": totals,
-    })  # fmt: skip
+    io.atomic_write_json(
+        out / "timeline.json",
+        {
+            "backend": backend,
+            "device": provenance.device_label(),
+            "devices": [watchdog.device_label(d) for d in devices],
+            "chunks_on_disk": [c for c, t in enumerate(todo) if not t],
+            "rows": rows,
+            "totals_by_device": totals,
+        },
+    )
 
 
 def _finished(out: pathlib.Path) -> bool:
@@ -255,8 +289,12 @@ def load_sweep(run_dir) -> tuple[SweepConfig, dict]:
         raise FileNotFoundError(f"{path} is missing: the sweep has not finished; rerun it with the same --out")
     summary = loader.read_json(path, "sweep summary")
     foreign = f"{path} is not the summary of a push sweep (wbc-jax push-sweep writes it)"
-    if not (isinstance(summary, dict) and isinstance(summary.get("config"), dict)
-            and isinstance(summary.get("gains"), dict) and summary.get("backend") in physics.BACKENDS):  # fmt: skip
+    if not (
+        isinstance(summary, dict)
+        and isinstance(summary.get("config"), dict)
+        and isinstance(summary.get("gains"), dict)
+        and summary.get("backend") in physics.BACKENDS
+    ):
         raise ValueError(f"{foreign}: it lacks the sweep's config, gains or backend")
     values = {k: tuple(v) if isinstance(v, list) else v for k, v in summary["config"].items()}
     try:
@@ -295,8 +333,10 @@ def replay_env(run_dir, env: int, *, backend: str | None = None):
     row = table[table["env"] == env].iloc[0].to_dict()
     for key in ("magnitude_n", "azimuth_deg", "gain_set"):
         if not np.isclose(columns[key][env], row[key]):
-            raise ValueError(f"the rebuilt scenario of env {env} differs from the sweep's ({key}); "
-                             "the sweep was written by another version")  # fmt: skip
+            raise ValueError(
+                f"the rebuilt scenario of env {env} differs from the sweep's ({key}); "
+                "the sweep was written by another version"
+            )
     st = make_setup(cfg, base, record=True)
     one = jax.tree_util.tree_map(lambda x: np.asarray(x)[env : env + 1], scen)
     result = runner.run(st, one)

@@ -34,63 +34,115 @@ class SweepConfig:
 
     robot: str = robot_option()
     magnitudes: tuple[float, ...] = option(
-        (20.0, 60.0, 100.0), "push force grid [N]: LO HI N", nargs=3, metavar=("LO", "HI", "N"),
-        parse=magnitude_grid, show=show_magnitude_grid, ge=0.0, le=limits.MAX_PUSH_N, unit="N", nonempty=True,
-    )  # fmt: skip
+        (20.0, 60.0, 100.0),
+        "push force grid [N]: LO HI N",
+        nargs=3,
+        metavar=("LO", "HI", "N"),
+        parse=magnitude_grid,
+        show=show_magnitude_grid,
+        ge=0.0,
+        le=limits.MAX_PUSH_N,
+        unit="N",
+        nonempty=True,
+    )
     directions: tuple[float, ...] = option(
-        (0.0, 90.0, 180.0, 270.0), "number of push azimuths over 360 deg (0 = forward, 90 = left)",
-        metavar="N", parse=azimuths, show=len, ge=-360.0, le=360.0, unit="deg", nonempty=True,
-    )  # fmt: skip
+        (0.0, 90.0, 180.0, 270.0),
+        "number of push azimuths over 360 deg (0 = forward, 90 = left)",
+        metavar="N",
+        parse=azimuths,
+        show=len,
+        ge=-360.0,
+        le=360.0,
+        unit="deg",
+        nonempty=True,
+    )
     elevation: float = option(0.0, "push elevation [deg] (+90: straight up)", ge=-90.0, le=90.0, unit="deg")
     push_duration: float = option(
         0.1, "push length [s]", ge=limits.MIN_PUSH_DURATION_S, le=limits.MAX_PUSH_DURATION_S, unit="s"
     )
     push_onset: float = option(0.5, "push start [s]", ge=0.0, lt=limits.MAX_HORIZON_S, unit="s")
-    body: str = option("trunk", "pushed body: a body of the robot or a role (trunk, pelvis, left_hand, right_thigh)",
-                       names=model.pushable_bodies)  # fmt: skip
+    body: str = option(
+        "trunk",
+        "pushed body: a body of the robot or a role (trunk, pelvis, left_hand, right_thigh)",
+        names=model.pushable_bodies,
+    )
     gains: str | None = option(None, "gains JSON file (the first gain set)", metavar="FILE", input_file=True)
     gain_sets: int = option(1, "gain sets: the first, then seeded log-uniform scalings of it", ge=1, le=MAX_ENVS)
     gain_scale_range: tuple[float, float] = option(
-        (0.5, 2.0), "range of those scalings", nargs=2, ge=limits.GAIN_SCALE_RANGE[0], le=limits.GAIN_SCALE_RANGE[1],
+        (0.5, 2.0),
+        "range of those scalings",
+        nargs=2,
+        ge=limits.GAIN_SCALE_RANGE[0],
+        le=limits.GAIN_SCALE_RANGE[1],
         ordered=True,
-    )  # fmt: skip
+    )
     joint_noise: float = option(0.0, "initial joint noise std [rad]", ge=0.0, le=limits.MAX_JOINT_NOISE_RAD, unit="rad")
     friction: tuple[float, float] = option(
-        (1.0, 1.0), "floor friction range", nargs=2, metavar=("LO", "HI"), ge=limits.FRICTION_RANGE[0],
-        le=limits.FRICTION_RANGE[1], ordered=True,
-    )  # fmt: skip
+        (1.0, 1.0),
+        "floor friction range",
+        nargs=2,
+        metavar=("LO", "HI"),
+        ge=limits.FRICTION_RANGE[0],
+        le=limits.FRICTION_RANGE[1],
+        ordered=True,
+    )
     mass_scale: tuple[float, float] = option(
-        (1.0, 1.0), "plant mass scale range", nargs=2, metavar=("LO", "HI"), ge=limits.MASS_SCALE_RANGE[0],
-        le=limits.MASS_SCALE_RANGE[1], ordered=True,
-    )  # fmt: skip
+        (1.0, 1.0),
+        "plant mass scale range",
+        nargs=2,
+        metavar=("LO", "HI"),
+        ge=limits.MASS_SCALE_RANGE[0],
+        le=limits.MASS_SCALE_RANGE[1],
+        ordered=True,
+    )
     horizon: float = option(1.5, "seconds per rollout", gt=0.0, le=limits.MAX_HORIZON_S, unit="s")
     task: str = option(
-        "stand", "two feet (stand) or pushed in the single-support phase of the one-foot task "
-        "(7-9 s: e.g. --push-onset 7.5 --horizon 9)", choices=SWEEP_TASKS,
-    )  # fmt: skip
+        "stand",
+        "two feet (stand) or pushed in the single-support phase of the one-foot task "
+        "(7-9 s: e.g. --push-onset 7.5 --horizon 9)",
+        choices=SWEEP_TASKS,
+    )
     controller: ControllerFlags = nested(ControllerFlags())
-    solver_iterations: int | None = option(None, "contact solver Newton iterations (default: the model's, 4)",
-                                           ge=1, le=limits.MAX_SOLVER_ITERATIONS)  # fmt: skip
+    solver_iterations: int | None = option(
+        None, "contact solver Newton iterations (default: the model's, 4)", ge=1, le=limits.MAX_SOLVER_ITERATIONS
+    )
     seed: int = option(0, "seed of the random perturbations", ge=0, le=limits.MAX_SEED)
-    chunk_size: int = option(12, "environments per compiled batch (at most the sweep's; its memory is estimated "
-                             "and checked before it is allocated)", ge=1, le=MAX_ENVS)  # fmt: skip
+    chunk_size: int = option(
+        12,
+        "environments per compiled batch (at most the sweep's; its memory is estimated "
+        "and checked before it is allocated)",
+        ge=1,
+        le=MAX_ENVS,
+    )
     queue: int = option(
-        1, "scenarios per batch slot (MJX backends): a fallen or diverged robot is retired and its slot "
-        "starts the next scenario; same outcomes, fewer physics steps (1: off)", ge=1, le=MAX_QUEUE,
-    )  # fmt: skip
-    backend: str = option("auto", "physics engine (auto: C MuJoCo on a CPU, MJX-Warp/JAX on a GPU)",
-                          choices=physics.BACKENDS)  # fmt: skip
+        1,
+        "scenarios per batch slot (MJX backends): a fallen or diverged robot is retired and its slot "
+        "starts the next scenario; same outcomes, fewer physics steps (1: off)",
+        ge=1,
+        le=MAX_QUEUE,
+    )
+    backend: str = option(
+        "auto", "physics engine (auto: C MuJoCo on a CPU, MJX-Warp/JAX on a GPU)", choices=physics.BACKENDS
+    )
     out: str | None = option("runs/push_sweep", "output folder (a sweep resumes there)")
     stall_timeout_s: float | None = option(
-        None, "seconds a chunk may run on a device before the run stops with an error naming the device and the "
+        None,
+        "seconds a chunk may run on a device before the run stops with an error naming the device and the "
         f"chunk (default: max({watchdog.MIN_STALL_S:g} s, {watchdog.STALL_FACTOR:g}x the slowest finished chunk), "
         f"{watchdog.FIRST_CHUNK_STALL_S:g} s for the first; compiling gets at least {watchdog.COMPILE_STALL_S:g} s)",
-        gt=0.0, le=watchdog.MAX_STALL_S, unit="s",
-    )  # fmt: skip
+        gt=0.0,
+        le=watchdog.MAX_STALL_S,
+        unit="s",
+    )
     simulate_stall: tuple[int, int] | None = option(
-        None, "test of the watchdog: device DEVICE (its index in the run's devices) blocks in chunk CHUNK until "
-        "--stall-timeout-s ends the run", nargs=2, metavar=("CHUNK", "DEVICE"), ge=0, le=MAX_ENVS,
-    )  # fmt: skip
+        None,
+        "test of the watchdog: device DEVICE (its index in the run's devices) blocks in chunk CHUNK until "
+        "--stall-timeout-s ends the run",
+        nargs=2,
+        metavar=("CHUNK", "DEVICE"),
+        ge=0,
+        le=MAX_ENVS,
+    )
 
     KIND: ClassVar[str] = "sweep"  # the run kind of its output folder (jobs/runs.py)
     # Fields that bound or test how a run proceeds, not what it computes: no part of the fingerprint.
@@ -102,15 +154,21 @@ class SweepConfig:
         check_options(self)
         push_end = self.push_onset + self.push_duration
         if self.horizon <= push_end:
-            raise ValueError(f"--horizon {self.horizon:g} s must end after the push (--push-onset {self.push_onset:g} "
-                             f"+ --push-duration {self.push_duration:g} s)")  # fmt: skip
+            raise ValueError(
+                f"--horizon {self.horizon:g} s must end after the push (--push-onset {self.push_onset:g} "
+                f"+ --push-duration {self.push_duration:g} s)"
+            )
         if abs(self.elevation) == 90.0 and len(self.directions) > 1:
-            raise ValueError(f"--elevation {self.elevation:g} is a vertical push, the same at every azimuth: use "
-                             f"--directions 1 (got {len(self.directions)})")  # fmt: skip
+            raise ValueError(
+                f"--elevation {self.elevation:g} is a vertical push, the same at every azimuth: use "
+                f"--directions 1 (got {len(self.directions)})"
+            )
         if self.size > MAX_ENVS:
             gb = self.size * 300 / 1e9  # bytes of scenario data per environment, roughly
-            raise ValueError(f"the grid has {self.size:,} environments (about {gb:,.0f} GB of scenarios), more than "
-                             f"{MAX_ENVS:,}; use a coarser grid")  # fmt: skip
+            raise ValueError(
+                f"the grid has {self.size:,} environments (about {gb:,.0f} GB of scenarios), more than "
+                f"{MAX_ENVS:,}; use a coarser grid"
+            )
         if self.task == "one-foot":
             lo, hi = ONE_FOOT_WINDOW
             if not (lo <= self.push_onset and push_end <= hi):
@@ -121,8 +179,10 @@ class SweepConfig:
                 )
         backend = physics.resolve_backend(self.backend)
         if self.queue > 1 and backend == "mujoco":
-            raise ValueError(f"--queue {self.queue} (scenarios per batch slot) needs an MJX backend: --backend jax or "
-                             f"warp (--backend {self.backend} runs C MuJoCo here)")  # fmt: skip
+            raise ValueError(
+                f"--queue {self.queue} (scenarios per batch slot) needs an MJX backend: --backend jax or "
+                f"warp (--backend {self.backend} runs C MuJoCo here)"
+            )
         self.controller_config()
         runs.check_output_dir(self.out, self.KIND, self.fingerprint())
 
@@ -130,9 +190,11 @@ class SweepConfig:
         """What determines the results (:func:`wbc_jax.jobs.runs.fingerprint`): the engine as it resolves
         here (``auto`` on a CPU is ``mujoco``)."""
         fields = {k: v for k, v in flat_dict(self).items() if k not in self.PROCEDURE}
-        return runs.fingerprint({**fields, "backend": physics.resolve_backend(self.backend),
-                                 "dtype": str(scenario.float_dtype())}, [self.gains, self.controller.tasks],
-                                self.robot)  # fmt: skip
+        return runs.fingerprint(
+            {**fields, "backend": physics.resolve_backend(self.backend), "dtype": str(scenario.float_dtype())},
+            [self.gains, self.controller.tasks],
+            self.robot,
+        )
 
     def watchdog(self, chunk: int, finished_run_s: list[float]) -> watchdog.Watchdog:
         """The watchdog of chunk ``chunk``, given the run seconds of the chunks finished before it in

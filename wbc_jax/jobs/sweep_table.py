@@ -65,10 +65,15 @@ def summarize_table(table, cfg: SweepConfig, robot: model_lib.Robot) -> dict:
         best, monotone, islands = envelope_of(group)
         best_upright, _, _ = envelope_of(group, "upright")
         b = bound[float(az)]["impulse_bound_ns"]
-        envelope[float(az)] = {"largest_survived_impulse_ns": best, "bound_impulse_ns": b,
-                               "fraction_of_bound": fraction(best, b), "survival_islands": islands,
-                               "monotone_impulse_ns": monotone, "fraction_of_bound_monotone": fraction(monotone, b),
-                               "largest_upright_impulse_ns": best_upright}  # fmt: skip
+        envelope[float(az)] = {
+            "largest_survived_impulse_ns": best,
+            "bound_impulse_ns": b,
+            "fraction_of_bound": fraction(best, b),
+            "survival_islands": islands,
+            "monotone_impulse_ns": monotone,
+            "fraction_of_bound_monotone": fraction(monotone, b),
+            "largest_upright_impulse_ns": best_upright,
+        }
     return {
         "support": support,
         "n_envs": int(len(table)),

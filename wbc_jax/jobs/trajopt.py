@@ -143,8 +143,14 @@ def terms(trace: LossTrace, u, window: int, cost: Cost) -> dict:
     margin = jax.vmap(metrics_lib.polygon_margin)(trace.support_xy[tail], xi)
     capture = jnp.mean(jax.nn.relu(cost.capture_margin - margin) ** 2) / cost.scale**2
     speed = jnp.mean(jnp.sum(trace.com_vel[tail] ** 2, -1)) / cost.end_speed**2
-    out = {"slip": jnp.mean(slip_pen), "tilt": jnp.mean(tilt_pen), "height": jnp.mean(height_pen),
-           "capture": capture, "speed": speed, "effort": jnp.mean((u / 60.0) ** 2)}  # fmt: skip
+    out = {
+        "slip": jnp.mean(slip_pen),
+        "tilt": jnp.mean(tilt_pen),
+        "height": jnp.mean(height_pen),
+        "capture": capture,
+        "speed": speed,
+        "effort": jnp.mean((u / 60.0) ** 2),
+    }
     out["total"] = sum(getattr(cost, f"w_{k}") * v for k, v in out.items())
     return out
 
@@ -163,9 +169,21 @@ class Optimiser:
         candidate and their spread (N m) (``es``); cost: :class:`Cost`.
     """
 
-    def __init__(self, setup: Setup, onset_tick: int, window: int, tail: int, *, method: str = "es",
-                 learning_rate: float, clip_norm: float = 10.0, knot: int = 1, pairs: int = 8, sigma: float = 2.0,
-                 cost: Cost = Cost()):  # fmt: skip
+    def __init__(
+        self,
+        setup: Setup,
+        onset_tick: int,
+        window: int,
+        tail: int,
+        *,
+        method: str = "es",
+        learning_rate: float,
+        clip_norm: float = 10.0,
+        knot: int = 1,
+        pairs: int = 8,
+        sigma: float = 2.0,
+        cost: Cost = Cost(),
+    ):
         if not (setup.loop.trace is not None and setup.loop.backend == "jax"):
             raise ValueError("the optimiser needs a closed loop with a LossTrace on the 'jax' backend")
         if method not in METHODS:
@@ -212,8 +230,7 @@ class Optimiser:
         u = self.torques(z)
         ff = Feedforward(start=jnp.asarray(self.k0, jnp.int32), torque=u)
         carry = mjx_loop.touch(carry0, jnp.sum(z))  # every carry leaf batched (and tangent) from the start
-        _, trace = mjx_loop.chunk(loop, self.plant, self.setup.gains, push, carry, self.k0,
-                                  self.window + self.tail, ff)  # fmt: skip
+        _, trace = mjx_loop.chunk(loop, self.plant, self.setup.gains, push, carry, self.k0, self.window + self.tail, ff)
         t = terms(trace, u, self.window, self.cost)
         return jnp.log1p(t["total"]), t
 
@@ -221,9 +238,16 @@ class Optimiser:
         """The optimiser's state from warm starts z0 (B, Kn, n)."""
         z0 = jnp.asarray(z0, self.setup.dtype)
         B = z0.shape[0]
-        return OptState(z=z0, adam=jax.vmap(self.adam.init)(z0), key=jax.random.split(jax.random.key(seed), B),
-                        best_z=z0, best_f=jnp.full(B, jnp.inf, z0.dtype), pass_z=z0, passed=jnp.zeros(B, bool),
-                        passed_step=jnp.full(B, -1, jnp.int32))  # fmt: skip
+        return OptState(
+            z=z0,
+            adam=jax.vmap(self.adam.init)(z0),
+            key=jax.random.split(jax.random.key(seed), B),
+            best_z=z0,
+            best_f=jnp.full(B, jnp.inf, z0.dtype),
+            pass_z=z0,
+            passed=jnp.zeros(B, bool),
+            passed_step=jnp.full(B, -1, jnp.int32),
+        )
 
     def step(self, state: OptState, push: Push, carry0):
         """One Adam step of every candidate: (state, objective at z (B,), terms {name: (B,)} at z).
@@ -251,8 +275,9 @@ class Optimiser:
         B, M = state.z.shape[0], self.pairs
         keys = jax.vmap(jax.random.split)(state.key)
         eps = jax.vmap(lambda k: jax.random.normal(k, (M, *state.z.shape[1:]), state.z.dtype))(keys[:, 1])
-        zs = jnp.concatenate([state.z[:, None], state.z[:, None] + self.sigma * eps,
-                              state.z[:, None] - self.sigma * eps], 1)  # (B, 2M + 1, Kn, n)  # fmt: skip
+        zs = jnp.concatenate(
+            [state.z[:, None], state.z[:, None] + self.sigma * eps, state.z[:, None] - self.sigma * eps], 1
+        )  # (B, 2M + 1, Kn, n)
         pushes = jax.tree_util.tree_map(lambda x: jnp.repeat(x, 2 * M + 1, 0), push)
         flat = zs.reshape(B * (2 * M + 1), *zs.shape[2:])
         f, t = jax.vmap(self.objective, in_axes=(0, 0, None))(flat, pushes, carry0)
@@ -279,8 +304,9 @@ def es_gradient(f, eps, sigma: float):
 def _keep_best(state: OptState, z, f) -> OptState:
     """The state with z (B, Kn, n) kept as best_z where its objective f (B,) is lower."""
     better = f < state.best_f
-    return state.replace(best_z=jnp.where(better[:, None, None], z, state.best_z),
-                         best_f=jnp.where(better, f, state.best_f))  # fmt: skip
+    return state.replace(
+        best_z=jnp.where(better[:, None, None], z, state.best_z), best_f=jnp.where(better, f, state.best_f)
+    )
 
 
 def record_passes(state: OptState, passed: np.ndarray, z, step: int) -> OptState:
@@ -289,8 +315,9 @@ def record_passes(state: OptState, passed: np.ndarray, z, step: int) -> OptState
     passed = jnp.asarray(passed, bool)
     return state.replace(
         pass_z=jnp.where(passed[:, None, None], jnp.asarray(z, state.z.dtype), state.pass_z),
-        passed=state.passed | passed, passed_step=jnp.where(passed, step, state.passed_step),
-    )  # fmt: skip
+        passed=state.passed | passed,
+        passed_step=jnp.where(passed, step, state.passed_step),
+    )
 
 
 def warm_starts(tested: list, B_index, Kn: int, n: int) -> np.ndarray:

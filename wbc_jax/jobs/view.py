@@ -40,16 +40,18 @@ class ViewConfig:
         if self.out is not None and runs.check_out_path(self.out) and pathlib.Path(self.out).is_dir():
             raise ValueError(f"--out {self.out} is a folder; give a .rrd file name")
         if self.out is not None and not self.out.endswith(".rrd"):
-            raise ValueError(f"--out {self.out}: give a .rrd file name (view writes a rerun recording, never a run's "
-                             "own files)")  # fmt: skip
+            raise ValueError(
+                f"--out {self.out}: give a .rrd file name (view writes a rerun recording, never a run's own files)"
+            )
         kind = run_kind(self.run_dir)
         if kind == "balance" and self.env is not None:
             raise ValueError(f"{self.run_dir} is a balance run (one trajectory): --env applies to sweeps only")
         if kind == "sweep":
             size = _sweep_size(pathlib.Path(self.run_dir))
             if self.env is None:
-                raise ValueError(f"{self.run_dir} is a push sweep of {size} envs: choose one with --env I, I in "
-                                 f"0..{size - 1}")  # fmt: skip
+                raise ValueError(
+                    f"{self.run_dir} is a push sweep of {size} envs: choose one with --env I, I in 0..{size - 1}"
+                )
             if self.env >= size:
                 raise ValueError(f"--env {self.env} is out of range: this sweep has envs 0..{size - 1}")
             from wbc_jax.jobs.sweep import load_sweep
@@ -90,8 +92,10 @@ def check_untouched(run_dir: pathlib.Path, kind: str) -> None:
             raise ValueError(f"view {run_dir}: {why}; rerun the {kind} with the same --out")
     changed = runs.changed_inputs(run_dir) if kind == "sweep" else []
     if changed:
-        raise ValueError(f"view {run_dir}: its input files changed since it ran ({'; '.join(changed)}): a replay "
-                         "would not show that run; rerun the sweep")  # fmt: skip
+        raise ValueError(
+            f"view {run_dir}: its input files changed since it ran ({'; '.join(changed)}): a replay "
+            "would not show that run; rerun the sweep"
+        )
 
 
 def run_kind(run_dir: str | pathlib.Path) -> str:
@@ -110,16 +114,19 @@ def run_kind(run_dir: str | pathlib.Path) -> str:
         except (json.JSONDecodeError, AttributeError):
             kind = None
         if kind not in (None, "balance", "sweep"):
-            raise ValueError(f"{run_dir} holds {runs.with_article(kind)} run, which keeps no "
-                             "trajectories; view shows a balance run or one env of a push sweep (run wbc-jax balance "
-                             "or push-sweep with its settings)")  # fmt: skip
+            raise ValueError(
+                f"{run_dir} holds {runs.with_article(kind)} run, which keeps no "
+                "trajectories; view shows a balance run or one env of a push sweep (run wbc-jax balance "
+                "or push-sweep with its settings)"
+            )
     if (run_dir / "trajectory.npz").exists():
         return "balance"
     if (run_dir / "results.parquet").exists():
         return "sweep"
     if (run_dir / "summary.json").exists() or (run_dir / "parts").exists():
-        raise FileNotFoundError(f"{run_dir / 'results.parquet'} is missing: the sweep has not finished; rerun it with "
-                                "the same --out")  # fmt: skip
+        raise FileNotFoundError(
+            f"{run_dir / 'results.parquet'} is missing: the sweep has not finished; rerun it with the same --out"
+        )
     raise FileNotFoundError(
         f"{run_dir} is neither a balance run (no trajectory.npz) nor a finished push sweep "
         f"(no results.parquet); found: {sorted(p.name for p in run_dir.iterdir())[:5]}"
@@ -175,20 +182,36 @@ def load_run(run_dir: str | pathlib.Path, env: int | None = None) -> tuple[dict,
         tasks = config.get("tasks")
         if tasks:
             boxes = scene_boxes(scenario.load_scene(robot, tasks).robot)
-        return traj, {"kind": kind, "robot": robot, "push_body": SimConfig.push_body, "joints": joints, "name": "rollout",
-                      "contacts": names, "dims": dims, "boxes": boxes}  # fmt: skip
+        return traj, {
+            "kind": kind,
+            "robot": robot,
+            "push_body": SimConfig.push_body,
+            "joints": joints,
+            "name": "rollout",
+            "contacts": names,
+            "dims": dims,
+            "boxes": boxes,
+        }
     if env is None:
         size = _sweep_size(run_dir)
         raise ValueError(f"{run_dir} is a push sweep of {size} envs: choose one with --env I, I in 0..{size - 1}")
     st, traj, _, _ = sweep.replay_env(run_dir, env)
     cset = st.loop.contact_set
-    return traj, {"kind": kind, "robot": st.robot.index.robot, "push_body": st.loop.cfg.push_body, "joints": list(st.robot.index.joints),
-                  "name": f"env_{env}", "contacts": list(cset.names), "dims": [c.dim for c in cset.contacts],
-                  "boxes": scene_boxes(st.robot)}  # fmt: skip
+    return traj, {
+        "kind": kind,
+        "robot": st.robot.index.robot,
+        "push_body": st.loop.cfg.push_body,
+        "joints": list(st.robot.index.joints),
+        "name": f"env_{env}",
+        "contacts": list(cset.names),
+        "dims": [c.dim for c in cset.contacts],
+        "boxes": scene_boxes(st.robot),
+    }
 
 
-def view(run_dir: str | pathlib.Path, env: int | None = None, *, out: str | pathlib.Path | None = None,
-         spawn: bool = False) -> pathlib.Path | None:  # fmt: skip
+def view(
+    run_dir: str | pathlib.Path, env: int | None = None, *, out: str | pathlib.Path | None = None, spawn: bool = False
+) -> pathlib.Path | None:
     """Log a run (or sweep env) to rerun: write ``out`` (default RUN_DIR/rollout.rrd or
     RUN_DIR/env_I.rrd) or, with ``spawn``, open a viewer. Returns the .rrd path (None if spawned)."""
     try:
@@ -210,8 +233,16 @@ def view(run_dir: str | pathlib.Path, env: int | None = None, *, out: str | path
         check_recording_path(path, out is not None)
         path.parent.mkdir(parents=True, exist_ok=True)
         rec.save(str(path))
-    log_trajectory(rec, traj, robot=info["robot"], push_body=info["push_body"], joints=info["joints"], contacts=info["contacts"],
-                   dims=info["dims"], boxes=info["boxes"])  # fmt: skip
+    log_trajectory(
+        rec,
+        traj,
+        robot=info["robot"],
+        push_body=info["push_body"],
+        joints=info["joints"],
+        contacts=info["contacts"],
+        dims=info["dims"],
+        boxes=info["boxes"],
+    )
     rec.flush()
     if path is not None:
         rec.disconnect()

@@ -28,8 +28,13 @@ def _panel(ax, directions: dict, title: str) -> None:
         ax.plot(*_closed(az, [r["limit_ns"] for r in rows]), "o-", lw=2, label="physical limit (trajectory opt.)")
         by_ddp = [(r.get("found_by") or "").startswith("crocoddyl") for r in rows]
         if any(by_ddp):
-            ax.plot(np.deg2rad(az[by_ddp]), [r["limit_ns"] for r, d in zip(rows, by_ddp, strict=True) if d], "r*",
-                    ms=10, label="limit found by crocoddyl")  # fmt: skip
+            ax.plot(
+                np.deg2rad(az[by_ddp]),
+                [r["limit_ns"] for r, d in zip(rows, by_ddp, strict=True) if d],
+                "r*",
+                ms=10,
+                label="limit found by crocoddyl",
+            )
     labels = sorted({k for r in rows for k in r.get("envelopes", {})})
     for label in labels:
         ax.plot(*_closed(az, [r["envelopes"][label]["impulse_ns"] for r in rows]), ".-", label=label)

@@ -55,8 +55,7 @@ def contact_forces(traj: dict, names: list[str], dims: list[int], path: pathlib.
 def joint_torques(traj: dict, joints: list[str], path: pathlib.Path, title: str = "") -> None:
     """Joint torques, grouped by limb."""
     t = traj["t"]
-    groups = {"torso": (0, 3), "left arm": (3, 7), "right arm": (7, 11),
-              "left leg": (11, 17), "right leg": (17, 23)}  # fmt: skip
+    groups = {"torso": (0, 3), "left arm": (3, 7), "right arm": (7, 11), "left leg": (11, 17), "right leg": (17, 23)}
     fig = Figure(figsize=(8, 10))
     axes = fig.subplots(len(groups), 1, sharex=True)
     for ax, (name, (a, b)) in zip(axes, groups.items()):

@@ -35,8 +35,21 @@ FORCE_SCALE = 1.0 / 500.0  # m per N for the arrows: the ~160 N per sole of stan
 TRAIL_S = 1.0  # s of CoM history drawn behind the CoM
 CONTACT_TOL = 2e-3  # m: a sole sphere whose bottom is this close to the floor counts as touching
 AXES6 = ["fx", "fy", "fz", "tx", "ty", "tz"]
-TRAJ_FIELDS = ("t", "qpos", "com", "com_ref", "tau", "f_cmd", "f_meas", "Ldot_star", "Ldot_meas",
-               "contact_pos", "contact_normal", "activation", "push")  # fmt: skip
+TRAJ_FIELDS = (
+    "t",
+    "qpos",
+    "com",
+    "com_ref",
+    "tau",
+    "f_cmd",
+    "f_meas",
+    "Ldot_star",
+    "Ldot_meas",
+    "contact_pos",
+    "contact_normal",
+    "activation",
+    "push",
+)
 
 
 def wrench_names(names: list[str], dims: list[int]) -> list[str]:
@@ -159,9 +172,17 @@ def log_robot_meshes(rec, m: mujoco.MjModel) -> list[str]:
     return paths
 
 
-def log_trajectory(rec, traj: dict, *, robot: str, push_body: str,
-                   joints: list[str] | None = None, contacts: list[str] | None = None,
-                   dims: list[int] | None = None, boxes: dict | None = None) -> None:  # fmt: skip
+def log_trajectory(
+    rec,
+    traj: dict,
+    *,
+    robot: str,
+    push_body: str,
+    joints: list[str] | None = None,
+    contacts: list[str] | None = None,
+    dims: list[int] | None = None,
+    boxes: dict | None = None,
+) -> None:
     """Log a recorded rollout to a rerun recording stream.
 
     Args:
@@ -189,8 +210,13 @@ def log_trajectory(rec, traj: dict, *, robot: str, push_body: str,
     # Static scene: meshes, floor, series styles.
     paths = log_robot_meshes(rec, m)
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-    rec.log("world/floor", rr.Boxes3D(centers=[[0, 0, -0.005]], half_sizes=[[1.0, 1.0, 0.005]],
-                                      colors=[[90, 90, 90, 255]], fill_mode="solid"), static=True)  # fmt: skip
+    rec.log(
+        "world/floor",
+        rr.Boxes3D(
+            centers=[[0, 0, -0.005]], half_sizes=[[1.0, 1.0, 0.005]], colors=[[90, 90, 90, 255]], fill_mode="solid"
+        ),
+        static=True,
+    )
     K = np.shape(traj["contact_pos"])[1]
     contacts = (
         list(contacts) if contacts is not None else (["left", "right"] if K == 2 else [f"c{k}" for k in range(K)])
@@ -199,8 +225,17 @@ def log_trajectory(rec, traj: dict, *, robot: str, push_body: str,
     for name, (center, half, R) in (boxes or {}).items():
         quat = np.zeros(4)
         mujoco.mju_mat2Quat(quat, np.asarray(R, float).ravel())
-        rec.log(f"world/scene/{name}", rr.Boxes3D(centers=[center], half_sizes=[half], quaternions=[_xyzw(quat)],
-                                                  colors=[[150, 115, 75, 255]], fill_mode="solid"), static=True)  # fmt: skip
+        rec.log(
+            f"world/scene/{name}",
+            rr.Boxes3D(
+                centers=[center],
+                half_sizes=[half],
+                quaternions=[_xyzw(quat)],
+                colors=[[150, 115, 75, 255]],
+                fill_mode="solid",
+            ),
+            static=True,
+        )
     n = np.asarray(traj["tau"]).shape[1]
     series = {
         "plots/com_error_mm": ["|CoM - CoM_ref|"],
@@ -216,18 +251,24 @@ def log_trajectory(rec, traj: dict, *, robot: str, push_body: str,
 
     # Columns (one call per entity for all ticks): body poses and time series.
     for b in range(1, m.nbody):
-        rec.send_columns(paths[b], indexes=time,
-                         columns=rr.Transform3D.columns(translation=xpos[:, b], quaternion=_xyzw(xquat[:, b])))  # fmt: skip
+        rec.send_columns(
+            paths[b],
+            indexes=time,
+            columns=rr.Transform3D.columns(translation=xpos[:, b], quaternion=_xyzw(xquat[:, b])),
+        )
     com_err = 1e3 * np.linalg.norm(np.asarray(traj["com"]) - np.asarray(traj["com_ref"]), axis=1)
     values = {
-        "plots/com_error_mm": com_err[:, None], "plots/Ldot_star": traj["Ldot_star"],
-        "plots/Ldot_meas": traj["Ldot_meas"], "plots/tau": traj["tau"],
-        "plots/f_cmd": traj["f_cmd"], "plots/f_meas": traj["f_meas"], "plots/activation": traj["activation"],
-    }  # fmt: skip
+        "plots/com_error_mm": com_err[:, None],
+        "plots/Ldot_star": traj["Ldot_star"],
+        "plots/Ldot_meas": traj["Ldot_meas"],
+        "plots/tau": traj["tau"],
+        "plots/f_cmd": traj["f_cmd"],
+        "plots/f_meas": traj["f_meas"],
+        "plots/activation": traj["activation"],
+    }
     for path, v in values.items():
         v = np.asarray(v, float).reshape(T, -1)
-        rec.send_columns(path, indexes=time,
-                         columns=rr.Scalars.columns(scalars=v.ravel()).partition([v.shape[1]] * T))  # fmt: skip
+        rec.send_columns(path, indexes=time, columns=rr.Scalars.columns(scalars=v.ravel()).partition([v.shape[1]] * T))
 
     # Per tick: CoM and trails, support polygon, wrench and push arrows.
     polys = support_polygons(m, gpos)
@@ -250,19 +291,38 @@ def log_trajectory(rec, traj: dict, *, robot: str, push_body: str,
         rec.log("world/support_polygon", rr.LineStrips3D([strip], radii=0.003, colors=[[250, 200, 0]]))
         for name, color in (("f_meas", [60, 120, 250]), ("f_cmd", [250, 250, 250])):
             f = np.asarray(traj[name][k])[force_cols].reshape(K, 3) * FORCE_SCALE
-            rec.log(f"world/contacts/{name}", rr.Arrows3D(vectors=f, origins=points[k], colors=[color] * K,
-                                                          radii=0.006, labels=contacts))  # fmt: skip
+            rec.log(
+                f"world/contacts/{name}",
+                rr.Arrows3D(vectors=f, origins=points[k], colors=[color] * K, radii=0.006, labels=contacts),
+            )
         act = np.asarray(traj["activation"][k])
-        shade = (np.clip(act, 0, 1)[:, None] * np.array([40, 200, 80]) + (1 - np.clip(act, 0, 1))[:, None]
-                 * np.array([200, 60, 40])).astype(np.uint8)  # fmt: skip
-        rec.log("world/contacts/normals", rr.Arrows3D(vectors=0.08 * normals[k], origins=points[k], colors=shade,
-                                                      radii=0.003, labels=[f"{c} a={a:.2f}" for c, a in zip(contacts, act)]))  # fmt: skip
+        shade = (
+            np.clip(act, 0, 1)[:, None] * np.array([40, 200, 80])
+            + (1 - np.clip(act, 0, 1))[:, None] * np.array([200, 60, 40])
+        ).astype(np.uint8)
+        rec.log(
+            "world/contacts/normals",
+            rr.Arrows3D(
+                vectors=0.08 * normals[k],
+                origins=points[k],
+                colors=shade,
+                radii=0.003,
+                labels=[f"{c} a={a:.2f}" for c, a in zip(contacts, act)],
+            ),
+        )
         p = np.asarray(traj["push"][k], float)
         if np.any(p != 0):
             v = p * FORCE_SCALE
-            rec.log("world/push", rr.Arrows3D(vectors=[v], origins=[xpos[k, push_id] - v],
-                                              colors=[[255, 0, 200]], radii=0.01,
-                                              labels=[f"push {np.linalg.norm(p):.0f} N"]))  # fmt: skip
+            rec.log(
+                "world/push",
+                rr.Arrows3D(
+                    vectors=[v],
+                    origins=[xpos[k, push_id] - v],
+                    colors=[[255, 0, 200]],
+                    radii=0.01,
+                    labels=[f"push {np.linalg.norm(p):.0f} N"],
+                ),
+            )
         else:
             rec.log("world/push", rr.Arrows3D(vectors=np.zeros((0, 3))))
 

@@ -24,8 +24,9 @@ def envelope_polar(summary: dict, path) -> None:
 
     fig = Figure(figsize=(6.5, 6.5))
     ax = fig.add_subplot(projection="polar")
-    names = [n for n in SET_ORDER if n in summary] + [n for n in summary if n not in SET_ORDER and "grid_envelope"
-                                                       in summary.get(n, {})]  # fmt: skip
+    names = [n for n in SET_ORDER if n in summary] + [
+        n for n in summary if n not in SET_ORDER and "grid_envelope" in summary.get(n, {})
+    ]
     first = summary[names[0]]["grid_envelope"]
     az = sorted(first, key=float)
     theta = np.deg2rad(np.append([float(a) for a in az], float(az[0])))
@@ -36,8 +37,12 @@ def envelope_polar(summary: dict, path) -> None:
     ax.plot(theta, closed(np.array([first[a]["bound_impulse_ns"] for a in az])), "k--", label="LIP bound m ω d")
     for n in names:
         e = summary[n]["grid_envelope"]
-        ax.plot(theta, closed(np.array([e[a]["impulse_ns"] for a in az])), ".-",
-                label=f"{n} (median {summary[n]['envelope_fraction_median']:.2f})")  # fmt: skip
+        ax.plot(
+            theta,
+            closed(np.array([e[a]["impulse_ns"] for a in az])),
+            ".-",
+            label=f"{n} (median {summary[n]['envelope_fraction_median']:.2f})",
+        )
     ax.set_title("largest survived trunk impulse [N s] (strict survival)")
     ax.legend(loc="lower left", fontsize=7, bbox_to_anchor=(-0.1, -0.12))
     _save(fig, path)
@@ -88,8 +93,10 @@ def survival_vs_loss(loss, survived, stats: dict, path) -> None:
     ax.set_xscale("log")
     ax.set_xlabel(f"loss over the training horizon ({stats.get('train_horizon_s')} s)")
     ax.set_ylabel(f"strictly survived at {stats.get('horizon_s')} s")
-    ax.set_title(f"held-out pushes: Spearman {stats.get('spearman_train_horizon', float('nan')):.2f}, "
-                 f"ROC area {stats.get('auc_train_horizon', float('nan')):.2f} (n = {loss.size})")  # fmt: skip
+    ax.set_title(
+        f"held-out pushes: Spearman {stats.get('spearman_train_horizon', float('nan')):.2f}, "
+        f"ROC area {stats.get('auc_train_horizon', float('nan')):.2f} (n = {loss.size})"
+    )
     _save(fig, path)
 
 
@@ -114,8 +121,13 @@ def race_curves(points: dict, path, reference: dict | None = None) -> None:
     for ax in axes:
         for name, r in (reference or {}).items():
             ax.axhline(r["envelope_fraction_median"], color="gray", ls=":", lw=1)
-            ax.annotate(f"{name} median", (0.01, r["envelope_fraction_median"]), xycoords=("axes fraction", "data"),
-                        fontsize=7, color="gray")  # fmt: skip
+            ax.annotate(
+                f"{name} median",
+                (0.01, r["envelope_fraction_median"]),
+                xycoords=("axes fraction", "data"),
+                fontsize=7,
+                color="gray",
+            )
         ax.set_ylabel("held-out envelope / LIP bound")
         ax.legend(fontsize=7)
     axes[0].set_xlabel("wall-time budget [s] (compilation included)")

@@ -78,9 +78,14 @@ class Flywheel:
 
     def shift_box(self) -> np.ndarray:
         """(4, 2) corners of the box of capture-point shifts D the flywheel can add [m]."""
-        fwd, back, side = (flywheel_shift(tau, inertia, theta, self.mass, self.omega) for tau, inertia, theta in (
-            (self.torque_pitch, self.inertia_pitch, self.flexion), (self.torque_pitch, self.inertia_pitch,
-            self.extension), (self.torque_roll, self.inertia_roll, self.roll)))  # fmt: skip
+        fwd, back, side = (
+            flywheel_shift(tau, inertia, theta, self.mass, self.omega)
+            for tau, inertia, theta in (
+                (self.torque_pitch, self.inertia_pitch, self.flexion),
+                (self.torque_pitch, self.inertia_pitch, self.extension),
+                (self.torque_roll, self.inertia_roll, self.roll),
+            )
+        )
         return np.array([[fwd, side], [fwd, -side], [-back, side], [-back, -side]])
 
 
@@ -88,8 +93,10 @@ def flywheel_shift(torque: float, inertia: float, theta_max: float, mass: float,
     """Largest capture-point shift D [m] of a flywheel (bang-bang, module docstring):
     (tau / (m g)) (1 - exp(-omega t1))^2 with t1 = sqrt(I theta_max / tau)."""
     if min(torque, inertia, theta_max) < 0.0 or mass <= 0.0 or omega <= 0.0:
-        raise ValueError(f"flywheel needs torque, inertia, theta_max >= 0 and mass, omega > 0; got "
-                         f"{torque=}, {inertia=}, {theta_max=}, {mass=}, {omega=}")  # fmt: skip
+        raise ValueError(
+            f"flywheel needs torque, inertia, theta_max >= 0 and mass, omega > 0; got "
+            f"{torque=}, {inertia=}, {theta_max=}, {mass=}, {omega=}"
+        )
     if torque == 0.0:
         return 0.0
     t1 = math.sqrt(inertia * theta_max / torque)
@@ -184,12 +191,16 @@ def flywheel_model(robot) -> Flywheel:
     pitch_range, pitch_home, pitch_torque = _joint_limits(m, hip_pitch, robot.description.nominal_keyframe)
     roll_range, roll_home, roll_torque = _joint_limits(m, hip_roll, robot.description.nominal_keyframe)
     return Flywheel(
-        mass=float(m.body_subtreemass[robot.index.base_body]), com_height=float(com[2]),
-        inertia_pitch=float(max(whole[1, 1], trunk[1, 1])), inertia_roll=float(max(whole[0, 0], trunk[0, 0])),
-        torque_pitch=2.0 * pitch_torque, torque_roll=2.0 * roll_torque,
-        flexion=float(np.min(pitch_range[:, 1] - pitch_home)), extension=float(np.min(pitch_home - pitch_range[:, 0])),
+        mass=float(m.body_subtreemass[robot.index.base_body]),
+        com_height=float(com[2]),
+        inertia_pitch=float(max(whole[1, 1], trunk[1, 1])),
+        inertia_roll=float(max(whole[0, 0], trunk[0, 0])),
+        torque_pitch=2.0 * pitch_torque,
+        torque_roll=2.0 * roll_torque,
+        flexion=float(np.min(pitch_range[:, 1] - pitch_home)),
+        extension=float(np.min(pitch_home - pitch_range[:, 0])),
         roll=float(min(np.min(roll_range[:, 1] - roll_home), np.min(roll_home - roll_range[:, 0]))),
-    )  # fmt: skip
+    )
 
 
 def _ancestors(m, body: int):
@@ -205,14 +216,19 @@ def flywheel_bound(robot, directions_deg, push_body: str, flywheel: Flywheel | N
     points, com, d = standing_support(robot)
     height = d.xipos[robot.index.pushable_body_id(push_body), 2] - com[2]  # xfrc_applied acts at the body's CoM
     if height < 0.0:
-        raise ValueError(f"push body {push_body!r} is {-height:.3f} m below the CoM: the flywheel bound is "
-                         "derived for push points at or above it")  # fmt: skip
+        raise ValueError(
+            f"push body {push_body!r} is {-height:.3f} m below the CoM: the flywheel bound is "
+            "derived for push points at or above it"
+        )
     wheel = flywheel_model(robot) if flywheel is None else flywheel
     out = {}
     for az in directions_deg:
         edge = ray_distance(points, com[:2], az)
         reach = flywheel_distance(points, com[:2], wheel, az)
-        out[float(az)] = {"edge_distance_m": edge, "flywheel_distance_m": reach,
-                          "velocity_bound_mps": wheel.omega * reach,
-                          "impulse_bound_ns": wheel.mass * wheel.omega * reach}  # fmt: skip
+        out[float(az)] = {
+            "edge_distance_m": edge,
+            "flywheel_distance_m": reach,
+            "velocity_bound_mps": wheel.omega * reach,
+            "impulse_bound_ns": wheel.mass * wheel.omega * reach,
+        }
     return out

@@ -150,8 +150,9 @@ class Contact:
     mu: float = entry(1.0 / 3.0, gt=0.0, le=MAX_FRICTION)
     mu_t: float = entry(1.0 / 75.0, gt=0.0, le=MAX_FRICTION)
     fz_min: float = entry(10.0, gt=0.0, le=MAX_NORMAL_FORCE_N, unit="N")
-    cop: tuple[tuple[float, float], tuple[float, float]] | None = entry(None, ge=-MAX_OFFSET_M, le=MAX_OFFSET_M,
-                                                                         unit="m")  # fmt: skip
+    cop: tuple[tuple[float, float], tuple[float, float]] | None = entry(
+        None, ge=-MAX_OFFSET_M, le=MAX_OFFSET_M, unit="m"
+    )
     normal_force: float | None = entry(None, gt=0.0, le=MAX_NORMAL_FORCE_N, unit="N")
     touches: str | None = entry(None)
     activation: ContactActivation = entry(ContactActivation())
@@ -253,7 +254,7 @@ def feet_contact_set(robot: model_lib.Robot, params: ContactParams | None = None
                 activation=ContactActivation(),
                 foot=k,
                 geoms=tuple(int(g) for g in idx.foot_geoms[k]),
-            )  # fmt: skip
+            )
             for k, name in enumerate(robot.description.feet)
         )
     )
@@ -269,8 +270,10 @@ def contact_from_dict(values: dict) -> Contact:
     fields = {f.name for f in dataclasses.fields(Contact)}
     unknown = sorted(map(str, set(values) - fields))
     if unknown or "name" not in values or "frame" not in values:
-        raise ValueError(f"contact {echo(values.get('name'))}: unknown keys {unknown} (valid: {sorted(fields)}); "
-                         "'name' and 'frame' are required")  # fmt: skip
+        raise ValueError(
+            f"contact {echo(values.get('name'))}: unknown keys {unknown} (valid: {sorted(fields)}); "
+            "'name' and 'frame' are required"
+        )
     values = dict(values)
     act = values.pop("activation", {}) or {}
     act_fields = {f.name for f in dataclasses.fields(ContactActivation)}
@@ -295,8 +298,10 @@ def object_from_dict(values: dict) -> SceneObject:
     fields = {f.name for f in dataclasses.fields(SceneObject)}
     unknown = sorted(map(str, set(values) - fields))
     if unknown or "name" not in values:
-        raise ValueError(f"scene object {echo(values.get('name'))}: unknown keys {unknown} (valid: {sorted(fields)}); "
-                         "'name' is required")  # fmt: skip
+        raise ValueError(
+            f"scene object {echo(values.get('name'))}: unknown keys {unknown} (valid: {sorted(fields)}); "
+            "'name' is required"
+        )
     return SceneObject(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
 
 
@@ -333,8 +338,10 @@ def check_spec(contacts, objects, feet: tuple[str, str]) -> tuple[tuple[Contact,
         if c.type not in CONTACT_TYPES:
             raise ValueError(f"{owner}: unknown type {echo(c.type)}; valid types: {list(CONTACT_TYPES)}")
         if c.normal is None:
-            raise ValueError(f"{owner}: no normal direction; give 'normal: [nx, ny, nz]' (world axes, "
-                             "pointing out of the touched surface)")  # fmt: skip
+            raise ValueError(
+                f"{owner}: no normal direction; give 'normal: [nx, ny, nz]' (world axes, "
+                "pointing out of the touched surface)"
+            )
         n = _vector(owner, "normal", c.normal)
         if np.linalg.norm(n) < 1e-6:
             raise ValueError(f"{owner}: the normal must be a non-zero vector, got {list(c.normal)}")
@@ -350,8 +357,10 @@ def check_spec(contacts, objects, feet: tuple[str, str]) -> tuple[tuple[Contact,
         if not isinstance(c.detect, bool):
             raise ValueError(f"{owner}: detect must be true or false, got {echo(c.detect)}")
         if c.detect and c.frame in feet and not np.any(_vector(owner, "offset", c.offset)):
-            raise ValueError(f"{owner}: the soles follow the task's foot schedule; contact detection (detect) is for "
-                             "the other contacts")  # fmt: skip
+            raise ValueError(
+                f"{owner}: the soles follow the task's foot schedule; contact detection (detect) is for "
+                "the other contacts"
+            )
         a = c.activation
         if not (math.isfinite(a.start) and a.ramp >= 0 and math.isfinite(a.ramp) and a.stop > a.start + a.ramp):
             raise ValueError(f"{owner}: activation needs finite start, ramp >= 0 and stop > start + ramp, got {a}")

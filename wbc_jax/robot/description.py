@@ -92,8 +92,9 @@ class RobotDescription:
 
     def __post_init__(self):
         if len(self.gains.kp_postural) != len(self.joints):
-            raise ValueError(f"robot {self.name}: {len(self.gains.kp_postural)} postural gains for "
-                             f"{len(self.joints)} joints")  # fmt: skip
+            raise ValueError(
+                f"robot {self.name}: {len(self.gains.kp_postural)} postural gains for {len(self.joints)} joints"
+            )
         missing = sorted(set(BODY_ROLES) - set(self.bodies))
         if missing:
             raise ValueError(f"robot {self.name}: no body for the roles {missing}")

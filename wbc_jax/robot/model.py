@@ -144,8 +144,9 @@ class RobotIndex:
         listing the valid names."""
         name = self.description.body(name)
         if name in self.body_names and name not in self.pushable_bodies:
-            raise ValueError(f"cannot push body {name!r} (the world does not move); pushable bodies: "
-                             f"{sorted(self.pushable_bodies)}")  # fmt: skip
+            raise ValueError(
+                f"cannot push body {name!r} (the world does not move); pushable bodies: {sorted(self.pushable_bodies)}"
+            )
         check_name("body", name, list(self.pushable_bodies))
         return self.body_names.index(name)
 

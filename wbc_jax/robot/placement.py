@@ -30,8 +30,9 @@ def box_distance(p: np.ndarray, centre: np.ndarray, half: np.ndarray) -> float:
 
 def surface_normal(p: np.ndarray, centre: np.ndarray, half: np.ndarray) -> np.ndarray:
     """(3,) the outward unit normal of a box's surface nearest p (the signed distance's gradient)."""
-    grad = np.array([box_distance(p + _STEP * e, centre, half) - box_distance(p - _STEP * e, centre, half)
-                     for e in np.eye(3)])  # fmt: skip
+    grad = np.array(
+        [box_distance(p + _STEP * e, centre, half) - box_distance(p - _STEP * e, centre, half) for e in np.eye(3)]
+    )
     return grad / max(np.linalg.norm(grad), 1e-12)
 
 
@@ -47,23 +48,29 @@ def check_normal(name: str, normal: np.ndarray, W_p: np.ndarray, box: tuple, sur
     face = surface_normal(W_p, *box)
     off = angle_deg(n, face)
     if face @ n < 0.5:  # more than 60 deg: pointing into the surface or along it
-        raise ValueError(f"contact {name!r}: normal {np.round(n, 3).tolist()} points into {surface!r} or along its "
-                         f"surface (the surface faces {np.round(face, 3).tolist()}); the normal points out of the "
-                         "touched surface, towards the robot")  # fmt: skip
+        raise ValueError(
+            f"contact {name!r}: normal {np.round(n, 3).tolist()} points into {surface!r} or along its "
+            f"surface (the surface faces {np.round(face, 3).tolist()}); the normal points out of the "
+            "touched surface, towards the robot"
+        )
     if off > NORMAL_TOL_DEG:
-        raise ValueError(f"contact {name!r}: normal {np.round(n, 3).tolist()} is {off:.1f} deg from the normal "
-                         f"{np.round(face, 3).tolist()} of the surface of {surface!r} it touches (at most "
-                         f"{NORMAL_TOL_DEG:g} deg)")  # fmt: skip
+        raise ValueError(
+            f"contact {name!r}: normal {np.round(n, 3).tolist()} is {off:.1f} deg from the normal "
+            f"{np.round(face, 3).tolist()} of the surface of {surface!r} it touches (at most "
+            f"{NORMAL_TOL_DEG:g} deg)"
+        )
 
 
 def check_reach(name: str, W_p: np.ndarray, box: tuple, surface: str) -> None:
     """The contact point W_p (3,) must lie on the surface of ``box`` (within REACH_TOL)."""
     dist = box_distance(W_p, *box)
     if abs(dist) > REACH_TOL:
-        raise ValueError(f"contact {name!r}: its point {W_p.round(3).tolist()} is {abs(dist) * 100:.1f} cm "
-                         f"{'inside' if dist < 0 else 'away from'} the surface of {surface!r} at the initial posture "
-                         f"(at most {REACH_TOL * 1e3:.0f} mm: it must touch it); move the object (pos, shift) or "
-                         "change the initial posture")  # fmt: skip
+        raise ValueError(
+            f"contact {name!r}: its point {W_p.round(3).tolist()} is {abs(dist) * 100:.1f} cm "
+            f"{'inside' if dist < 0 else 'away from'} the surface of {surface!r} at the initial posture "
+            f"(at most {REACH_TOL * 1e3:.0f} mm: it must touch it); move the object (pos, shift) or "
+            "change the initial posture"
+        )
 
 
 def check_cop_on_surface(name: str, W_p: np.ndarray, W_R_c: np.ndarray, cop, box: tuple, surface: str) -> None:
@@ -74,9 +81,11 @@ def check_cop_on_surface(name: str, W_p: np.ndarray, W_R_c: np.ndarray, cop, box
         corner = W_p + W_R_c @ np.array([x, y, 0.0])
         dist = box_distance(corner, *box)
         if abs(dist) > REACH_TOL:
-            raise ValueError(f"contact {name!r}: CoP corner ({x:g}, {y:g}) m is {abs(dist) * 100:.1f} cm off the "
-                             f"surface of {surface!r} at the initial posture (at most {REACH_TOL * 1e3:.0f} mm): the "
-                             f"rectangle {[list(cop[0]), list(cop[1])]} is larger than what it touches")  # fmt: skip
+            raise ValueError(
+                f"contact {name!r}: CoP corner ({x:g}, {y:g}) m is {abs(dist) * 100:.1f} cm off the "
+                f"surface of {surface!r} at the initial posture (at most {REACH_TOL * 1e3:.0f} mm): the "
+                f"rectangle {[list(cop[0]), list(cop[1])]} is larger than what it touches"
+            )
 
 
 def check_sole(m: mujoco.MjModel, d: mujoco.MjData, name: str, site: int, geoms, cop) -> None:
@@ -88,24 +97,30 @@ def check_sole(m: mujoco.MjModel, d: mujoco.MjData, name: str, site: int, geoms,
     R = d.site_xmat[site].reshape(3, 3)
     tilt = angle_deg(R[:, 2], np.array([0.0, 0.0, 1.0]))
     if tilt > NORMAL_TOL_DEG:
-        raise ValueError(f"contact {name!r}: sole {m.site(site).name} is tilted {tilt:.1f} deg against the floor at "
-                         f"the initial posture (at most {NORMAL_TOL_DEG:g} deg): it would stand on an edge; change "
-                         "the initial posture")  # fmt: skip
+        raise ValueError(
+            f"contact {name!r}: sole {m.site(site).name} is tilted {tilt:.1f} deg against the floor at "
+            f"the initial posture (at most {NORMAL_TOL_DEG:g} deg): it would stand on an edge; change "
+            "the initial posture"
+        )
     fromto = np.zeros(6)
     gaps = [mujoco.mj_geomDistance(m, d, floor, int(g), 1.0, fromto) for g in geoms]
     worst = max(gaps, key=abs)
     if abs(worst) > REACH_TOL:
-        raise ValueError(f"contact {name!r}: sole {m.site(site).name} is {abs(worst) * 100:.1f} cm "
-                         f"{'below' if worst < 0 else 'above'} the floor at the initial posture (its contact spheres "
-                         f"at {min(gaps) * 100:.1f} to {max(gaps) * 100:.1f} cm; at most {REACH_TOL * 1e3:.0f} mm): "
-                         "it must stand on it; change the initial posture")  # fmt: skip
+        raise ValueError(
+            f"contact {name!r}: sole {m.site(site).name} is {abs(worst) * 100:.1f} cm "
+            f"{'below' if worst < 0 else 'above'} the floor at the initial posture (its contact spheres "
+            f"at {min(gaps) * 100:.1f} to {max(gaps) * 100:.1f} cm; at most {REACH_TOL * 1e3:.0f} mm): "
+            "it must stand on it; change the initial posture"
+        )
     local = np.array([R.T @ (d.geom_xpos[g] - d.site_xpos[site]) for g in geoms])
     lo, hi = local[:, :2].min(0) - REACH_TOL, local[:, :2].max(0) + REACH_TOL
     (x0, x1), (y0, y1) = cop
     if x0 < lo[0] or y0 < lo[1] or x1 > hi[0] or y1 > hi[1]:
-        raise ValueError(f"contact {name!r}: CoP rectangle {[[x0, x1], [y0, y1]]} m is larger than the foot: its "
-                         f"contact spheres span x [{lo[0]:.3f}, {hi[0]:.3f}], y [{lo[1]:.3f}, {hi[1]:.3f}] m in the "
-                         "sole frame (their radius included); give a cop inside it")  # fmt: skip
+        raise ValueError(
+            f"contact {name!r}: CoP rectangle {[[x0, x1], [y0, y1]]} m is larger than the foot: its "
+            f"contact spheres span x [{lo[0]:.3f}, {hi[0]:.3f}], y [{lo[1]:.3f}, {hi[1]:.3f}] m in the "
+            "sole frame (their radius included); give a cop inside it"
+        )
 
 
 def robot_points(m: mujoco.MjModel, d: mujoco.MjData, extra=(), spacing: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
@@ -113,8 +128,10 @@ def robot_points(m: mujoco.MjModel, d: mujoco.MjData, extra=(), spacing: float =
     its parent's (not the world) and to each ``extra`` (body id, world point (3,)) (the contact
     points: the hands), every ``spacing`` m, and the collision geoms' centres. Returns (points
     (N, 3), body id of each (N,))."""
-    points, bodies = [d.geom_xpos[g] for g in range(m.ngeom) if m.geom_bodyid[g] > 0], \
-        [int(m.geom_bodyid[g]) for g in range(m.ngeom) if m.geom_bodyid[g] > 0]  # fmt: skip
+    points, bodies = (
+        [d.geom_xpos[g] for g in range(m.ngeom) if m.geom_bodyid[g] > 0],
+        [int(m.geom_bodyid[g]) for g in range(m.ngeom) if m.geom_bodyid[g] > 0],
+    )
     segments = [(int(m.body_parentid[b]), b, d.xpos[b]) for b in range(1, m.nbody)]
     segments += [(int(b), int(b), np.asarray(p, float)) for b, p in extra]
     for parent, b, z in segments:
@@ -135,6 +152,8 @@ def check_objects_clear(m: mujoco.MjModel, d: mujoco.MjData, objects: dict, extr
         depth = -np.array([box_distance(p, centre, half) for p in points])
         k = int(np.argmax(depth))
         if depth[k] > REACH_TOL:
-            raise ValueError(f"scene object {name!r} intersects the robot at the initial posture: body "
-                             f"{m.body(int(bodies[k])).name!r} is {depth[k] * 100:.1f} cm inside it (at most "
-                             f"{REACH_TOL * 1e3:.0f} mm); move it (pos, shift)")  # fmt: skip
+            raise ValueError(
+                f"scene object {name!r} intersects the robot at the initial posture: body "
+                f"{m.body(int(bodies[k])).name!r} is {depth[k] * 100:.1f} cm inside it (at most "
+                f"{REACH_TOL * 1e3:.0f} mm); move it (pos, shift)"
+            )

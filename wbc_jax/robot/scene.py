@@ -55,8 +55,9 @@ def _contact_rotation(normal: np.ndarray, site_R: np.ndarray | None) -> np.ndarr
     return np.stack([x, np.cross(z, x), z], axis=1)
 
 
-def _check_placement(m: mujoco.MjModel, d: mujoco.MjData, c: Contact, frame: tuple, placed: dict,
-                     desc: RobotDescription) -> None:  # fmt: skip
+def _check_placement(
+    m: mujoco.MjModel, d: mujoco.MjData, c: Contact, frame: tuple, placed: dict, desc: RobotDescription
+) -> None:
     """Does contact ``c`` touch what it names at the initial posture (``d``, after mj_forward)?
     Contacts through the robot's own geoms (the soles) touch the floor: a sole must stand flat on it
     with its CoP rectangle inside the foot; others must reach their object, normal along its
@@ -91,8 +92,10 @@ def _own_geoms(m: mujoco.MjModel, c: Contact, body: int, surfaces: list[str]) ->
     """The collision geoms through which a contact without ``touches`` acts (its body's)."""
     geoms = _pair_geoms(m, body)
     if not geoms:
-        raise ValueError(f"contact {echo(c.name)}: body {echo(m.body(body).name)} has no collision geoms; "
-                         f"give 'touches: <object>' (valid: {surfaces})")  # fmt: skip
+        raise ValueError(
+            f"contact {echo(c.name)}: body {echo(m.body(body).name)} has no collision geoms; "
+            f"give 'touches: <object>' (valid: {surfaces})"
+        )
     return geoms
 
 
@@ -152,23 +155,31 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
             _, _, _, W_p, W_R_c = frames[o.under]
             axis = int(np.argmax(np.abs(W_R_c[:, 2])))
             if abs(W_R_c[axis, 2]) < 1 - 1e-6 or W_R_c[2, 2] < -1e-6:
-                raise ValueError(f"scene object {echo(o.name)}: 'under' needs a contact with normal +z or horizontal "
-                                 f"along a world axis; {echo(o.under)} has normal {W_R_c[:, 2].round(3).tolist()}")  # fmt: skip
+                raise ValueError(
+                    f"scene object {echo(o.name)}: 'under' needs a contact with normal +z or horizontal "
+                    f"along a world axis; {echo(o.under)} has normal {W_R_c[:, 2].round(3).tolist()}"
+                )
             pos = W_p - W_R_c[:, 2].round() * o.size[axis] + np.asarray(o.shift, float)
         else:
             pos = np.asarray(o.pos, float)
         placed[o.name] = (pos, np.asarray(o.size, float))
         spec.worldbody.add_geom(
-            name=o.name, type=mujoco.mjtGeom.mjGEOM_BOX, size=list(o.size), pos=pos.tolist(),
-            contype=0, conaffinity=0, rgba=[0.6, 0.45, 0.3, 1],
-        )  # fmt: skip
+            name=o.name,
+            type=mujoco.mjtGeom.mjGEOM_BOX,
+            size=list(o.size),
+            pos=pos.tolist(),
+            contype=0,
+            conaffinity=0,
+            rgba=[0.6, 0.45, 0.3, 1],
+        )
     friction = {o.name: o.friction for o in objects}
     friction["floor"] = 1.0
     placed["floor"] = (np.array([0.0, 0.0, d.geom_xpos[base.geom("floor").id][2] - 1e3]), np.full(3, 1e3))
     for c in contacts:
         _check_placement(base, d, c, frames[c.name], placed, desc)
-    placement.check_objects_clear(base, d, {o.name: placed[o.name] for o in objects},
-                                  [(frames[c.name][0], frames[c.name][3]) for c in contacts])  # fmt: skip
+    placement.check_objects_clear(
+        base, d, {o.name: placed[o.name] for o in objects}, [(frames[c.name][0], frames[c.name][3]) for c in contacts]
+    )
     added: dict[str, list[str]] = {}
     for c in contacts:
         if c.touches is None:
@@ -185,14 +196,25 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
             local = point + R_bc @ np.array([xy[0], xy[1], SPHERE_RADIUS])
             name = f"{c.name}_contact_{k}"
             body_spec.add_geom(
-                name=name, type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[SPHERE_RADIUS, 0, 0],
-                pos=local.tolist(), contype=0, conaffinity=0, group=3, mass=0.0, rgba=[0.2, 0.4, 0.9, 1],
-            )  # fmt: skip
+                name=name,
+                type=mujoco.mjtGeom.mjGEOM_SPHERE,
+                size=[SPHERE_RADIUS, 0, 0],
+                pos=local.tolist(),
+                contype=0,
+                conaffinity=0,
+                group=3,
+                mass=0.0,
+                rgba=[0.2, 0.4, 0.9, 1],
+            )
             mu = friction[c.touches]
             spec.add_pair(
-                name=f"{name}_{c.touches}", geomname1=c.touches, geomname2=name, condim=3,
-                friction=[mu, mu, 0.005, 1e-4, 1e-4], solref=list(CONTACT_SOLREF),
-            )  # fmt: skip
+                name=f"{name}_{c.touches}",
+                geomname1=c.touches,
+                geomname2=name,
+                condim=3,
+                friction=[mu, mu, 0.005, 1e-4, 1e-4],
+                solref=list(CONTACT_SOLREF),
+            )
             names.append(name)
         added[c.name] = names
     m = spec.compile()
@@ -220,6 +242,6 @@ def build_scene(robot: str, contacts, objects, qpos: np.ndarray | None = None):
                 foot=feet.get(c.frame, -1) if not np.any(c.offset) else -1,
                 geoms=tuple(int(g) for g in geoms),
                 detect=c.detect,
-            )  # fmt: skip
+            )
         )
     return scene_robot, ContactSet(contacts=tuple(resolved))

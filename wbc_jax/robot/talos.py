@@ -18,13 +18,28 @@ DESCRIPTION = RobotDescription(
     builder="assets/build_talos_mjcf.py",
     # Torso, left arm, right arm, left leg, right leg (the iCub's order); wrists, head, grippers fixed.
     joints=(
-        "torso_1_joint", "torso_2_joint",
-        "arm_left_1_joint", "arm_left_2_joint", "arm_left_3_joint", "arm_left_4_joint",
-        "arm_right_1_joint", "arm_right_2_joint", "arm_right_3_joint", "arm_right_4_joint",
-        "leg_left_1_joint", "leg_left_2_joint", "leg_left_3_joint", "leg_left_4_joint", "leg_left_5_joint",
+        "torso_1_joint",
+        "torso_2_joint",
+        "arm_left_1_joint",
+        "arm_left_2_joint",
+        "arm_left_3_joint",
+        "arm_left_4_joint",
+        "arm_right_1_joint",
+        "arm_right_2_joint",
+        "arm_right_3_joint",
+        "arm_right_4_joint",
+        "leg_left_1_joint",
+        "leg_left_2_joint",
+        "leg_left_3_joint",
+        "leg_left_4_joint",
+        "leg_left_5_joint",
         "leg_left_6_joint",
-        "leg_right_1_joint", "leg_right_2_joint", "leg_right_3_joint", "leg_right_4_joint",
-        "leg_right_5_joint", "leg_right_6_joint",
+        "leg_right_1_joint",
+        "leg_right_2_joint",
+        "leg_right_3_joint",
+        "leg_right_4_joint",
+        "leg_right_5_joint",
+        "leg_right_6_joint",
     ),
     feet=("l_sole", "r_sole"),
     foot_contact_prefixes=("l_foot_contact", "r_foot_contact"),
@@ -33,13 +48,19 @@ DESCRIPTION = RobotDescription(
     sole_cop=((-0.1, 0.1), (-0.06, 0.06)),
     # WBC's gains carried over by joint function (assets/build_talos_mjcf.py says how).
     gains=DefaultGains(
-        kp_com=(50.0, 50.0, 10.0), kp_ang=1.0, ki_ang=0.25,
+        kp_com=(50.0, 50.0, 10.0),
+        kp_ang=1.0,
+        ki_ang=0.25,
         kp_postural=(20, 10) + (10, 10, 10, 8) * 2 + (20, 30, 30, 20, 100, 100) * 2,
     ),
     hand_set_gains="talos/gains/com_critical_100.json",
     bodies=types.MappingProxyType(
-        {"trunk": "torso_2_link", "pelvis": "base_link", "left_hand": "arm_left_4_link",
-         "right_thigh": "leg_right_3_link"}
+        {
+            "trunk": "torso_2_link",
+            "pelvis": "base_link",
+            "left_hand": "arm_left_4_link",
+            "right_thigh": "leg_right_3_link",
+        }
     ),
     hip_pitch=("leg_left_3_joint", "leg_right_3_joint"),
     hip_roll=("leg_left_2_joint", "leg_right_2_joint"),
@@ -47,4 +68,4 @@ DESCRIPTION = RobotDescription(
     foot_lift_deg=types.MappingProxyType(
         {"leg_right_3_joint": -7.4, "leg_right_4_joint": 16.4, "leg_right_5_joint": -9.0}
     ),
-)  # fmt: skip
+)

@@ -74,9 +74,17 @@ def program_key(name: str, key_parts, args) -> str:
     """The file name of a program: everything that shapes it, without tracing it."""
     leaves, tree = jax.tree_util.tree_flatten(args)
     shapes = [(tuple(np.shape(x)), str(x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype)) for x in leaves]
-    parts = [name, repr(key_parts), str(tree), repr(shapes), source_digest(), _machine(),
-             os.environ.get("XLA_FLAGS", ""), str(jax.config.jax_enable_x64),
-             str(jax.config.jax_default_matmul_precision)]  # fmt: skip
+    parts = [
+        name,
+        repr(key_parts),
+        str(tree),
+        repr(shapes),
+        source_digest(),
+        _machine(),
+        os.environ.get("XLA_FLAGS", ""),
+        str(jax.config.jax_enable_x64),
+        str(jax.config.jax_default_matmul_precision),
+    ]
     return f"{name}-{hashlib.sha256(chr(0).join(parts).encode()).hexdigest()}"
 
 
@@ -110,8 +118,9 @@ def default_folder() -> pathlib.Path | None:
     return pathlib.Path(cache) / FOLDER if cache else None
 
 
-def compiled(name: str, key_parts, args, lower: Callable[[], jax.stages.Lowered],
-             folder: pathlib.Path | None = None) -> jax.stages.Compiled:  # fmt: skip
+def compiled(
+    name: str, key_parts, args, lower: Callable[[], jax.stages.Lowered], folder: pathlib.Path | None = None
+) -> jax.stages.Compiled:
     """The compiled program ``lower().compile()``, loaded from disk when an earlier process
     compiled it under the same key (:func:`program_key`), else compiled and saved.
 

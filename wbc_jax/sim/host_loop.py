@@ -51,8 +51,16 @@ def driver(loop, batch: int, feedforward: bool = False) -> str:
     return "python"
 
 
-def run_host(loop, scen: Scenario, qpos0: np.ndarray, dtype, *, on_tick=None, threads: int | None = None,
-             feedforward: Feedforward | None = None):  # fmt: skip
+def run_host(
+    loop,
+    scen: Scenario,
+    qpos0: np.ndarray,
+    dtype,
+    *,
+    on_tick=None,
+    threads: int | None = None,
+    feedforward: Feedforward | None = None,
+):
     """Every tick of a batch of B environments on C MuJoCo (``mujoco`` backend).
 
     One robot runs as one compiled program (:func:`driver`, :mod:`wbc_jax.sim.host_scan`).
@@ -89,8 +97,7 @@ def run_host(loop, scen: Scenario, qpos0: np.ndarray, dtype, *, on_tick=None, th
     fns, compile_s = host_programs(loop, gains[0], cast(qpos[parts[0]]), push[0], ff[0])
     states = [fns["init"](cast(qpos[part])) for part in parts]
     cores = threads or os.cpu_count() or 1
-    hosts = [physics.HostBatch(models[part], qpos[part], max(1, cores - 1) if pipelined else cores)
-             for part in parts]  # fmt: skip
+    hosts = [physics.HostBatch(models[part], qpos[part], max(1, cores - 1) if pipelined else cores) for part in parts]
     records = []
     n_con = physics.max_contacts(loop.robot.mj_model)
 
@@ -133,8 +140,9 @@ def run_host(loop, scen: Scenario, qpos0: np.ndarray, dtype, *, on_tick=None, th
         for host in hosts:
             host.close()
     diverged = np.concatenate([host.diverged for host in hosts])
-    metrics = jax.tree_util.tree_map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]),
-                                     *[state.metrics for state in states])  # fmt: skip
+    metrics = jax.tree_util.tree_map(
+        lambda *xs: np.concatenate([np.asarray(x) for x in xs]), *[state.metrics for state in states]
+    )
     metrics = metrics.replace(nan=metrics.nan | diverged)
     if not records:
         return metrics, None, compile_s
@@ -191,8 +199,11 @@ def host_programs(loop, gains, qpos, push, ff=None):
     }
     if loop.cfg.record:
         measure = jax.jit(jax.vmap(loop.measure))
-        programs["measure"] = compiled("measure", (gains, qpos, push, ff, slots), lambda: measure.lower(
-            jax.eval_shape(control, *control_args())[2], *slots))  # fmt: skip
+        programs["measure"] = compiled(
+            "measure",
+            (gains, qpos, push, ff, slots),
+            lambda: measure.lower(jax.eval_shape(control, *control_args())[2], *slots),
+        )
     if loop.observes_contacts:
         observe = jax.jit(jax.vmap(loop.observe))
         programs["observe"] = compiled("observe", (qpos, slots), lambda: observe.lower(state(), *slots))

@@ -60,8 +60,10 @@ def horizon(loop, gains, push, qpos, handles):
         state, q, v, ok = carry
         state, ctrl, record = control(gains, state, q, v, k, ok, push)
         xfrc = batched(loop.xfrc, in_axes=(0, None))(push, k)
-        q, v, ok = (from_physics(x) for x in native.step(handles, to_physics(ctrl), to_physics(xfrc), to_physics(ok),
-                                                          idx.nq, idx.nv))  # fmt: skip
+        q, v, ok = (
+            from_physics(x)
+            for x in native.step(handles, to_physics(ctrl), to_physics(xfrc), to_physics(ok), idx.nq, idx.nv)
+        )
         if loop.cfg.record or loop.observes_contacts:
             slots = tuple(from_physics(x) for x in native.contacts(handles, to_physics(q), n_con, q.dtype))
             if loop.cfg.record:
@@ -90,9 +92,11 @@ def program(loop, gains, push, qpos, handles):
     t0 = time.perf_counter()
     args = (gains, push, qpos, handles)
     PROGRAMS[key] = executables.compiled(
-        "host_scan", (loop.structure_key, native.SOURCE.read_bytes()), args,
+        "host_scan",
+        (loop.structure_key, native.SOURCE.read_bytes()),
+        args,
         lambda: jax.jit(functools.partial(horizon, loop)).lower(*args),
-    )  # fmt: skip
+    )
     return PROGRAMS[key], time.perf_counter() - t0
 
 

@@ -71,9 +71,17 @@ class ClosedLoop:
     closed over; every method is pure in its array arguments.
     """
 
-    def __init__(self, robot: Robot, schedule: Schedule, controller: Controller, cfg: SimConfig,
-                 gains_at: GainsAt | None = None, recorders: tuple[Recorder, ...] = (), trace: Trace | None = None,
-                 remat: bool | str = False):  # fmt: skip
+    def __init__(
+        self,
+        robot: Robot,
+        schedule: Schedule,
+        controller: Controller,
+        cfg: SimConfig,
+        gains_at: GainsAt | None = None,
+        recorders: tuple[Recorder, ...] = (),
+        trace: Trace | None = None,
+        remat: bool | str = False,
+    ):
         if trace is not None and cfg.record:
             raise ValueError("a trace and SimConfig.record are exclusive (set record=False)")
         if isinstance(remat, str) and not hasattr(jax.checkpoint_policies, remat):
@@ -122,10 +130,17 @@ class ClosedLoop:
         controller, contact set, motion tasks and settings): loops built alike share programs."""
         buf = np.zeros(mujoco.mj_sizeModel(self.robot.mj_model), np.uint8)
         mujoco.mj_saveModel(self.robot.mj_model, None, buf)
-        sched = {k: np.asarray(v).tolist() if isinstance(v, np.ndarray) else repr(v)
-                 for k, v in vars(self.schedule).items()}  # fmt: skip
-        parts = (buf.tobytes(), repr(sched), repr(self.controller.config), repr(self.contact_set),
-                 repr(self.controller.stack), repr(self.cfg))  # fmt: skip
+        sched = {
+            k: np.asarray(v).tolist() if isinstance(v, np.ndarray) else repr(v) for k, v in vars(self.schedule).items()
+        }
+        parts = (
+            buf.tobytes(),
+            repr(sched),
+            repr(self.controller.config),
+            repr(self.contact_set),
+            repr(self.controller.stack),
+            repr(self.cfg),
+        )
         if self.gains_at is not None or self.recorders:  # a plain loop's key is as it always was
             parts += (repr([None if f is None else _qualified_name(f) for f in (self.gains_at, *self.recorders)]),)
         if self.trace is not None or self.remat:
@@ -150,14 +165,27 @@ class ClosedLoop:
         normals = jnp.einsum("kij,kj->ki", t0.W_R_frames[:K], R_bc[:, :, 2])
         metrics = metrics_lib.initial(t0.W_p_CoM[2], dtype)
         return LoopState(
-            controller=self.controller.init(t0), metrics=metrics, anchors=t0.W_p_frames[:K],
-            anchor_normals=normals, com0_height=t0.W_p_CoM[2], contact_normals=normals,
+            controller=self.controller.init(t0),
+            metrics=metrics,
+            anchors=t0.W_p_frames[:K],
+            anchor_normals=normals,
+            com0_height=t0.W_p_CoM[2],
+            contact_normals=normals,
             measured_normal=jnp.full(K, jnp.inf, dtype),
-        )  # fmt: skip
+        )
 
     @_traced_at_matmul_precision
-    def control(self, gains: Gains, state: LoopState, qpos: Array, qvel: Array, k: Array,
-                physics_ok: Array, push: Push, feedforward: Feedforward | None = None):  # fmt: skip
+    def control(
+        self,
+        gains: Gains,
+        state: LoopState,
+        qpos: Array,
+        qvel: Array,
+        k: Array,
+        physics_ok: Array,
+        push: Push,
+        feedforward: Feedforward | None = None,
+    ):
         """One control tick at the state (qpos, qvel) of tick ``k``.
 
         ``physics_ok``: () False when the last physics steps diverged (the state was frozen).
@@ -177,18 +205,35 @@ class ClosedLoop:
             out = out.replace(tau=state_lib.feedforward_torque(feedforward, k, out.tau, limit))
         ctrl = jnp.zeros(self.robot.mj_model.nu, dtype).at[idx.actuators].set(out.tau)
         metrics, anchors, normals = self._metrics(state, terms, ref, out, t_now, physics_ok)
-        new_state = state.replace(controller=cstate, metrics=metrics, anchors=anchors, anchor_normals=normals,
-                                  contact_normals=out.contact_R[:, :, 2])  # fmt: skip
+        new_state = state.replace(
+            controller=cstate,
+            metrics=metrics,
+            anchors=anchors,
+            anchor_normals=normals,
+            contact_normals=out.contact_R[:, :, 2],
+        )
         record = None
         if cfg.record:
             record = Trajectory(
-                t=t_now, qpos=qpos, com=terms.W_p_CoM, com_ref=ref.com_pos, tau=out.tau, f_cmd=out.f,
-                f_meas=jnp.zeros_like(out.f), Ldot_star=out.Ldot_star, Ldot_meas=jnp.zeros(6, dtype),
-                activation=out.activation, contact_pos=out.contact_pos,
-                contact_normal=out.contact_R[:, :, 2], qp_infeasible=out.qp_infeasible,
-                qp_violation=out.qp_violation, push=push_force(push, t_now), s=terms.s, s_des=ref.s_des,
+                t=t_now,
+                qpos=qpos,
+                com=terms.W_p_CoM,
+                com_ref=ref.com_pos,
+                tau=out.tau,
+                f_cmd=out.f,
+                f_meas=jnp.zeros_like(out.f),
+                Ldot_star=out.Ldot_star,
+                Ldot_meas=jnp.zeros(6, dtype),
+                activation=out.activation,
+                contact_pos=out.contact_pos,
+                contact_normal=out.contact_R[:, :, 2],
+                qp_infeasible=out.qp_infeasible,
+                qp_violation=out.qp_violation,
+                push=push_force(push, t_now),
+                s=terms.s,
+                s_des=ref.s_des,
                 task_err=out.task_err,
-            )  # fmt: skip
+            )
         elif self.trace is not None:
             record = self.trace(self, state, terms, ref, out)
         for recorder in self.recorders:
@@ -205,12 +250,25 @@ class ClosedLoop:
         anchor_normals = jnp.where(fully_active[:, None], state.anchor_normals, normal)
         corners = metrics_lib.support_corners(self.contact_set, out.contact_pos, out.contact_R)
         new = metrics_lib.update(
-            state.metrics, com=terms.W_p_CoM, com_ref=ref.com_pos, com_vel=terms.W_v_CoM, tau=out.tau,
-            violation=out.qp_violation, infeasible=out.qp_infeasible, contact_pos=out.contact_pos,
-            normals=normal, anchors=anchors, anchor_normals=anchor_normals, fully_active=fully_active,
-            body_heights=terms.xpos[self.non_foot_bodies, 2], trunk_z=terms.W_R_B[:, 2], support=corners[:, :2],
-            com0_height=state.com0_height, t_now=t_now, physics_ok=physics_ok,
-        )  # fmt: skip
+            state.metrics,
+            com=terms.W_p_CoM,
+            com_ref=ref.com_pos,
+            com_vel=terms.W_v_CoM,
+            tau=out.tau,
+            violation=out.qp_violation,
+            infeasible=out.qp_infeasible,
+            contact_pos=out.contact_pos,
+            normals=normal,
+            anchors=anchors,
+            anchor_normals=anchor_normals,
+            fully_active=fully_active,
+            body_heights=terms.xpos[self.non_foot_bodies, 2],
+            trunk_z=terms.W_R_B[:, 2],
+            support=corners[:, :2],
+            com0_height=state.com0_height,
+            t_now=t_now,
+            physics_ok=physics_ok,
+        )
         return new, anchors, anchor_normals
 
     def step_push_forces(self, push: Push, k):
@@ -242,8 +300,14 @@ class ClosedLoop:
         cset = self.contact_set
         dtype = state.measured_normal.dtype
         K = len(cset.contacts)
-        f = constraints.measured_wrenches(cset, contact_pos.astype(dtype), contact_force.astype(dtype), contact_geom,
-                                     self.robot.mj_model.ngeom, jnp.zeros((K, 3), dtype))  # fmt: skip
+        f = constraints.measured_wrenches(
+            cset,
+            contact_pos.astype(dtype),
+            contact_force.astype(dtype),
+            contact_geom,
+            self.robot.mj_model.ngeom,
+            jnp.zeros((K, 3), dtype),
+        )
         n = state.contact_normals
         normal = jnp.stack([n[k] @ f[sl.start : sl.start + 3] for k, sl in enumerate(cset.slices())])
         return state.replace(measured_normal=normal)
@@ -255,9 +319,13 @@ class ClosedLoop:
         cset = self.contact_set
         dtype = record.f_cmd.dtype
         f_meas = constraints.measured_wrenches(
-            cset, contact_pos.astype(dtype), contact_force.astype(dtype), contact_geom,
-            self.robot.mj_model.ngeom, record.contact_pos,
-        )  # fmt: skip
+            cset,
+            contact_pos.astype(dtype),
+            contact_force.astype(dtype),
+            contact_geom,
+            self.robot.mj_model.ngeom,
+            record.contact_pos,
+        )
         A = constraints.wrench_map(cset, record.contact_pos, record.com)
         return record.replace(f_meas=f_meas, Ldot_meas=A @ f_meas + constraints.gravity_wrench(self.idx.mass, dtype))
 
@@ -270,17 +338,28 @@ def make_closed_loop(robot: Robot, schedule: Schedule, controller: Controller, c
     return ClosedLoop(robot, schedule, controller, cfg)
 
 
-def compose(loop: ClosedLoop, *, gains_at: GainsAt | None = None, recorder: Recorder | None = None,
-            trace: Trace | None = None, remat: bool | str | None = None) -> ClosedLoop:  # fmt: skip
+def compose(
+    loop: ClosedLoop,
+    *,
+    gains_at: GainsAt | None = None,
+    recorder: Recorder | None = None,
+    trace: Trace | None = None,
+    remat: bool | str | None = None,
+) -> ClosedLoop:
     """A copy of ``loop`` (same robot, schedule, controller, settings) whose gains argument goes
     through ``gains_at`` (where given: it replaces the loop's), whose per-tick record is ``trace``'s
     (where given: it replaces the loop's) and then goes through ``recorder`` (where given: after the
     loop's own recorders), with the tick's rematerialisation ``remat`` (where given)."""
-    return ClosedLoop(loop.robot, loop.schedule, loop.controller, loop.cfg,
-                      gains_at=loop.gains_at if gains_at is None else gains_at,
-                      recorders=loop.recorders + (() if recorder is None else (recorder,)),
-                      trace=loop.trace if trace is None else trace,
-                      remat=loop.remat if remat is None else remat)  # fmt: skip
+    return ClosedLoop(
+        loop.robot,
+        loop.schedule,
+        loop.controller,
+        loop.cfg,
+        gains_at=loop.gains_at if gains_at is None else gains_at,
+        recorders=loop.recorders + (() if recorder is None else (recorder,)),
+        trace=loop.trace if trace is None else trace,
+        remat=loop.remat if remat is None else remat,
+    )
 
 
 def smooth_trace(loop: ClosedLoop, state: LoopState, terms, ref, out) -> LossTrace:
@@ -288,10 +367,14 @@ def smooth_trace(loop: ClosedLoop, state: LoopState, terms, ref, out) -> LossTra
     losses of gain tuning and of the limit job's trajectory optimisation."""
     cset = loop.contact_set
     return LossTrace(
-        com=terms.W_p_CoM, com_ref=ref.com_pos, com_vel=terms.W_v_CoM, tau=out.tau,
+        com=terms.W_p_CoM,
+        com_ref=ref.com_pos,
+        com_vel=terms.W_v_CoM,
+        tau=out.tau,
         support_xy=metrics_lib.support_corners(cset, out.contact_pos, out.contact_R)[:, :2],
-        com_height0=state.com0_height, foot_normal=out.contact_R[jnp.asarray(cset.feet), :, 2],
-    )  # fmt: skip
+        com_height0=state.com0_height,
+        foot_normal=out.contact_R[jnp.asarray(cset.feet), :, 2],
+    )
 
 
 def _qualified_name(fn) -> str:

@@ -41,17 +41,45 @@ def initial(com_height: Array, dtype) -> Metrics:
     """Metrics before the first tick (CoM height (), the initial one)."""
     zero = jnp.zeros((), dtype)
     return Metrics(
-        com_sq_err_sum=zero, com_max_err=zero, max_abs_torque=zero, max_violation=zero,
-        max_slip=zero, max_tilt=zero, max_trunk_tilt=zero, qp_infeasible_ticks=jnp.zeros((), jnp.int32),
-        fell=jnp.zeros((), bool), nan=jnp.zeros((), bool), last_time_off=zero,
-        min_com_height=com_height, end_com_speed=zero, end_support_margin=zero,
+        com_sq_err_sum=zero,
+        com_max_err=zero,
+        max_abs_torque=zero,
+        max_violation=zero,
+        max_slip=zero,
+        max_tilt=zero,
+        max_trunk_tilt=zero,
+        qp_infeasible_ticks=jnp.zeros((), jnp.int32),
+        fell=jnp.zeros((), bool),
+        nan=jnp.zeros((), bool),
+        last_time_off=zero,
+        min_com_height=com_height,
+        end_com_speed=zero,
+        end_support_margin=zero,
         ticks=jnp.zeros((), jnp.int32),
-    )  # fmt: skip
+    )
 
 
-def update(met: Metrics, *, com, com_ref, com_vel, tau, violation, infeasible, contact_pos, normals, anchors,
-           anchor_normals, fully_active, body_heights, trunk_z, support, com0_height, t_now,
-           physics_ok) -> Metrics:  # fmt: skip
+def update(
+    met: Metrics,
+    *,
+    com,
+    com_ref,
+    com_vel,
+    tau,
+    violation,
+    infeasible,
+    contact_pos,
+    normals,
+    anchors,
+    anchor_normals,
+    fully_active,
+    body_heights,
+    trunk_z,
+    support,
+    com0_height,
+    t_now,
+    physics_ok,
+) -> Metrics:
     """The metrics after one tick at this state (K contacts).
 
     Args: com, com_ref, com_vel (3,); tau (n,); violation (), infeasible () of the force QP;

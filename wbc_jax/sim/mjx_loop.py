@@ -66,8 +66,9 @@ def start(loop, qpos: Array, batch: int = 1):
 
 
 @traced_at_matmul_precision
-def chunk(loop, plant: mjx.Model, gains: Gains, push: Push, carry, k0, n_ticks: int,
-          feedforward: Feedforward | None = None):  # fmt: skip
+def chunk(
+    loop, plant: mjx.Model, gains: Gains, push: Push, carry, k0, n_ticks: int, feedforward: Feedforward | None = None
+):
     """Run ``n_ticks`` (static) ticks from tick ``k0`` (traced) on an MJX backend:
     (carry, records with a leading time axis or None). ``feedforward``: torques added to the
     controller's (:class:`wbc_jax.sim.state.Feedforward`; None: none)."""
@@ -98,8 +99,16 @@ def chunk(loop, plant: mjx.Model, gains: Gains, push: Push, carry, k0, n_ticks: 
     return jax.lax.scan(tick, carry, k0 + jnp.arange(n_ticks))
 
 
-def rollout(loop, plant: mjx.Model, qpos0: Array, gains: Gains, push: Push, controller_overrides=None,
-            batch: int = 1, feedforward: Feedforward | None = None):  # fmt: skip
+def rollout(
+    loop,
+    plant: mjx.Model,
+    qpos0: Array,
+    gains: Gains,
+    push: Push,
+    controller_overrides=None,
+    batch: int = 1,
+    feedforward: Feedforward | None = None,
+):
     """The whole horizon on an MJX backend: (Metrics, records or None). ``plant``: the MJX model
     simulated (:func:`wbc_jax.sim.physics.plant_model` of the nominal one for a perturbed plant).
     ``controller_overrides``: fields of the controller state to replace (regularisation as
@@ -114,8 +123,9 @@ def rollout(loop, plant: mjx.Model, qpos0: Array, gains: Gains, push: Push, cont
 
 
 @traced_at_matmul_precision
-def rollout_queue(loop, plant_of: Callable, qpos0: Array, scens: Scenario, slot: Array, segment: int,
-                  axis_name: str, batch: int = 1):  # fmt: skip
+def rollout_queue(
+    loop, plant_of: Callable, qpos0: Array, scens: Scenario, slot: Array, segment: int, axis_name: str, batch: int = 1
+):
     """One of S batch slots (``jax.vmap`` over ``slot`` with ``axis_name``) working through a
     shared queue of N scenarios on an MJX backend; returns the N scenarios' Metrics.
 

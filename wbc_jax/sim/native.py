@@ -70,15 +70,29 @@ def _build(cxx: str) -> pathlib.Path:
     lib = mujoco_library()
     include = [jax.ffi.include_dir(), str(pathlib.Path(mujoco.__file__).parent / "include")]
     source = SOURCE.read_bytes()
-    key = hashlib.sha256(b"\0".join([source, cxx.encode(), metadata.version("jaxlib").encode(),
-                                     mujoco.__version__.encode(), str(lib).encode()])).hexdigest()[:16]  # fmt: skip
+    key = hashlib.sha256(
+        b"\0".join(
+            [source, cxx.encode(), metadata.version("jaxlib").encode(), mujoco.__version__.encode(), str(lib).encode()]
+        )
+    ).hexdigest()[:16]
     out = build_dir() / f"libwbc_mujoco_ffi_{key}.so"
     if out.exists():
         return out
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_suffix(f".{os.getpid()}.tmp")
-    cmd = [cxx, "-O2", "-std=c++17", "-shared", "-fPIC", *(f"-I{d}" for d in include), str(SOURCE), "-o", str(tmp),
-           str(lib), f"-Wl,-rpath,{lib.parent}"]  # fmt: skip
+    cmd = [
+        cxx,
+        "-O2",
+        "-std=c++17",
+        "-shared",
+        "-fPIC",
+        *(f"-I{d}" for d in include),
+        str(SOURCE),
+        "-o",
+        str(tmp),
+        str(lib),
+        f"-Wl,-rpath,{lib.parent}",
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
     if proc.returncode != 0:
         tmp.unlink(missing_ok=True)
@@ -142,8 +156,11 @@ def step(handles, ctrl, xfrc, ok, nq: int, nv: int):
     left frozen. Returns (qpos (B, nq), qvel (B, nv)) in ctrl's dtype and ok (B,) (False where the
     tick diverged: the state is restored to the tick's start)."""
     B, dtype = ctrl.shape[0], ctrl.dtype
-    out = (jax.ShapeDtypeStruct((B, nq), dtype), jax.ShapeDtypeStruct((B, nv), dtype),
-           jax.ShapeDtypeStruct((B,), np.bool_))  # fmt: skip
+    out = (
+        jax.ShapeDtypeStruct((B, nq), dtype),
+        jax.ShapeDtypeStruct((B, nv), dtype),
+        jax.ShapeDtypeStruct((B,), np.bool_),
+    )
     call = jax.ffi.ffi_call("wbc_mujoco_step", out, has_side_effect=True)
     return call(handles, ctrl, xfrc.astype(dtype), ok, max_speed=np.float64(DIVERGED_SPEED))
 
@@ -153,6 +170,9 @@ def contacts(handles, after, max_contacts: int, dtype):
     :func:`step`) exists: points (B, C, 3), world-axes forces on geom 2 (B, C, 3), geom ids
     (B, C, 2) int32."""
     B = handles.shape[0]
-    out = (jax.ShapeDtypeStruct((B, max_contacts, 3), dtype), jax.ShapeDtypeStruct((B, max_contacts, 3), dtype),
-           jax.ShapeDtypeStruct((B, max_contacts, 2), np.int32))  # fmt: skip
+    out = (
+        jax.ShapeDtypeStruct((B, max_contacts, 3), dtype),
+        jax.ShapeDtypeStruct((B, max_contacts, 3), dtype),
+        jax.ShapeDtypeStruct((B, max_contacts, 2), np.int32),
+    )
     return jax.ffi.ffi_call("wbc_mujoco_contacts", out, has_side_effect=True)(handles, after)

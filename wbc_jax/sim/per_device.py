@@ -88,8 +88,9 @@ class PerDevice:
                 ran = time.perf_counter()
                 if to_host:
                     out = jax.tree_util.tree_map(np.asarray, out)
-                times.update(dispatch_s=dispatched - start, wait_s=ran - dispatched,
-                             transfer_s=time.perf_counter() - ran)  # fmt: skip
+                times.update(
+                    dispatch_s=dispatched - start, wait_s=ran - dispatched, transfer_s=time.perf_counter() - ran
+                )
                 return out
 
             return work

@@ -184,16 +184,18 @@ def constraint_rows_bound(m: mujoco.MjModel) -> int:
     return rows + int(np.sum(m.jnt_limited)) + int(np.sum(m.dof_frictionloss > 0)) + 6 * int(m.neq)
 
 
-def device_data(robot_mj: mujoco.MjModel, backend: str, cfg: PhysicsConfig, qpos, dtype=None,
-                batch: int = 1) -> mjx.Data:  # fmt: skip
+def device_data(
+    robot_mj: mujoco.MjModel, backend: str, cfg: PhysicsConfig, qpos, dtype=None, batch: int = 1
+) -> mjx.Data:
     """MJX data at ``qpos`` with zero velocity, for one environment of an MJX backend.
 
     Warp keeps the contacts of all ``batch`` environments in one buffer: it is sized for every
     contact pair of every environment (each pair of spheres and planes/boxes makes one contact at
     most), and the constraint rows per environment likewise, so neither can overflow."""
     if backend == "warp":
-        d = mjx_device.make_data(robot_mj, impl="warp", naconmax=batch * max_contacts(robot_mj),
-                          njmax=constraint_rows_bound(robot_mj))  # fmt: skip
+        d = mjx_device.make_data(
+            robot_mj, impl="warp", naconmax=batch * max_contacts(robot_mj), njmax=constraint_rows_bound(robot_mj)
+        )
     else:
         d = mjx_device.make_data(robot_mj)
     return d.replace(qpos=jnp.asarray(qpos, d.qpos.dtype if dtype is None else dtype))

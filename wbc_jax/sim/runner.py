@@ -141,8 +141,9 @@ def available_memory() -> tuple[int, str]:
     return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"), "host"
 
 
-def check_memory(setup_: Setup, batch: int, *, envs: int | None = None, queue: int = 1,
-                 flag: str = "--chunk-size") -> dict:  # fmt: skip
+def check_memory(
+    setup_: Setup, batch: int, *, envs: int | None = None, queue: int = 1, flag: str = "--chunk-size"
+) -> dict:
     """Refuse a batch whose estimated memory (:func:`memory_estimate`) exceeds what is free, in
     one line naming ``flag``, the estimate and the largest batch that fits. Returns the estimate."""
     est = memory_estimate(setup_, batch, envs, queue)
@@ -151,9 +152,11 @@ def check_memory(setup_: Setup, batch: int, *, envs: int | None = None, queue: i
         fixed = (envs or batch) * est["scenario_bytes"]
         fits = max(0, int((free - fixed) // est["per_env"]) * queue)
         hint = f"use {flag} {fits:,} or less" if fits >= 1 else "use a smaller grid"
-        raise ValueError(f"{flag} {batch:,}: a batch of {batch:,} environments needs about "
-                         f"{est['bytes'] / 1e9:,.1f} GB ({est['per_env'] / 1e3:,.0f} kB each and {fixed / 1e9:,.2f} GB "
-                         f"of scenarios, estimated) and the {where} has {free / 1e9:,.1f} GB free; {hint}")  # fmt: skip
+        raise ValueError(
+            f"{flag} {batch:,}: a batch of {batch:,} environments needs about "
+            f"{est['bytes'] / 1e9:,.1f} GB ({est['per_env'] / 1e3:,.0f} kB each and {fixed / 1e9:,.2f} GB "
+            f"of scenarios, estimated) and the {where} has {free / 1e9:,.1f} GB free; {hint}"
+        )
     return est
 
 
@@ -181,9 +184,16 @@ def check_queue(queue, backend: str, record: bool = False) -> None:
         raise ValueError("a queue of scenarios per batch slot (queue > 1) cannot record trajectories")
 
 
-def run(setup_: Setup, scen: Scenario, *, batch_size: int | None = None,
-        on_tick: Callable[[int], None] | None = None, queue: int = 1,
-        feedforward: Feedforward | None = None, watch: Watchdog | None = None) -> Run:  # fmt: skip
+def run(
+    setup_: Setup,
+    scen: Scenario,
+    *,
+    batch_size: int | None = None,
+    on_tick: Callable[[int], None] | None = None,
+    queue: int = 1,
+    feedforward: Feedforward | None = None,
+    watch: Watchdog | None = None,
+) -> Run:
     """Run the closed loop over a Scenario batch (leading axis B) on the setup's backend.
 
     ``batch_size``: the compiled batch shape (B is padded up to it; None: B). ``on_tick``: called
@@ -241,8 +251,9 @@ def _global_batch(tree, sharding: NamedSharding, dtype):
     )
 
 
-def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick, ff: Feedforward | None = None,
-             watch: Watchdog | None = None) -> Run:  # fmt: skip
+def _run_mjx(
+    setup_: Setup, scen: Scenario, size: int, on_tick, ff: Feedforward | None = None, watch: Watchdog | None = None
+) -> Run:
     """MJX backends: vmap(closed loop) per device (:class:`PerDevice`) over the batch, sharded
     along it over the device mesh. A run without records is one program (Warp's data never leaves
     it: its contact buffer is shared by a device's environments); a recorded run (``jax`` only)
@@ -276,8 +287,15 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick, ff: Feedforward 
         if key not in cache:
 
             def one(s, f):
-                return mjx_loop.rollout(loop, plant(s), loop.initial_qpos(jnp.asarray(qpos0), s.joint_offset),
-                                        s.gains, s.push, batch=local, feedforward=f)  # fmt: skip
+                return mjx_loop.rollout(
+                    loop,
+                    plant(s),
+                    loop.initial_qpos(jnp.asarray(qpos0), s.joint_offset),
+                    s.gains,
+                    s.push,
+                    batch=local,
+                    feedforward=f,
+                )
 
             cache[key] = PerDevice(jax.vmap(one), mesh, (True, True))
             compile_s = cache[key].compile(scen_dev, ff_dev, watch=watch)
@@ -318,8 +336,9 @@ def _run_mjx(setup_: Setup, scen: Scenario, size: int, on_tick, ff: Feedforward 
     return Run(metrics, records, compile_s, time.perf_counter() - t0)
 
 
-def _run_mjx_queue(setup_: Setup, scen: Scenario, queue: int, check_ticks: int = QUEUE_CHECK_TICKS,
-                   watch: Watchdog | None = None) -> Run:  # fmt: skip
+def _run_mjx_queue(
+    setup_: Setup, scen: Scenario, queue: int, check_ticks: int = QUEUE_CHECK_TICKS, watch: Watchdog | None = None
+) -> Run:
     """MJX backends, a queue of scenarios per batch slot: each device takes its share of the
     batch's scenarios and works through them in order with ceil(share / queue) slots
     (:func:`wbc_jax.sim.mjx_loop.rollout_queue`, vmap over its slots; :class:`PerDevice`). A

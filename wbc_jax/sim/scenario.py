@@ -129,10 +129,14 @@ def setup(
     d.qpos[:] = scene.qpos
     mujoco.mj_forward(m, d)
     schedule = references.make_schedule(
-        task, com0=d.subtree_com[robot.index.base_body].copy(), s0=scene.qpos[robot.index.qpos_joints],
-        left_sole=d.site_xpos[robot.index.foot_sites[0]].copy(), joints=robot.index.joints,
-        foot_lift_deg=robot.description.foot_lift_deg, duration=duration,
-    )  # fmt: skip
+        task,
+        com0=d.subtree_com[robot.index.base_body].copy(),
+        s0=scene.qpos[robot.index.qpos_joints],
+        left_sole=d.site_xpos[robot.index.foot_sites[0]].copy(),
+        joints=robot.index.joints,
+        foot_lift_deg=robot.description.foot_lift_deg,
+        duration=duration,
+    )
     sim = dataclasses.replace(sim, duration=schedule.duration)
     ctrl = make_controller(robot, config, contact_set=scene.contact_set, stack=stack, control_dt=sim.control_dt)
     loop = loop_lib.make_closed_loop(robot, schedule, ctrl, sim)
@@ -148,8 +152,12 @@ def make_push(force, onset: float, duration: float, dtype=np.float32, body: int 
     for name, value in (("push onset", onset), ("push duration", duration)):
         if not (math.isfinite(value) and value >= 0):
             raise ValueError(f"{name} must be a finite number of seconds >= 0, got {value}")
-    return Push(force=force[None].astype(dtype), onset=np.array([onset], dtype), duration=np.array([duration], dtype),
-                body=np.array([body], np.int32))  # fmt: skip
+    return Push(
+        force=force[None].astype(dtype),
+        onset=np.array([onset], dtype),
+        duration=np.array([duration], dtype),
+        body=np.array([body], np.int32),
+    )
 
 
 def single(setup_: Setup, push: Push | None = None, gains: Gains | None = None) -> Scenario:
@@ -158,9 +166,12 @@ def single(setup_: Setup, push: Push | None = None, gains: Gains | None = None) 
     push = no_push(dtype) if push is None else push
     gains = setup_.gains if gains is None else gains
     one = Scenario(
-        push=push, gains=gains, joint_offset=np.zeros(setup_.robot.index.n, dtype),
-        friction=np.asarray(1.0, dtype), mass_scale=np.asarray(1.0, dtype),
-    )  # fmt: skip
+        push=push,
+        gains=gains,
+        joint_offset=np.zeros(setup_.robot.index.n, dtype),
+        friction=np.asarray(1.0, dtype),
+        mass_scale=np.asarray(1.0, dtype),
+    )
     return jax.tree_util.tree_map(
         lambda x: np.asarray(x, dtype)[None] if np.asarray(x).dtype.kind == "f" else np.asarray(x)[None], one
     )

@@ -106,8 +106,12 @@ class Push:
 
 
 def no_push(dtype=jnp.float32) -> Push:
-    return Push(force=jnp.zeros((1, 3), dtype), onset=jnp.zeros(1, dtype), duration=jnp.zeros(1, dtype),
-                body=jnp.full(1, -1, jnp.int32))  # fmt: skip
+    return Push(
+        force=jnp.zeros((1, 3), dtype),
+        onset=jnp.zeros(1, dtype),
+        duration=jnp.zeros(1, dtype),
+        body=jnp.full(1, -1, jnp.int32),
+    )
 
 
 SHARE_SNAP = 1e-6

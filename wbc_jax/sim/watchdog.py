@@ -79,8 +79,9 @@ class Watchdog:
         return phase == "run" and self.simulate_stall == (self.chunk, index)
 
 
-def run_watched(tasks: Sequence[tuple[str, Callable[[dict], Any]]], watch: Watchdog | None, phase: str, *,
-                compiles: bool = False) -> list:  # fmt: skip
+def run_watched(
+    tasks: Sequence[tuple[str, Callable[[dict], Any]]], watch: Watchdog | None, phase: str, *, compiles: bool = False
+) -> list:
     """Run each ``(device label, work)`` in a daemon thread of its own and return the results in
     order. ``work(times)`` may record its own seconds in ``times`` (``dispatch_s``, ``wait_s``,
     ``transfer_s``, ``compile_s``). With a ``watch``, a device not done within its bound raises
@@ -123,8 +124,9 @@ def run_watched(tasks: Sequence[tuple[str, Callable[[dict], Any]]], watch: Watch
     stalled = [label for (label, _), event in zip(tasks, done, strict=True) if not event.is_set()]
     if watch is not None:
         for (label, _), own in zip(tasks, times, strict=True):
-            watch.rows.append({"chunk": watch.chunk, "phase": phase, "device": label, **dict(own),
-                               "finished": "end_s" in own})  # fmt: skip
+            watch.rows.append(
+                {"chunk": watch.chunk, "phase": phase, "device": label, **dict(own), "finished": "end_s" in own}
+            )
     if stalled:
         gave_up.set()
         finished = len(tasks) - len(stalled)
@@ -150,10 +152,17 @@ def timeline_rows(watch: Watchdog, host_s: float, wall_s: float) -> list[dict]:
     ``wall_s`` (the phases run one after the other; the devices side by side)."""
     rows: dict = {}
     for r in watch.rows:
-        row = rows.setdefault(r["device"], {"chunk": watch.chunk, "device": r["device"], **dict.fromkeys(TIMED, 0.0),
-                                            "finished": True})  # fmt: skip
+        row = rows.setdefault(
+            r["device"], {"chunk": watch.chunk, "device": r["device"], **dict.fromkeys(TIMED, 0.0), "finished": True}
+        )
         for key in TIMED:
             row[key] += float(r.get(key, 0.0))
         row["finished"] = row["finished"] and r["finished"]
-    return [{**{k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()},
-             "host_s": round(host_s, 4), "wall_s": round(wall_s, 4)} for row in rows.values()]  # fmt: skip
+    return [
+        {
+            **{k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()},
+            "host_s": round(host_s, 4),
+            "wall_s": round(wall_s, 4),
+        }
+        for row in rows.values()
+    ]

@@ -1,6 +1,6 @@
-"""The configurations of gain tuning: ``wbc-jax tune`` (:class:`TuneConfig`) and the held-out evaluation
-(:class:`HeldoutConfig`, also ``wbc-jax heldout``). Their fields are the commands' flags; ``wbc-jax tune``
-takes both (the held-out fields it shares with the tuning run, ``robot`` and the controller's flags, once)."""
+"""The configuration of gain tuning, ``wbc-jax tune`` (:class:`TuneConfig`: its fields are the command's flags),
+and the limits and hashes shared with the held-out evaluation's
+(:class:`~wbc_jax.tuning.heldout_config.HeldoutConfig`), which ``wbc-jax tune`` also takes."""
 
 from __future__ import annotations
 
@@ -9,13 +9,9 @@ import hashlib
 import json
 import pathlib
 
-import numpy as np
-
 from wbc_jax.control.flags import ControllerFlags
 from wbc_jax.core import constants
-from wbc_jax.core.options import check_input_file, check_options, flat_dict, nested, option
-from wbc_jax.jobs.grids import MAX_GRID_AXIS, azimuths, magnitude_grid, show_magnitude_grid
-from wbc_jax.jobs.sweep_config import ONE_FOOT_WINDOW
+from wbc_jax.core.options import check_options, flat_dict, nested, option
 from wbc_jax.robot import model
 from wbc_jax.robot.robots import robot_option
 from wbc_jax.sim import physics
@@ -31,15 +27,6 @@ ESTIMATORS = ("first-order", "smoothed", "interpolated")
 PARAMETERISATIONS = ("gains", "scheduled")
 # The default envelope (docs/tuning/README.md's bisection) and the hand-set row of every comparison (the
 # default gains with a critically damped CoM loop) are the robot's (its description's package data files).
-# Held-out variations, name: (pushed body role, push duration s, floor friction); magnitudes keep the grid's
-# impulses.
-VARIATIONS = {
-    "left_hand": ("left_hand", 0.1, 1.0),
-    "right_thigh": ("right_thigh", 0.1, 1.0),
-    "duration_0.02s": ("trunk", 0.02, 1.0),
-    "duration_0.5s": ("trunk", 0.5, 1.0),
-    "friction_0.5": ("trunk", 0.1, 0.5),
-}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,15 +37,20 @@ class TuneConfig:
 
     robot: str = robot_option()
     out: str = option("runs/tune", "output folder (resumes a run there)")
-    phases: tuple[str, ...] = option(("train", "cmaes", "random", "heldout", "report"), "what to run, in this "
-                                     "order: predict (does the loss rank held-out survival), train (gradient "
-                                     "tuning), quality (the gradient against zeroth-order estimates), profile "
-                                     "(where a gradient step's time goes), cmaes and random (gradient-free "
-                                     "searches), hybrid (with --budget-s: the gradient refining CMA-ES's set at "
-                                     "half of each budget for the other half), heldout (every gain set on the "
-                                     "held-out grid, variations, one-foot task and sinusoid), report "
-                                     "(heldout.json, race.json, figures)",
-                                     nargs="+", choices=PHASES, nonempty=True)  # fmt: skip
+    phases: tuple[str, ...] = option(
+        ("train", "cmaes", "random", "heldout", "report"),
+        "what to run, in this "
+        "order: predict (does the loss rank held-out survival), train (gradient "
+        "tuning), quality (the gradient against zeroth-order estimates), profile "
+        "(where a gradient step's time goes), cmaes and random (gradient-free "
+        "searches), hybrid (with --budget-s: the gradient refining CMA-ES's set at "
+        "half of each budget for the other half), heldout (every gain set on the "
+        "held-out grid, variations, one-foot task and sinusoid), report "
+        "(heldout.json, race.json, figures)",
+        nargs="+",
+        choices=PHASES,
+        nonempty=True,
+    )
     steps: int = option(8, "gradient steps (an upper bound with --budget-s)", ge=1, le=1_000_000)
     batch: int = option(4, "rollouts per gradient step (sampled afresh each step)", ge=1, le=MAX_BATCH)
     horizon: float = option(2.0, "seconds per training rollout", gt=0.0, le=constants.MAX_HORIZON_S, unit="s")
@@ -67,104 +59,228 @@ class TuneConfig:
     )
     lr: float = option(0.05, "adam learning rate (on the unconstrained parameters)", gt=0.0, le=10.0)
     clip_norm: float = option(1.0, "global-norm gradient clipping", gt=0.0, le=1e6)
-    budget_s: float = option(0.0, "wall-time budget of every method in seconds, compilation included (the race); "
-                             "0: the gradient runs --steps and the searches its simulated steps (and, with "
-                             "--wall-budget, its wall time)", ge=0.0, le=1e7, unit="s")  # fmt: skip
-    snapshots_s: tuple[float, ...] = option((120.0, 300.0), "with --budget-s: wall times [s] at which each "
-                                            "method's current gain set is also kept and held out", nargs="*",
-                                            gt=0.0, le=1e7, unit="s")  # fmt: skip
-    parameterisation: str = option("gains", "what is tuned: 'gains' (58 gains, 60 with --tune-regularisation) or "
-                                   "'scheduled' (the same gains scheduled on the push state: 348 entries, "
-                                   "wbc_jax/tuning/algorithms/schedule.py)", choices=PARAMETERISATIONS)  # fmt: skip
-    estimator: str = option("first-order", "gradient estimator: 'first-order' (per-rollout reverse mode, robust "
-                            "mean), 'smoothed' (the same at antithetic Gaussian perturbations of the parameters: "
-                            "the gradient of the smoothed loss), 'interpolated' (first- and zeroth-order "
-                            "estimates of the smoothed loss mixed by their variances, Suh et al. 2022)",
-                            choices=ESTIMATORS)  # fmt: skip
-    smoothing_sigma: float = option(0.1, "std of the parameter perturbations (unconstrained units) of the smoothed "
-                                    "and interpolated estimators and of the zeroth-order estimates", gt=0.0,
-                                    le=100.0)  # fmt: skip
-    bias_factor: float = option(2.0, "interpolated: the first-order share is cut where the first- and zeroth-order "
-                                "means differ by more than this many standard errors of the zeroth-order one",
-                                gt=0.0, le=1e6)  # fmt: skip
-    window_s: float = option(0.0, "> 0: differentiate short windows of this length started from states along "
-                             "forward rollouts, with a terminal capturability cost (short-horizon gradients); "
-                             "0: the whole horizon", ge=0.0, le=constants.MAX_HORIZON_S, unit="s")  # fmt: skip
-    windows: int = option(4, "windows per forward rollout (with --window-s): --batch = rollouts x windows", ge=1,
-                          le=MAX_BATCH)  # fmt: skip
-    terminal_weight: float = option(4.0, "weight of a window's terminal capturability cost (capture point and "
-                                    "CoM speed at its last tick)", ge=0.0, le=1e6)  # fmt: skip
-    bound_factor: float = option(10.0, "gains (and regularisation) stay within [default / f, default * f]",
-                                 gt=1.0, le=1e3)  # fmt: skip
-    zeta_range: tuple[float, float] = option((0.02, 2.0), "damping ratios of the CoM, angular-momentum and "
-                                             "postural error dynamics stay in this range", nargs=2, gt=0.0, le=100.0,
-                                             ordered=True)  # fmt: skip
-    tune_regularisation: bool = option(False, "also tune Reg.pinvDamp and Reg.KP_postural (not storable in a "
-                                       "gains file; the evaluation then compiles per gain set)")  # fmt: skip
-    init_gains: str | None = option(None, "start from this gains file (inside the bounds; default: WBC's)",
-                                    metavar="FILE", input_file=True)  # fmt: skip
-    magnitude_range: tuple[float, float] = option((0.6, 1.4), "push impulses as multiples of --push-scale in the "
-                                                  "push's direction", nargs=2, gt=0.0, le=100.0,
-                                                  ordered=True)  # fmt: skip
-    push_scale: str = option("envelope", "what push impulses are multiples of, per direction: 'envelope' (the default "
-                             "gains' strict envelope, --envelope) or 'lip' (the feet-in-place LIP bound m omega d)",
-                             choices=PUSH_SCALES)  # fmt: skip
-    train_bodies: tuple[str, ...] = option(("trunk", "pelvis"), "pushed bodies (bodies of the robot or roles)",
-                                           nargs="+", nonempty=True, names=model.pushable_bodies)  # fmt: skip
+    budget_s: float = option(
+        0.0,
+        "wall-time budget of every method in seconds, compilation included (the race); "
+        "0: the gradient runs --steps and the searches its simulated steps (and, with "
+        "--wall-budget, its wall time)",
+        ge=0.0,
+        le=1e7,
+        unit="s",
+    )
+    snapshots_s: tuple[float, ...] = option(
+        (120.0, 300.0),
+        "with --budget-s: wall times [s] at which each method's current gain set is also kept and held out",
+        nargs="*",
+        gt=0.0,
+        le=1e7,
+        unit="s",
+    )
+    parameterisation: str = option(
+        "gains",
+        "what is tuned: 'gains' (58 gains, 60 with --tune-regularisation) or "
+        "'scheduled' (the same gains scheduled on the push state: 348 entries, "
+        "wbc_jax/tuning/algorithms/schedule.py)",
+        choices=PARAMETERISATIONS,
+    )
+    estimator: str = option(
+        "first-order",
+        "gradient estimator: 'first-order' (per-rollout reverse mode, robust "
+        "mean), 'smoothed' (the same at antithetic Gaussian perturbations of the parameters: "
+        "the gradient of the smoothed loss), 'interpolated' (first- and zeroth-order "
+        "estimates of the smoothed loss mixed by their variances, Suh et al. 2022)",
+        choices=ESTIMATORS,
+    )
+    smoothing_sigma: float = option(
+        0.1,
+        "std of the parameter perturbations (unconstrained units) of the smoothed "
+        "and interpolated estimators and of the zeroth-order estimates",
+        gt=0.0,
+        le=100.0,
+    )
+    bias_factor: float = option(
+        2.0,
+        "interpolated: the first-order share is cut where the first- and zeroth-order "
+        "means differ by more than this many standard errors of the zeroth-order one",
+        gt=0.0,
+        le=1e6,
+    )
+    window_s: float = option(
+        0.0,
+        "> 0: differentiate short windows of this length started from states along "
+        "forward rollouts, with a terminal capturability cost (short-horizon gradients); "
+        "0: the whole horizon",
+        ge=0.0,
+        le=constants.MAX_HORIZON_S,
+        unit="s",
+    )
+    windows: int = option(
+        4, "windows per forward rollout (with --window-s): --batch = rollouts x windows", ge=1, le=MAX_BATCH
+    )
+    terminal_weight: float = option(
+        4.0,
+        "weight of a window's terminal capturability cost (capture point and CoM speed at its last tick)",
+        ge=0.0,
+        le=1e6,
+    )
+    bound_factor: float = option(
+        10.0, "gains (and regularisation) stay within [default / f, default * f]", gt=1.0, le=1e3
+    )
+    zeta_range: tuple[float, float] = option(
+        (0.02, 2.0),
+        "damping ratios of the CoM, angular-momentum and postural error dynamics stay in this range",
+        nargs=2,
+        gt=0.0,
+        le=100.0,
+        ordered=True,
+    )
+    tune_regularisation: bool = option(
+        False,
+        "also tune Reg.pinvDamp and Reg.KP_postural (not storable in a "
+        "gains file; the evaluation then compiles per gain set)",
+    )
+    init_gains: str | None = option(
+        None, "start from this gains file (inside the bounds; default: WBC's)", metavar="FILE", input_file=True
+    )
+    magnitude_range: tuple[float, float] = option(
+        (0.6, 1.4),
+        "push impulses as multiples of --push-scale in the push's direction",
+        nargs=2,
+        gt=0.0,
+        le=100.0,
+        ordered=True,
+    )
+    push_scale: str = option(
+        "envelope",
+        "what push impulses are multiples of, per direction: 'envelope' (the default "
+        "gains' strict envelope, --envelope) or 'lip' (the feet-in-place LIP bound m omega d)",
+        choices=PUSH_SCALES,
+    )
+    train_bodies: tuple[str, ...] = option(
+        ("trunk", "pelvis"),
+        "pushed bodies (bodies of the robot or roles)",
+        nargs="+",
+        nonempty=True,
+        names=model.pushable_bodies,
+    )
     controller: ControllerFlags = nested(ControllerFlags())
-    duration_range: tuple[float, float] = option((0.05, 0.3), "push durations [s]", nargs=2,
-                                                 ge=constants.MIN_PUSH_DURATION_S,
-                                                 le=constants.MAX_PUSH_DURATION_S, unit="s", ordered=True)  # fmt: skip
+    duration_range: tuple[float, float] = option(
+        (0.05, 0.3),
+        "push durations [s]",
+        nargs=2,
+        ge=constants.MIN_PUSH_DURATION_S,
+        le=constants.MAX_PUSH_DURATION_S,
+        unit="s",
+        ordered=True,
+    )
     push_onset: float = option(0.2, "push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
-    friction_range: tuple[float, float] = option((0.6, 1.2), "floor friction", nargs=2, ge=constants.FRICTION_RANGE[0],
-                                                 le=constants.FRICTION_RANGE[1], ordered=True)  # fmt: skip
-    mass_range: tuple[float, float] = option((0.9, 1.1), "plant mass scale", nargs=2, ge=constants.MASS_SCALE_RANGE[0],
-                                             le=constants.MASS_SCALE_RANGE[1], ordered=True)  # fmt: skip
-    joint_noise: float = option(0.01, "initial joint noise std [rad]", ge=0.0, le=constants.MAX_JOINT_NOISE_RAD,
-                                unit="rad")  # fmt: skip
-    envelope: str | None = option(None, "the default gains' envelope per direction, JSON (default: "
-                                  "the robot description's default_envelope, package data; where it "
-                                  "has none, --envelope-fraction x the LIP bound)", metavar="FILE", input_file=True)  # fmt: skip
-    envelope_fraction: float = option(0.5, "without --envelope: the default envelope as this fraction of the LIP bound",
-                                      gt=0.0, le=10.0)  # fmt: skip
-    solver_iterations: int | None = option(None, "contact-solver Newton iterations in training (default: the model's)",
-                                           ge=1, le=constants.MAX_SOLVER_ITERATIONS)  # fmt: skip
-    ls_iterations: int | None = option(None, "contact-solver line-search iterations in training (default: the "
-                                       "model's)", ge=1, le=constants.MAX_SOLVER_ITERATIONS)  # fmt: skip
-    solver_gradient: str = option("implicit", "how reverse mode passes MJX's contact solver: 'implicit' (the "
-                                  "implicit-function derivative at the converged solution: one Cholesky solve per "
-                                  "physics step) or 'unrolled' (through every Newton and line-search iteration, "
-                                  "run as a fixed-length scan); the same gradient, measured in docs/tuning/README.md",
-                                  choices=physics.SOLVER_GRADIENTS)  # fmt: skip
-    checkpoint: str = option("tick", "rematerialisation in the backward pass: 'tick' (each 10 ms tick recomputed), "
-                             "'dots' (the same, keeping its matrix products), 'none' (everything stored)",
-                             choices=CHECKPOINTS)  # fmt: skip
-    env_clip: float = option(3.0, "each rollout's gradient is clipped to this multiple of the batch's median "
-                             "per-rollout gradient norm before the batch mean (0: no per-rollout clipping); "
-                             "rollouts with a non-finite gradient are left out of the mean", ge=0.0,
-                             le=1e6)  # fmt: skip
-    keep_tracking: bool = option(False, "bounds that keep the seed's CoM sinusoid tracked: K_P,CoM x, y >= "
-                                 f"{constants.TRACKING_KP_COM_FLOOR:g}, the yaw entries of K_I,w and of the "
-                                 f"angular damping ratio >= {constants.TRACKING_YAW_FRACTION:g} x the WBC "
-                                 "defaults (docs/tuning/README.md)")  # fmt: skip
-    search_backend: str = option("auto", "physics engine of the gradient-free searches (auto: warp where available, "
-                                 "else jax; the gradient always runs on jax)", choices=SEARCH_BACKENDS)  # fmt: skip
-    population: int = option(8, "CMA-ES / random-search candidates per generation (CMA-ES recombines the better "
-                             "half: at least 2)", ge=2, le=MAX_BATCH)  # fmt: skip
+    friction_range: tuple[float, float] = option(
+        (0.6, 1.2),
+        "floor friction",
+        nargs=2,
+        ge=constants.FRICTION_RANGE[0],
+        le=constants.FRICTION_RANGE[1],
+        ordered=True,
+    )
+    mass_range: tuple[float, float] = option(
+        (0.9, 1.1),
+        "plant mass scale",
+        nargs=2,
+        ge=constants.MASS_SCALE_RANGE[0],
+        le=constants.MASS_SCALE_RANGE[1],
+        ordered=True,
+    )
+    joint_noise: float = option(
+        0.01, "initial joint noise std [rad]", ge=0.0, le=constants.MAX_JOINT_NOISE_RAD, unit="rad"
+    )
+    envelope: str | None = option(
+        None,
+        "the default gains' envelope per direction, JSON (default: "
+        "the robot description's default_envelope, package data; where it "
+        "has none, --envelope-fraction x the LIP bound)",
+        metavar="FILE",
+        input_file=True,
+    )
+    envelope_fraction: float = option(
+        0.5, "without --envelope: the default envelope as this fraction of the LIP bound", gt=0.0, le=10.0
+    )
+    solver_iterations: int | None = option(
+        None,
+        "contact-solver Newton iterations in training (default: the model's)",
+        ge=1,
+        le=constants.MAX_SOLVER_ITERATIONS,
+    )
+    ls_iterations: int | None = option(
+        None,
+        "contact-solver line-search iterations in training (default: the model's)",
+        ge=1,
+        le=constants.MAX_SOLVER_ITERATIONS,
+    )
+    solver_gradient: str = option(
+        "implicit",
+        "how reverse mode passes MJX's contact solver: 'implicit' (the "
+        "implicit-function derivative at the converged solution: one Cholesky solve per "
+        "physics step) or 'unrolled' (through every Newton and line-search iteration, "
+        "run as a fixed-length scan); the same gradient, measured in docs/tuning/README.md",
+        choices=physics.SOLVER_GRADIENTS,
+    )
+    checkpoint: str = option(
+        "tick",
+        "rematerialisation in the backward pass: 'tick' (each 10 ms tick recomputed), "
+        "'dots' (the same, keeping its matrix products), 'none' (everything stored)",
+        choices=CHECKPOINTS,
+    )
+    env_clip: float = option(
+        3.0,
+        "each rollout's gradient is clipped to this multiple of the batch's median "
+        "per-rollout gradient norm before the batch mean (0: no per-rollout clipping); "
+        "rollouts with a non-finite gradient are left out of the mean",
+        ge=0.0,
+        le=1e6,
+    )
+    keep_tracking: bool = option(
+        False,
+        "bounds that keep the seed's CoM sinusoid tracked: K_P,CoM x, y >= "
+        f"{constants.TRACKING_KP_COM_FLOOR:g}, the yaw entries of K_I,w and of the "
+        f"angular damping ratio >= {constants.TRACKING_YAW_FRACTION:g} x the WBC "
+        "defaults (docs/tuning/README.md)",
+    )
+    search_backend: str = option(
+        "auto",
+        "physics engine of the gradient-free searches (auto: warp where available, "
+        "else jax; the gradient always runs on jax)",
+        choices=SEARCH_BACKENDS,
+    )
+    population: int = option(
+        8,
+        "CMA-ES / random-search candidates per generation (CMA-ES recombines the better half: at least 2)",
+        ge=2,
+        le=MAX_BATCH,
+    )
     es_batch: int = option(0, "pushes per candidate (0: batch // (population + 1), at least 1)", ge=0, le=MAX_BATCH)
     es_sigma: float = option(0.5, "CMA-ES initial step / random-search spread (unconstrained units)", gt=0.0, le=100.0)
-    wall_budget: bool = option(True, "without --budget-s: the searches also run until the gradient run's wall "
-                               "time is spent")  # fmt: skip
+    wall_budget: bool = option(
+        True, "without --budget-s: the searches also run until the gradient run's wall time is spent"
+    )
     eval_pushes: int = option(16, "held-out pushes of the training distribution (phase predict)", ge=1, le=MAX_BATCH)
-    eval_horizon: float = option(3.0, "seconds per held-out rollout of phase predict", gt=0.0,
-                                 le=constants.MAX_HORIZON_S, unit="s")  # fmt: skip
-    quality_pushes: int = option(32, "phase quality: fixed held-out pushes of the training distribution whose mean "
-                                 "loss the gradients are checked on (a multiple of --batch)", ge=1,
-                                 le=MAX_BATCH)  # fmt: skip
-    quality_directions: int = option(16, "phase quality: antithetic random directions of the zeroth-order estimate "
-                                     "on the quality pushes (0: from the antithetic pairs of the gradient program "
-                                     "instead, one push each; no population program, no descent check)", ge=0,
-                                     le=MAX_BATCH)  # fmt: skip
+    eval_horizon: float = option(
+        3.0, "seconds per held-out rollout of phase predict", gt=0.0, le=constants.MAX_HORIZON_S, unit="s"
+    )
+    quality_pushes: int = option(
+        32,
+        "phase quality: fixed held-out pushes of the training distribution whose mean "
+        "loss the gradients are checked on (a multiple of --batch)",
+        ge=1,
+        le=MAX_BATCH,
+    )
+    quality_directions: int = option(
+        16,
+        "phase quality: antithetic random directions of the zeroth-order estimate "
+        "on the quality pushes (0: from the antithetic pairs of the gradient program "
+        "instead, one push each; no population program, no descent check)",
+        ge=0,
+        le=MAX_BATCH,
+    )
 
     def __post_init__(self):
         self.check()
@@ -175,24 +291,35 @@ class TuneConfig:
         push_end = self.push_onset + self.duration_range[1]
         for name in ("horizon", "eval_horizon"):
             if getattr(self, name) <= push_end:
-                raise ValueError(f"--{name.replace('_', '-')} {getattr(self, name)} s must end after the push "
-                                 f"(onset {self.push_onset} + up to {self.duration_range[1]} s)")  # fmt: skip
+                raise ValueError(
+                    f"--{name.replace('_', '-')} {getattr(self, name)} s must end after the push "
+                    f"(onset {self.push_onset} + up to {self.duration_range[1]} s)"
+                )
         if self.window_s and not (0.01 <= self.window_s < self.horizon):
-            raise ValueError(f"--window-s {self.window_s} must be at least one tick (0.01 s) and shorter than "
-                             f"--horizon {self.horizon} s")  # fmt: skip
+            raise ValueError(
+                f"--window-s {self.window_s} must be at least one tick (0.01 s) and shorter than "
+                f"--horizon {self.horizon} s"
+            )
         if self.estimator != "first-order" and self.batch % 2:
-            raise ValueError(f"--estimator {self.estimator} pairs antithetic rollouts: --batch must be even, "
-                             f"got {self.batch}")  # fmt: skip
+            raise ValueError(
+                f"--estimator {self.estimator} pairs antithetic rollouts: --batch must be even, got {self.batch}"
+            )
         if self.window_s and self.distinct_rollouts % self.windows:
-            raise ValueError(f"--batch {self.batch} must be a multiple of --windows {self.windows}"
-                             + (" x 2 (antithetic pairs)" if self.pairs else ""))  # fmt: skip
+            raise ValueError(
+                f"--batch {self.batch} must be a multiple of --windows {self.windows}"
+                + (" x 2 (antithetic pairs)" if self.pairs else "")
+            )
         if self.quality_pushes % self.pushes_per_call:
-            raise ValueError(f"--quality-pushes {self.quality_pushes} must be a multiple of the {self.pushes_per_call} "
-                             "pushes of one gradient program call (--batch, halved for antithetic pairs, divided by "
-                             "--windows with --window-s)")  # fmt: skip
+            raise ValueError(
+                f"--quality-pushes {self.quality_pushes} must be a multiple of the {self.pushes_per_call} "
+                "pushes of one gradient program call (--batch, halved for antithetic pairs, divided by "
+                "--windows with --window-s)"
+            )
         if "hybrid" in self.phases and not self.budget_s:
-            raise ValueError("--phases hybrid is a method of the race: give --budget-s (it refines CMA-ES's set at "
-                             "half of each budget with the gradient for the other half)")  # fmt: skip
+            raise ValueError(
+                "--phases hybrid is a method of the race: give --budget-s (it refines CMA-ES's set at "
+                "half of each budget with the gradient for the other half)"
+            )
         if self.parameterisation == "scheduled" and self.tune_regularisation:
             raise ValueError("--parameterisation scheduled schedules the gains only: drop --tune-regularisation")
         if self.out is not None and pathlib.Path(self.out).exists() and not pathlib.Path(self.out).is_dir():
@@ -230,92 +357,23 @@ def default_config() -> TuneConfig:
 
 
 # Fields that do not change what the gradient training computes.
-NOT_TRAINING = ("out", "phases", "population", "es_batch", "es_sigma", "wall_budget", "eval_pushes", "eval_horizon",
-                "search_backend", "snapshots_s", "quality_pushes", "quality_directions")  # fmt: skip
+NOT_TRAINING = (
+    "out",
+    "phases",
+    "population",
+    "es_batch",
+    "es_sigma",
+    "wall_budget",
+    "eval_pushes",
+    "eval_horizon",
+    "search_backend",
+    "snapshots_s",
+    "quality_pushes",
+    "quality_directions",
+)
 
 
 def config_key(*configs, exclude=()) -> str:
     """A short hash of dataclass configs, less the ``exclude`` fields (checkpoints belong to one)."""
-    blob = json.dumps([{k: v for k, v in flat_dict(c).items() if k not in exclude} for c in configs],
-                      sort_keys=True)  # fmt: skip
+    blob = json.dumps([{k: v for k, v in flat_dict(c).items() if k not in exclude} for c in configs], sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
-
-
-@dataclasses.dataclass(frozen=True)
-class HeldoutConfig:
-    """The held-out evaluation (``wbc-jax heldout``, and the phase ``heldout`` of ``wbc-jax tune``); the
-    defaults are the comparison's: every field is a flag of both commands.
-
-    grid: trunk pushes of ``grid_duration`` s at ``grid_onset`` s over ``grid_magnitudes`` x
-    ``grid_directions``, ``grid_horizon`` s. variations (:data:`VARIATIONS`): ``variation_magnitudes`` x
-    ``variation_directions`` over the grid's impulse range. one_foot: pushes at ``one_foot_onset`` s of the
-    one-foot task. sinusoid_s: seconds of the seed's CoM sinusoid (0: skip). robot, controller: the robot and
-    the controller's flags of every closed loop (in ``wbc-jax tune``: the tuning run's)."""
-
-    robot: str = robot_option()
-    out: str = option("runs/heldout", "output folder (resumes a run there)")
-    sets: tuple[str, ...] = option(("default", "critical"), "gain sets held out: 'default' (the robot's gains), "
-                                   "'critical' (the robot's hand-set row, e.g. assets/gains/com_critical_100.json) or "
-                                   "NAME=FILE (a gains file or a gain-schedule file); wbc-jax tune adds its own",
-                                   nargs="*")  # fmt: skip
-    grid_magnitudes: tuple[float, ...] = option(magnitude_grid((10.0, 400.0, 64)), "held-out grid of trunk push forces [N]: "
-                                                "LO HI N", nargs=3, metavar=("LO", "HI", "N"), parse=magnitude_grid,
-                                                show=show_magnitude_grid, ge=0.0, le=constants.MAX_PUSH_N, unit="N",
-                                                nonempty=True)  # fmt: skip
-    grid_directions: tuple[float, ...] = option(azimuths(32), "held-out push azimuths over 360 deg",
-                                                metavar="N", parse=azimuths, show=len, ge=-360.0, le=360.0,
-                                                unit="deg", nonempty=True)  # fmt: skip
-    grid_duration: float = option(
-        0.1, "held-out push length [s]", ge=constants.MIN_PUSH_DURATION_S, le=constants.MAX_PUSH_DURATION_S, unit="s"
-    )
-    grid_onset: float = option(0.5, "held-out push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
-    grid_horizon: float = option(3.0, "seconds per held-out rollout", gt=0.0, le=constants.MAX_HORIZON_S, unit="s")
-    variations: tuple[str, ...] = option(tuple(VARIATIONS), "unseen variations of the grid's pushes",
-                                         nargs="*", choices=tuple(VARIATIONS))  # fmt: skip
-    variation_magnitudes: int = option(16, "impulses per direction of each variation", ge=1, le=MAX_GRID_AXIS)
-    variation_directions: int = option(16, "directions of each variation and of the one-foot pushes", ge=1,
-                                       le=MAX_GRID_AXIS)  # fmt: skip
-    one_foot: bool = option(True, "also push during the one-foot task's single-support phase")
-    one_foot_onset: float = option(7.5, "one-foot push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
-    one_foot_horizon: float = option(9.0, "seconds per one-foot rollout", gt=0.0, le=constants.MAX_HORIZON_S, unit="s")
-    sinusoid_s: float = option(20.0, "seconds of the seed's CoM sinusoid (its RMSE; 0: skip)", ge=0.0,
-                               le=constants.MAX_HORIZON_S, unit="s")  # fmt: skip
-    sinusoid_backend: str = option("mujoco", "physics of the sinusoid", choices=physics.BACKENDS)
-    heldout_backend: str = option("auto", "physics of the held-out pushes (auto: warp on a GPU, C MuJoCo on a CPU)",
-                                  choices=physics.BACKENDS)  # fmt: skip
-    chunk_size: int = option(16384, "held-out environments per compiled batch", ge=1, le=MAX_BATCH)
-    controller: ControllerFlags = nested(ControllerFlags())
-
-    def __post_init__(self):
-        self.check()
-
-    def check(self) -> None:
-        """Every check that compiles nothing: the declared ranges, then what ties the flags together."""
-        check_options(self)
-        longest = max([self.grid_duration] + [VARIATIONS[v][1] for v in self.variations])
-        if self.grid_horizon <= self.grid_onset + longest:
-            raise ValueError(f"held-out horizon {self.grid_horizon} s ends before the pushes "
-                             f"({self.grid_onset} + {longest} s)")  # fmt: skip
-        lo, hi = ONE_FOOT_WINDOW
-        if self.one_foot and not (lo <= self.one_foot_onset and self.one_foot_onset + self.grid_duration <= hi
-                                  and self.one_foot_horizon > self.one_foot_onset + self.grid_duration):  # fmt: skip
-            raise ValueError(f"one-foot pushes must fall in the single-support phase {ONE_FOOT_WINDOW} s")
-        seen = set()
-        for spec in self.sets:
-            name, _, path = spec.partition("=")
-            if not name or name in seen:
-                raise ValueError(f"--sets: gain set {name!r} is empty or given twice")
-            seen.add(name)
-            if not path and name not in ("default", "critical"):
-                raise ValueError(f"--sets entries are 'default', 'critical' or NAME=FILE, got {spec!r}")
-            if path:
-                check_input_file(path, f"--sets {name}")
-
-    @property
-    def grid_impulses(self) -> np.ndarray:
-        """(M,) the grid's impulses [N s]."""
-        return np.asarray(self.grid_magnitudes, float) * self.grid_duration
-
-
-def heldout_default_config() -> HeldoutConfig:
-    return HeldoutConfig()

@@ -26,9 +26,13 @@ from wbc_jax.core import io, provenance
 def save_checkpoint(path: pathlib.Path, state, step: int, key: str, **extra) -> None:
     """state (a pytree) + step + config key (+ extra arrays), atomically."""
     leaves = jax.tree_util.tree_leaves(state)
-    io.atomic_save_npz(path, step=np.asarray(step), key=np.asarray(key),
-                       **{f"leaf_{i:04d}": np.asarray(x) for i, x in enumerate(leaves)},
-                       **{f"extra_{k}": np.asarray(v) for k, v in extra.items()})  # fmt: skip
+    io.atomic_save_npz(
+        path,
+        step=np.asarray(step),
+        key=np.asarray(key),
+        **{f"leaf_{i:04d}": np.asarray(x) for i, x in enumerate(leaves)},
+        **{f"extra_{k}": np.asarray(v) for k, v in extra.items()},
+    )
 
 
 def load_checkpoint(path: pathlib.Path, like, key: str):
@@ -88,8 +92,9 @@ def write_once(path: pathlib.Path, data: dict) -> bool:
         except (json.JSONDecodeError, UnicodeDecodeError):
             old = None
         if old != blob:
-            raise ValueError(f"{path} exists with other contents; a tuning run never overwrites a gain file: "
-                             "use another --out")  # fmt: skip
+            raise ValueError(
+                f"{path} exists with other contents; a tuning run never overwrites a gain file: use another --out"
+            )
         return False
     io.atomic_write_json(path, blob)
     return True

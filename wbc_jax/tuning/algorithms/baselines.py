@@ -39,8 +39,18 @@ from wbc_jax.tuning.algorithms.gradient import at_time, forward_backend
 
 KINDS = ("cmaes", "random")
 STREAMS = {"cmaes": 1, "random": 2}  # tuning_problem.batch_rng streams
-HISTORY_COLUMNS = ("generation", "loss", "best_candidate_loss", "median_candidate_loss", "survival_rate",
-                   "upright_rate", "step_size", "gen_s", "sim_steps", "wall_s")  # fmt: skip
+HISTORY_COLUMNS = (
+    "generation",
+    "loss",
+    "best_candidate_loss",
+    "median_candidate_loss",
+    "survival_rate",
+    "upright_rate",
+    "step_size",
+    "gen_s",
+    "sim_steps",
+    "wall_s",
+)
 PENALTY = 1e6  # fitness of a candidate whose loss is not finite
 
 
@@ -109,13 +119,41 @@ def budget_generations(problem: tp.Problem, sim_steps: int) -> int:
     return max(1, math.ceil(sim_steps / per_gen))
 
 
-NOT_SEARCH = ("out", "phases", "steps", "wall_budget", "eval_pushes", "eval_horizon", "snapshots_s", "lr",
-              "clip_norm", "estimator", "smoothing_sigma", "bias_factor", "window_s", "windows", "terminal_weight",
-              "checkpoint", "env_clip", "quality_pushes", "quality_directions")  # fmt: skip
+NOT_SEARCH = (
+    "out",
+    "phases",
+    "steps",
+    "wall_budget",
+    "eval_pushes",
+    "eval_horizon",
+    "snapshots_s",
+    "lr",
+    "clip_norm",
+    "estimator",
+    "smoothing_sigma",
+    "bias_factor",
+    "window_s",
+    "windows",
+    "terminal_weight",
+    "checkpoint",
+    "env_clip",
+    "quality_pushes",
+    "quality_directions",
+)
 
 
-def search(problem: tp.Problem, kind: str, out, *, budget: dict, progress: bool = True,
-           max_generations: int | None = None, evaluate_fn=None, mesh=None, times=()) -> dict:  # fmt: skip
+def search(
+    problem: tp.Problem,
+    kind: str,
+    out,
+    *,
+    budget: dict,
+    progress: bool = True,
+    max_generations: int | None = None,
+    evaluate_fn=None,
+    mesh=None,
+    times=(),
+) -> dict:
     """Run (or resume) a gradient-free search into ``out`` until ``budget`` {"sim_steps",
     "wall_s"} is spent, or with ``tc.budget_s`` until that wall time (or ``max_generations``).
     ``evaluate_fn``: an objective with :func:`~wbc_jax.tuning.algorithms.objectives.make_population_objective`'s
@@ -153,8 +191,9 @@ def search(problem: tp.Problem, kind: str, out, *, budget: dict, progress: bool 
         evaluate = evaluate_fn
 
     def batch(g):
-        scen, _ = tp.sample_pushes(tc, problem.robot, problem.table, tp.batch_rng(tc.seed, STREAMS[kind], g), b,
-                                   problem.setup.dtype)  # fmt: skip
+        scen, _ = tp.sample_pushes(
+            tc, problem.robot, problem.table, tp.batch_rng(tc.seed, STREAMS[kind], g), b, problem.setup.dtype
+        )
         return objectives.cast_batch(scen, problem.setup.dtype)
 
     def done(g):
@@ -174,8 +213,7 @@ def search(problem: tp.Problem, kind: str, out, *, budget: dict, progress: bool 
     wall = float(rows[-1]["wall_s"]) if rows else compile_s
     g = start
     total = max_generations or (None if tc.budget_s > 0 else budget_generations(problem, budget["sim_steps"]))
-    with tqdm(total=total, initial=start,
-              unit="gen", disable=not progress, desc=kind) as bar:  # fmt: skip
+    with tqdm(total=total, initial=start, unit="gen", disable=not progress, desc=kind) as bar:
         while not done(g):
             t0 = time.perf_counter()
             k_ask, k_tell = jax.random.split(jax.random.fold_in(key0, g))
@@ -193,10 +231,20 @@ def search(problem: tp.Problem, kind: str, out, *, budget: dict, progress: bool 
             wall += dt
             cand = np.asarray(obj[1:])
             stats = tp.survival_stats(jax.tree_util.tree_map(lambda x: x[0], metrics))
-            rows.append({"generation": g, "loss": float(obj[0]), "best_candidate_loss": float(np.nanmin(cand)),
-                         "median_candidate_loss": float(np.nanmedian(cand)), "survival_rate": stats["survival_rate"],
-                         "upright_rate": stats["upright_rate"], "step_size": strategy.step_size(state),
-                         "gen_s": round(dt, 3), "sim_steps": (g + 1) * per_gen, "wall_s": round(wall, 3)})  # fmt: skip
+            rows.append(
+                {
+                    "generation": g,
+                    "loss": float(obj[0]),
+                    "best_candidate_loss": float(np.nanmin(cand)),
+                    "median_candidate_loss": float(np.nanmedian(cand)),
+                    "survival_rate": stats["survival_rate"],
+                    "upright_rate": stats["upright_rate"],
+                    "step_size": strategy.step_size(state),
+                    "gen_s": round(dt, 3),
+                    "sim_steps": (g + 1) * per_gen,
+                    "wall_s": round(wall, 3),
+                }
+            )
             snapshots = np.concatenate([snapshots, np.asarray(strategy.current(state))[None]])
             g += 1
             store.save_checkpoint(ckpt, state, g, key, snapshots=snapshots, compile_s=compile_s)
@@ -224,8 +272,13 @@ def result(problem: tp.Problem, kind: str, out, budget: dict, times=()) -> dict:
         params = unravel(jnp.asarray(snapshots[i], p0.dtype)) if i >= 0 else problem.init_params()
         controls, reg = problem.controls(params)
         r = rows[i] if i >= 0 else {"sim_steps": 0, "wall_s": 0.0}  # -1: the start, before any generation
-        return {"generation": i, "sim_steps": int(r["sim_steps"]), "wall_s": float(r["wall_s"]), "reached": reached,
-                "controls": (controls, problem.regularisation(reg))}  # fmt: skip
+        return {
+            "generation": i,
+            "sim_steps": int(r["sim_steps"]),
+            "wall_s": float(r["wall_s"]),
+            "reached": reached,
+            "controls": (controls, problem.regularisation(reg)),
+        }
 
     def pick(column: str, target: float) -> dict:
         values = [float(r[column]) for r in rows]
@@ -233,8 +286,12 @@ def result(problem: tp.Problem, kind: str, out, budget: dict, times=()) -> dict:
         return entry(i, bool(values[i] >= target))
 
     tc = problem.tc
-    return {"history": rows, "equal_steps": pick("sim_steps", budget["sim_steps"]),
-            "equal_wall": pick("wall_s", budget["wall_s"]), "final": entry(len(rows) - 1),
-            "at": {float(t): entry(at_time(rows, t), float(rows[-1]["wall_s"]) >= t) for t in times},
-            "compile_s": round(compile_s, 2),
-            "sim_steps_per_generation": (tc.population + 1) * tc.candidate_batch * problem.steps_per_rollout}  # fmt: skip
+    return {
+        "history": rows,
+        "equal_steps": pick("sim_steps", budget["sim_steps"]),
+        "equal_wall": pick("wall_s", budget["wall_s"]),
+        "final": entry(len(rows) - 1),
+        "at": {float(t): entry(at_time(rows, t), float(rows[-1]["wall_s"]) >= t) for t in times},
+        "compile_s": round(compile_s, 2),
+        "sim_steps_per_generation": (tc.population + 1) * tc.candidate_batch * problem.steps_per_rollout,
+    }

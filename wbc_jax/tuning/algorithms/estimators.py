@@ -121,8 +121,13 @@ def combine(kind: str, values: jax.Array, grads, eps, *, sigma: float, clip_fact
     """The step's gradient (a pytree like one row of ``grads``) and its stats, by estimator ``kind``."""
     unravel = ravel_pytree(jax.tree_util.tree_map(lambda x: x[0], grads))[1]
     mean, stats, (kept, finite) = robust_rows(rows(grads), clip_factor)
-    stats = {**stats, "alpha": jnp.ones(()), "fo_var": jnp.zeros(()), "zo_var": jnp.zeros(()),
-             "bias_norm": jnp.zeros(())}  # fmt: skip
+    stats = {
+        **stats,
+        "alpha": jnp.ones(()),
+        "fo_var": jnp.zeros(()),
+        "zo_var": jnp.zeros(()),
+        "bias_norm": jnp.zeros(()),
+    }
     if kind == "interpolated":
         zo, zo_ok = zeroth_order_rows(values, eps, sigma)
         mean, mix = interpolate(kept, finite, zo, zo_ok, bias_factor)
@@ -133,5 +138,4 @@ def combine(kind: str, values: jax.Array, grads, eps, *, sigma: float, clip_fact
     return unravel(mean), stats
 
 
-ESTIMATOR_STATS = ("nonfinite_envs", "clipped_envs", "env_grad_norm_median", "alpha", "fo_var", "zo_var",
-                   "bias_norm")  # fmt: skip
+ESTIMATOR_STATS = ("nonfinite_envs", "clipped_envs", "env_grad_norm_median", "alpha", "fo_var", "zo_var", "bias_norm")

@@ -49,9 +49,24 @@ from wbc_jax.tuning.algorithms.loss import TERMS
 from wbc_jax.tuning.algorithms.problem import Problem
 from wbc_jax.tuning.config import TuneConfig, default_config  # noqa: F401  (the job's config)
 
-HISTORY_COLUMNS = ("step", "loss", "rollout_loss", *TERMS, "survival_rate", "upright_rate", "qp_infeasible_rate",
-                   "grad_norm", "finite", "skipped_total", "step_s", "sim_steps", "grad_sim_steps", "wall_s",
-                   "rss_mb", *ESTIMATOR_STATS)  # fmt: skip
+HISTORY_COLUMNS = (
+    "step",
+    "loss",
+    "rollout_loss",
+    *TERMS,
+    "survival_rate",
+    "upright_rate",
+    "qp_infeasible_rate",
+    "grad_norm",
+    "finite",
+    "skipped_total",
+    "step_s",
+    "sim_steps",
+    "grad_sim_steps",
+    "wall_s",
+    "rss_mb",
+    *ESTIMATOR_STATS,
+)
 
 
 def make_optimizer(lr: float, clip_norm: float):
@@ -115,13 +130,25 @@ class GradientStep:
         """The optimiser step and the step's summary {loss, term means, grad_norm, finite, skipped_total,
         estimator stats}: one program, one transfer to the host."""
         tc = self.problem.tc
-        grad, stats = estimators.combine(tc.estimator, values, grads, eps, sigma=tc.smoothing_sigma,
-                                         clip_factor=tc.env_clip, bias_factor=tc.bias_factor)  # fmt: skip
+        grad, stats = estimators.combine(
+            tc.estimator,
+            values,
+            grads,
+            eps,
+            sigma=tc.smoothing_sigma,
+            clip_factor=tc.env_clip,
+            bias_factor=tc.bias_factor,
+        )
         finite = jnp.all(jnp.asarray([jnp.all(jnp.isfinite(g)) for g in jax.tree_util.tree_leaves(grad)]))
         updates, opt_state = self.optimizer.update(grad, opt_state, params)
-        summary = {"loss": jnp.nanmean(jnp.where(jnp.isfinite(values), values, jnp.nan)),
-                   **{n: jnp.mean(terms[n]) for n in TERMS}, "grad_norm": optax.global_norm(grad), "finite": finite,
-                   "skipped_total": opt_state.total_notfinite, **stats}  # fmt: skip
+        summary = {
+            "loss": jnp.nanmean(jnp.where(jnp.isfinite(values), values, jnp.nan)),
+            **{n: jnp.mean(terms[n]) for n in TERMS},
+            "grad_norm": optax.global_norm(grad),
+            "finite": finite,
+            "skipped_total": opt_state.total_notfinite,
+            **stats,
+        }
         return optax.apply_updates(params, updates), opt_state, summary
 
     def rows_of(self, params, k: int):
@@ -156,8 +183,11 @@ class GradientStep:
 
     def memory_mb(self):
         ma = self.grads.memory_analysis() if hasattr(self.grads, "memory_analysis") else None
-        return None if ma is None else {"temp_mb": ma.temp_size_in_bytes / 2**20,
-                                        "argument_mb": ma.argument_size_in_bytes / 2**20}  # fmt: skip
+        return (
+            None
+            if ma is None
+            else {"temp_mb": ma.temp_size_in_bytes / 2**20, "argument_mb": ma.argument_size_in_bytes / 2**20}
+        )
 
     def __call__(self, params, opt_state, k: int):
         problem = self.problem
@@ -168,11 +198,14 @@ class GradientStep:
             metrics = forward[1]
         summary, metrics, forward = jax.device_get((summary, metrics, forward))  # the step's one transfer
         grad_steps = problem.tc.batch * (self.W if self.windowed else problem.loop.n_ticks) * problem.loop.n_sub
-        row = {k_: (bool(v) if k_ == "finite" else int(v) if k_ == "skipped_total" else float(v))
-               for k_, v in summary.items()}  # fmt: skip
+        row = {
+            k_: (bool(v) if k_ == "finite" else int(v) if k_ == "skipped_total" else float(v))
+            for k_, v in summary.items()
+        }
         total = np.asarray(forward[0]["total"]) if forward is not None else None
-        row["rollout_loss"] = row["loss"] if total is None else float(np.mean(np.log1p(total) if problem.lc.robust
-                                                                                   else total))  # fmt: skip
+        row["rollout_loss"] = (
+            row["loss"] if total is None else float(np.mean(np.log1p(total) if problem.lc.robust else total))
+        )
         row.update(grad_sim_steps=grad_steps, sim_steps_delta=grad_steps + fwd_steps, **tp.survival_stats(metrics))
         return params, opt_state, row
 
@@ -198,8 +231,16 @@ def start_key(problem: Problem, params) -> str:
     return f"{problem.key}-start-{hashlib.sha256(flat.tobytes()).hexdigest()[:16]}"
 
 
-def train(problem: Problem, out, *, progress: bool = True, step_fn=None, mesh=None, start_params=None,
-          budget_s: float | None = None):  # fmt: skip
+def train(
+    problem: Problem,
+    out,
+    *,
+    progress: bool = True,
+    step_fn=None,
+    mesh=None,
+    start_params=None,
+    budget_s: float | None = None,
+):
     """Gradient tuning into ``out``: checkpoint.npz (resumable; every step's parameters), history.csv,
     train_info.json. Stops after ``tc.steps`` steps, or when ``budget_s`` (default ``tc.budget_s``; > 0)
     of wall time is spent, compilation included.
@@ -238,11 +279,21 @@ def train(problem: Problem, out, *, progress: bool = True, step_fn=None, mesh=No
         step_fn = GradientStep(problem, optimizer, mesh) if step_fn is None else step_fn
         compile_s = step_fn.compile(*state)
         info.setdefault("compile_s", round(compile_s, 2))  # the first compile counts in the wall budget
-        info.update(last_compile_s=round(compile_s, 2), device=provenance.device_label(),
-                    n_devices=int(objectives.mesh_of(mesh).devices.size), batch=tc.batch, horizon_s=tc.horizon,
-                    steps_per_rollout=problem.steps_per_rollout, estimator=tc.estimator, window_s=tc.window_s,
-                    checkpoint=tc.checkpoint, parameterisation=tc.parameterisation, budget_s=budget,
-                    parameters=int(flat0.size), **(step_fn.memory_mb() or {}))  # fmt: skip
+        info.update(
+            last_compile_s=round(compile_s, 2),
+            device=provenance.device_label(),
+            n_devices=int(objectives.mesh_of(mesh).devices.size),
+            batch=tc.batch,
+            horizon_s=tc.horizon,
+            steps_per_rollout=problem.steps_per_rollout,
+            estimator=tc.estimator,
+            window_s=tc.window_s,
+            checkpoint=tc.checkpoint,
+            parameterisation=tc.parameterisation,
+            budget_s=budget,
+            parameters=int(flat0.size),
+            **(step_fn.memory_mb() or {}),
+        )
         info["provenance"] = provenance.record(
             {"init_gains": tc.init_gains, "envelope": tc.envelope, "tasks": tc.controller.tasks}
         )
@@ -259,14 +310,26 @@ def train(problem: Problem, out, *, progress: bool = True, step_fn=None, mesh=No
             wall += dt
             sim_steps += int(row.pop("sim_steps_delta"))
             state = (params, opt_state)
-            rows.append({"step": k, **row, "step_s": round(dt, 3), "sim_steps": sim_steps, "wall_s": round(wall, 3),
-                         "rss_mb": round(store.rss_mb(), 1)})  # fmt: skip
+            rows.append(
+                {
+                    "step": k,
+                    **row,
+                    "step_s": round(dt, 3),
+                    "sim_steps": sim_steps,
+                    "wall_s": round(wall, 3),
+                    "rss_mb": round(store.rss_mb(), 1),
+                }
+            )
             snapshots = np.concatenate([snapshots, np.asarray(ravel_pytree(params)[0])[None]])
             k += 1
             store.save_checkpoint(ckpt, state, k, key, snapshots=snapshots, **kept)
             store.write_csv(hist_path, rows, HISTORY_COLUMNS)
-            bar.set_postfix(loss=f"{row['loss']:.4g}", surv=f"{row['survival_rate']:.2f}",
-                            skipped=row["skipped_total"], dropped=int(row["nonfinite_envs"]))  # fmt: skip
+            bar.set_postfix(
+                loss=f"{row['loss']:.4g}",
+                surv=f"{row['survival_rate']:.2f}",
+                skipped=row["skipped_total"],
+                dropped=int(row["nonfinite_envs"]),
+            )
             bar.update(1)
     controls, reg = problem.controls(state[0])
     steady = [float(r["step_s"]) for r in rows[1:]] or [float(r["step_s"]) for r in rows]

@@ -48,13 +48,16 @@ def parent(problem: tp.Problem, out: pathlib.Path, budget: float) -> dict:
     index_path = out / "gains" / "provenance.json"
     index = json.loads(index_path.read_text()) if index_path.exists() else {}
     if name not in index:
-        raise ValueError(f"--phases hybrid: the race budget {budget:g} s needs CMA-ES's set at {half:g} s "
-                         f"({out / 'gains' / name}.json), which this run lacks: run --phases cmaes hybrid "
-                         "(CMA-ES keeps its sets at half of every budget when the hybrid phase is asked for)")  # fmt: skip
+        raise ValueError(
+            f"--phases hybrid: the race budget {budget:g} s needs CMA-ES's set at {half:g} s "
+            f"({out / 'gains' / name}.json), which this run lacks: run --phases cmaes hybrid "
+            "(CMA-ES keeps its sets at half of every budget when the hybrid phase is asked for)"
+        )
     entry, path = index[name], out / "gains" / f"{name}.json"
     if not path.exists() or provenance.sha256(path) != entry["sha256"]:
-        raise ValueError(f"--phases hybrid: {path} is missing or differs from its record in {index_path}; "
-                         "use another --out")  # fmt: skip
+        raise ValueError(
+            f"--phases hybrid: {path} is missing or differs from its record in {index_path}; use another --out"
+        )
     params0 = problem.init_params()
     flat0, unravel = ravel_pytree(params0)
     generation = int(entry["generation"])
@@ -63,11 +66,19 @@ def parent(problem: tp.Problem, out: pathlib.Path, budget: float) -> dict:
         with np.load(out / PARENT / "checkpoint.npz") as z:
             snapshots = z["extra_snapshots"]
         if generation >= len(snapshots):
-            raise ValueError(f"--phases hybrid: {out / PARENT / 'checkpoint.npz'} has {len(snapshots)} generations, "
-                             f"{name} was generation {generation}; use another --out")  # fmt: skip
+            raise ValueError(
+                f"--phases hybrid: {out / PARENT / 'checkpoint.npz'} has {len(snapshots)} generations, "
+                f"{name} was generation {generation}; use another --out"
+            )
         params = unravel(jnp.asarray(snapshots[generation], flat0.dtype))
-    return {"name": name, "sha256": entry["sha256"], "params": params, "generation": generation,
-            "sim_steps": int(entry["sim_steps"]), "wall_s": float(entry["wall_s"])}  # fmt: skip
+    return {
+        "name": name,
+        "sha256": entry["sha256"],
+        "params": params,
+        "generation": generation,
+        "sim_steps": int(entry["sim_steps"]),
+        "wall_s": float(entry["wall_s"]),
+    }
 
 
 def run(problem: tp.Problem, out: pathlib.Path, times, *, progress: bool = True, mesh=None, step_fn=None) -> dict:
@@ -79,17 +90,34 @@ def run(problem: tp.Problem, out: pathlib.Path, times, *, progress: bool = True,
     sets = {}
     for budget, par in parents.items():
         run_dir = folder(out, budget)
-        _, _, rows, info = tuning.train(problem, run_dir, progress=progress, mesh=mesh, step_fn=step_fn,
-                                        start_params=par["params"], budget_s=budget / 2)  # fmt: skip
+        _, _, rows, info = tuning.train(
+            problem,
+            run_dir,
+            progress=progress,
+            mesh=mesh,
+            step_fn=step_fn,
+            start_params=par["params"],
+            budget_s=budget / 2,
+        )
         i = tuning.at_time(rows, budget / 2)
         controls, reg = tuning.snapshot_controls(problem, run_dir, i, start_params=par["params"])
         row = rows[i] if i >= 0 else {"sim_steps": 0, "wall_s": 0.0}
         grad_steps, grad_wall = int(row["sim_steps"]), float(row["wall_s"])
-        origin = {"method": "hybrid", "budget_s": budget, "parent": par["name"], "parent_sha256": par["sha256"],
-                  "parent_generation": par["generation"], "parent_sim_steps": par["sim_steps"],
-                  "parent_wall_s": par["wall_s"], "step": i, "gradient_sim_steps": grad_steps,
-                  "gradient_wall_s": grad_wall, "gradient_compile_s": info.get("compile_s"),
-                  "sim_steps": par["sim_steps"] + grad_steps, "wall_s": round(par["wall_s"] + grad_wall, 3)}  # fmt: skip
+        origin = {
+            "method": "hybrid",
+            "budget_s": budget,
+            "parent": par["name"],
+            "parent_sha256": par["sha256"],
+            "parent_generation": par["generation"],
+            "parent_sim_steps": par["sim_steps"],
+            "parent_wall_s": par["wall_s"],
+            "step": i,
+            "gradient_sim_steps": grad_steps,
+            "gradient_wall_s": grad_wall,
+            "gradient_compile_s": info.get("compile_s"),
+            "sim_steps": par["sim_steps"] + grad_steps,
+            "wall_s": round(par["wall_s"] + grad_wall, 3),
+        }
         sets[store.set_name("hybrid", None if budget == problem.tc.budget_s else budget)] = (controls, reg, origin)
     return sets
 
@@ -101,6 +129,12 @@ def histories(out: pathlib.Path, index: dict) -> dict:
         path = folder(out, float(origin["budget_s"])) / "history.csv" if origin.get("method") == "hybrid" else None
         if path is None or not path.exists():
             continue
-        found[name] = [{**r, "sim_steps": int(r["sim_steps"]) + origin["parent_sim_steps"],
-                        "wall_s": float(r["wall_s"]) + origin["parent_wall_s"]} for r in store.read_csv(path)]  # fmt: skip
+        found[name] = [
+            {
+                **r,
+                "sim_steps": int(r["sim_steps"]) + origin["parent_sim_steps"],
+                "wall_s": float(r["wall_s"]) + origin["parent_wall_s"],
+            }
+            for r in store.read_csv(path)
+        ]
     return found

@@ -117,8 +117,13 @@ def _margins(points: Array, p: Array) -> Array:
     return jax.vmap(metrics_lib.polygon_margin)(points, p)
 
 
-def loss_terms(trace: TuneTrace, lc: LossConfig, n_ticks: int | None = None,
-               control_dt: float = constants.CONTROL_DT, reference=None) -> dict:  # fmt: skip
+def loss_terms(
+    trace: TuneTrace,
+    lc: LossConfig,
+    n_ticks: int | None = None,
+    control_dt: float = constants.CONTROL_DT,
+    reference=None,
+) -> dict:
     """Per-rollout loss terms (each (), a mean over ticks) of one trace, on its first ``n_ticks``
     ticks (None: all; a prefix equals the loss of a rollout of that horizon). ``reference``: (foot
     normals (2, 3), support corners (F, 2)) that tilt and slip are measured from (default: the
@@ -145,8 +150,16 @@ def loss_terms(trace: TuneTrace, lc: LossConfig, n_ticks: int | None = None,
     com = jnp.mean(jnp.sum((b.com - b.com_ref) ** 2, -1)) / lc.com_scale**2
     effort = jnp.mean((b.tau / lc.torque_scale) ** 2)
     saturation = jnp.mean(jax.nn.relu(jnp.abs(b.tau) - 0.9 * lc.torque_limit) ** 2) / (0.1 * lc.torque_limit) ** 2
-    terms = {"capture": capture, "tilt": tilt, "slip": slip, "settle": settle, "height": height, "com": com,
-             "effort": effort, "saturation": saturation}  # fmt: skip
+    terms = {
+        "capture": capture,
+        "tilt": tilt,
+        "slip": slip,
+        "settle": settle,
+        "height": height,
+        "com": com,
+        "effort": effort,
+        "saturation": saturation,
+    }
     terms["total"] = sum(getattr(lc, f"w_{k}") * v for k, v in terms.items())
     return terms
 

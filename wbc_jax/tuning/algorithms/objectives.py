@@ -101,11 +101,17 @@ def make_population_objective(problem: tp.Problem, population: int, pushes: int,
         controls, reg = jax.vmap(lambda p: tp.controls_cast(problem, p))(params)
         take = lambda x: jnp.repeat(x, pushes, axis=0)  # noqa: E731  env e: candidate e // b, push e % b
         tile = lambda x: jnp.tile(jnp.asarray(x), (population,) + (1,) * (jnp.ndim(x) - 1))  # noqa: E731
-        per_env = (jax.tree_util.tree_map(take, controls), None if reg is None else jax.tree_util.tree_map(take, reg),
-                   jax.tree_util.tree_map(tile, scen))  # fmt: skip
+        per_env = (
+            jax.tree_util.tree_map(take, controls),
+            None if reg is None else jax.tree_util.tree_map(take, reg),
+            jax.tree_util.tree_map(tile, scen),
+        )
         per_env = jax.tree_util.tree_map(lambda x: _pad(x, size), per_env)
-        per_env = (tp.cast(dtype, per_env[0]), per_env[1] if per_env[1] is None else tp.cast(dtype, per_env[1]),
-                   per_env[2])  # fmt: skip
+        per_env = (
+            tp.cast(dtype, per_env[0]),
+            per_env[1] if per_env[1] is None else tp.cast(dtype, per_env[1]),
+            per_env[2],
+        )
         terms, metrics = run(*per_env)
         unflat = lambda x: x[:n_env].reshape((population, pushes) + x.shape[1:])  # noqa: E731
         terms, metrics = jax.tree_util.tree_map(unflat, (terms, metrics))

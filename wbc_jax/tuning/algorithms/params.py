@@ -69,14 +69,19 @@ def damping_ratio(kd, kp):
 
 def controls_of(gains: Gains, reg) -> dict:
     """The tuned groups {group: (k,) numpy} of a gain set and regularisation (2,)."""
-    g = {k: np.asarray(getattr(gains, k), float) for k in ("kp_com", "kd_com", "kp_ang", "ki_ang", "kp_postural",
-                                                            "kd_postural")}  # fmt: skip
+    g = {
+        k: np.asarray(getattr(gains, k), float)
+        for k in ("kp_com", "kd_com", "kp_ang", "ki_ang", "kp_postural", "kd_postural")
+    }
     return {
-        "kp_com": g["kp_com"], "zeta_com": damping_ratio(g["kd_com"], g["kp_com"]),
-        "ki_ang": g["ki_ang"], "zeta_ang": damping_ratio(g["kp_ang"], g["ki_ang"]),
-        "kp_postural": g["kp_postural"], "zeta_postural": damping_ratio(g["kd_postural"], g["kp_postural"]),
+        "kp_com": g["kp_com"],
+        "zeta_com": damping_ratio(g["kd_com"], g["kp_com"]),
+        "ki_ang": g["ki_ang"],
+        "zeta_ang": damping_ratio(g["kp_ang"], g["ki_ang"]),
+        "kp_postural": g["kp_postural"],
+        "zeta_postural": damping_ratio(g["kd_postural"], g["kp_postural"]),
         "regularisation": np.asarray(reg, float).reshape(2),
-    }  # fmt: skip
+    }
 
 
 def default_bounds(base: Gains, factor: float = 10.0, zeta_range=(0.02, 2.0), reg=None) -> Bounds:
@@ -113,8 +118,10 @@ def tracking_bounds(bounds: Bounds, base: Gains, kp_com_floor: float, yaw_fracti
     lo["zeta_ang"][2] = max(lo["zeta_ang"][2], yaw_fraction * float(c["zeta_ang"][2]))
     for k, v in lo.items():
         if np.any(v >= np.asarray(bounds.hi[k])):
-            raise ValueError(f"tracking bounds: {k} lower bound {v.tolist()} reaches its upper bound "
-                             f"{np.asarray(bounds.hi[k]).tolist()}")  # fmt: skip
+            raise ValueError(
+                f"tracking bounds: {k} lower bound {v.tolist()} reaches its upper bound "
+                f"{np.asarray(bounds.hi[k]).tolist()}"
+            )
     return Bounds(lo={k: jnp.asarray(v) for k, v in lo.items()}, hi=bounds.hi)
 
 
@@ -135,11 +142,14 @@ def params_to_controls(params: dict, bounds: Bounds, base: Gains) -> tuple[Gains
         v[k] = jnp.exp(llo + jax.nn.sigmoid(params[k]) * (lhi - llo))
     dtype = v["kp_com"].dtype
     gains = Gains(
-        kp_com=v["kp_com"], kd_com=2.0 * v["zeta_com"] * jnp.sqrt(v["kp_com"]),
+        kp_com=v["kp_com"],
+        kd_com=2.0 * v["zeta_com"] * jnp.sqrt(v["kp_com"]),
         ki_com=jnp.asarray(base.ki_com, dtype),
-        kp_ang=2.0 * v["zeta_ang"] * jnp.sqrt(v["ki_ang"]), ki_ang=v["ki_ang"],
-        kp_postural=v["kp_postural"], kd_postural=2.0 * v["zeta_postural"] * jnp.sqrt(v["kp_postural"]),
-    )  # fmt: skip
+        kp_ang=2.0 * v["zeta_ang"] * jnp.sqrt(v["ki_ang"]),
+        ki_ang=v["ki_ang"],
+        kp_postural=v["kp_postural"],
+        kd_postural=2.0 * v["zeta_postural"] * jnp.sqrt(v["kp_postural"]),
+    )
     reg = None
     if "regularisation" in v:
         reg = {name: v["regularisation"][..., i] for i, name in enumerate(REGULARISATION)}
@@ -180,8 +190,10 @@ def check_in_bounds(gains: Gains, reg, bounds: Bounds, source: str = "gains", rt
             out = np.flatnonzero((v < lo * (1 - rtol)) | (v > hi * (1 + rtol)))
             if out.size:
                 i = int(out[0])
-                problems.append(f"{k} is outside its bounds at entries {out.tolist()} (e.g. [{i}] = {v[i]:.4g} "
-                                f"not in [{lo[i]:.4g}, {hi[i]:.4g}])")  # fmt: skip
+                problems.append(
+                    f"{k} is outside its bounds at entries {out.tolist()} (e.g. [{i}] = {v[i]:.4g} "
+                    f"not in [{lo[i]:.4g}, {hi[i]:.4g}])"
+                )
     if problems:
         raise ValueError(f"{source}: " + "; ".join(problems))
 
@@ -193,10 +205,17 @@ def nava_conditions(gains: Gains, reg) -> dict:
     {"holds": bool, "min_gain": float, "zeta_com": [...], "zeta_ang": [...],
     "zeta_postural_min": float, "zeta_postural_max": float}."""
     c = controls_of(gains, reg)
-    positive = [np.asarray(getattr(gains, k), float) for k in ("kp_com", "kd_com", "kp_ang", "ki_ang", "kp_postural",
-                                                                "kd_postural")] + [c["regularisation"]]  # fmt: skip
+    positive = [
+        np.asarray(getattr(gains, k), float)
+        for k in ("kp_com", "kd_com", "kp_ang", "ki_ang", "kp_postural", "kd_postural")
+    ] + [c["regularisation"]]
     min_gain = float(min(np.min(v) for v in positive))
     finite = all(np.all(np.isfinite(v)) for v in positive)
-    return {"holds": bool(finite and min_gain > 0), "min_gain": min_gain, "zeta_com": c["zeta_com"].tolist(),
-            "zeta_ang": c["zeta_ang"].tolist(), "zeta_postural_min": float(c["zeta_postural"].min()),
-            "zeta_postural_max": float(c["zeta_postural"].max())}  # fmt: skip
+    return {
+        "holds": bool(finite and min_gain > 0),
+        "min_gain": min_gain,
+        "zeta_com": c["zeta_com"].tolist(),
+        "zeta_ang": c["zeta_ang"].tolist(),
+        "zeta_postural_min": float(c["zeta_postural"].min()),
+        "zeta_postural_max": float(c["zeta_postural"].max()),
+    }

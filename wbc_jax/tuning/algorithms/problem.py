@@ -60,8 +60,10 @@ def load_envelope(path) -> tuple[np.ndarray, np.ndarray]:
     except (AttributeError, KeyError, TypeError, ValueError):
         az = imp = np.zeros(0)
     if az.size == 0 or az.shape != imp.shape or not np.all(np.isfinite(imp)) or np.any(imp <= 0):
-        raise ValueError(f"envelope file {path}: needs matching azimuth_deg and positive impulse_ns lists, "
-                         "or the summary.json of wbc-jax envelope")  # fmt: skip
+        raise ValueError(
+            f"envelope file {path}: needs matching azimuth_deg and positive impulse_ns lists, "
+            "or the summary.json of wbc-jax envelope"
+        )
     order = np.argsort(az % 360.0)
     return az[order] % 360.0, imp[order]
 
@@ -101,8 +103,9 @@ def batch_rng(seed: int, stream: int, k: int) -> np.random.Generator:
     return np.random.default_rng([int(seed), int(stream), int(k)])
 
 
-def sample_pushes(tc: TuneConfig, robot: model_lib.Robot, table, rng: np.random.Generator, size: int,
-                  dtype=np.float32) -> tuple[Scenario, dict]:  # fmt: skip
+def sample_pushes(
+    tc: TuneConfig, robot: model_lib.Robot, table, rng: np.random.Generator, size: int, dtype=np.float32
+) -> tuple[Scenario, dict]:
     """``size`` pushes of the training distribution (module docstring): (Scenario with a leading
     axis of ``size`` (its gains are the robot's defaults, unused by the objectives), numpy columns)."""
     n = robot.index.n
@@ -125,13 +128,17 @@ def pushes_at(robot, az, impulse, body, duration, onset, friction, mass, offsets
     u = np.stack([np.cos(np.deg2rad(az)), np.sin(np.deg2rad(az)), np.zeros(B)], 1)
     base = default_gains(robot.description)
     scen = Scenario(
-        push=Push(force=((impulse / duration)[:, None] * u)[:, None, :].astype(dtype),
-                  onset=np.full((B, 1), onset, dtype), duration=duration[:, None].astype(dtype),
-                  body=np.asarray(body, np.int32).reshape(B, 1)),
+        push=Push(
+            force=((impulse / duration)[:, None] * u)[:, None, :].astype(dtype),
+            onset=np.full((B, 1), onset, dtype),
+            duration=duration[:, None].astype(dtype),
+            body=np.asarray(body, np.int32).reshape(B, 1),
+        ),
         gains=jax.tree_util.tree_map(lambda x: np.broadcast_to(np.asarray(x, dtype), (B,) + np.shape(x)), base),
-        joint_offset=np.asarray(offsets, dtype), friction=np.asarray(friction, dtype),
+        joint_offset=np.asarray(offsets, dtype),
+        friction=np.asarray(friction, dtype),
         mass_scale=np.asarray(mass, dtype),
-    )  # fmt: skip
+    )
     cols = {
         "azimuth_deg": az,
         "impulse_ns": impulse,
@@ -180,8 +187,9 @@ class Problem:
     def init_params(self) -> dict:
         """The unconstrained start of the search: {group: (k,)}, or for a schedule {"base": {group:
         (k,)}, "weights": {group: (k, F)}} (weights 0: the plain start)."""
-        plain = tuning_params.controls_to_params(self.init, self.reg0, self.bounds,
-                                                 regularisation=self.tc.tune_regularisation)  # fmt: skip
+        plain = tuning_params.controls_to_params(
+            self.init, self.reg0, self.bounds, regularisation=self.tc.tune_regularisation
+        )
         return gain_schedule.init_params(plain) if self.scheduled else plain
 
     @property
@@ -209,8 +217,14 @@ def checkpoint_setting(name: str):
     return {"tick": True, "none": False, "dots": "checkpoint_dots"}[name]
 
 
-def make_problem(tc: TuneConfig, lc: tuning_loss.LossConfig | None = None, *, horizon: float | None = None, checkpoint: bool | str | None = None,
-                 backend: str = "jax") -> Problem:  # fmt: skip
+def make_problem(
+    tc: TuneConfig,
+    lc: tuning_loss.LossConfig | None = None,
+    *,
+    horizon: float | None = None,
+    checkpoint: bool | str | None = None,
+    backend: str = "jax",
+) -> Problem:
     """Check the inputs (gains file inside the bounds, bodies) and build the tuning closed loop
     (stand task, perturbed plant, a :class:`~wbc_jax.tuning.algorithms.loss.TuneTrace` per tick, the gain
     schedule evaluated at each tick with ``parameterisation == "scheduled"``). ``horizon``: seconds
@@ -225,35 +239,55 @@ def make_problem(tc: TuneConfig, lc: tuning_loss.LossConfig | None = None, *, ho
     reg0 = tuning_params.default_regularisation()
     bounds = tuning_params.default_bounds(base, tc.bound_factor, tc.zeta_range, reg0)
     if tc.keep_tracking:
-        bounds = tuning_params.tracking_bounds(bounds, base, constants.TRACKING_KP_COM_FLOOR,
-                                               constants.TRACKING_YAW_FRACTION)  # fmt: skip
+        bounds = tuning_params.tracking_bounds(
+            bounds, base, constants.TRACKING_KP_COM_FLOOR, constants.TRACKING_YAW_FRACTION
+        )
     init = base
     if tc.init_gains is not None:
         init = load_gains(tc.init_gains, robot.index.n, dtype)
         tuning_params.check_in_bounds(init, reg0, bounds, source=f"--init-gains {tc.init_gains}")
     table = envelope_table(tc, robot)
     sim = SimConfig(
-        record=False, push_body=tc.train_bodies[0], perturb_plant=True,
-        physics=physics.PhysicsConfig(backend=backend, solver_iterations=tc.solver_iterations,
-                                      ls_iterations=tc.ls_iterations),
-    )  # fmt: skip
-    st = scenario.setup("stand", duration=tc.horizon if horizon is None else horizon, sim=sim, gains=base,
-                        controller=tc.controller.config(),
-                        scene=scenario.load_scene(tc.robot, tc.controller.tasks))  # fmt: skip
+        record=False,
+        push_body=tc.train_bodies[0],
+        perturb_plant=True,
+        physics=physics.PhysicsConfig(
+            backend=backend, solver_iterations=tc.solver_iterations, ls_iterations=tc.ls_iterations
+        ),
+    )
+    st = scenario.setup(
+        "stand",
+        duration=tc.horizon if horizon is None else horizon,
+        sim=sim,
+        gains=base,
+        controller=tc.controller.config(),
+        scene=scenario.load_scene(tc.robot, tc.controller.tasks),
+    )
     loop = tuning_loss.tuning_loop(st.loop, checkpoint_setting(tc.checkpoint) if checkpoint is None else checkpoint)
     if tc.parameterisation == "scheduled":
         loop = gain_schedule.scheduled_loop(loop)
     iterations = tc.solver_iterations or int(robot.mj_model.opt.iterations)
-    return Problem(tc=tc, lc=lc, setup=st, loop=loop, base=base, reg0=reg0, init=init,
-                   bounds=bounds, table=table, iterations=iterations)  # fmt: skip
+    return Problem(
+        tc=tc,
+        lc=lc,
+        setup=st,
+        loop=loop,
+        base=base,
+        reg0=reg0,
+        init=init,
+        bounds=bounds,
+        table=table,
+        iterations=iterations,
+    )
 
 
 def with_backend(problem: Problem, backend: str) -> Problem:
     """The same problem on another physics engine (forward objectives: searches, window starts)."""
     if problem.loop.backend == backend:
         return problem
-    return make_problem(problem.tc, problem.lc, horizon=problem.setup.loop.cfg.duration, checkpoint=False,
-                        backend=backend)  # fmt: skip
+    return make_problem(
+        problem.tc, problem.lc, horizon=problem.setup.loop.cfg.duration, checkpoint=False, backend=backend
+    )
 
 
 # The carry seeding of :func:`rollout` (one implementation, shared with the limit job's optimiser).
@@ -293,8 +327,9 @@ def rollout_fn(problem: Problem, n_ticks: int | None = None, *, batch: int = 1):
             seed = scen.friction + sum(jnp.sum(x) for x in jax.tree_util.tree_leaves((gains, reg)))
             metrics, trace = rollout(loop, plant, qpos, gains, scen.push, reg, seed)
         else:
-            metrics, trace = mjx_loop.rollout(loop, plant, qpos, gains, scen.push, controller_overrides=reg,
-                                              batch=batch)  # fmt: skip
+            metrics, trace = mjx_loop.rollout(
+                loop, plant, qpos, gains, scen.push, controller_overrides=reg, batch=batch
+            )
         return tuning_loss.loss_terms(trace, problem.lc, n_ticks, loop.cfg.control_dt), metrics
 
     return env
@@ -350,8 +385,11 @@ def make_env_objective(problem: Problem):
 def survival_stats(metrics) -> dict:
     """Strict survival and the lax upright rate of a batch's Metrics (host side)."""
     cols = metrics_lib.summarize(jax.tree_util.tree_map(lambda x: np.asarray(x).reshape(-1), metrics))
-    return {"survival_rate": float(np.mean(cols["survived"])), "upright_rate": float(np.mean(cols["upright"])),
-            "qp_infeasible_rate": float(np.mean(np.asarray(cols["qp_infeasible_ticks"]) > 0))}  # fmt: skip
+    return {
+        "survival_rate": float(np.mean(cols["survived"])),
+        "upright_rate": float(np.mean(cols["upright"])),
+        "qp_infeasible_rate": float(np.mean(np.asarray(cols["qp_infeasible_ticks"]) > 0)),
+    }
 
 
 def constants_used() -> dict:

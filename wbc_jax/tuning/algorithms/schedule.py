@@ -87,17 +87,30 @@ class GainSchedule:
         return self._gains(self.values(jnp.zeros(len(FEATURES), self.origin.dtype)))
 
     def _gains(self, v: dict) -> Gains:
-        return Gains(kp_com=v["kp_com"], kd_com=2.0 * v["zeta_com"] * jnp.sqrt(v["kp_com"]), ki_com=self.ki_com,
-                     kp_ang=2.0 * v["zeta_ang"] * jnp.sqrt(v["ki_ang"]), ki_ang=v["ki_ang"],
-                     kp_postural=v["kp_postural"],
-                     kd_postural=2.0 * v["zeta_postural"] * jnp.sqrt(v["kp_postural"]))  # fmt: skip
+        return Gains(
+            kp_com=v["kp_com"],
+            kd_com=2.0 * v["zeta_com"] * jnp.sqrt(v["kp_com"]),
+            ki_com=self.ki_com,
+            kp_ang=2.0 * v["zeta_ang"] * jnp.sqrt(v["ki_ang"]),
+            ki_ang=v["ki_ang"],
+            kp_postural=v["kp_postural"],
+            kd_postural=2.0 * v["zeta_postural"] * jnp.sqrt(v["kp_postural"]),
+        )
 
     def to_dict(self) -> dict:
         arr = lambda t: {k: np.asarray(v, float).tolist() for k, v in t.items()}  # noqa: E731
-        return {"kind": KIND, "features": list(FEATURES), "position_scale_m": POSITION_SCALE_M,
-                "speed_scale_mps": SPEED_SCALE_MPS, "base": arr(self.base), "weights": arr(self.weights),
-                "lo": arr(self.lo), "hi": arr(self.hi), "ki_com": np.asarray(self.ki_com, float).tolist(),
-                "origin": np.asarray(self.origin, float).tolist()}  # fmt: skip
+        return {
+            "kind": KIND,
+            "features": list(FEATURES),
+            "position_scale_m": POSITION_SCALE_M,
+            "speed_scale_mps": SPEED_SCALE_MPS,
+            "base": arr(self.base),
+            "weights": arr(self.weights),
+            "lo": arr(self.lo),
+            "hi": arr(self.hi),
+            "ki_com": np.asarray(self.ki_com, float).tolist(),
+            "origin": np.asarray(self.origin, float).tolist(),
+        }
 
 
 def size(schedule_params: dict) -> int:
@@ -113,9 +126,14 @@ def init_params(plain: dict) -> dict:
 
 def from_params(params: dict, bounds, ki_com, origin) -> GainSchedule:
     """The :class:`GainSchedule` of schedule parameters, with the tuning bounds (differentiable)."""
-    return GainSchedule(base=params["base"], weights=params["weights"], lo={k: bounds.lo[k] for k in GROUPS},
-                        hi={k: bounds.hi[k] for k in GROUPS}, ki_com=jnp.asarray(ki_com),
-                        origin=jnp.asarray(origin))  # fmt: skip
+    return GainSchedule(
+        base=params["base"],
+        weights=params["weights"],
+        lo={k: bounds.lo[k] for k in GROUPS},
+        hi={k: bounds.hi[k] for k in GROUPS},
+        ki_com=jnp.asarray(ki_com),
+        origin=jnp.asarray(origin),
+    )
 
 
 def is_schedule_file(path) -> bool:

@@ -94,16 +94,20 @@ def make_sampler(fwd: tp.Problem, rollouts: int, windows: int, mesh=None):
     def one(controls, reg, scen, ticks):
         plant = physics.plant_model(nominal, scen.friction, scen.mass_scale)
         qpos = loop.initial_qpos(qpos0, scen.joint_offset)
-        metrics, (trace, (q, v, state)) = mjx_loop.rollout(loop, plant, qpos, controls, scen.push,
-                                                           controller_overrides=reg, batch=per_device)  # fmt: skip
+        metrics, (trace, (q, v, state)) = mjx_loop.rollout(
+            loop, plant, qpos, controls, scen.push, controller_overrides=reg, batch=per_device
+        )
         pick = lambda x: x[ticks]  # noqa: E731
         K = ticks.shape[0]
         start = WindowStart(
             scen=jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (K, *jnp.shape(x))), scen),
-            qpos=pick(q), qvel=pick(v), state=jax.tree_util.tree_map(pick, state), tick=ticks,
+            qpos=pick(q),
+            qvel=pick(v),
+            state=jax.tree_util.tree_map(pick, state),
+            tick=ticks,
             normal0=jnp.broadcast_to(trace.foot_normal[0], (K, *trace.foot_normal.shape[1:])),
             support0=jnp.broadcast_to(trace.base.support_xy[0], (K, *trace.base.support_xy.shape[1:])),
-        )  # fmt: skip
+        )
         return start, tuning_loss.loss_terms(trace, fwd.lc, None, loop.cfg.control_dt), metrics
 
     def batch(scen, ticks, controls, reg):

@@ -43,9 +43,10 @@ from wbc_jax.tuning.algorithms import gradient as tuning
 from wbc_jax.tuning.algorithms import problem as tp
 from wbc_jax.tuning.algorithms.loss import LossConfig
 from wbc_jax.tuning.algorithms.params import nava_conditions
-from wbc_jax.tuning.config import HeldoutConfig, TuneConfig, heldout_default_config
+from wbc_jax.tuning.config import TuneConfig
+from wbc_jax.tuning.heldout_config import HeldoutConfig, heldout_default_config
 from wbc_jax.tuning.orchestration import heldout as tuning_eval
-from wbc_jax.tuning.orchestration import race
+from wbc_jax.tuning.orchestration import heldout_report, prediction, race
 
 
 def _search_times(tc: TuneConfig, kind: str) -> list:
@@ -59,13 +60,24 @@ def _search_times(tc: TuneConfig, kind: str) -> list:
 
 def _inputs(tc: TuneConfig, hc: HeldoutConfig | None = None) -> dict:
     """The run's input files by role (each recorded with its sha256 in every result the run writes)."""
-    return {"init_gains": tc.init_gains, "envelope": tc.envelope, "tasks": tc.controller.tasks,
-            **(tuning_eval.set_files(hc.sets, describe(tc.robot)) if hc is not None else {})}  # fmt: skip
+    return {
+        "init_gains": tc.init_gains,
+        "envelope": tc.envelope,
+        "tasks": tc.controller.tasks,
+        **(tuning_eval.set_files(hc.sets, describe(tc.robot)) if hc is not None else {}),
+    }
 
 
 def _write(out: pathlib.Path, problem: tp.Problem, name: str, controls, reg, origin: dict) -> None:
-    store.write_controls(out / "gains", name, controls, reg, origin, regularisation=problem.tc.tune_regularisation,
-                         inputs=_inputs(problem.tc))  # fmt: skip
+    store.write_controls(
+        out / "gains",
+        name,
+        controls,
+        reg,
+        origin,
+        regularisation=problem.tc.tune_regularisation,
+        inputs=_inputs(problem.tc),
+    )
 
 
 def _gradient_sets(problem: tp.Problem, out: pathlib.Path, rows: list) -> None:
@@ -93,30 +105,53 @@ def _gradient_sets(problem: tp.Problem, out: pathlib.Path, rows: list) -> None:
             )
     else:
         controls, reg = tuning.snapshot_controls(problem, folder, len(rows) - 1)
-        _write(out, problem, "gradient", controls, reg, {"method": "gradient", "step": len(rows) - 1,
-                                                         "sim_steps": int(rows[-1]["sim_steps"]),
-                                                         "wall_s": float(rows[-1]["wall_s"])})  # fmt: skip
+        _write(
+            out,
+            problem,
+            "gradient",
+            controls,
+            reg,
+            {
+                "method": "gradient",
+                "step": len(rows) - 1,
+                "sim_steps": int(rows[-1]["sim_steps"]),
+                "wall_s": float(rows[-1]["wall_s"]),
+            },
+        )
 
 
 def _search_sets(problem: tp.Problem, out: pathlib.Path, kind: str, res: dict) -> None:
     tc = problem.tc
     if tc.budget_s > 0:
-        picks = [(store.set_name(kind, None if t == tc.budget_s else t), res["at"][t], t)
-                 for t in _search_times(tc, kind)]  # fmt: skip
+        picks = [
+            (store.set_name(kind, None if t == tc.budget_s else t), res["at"][t], t) for t in _search_times(tc, kind)
+        ]
     else:
         picks = [(kind, res["equal_steps"], None)]
         if res["equal_wall"]["reached"]:
             picks.append((f"{kind}_wall", res["equal_wall"], None))
     for name, e, t in picks:
-        _write(out, problem, name, *e["controls"], {"method": kind, "budget_s": t, "generation": e["generation"],
-                                                    "sim_steps": e["sim_steps"], "wall_s": e["wall_s"]})  # fmt: skip
+        _write(
+            out,
+            problem,
+            name,
+            *e["controls"],
+            {
+                "method": kind,
+                "budget_s": t,
+                "generation": e["generation"],
+                "sim_steps": e["sim_steps"],
+                "wall_s": e["wall_s"],
+            },
+        )
 
 
 def _gradient_budget(out: pathlib.Path) -> dict:
     path = out / "gradient" / "history.csv"
     if not path.exists():
-        raise ValueError("the searches at equal steps need the gradient run's budget: run --phases train first "
-                         "(or give --budget-s)")  # fmt: skip
+        raise ValueError(
+            "the searches at equal steps need the gradient run's budget: run --phases train first (or give --budget-s)"
+        )
     rows = store.read_csv(path)
     return {"sim_steps": int(rows[-1]["sim_steps"]), "wall_s": float(rows[-1]["wall_s"])}
 
@@ -144,8 +179,15 @@ def tuned_sets(problem: tp.Problem, out: pathlib.Path) -> dict:
     return sets
 
 
-def run(cfg: TuneConfig | None = None, hc: HeldoutConfig | None = None, *, lc: LossConfig | None = None,
-        progress: bool = True, mesh=None, **overrides) -> dict:  # fmt: skip
+def run(
+    cfg: TuneConfig | None = None,
+    hc: HeldoutConfig | None = None,
+    *,
+    lc: LossConfig | None = None,
+    progress: bool = True,
+    mesh=None,
+    **overrides,
+) -> dict:
     """The ``tune`` job (module docstring). ``overrides``: fields of :class:`TuneConfig`. Returns the
     summary of what ran (phase timings, and the held-out rows once reported)."""
     tc = options.replace(tuning.default_config() if cfg is None else cfg, **overrides)
@@ -156,17 +198,29 @@ def run(cfg: TuneConfig | None = None, hc: HeldoutConfig | None = None, *, lc: L
     problem = tp.make_problem(tc, lc)
     reference = tuning_eval.load_sets(hc.sets, problem.robot.description, problem.setup.dtype)  # checked first
     files = _inputs(tc, hc)
-    fp = runs.fingerprint({"tune": {k: v for k, v in flat_dict(tc).items() if k not in ("out", "phases")},
-                           "heldout": {k: v for k, v in flat_dict(hc).items() if k != "out"},
-                           "loss": dataclasses.asdict(lc), "dtype": str(scenario.float_dtype())},
-                          list(files.values()), tc.robot)  # fmt: skip
+    fp = runs.fingerprint(
+        {
+            "tune": {k: v for k, v in flat_dict(tc).items() if k not in ("out", "phases")},
+            "heldout": {k: v for k, v in flat_dict(hc).items() if k != "out"},
+            "loss": dataclasses.asdict(lc),
+            "dtype": str(scenario.float_dtype()),
+        },
+        list(files.values()),
+        tc.robot,
+    )
     runs.claim_output_dir(out, "tune", fp, resume=True)
     if "hybrid" in tc.phases and hybrid.PARENT not in tc.phases:  # its parents are there already, or an error now
         for t in race.budgets(tc):
             hybrid.parent(problem, out, t)
-    io.atomic_write_json(out / "config.json", {"tune": flat_dict(tc), "heldout": flat_dict(hc),
-                                               "loss": dataclasses.asdict(lc),
-                                               "provenance": provenance.record(files)})  # fmt: skip
+    io.atomic_write_json(
+        out / "config.json",
+        {
+            "tune": flat_dict(tc),
+            "heldout": flat_dict(hc),
+            "loss": dataclasses.asdict(lc),
+            "provenance": provenance.record(files),
+        },
+    )
     timings_path = out / "timings.json"
     timings = json.loads(timings_path.read_text()) if timings_path.exists() else {}
 
@@ -181,23 +235,26 @@ def run(cfg: TuneConfig | None = None, hc: HeldoutConfig | None = None, *, lc: L
 
     summary: dict = {"phases": list(tc.phases)}
     if "predict" in tc.phases:
-        pred = timed("predict", lambda: tuning_eval.survival_prediction(problem, tc.eval_pushes, out=out))
+        pred = timed("predict", lambda: prediction.survival_prediction(problem, tc.eval_pushes, out=out))
         summary["predict"] = {k: pred[k] for k in ("n", "survival_rate", "spearman_train_horizon", "auc_train_horizon")}
     # One gradient program for training and the quality figures (compiled once).
     step = None
     if "train" in tc.phases or "quality" in tc.phases:
         step = tuning.GradientStep(problem, tuning.make_optimizer(tc.lr, tc.clip_norm), mesh)
     if "train" in tc.phases:
-        _, _, rows, info = timed("train", lambda: tuning.train(problem, out / "gradient", progress=progress, mesh=mesh,
-                                                               step_fn=step))  # fmt: skip
+        _, _, rows, info = timed(
+            "train", lambda: tuning.train(problem, out / "gradient", progress=progress, mesh=mesh, step_fn=step)
+        )
         _gradient_sets(problem, out, rows)
         summary["train"] = {k: info.get(k) for k in ("compile_s", "step_s_median", "gradient_physics_steps_per_s")}
     if "quality" in tc.phases:
         from wbc_jax.tuning.orchestration import quality
 
         q = timed("quality", lambda: quality.measure(problem, out, mesh=mesh, progress=progress, step=step))
-        summary["quality"] = {k: {m: e[m] for m in ("cosine_zeroth_order", "directional_correlation") if m in e}
-                              for k, e in q["estimates"].items()}  # fmt: skip
+        summary["quality"] = {
+            k: {m: e[m] for m in ("cosine_zeroth_order", "directional_correlation") if m in e}
+            for k, e in q["estimates"].items()
+        }
     if "profile" in tc.phases:
         from wbc_jax.tuning.orchestration import profile
 
@@ -205,15 +262,21 @@ def run(cfg: TuneConfig | None = None, hc: HeldoutConfig | None = None, *, lc: L
     for kind in tc.searches:
         budget = {"sim_steps": 0, "wall_s": 0.0} if tc.budget_s > 0 else _gradient_budget(out)
         times = _search_times(tc, kind) if tc.budget_s else ()
-        res = timed(kind, lambda k=kind, b=budget, t=times: baselines.search(problem, k, out / k, budget=b, times=t,
-                                                                              progress=progress, mesh=mesh))  # fmt: skip
+        res = timed(
+            kind,
+            lambda k=kind, b=budget, t=times: baselines.search(
+                problem, k, out / k, budget=b, times=t, progress=progress, mesh=mesh
+            ),
+        )
         _search_sets(problem, out, kind, res)
     if "hybrid" in tc.phases:
         refined = timed("hybrid", lambda: hybrid.run(problem, out, race.budgets(tc), progress=progress, mesh=mesh))
         for name, (controls, reg, origin) in refined.items():
             _write(out, problem, name, controls, reg, origin)
-        summary["hybrid"] = {n: {k: o[k] for k in ("parent", "step", "gradient_wall_s", "sim_steps", "wall_s")}
-                             for n, (_, _, o) in refined.items()}  # fmt: skip
+        summary["hybrid"] = {
+            n: {k: o[k] for k in ("parent", "step", "gradient_wall_s", "sim_steps", "wall_s")}
+            for n, (_, _, o) in refined.items()
+        }
     if "heldout" in tc.phases:
         sets = {**reference, **tuned_sets(problem, out)}
         results = timed("heldout", lambda: tuning_eval.heldout(sets, hc, out / "heldout", progress=progress))
@@ -238,23 +301,36 @@ def report(problem: tp.Problem, out: pathlib.Path, hc: HeldoutConfig, reference:
         **{n: str(out / "gains" / f"{n}.json") for n in index},
     }
     budgets = {n: {"sim_steps": e.get("sim_steps", 0), "wall_s": e.get("wall_s", 0.0)} for n, e in index.items()}
-    extra = {"config": {"tune": flat_dict(tc), "heldout": flat_dict(hc)},
-             "nava_2016": {n: nava_conditions(c, r) for n, (c, r) in sets.items() if hasattr(c, "kp_com")}}  # fmt: skip
+    extra = {
+        "config": {"tune": flat_dict(tc), "heldout": flat_dict(hc)},
+        "nava_2016": {n: nava_conditions(c, r) for n, (c, r) in sets.items() if hasattr(c, "kp_com")},
+    }
     for name in ("prediction", "quality"):
         if (out / f"{name}.json").exists():
-            extra[name] = {k: v for k, v in json.loads((out / f"{name}.json").read_text()).items()
-                           if not isinstance(v, list)}  # fmt: skip
-    rep = tuning_eval.write_heldout(out / "heldout.json", results, budgets, extra=extra,
-                                    inputs={**files, "tasks": tc.controller.tasks, "init_gains": tc.init_gains})  # fmt: skip
+            extra[name] = {
+                k: v for k, v in json.loads((out / f"{name}.json").read_text()).items() if not isinstance(v, list)
+            }
+    rep = heldout_report.write_heldout(
+        out / "heldout.json",
+        results,
+        budgets,
+        extra=extra,
+        inputs={**files, "tasks": tc.controller.tasks, "init_gains": tc.init_gains},
+    )
     tuning_plots.envelope_polar({n: rep[n] for n in sets if n in rep and "_t" not in n}, out / "envelope_polar.png")
-    histories = {k: store.read_csv(out / k / "history.csv") for k in ("gradient", *baselines.KINDS)
-                 if (out / k / "history.csv").exists()}  # fmt: skip
+    histories = {
+        k: store.read_csv(out / k / "history.csv")
+        for k in ("gradient", *baselines.KINDS)
+        if (out / k / "history.csv").exists()
+    }
     histories.update(hybrid.histories(out, index))
     tuning_plots.learning_curves(histories, out / "learning_curves.png")
-    line = {n: {k: rep[n][k] for k in tuning_eval.SUMMARY_KEYS} for n in sets if n in rep}
+    line = {n: {k: rep[n][k] for k in heldout_report.SUMMARY_KEYS} for n in sets if n in rep}
     if tc.budget_s > 0:
         race_report = race.write(out, problem, rep, index, histories)
         line = {"sets": line, "race": race_report["verdict"], "recommended": race_report["recommended"]}
-    io.atomic_write_json(out / "summary.json", {"sets": line, "targets": rep["targets"],
-                                                "provenance": provenance.record(_inputs(tc, hc))})  # fmt: skip
+    io.atomic_write_json(
+        out / "summary.json",
+        {"sets": line, "targets": rep["targets"], "provenance": provenance.record(_inputs(tc, hc))},
+    )
     return line

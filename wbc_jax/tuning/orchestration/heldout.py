@@ -5,7 +5,7 @@ What a gain set is judged on, none of which the tuning loss saw (S gain sets; :c
 * the push grid of ``docs/sweep_h100`` (the trunk, 0.1 s at 0.5 s, M magnitudes x D directions, 3 s),
   on the held-out backend: strict survival rate, envelope (largest survived impulse per direction)
   as a fraction of the feet-in-place LIP bound, min / median over directions;
-* unseen variations (:data:`wbc_jax.tuning.config.VARIATIONS`): pushes on the left hand (the body of
+* unseen variations (:data:`wbc_jax.tuning.heldout_config.VARIATIONS`): pushes on the left hand (the body of
   the robot's ``left_hand`` role) and the right thigh, durations 0.02 s and 0.5 s, floor
   friction 0.5, and pushes during the single-support phase of the one-foot task;
 * the 20 s CoM sinusoid of the seed (``balance``'s task): CoM RMSE (<= 1.5 mm to keep the seed's
@@ -13,8 +13,9 @@ What a gain set is judged on, none of which the tuning loss saw (S gain sets; :c
 
 A gain set is a Gains or a :class:`~wbc_jax.tuning.algorithms.schedule.GainSchedule` with its regularisation;
 all sets of one kind and regularisation run as one batch (one compiled program per task; gains are
-data), in chunks written as Parquet parts (resumable). :func:`write_heldout` writes heldout.json
-with its provenance; :func:`run` is the ``wbc-jax heldout`` job on gains files.
+data), in chunks written as Parquet parts (resumable).
+:func:`~wbc_jax.tuning.orchestration.heldout_report.write_heldout` writes heldout.json with its provenance;
+:func:`run` is the ``wbc-jax heldout`` job on gains files.
 """
 
 from __future__ import annotations
@@ -23,29 +24,26 @@ import dataclasses
 import hashlib
 import json
 import pathlib
-import time
 
 import jax
 import numpy as np
 
 from wbc_jax.control.controller import ControllerConfig
 from wbc_jax.control.gains import Gains, default_gains, load_gains
-from wbc_jax.core import constants, io, provenance
+from wbc_jax.core import io
 from wbc_jax.core.options import flat_dict
 from wbc_jax.jobs import chunks, grids, runs, sweep, sweep_config, sweep_table
 from wbc_jax.report import tuning_plots
-from wbc_jax.report.tuning_plots import survival_vs_loss
 from wbc_jax.robot.description import RobotDescription
 from wbc_jax.robot.robots import describe
 from wbc_jax.sim import metrics as metrics_lib
-from wbc_jax.sim import mjx_loop, physics, runner, scenario
+from wbc_jax.sim import physics, runner, scenario
 from wbc_jax.sim.state import Push, Scenario, SimConfig
 from wbc_jax.tuning import store
-from wbc_jax.tuning.algorithms import loss as tuning_loss
 from wbc_jax.tuning.algorithms import params as tuning_params
-from wbc_jax.tuning.algorithms import problem as tp
 from wbc_jax.tuning.algorithms import schedule as gain_schedule
-from wbc_jax.tuning.config import VARIATIONS, HeldoutConfig, heldout_default_config
+from wbc_jax.tuning.heldout_config import VARIATIONS, HeldoutConfig, heldout_default_config
+from wbc_jax.tuning.orchestration.heldout_report import SUMMARY_KEYS, write_heldout
 
 
 def load_sets(specs, robot: RobotDescription, dtype, regularisation=None) -> dict:
@@ -129,17 +127,29 @@ def _scenarios(robot, rows: dict, stacked, dtype) -> Scenario:
     u = np.stack([np.cos(np.deg2rad(az)), np.sin(np.deg2rad(az)), np.zeros(B)], 1)
     g = np.asarray(rows["gain_set"], int)
     return Scenario(
-        push=Push(force=(np.asarray(rows["magnitude_n"])[:, None] * u)[:, None, :].astype(dtype),
-                  onset=np.full((B, 1), rows["onset"], dtype), duration=np.asarray(rows["duration_s"], dtype)[:, None],
-                  body=np.asarray(rows["body"], np.int32)[:, None]),
+        push=Push(
+            force=(np.asarray(rows["magnitude_n"])[:, None] * u)[:, None, :].astype(dtype),
+            onset=np.full((B, 1), rows["onset"], dtype),
+            duration=np.asarray(rows["duration_s"], dtype)[:, None],
+            body=np.asarray(rows["body"], np.int32)[:, None],
+        ),
         gains=jax.tree_util.tree_map(lambda x: x[g], stacked),
-        joint_offset=np.zeros((B, robot.index.n), dtype), friction=np.asarray(rows["friction"], dtype),
+        joint_offset=np.zeros((B, robot.index.n), dtype),
+        friction=np.asarray(rows["friction"], dtype),
         mass_scale=np.ones(B, dtype),
-    )  # fmt: skip
+    )
 
 
-def _run_table(st: scenario.Setup, scen: Scenario, cols: dict, folder: pathlib.Path, chunk: int, tag: str,
-               progress: bool, push_end: float) -> tuple:  # fmt: skip
+def _run_table(
+    st: scenario.Setup,
+    scen: Scenario,
+    cols: dict,
+    folder: pathlib.Path,
+    chunk: int,
+    tag: str,
+    progress: bool,
+    push_end: float,
+) -> tuple:
     """Run a batch with the sweep's chunk runner (:func:`wbc_jax.jobs.chunks.run_chunks`: Parquet
     parts in ``folder``, named by ``tag`` and reused when they are the run's own): (DataFrame of
     columns + metrics, {compile_s, run_s, envs, physics_steps_per_s})."""
@@ -147,11 +157,16 @@ def _run_table(st: scenario.Setup, scen: Scenario, cols: dict, folder: pathlib.P
 
     B = len(cols["gain_set"])
     columns = {k: v for k, v in cols.items() if k != "onset"}
-    ran = chunks.run_chunks(st, scen, columns, folder, batch=min(chunk, B), push_end=push_end, tag=tag,
-                            progress=progress, label=folder.name)  # fmt: skip
+    ran = chunks.run_chunks(
+        st, scen, columns, folder, batch=min(chunk, B), push_end=push_end, tag=tag, progress=progress, label=folder.name
+    )
     steps = st.loop.n_ticks * st.loop.n_sub
-    timing = {"compile_s": round(ran.compile_s, 2), "run_s": round(ran.run_s, 2), "envs": B,
-              "physics_steps_per_s": ran.done_envs * steps / ran.run_s if ran.run_s > 0 else None}  # fmt: skip
+    timing = {
+        "compile_s": round(ran.compile_s, 2),
+        "run_s": round(ran.run_s, 2),
+        "envs": B,
+        "physics_steps_per_s": ran.done_envs * steps / ran.run_s if ran.run_s > 0 else None,
+    }
     return pd.concat(ran.tables, ignore_index=True), timing
 
 
@@ -161,13 +176,25 @@ def _envelope(table, cfg: sweep_config.SweepConfig, robot) -> dict:
     s = sweep_table.summarize_table(t, cfg, robot)
     frac = np.array([e["fraction_of_bound"] for e in s["envelope"].values()])
     mono = np.array([e["fraction_of_bound_monotone"] for e in s["envelope"].values()])
-    return {"survival_rate": s["survival_rate"], "upright_rate": s["upright_rate"], "n_envs": s["n_envs"],
-            "nan_envs": s["nan_envs"], "envelope_fraction_median": float(np.median(frac)),
-            "envelope_fraction_min": float(np.min(frac)), "envelope_fraction_monotone_median": float(np.median(mono)),
-            "envelope_fraction_monotone_min": float(np.min(mono)),
-            "peak_torque_nm_median": float(np.median(table["max_abs_torque_nm"])),
-            "envelope": {str(a): {"impulse_ns": e["largest_survived_impulse_ns"], "fraction": e["fraction_of_bound"],
-                                  "bound_impulse_ns": e["bound_impulse_ns"]} for a, e in s["envelope"].items()}}  # fmt: skip
+    return {
+        "survival_rate": s["survival_rate"],
+        "upright_rate": s["upright_rate"],
+        "n_envs": s["n_envs"],
+        "nan_envs": s["nan_envs"],
+        "envelope_fraction_median": float(np.median(frac)),
+        "envelope_fraction_min": float(np.min(frac)),
+        "envelope_fraction_monotone_median": float(np.median(mono)),
+        "envelope_fraction_monotone_min": float(np.min(mono)),
+        "peak_torque_nm_median": float(np.median(table["max_abs_torque_nm"])),
+        "envelope": {
+            str(a): {
+                "impulse_ns": e["largest_survived_impulse_ns"],
+                "fraction": e["fraction_of_bound"],
+                "bound_impulse_ns": e["bound_impulse_ns"],
+            }
+            for a, e in s["envelope"].items()
+        },
+    }
 
 
 def heldout(sets: dict, hc: HeldoutConfig, out, *, progress: bool = True) -> dict:
@@ -183,13 +210,24 @@ def heldout(sets: dict, hc: HeldoutConfig, out, *, progress: bool = True) -> dic
     for gi, ((kind, *reg), names) in enumerate(_groups(sets).items()):
         controls = [sets[n][0] for n in names]
         stacked = _stack(controls, dtype)
-        tag = hashlib.sha256(json.dumps([flat_dict(hc), [store.controls_dict(c) for c in controls], reg],
-                                        sort_keys=True, default=io.jsonable).encode()).hexdigest()[:10]  # fmt: skip
+        tag = hashlib.sha256(
+            json.dumps(
+                [flat_dict(hc), [store.controls_dict(c) for c in controls], reg], sort_keys=True, default=io.jsonable
+            ).encode()
+        ).hexdigest()[:10]
         # Stand: the grid and the variations, one program (per-env plant: friction varies).
-        cfg = sweep_config.SweepConfig(robot=hc.robot, controller=hc.controller, magnitudes=tuple(hc.grid_magnitudes), directions=tuple(hc.grid_directions),
-                                       push_duration=hc.grid_duration, push_onset=hc.grid_onset,
-                                       horizon=hc.grid_horizon, friction=(0.5, 1.0), backend=hc.heldout_backend,
-                                       out=None)  # fmt: skip
+        cfg = sweep_config.SweepConfig(
+            robot=hc.robot,
+            controller=hc.controller,
+            magnitudes=tuple(hc.grid_magnitudes),
+            directions=tuple(hc.grid_directions),
+            push_duration=hc.grid_duration,
+            push_onset=hc.grid_onset,
+            horizon=hc.grid_horizon,
+            friction=(0.5, 1.0),
+            backend=hc.heldout_backend,
+            out=None,
+        )
         nominal = _nominal(controls[0], dtype)
         st = _with_kind(sweep.make_setup(cfg, nominal, controller=_controller(reg, hc)), kind)
         robot = st.robot
@@ -200,24 +238,38 @@ def heldout(sets: dict, hc: HeldoutConfig, out, *, progress: bool = True) -> dic
             body, dur, fr = VARIATIONS[v]
             blocks.append((v, body, dur, fr, vimp, vdirs))
         cols = _block_columns(robot, blocks, len(controls), hc.grid_onset)
-        table, timing[f"stand_{gi}"] = _run_table(st, _scenarios(robot, cols, stacked, dtype), cols,
-                                                  out / f"stand_{gi}", hc.chunk_size, tag, progress,
-                                                  hc.grid_onset + hc.grid_duration)  # fmt: skip
+        table, timing[f"stand_{gi}"] = _run_table(
+            st,
+            _scenarios(robot, cols, stacked, dtype),
+            cols,
+            out / f"stand_{gi}",
+            hc.chunk_size,
+            tag,
+            progress,
+            hc.grid_onset + hc.grid_duration,
+        )
         for s, name in enumerate(names):
             mine = table[table["gain_set"] == s]
             result[name]["grid"] = _envelope(mine[mine["block"] == "grid"], cfg, robot)
             for v in hc.variations:
                 result[name]["variations"][v] = _envelope(mine[mine["block"] == v], cfg, robot)
         if hc.one_foot:
-            of = dataclasses.replace(cfg, task="one-foot", push_onset=hc.one_foot_onset, horizon=hc.one_foot_horizon,
-                                     friction=(1.0, 1.0))  # fmt: skip
-            st1 = _with_kind(sweep.make_setup(of, nominal, controller=_controller(reg, hc)),
-                             kind)  # fmt: skip
+            of = dataclasses.replace(
+                cfg, task="one-foot", push_onset=hc.one_foot_onset, horizon=hc.one_foot_horizon, friction=(1.0, 1.0)
+            )
+            st1 = _with_kind(sweep.make_setup(of, nominal, controller=_controller(reg, hc)), kind)
             blocks = [("one_foot", "trunk", hc.grid_duration, 1.0, vimp, vdirs)]
             cols = _block_columns(robot, blocks, len(controls), hc.one_foot_onset)
-            table1, timing[f"one_foot_{gi}"] = _run_table(st1, _scenarios(robot, cols, stacked, dtype), cols,
-                                                          out / f"one_foot_{gi}", hc.chunk_size, tag, progress,
-                                                          hc.one_foot_onset + hc.grid_duration)  # fmt: skip
+            table1, timing[f"one_foot_{gi}"] = _run_table(
+                st1,
+                _scenarios(robot, cols, stacked, dtype),
+                cols,
+                out / f"one_foot_{gi}",
+                hc.chunk_size,
+                tag,
+                progress,
+                hc.one_foot_onset + hc.grid_duration,
+            )
             for s, name in enumerate(names):
                 result[name]["one_foot"] = _envelope(table1[table1["gain_set"] == s], of, robot)
         if hc.sinusoid_s > 0:
@@ -230,8 +282,20 @@ def heldout(sets: dict, hc: HeldoutConfig, out, *, progress: bool = True) -> dic
 
 def _block_columns(robot, blocks, n_sets: int, onset: float) -> dict:
     """Columns of every (block, gain set, impulse, azimuth) row."""
-    cols: dict = {k: [] for k in ("block", "gain_set", "impulse_ns", "magnitude_n", "azimuth_deg", "duration_s",
-                                  "body", "friction", "mass_scale")}  # fmt: skip
+    cols: dict = {
+        k: []
+        for k in (
+            "block",
+            "gain_set",
+            "impulse_ns",
+            "magnitude_n",
+            "azimuth_deg",
+            "duration_s",
+            "body",
+            "friction",
+            "mass_scale",
+        )
+    }
     for name, body, dur, fr, imps, azs in blocks:
         s, imp, az = (a.ravel() for a in np.meshgrid(np.arange(n_sets), imps, azs, indexing="ij"))
         cols["block"] += [name] * s.size
@@ -254,150 +318,25 @@ def sinusoid(controls: list, reg, hc: HeldoutConfig) -> tuple[list, dict]:
     only), all sets as one batch."""
     sim = SimConfig(record=False, physics=physics.PhysicsConfig(backend=hc.sinusoid_backend))
     dtype = scenario.float_dtype()
-    st = scenario.setup("sinusoid", duration=hc.sinusoid_s, controller=_controller(reg, hc), sim=sim,
-                        gains=_nominal(controls[0], dtype), scene=scenario.load_scene(hc.robot, hc.controller.tasks))  # fmt: skip
+    st = scenario.setup(
+        "sinusoid",
+        duration=hc.sinusoid_s,
+        controller=_controller(reg, hc),
+        sim=sim,
+        gains=_nominal(controls[0], dtype),
+        scene=scenario.load_scene(hc.robot, hc.controller.tasks),
+    )
     st = _with_kind(st, _kind(controls[0]))
     one = scenario.single(st)
     scen = jax.tree_util.tree_map(lambda x: np.repeat(np.asarray(x), len(controls), 0), one)
     scen = scen.replace(gains=_stack(controls, st.dtype))
     res = runner.run(st, scen)
     cols = metrics_lib.summarize(res.metrics)
-    return [float(x) for x in cols["com_rmse_m"]], {"compile_s": round(res.compile_s, 2), "run_s": round(res.run_s, 2),
-                                                    "backend": st.backend}  # fmt: skip
-
-
-# ---------------------------------------------------------------------------------------------
-# Does the loss predict survival? (held-out pushes of the training distribution)
-
-
-def survival_prediction(problem: tp.Problem, n: int, *, gains=None, reg=None, out=None) -> dict:
-    """Does the loss predict strict survival? ``n`` held-out pushes of the training distribution
-    (stream 4), rolled out for ``eval_horizon`` s with the given gains (default: the start of the
-    search); strict survival at the end against the loss of the training horizon (the trace's
-    first ticks) and of the whole rollout: Spearman correlation, ROC area, per-push values;
-    survival_vs_loss.png and prediction.json in ``out``."""
-    tc = problem.tc
-    ev = tp.make_problem(tc, problem.lc, horizon=tc.eval_horizon, checkpoint=False)
-    scen, cols = tp.sample_pushes(tc, ev.robot, ev.table, tp.batch_rng(tc.seed, 4, 0), n, ev.setup.dtype)
-    if gains is None:  # the start of the search (a schedule's at W = 0 with --parameterisation scheduled)
-        gains = ev.controls(ev.init_params())[0]
-    regd = dict(zip(("pinv_damping", "kp_postural_reg"), np.asarray(problem.reg0 if reg is None else reg, float)))
-    n_train = problem.loop.n_ticks
-
-    def both(g, r, s):
-        metrics, trace = mjx_loop.rollout(ev.loop, *_env_args(ev, s), g, s.push, controller_overrides=r)
-        return tuning_loss.loss_terms(trace, ev.lc, n_train), tuning_loss.loss_terms(trace, ev.lc), metrics
-
-    t0 = time.perf_counter()
-    terms, full_terms, metrics = jax.jit(jax.vmap(both, in_axes=(None, None, 0)))(gains, regd, scen)
-    wall = time.perf_counter() - t0
-    outcome = metrics_lib.summarize(metrics)
-    survived = np.asarray(outcome["survived"])
-    train_loss, full_loss = np.asarray(terms["total"]), np.asarray(full_terms["total"])
-    per_term = {
-        k: {"spearman": tuning_loss.spearman(np.asarray(v), survived), "auc": tuning_loss.auc(np.asarray(v), survived)}
-        for k, v in terms.items()
-        if k != "total"
+    return [float(x) for x in cols["com_rmse_m"]], {
+        "compile_s": round(res.compile_s, 2),
+        "run_s": round(res.run_s, 2),
+        "backend": st.backend,
     }
-    rel = cols["impulse_ns"] / tp.interp_periodic(*problem.table, cols["azimuth_deg"])
-    edges = np.linspace(*tc.magnitude_range, 5)
-    bins = np.clip(np.searchsorted(edges, rel, side="right") - 1, 0, 3)
-    by_size = [{"impulse_fraction": [float(edges[i]), float(edges[i + 1])], "n": int(np.sum(bins == i)),
-                "survival_rate": float(survived[bins == i].mean()) if np.any(bins == i) else None} for i in range(4)]  # fmt: skip
-    res = {"n": n, "survival_rate": float(survived.mean()), "horizon_s": tc.eval_horizon, "train_horizon_s": tc.horizon,
-           "spearman_train_horizon": tuning_loss.spearman(train_loss, survived),
-           "spearman_full": tuning_loss.spearman(full_loss, survived),
-           "auc_train_horizon": tuning_loss.auc(train_loss, survived), "auc_full": tuning_loss.auc(full_loss, survived),
-           "spearman_impulse_fraction": tuning_loss.spearman(rel, survived),
-           "auc_impulse_fraction": tuning_loss.auc(rel, survived), "wall_s": round(wall, 1),
-           "loss_train_horizon": train_loss.tolist(), "loss_full": full_loss.tolist(), "survived": survived.tolist(),
-           "impulse_fraction_of_envelope": rel.tolist(), "per_term_train_horizon": per_term, "device": provenance.device_label(),
-           "terms_train_horizon": {k: np.asarray(v).tolist() for k, v in terms.items()},
-           "terms_full": {k: np.asarray(v).tolist() for k, v in full_terms.items()},
-           "outcome": {k: np.asarray(v, float).tolist() for k, v in outcome.items()},
-           "survival_by_impulse_fraction": by_size,
-           "failure_rates": {k: float(np.mean(v)) for k, v in metrics_lib.failed_tests(outcome).items()}}  # fmt: skip
-    if out is not None:
-        out = pathlib.Path(out)
-        res["provenance"] = provenance.record(
-            {"init_gains": tc.init_gains, "envelope": tc.envelope, "tasks": tc.controller.tasks}
-        )
-        io.atomic_write_json(out / "prediction.json", res)
-        survival_vs_loss(train_loss, survived, res, out / "survival_vs_loss.png")
-    return res
-
-
-def _env_args(problem: tp.Problem, s):
-    st, loop = problem.setup, problem.loop
-    nominal = physics.device_model(st.robot.mj_model, "jax", loop.cfg.physics)
-    return physics.plant_model(nominal, s.friction, s.mass_scale), loop.initial_qpos(jax.numpy.asarray(st.qpos0, st.dtype),
-                                                                                     s.joint_offset)  # fmt: skip
-
-
-# ---------------------------------------------------------------------------------------------
-# heldout.json and figures
-
-
-def targets(summary: dict) -> dict:
-    """The issue's targets for the gradient-tuned set against the default and the best hand-set row
-    (``critical``), from a heldout.json-like summary {name: {...}}."""
-    g, d = summary.get("gradient"), summary.get("default")
-    if g is None or d is None:
-        return {}
-    gd, dd = g["grid_envelope"], d["grid_envelope"]
-    below = [a for a in gd if gd[a]["fraction"] < dd[a]["fraction"] - 1e-9]
-    out = {"median_fraction_ge_0.8": g["envelope_fraction_median"] >= 0.8,
-           "min_fraction_ge_0.6": g["envelope_fraction_min"] >= 0.6,
-           "no_direction_below_default": not below, "directions_below_default": below,
-           "survival_ge_1.5x_default": g["survival_rate"] >= 1.5 * d["survival_rate"],
-           "sinusoid_rmse_le_1.5mm": (g.get("sinusoid_com_rmse_m") is not None
-                                      and g["sinusoid_com_rmse_m"] <= constants.SINUSOID_MAX_COM_RMSE_M)}  # fmt: skip
-    hand = [n for n in ("critical",) if n in summary]
-    if hand:
-        best = max(hand, key=lambda n: summary[n]["survival_rate"])
-        out["survival_above_best_hand_set"] = g["survival_rate"] > summary[best]["survival_rate"]
-    if "cmaes" in summary:
-        out["envelope_median_ge_cmaes"] = g["envelope_fraction_median"] >= summary["cmaes"]["envelope_fraction_median"]
-    return out
-
-
-def write_heldout(path, results: dict, budgets: dict, *, extra: dict | None = None, inputs: dict | None = None) -> dict:
-    """heldout.json: one object per gain set (envelope_fraction_median/_min, survival_rate,
-    sinusoid_com_rmse_m, sim_steps, wall_s, device, the per-direction envelope, the unseen
-    variations and the one-foot task), the targets, the survival criterion used and the provenance
-    (``inputs``: {name: file} of the gain sets and other input files).
-    ``budgets``: {name: {"sim_steps", "wall_s"}} of the tuning runs (0 for hand-set rows)."""
-    device = provenance.device_label()
-    summary = {}
-    for name, r in results.items():
-        if name.startswith("_"):
-            continue
-        grid = r["grid"]
-        summary[name] = {
-            "envelope_fraction_median": grid["envelope_fraction_median"],
-            "envelope_fraction_min": grid["envelope_fraction_min"],
-            "survival_rate": grid["survival_rate"],
-            "sinusoid_com_rmse_m": r.get("sinusoid_com_rmse_m"),
-            "sim_steps": int(budgets.get(name, {}).get("sim_steps", 0)),
-            "wall_s": float(budgets.get(name, {}).get("wall_s", 0.0)),
-            "device": device,
-            "effort_peak_torque_nm_median": grid["peak_torque_nm_median"],
-            "upright_rate": grid["upright_rate"],
-            "envelope_fraction_monotone_median": grid["envelope_fraction_monotone_median"],
-            "envelope_fraction_monotone_min": grid["envelope_fraction_monotone_min"],
-            "grid_envelope": grid["envelope"],
-            "unseen": {v: {k: e[k] for k in ("survival_rate", "envelope_fraction_median", "envelope_fraction_min")}
-                       for v, e in {**r["variations"], **({"one_foot": r["one_foot"]} if "one_foot" in r else {})}.items()},
-        }  # fmt: skip
-    report = {**summary, "targets": targets(summary), "survival_criterion": dict(constants.SURVIVAL_CRITERION),
-              "timing": results.get("_timing", {}), **(extra or {}),
-              "provenance": provenance.record(inputs)}  # fmt: skip
-    io.atomic_write_json(pathlib.Path(path), report)
-    return report
-
-
-SUMMARY_KEYS = ("envelope_fraction_median", "envelope_fraction_min", "survival_rate", "sinusoid_com_rmse_m",
-                "sim_steps", "wall_s")  # fmt: skip
 
 
 def run(hc: HeldoutConfig | None = None, *, progress: bool = True) -> dict:
@@ -411,12 +350,20 @@ def run(hc: HeldoutConfig | None = None, *, progress: bool = True) -> dict:
     robot = describe(hc.robot)
     files = set_files(hc.sets, robot)
     sets = load_sets(hc.sets, robot, scenario.float_dtype())
-    fp = runs.fingerprint({"heldout": flat_dict(hc), "dtype": str(scenario.float_dtype())},
-                          [*files.values(), hc.controller.tasks], hc.robot)  # fmt: skip
+    fp = runs.fingerprint(
+        {"heldout": flat_dict(hc), "dtype": str(scenario.float_dtype())},
+        [*files.values(), hc.controller.tasks],
+        hc.robot,
+    )
     runs.claim_output_dir(out, "heldout", fp, resume=True)
     results = heldout(sets, hc, out / "parts", progress=progress)
-    rep = write_heldout(out / "heldout.json", results, {}, extra={"config": flat_dict(hc)},
-                        inputs={**files, "tasks": hc.controller.tasks})  # fmt: skip
+    rep = write_heldout(
+        out / "heldout.json",
+        results,
+        {},
+        extra={"config": flat_dict(hc)},
+        inputs={**files, "tasks": hc.controller.tasks},
+    )
     runs.record_output(out / "heldout.json")
     tuning_plots.envelope_polar(rep, out / "envelope_polar.png")
     return {n: {k: rep[n][k] for k in SUMMARY_KEYS} for n in sets}

@@ -60,9 +60,10 @@ def measure(problem: tp.Problem, out, *, mesh=None) -> dict:
     d0 = jax.vmap(lambda q: physics.device_data(st.robot.mj_model, "jax", loop.cfg.physics, q, dtype))(qpos)
     controls, reg = tp.controls_cast(problem, problem.init_params())
     state = jax.vmap(loop.init)(qpos)
-    push = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (B, *jnp.shape(x))),
-                                  tp.sample_pushes(tc, problem.robot, problem.table, tp.batch_rng(tc.seed, 0, 0), 1,
-                                                   dtype)[0].push)  # fmt: skip
+    push = jax.tree_util.tree_map(
+        lambda x: jnp.broadcast_to(x, (B, *jnp.shape(x))),
+        tp.sample_pushes(tc, problem.robot, problem.table, tp.batch_rng(tc.seed, 0, 0), 1, dtype)[0].push,
+    )
     push = jax.tree_util.tree_map(lambda x: x[:, 0], push)
     k = jnp.int32(0)
     nbody = st.robot.mj_model.nbody
@@ -110,7 +111,10 @@ def measure(problem: tp.Problem, out, *, mesh=None) -> dict:
     remat = fwd_tick if tc.checkpoint != "none" else 0.0
     estimate = T * (fwd_tick + remat + bwd_tick)
     summary = {
-        "batch": B, "ticks": T, "n_sub": loop.n_sub, "solver_iterations": problem.iterations,
+        "batch": B,
+        "ticks": T,
+        "n_sub": loop.n_sub,
+        "solver_iterations": problem.iterations,
         "per_tick_ms": {name: round(v * 1e3, 3) for name, v in run.items()},
         "fixed_over_while_loop": run["physics_forward_fixed"] / run["physics_forward_while"],
         "unrolled_over_implicit_vjp": run["physics_vjp_unrolled"] / run["physics_vjp_implicit"],
@@ -120,17 +124,25 @@ def measure(problem: tp.Problem, out, *, mesh=None) -> dict:
             "physics_forward": T * phys_fwd / estimate,
             "rematerialisation": T * remat / estimate,
             "controller_vjp": T * run["controller_vjp"] / estimate,
-            "physics_vjp": T * phys_vjp / estimate},
-        "estimated_step_s": estimate, "host_round_trip_ms": round(host_ms, 3),
-        "forward_physics_steps_per_s_while": B * loop.n_sub / (run["controller_forward"] + run["physics_forward_while"]),
-    }  # fmt: skip
+            "physics_vjp": T * phys_vjp / estimate,
+        },
+        "estimated_step_s": estimate,
+        "host_round_trip_ms": round(host_ms, 3),
+        "forward_physics_steps_per_s_while": B
+        * loop.n_sub
+        / (run["controller_forward"] + run["physics_forward_while"]),
+    }
     info_path = pathlib.Path(out) / "gradient" / "train_info.json"
     if info_path.exists():
         info = json.loads(info_path.read_text())
         if info.get("step_s_median") and info.get("batch") == B:
             summary["measured_step_s"] = info["step_s_median"]
             summary["measured_over_estimated"] = info["step_s_median"] / estimate
-    result = {"summary": summary, "compile_s": {name: round(v[0], 1) for name, v in res.items()},
-              "device": provenance.device_label(), "provenance": provenance.record()}  # fmt: skip
+    result = {
+        "summary": summary,
+        "compile_s": {name: round(v[0], 1) for name, v in res.items()},
+        "device": provenance.device_label(),
+        "provenance": provenance.record(),
+    }
     io.atomic_write_json(pathlib.Path(out) / "profile.json", result)
     return result

@@ -106,8 +106,9 @@ def measure(problem: tp.Problem, out, *, mesh=None, progress: bool = True, step=
     D, N, M, sigma = int(flat0.size), tc.quality_pushes, tc.quality_directions, tc.smoothing_sigma
     if step is None:
         step = tuning.GradientStep(problem, tuning.make_optimizer(tc.lr, tc.clip_norm), mesh)
-    scen_all, _ = tp.sample_pushes(tc, problem.robot, problem.table, tp.batch_rng(tc.seed, STREAM, 0), N,
-                                   problem.setup.dtype)  # fmt: skip
+    scen_all, _ = tp.sample_pushes(
+        tc, problem.robot, problem.table, tp.batch_rng(tc.seed, STREAM, 0), N, problem.setup.dtype
+    )
     scen_all = objectives.cast_batch(scen_all, problem.setup.dtype)
     key = jax.random.key(tc.seed * 1000 + 11)
     B, half = tc.batch, tc.batch // 2
@@ -123,8 +124,9 @@ def measure(problem: tp.Problem, out, *, mesh=None, progress: bool = True, step=
         if step.windowed:
             n_p = step.rollouts
             scen = jax.tree_util.tree_map(lambda x: x[k * n_p : (k + 1) * n_p], scen_all)
-            ticks = tw.sample_starts(tp.batch_rng(tc.seed, STREAM + 1, k), n_p, tc.windows, problem.loop.n_ticks,
-                                     step.W)  # fmt: skip
+            ticks = tw.sample_starts(
+                tp.batch_rng(tc.seed, STREAM + 1, k), n_p, tc.windows, problem.loop.n_ticks, step.W
+            )
             starts, _, _ = step.sampler(params, objectives.shard(scen, mesh), ticks)
             rows_in = jax.tree_util.tree_map(lambda x: x[: half if paired else B], starts)
         else:
@@ -185,8 +187,13 @@ def measure(problem: tp.Problem, out, *, mesh=None, progress: bool = True, step=
     else:  # zeroth order from the antithetic pairs of the program's calls: one push (or window) per direction
         pop, pop_s, directional, e = None, 0.0, None, None
         J0 = float(np.nanmean(np.concatenate(v_fo)))
-        zo_terms = np.concatenate([np.asarray(estimators.zeroth_order_rows(jnp.asarray(v), jnp.asarray(e), sigma)[0])
-                                   for v, e in zip(v_sm or [], e_sm or [])] or [np.zeros((0, D))])  # fmt: skip
+        zo_terms = np.concatenate(
+            [
+                np.asarray(estimators.zeroth_order_rows(jnp.asarray(v), jnp.asarray(e), sigma)[0])
+                for v, e in zip(v_sm or [], e_sm or [])
+            ]
+            or [np.zeros((0, D))]
+        )
     ok = np.isfinite(zo_terms).all(1) & np.any(zo_terms != 0, 1)
     g_zo = zo_terms[ok].mean(0) if ok.any() else np.full(D, np.nan)
     half = max(1, int(ok.sum()) // 2)
@@ -199,16 +206,32 @@ def measure(problem: tp.Problem, out, *, mesh=None, progress: bool = True, step=
     if pop is not None:
         pts = [np.asarray(flat0) - h * dirs[name] / max(np.linalg.norm(dirs[name]), 1e-30) for name, h in line]
         J_line = evaluate(pop, P, unravel, np.stack(pts), np.asarray(flat0), scen_all).tolist()
-    result = {"device": provenance.device_label(), "parameters": D, "pushes": N, "batch": tc.batch,
-              "directions": M, "sigma": sigma, "estimator_program": "window" if step.windowed else "whole horizon",
-              "window_s": tc.window_s, "horizon_s": tc.horizon, "objective": float(J0),
-              "zeroth_order": {"norm": float(np.linalg.norm(g_zo)), "halves_cosine": cosine(zo_a, zo_b),
-                               "finite_directions": int(ok.sum()),
-                               # E cos(grad, g_ZO) for the exact gradient of a smooth loss, M Gaussian directions
-                               "exact_gradient_cosine": float(1 / np.sqrt(1 + (D + 1) / max(int(ok.sum()), 1))),
-                               "source": "population program" if M > 0 else "antithetic pairs of the program"},
-              "estimates": {}, "timing": {"grad_compile_s": round(compile_s, 1), "population_s": round(pop_s, 1),
-                                          "total_s": round(time.perf_counter() - t_start, 1)}}  # fmt: skip
+    result = {
+        "device": provenance.device_label(),
+        "parameters": D,
+        "pushes": N,
+        "batch": tc.batch,
+        "directions": M,
+        "sigma": sigma,
+        "estimator_program": "window" if step.windowed else "whole horizon",
+        "window_s": tc.window_s,
+        "horizon_s": tc.horizon,
+        "objective": float(J0),
+        "zeroth_order": {
+            "norm": float(np.linalg.norm(g_zo)),
+            "halves_cosine": cosine(zo_a, zo_b),
+            "finite_directions": int(ok.sum()),
+            # E cos(grad, g_ZO) for the exact gradient of a smooth loss, M Gaussian directions
+            "exact_gradient_cosine": float(1 / np.sqrt(1 + (D + 1) / max(int(ok.sum()), 1))),
+            "source": "population program" if M > 0 else "antithetic pairs of the program",
+        },
+        "estimates": {},
+        "timing": {
+            "grad_compile_s": round(compile_s, 1),
+            "population_s": round(pop_s, 1),
+            "total_s": round(time.perf_counter() - t_start, 1),
+        },
+    }
     fo_rows = np.concatenate(g_fo)
     for name, g in dirs.items():
         entry = {"norm": float(np.linalg.norm(g)), "cosine_zeroth_order": cosine(g, g_zo)}

@@ -25,8 +25,15 @@ from wbc_jax.tuning.algorithms import problem as tp
 METHODS = ("gradient", "cmaes", "random", "hybrid")
 GRADIENT_BASED = ("gradient", "hybrid")  # the methods the verdict sets against CMA-ES
 # A hybrid row's parts: its CMA-ES parent and the gradient's half (wbc_jax/tuning/algorithms/hybrid.py).
-HYBRID_KEYS = ("parent", "parent_sha256", "parent_sim_steps", "parent_wall_s", "gradient_sim_steps", "gradient_wall_s",
-               "gradient_compile_s")  # fmt: skip
+HYBRID_KEYS = (
+    "parent",
+    "parent_sha256",
+    "parent_sim_steps",
+    "parent_wall_s",
+    "gradient_sim_steps",
+    "gradient_wall_s",
+    "gradient_compile_s",
+)
 MARGIN = 0.05  # the median the gradient must gain over CMA-ES (issue 35)
 
 
@@ -44,12 +51,19 @@ def points(rep: dict, index: dict) -> dict:
         if method not in METHODS or origin.get("budget_s") is None or name not in rep:
             continue
         r = rep[name]
-        out.setdefault(method, []).append({
-            "budget_s": float(origin["budget_s"]), "name": name, "wall_s": float(origin["wall_s"]),
-            "sim_steps": int(origin["sim_steps"]), "envelope_fraction_median": r["envelope_fraction_median"],
-            "envelope_fraction_min": r["envelope_fraction_min"], "survival_rate": r["survival_rate"],
-            "sinusoid_com_rmse_m": r.get("sinusoid_com_rmse_m"),
-            **{k: origin[k] for k in HYBRID_KEYS if k in origin}})  # fmt: skip
+        out.setdefault(method, []).append(
+            {
+                "budget_s": float(origin["budget_s"]),
+                "name": name,
+                "wall_s": float(origin["wall_s"]),
+                "sim_steps": int(origin["sim_steps"]),
+                "envelope_fraction_median": r["envelope_fraction_median"],
+                "envelope_fraction_min": r["envelope_fraction_min"],
+                "survival_rate": r["survival_rate"],
+                "sinusoid_com_rmse_m": r.get("sinusoid_com_rmse_m"),
+                **{k: origin[k] for k in HYBRID_KEYS if k in origin},
+            }
+        )
     return {m: sorted(v, key=lambda p: p["budget_s"]) for m, v in out.items()}
 
 
@@ -72,9 +86,14 @@ def verdict(pts: dict) -> dict:
                 continue
             gain = g["envelope_fraction_median"] - c["envelope_fraction_median"]
             min_ok = g["envelope_fraction_min"] >= c["envelope_fraction_min"]
-            row.update({f"{method}_minus_cmaes_median": gain, f"{method}_min_ge_cmaes_min": min_ok,
-                        f"{method}_sinusoid_ok": _sinusoid_ok(g),
-                        f"{method}_target_met": bool(gain >= MARGIN and min_ok and _sinusoid_ok(g))})  # fmt: skip
+            row.update(
+                {
+                    f"{method}_minus_cmaes_median": gain,
+                    f"{method}_min_ge_cmaes_min": min_ok,
+                    f"{method}_sinusoid_ok": _sinusoid_ok(g),
+                    f"{method}_target_met": bool(gain >= MARGIN and min_ok and _sinusoid_ok(g)),
+                }
+            )
             met += [method] if row[f"{method}_target_met"] else []
         if row:
             out[f"{t:g}"] = {**row, "target_met": bool(met), "target_met_by": met}
@@ -101,18 +120,40 @@ def write(out, problem: tp.Problem, rep: dict, index: dict, histories: dict) -> 
     search = forward_backend(tc)  # the engine the searches ran on (--search-backend auto resolved)
     engines = {"gradient": "jax", "cmaes": search, "random": search, "hybrid": f"{search}, then jax"}
     result = {
-        "parameterisation": tc.parameterisation, "parameters": info.get("parameters"), "budget_s": tc.budget_s,
+        "parameterisation": tc.parameterisation,
+        "parameters": info.get("parameters"),
+        "budget_s": tc.budget_s,
         "budgets_s": budgets(tc),  # the race's; CMA-ES also has rows at their halves with phase hybrid
         "methods": {m: {"engine": engines[m], "points": v} for m, v in pts.items()},
-        "gradient": {k: info.get(k) for k in ("estimator", "window_s", "batch", "checkpoint", "compile_s",
-                                              "step_s_median", "gradient_physics_steps_per_s",
-                                              "physics_steps_per_s", "temp_mb", "device")},
-        "reference": {n: {k: rep[n][k] for k in ("envelope_fraction_median", "envelope_fraction_min", "survival_rate",
-                                                 "sinusoid_com_rmse_m")} for n in ("default", "critical") if n in rep},
-        "verdict": verdict(pts), "recommended": recommended(rep, [n for n in rep if isinstance(rep[n], dict)
-                                                                 and "envelope_fraction_median" in rep[n]]),
+        "gradient": {
+            k: info.get(k)
+            for k in (
+                "estimator",
+                "window_s",
+                "batch",
+                "checkpoint",
+                "compile_s",
+                "step_s_median",
+                "gradient_physics_steps_per_s",
+                "physics_steps_per_s",
+                "temp_mb",
+                "device",
+            )
+        },
+        "reference": {
+            n: {
+                k: rep[n][k]
+                for k in ("envelope_fraction_median", "envelope_fraction_min", "survival_rate", "sinusoid_com_rmse_m")
+            }
+            for n in ("default", "critical")
+            if n in rep
+        },
+        "verdict": verdict(pts),
+        "recommended": recommended(
+            rep, [n for n in rep if isinstance(rep[n], dict) and "envelope_fraction_median" in rep[n]]
+        ),
         "provenance": provenance.record({"init_gains": tc.init_gains, "tasks": tc.controller.tasks}),
-    }  # fmt: skip
+    }
     io.atomic_write_json(out / "race.json", result)
     tuning_plots.race_curves(pts, out / "race.png", reference=result["reference"])
     return result
