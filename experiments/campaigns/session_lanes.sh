@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Several resumable jobs at once on one held machine of four GPUs and many CPU cores (issues 42, 43, 45, 41): each
 # lane runs in a process session of its own, so it goes on between device calls while the machine is held, and
-# every call returns what has finished (docs/tuning/README.md, "Lanes").
+# every call returns what has finished (docs/tuning/README.md, "The race, complete").
 #
 #   bash experiments/gpu_run.sh setup && bash experiments/campaigns/session_lanes.sh start   # first call (.wa .wx)
 #   bash experiments/gpu_run.sh setup && touch /tmp/warp_ready                                 # the call with wpart_02
