@@ -239,3 +239,16 @@ def test_limit_table_takes_the_best_optimiser_per_direction(robot):
     assert both["limit_by_optimiser_ns"] == {"mjx": 10.0, "crocoddyl": 11.0, "crocoddyl cop x0.8": 12.0}
     none = limit_table.body_table(None, envelopes, [0.0], robot, "chest")
     assert none[0.0]["limit_ns"] is None and none[0.0]["found_by"] is None and none[0.0]["bracket_ns"] is None
+    # a file that names its optimiser (controller_witness.py: the controller's own trajectory) is found by that name
+    own = {
+        "optimiser": "tuned controller (u = 0)",
+        "config": {"cop_scale": 1.0},
+        "directions": {"0.0": {"limit_ns": 13.0, "bracket_ns": [13.0, 13.5]}},
+    }
+    assert limit_table.ddp_label(own) == "tuned controller (u = 0)"
+    mixed = limit_table.body_table(mjx, envelopes, [0.0], robot, "chest", [ddp, margin, own])[0.0]
+    assert (mixed["limit_ns"], mixed["found_by"], mixed["bracket_ns"]) == (
+        13.0,
+        "tuned controller (u = 0)",
+        [13.0, None],
+    )

@@ -39,8 +39,11 @@ def _best(found: dict) -> tuple[float | None, list | None, str | None]:
 
 
 def ddp_label(ddp: dict) -> str:
-    """The optimiser's name of one crocoddyl cross-check file: "crocoddyl", with its CoP rectangle's
-    scale where the barrier's rectangle is not the controller's."""
+    """The optimiser's name of one cross-check file: its ``optimiser`` where it names one (e.g. a
+    controller's own trajectory, experiments/acceptance/controller_witness.py), else "crocoddyl", with its
+    CoP rectangle's scale where the barrier's rectangle is not the controller's."""
+    if ddp.get("optimiser"):
+        return str(ddp["optimiser"])
     scale = ddp["config"].get("cop_scale", 1.0)
     return "crocoddyl" if scale == 1.0 else f"crocoddyl cop x{scale:g}"
 
