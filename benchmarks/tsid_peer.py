@@ -60,7 +60,7 @@ HERE = pathlib.Path(__file__).resolve().parent
 import tsid_baseline as tb  # noqa: E402
 from tsid_baseline.push_envelope import envelope, full_grid, sensitivity  # noqa: E402
 
-from wbc_jax.robot.robots import ROBOT_NAMES, describe  # noqa: E402
+from wbc_jax.robot.robots import DEFAULT_ROBOT, ROBOT_NAMES, describe  # noqa: E402
 
 # The grid of wbc_jax/jobs/envelope.py (DEFAULT_MAGNITUDES) and of the documented 64 x 32 sweeps.
 MAGNITUDES = (10.0, 400.0, 64)  # N: LO, HI, count (np.linspace)
@@ -245,7 +245,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--push-onset", type=float, default=PUSH_ONSET)
     p.add_argument("--push-duration", type=float, default=PUSH_DURATION)
     p.add_argument("--horizon", type=float, default=HORIZON, help="seconds per push rollout")
-    p.add_argument("--robot", default=tb.DEFAULT.name, choices=ROBOT_NAMES, help="the robot (wbc_jax/robot/<name>.py)")
+    p.add_argument("--robot", default=DEFAULT_ROBOT, choices=ROBOT_NAMES, help="the robot (wbc_jax/robot/<name>.py)")
     p.add_argument(
         "--body", default="trunk", help="pushed body, or a role (trunk: the iCub's chest, Talos's torso_2_link)"
     )
