@@ -226,7 +226,7 @@ def test_the_loss_scales_each_joints_torque_by_the_robots_motor_limit():
     limits = np.asarray(talos.robot.index.torque_limit, float)
     assert talos.lc.torque_limit == tuple(limits) == talos.lc.torque_scale
     assert (limits.min(), limits.max()) == (17.86, 300.0)
-    terms = tuning_loss.loss_terms(_trace(tau=100.0, joints=len(limits)), talos.lc)
+    terms = jax.jit(lambda tr: tuning_loss.loss_terms(tr, talos.lc))(_trace(tau=100.0, joints=len(limits)))
     effort, saturation = (
         np.mean((100.0 / limits) ** 2),
         np.mean((np.maximum(100.0 - 0.9 * limits, 0) / (0.1 * limits)) ** 2),

@@ -156,6 +156,7 @@ def loss_terms(
     trace's first tick; a window of a rollout passes the rollout's).
 
     Returns {term: ()} for :data:`TERMS` and ``total`` (the weighted sum)."""
+    torque_scale, torque_limit = lc.torque_scales()  # first: a config without them fails before any work
     tr = jax.tree_util.tree_map(lambda x: x[:n_ticks], trace) if n_ticks is not None else trace
     b = tr.base
     T = b.com.shape[0]
@@ -174,7 +175,6 @@ def loss_terms(
     settle = jnp.mean(speed2 + jax.nn.relu(-m_com) ** 2 / lc.capture_scale**2)
     height = jnp.mean(jax.nn.relu(lc.height_frac * b.com_height0 - b.com[:, 2]) ** 2) / lc.capture_scale**2
     com = jnp.mean(jnp.sum((b.com - b.com_ref) ** 2, -1)) / lc.com_scale**2
-    torque_scale, torque_limit = lc.torque_scales()
     effort = jnp.mean((b.tau / torque_scale) ** 2)
     saturation = jnp.mean((jax.nn.relu(jnp.abs(b.tau) - 0.9 * torque_limit) / (0.1 * torque_limit)) ** 2)
     terms = {
