@@ -15,7 +15,14 @@ MuJoCo step one robot in one thread; ``--cpu`` also pins the process to one core
    bound m omega d of ``wbc_jax.jobs.sweep_table.lip_bound``. ``--full-grid`` also runs all 64 x 32 pushes
    (survival rate and the grid's monotone envelope, as ``wbc_jax.jobs.sweep_table.envelope_of``);
 4. ``--sensitivity``: the sinusoid and the envelope again with each setting that has no WBC
-   counterpart changed, one at a time (``SENSITIVITY``).
+   counterpart changed, one at a time (``SENSITIVITY``);
+5. ``--wbc-timing``: in the same run, right after TSID's timing, wbc_jax's controller on the same
+   robot and task (``benchmarks/wbc_peer.py``'s timing part, a child process pinned alike: the
+   compiled loop's CPU time per tick less C MuJoCo's), so that both per-tick times share a load.
+
+``--robot`` picks the robot (``wbc_jax.robot.robots``: the iCub by default, or Talos from
+example-robot-data's URDF); its MJCF, joints, feet, CoP rectangle and default gains come from its
+description, the push body ``--body`` may be a role (``trunk``: the iCub's chest, Talos's torso_2_link).
 
 The pushes (3, 4) are ``benchmarks/tsid_baseline/push_envelope.py``.
 
@@ -24,6 +31,8 @@ it, the CPU, the date, the load average, the package versions and the controller
 JAX-free, as the baseline.
 
     python benchmarks/tsid_peer.py --cpu 1 --full-grid --sensitivity --out docs/peers/tsid.json
+    python benchmarks/tsid_peer.py --robot talos --cpu 1 --magnitudes 10 700 70 --directions 8 \\
+        --horizon 2.5 --resolution 1 --wbc-timing --out docs/talos/tsid_peer.json
 """
 
 from __future__ import annotations
@@ -51,13 +60,25 @@ HERE = pathlib.Path(__file__).resolve().parent
 import tsid_baseline as tb  # noqa: E402
 from tsid_baseline.push_envelope import envelope, full_grid, sensitivity  # noqa: E402
 
+from wbc_jax.robot.robots import DEFAULT_ROBOT, ROBOT_NAMES, describe  # noqa: E402
+
 # The grid of wbc_jax/jobs/envelope.py (DEFAULT_MAGNITUDES) and of the documented 64 x 32 sweeps.
 MAGNITUDES = (10.0, 400.0, 64)  # N: LO, HI, count (np.linspace)
 DIRECTIONS = 32  # azimuths k 360 / N deg from 0 (forward; 90 = left)
 PUSH_ONSET, PUSH_DURATION, HORIZON = 0.5, 0.1, 3.0  # s
 RESOLUTION = 0.25  # N s: wbc_jax.jobs.envelope.search's default
 CODE = ("benchmarks", "assets", "wbc_jax/core/constants.py")  # what the measurement runs (code_version)
-PACKAGES = ("tsid", "libtsid", "pin", "libpinocchio", "eiquadprog", "mujoco", "numpy", "icub-models")
+PACKAGES = (
+    "tsid",
+    "libtsid",
+    "pin",
+    "libpinocchio",
+    "eiquadprog",
+    "mujoco",
+    "numpy",
+    "icub-models",
+    "example-robot-data",
+)
 
 
 def versions() -> dict:
@@ -95,7 +116,7 @@ def measure(args, log=print) -> dict:
     """Everything of the module docstring, as a JSON-ready dict."""
     command = "python benchmarks/tsid_peer.py " + " ".join(shlex.quote(a) for a in args.argv)
     load_start = os.getloadavg()
-    peer = tb.TsidPeer()
+    peer = tb.TsidPeer(robot=args.robot)
     config = tb.TsidConfig()
     log(f"sinusoid x {args.timing_repeats} (timing)")
     runs = [
@@ -120,6 +141,7 @@ def measure(args, log=print) -> dict:
         )
     out = {
         "peer": "TSID (Pinocchio + eiquadprog) on C MuJoCo, benchmarks/tsid_baseline/",
+        "robot": args.robot,
         "command": command,
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "cpu": tb.bc.cpu_name(),
@@ -130,7 +152,8 @@ def measure(args, log=print) -> dict:
         "code": code_version(),
         "controller": {
             **{k: v for k, v in dataclasses.asdict(config).items() if not k.startswith(("kp_", "kd_"))},
-            "gains": {k: v.tolist() for k, v in config.gains(len(tb.DRIVEN_JOINTS)).items()},
+            "gains": {k: v.tolist() for k, v in config.gains(peer.description).items()},
+            "foot_size": config.sole_rectangle(peer.description),
             "mu": tb.floor_friction(peer.mj_model) if config.mu is None else config.mu,
             "solver": "tsid.SolverHQuadProgFast (eiquadprog), one solve per 10 ms tick",
         },
@@ -148,6 +171,9 @@ def measure(args, log=print) -> dict:
             **_rounded(stand["summary"]),
         },
     }
+    if args.wbc_timing:
+        log("wbc_jax timing (benchmarks/wbc_peer.py, a child process)")
+        out["wbc_jax"] = wbc_timing(args)
     if args.no_envelope:
         out["load_average"] = {
             "start": [round(x, 2) for x in load_start],
@@ -178,6 +204,34 @@ def measure(args, log=print) -> dict:
     return out
 
 
+def wbc_timing(args) -> dict:
+    """wbc_jax's controller on the same robot, task and core (``benchmarks/wbc_peer.py --timing-worker``:
+    its default gains, the 20 s sinusoid, medians of ``--timing-repeats`` runs), as that script
+    reports it: {timing, sinusoid, stand, command}."""
+    import subprocess
+
+    cmd = [
+        sys.executable,
+        str(HERE / "wbc_peer.py"),
+        "--timing-worker",
+        "--robot",
+        args.robot,
+        "--gains",
+        "default",
+        "--timing-repeats",
+        str(args.timing_repeats),
+        *(["--cpu", str(args.cpu)] if args.cpu is not None else []),
+    ]
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")}  # the worker sets its own
+    proc = subprocess.run(
+        cmd, capture_output=True, text=True, cwd=HERE.parent, timeout=3600, env={**env, "JAX_PLATFORMS": "cpu"}
+    )
+    if proc.returncode != 0:
+        raise SystemExit(f"error: wbc_jax's timing failed:\n{proc.stderr[-3000:]}")
+    part = json.loads([line for line in proc.stdout.splitlines() if line.startswith("{")][-1])
+    return {"command": " ".join(shlex.quote(c) for c in cmd[1:]), **part}
+
+
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
@@ -191,7 +245,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--push-onset", type=float, default=PUSH_ONSET)
     p.add_argument("--push-duration", type=float, default=PUSH_DURATION)
     p.add_argument("--horizon", type=float, default=HORIZON, help="seconds per push rollout")
-    p.add_argument("--body", default="chest", help="pushed body")
+    p.add_argument("--robot", default=DEFAULT_ROBOT, choices=ROBOT_NAMES, help="the robot (wbc_jax/robot/<name>.py)")
+    p.add_argument(
+        "--body", default="trunk", help="pushed body, or a role (trunk: the iCub's chest, Talos's torso_2_link)"
+    )
     p.add_argument("--resolution", type=float, default=RESOLUTION, help="envelope bracket [N s]")
     p.add_argument("--sinusoid-duration", type=float, default=tb.TASK_DURATION["sinusoid"])
     p.add_argument("--stand-duration", type=float, default=tb.TASK_DURATION["stand"])
@@ -202,6 +259,9 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="timing, sinusoid and stand only (no pushes): the tick beside benchmarks/cpu_loop.py's",
     )
     p.add_argument("--full-grid", action="store_true", help="also run every push of the grid")
+    p.add_argument(
+        "--wbc-timing", action="store_true", help="also time wbc_jax's controller on the same robot in this run"
+    )
     p.add_argument("--sensitivity", action="store_true", help="also the envelope of each SENSITIVITY variant")
     p.add_argument(
         "--rollout-timeout",
@@ -240,7 +300,7 @@ def main(argv=None) -> dict:
     if problem is not None:
         raise SystemExit(f"error: {problem}")
     try:
-        tb.body_id(tb.load_mj_model(), args.body)
+        tb.body_id(tb.load_mj_model(robot=args.robot), describe(args.robot).body(args.body))
     except ValueError as err:
         raise SystemExit(f"error: --body: {err}") from None
     if args.cpu is not None:

@@ -236,6 +236,69 @@ def test_no_module_outside_the_robot_layer_names_the_icub():
     assert not found, found
 
 
+def _icub_motor_limits() -> set[float]:
+    """The iCub's motor limits (N m) that no other robot's motors have."""
+    from wbc_jax.robot import model
+    from wbc_jax.robot.robots import DESCRIPTIONS
+
+    def limits(robot: str) -> set[float]:
+        return {float(x) for x in model.load_robot(robot).index.torque_limit}
+
+    return limits("icub") - set().union(*(limits(r) for r in DESCRIPTIONS if r != "icub"))
+
+
+def _motor_limit_uses(where: str, source: str, limits: set[float]) -> list[str]:
+    """``where:line text`` for each use of a motor limit in ``limits`` as a torque: in any text, the
+    number beside a torque unit or a +- sign (``60 N m``, ``+-60``, ``\\pm 60``); in code, a literal
+    of that value that divides, the default of a field named after a torque, or a bound of an option
+    in N m."""
+    numbers = "|".join(sorted({re.escape(f"{x:g}") for x in limits}))
+    text = re.compile(rf"(?:\+-|\u00b1|\\pm\s*)(?:{numbers})(?:\.0)?\b|\b(?:{numbers})(?:\.0)?\s*N\s?m\b")
+    found = [f"{where}:{source.count(chr(10), 0, m.start()) + 1} {m.group(0)}" for m in text.finditer(source)]
+
+    def is_limit(node) -> bool:
+        value = getattr(node, "value", None)
+        return isinstance(node, ast.Constant) and not isinstance(value, bool) and value in limits
+
+    for node in ast.walk(ast.parse(source)):
+        hits = []
+        if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Div):
+            hits = [node.right] if is_limit(node.right) else []
+        elif isinstance(node, (ast.AnnAssign, ast.Assign)) and re.search(r"(?i)torque|tau", ast.unparse(node)):
+            hits = [node.value] if is_limit(node.value) else []
+        elif isinstance(node, ast.Call) and any(
+            k.arg == "unit" and getattr(k.value, "value", None) == "N m" for k in node.keywords
+        ):
+            hits = [k.value for k in node.keywords if is_limit(k.value)]
+        found += [f"{where}:{h.lineno} {ast.unparse(node)[:60]}" for h in hits]
+    return found
+
+
+def test_no_module_outside_the_robot_layer_holds_the_icubs_motor_limit():
+    """Issue 47: a torque scale, saturation or bound comes from the robot's motor limits (its model's
+    actuators), never the iCub's 60 N m written into a generic layer."""
+    limits = _icub_motor_limits()
+    assert limits == {60.0}
+    found = [
+        use
+        for path in sorted(PACKAGE.rglob("*.py"))
+        if path.relative_to(PACKAGE).parts[0] != "robot"
+        for use in _motor_limit_uses(str(path.relative_to(PACKAGE.parent)), path.read_text(), limits)
+    ]
+    assert not found, "the iCub's motor limit outside wbc_jax/robot/:\n" + "\n".join(found)
+
+
+def test_the_motor_limit_scan_finds_each_form():
+    source = (
+        '"""within +-60 N m, sat_{\\\\pm 60}; 60 s and 600 N m are not"""\n'
+        "class C:\n    torque_scale: float = 60.0\n    settle_s: float = 60.0\n"
+        "effort = (u / 60.0) ** 2\nquintic = 60 * u\n"
+        'step = option(1.0, "step", le=60.0, unit="N m")\nhorizon = option(1.0, "s", le=60.0, unit="s")\n'
+    )
+    found = _motor_limit_uses("probe.py", source, {60.0})
+    assert sorted(f.split(" ")[0] for f in found) == ["probe.py:1"] * 2 + ["probe.py:3", "probe.py:5", "probe.py:7"]
+
+
 def test_the_icub_word_list_catches_a_name():
     """The check above finds what it looks for: the iCub's names and numbers are in its words."""
     words, numbers = _icub_specific_words()

@@ -19,6 +19,7 @@ from wbc_jax.jobs import envelope, sweep_table
 from wbc_jax.robot import contacts, model
 from wbc_jax.robot import pinocchio as robot_pinocchio
 from wbc_jax.robot.icub import DESCRIPTION as ICUB
+from wbc_jax.robot.talos import DESCRIPTION as TALOS
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
@@ -244,12 +245,38 @@ def test_config_checks():
     with pytest.raises(ValueError, match="fz_min <= fz_max"):
         tb.TsidConfig(fz_min=20.0, fz_max=10.0)
     with pytest.raises(ValueError, match="kp_posture must be 23 finite numbers"):
-        tb.TsidConfig(kp_posture=(1.0, 2.0)).gains(23)
-    g = tb.TsidConfig().gains(23)
+        tb.TsidConfig(kp_posture=(1.0, 2.0)).gains(ICUB, 23)
+    g = tb.TsidConfig().gains(ICUB, 23)
     np.testing.assert_array_equal(g["kp_com"], ICUB.gains.kp_com)
     np.testing.assert_allclose(g["kd_com"], 2 * np.sqrt(ICUB.gains.kp_com) / 20)
     np.testing.assert_allclose(g["kd_posture"], 2 * np.sqrt(ICUB.gains.kp_postural))
-    np.testing.assert_array_equal(tb.TsidConfig().corners()[:, 0], [-0.07, -0.045, 0.0])
+    np.testing.assert_array_equal(tb.TsidConfig().corners(ICUB)[:, 0], [-0.07, -0.045, 0.0])
+    # Another robot's defaults are its own: Talos's postural gains and CoP rectangle.
+    np.testing.assert_array_equal(tb.TsidConfig().gains(TALOS)["kp_posture"], TALOS.gains.kp_postural)
+    np.testing.assert_array_equal(tb.TsidConfig().corners(TALOS)[:, 0], [-0.1, -0.06, 0.0])
+
+
+@needs_tsid
+def test_the_peer_runs_on_talos():
+    """Issue 47: TSID's controller on Talos (example-robot-data's URDF in Pinocchio, assets/talos/'s
+    MJCF on C MuJoCo): the URDF's sole frames sit on the MJCF's sole sites, the masses agree, and it
+    stands; a body of the iCub is refused in one line."""
+    import pinocchio as pin
+
+    peer = tb.TsidPeer(robot="talos")
+    m, pm = peer.mj_model, peer.pin_model
+    assert peer.map.joints == TALOS.joints and (pm.nq, pm.nv) == (m.nq, m.nv) == (29, 28)
+    assert pin.computeTotalMass(pm) == pytest.approx(float(m.body_subtreemass[1]), rel=1e-9)
+    d, pd = mujoco.MjData(m), pm.createData()
+    d.qpos[:] = peer.qpos0
+    mujoco.mj_kinematics(m, d)
+    pin.framesForwardKinematics(pm, pd, peer.map.q_v(peer.qpos0, np.zeros(m.nv))[0])
+    for site, frame in zip(TALOS.feet, TALOS.pinocchio_feet):
+        np.testing.assert_allclose(pd.oMf[pm.getFrameId(frame)].translation, d.site_xpos[m.site(site).id], atol=1e-9)
+    s = peer.simulate("stand", duration=1.0, record=False)["summary"]
+    assert s["survived"] and s["com_max_err_m"] < 1e-3 and s["qp_infeasible_ticks"] == 0, s
+    with pytest.raises(SystemExit, match="unknown body 'chest'"):
+        tp.main(["--robot", "talos", "--body", "chest", "--out", "/nonexistent/tsid.json"])
 
 
 @needs_tsid

@@ -1,4 +1,8 @@
-"""[TSID peer] The iCub balanced by TSID (Pinocchio + eiquadprog, C++) on C MuJoCo physics.
+"""[TSID peer] A robot balanced by TSID (Pinocchio + eiquadprog, C++) on C MuJoCo physics: the iCub
+by default, any robot of ``wbc_jax.robot.robots`` whose description has a URDF (``robot=``; Talos:
+example-robot-data's URDF, its sole frames ``urdf_feet``). Everything robot-specific (MJCF, joints,
+feet, CoP rectangle, default gains, the trunk role of ``push_body``) comes from the robot's
+description; what follows describes the iCub, and holds for Talos with its own numbers.
 
     model.py          the packages, the plant's C model and contacts, wbc_jax's numbers, the task references
     controller.py     the TSID controller and its settings

@@ -14,8 +14,6 @@ from collections.abc import Callable
 import mujoco
 import numpy as np
 
-from wbc_jax.robot import icub
-
 from .controller import TsidConfig
 from .model import constants, sole_contact_rectangle
 from .peer import TsidPeer
@@ -216,7 +214,7 @@ SENSITIVITY = {
     "w_posture=1e-4": {"w_posture": 1e-4},
     "w_posture=1e-2": {"w_posture": 1e-2},
     "contact_kp=10": {"contact_kp": 10.0},
-    "kd_com=2sqrt(kp_com) (TSID's critical damping)": {"kd_com": tuple(2 * np.sqrt(icub.DESCRIPTION.gains.kp_com))},
+    "kd_com=2sqrt(kp_com) (TSID's critical damping)": {"kd_com": "critical"},  # of the robot's K_P,CoM
     "foot_size=the soles' contact spheres": {"foot_size": "contact spheres"},  # sole_contact_rectangle
 }
 
@@ -227,7 +225,9 @@ def sensitivity(peer: TsidPeer, args, log=print) -> dict:
     for name, change in SENSITIVITY.items():
         log(f"sensitivity: {name}")
         if change.get("foot_size") == "contact spheres":
-            change = {**change, "foot_size": sole_contact_rectangle(peer.mj_model)}
+            change = {**change, "foot_size": sole_contact_rectangle(peer.mj_model, robot=peer.robot)}
+        if change.get("kd_com") == "critical":
+            change = {**change, "kd_com": tuple(2 * np.sqrt(peer.description.gains.kp_com))}
         config = TsidConfig(**change)
         sin = peer.simulate("sinusoid", duration=args.sinusoid_duration, config=config, record=False)["summary"]
         e = envelope(peer, config, args, log=lambda _: None)

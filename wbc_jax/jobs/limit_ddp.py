@@ -107,7 +107,7 @@ class DdpConfig:
         problem = crocoddyl_problem()
         if problem is not None:
             raise ValueError(problem)
-        peers = pinocchio.ROBOTS  # the robots whose Pinocchio model wbc_jax.robot.pinocchio builds
+        peers = pinocchio.ROBOTS  # the robots whose crocoddyl check was run
         if self.robot not in peers:
             raise ValueError(
                 f"--robot {self.robot}: the crocoddyl cross-check has the Pinocchio models of {list(peers)}"
@@ -145,7 +145,7 @@ class CrossCheck:
         self.search = limit_rounds.Search(cfg.limit_config())
         robot = self.search.replay_setup.robot
         m = robot.mj_model
-        self.pin_model = pinocchio.pinocchio_model(robot.index.joints)
+        self.pin_model = pinocchio.pinocchio_model(robot.index.joints, robot=cfg.robot)
         self.map = pinocchio.StateMap(m, self.pin_model, robot.index.joints)
         self.loop = self.search.replay_setup.loop
         self.dt = self.loop.cfg.control_dt

@@ -270,23 +270,37 @@ def implicit_solver():
     implicit-function theorem's, da/dtheta = -H^-1 dg/dtheta (M, f_smooth, J, D and aref all depend on
     the state and the torques). The backward pass is then two Cholesky solves with H and products with
     M and J per physics step, instead of the reverse pass of every Newton and line-search iteration.
-    The constraint forces follow from a with the same active set."""
+    The constraint forces follow from a with the same active set.
+
+    Joint friction loss (Talos's motors; MJX's ``_update_constraint``): a friction-loss row is
+    quadratic while |J a - aref| < f / D and linear beyond, its force then the constant -+f (no
+    curvature); which rows are linear is held fixed at a* as the active set is."""
     from mujoco.mjx._src import solver, support
+    from mujoco.mjx._src.types import DisableBit
 
     original = solver.solve
 
     def solve(m, d):
         impl = d._impl
-        if m.opt.cone != mujoco.mjtCone.mjCONE_PYRAMIDAL or np.any(np.asarray(m._impl.dof_hasfrictionloss)):
-            raise ValueError("the implicit solver gradient needs pyramidal cones and no friction loss")
+        if m.opt.cone != mujoco.mjtCone.mjCONE_PYRAMIDAL or np.any(np.asarray(m._impl.tendon_hasfrictionloss)):
+            raise ValueError("the implicit solver gradient needs pyramidal cones and no tendon friction loss")
         sg = lambda t: jax.tree_util.tree_map(jax.lax.stop_gradient, t)  # noqa: E731
         a_star = jax.lax.stop_gradient(original(m, sg(d)).qacc)  # the plant model carries no tangents here
         J, aref = impl.efc_J, impl.efc_aref
-        active = (jax.lax.stop_gradient(J @ a_star - aref) < 0).at[: impl.ne + impl.nf].set(True)
+        jaref = jax.lax.stop_gradient(J @ a_star - aref)
+        active = (jaref < 0).at[: impl.ne + impl.nf].set(True)
+        floss = jnp.zeros_like(aref)
+        if np.any(np.asarray(m._impl.dof_hasfrictionloss)) and not m.opt.disableflags & DisableBit.FRICTIONLOSS:
+            f = impl.efc_frictionloss
+            r = 1.0 / (impl.efc_D + (impl.efc_D == 0.0) * mujoco.mjMINVAL)
+            linear_neg = (jaref <= -r * f) & (f > 0)
+            linear_pos = (jaref >= r * f) & (f > 0)
+            active = active & ~linear_neg & ~linear_pos
+            floss = linear_neg * f - linear_pos * f
         w = impl.efc_D * active
 
         def force(a):
-            return -w * (J @ a - aref)
+            return -w * (J @ a - aref) + floss
 
         g = support.mul_m(m, d, a_star) - d.qfrc_smooth - J.T @ force(a_star)
         H = jax.lax.stop_gradient(support.full_m(m, d) + (J.T * w) @ J)

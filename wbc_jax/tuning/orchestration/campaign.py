@@ -202,7 +202,7 @@ def run(
         {
             "tune": {k: v for k, v in flat_dict(tc).items() if k not in ("out", "phases")},
             "heldout": {k: v for k, v in flat_dict(hc).items() if k != "out"},
-            "loss": dataclasses.asdict(lc),
+            "loss": dataclasses.asdict(problem.lc),  # the torque scales resolved for the robot
             "dtype": str(scenario.float_dtype()),
         },
         list(files.values()),
@@ -217,7 +217,7 @@ def run(
         {
             "tune": flat_dict(tc),
             "heldout": flat_dict(hc),
-            "loss": dataclasses.asdict(lc),
+            "loss": dataclasses.asdict(problem.lc),  # the torque scales resolved for the robot
             "provenance": provenance.record(files),
         },
     )
