@@ -36,6 +36,7 @@ from wbc_jax.core import mjx as mjx_device
 from wbc_jax.core.constants import DIVERGED_SPEED
 from wbc_jax.core.mjx import mjx
 from wbc_jax.core.types import Array
+from wbc_jax.sim import warp_graphs
 
 BACKENDS = ("auto", "jax", "warp", "mujoco")
 FLOOR_GEOM = 0  # the floor is the model's first geom (the model builders of assets/; tested)
@@ -49,11 +50,15 @@ class PhysicsConfig:
     Attributes:
       backend: one of :data:`BACKENDS`.
       solver_iterations / ls_iterations: Newton / line-search iterations (None: the model's).
+      warp_graph_cache: CUDA graphs each Warp foreign call keeps, for all devices together
+        (:mod:`wbc_jax.sim.warp_graphs`; 0: no bound; None: Warp's 32). Shapes no program and
+        changes no result: left out of the repr, so of ``ClosedLoop.structure_key``.
     """
 
     backend: str = "auto"
     solver_iterations: int | None = None
     ls_iterations: int | None = None
+    warp_graph_cache: int | None = dataclasses.field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         if self.backend not in BACKENDS:
@@ -62,6 +67,7 @@ class PhysicsConfig:
             value = getattr(self, name)
             if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
                 raise ValueError(f"{name} must be a positive integer or None, got {value!r}")
+        warp_graphs.check(self.warp_graph_cache)
 
 
 def has_cuda() -> bool:

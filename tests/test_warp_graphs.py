@@ -1,0 +1,91 @@
+"""The diagnostics of issue 45 (why 4 GPUs of MJX-Warp ran slower than one): the sweep's
+--warp-graph-cache and scaling.py's --launch / --switch-interval-ms are refused in one line when
+wrong, before anything compiles, and reach what runs."""
+
+import argparse
+import json
+import pathlib
+
+import pytest
+from conftest import load_script
+
+from wbc_jax import cli
+from wbc_jax.jobs import sweep, sweep_config
+from wbc_jax.sim import physics, warp_graphs
+
+scaling = load_script("experiments/benchmarks/scaling.py")
+
+
+def _one_line(capsys) -> str:
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+def test_a_bad_warp_graph_cache_is_one_line_before_compiling(tmp_path, capsys):
+    out = tmp_path / "sw"
+    assert cli.main(["push-sweep", "--warp-graph-cache", "-1", "--out", str(out)]) == 2
+    assert _one_line(capsys) == (
+        "wbc-jax push-sweep: error: --warp-graph-cache must be a whole number in [0, 100000], got -1"
+    )
+    # On this CPU --backend auto runs C MuJoCo: a Warp bound there would measure nothing.
+    assert cli.main(["push-sweep", "--warp-graph-cache", "8", "--out", str(out)]) == 2
+    assert _one_line(capsys) == (
+        "wbc-jax push-sweep: error: --warp-graph-cache bounds MJX-Warp's CUDA graphs: it needs --backend warp "
+        "(--backend auto runs mujoco here)"
+    )
+    assert not out.exists()
+    with pytest.raises(ValueError, match=r"--warp-graph-cache must be a whole number in \[0, 100,?000\].*got True"):
+        physics.PhysicsConfig(warp_graph_cache=True)
+
+
+def test_the_warp_graph_cache_reaches_the_loop_and_shapes_no_program():
+    """The bound travels from the sweep's config into the loop's physics config, and, changing no
+    program, leaves the loop's program key (the in-process cache of compiled programs) as it was."""
+    plain = sweep.make_setup(sweep_config.SweepConfig(backend="jax"))
+    bounded = sweep.make_setup(sweep_config.SweepConfig(backend="jax", warp_graph_cache=7))
+    assert bounded.loop.cfg.physics.warp_graph_cache == 7 and plain.loop.cfg.physics.warp_graph_cache is None
+    assert bounded.loop.structure_key == plain.loop.structure_key
+    assert "warp_graph_cache" in sweep_config.SweepConfig.PROCEDURE  # a resumed run may change it
+
+
+def test_bound_sets_every_registered_warp_call():
+    """On Warp's own registry (where warp-lang is installed: the GPU machine)."""
+    wp = pytest.importorskip("warp")
+
+    def scale(x: wp.array(dtype=float), y: wp.array(dtype=float)):
+        pass
+
+    call = wp.jax_callable(scale, num_outputs=1)
+    assert call.graph_cache_max == 32  # Warp's default, which the diagnostic replaces
+    assert warp_graphs.bound(None) == 0 and call.graph_cache_max == 32
+    assert warp_graphs.bound(0) >= 1 and call.graph_cache_max is None
+    warp_graphs.bound(5)
+    assert warp_graphs.held()[call.name] == {"graphs": 0, "bound": 5}
+
+
+def test_scaling_launches_threads_or_one_process_per_gpu(tmp_path):
+    """--launch processes: one process per GPU (its own CUDA_VISIBLE_DEVICES, jax.distributed ranks
+    0..N-1 on one coordinator); threads: one process with the first N GPUs; both carry the switch
+    interval and the sweep flags."""
+    args = argparse.Namespace(repeats=2, switch_interval_ms=0.5, launch="processes")
+    flags = ["--horizon", "1", "--warp-graph-cache", "0"]
+    many = scaling.launch(4, tmp_path, flags, args)
+    assert [gpus for _, gpus in many] == ["0", "1", "2", "3"]
+    settings = [json.loads(cmd[4]) for cmd, _ in many]
+    assert [s["distributed"]["process_id"] for s in settings] == [0, 1, 2, 3]
+    assert {(s["distributed"]["coordinator"], s["distributed"]["num_processes"]) for s in settings} == {
+        (settings[0]["distributed"]["coordinator"], 4)
+    }
+    assert all(s["switch_interval_ms"] == 0.5 and s["repeats"] == 2 for s in settings)
+    assert all(cmd[3] == str(tmp_path) and cmd[5:] == flags for cmd, _ in many)
+    for n, launch_kind in ((3, "threads"), (1, "processes")):  # one GPU is one process either way
+        [(cmd, gpus)] = scaling.launch(n, tmp_path, flags, argparse.Namespace(**{**vars(args), "launch": launch_kind}))
+        assert gpus == ",".join(str(i) for i in range(n)) and json.loads(cmd[4])["distributed"] is None
+
+
+def test_scaling_refuses_a_bad_switch_interval_before_running(tmp_path):
+    with pytest.raises(SystemExit, match=r"^scaling.py: error: --switch-interval-ms must be a number in \[0.01, 100\]"):
+        scaling.main(["--out", str(tmp_path / "s"), "--switch-interval-ms", "0", "--", "--horizon", "1"])
+    assert not pathlib.Path(tmp_path / "s").exists()
