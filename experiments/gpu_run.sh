@@ -101,7 +101,8 @@ for job in "$@"; do
             # were slower"). The 32,768-env sweep at a 1 s horizon, 2 runs each, one scaling.json per variant in
             # $OUT/$job/VARIANT.json (copied as each ends: a call cut short keeps the variants done). DIAG_VARIANTS:
             # base (1 and 4 GPUs, as measured), graphs0 (4 GPUs, Warp's graph cache unbounded), processes (4 GPUs as
-            # 4 jax.distributed processes), switch (4 GPUs, thread switch interval DIAG_SWITCH_MS), three (3 GPUs).
+            # 4 jax.distributed processes), switch (4 GPUs, thread switch interval DIAG_SWITCH_MS), three (3 GPUs);
+            # graphjax (1 and 4 GPUs, XLA captures the step's graphs: --warp-graph-mode jax) when named.
       D="--magnitudes 10 400 64 --directions 32 --gain-sets 16 --horizon 1 --chunk-size 32768 --push-onset 0.5
          --push-duration 0.1 --stall-timeout-s 240"
       mkdir -p "$OUT/$job"
@@ -112,7 +113,9 @@ for job in "$@"; do
           processes) a="--gpus 4 --launch processes"; s="" ;;
           switch) a="--gpus 4 --switch-interval-ms ${DIAG_SWITCH_MS:-0.1}"; s="" ;;
           three) a="--gpus 3"; s="" ;;
-          *) echo "scaling4_warp_diag: unknown variant $v (valid: base graphs0 processes switch three)"; continue ;;
+          graphjax) a="--gpus 1 4"; s="--warp-graph-mode jax" ;;
+          *) echo "scaling4_warp_diag: unknown variant $v (valid: base graphs0 processes switch three graphjax)"
+             continue ;;
         esac
         run $job python3 experiments/benchmarks/scaling.py --out /tmp/diag/$v $a --backends warp --repeats 2 \
           --timeout 240 -- $D $s

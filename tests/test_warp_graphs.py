@@ -32,20 +32,29 @@ def test_a_bad_warp_graph_cache_is_one_line_before_compiling(tmp_path, capsys):
     # On this CPU --backend auto runs C MuJoCo: a Warp bound there would measure nothing.
     assert cli.main(["push-sweep", "--warp-graph-cache", "8", "--out", str(out)]) == 2
     assert _one_line(capsys) == (
-        "wbc-jax push-sweep: error: --warp-graph-cache bounds MJX-Warp's CUDA graphs: it needs --backend warp "
+        "wbc-jax push-sweep: error: --warp-graph-cache sets MJX-Warp's CUDA graphs: it needs --backend warp "
         "(--backend auto runs mujoco here)"
     )
+    assert cli.main(["push-sweep", "--warp-graph-mode", "jax", "--out", str(out)]) == 2
+    assert _one_line(capsys).startswith("wbc-jax push-sweep: error: --warp-graph-mode sets MJX-Warp's CUDA graphs")
     assert not out.exists()
     with pytest.raises(ValueError, match=r"--warp-graph-cache must be a whole number in \[0, 100,?000\].*got True"):
         physics.PhysicsConfig(warp_graph_cache=True)
+    # The staged modes share one capture between a process's GPUs: not offered.
+    with pytest.raises(
+        ValueError, match=r"--warp-graph-mode must be one of \['warp', 'jax', 'none'\], got 'warp_staged'"
+    ):
+        physics.PhysicsConfig(warp_graph_mode="warp_staged")
 
 
 def test_the_warp_graph_cache_reaches_the_loop_and_shapes_no_program():
     """The bound travels from the sweep's config into the loop's physics config, and, changing no
     program, leaves the loop's program key (the in-process cache of compiled programs) as it was."""
     plain = sweep.make_setup(sweep_config.SweepConfig(backend="jax"))
-    bounded = sweep.make_setup(sweep_config.SweepConfig(backend="jax", warp_graph_cache=7))
+    bounded = sweep.make_setup(sweep_config.SweepConfig(backend="jax", warp_graph_cache=7, warp_graph_mode="jax"))
     assert bounded.loop.cfg.physics.warp_graph_cache == 7 and plain.loop.cfg.physics.warp_graph_cache is None
+    assert bounded.loop.cfg.physics.warp_graph_mode == "jax"
+    bounded = sweep.make_setup(sweep_config.SweepConfig(backend="jax", warp_graph_cache=7))
     assert bounded.loop.structure_key == plain.loop.structure_key
     assert "warp_graph_cache" in sweep_config.SweepConfig.PROCEDURE  # a resumed run may change it
 

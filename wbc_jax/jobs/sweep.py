@@ -119,6 +119,7 @@ def make_setup(
         physics=physics.PhysicsConfig(
             backend=physics.resolve_backend(cfg.backend),
             solver_iterations=cfg.solver_iterations,
+            warp_graph_mode=cfg.warp_graph_mode,
             warp_graph_cache=cfg.warp_graph_cache,
         ),
     )

@@ -134,6 +134,12 @@ class SweepConfig:
         le=watchdog.MAX_STALL_S,
         unit="s",
     )
+    warp_graph_mode: str = option(
+        "warp",
+        "who captures MJX-Warp's CUDA graphs: Warp (per GPU and buffer addresses; MJX's default), JAX "
+        "(XLA's command buffers) or none; a diagnostic of issue 45",
+        choices=warp_graphs.GRAPH_MODES,
+    )
     warp_graph_cache: int | None = option(
         None,
         "CUDA graphs each MJX-Warp foreign call keeps, for all GPUs of the process together (0: no bound; "
@@ -185,11 +191,15 @@ class SweepConfig:
                     f"{self.push_duration} s is outside it (e.g. --push-onset 7.5 --horizon 9)"
                 )
         backend = physics.resolve_backend(self.backend)
-        if self.warp_graph_cache is not None and backend != "warp":
-            raise ValueError(
-                f"--warp-graph-cache bounds MJX-Warp's CUDA graphs: it needs --backend warp (--backend "
-                f"{self.backend} runs {backend} here)"
-            )
+        for flag, value, default in (
+            ("--warp-graph-cache", self.warp_graph_cache, None),
+            ("--warp-graph-mode", self.warp_graph_mode, "warp"),
+        ):
+            if value != default and backend != "warp":
+                raise ValueError(
+                    f"{flag} sets MJX-Warp's CUDA graphs: it needs --backend warp (--backend {self.backend} "
+                    f"runs {backend} here)"
+                )
         if self.queue > 1 and backend == "mujoco":
             raise ValueError(
                 f"--queue {self.queue} (scenarios per batch slot) needs an MJX backend: --backend jax or "

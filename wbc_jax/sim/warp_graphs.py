@@ -24,6 +24,12 @@ import sys
 
 # A bound on graphs per callable: 0 keeps every graph captured; more than this is a typo.
 MAX_GRAPH_CACHE = 100_000
+# Who captures the step's CUDA graphs (Warp's JaxCallableGraphMode): Warp, per device, call site and
+# buffer addresses (MJX's default on a GPU); XLA, as part of its command buffers (the callback runs
+# only while XLA captures); nobody (every call launches each kernel from Python). The staged modes
+# keep one capture per call site, which the devices of a process share (PerDevice traces once):
+# unsafe on several GPUs (google-deepmind/mujoco#3191), so not offered.
+GRAPH_MODES = ("warp", "jax", "none")
 
 
 def _callables() -> list:
@@ -43,8 +49,11 @@ def _callables() -> list:
     return callables
 
 
-def check(limit: int | None) -> None:
-    """Refuse a bound that is not None nor a whole number in [0, MAX_GRAPH_CACHE], in one line."""
+def check(limit: int | None, mode: str = "warp") -> None:
+    """Refuse, in one line, a bound that is not None nor a whole number in [0, MAX_GRAPH_CACHE], or a
+    graph mode not in :data:`GRAPH_MODES`."""
+    if mode not in GRAPH_MODES:
+        raise ValueError(f"--warp-graph-mode must be one of {list(GRAPH_MODES)}, got {mode!r}")
     if limit is not None and (
         isinstance(limit, bool) or not isinstance(limit, int) or not 0 <= limit <= MAX_GRAPH_CACHE
     ):
