@@ -7,15 +7,16 @@ MJX-Warp's step enters XLA as a Warp ``jax_callable`` in graph mode WARP (mujoco
 ``mujoco/mjx/warp/ffi.py:111``, ``_src/io.py:598-602``). Each time XLA reaches the call, Warp's
 callback (Python, under the interpreter lock and Warp's process-wide ``_FFI_CALLBACK_LOCK``,
 ``warp/_src/jax/ffi.py:47,896``) replays the graph it captured for the same device, call site and
-buffer addresses (``ffi.py:963-980``), or captures a new one: it wraps the step's 561 array arguments as Warp
-arrays, runs the step's Python (every kernel launch) under capture and instantiates the graph
-(``ffi.py:1065-1091``). The graphs of one callable sit in ONE least-recently-used cache shared by
-all of the process's devices, 32 graphs by default (``JAX_CALLABLE_DEFAULT_GRAPH_CACHE_MAX``,
-``ffi.py:52,1755``), and every trace of the call sets that bound again (``ffi.py:1878-1880``):
-which is why :func:`bound` is applied after the programs are traced. mujoco-mjx passes no bound of
-its own, so this reaches Warp's registry (``warp._src.jax.ffi._FFI_CALLABLE_REGISTRY``), read and
-set through ``FfiCallable.graph_cache_max`` / ``graph_cache_size``; a Warp without them is refused
-in one line.
+buffer addresses (``ffi.py:963-980``), or captures a new one: it wraps the step's 561 array
+arguments as Warp arrays, runs the step's Python (every kernel launch) under capture and
+instantiates the graph (``ffi.py:1065-1091``). The graphs of one callable sit in ONE
+least-recently-used cache shared by all of the process's devices, 32 graphs by default
+(``JAX_CALLABLE_DEFAULT_GRAPH_CACHE_MAX``, ``ffi.py:52,1755``), and each ``wp.jax_callable`` call
+for it sets that bound again (``ffi.py:1878-1880``; mujoco-mjx makes that call when it first traces
+a call structure, ``mujoco/mjx/warp/ffi.py:161-206``): which is why :func:`bound` is applied after
+the programs are traced. mujoco-mjx passes no bound of its own, so this reaches Warp's registry
+(``warp._src.jax.ffi._FFI_CALLABLE_REGISTRY``), read and set through ``FfiCallable.graph_cache_max``
+/ ``graph_cache_size``; a Warp without them is refused in one line.
 """
 
 from __future__ import annotations
