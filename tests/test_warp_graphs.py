@@ -59,8 +59,9 @@ def test_the_warp_graph_cache_reaches_the_loop_and_shapes_no_program():
     assert "warp_graph_cache" in sweep_config.SweepConfig.PROCEDURE  # a resumed run may change it
 
 
+@pytest.mark.gpu
 def test_bound_sets_every_registered_warp_call():
-    """On Warp's own registry (where warp-lang is installed: the GPU machine)."""
+    """On Warp's own registry (warp-lang is installed with the GPU's wheels: the gpu set runs it)."""
     wp = pytest.importorskip("warp")
 
     def scale(x: wp.array(dtype=float), y: wp.array(dtype=float)):
@@ -98,3 +99,13 @@ def test_scaling_refuses_a_bad_switch_interval_before_running(tmp_path):
     with pytest.raises(SystemExit, match=r"^scaling.py: error: --switch-interval-ms must be a number in \[0.01, 100\]"):
         scaling.main(["--out", str(tmp_path / "s"), "--switch-interval-ms", "0", "--", "--horizon", "1"])
     assert not pathlib.Path(tmp_path / "s").exists()
+
+
+@pytest.mark.slow
+def test_scaling_processes_report_the_failing_one(tmp_path, monkeypatch):
+    """--launch processes for real (two jax.distributed processes on this CPU, 6 s here: nightly): a sweep
+    flag both refuse ends the configuration with one error naming the process and its last line."""
+    monkeypatch.setenv("JAX_PLATFORMS", "cpu")
+    args = argparse.Namespace(launch="processes", repeats=2, switch_interval_ms=None, timeout=120)
+    with pytest.raises(RuntimeError, match=r"^process 0 of 2: rc 2: wbc-jax push-sweep: error: argument --magnitudes"):
+        scaling.run_configuration(2, tmp_path / "runs", ["--magnitudes", "-5", "--backend", "jax"], args)

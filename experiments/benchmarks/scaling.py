@@ -33,6 +33,7 @@ import pathlib
 import shutil
 import subprocess
 import sys
+import time
 
 import numpy as np
 
@@ -149,16 +150,21 @@ def run_configuration(n: int, folder: pathlib.Path, flags: list[str], args: argp
         for cmd, gpus in launch(n, folder, flags, args)
     ]
     outputs = []
-    for rank, proc in enumerate(procs):
-        try:
-            outputs.append(proc.communicate(timeout=args.timeout))
-        except subprocess.TimeoutExpired:
-            for p in procs:
-                p.kill()
-            raise RuntimeError(f"process {rank} of {len(procs)} ran past --timeout {args.timeout:g} s") from None
-        if proc.returncode != 0:
-            err = " | ".join(outputs[-1][1].strip().splitlines()[-4:])
-            raise RuntimeError(f"process {rank} of {len(procs)}: rc {proc.returncode}: {err}")
+    deadline = time.monotonic() + args.timeout
+    try:
+        for rank, proc in enumerate(procs):
+            try:
+                outputs.append(proc.communicate(timeout=max(0.0, deadline - time.monotonic())))
+            except subprocess.TimeoutExpired:
+                raise RuntimeError(f"process {rank} of {len(procs)} ran past --timeout {args.timeout:g} s") from None
+            if proc.returncode != 0:
+                err = " | ".join(outputs[-1][1].strip().splitlines()[-4:])
+                raise RuntimeError(f"process {rank} of {len(procs)}: rc {proc.returncode}: {err}")
+    finally:  # a failed process leaves its peers waiting on it: end them
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
     line = [x for x in outputs[0][0].splitlines() if x.startswith("RESULT ")]
     if not line:
         raise RuntimeError(f"no result line: {' | '.join(outputs[0][1].strip().splitlines()[-4:])}")
