@@ -159,7 +159,8 @@ class SweepConfig:
 
     KIND: ClassVar[str] = "sweep"  # the run kind of its output folder (jobs/runs.py)
     # Fields that bound or test how a run proceeds, not what it computes: no part of the fingerprint.
-    PROCEDURE: ClassVar[tuple[str, ...]] = ("stall_timeout_s", "simulate_stall", "warp_graph_cache")
+    # The Warp graph settings launch the same kernels otherwise (issue 45's diagnostics): an older run resumes.
+    PROCEDURE: ClassVar[tuple[str, ...]] = ("stall_timeout_s", "simulate_stall", "warp_graph_mode", "warp_graph_cache")
 
     def check(self) -> None:
         """Every check that compiles nothing (run first, before any file is written): the declared
