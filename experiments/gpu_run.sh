@@ -98,12 +98,12 @@ for job in "$@"; do
       mkdir -p "$OUT/$job"; cp /tmp/scaling4/scaling.json "$OUT/$job/"
       find /tmp/scaling4/runs -name timeline.json | tar -czf "$OUT/$job/timelines.tgz" -T - ;;
     scaling4_warp_diag)  # issue 45: why 4 GPUs of Warp ran 4x slower than one (BENCHMARKS.md, "Why 4 GPUs of Warp
-            # were slower"). The 32,768-env sweep at a 1 s horizon, 2 runs each, one scaling.json per variant in
+            # were slower"). The 32,768-env sweep at a 0.7 s horizon, 2 runs each, one scaling.json per variant in
             # $OUT/$job/VARIANT.json (copied as each ends: a call cut short keeps the variants done). DIAG_VARIANTS:
             # base (1 and 4 GPUs, as measured), graphs0 (4 GPUs, Warp's graph cache unbounded), processes (4 GPUs as
             # 4 jax.distributed processes), switch (4 GPUs, thread switch interval DIAG_SWITCH_MS), three (3 GPUs);
             # graphjax (1 and 4 GPUs, XLA captures the step's graphs: --warp-graph-mode jax) when named.
-      D="--magnitudes 10 400 64 --directions 32 --gain-sets 16 --horizon 1 --chunk-size 32768 --push-onset 0.5
+      D="--magnitudes 10 400 64 --directions 32 --gain-sets 16 --horizon 0.7 --chunk-size 32768 --push-onset 0.5
          --push-duration 0.1 --stall-timeout-s 240"
       mkdir -p "$OUT/$job"
       for v in ${DIAG_VARIANTS:-base graphs0 processes switch three}; do
