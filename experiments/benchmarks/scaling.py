@@ -33,6 +33,7 @@ import pathlib
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -139,35 +140,40 @@ def launch(n: int, folder: pathlib.Path, flags: list[str], args: argparse.Namesp
 def run_configuration(n: int, folder: pathlib.Path, flags: list[str], args: argparse.Namespace) -> list[dict]:
     """Run one configuration (:func:`launch`) within ``--timeout`` s; the first process's runs (the
     one that writes the tables). A failed or timed-out process raises RuntimeError naming it."""
+    commands = launch(n, folder, flags, args)
+    # Each process's output goes to a file of its own: pipes read one after the other would fill.
+    logs = [(tempfile.TemporaryFile("w+"), tempfile.TemporaryFile("w+")) for _ in commands]
     procs = [
-        subprocess.Popen(
-            cmd,
-            env={**os.environ, "CUDA_VISIBLE_DEVICES": gpus},
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for cmd, gpus in launch(n, folder, flags, args)
+        subprocess.Popen(cmd, env={**os.environ, "CUDA_VISIBLE_DEVICES": gpus}, stdout=out, stderr=err, text=True)
+        for (cmd, gpus), (out, err) in zip(commands, logs, strict=True)
     ]
-    outputs = []
+
+    def read(f) -> str:
+        f.seek(0)
+        return f.read()
+
     deadline = time.monotonic() + args.timeout
     try:
         for rank, proc in enumerate(procs):
             try:
-                outputs.append(proc.communicate(timeout=max(0.0, deadline - time.monotonic())))
+                proc.wait(timeout=max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 raise RuntimeError(f"process {rank} of {len(procs)} ran past --timeout {args.timeout:g} s") from None
             if proc.returncode != 0:
-                err = " | ".join(outputs[-1][1].strip().splitlines()[-4:])
+                err = " | ".join(read(logs[rank][1]).strip().splitlines()[-4:])
                 raise RuntimeError(f"process {rank} of {len(procs)}: rc {proc.returncode}: {err}")
+        stdout, stderr = read(logs[0][0]), read(logs[0][1])
     finally:  # a failed process leaves its peers waiting on it: end them
         for proc in procs:
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
-    line = [x for x in outputs[0][0].splitlines() if x.startswith("RESULT ")]
+        for out, err in logs:
+            out.close()
+            err.close()
+    line = [x for x in stdout.splitlines() if x.startswith("RESULT ")]
     if not line:
-        raise RuntimeError(f"no result line: {' | '.join(outputs[0][1].strip().splitlines()[-4:])}")
+        raise RuntimeError(f"no result line: {' | '.join(stderr.strip().splitlines()[-4:])}")
     return json.loads(line[-1][len("RESULT ") :])
 
 
