@@ -111,3 +111,14 @@ def test_scaling_processes_report_the_failing_one(tmp_path, monkeypatch):
     args = argparse.Namespace(launch="processes", repeats=2, switch_interval_ms=None, timeout=120)
     with pytest.raises(RuntimeError, match=r"^process 0 of 2: rc 2: wbc-jax push-sweep: error: argument --magnitudes"):
         scaling.run_configuration(2, tmp_path / "runs", ["--magnitudes", "-5", "--backend", "jax"], args)
+
+
+@pytest.mark.gpu
+def test_the_callback_cost_counts_the_steps_arguments_and_times_both_paths(tmp_path):
+    """experiments/benchmarks/warp_callback_cost.py on warp-lang's own structures (the gpu set)."""
+    pytest.importorskip("warp")
+    cost = load_script("experiments/benchmarks/warp_callback_cost.py")
+    assert cost.main(["--out", str(tmp_path / "c.json"), "--repeats", "10"]) == 0
+    result = json.loads((tmp_path / "c.json").read_text())
+    assert result["step_array_arguments"] >= 500  # mujoco-mjx 3.17's step: 559
+    assert 0 < result["replay_key_s"] < result["wrap_buffers_s"]  # wrapping makes an object per buffer
