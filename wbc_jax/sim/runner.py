@@ -385,7 +385,7 @@ def _run_mjx_queue(
 
 def _bound_warp_graphs(loop) -> None:
     """MJX-Warp's graph cache bound (``PhysicsConfig.warp_graph_cache``), set after the programs are
-    traced (a trace sets Warp's own again) and before they run (:mod:`wbc_jax.sim.warp_graphs`)."""
+    traced (tracing may set Warp's own again) and before they run (:mod:`wbc_jax.sim.warp_graphs`)."""
     if loop.backend == "warp":
         warp_graphs.bound(loop.cfg.physics.warp_graph_cache)
 

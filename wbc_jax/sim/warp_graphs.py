@@ -7,7 +7,7 @@ MJX-Warp's step enters XLA as a Warp ``jax_callable`` in graph mode WARP (mujoco
 ``mujoco/mjx/warp/ffi.py:111``, ``_src/io.py:598-602``). Each time XLA reaches the call, Warp's
 callback (Python, under the interpreter lock and Warp's process-wide ``_FFI_CALLBACK_LOCK``,
 ``warp/_src/jax/ffi.py:47,896``) replays the graph it captured for the same device, call site and
-buffer addresses (``ffi.py:963-980``), or captures a new one: it wraps the step's 561 array
+buffer addresses (``ffi.py:963-980``), or captures a new one: it wraps the step's 559 array
 arguments as Warp arrays, runs the step's Python (every kernel launch) under capture and
 instantiates the graph (``ffi.py:1065-1091``). The graphs of one callable sit in ONE
 least-recently-used cache shared by all of the process's devices, 32 graphs by default
