@@ -121,7 +121,8 @@ for job in "$@"; do
           --timeout 240 -- $D $s
         [ -f /tmp/diag/$v/scaling.json ] && cp /tmp/diag/$v/scaling.json "$OUT/$job/$v.json"
         python3 -c "import json,sys; [print('$v', r['gpus'], r.get('launch'), r.get('run_s_each'), r.get('error', ''),
-          {k: v['graphs'] for k, v in (r.get('warp_graphs_last_run') or {}).items()}) for r in
+          {k: v['graphs'] for k, v in (r.get('warp_graphs_last_run') or {}).items()},
+          r.get('custom_calls_per_program')) for r in
           json.load(open(sys.argv[1]))['rows']]" /tmp/diag/$v/scaling.json 2>&1 | tail -n 4
       done ;;
     limit|limit_root)  # issue 37: the physical limit of push recovery, 32 directions, pushes of 0.1 s at 0.5 s (limit:

@@ -66,6 +66,12 @@ for k in range(settings["repeats"]):
     res[-1]["timeline"] = json.load(open(f"{out}/run{k}/timeline.json"))["totals_by_device"]
     res[-1]["warp_graphs"] = warp_graphs.held()  # graphs held by each Warp call after the run, and their bound
     res[-1]["switch_interval_s"] = sys.getswitchinterval()
+    if k == 0:  # foreign calls in the first device program's optimized HLO (an unrolled scan repeats them)
+        import collections, re
+        from wbc_jax.sim import loop as loop_lib
+        hlo = [next(iter(p.compiled.values())).as_text() for p in loop_lib.PROGRAMS.values()
+               if isinstance(getattr(p, "compiled", None), dict)]
+        res[-1]["custom_calls"] = [dict(collections.Counter(re.findall(r'custom_call_target="([^"]+)"', t))) for t in hlo]
 print("RESULT " + json.dumps(res))
 """
 LAUNCHES = ("threads", "processes")
@@ -264,6 +270,7 @@ def main(argv=None) -> int:
                         "physics_steps_per_s": last["physics_steps_per_s"],
                         "timeline_last_run": last["timeline"],
                         "warp_graphs_last_run": last["warp_graphs"],
+                        "custom_calls_per_program": runs[0].get("custom_calls", []),
                         "switch_interval_s": last["switch_interval_s"],
                         "repeats": args.repeats,
                         "repeat_flips": repeat_floor(tables[n]),
