@@ -36,6 +36,7 @@ from wbc_jax.core import mjx as mjx_device
 from wbc_jax.core.constants import DIVERGED_SPEED
 from wbc_jax.core.mjx import mjx
 from wbc_jax.core.types import Array
+from wbc_jax.sim import warp_graphs
 
 BACKENDS = ("auto", "jax", "warp", "mujoco")
 FLOOR_GEOM = 0  # the floor is the model's first geom (the model builders of assets/; tested)
@@ -49,11 +50,18 @@ class PhysicsConfig:
     Attributes:
       backend: one of :data:`BACKENDS`.
       solver_iterations / ls_iterations: Newton / line-search iterations (None: the model's).
+      warp_graph_mode: who captures MJX-Warp's CUDA graphs (:data:`warp_graphs.GRAPH_MODES`):
+        ``warp`` (MJX's default on a GPU), ``jax`` (XLA, within its own command buffers), ``none``.
+      warp_graph_cache: CUDA graphs each Warp foreign call keeps, for all devices together
+        (:mod:`wbc_jax.sim.warp_graphs`; 0: no bound; None: Warp's 32). Shapes no program and
+        changes no result: left out of the repr, so of ``ClosedLoop.structure_key``.
     """
 
     backend: str = "auto"
     solver_iterations: int | None = None
     ls_iterations: int | None = None
+    warp_graph_mode: str = "warp"
+    warp_graph_cache: int | None = dataclasses.field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         if self.backend not in BACKENDS:
@@ -62,6 +70,7 @@ class PhysicsConfig:
             value = getattr(self, name)
             if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
                 raise ValueError(f"{name} must be a positive integer or None, got {value!r}")
+        warp_graphs.check(self.warp_graph_cache, self.warp_graph_mode)
 
 
 def has_cuda() -> bool:
@@ -166,8 +175,10 @@ def device_model(robot_mj: mujoco.MjModel, backend: str, cfg: PhysicsConfig) -> 
     """The MJX model of a plant for an MJX backend, with the solver overrides."""
     if backend == "warp":
         from mujoco.mjx.third_party.mujoco_warp._src.types import OverflowType
+        from warp import JaxCallableGraphMode
 
-        mx = solver_model(mjx_device.put_model(robot_mj, impl="warp"), cfg)
+        mode = JaxCallableGraphMode[cfg.warp_graph_mode.upper()]
+        mx = solver_model(mjx_device.put_model(robot_mj, impl="warp", graph_mode=mode), cfg)
         # Buffer overflows are reported (they would drop contacts or constraints); reaching the
         # solver's iteration cap is normal for fallen robots (as in C MuJoCo) and is not.
         quiet = ~(OverflowType.ITERATIONS | OverflowType.LS_ITERATIONS)
