@@ -39,45 +39,19 @@ import xml.etree.ElementTree as ET
 import mujoco
 import numpy as np
 
-from wbc_jax.robot.talos import DESCRIPTION
+from wbc_jax.robot.talos import DESCRIPTION, talos_paths, urdf_text
 
 OUT = pathlib.Path(__file__).resolve().parent / "talos" / "talos_22dof.xml"
 GAINS_DIR = OUT.parent / "gains"
 
 # The controller's joints, in its order: the robot description is their one declaration.
 DRIVEN_JOINTS = DESCRIPTION.joints
-FIXED_JOINTS = ("head_1_joint", "head_2_joint", "gripper_left_joint", "gripper_right_joint") + tuple(
-    f"arm_{side}_{k}_joint" for side in ("left", "right") for k in (5, 6, 7)
-)
 # WBC postural k_p by joint function (the iCub's gainsAndReferences.m values; module docstring).
 POSTURAL_GAINS = [20, 10] + [10, 10, 10, 8] * 2 + [20, 30, 30, 20, 100, 100] * 2
 FOOT_BOX_HALF = (0.105, 0.065)  # m: half the foot collision box of talos_reduced_box.urdf (x, y)
 SPHERE_RADIUS = 0.005  # m
 FLOOR_FRICTION = 1.0
 CONTACT_SOLREF = (0.004, 1.0)  # stiff contact (>= 2 timesteps), as the iCub's
-
-
-def talos_paths() -> tuple[pathlib.Path, pathlib.Path]:
-    """(URDF, SRDF) of the installed example-robot-data."""
-    import example_robot_data
-
-    robots = pathlib.Path(example_robot_data.getModelPath("talos_data/robots/talos_reduced.urdf"))
-    data = robots / "talos_data"
-    return data / "robots" / "talos_reduced.urdf", data / "srdf" / "talos.srdf"
-
-
-def urdf_text() -> str:
-    """The URDF without geometry, the fixed joints made fixed, a floating base (also what Pinocchio
-    reads in tests/test_talos.py: the same joints and inertias)."""
-    urdf, _ = talos_paths()
-    text = urdf.read_text()
-    text = re.sub(r"<visual>.*?</visual>|<collision>.*?</collision>", "", text, flags=re.S)
-    text = re.sub(r"<transmission.*?</transmission>|<gazebo.*?</gazebo>", "", text, flags=re.S)
-    for joint in FIXED_JOINTS:
-        text, n = re.subn(rf'<joint name="{joint}" type="revolute"', f'<joint name="{joint}" type="fixed"', text)
-        if n != 1:
-            raise RuntimeError(f"joint {joint!r} not found once in {urdf}")
-    return text
 
 
 def _spec(fusestatic: bool) -> mujoco.MjSpec:

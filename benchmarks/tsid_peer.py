@@ -15,13 +15,24 @@ MuJoCo step one robot in one thread; ``--cpu`` also pins the process to one core
    bound m omega d of ``wbc_jax.jobs.sweep_table.lip_bound``. ``--full-grid`` also runs all 64 x 32 pushes
    (survival rate and the grid's monotone envelope, as ``wbc_jax.jobs.sweep_table.envelope_of``);
 4. ``--sensitivity``: the sinusoid and the envelope again with each setting that has no WBC
-   counterpart changed, one at a time (:data:`SENSITIVITY`).
+   counterpart changed, one at a time (``SENSITIVITY``);
+5. ``--wbc-timing``: in the same run, right after TSID's timing, wbc_jax's controller on the same
+   robot and task (``benchmarks/wbc_peer.py``'s timing part, a child process pinned alike: the
+   compiled loop's CPU time per tick less C MuJoCo's), so that both per-tick times share a load.
+
+``--robot`` picks the robot (``wbc_jax.robot.robots``: the iCub by default, or Talos from
+example-robot-data's URDF); its MJCF, joints, feet, CoP rectangle and default gains come from its
+description, the push body ``--body`` may be a role (``trunk``: the iCub's chest, Talos's torso_2_link).
+
+The pushes (3, 4) are ``benchmarks/tsid_baseline/push_envelope.py``.
 
 Writes a JSON file (default ``docs/peers/tsid.json``): every figure with the command that produced
 it, the CPU, the date, the load average, the package versions and the controller's settings.
 JAX-free, as the baseline.
 
     python benchmarks/tsid_peer.py --cpu 1 --full-grid --sensitivity --out docs/peers/tsid.json
+    python benchmarks/tsid_peer.py --robot talos --cpu 1 --magnitudes 10 700 70 --directions 8 \\
+        --horizon 2.5 --resolution 1 --wbc-timing --out docs/talos/tsid_peer.json
 """
 
 from __future__ import annotations
@@ -34,25 +45,22 @@ for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLI
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
 import datetime  # noqa: E402
-import faulthandler  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
 import pathlib  # noqa: E402
 import platform  # noqa: E402
 import shlex  # noqa: E402
 import sys  # noqa: E402
-import time  # noqa: E402
-from collections.abc import Callable  # noqa: E402
 
-import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
 # tsid_baseline is imported from this script's folder: Python puts it first on sys.path when the
 # script runs (python benchmarks/tsid_peer.py).
 import tsid_baseline as tb  # noqa: E402
+from tsid_baseline.push_envelope import envelope, full_grid, sensitivity  # noqa: E402
 
-from wbc_jax.robot import icub  # noqa: E402
+from wbc_jax.robot.robots import DEFAULT_ROBOT, ROBOT_NAMES, describe  # noqa: E402
 
 # The grid of wbc_jax/jobs/envelope.py (DEFAULT_MAGNITUDES) and of the documented 64 x 32 sweeps.
 MAGNITUDES = (10.0, 400.0, 64)  # N: LO, HI, count (np.linspace)
@@ -60,230 +68,17 @@ DIRECTIONS = 32  # azimuths k 360 / N deg from 0 (forward; 90 = left)
 PUSH_ONSET, PUSH_DURATION, HORIZON = 0.5, 0.1, 3.0  # s
 RESOLUTION = 0.25  # N s: wbc_jax.jobs.envelope.search's default
 CODE = ("benchmarks", "assets", "wbc_jax/core/constants.py")  # what the measurement runs (code_version)
-PACKAGES = ("tsid", "libtsid", "pin", "libpinocchio", "eiquadprog", "mujoco", "numpy", "icub-models")
-
-
-def lip_bound(m: mujoco.MjModel, qpos: np.ndarray, directions_deg, mass: float | None = None) -> dict:
-    """Feet-in-place bound per azimuth (``wbc_jax.jobs.sweep_table.lip_bound``, two feet): the LIP with its
-    CoP on the edge of the hull of the soles' contact spheres survives a CoM velocity up to omega d
-    (omega = sqrt(g / z_CoM), d the distance from the CoM to the hull along the push); as an impulse
-    m omega d. qpos (nq,): the home state. Returns {azimuth: {edge_distance_m, velocity_bound_mps,
-    impulse_bound_ns}}."""
-    from scipy.spatial import ConvexHull
-
-    d = mujoco.MjData(m)
-    d.qpos[:] = qpos
-    mujoco.mj_forward(m, d)
-    geoms = [
-        g for g in range(m.ngeom) if (mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g) or "").count("_foot_contact_")
-    ]
-    if not geoms:
-        raise ValueError("the model has no foot contact geoms (names '*_foot_contact_*')")
-    hull = ConvexHull(d.geom_xpos[geoms, :2])
-    base = 1  # the free-floating root body
-    com = d.subtree_com[base]
-    mass = float(m.body_subtreemass[base]) if mass is None else float(mass)
-    omega = math.sqrt(tb.constants.GRAVITY / com[2])
-    out = {}
-    for az in directions_deg:
-        u = np.array([math.cos(math.radians(az)), math.sin(math.radians(az))])
-        dist = min((-(eq[:2] @ com[:2] + eq[2]) / (eq[:2] @ u)) for eq in hull.equations if eq[:2] @ u > 1e-12)
-        out[float(az)] = {
-            "edge_distance_m": dist,
-            "velocity_bound_mps": omega * dist,
-            "impulse_bound_ns": mass * omega * dist,
-        }
-    return out
-
-
-def bisect(
-    impulses: np.ndarray, survives: Callable[[np.ndarray, np.ndarray], np.ndarray], searches: int, resolution: float
-) -> dict:
-    """The two-phase search of ``wbc_jax.jobs.envelope.bisect``: per search, the bracket of grid indices
-    [lo, hi] starts at (-1: no push, M - 1: taken as a fall) and is halved until adjacent over the
-    sorted distinct ``impulses`` (M,) N s, then the bracket inside that grid step is halved until at
-    most ``resolution`` N s wide. ``survives(k, impulse)`` -> bool (len(k),) for the open searches k.
-
-    Returns numpy arrays over the searches: lo (largest impulse seen to survive, 0 if none), hi,
-    grid_lo (largest grid impulse seen to survive), at_cap (no grid impulse failed); rollouts, rounds."""
-    impulses = np.asarray(impulses, float)
-    if impulses.ndim != 1 or impulses.size == 0 or np.any(np.diff(impulses) <= 0) or impulses[0] <= 0:
-        raise ValueError(f"impulses must be a sorted 1-D array of distinct positive values, got {impulses}")
-    if not (math.isfinite(resolution) and resolution > 0):
-        raise ValueError(f"resolution must be a positive number of N s, got {resolution}")
-    at = np.concatenate([[0.0], impulses])
-    lo_i, hi_i = np.full(searches, -1), np.full(searches, impulses.size - 1)
-    failed = np.zeros(searches, bool)
-    rollouts = rounds = 0
-    while np.any(hi_i - lo_i > 1):
-        k = np.flatnonzero(hi_i - lo_i > 1)
-        mid = (lo_i[k] + hi_i[k]) // 2
-        ok = np.asarray(survives(k, at[mid + 1]), bool)
-        lo_i[k], hi_i[k] = np.where(ok, mid, lo_i[k]), np.where(ok, hi_i[k], mid)
-        failed[k] |= ~ok
-        rollouts, rounds = rollouts + k.size, rounds + 1
-    lo, hi = at[lo_i + 1], at[hi_i + 1]
-    grid_lo = lo.copy()
-    while np.any(hi - lo > resolution * (1 + 1e-9)):
-        k = np.flatnonzero(hi - lo > resolution * (1 + 1e-9))
-        mid = 0.5 * (lo[k] + hi[k])
-        ok = np.asarray(survives(k, mid), bool)
-        lo[k], hi[k] = np.where(ok, mid, lo[k]), np.where(ok, hi[k], mid)
-        rollouts, rounds = rollouts + k.size, rounds + 1
-    return {"lo": lo, "hi": hi, "grid_lo": grid_lo, "at_cap": ~failed, "rollouts": rollouts, "rounds": rounds}
-
-
-def push_of(magnitude: float, azimuth_deg: float, onset: float, duration: float) -> dict:
-    """A horizontal push of ``magnitude`` N toward ``azimuth_deg`` (0 = forward = world +x, 90 =
-    left), from ``onset`` for ``duration`` s (``TsidPeer.simulate``'s push dict)."""
-    a = math.radians(azimuth_deg)
-    return {"force": magnitude * np.array([math.cos(a), math.sin(a), 0.0]), "onset": onset, "duration": duration}
-
-
-def _survived(peer: tb.TsidPeer, config, magnitude, azimuth, args) -> tuple[bool, dict]:
-    """One push rollout of the stand task: (strict survival, the summary). A rollout that runs
-    longer than ``args.rollout_timeout`` s ends the process with a traceback (faulthandler: a C++
-    solver that never returns holds the GIL, so no Python-level timer could stop it)."""
-    faulthandler.dump_traceback_later(args.rollout_timeout, exit=True)
-    try:
-        r = peer.simulate(
-            "stand",
-            duration=args.horizon,
-            push=push_of(magnitude, azimuth, args.push_onset, args.push_duration),
-            push_body=args.body,
-            config=config,
-            record=False,
-        )
-    finally:
-        faulthandler.cancel_dump_traceback_later()
-    return bool(r["summary"]["survived"]), r["summary"]
-
-
-def envelope(peer: tb.TsidPeer, config, args, log=print) -> dict:
-    """The strict envelope by :func:`bisect` over the grid's impulses, per azimuth, with the LIP bound."""
-    magnitudes = np.unique(np.linspace(*args.magnitudes[:2], int(args.magnitudes[2])))
-    impulses = magnitudes * args.push_duration
-    azimuths = np.arange(args.directions) * 360.0 / args.directions
-    start = time.perf_counter()
-
-    def survives(k: np.ndarray, impulse: np.ndarray) -> np.ndarray:
-        out = np.array(
-            [_survived(peer, config, imp / args.push_duration, azimuths[j], args)[0] for j, imp in zip(k, impulse)]
-        )
-        log(f"  round: {k.size} rollouts, {int(out.sum())} survived ({time.perf_counter() - start:.0f} s)")
-        return out
-
-    found = bisect(impulses, survives, azimuths.size, args.resolution)
-    run_s = time.perf_counter() - start
-    bound = lip_bound(peer.mj_model, peer.qpos0, azimuths.tolist(), peer.mass)
-    rows = {}
-    for j, az in enumerate(azimuths.tolist()):
-        b = bound[az]["impulse_bound_ns"]
-        rows[f"{az:g}"] = {
-            "impulse_ns": float(found["lo"][j]),
-            "bracket_ns": [float(found["lo"][j]), float(found["hi"][j])],
-            "grid_impulse_ns": float(found["grid_lo"][j]),
-            "at_cap": bool(found["at_cap"][j]),
-            "bound_impulse_ns": b,
-            "fraction_of_bound": float(found["lo"][j]) / b,
-        }
-    frac = np.array([r["fraction_of_bound"] for r in rows.values()])
-    imp = np.array([r["impulse_ns"] for r in rows.values()])
-    return {
-        "fraction_of_bound_median": float(np.median(frac)),
-        "fraction_of_bound_min": float(np.min(frac)),
-        "impulse_ns_median": float(np.median(imp)),
-        "impulse_ns_min": float(np.min(imp)),
-        "min_at_azimuth_deg": float(azimuths[int(np.argmin(frac))]),
-        "rollouts": int(found["rollouts"]),
-        "rounds": int(found["rounds"]),
-        "grid_rollouts": int(impulses.size * azimuths.size),
-        "run_s": round(run_s, 2),
-        "grid_impulses": int(impulses.size),
-        "resolution_ns": args.resolution,
-        "directions": rows,
-    }
-
-
-def full_grid(peer: tb.TsidPeer, config, args, log=print) -> dict:
-    """Every push of the grid: strict and lax survival rates, the grid's envelope per azimuth
-    (largest survived impulse; monotone: the largest below the first failure, as
-    ``wbc_jax.jobs.sweep_table.envelope_of``), with the LIP bound."""
-    magnitudes = np.unique(np.linspace(*args.magnitudes[:2], int(args.magnitudes[2])))
-    azimuths = np.arange(args.directions) * 360.0 / args.directions
-    start = time.perf_counter()
-    survived = np.zeros((magnitudes.size, azimuths.size), bool)
-    upright = np.zeros_like(survived)
-    for i, mag in enumerate(magnitudes):
-        for j, az in enumerate(azimuths):
-            survived[i, j], s = _survived(peer, config, mag, az, args)
-            upright[i, j] = s["upright"]
-        log(f"  grid: {i + 1} of {magnitudes.size} magnitudes ({time.perf_counter() - start:.0f} s)")
-    run_s = time.perf_counter() - start
-    bound = lip_bound(peer.mj_model, peer.qpos0, azimuths.tolist(), peer.mass)
-    impulses = magnitudes * args.push_duration
-    rows = {}
-    for j, az in enumerate(azimuths.tolist()):
-        alive = survived[:, j]
-        first_fail = int(np.argmin(alive)) if not alive.all() else impulses.size
-        monotone = float(impulses[first_fail - 1]) if first_fail > 0 else 0.0
-        b = bound[az]["impulse_bound_ns"]
-        rows[f"{az:g}"] = {
-            "largest_survived_impulse_ns": float(impulses[alive].max()) if alive.any() else 0.0,
-            "monotone_impulse_ns": monotone,
-            "islands": int(alive[first_fail:].sum()),
-            "bound_impulse_ns": b,
-            "monotone_fraction_of_bound": monotone / b,
-        }
-    frac = np.array([r["monotone_fraction_of_bound"] for r in rows.values()])
-    return {
-        "survival_rate": float(survived.mean()),
-        "upright_rate": float(upright.mean()),
-        "monotone_fraction_of_bound_median": float(np.median(frac)),
-        "monotone_fraction_of_bound_min": float(np.min(frac)),
-        "rollouts": int(survived.size),
-        "run_s": round(run_s, 2),
-        "directions": rows,
-        "survived": survived.astype(int).tolist(),
-        "magnitudes_n": magnitudes.tolist(),
-        "azimuths_deg": azimuths.tolist(),
-    }
-
-
-# Settings without a WBC counterpart (and the posture's damping), one at a time against the
-# defaults: how far the envelope moves with them (``--sensitivity``).
-SENSITIVITY = {
-    "w_am=1e-2": {"w_am": 1e-2},
-    "w_am=1e-4": {"w_am": 1e-4},
-    "w_posture=1e-4": {"w_posture": 1e-4},
-    "w_posture=1e-2": {"w_posture": 1e-2},
-    "contact_kp=10": {"contact_kp": 10.0},
-    "kd_com=2sqrt(kp_com) (TSID's critical damping)": {"kd_com": tuple(2 * np.sqrt(icub.DESCRIPTION.gains.kp_com))},
-    "foot_size=the soles' contact spheres": {"foot_size": "contact spheres"},  # tb.sole_contact_rectangle
-}
-
-
-def sensitivity(peer: tb.TsidPeer, args, log=print) -> dict:
-    """The sinusoid's CoM RMSE and the bisection envelope of each :data:`SENSITIVITY` variant."""
-    out = {}
-    for name, change in SENSITIVITY.items():
-        log(f"sensitivity: {name}")
-        if change.get("foot_size") == "contact spheres":
-            change = {**change, "foot_size": tb.sole_contact_rectangle(peer.mj_model)}
-        config = tb.TsidConfig(**change)
-        sin = peer.simulate("sinusoid", duration=args.sinusoid_duration, config=config, record=False)["summary"]
-        e = envelope(peer, config, args, log=lambda _: None)
-        out[name] = {
-            "change": {k: list(v) if isinstance(v, tuple) else v for k, v in change.items()},
-            "sinusoid_com_rmse_m": sin["com_rmse_m"],
-            "sinusoid_survived": sin["survived"],
-            "fraction_of_bound_median": e["fraction_of_bound_median"],
-            "fraction_of_bound_min": e["fraction_of_bound_min"],
-            "fraction_of_bound": {az: round(r["fraction_of_bound"], 4) for az, r in e["directions"].items()},
-            "rollouts": e["rollouts"],
-            "run_s": e["run_s"],
-        }
-    return out
+PACKAGES = (
+    "tsid",
+    "libtsid",
+    "pin",
+    "libpinocchio",
+    "eiquadprog",
+    "mujoco",
+    "numpy",
+    "icub-models",
+    "example-robot-data",
+)
 
 
 def versions() -> dict:
@@ -321,7 +116,7 @@ def measure(args, log=print) -> dict:
     """Everything of the module docstring, as a JSON-ready dict."""
     command = "python benchmarks/tsid_peer.py " + " ".join(shlex.quote(a) for a in args.argv)
     load_start = os.getloadavg()
-    peer = tb.TsidPeer()
+    peer = tb.TsidPeer(robot=args.robot)
     config = tb.TsidConfig()
     log(f"sinusoid x {args.timing_repeats} (timing)")
     runs = [
@@ -346,6 +141,7 @@ def measure(args, log=print) -> dict:
         )
     out = {
         "peer": "TSID (Pinocchio + eiquadprog) on C MuJoCo, benchmarks/tsid_baseline/",
+        "robot": args.robot,
         "command": command,
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "cpu": tb.bc.cpu_name(),
@@ -356,7 +152,8 @@ def measure(args, log=print) -> dict:
         "code": code_version(),
         "controller": {
             **{k: v for k, v in dataclasses.asdict(config).items() if not k.startswith(("kp_", "kd_"))},
-            "gains": {k: v.tolist() for k, v in config.gains(len(tb.DRIVEN_JOINTS)).items()},
+            "gains": {k: v.tolist() for k, v in config.gains(peer.description).items()},
+            "foot_size": config.sole_rectangle(peer.description),
             "mu": tb.floor_friction(peer.mj_model) if config.mu is None else config.mu,
             "solver": "tsid.SolverHQuadProgFast (eiquadprog), one solve per 10 ms tick",
         },
@@ -374,6 +171,9 @@ def measure(args, log=print) -> dict:
             **_rounded(stand["summary"]),
         },
     }
+    if args.wbc_timing:
+        log("wbc_jax timing (benchmarks/wbc_peer.py, a child process)")
+        out["wbc_jax"] = wbc_timing(args)
     if args.no_envelope:
         out["load_average"] = {
             "start": [round(x, 2) for x in load_start],
@@ -404,6 +204,34 @@ def measure(args, log=print) -> dict:
     return out
 
 
+def wbc_timing(args) -> dict:
+    """wbc_jax's controller on the same robot, task and core (``benchmarks/wbc_peer.py --timing-worker``:
+    its default gains, the 20 s sinusoid, medians of ``--timing-repeats`` runs), as that script
+    reports it: {timing, sinusoid, stand, command}."""
+    import subprocess
+
+    cmd = [
+        sys.executable,
+        str(HERE / "wbc_peer.py"),
+        "--timing-worker",
+        "--robot",
+        args.robot,
+        "--gains",
+        "default",
+        "--timing-repeats",
+        str(args.timing_repeats),
+        *(["--cpu", str(args.cpu)] if args.cpu is not None else []),
+    ]
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")}  # the worker sets its own
+    proc = subprocess.run(
+        cmd, capture_output=True, text=True, cwd=HERE.parent, timeout=3600, env={**env, "JAX_PLATFORMS": "cpu"}
+    )
+    if proc.returncode != 0:
+        raise SystemExit(f"error: wbc_jax's timing failed:\n{proc.stderr[-3000:]}")
+    part = json.loads([line for line in proc.stdout.splitlines() if line.startswith("{")][-1])
+    return {"command": " ".join(shlex.quote(c) for c in cmd[1:]), **part}
+
+
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
@@ -417,7 +245,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--push-onset", type=float, default=PUSH_ONSET)
     p.add_argument("--push-duration", type=float, default=PUSH_DURATION)
     p.add_argument("--horizon", type=float, default=HORIZON, help="seconds per push rollout")
-    p.add_argument("--body", default="chest", help="pushed body")
+    p.add_argument("--robot", default=DEFAULT_ROBOT, choices=ROBOT_NAMES, help="the robot (wbc_jax/robot/<name>.py)")
+    p.add_argument(
+        "--body", default="trunk", help="pushed body, or a role (trunk: the iCub's chest, Talos's torso_2_link)"
+    )
     p.add_argument("--resolution", type=float, default=RESOLUTION, help="envelope bracket [N s]")
     p.add_argument("--sinusoid-duration", type=float, default=tb.TASK_DURATION["sinusoid"])
     p.add_argument("--stand-duration", type=float, default=tb.TASK_DURATION["stand"])
@@ -428,6 +259,9 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="timing, sinusoid and stand only (no pushes): the tick beside benchmarks/cpu_loop.py's",
     )
     p.add_argument("--full-grid", action="store_true", help="also run every push of the grid")
+    p.add_argument(
+        "--wbc-timing", action="store_true", help="also time wbc_jax's controller on the same robot in this run"
+    )
     p.add_argument("--sensitivity", action="store_true", help="also the envelope of each SENSITIVITY variant")
     p.add_argument(
         "--rollout-timeout",
@@ -466,7 +300,7 @@ def main(argv=None) -> dict:
     if problem is not None:
         raise SystemExit(f"error: {problem}")
     try:
-        tb.body_id(tb.load_mj_model(), args.body)
+        tb.body_id(tb.load_mj_model(robot=args.robot), describe(args.robot).body(args.body))
     except ValueError as err:
         raise SystemExit(f"error: --body: {err}") from None
     if args.cpu is not None:

@@ -67,7 +67,7 @@ def _summary(metrics) -> dict:
     return {k: (round(v, 9) if isinstance(v, float) else v) for k, v in s.items()}
 
 
-def timing(gains: str, repeats: int) -> dict:
+def timing(gains: str, repeats: int, robot: str) -> dict:
     """Part 1 in this (pinned) process: the sinusoid's loop timing and tracking, the stand's drift."""
     import numpy as np
 
@@ -76,7 +76,9 @@ def timing(gains: str, repeats: int) -> dict:
 
     runner.enable_compilation_cache()
     file = None if gains == "default" else gains
-    st = balance.make_setup(balance.BalanceConfig(task="sinusoid", duration=20.0, gains=file, backend="mujoco"))
+    st = balance.make_setup(
+        balance.BalanceConfig(robot=robot, task="sinusoid", duration=20.0, gains=file, backend="mujoco")
+    )
     driver = host_loop.driver(st.loop, 1)
     runner.run(st, scenario.single(st))  # compile (or load) and warm up
     rows = []
@@ -111,7 +113,9 @@ def timing(gains: str, repeats: int) -> dict:
         f"records and the program's own work); medians of {repeats} runs after a warm-up"
     )
     sinusoid = {"duration_s": 20.0, **_summary(run.metrics)}
-    stand_st = balance.make_setup(balance.BalanceConfig(task="stand", duration=10.0, gains=file, backend="mujoco"))
+    stand_st = balance.make_setup(
+        balance.BalanceConfig(robot=robot, task="stand", duration=10.0, gains=file, backend="mujoco")
+    )
     stand = runner.run(stand_st, scenario.single(stand_st))
     com, ref = stand.records.com[0], stand.records.com_ref[0]
     stand_row = {"duration_s": 10.0, "com_drift_m": float(np.linalg.norm(com[-1] - ref[-1])), **_summary(stand.metrics)}
@@ -120,10 +124,11 @@ def timing(gains: str, repeats: int) -> dict:
         "sinusoid": sinusoid,
         "stand": stand_row,
         "affinity": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        "robot": robot,
     }
 
 
-def _sweep_config(gains: str, out: str | None):
+def _sweep_config(gains: str, out: str | None, robot: str):
     """The grid of the peer comparison as a sweep (and envelope) config."""
     import dataclasses
 
@@ -133,12 +138,13 @@ def _sweep_config(gains: str, out: str | None):
 
     return dataclasses.replace(
         envelope.default_config(),
+        robot=robot,
         magnitudes=tuple(float(x) for x in np.linspace(*MAGNITUDES[:2], MAGNITUDES[2])),
         directions=tuple(k * 360.0 / DIRECTIONS for k in range(DIRECTIONS)),
         push_onset=PUSH_ONSET,
         push_duration=PUSH_DURATION,
         horizon=HORIZON,
-        body="chest",
+        body="trunk",
         gains=None if gains == "default" else gains,
         backend="mujoco",
         out=out,
@@ -146,7 +152,7 @@ def _sweep_config(gains: str, out: str | None):
     )
 
 
-def envelope_part(gains: str) -> dict:
+def envelope_part(gains: str, robot: str) -> dict:
     """Part 2: the bisection envelope (``wbc-jax envelope``)."""
     import numpy as np
 
@@ -155,7 +161,7 @@ def envelope_part(gains: str) -> dict:
 
     runner.enable_compilation_cache()
     t0 = time.perf_counter()
-    found = envelope.search(_sweep_config(gains, None), resolution=RESOLUTION, progress=False)
+    found = envelope.search(_sweep_config(gains, None, robot), resolution=RESOLUTION, progress=False)
     rows = {f"{az:g}": e for az, e in found["envelope"][0].items()}
     frac = np.array([r["fraction_of_bound"] for r in rows.values()])
     imp = np.array([r["impulse_ns"] for r in rows.values()])
@@ -178,7 +184,7 @@ def envelope_part(gains: str) -> dict:
     }
 
 
-def grid_part(gains: str, out: pathlib.Path) -> dict:
+def grid_part(gains: str, out: pathlib.Path, robot: str) -> dict:
     """Part 3: every push of the grid (``wbc-jax push-sweep``, resumable in ``out``)."""
     import numpy as np
     import pandas as pd
@@ -188,7 +194,7 @@ def grid_part(gains: str, out: pathlib.Path) -> dict:
 
     runner.enable_compilation_cache()
     t0 = time.perf_counter()
-    summary = sweep.run_sweep(_sweep_config(gains, str(out)), progress=False)
+    summary = sweep.run_sweep(_sweep_config(gains, str(out), robot), progress=False)
     table = pd.read_parquet(out / "results.parquet")
     survived = table.pivot_table(index="magnitude_n", columns="azimuth_deg", values="survived", aggfunc="max")
     rows = {}
@@ -253,6 +259,9 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="gain sets: 'default' (the WBC gains) or gains JSON files",
     )
     p.add_argument("--parts", nargs="+", default=list(PARTS), choices=PARTS)
+    from wbc_jax.robot.robots import DEFAULT_ROBOT, ROBOT_NAMES  # JAX-free
+
+    p.add_argument("--robot", default=DEFAULT_ROBOT, choices=ROBOT_NAMES, help="the robot (wbc_jax/robot/<name>.py)")
     p.add_argument("--cpu", type=int, default=None, help="the core the timing runs on (default: no pinning)")
     p.add_argument("--timing-repeats", type=int, default=5)
     p.add_argument("--out", default=str(ROOT / "docs" / "peers" / "wbc_jax.json"))
@@ -273,7 +282,7 @@ def main(argv=None) -> dict:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parse_args(argv)
     if args.timing_worker:  # the child of the timing part: one gain set, JSON on stdout
-        print(json.dumps(timing(args.gains[0], args.timing_repeats)), flush=True)
+        print(json.dumps(timing(args.gains[0], args.timing_repeats, args.robot)), flush=True)
         return {}
     from wbc_jax.core import provenance
 
@@ -299,7 +308,8 @@ def main(argv=None) -> dict:
                 "push_onset_s": PUSH_ONSET,
                 "push_duration_s": PUSH_DURATION,
                 "horizon_s": HORIZON,
-                "body": "chest",
+                "robot": args.robot,
+                "body": "trunk",
                 "resolution_ns": RESOLUTION,
                 "survival": "strict (constants.SURVIVAL_CRITERION)",
             },
@@ -325,6 +335,8 @@ def main(argv=None) -> dict:
                 sys.executable,
                 str(pathlib.Path(__file__).resolve()),
                 "--timing-worker",
+                "--robot",
+                args.robot,
                 "--gains",
                 gains,
                 "--timing-repeats",
@@ -343,7 +355,7 @@ def main(argv=None) -> dict:
             save()
             print(json.dumps({gain_label(gains): entry["timing"]}), flush=True)
         if "envelope" in args.parts:
-            entry["envelope"] = {"command": command, "code": result["code"], **envelope_part(gains)}
+            entry["envelope"] = {"command": command, "code": result["code"], **envelope_part(gains, args.robot)}
             save()
             e = entry["envelope"]
             print(
@@ -355,7 +367,7 @@ def main(argv=None) -> dict:
         if "grid" in args.parts:
             entry["grid"] = {
                 "command": command,
-                **grid_part(gains, pathlib.Path(args.work) / gain_label(gains) / "grid"),
+                **grid_part(gains, pathlib.Path(args.work) / gain_label(gains) / "grid", args.robot),
             }
             save()
             print(json.dumps({gain_label(gains): {"survival_rate": entry["grid"]["survival_rate"]}}), flush=True)

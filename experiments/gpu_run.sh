@@ -102,6 +102,34 @@ for job in "$@"; do
             # leaves the compiled programs in $WBC_JAX_CACHE: the same call on the warm machine goes on from them.
       run tune_gpus env XLA_FLAGS="${TUNE_GPUS_XLA_FLAGS---xla_gpu_autotune_level=0}" timeout ${TUNE_GPUS_WALL:-560} \
         python3 experiments/checks/tune_gpus_check.py --out "$OUT/tune_gpus" ${TUNE_GPUS_FLAGS:-} ;;
+    scaling4_warp_diag)  # issue 45: why 4 GPUs of Warp ran 4x slower than one (BENCHMARKS.md, "Why 4 GPUs of Warp
+            # were slower"). The 32,768-env sweep at a 0.7 s horizon, 2 runs each, one scaling.json per variant in
+            # $OUT/$job/VARIANT.json (copied as each ends: a call cut short keeps the variants done). DIAG_VARIANTS:
+            # base (1 and 4 GPUs, as measured), graphs0 (4 GPUs, Warp's graph cache unbounded), processes (4 GPUs as
+            # 4 jax.distributed processes), switch (4 GPUs, thread switch interval DIAG_SWITCH_MS), three (3 GPUs);
+            # graphjax (1 and 4 GPUs, XLA captures the step's graphs: --warp-graph-mode jax) when named.
+      D="--magnitudes 10 400 64 --directions 32 --gain-sets 16 --horizon 0.7 --chunk-size 32768 --push-onset 0.5
+         --push-duration 0.1 --stall-timeout-s 240"
+      mkdir -p "$OUT/$job"
+      for v in ${DIAG_VARIANTS:-base graphs0 processes switch three}; do
+        case $v in
+          base) a="--gpus 1 4"; s="" ;;
+          graphs0) a="--gpus 4"; s="--warp-graph-cache 0" ;;
+          processes) a="--gpus 4 --launch processes"; s="" ;;
+          switch) a="--gpus 4 --switch-interval-ms ${DIAG_SWITCH_MS:-0.1}"; s="" ;;
+          three) a="--gpus 3"; s="" ;;
+          graphjax) a="--gpus 1 4"; s="--warp-graph-mode jax" ;;
+          *) echo "scaling4_warp_diag: unknown variant $v (valid: base graphs0 processes switch three graphjax)"
+             continue ;;
+        esac
+        run $job python3 experiments/benchmarks/scaling.py --out /tmp/diag/$v $a --backends warp --repeats 2 \
+          --timeout 240 -- $D $s
+        [ -f /tmp/diag/$v/scaling.json ] && cp /tmp/diag/$v/scaling.json "$OUT/$job/$v.json"
+        python3 -c "import json,sys; [print('$v', r['gpus'], r.get('launch'), r.get('run_s_each'), r.get('error', ''),
+          {k: v['graphs'] for k, v in (r.get('warp_graphs_last_run') or {}).items()},
+          r.get('custom_calls_per_program')) for r in
+          json.load(open(sys.argv[1]))['rows']]" /tmp/diag/$v/scaling.json 2>&1 | tail -n 4
+      done ;;
     limit|limit_root)  # issue 37: the physical limit of push recovery, 32 directions, pushes of 0.1 s at 0.5 s (limit:
             # chest; limit_root: root_link). Time-capped (LIMIT_TIME s from the job's start: no new round, the round
             # in flight stops at its next judge, its C MuJoCo replays still run) and written into $OUT round by round,

@@ -187,6 +187,19 @@ def test_limit_table_rows_carry_the_flywheel_bound(robot):
     assert limit_table._targets(rows, summary)["limit_within_10pct_of_flywheel_bound_median"] is False  # 0.61
     near = {az: dict(r, fraction_of_flywheel=0.95) for az, r in rows.items()}
     assert limit_table._targets(near, summary)["limit_within_10pct_of_flywheel_bound_median"] is True
+    # issue 43's other target: limit / best envelope (8 and 9 N s here) in the median over directions
+    assert [rows[az]["limit_over_best_envelope"] for az in (0.0, 90.0)] == pytest.approx([10.0 / 8.0, 20.0 / 9.0])
+    targets = limit_table._targets(rows, summary)
+    assert targets["limit_over_best_envelope"] == pytest.approx({"median": (1.25 + 20 / 9) / 2, "min": 1.25})
+    assert targets["limit_at_least_1p1x_best_envelope_median"] is True
+    found["directions"]["90.0"]["limit_ns"] = 9.5  # 1.25 and 1.056: median 1.153; then 1.056 and 1.056
+    rows = limit_table.body_table(found, envelopes, [0.0, 90.0], robot, "chest")
+    assert limit_table._targets(rows, summary)["limit_at_least_1p1x_best_envelope_median"] is True
+    found["directions"]["0.0"]["limit_ns"] = 8.0 * 9.5 / 9.0
+    rows = limit_table.body_table(found, envelopes, [0.0, 90.0], robot, "chest")
+    assert limit_table._targets(rows, summary)["limit_over_best_envelope"]["median"] == pytest.approx(9.5 / 9.0)
+    assert limit_table._targets(rows, summary)["limit_at_least_1p1x_best_envelope_median"] is False
+    assert limit_table._targets(rows, None)["limit_at_least_1p1x_best_envelope_median"] is None
 
 
 def test_limit_table_takes_the_best_optimiser_per_direction(robot):
@@ -204,7 +217,7 @@ def test_limit_table_takes_the_best_optimiser_per_direction(robot):
     ddp = {
         "config": {},
         "directions": {
-            "0.0": {"limit_ns": 11.0, "bracket_ns": [11.0, 11.5]},
+            "0.0": {"limit_ns": 11.0, "bracket_ns": [11.0, 11.5], "limit_replayed_alone": {"impulse_ns": 11.0}},
             "90.0": {"limit_ns": 18.0, "bracket_ns": [18.0, 19.0]},
         },
     }
@@ -212,6 +225,10 @@ def test_limit_table_takes_the_best_optimiser_per_direction(robot):
     assert (rows[0.0]["limit_ns"], rows[0.0]["found_by"], rows[0.0]["bracket_ns"]) == (11.0, "crocoddyl", [11.0, 15.0])
     assert (rows[90.0]["limit_ns"], rows[90.0]["found_by"], rows[90.0]["bracket_ns"]) == (20.0, "mjx", [20.0, 21.0])
     assert rows[0.0]["limit_by_optimiser_ns"] == {"mjx": 10.0, "crocoddyl": 11.0}
+    ddp["directions"]["0.0"]["limit_replayed_alone"]["verified"] = False  # ddp_limit.py --recheck: failed alone
+    again = limit_table.body_table(mjx, envelopes, [0.0, 90.0], robot, "chest", [ddp])
+    assert again[0.0]["limit_replayed_alone"] is False and again[90.0]["limit_replayed_alone"] is None  # mjx's
+    assert rows[0.0]["limit_replayed_alone"] is None  # no verdict recorded
     assert rows[0.0]["envelopes"]["tuned"]["fraction_of_limit"] == pytest.approx(8.0 / 11.0)
     alone = limit_table.body_table(None, envelopes, [0.0], robot, "chest", [ddp])  # the cross-check alone
     assert alone[0.0]["limit_ns"] == 11.0 and alone[0.0]["found_by"] == "crocoddyl"
@@ -222,3 +239,16 @@ def test_limit_table_takes_the_best_optimiser_per_direction(robot):
     assert both["limit_by_optimiser_ns"] == {"mjx": 10.0, "crocoddyl": 11.0, "crocoddyl cop x0.8": 12.0}
     none = limit_table.body_table(None, envelopes, [0.0], robot, "chest")
     assert none[0.0]["limit_ns"] is None and none[0.0]["found_by"] is None and none[0.0]["bracket_ns"] is None
+    # a file that names its optimiser (controller_witness.py: the controller's own trajectory) is found by that name
+    own = {
+        "optimiser": "tuned controller (u = 0)",
+        "config": {"cop_scale": 1.0},
+        "directions": {"0.0": {"limit_ns": 13.0, "bracket_ns": [13.0, 13.5]}},
+    }
+    assert limit_table.ddp_label(own) == "tuned controller (u = 0)"
+    mixed = limit_table.body_table(mjx, envelopes, [0.0], robot, "chest", [ddp, margin, own])[0.0]
+    assert (mixed["limit_ns"], mixed["found_by"], mixed["bracket_ns"]) == (
+        13.0,
+        "tuned controller (u = 0)",
+        [13.0, None],
+    )

@@ -18,7 +18,7 @@ from wbc_jax.control.gains import default_gains, gains_to_dict
 from wbc_jax.core import options
 from wbc_jax.jobs import sweep_config
 from wbc_jax.robot.icub import DESCRIPTION as ICUB
-from wbc_jax.tuning import config as tune_config
+from wbc_jax.tuning import heldout_config
 from wbc_jax.tuning.algorithms import gradient  # noqa: F401  (before the tripwire: optax applies jax.jit when imported)
 
 _spec = importlib.util.spec_from_file_location(
@@ -49,7 +49,7 @@ def test_flags_are_generated_from_the_configs(capsys):
 def test_tune_and_heldout_share_the_held_out_flags(tmp_path):
     """tune and heldout: the held-out flags from one config, with the same names and defaults; tune's
     own --tasks is the held-out evaluation's."""
-    heldout = tune_config.heldout_default_config()
+    heldout = heldout_config.heldout_default_config()
     parser = cli.build_parser()
     for command in ("tune", "heldout"):
         hc = cli.config_from_args(
@@ -73,7 +73,7 @@ def test_heldout_reeval_takes_the_heldout_jobs_flags():
 
     script = load_script("experiments/campaigns/heldout_reeval.py")
     hc, previous = script.parse(["--grid-directions", "4", "--chunk-size", "7", "--no-one-foot"])
-    job = tune_config.heldout_default_config()
+    job = heldout_config.heldout_default_config()
     assert hc == options.replace(
         job,
         sets=script.DEFAULT_SETS,

@@ -236,6 +236,69 @@ def test_no_module_outside_the_robot_layer_names_the_icub():
     assert not found, found
 
 
+def _icub_motor_limits() -> set[float]:
+    """The iCub's motor limits (N m) that no other robot's motors have."""
+    from wbc_jax.robot import model
+    from wbc_jax.robot.robots import DESCRIPTIONS
+
+    def limits(robot: str) -> set[float]:
+        return {float(x) for x in model.load_robot(robot).index.torque_limit}
+
+    return limits("icub") - set().union(*(limits(r) for r in DESCRIPTIONS if r != "icub"))
+
+
+def _motor_limit_uses(where: str, source: str, limits: set[float]) -> list[str]:
+    """``where:line text`` for each use of a motor limit in ``limits`` as a torque: in any text, the
+    number beside a torque unit or a +- sign (``60 N m``, ``+-60``, ``\\pm 60``); in code, a literal
+    of that value that divides, the default of a field named after a torque, or a bound of an option
+    in N m."""
+    numbers = "|".join(sorted({re.escape(f"{x:g}") for x in limits}))
+    text = re.compile(rf"(?:\+-|\u00b1|\\pm\s*)(?:{numbers})(?:\.0)?\b|\b(?:{numbers})(?:\.0)?\s*N\s?m\b")
+    found = [f"{where}:{source.count(chr(10), 0, m.start()) + 1} {m.group(0)}" for m in text.finditer(source)]
+
+    def is_limit(node) -> bool:
+        value = getattr(node, "value", None)
+        return isinstance(node, ast.Constant) and not isinstance(value, bool) and value in limits
+
+    for node in ast.walk(ast.parse(source)):
+        hits = []
+        if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Div):
+            hits = [node.right] if is_limit(node.right) else []
+        elif isinstance(node, (ast.AnnAssign, ast.Assign)) and re.search(r"(?i)torque|tau", ast.unparse(node)):
+            hits = [node.value] if is_limit(node.value) else []
+        elif isinstance(node, ast.Call) and any(
+            k.arg == "unit" and getattr(k.value, "value", None) == "N m" for k in node.keywords
+        ):
+            hits = [k.value for k in node.keywords if is_limit(k.value)]
+        found += [f"{where}:{h.lineno} {ast.unparse(node)[:60]}" for h in hits]
+    return found
+
+
+def test_no_module_outside_the_robot_layer_holds_the_icubs_motor_limit():
+    """Issue 47: a torque scale, saturation or bound comes from the robot's motor limits (its model's
+    actuators), never the iCub's 60 N m written into a generic layer."""
+    limits = _icub_motor_limits()
+    assert limits == {60.0}
+    found = [
+        use
+        for path in sorted(PACKAGE.rglob("*.py"))
+        if path.relative_to(PACKAGE).parts[0] != "robot"
+        for use in _motor_limit_uses(str(path.relative_to(PACKAGE.parent)), path.read_text(), limits)
+    ]
+    assert not found, "the iCub's motor limit outside wbc_jax/robot/:\n" + "\n".join(found)
+
+
+def test_the_motor_limit_scan_finds_each_form():
+    source = (
+        '"""within +-60 N m, sat_{\\\\pm 60}; 60 s and 600 N m are not"""\n'
+        "class C:\n    torque_scale: float = 60.0\n    settle_s: float = 60.0\n"
+        "effort = (u / 60.0) ** 2\nquintic = 60 * u\n"
+        'step = option(1.0, "step", le=60.0, unit="N m")\nhorizon = option(1.0, "s", le=60.0, unit="s")\n'
+    )
+    found = _motor_limit_uses("probe.py", source, {60.0})
+    assert sorted(f.split(" ")[0] for f in found) == ["probe.py:1"] * 2 + ["probe.py:3", "probe.py:5", "probe.py:7"]
+
+
 def test_the_icub_word_list_catches_a_name():
     """The check above finds what it looks for: the iCub's names and numbers are in its words."""
     words, numbers = _icub_specific_words()
@@ -246,7 +309,7 @@ def test_the_icub_word_list_catches_a_name():
 # Gain tuning's folders, each importing only those before it: the shared configs and store, the
 # problem and its methods, what runs and judges them.
 TUNING_PARTS = (
-    ("wbc_jax.tuning.config", "wbc_jax.tuning.store"),
+    ("wbc_jax.tuning.config", "wbc_jax.tuning.heldout_config", "wbc_jax.tuning.store"),
     ("wbc_jax.tuning.algorithms",),
     ("wbc_jax.tuning.orchestration",),
 )
@@ -284,6 +347,32 @@ def test_no_module_over_450_lines(folder):
     assert files, f"no Python files under {folder}/"
     long = {str(p.relative_to(ROOT)): n for p in files if (n := len(p.read_text().splitlines())) > MAX_LINES}
     assert not long, f"files over {MAX_LINES} lines: {long}"
+
+
+MAX_FMT_SKIP_LINES = 20  # only a literal table whose columns need aligning escapes the formatter
+FORMATTED_FOLDERS = ("wbc_jax", "benchmarks", "tests", "experiments", "assets", ".ci")
+
+
+def _fmt_skip_lines(text: str) -> int:
+    """Lines that carry a ``# fmt: skip`` comment (ruff leaves their statement unformatted)."""
+    return sum(1 for line in text.splitlines() if re.search(r"#\s*fmt:\s*skip", line))
+
+
+def test_the_fmt_skip_counter_finds_markers():
+    assert _fmt_skip_lines("x = (1,\n  2)  # fmt: skip\ny = 3\nz = [4]  #fmt:skip # table\n") == 2
+    assert _fmt_skip_lines("x = 1  # format: kept\n") == 0
+
+
+def test_fmt_skip_only_where_a_table_needs_it():
+    """Issue 44: the code is as `ruff format` writes it; at most 20 lines in all carry ``# fmt: skip``."""
+    files = [p for folder in FORMATTED_FOLDERS for p in sorted((ROOT / folder).rglob("*.py"))]
+    assert files
+    marked = {str(p.relative_to(ROOT)): n for p in files if (n := _fmt_skip_lines(p.read_text()))}
+    most = sorted(marked.items(), key=lambda item: -item[1])[:5]
+    assert sum(marked.values()) <= MAX_FMT_SKIP_LINES, (
+        f"{sum(marked.values())} lines carry '# fmt: skip' (at most {MAX_FMT_SKIP_LINES}), most in {most}: "
+        "re-apply the commands of the commit 'Format pass (issue 44)'"
+    )
 
 
 def _calls(path: pathlib.Path) -> set[str]:

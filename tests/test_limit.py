@@ -98,7 +98,9 @@ BAD = [
     (["--window", "3"], r"--horizon 3 s must end after the push and the optimised window"),
     (["--candidates", "0"], r"--candidates must be a whole number in \[1, 64\], got 0"),
     (["--slip-margin", "0.03"], r"--slip-margin must be a number in \(0, 0.02\) m, got 0.03"),
-    (["--learning-rate", "nan"], r"--learning-rate must be a number in \(0, 60\] N m, got nan"),
+    (["--learning-rate", "nan"], r"--learning-rate must be a number in \(0, 10000\] N m, got nan"),
+    (["--es-sigma", "100"], r"--es-sigma 100 N m exceeds the largest motor limit of robot 'icub' \(60 N m\)"),
+    (["--robot", "talos", "--learning-rate", "400"], r"--learning-rate 400 N m exceeds .* 'talos' \(300 N m\)"),
     (["--time-limit", "-1"], r"--time-limit must be a number in \[0, 10,000,000\] s, got -1"),
     (["--envelopes", "ENV_ROOT"], r"its pushes have body 'root_link', the search 'chest'"),
     (["--envelopes", "ENV_FEW"], r"no envelope at azimuths \[90.0, 270.0\]"),
@@ -120,6 +122,24 @@ def test_bad_input_fails_before_compiling(k, tmp_path, capsys, tripwire):
     assert rc == 2 and "Traceback" not in err and re.search(message, err), err
     assert len([line for line in err.splitlines() if line.strip()]) == 1, err
     assert not (tmp_path / "out").exists(), "nothing is written for bad input"
+
+
+def test_torque_flags_and_the_effort_scale_come_from_the_robots_motors(tmp_path):
+    """Issue 47: Talos's motors reach 300 N m: a spread of 100 N m is valid there (the iCub's 60 N m
+    refuses it, above), and the optimiser's effort divides each joint's u by its own motor limit."""
+    dataclasses.replace(limit.LimitConfig(), robot="talos", es_sigma=100.0, out=str(tmp_path / "out")).check()
+    T, limits = 5, np.array([17.86, 100.0, 300.0])
+    trace = SimpleNamespace(
+        com=np.tile([0.0, 0.0, 0.9], (T, 1)),
+        com_vel=np.zeros((T, 3)),
+        support_xy=np.tile([[x, y] for y in (-0.1, 0.1) for x in (-0.1, 0.1)] * 2, (T, 1, 1)),
+        foot_normal=np.tile([[0.0, 0.0, 1.0]] * 2, (T, 1, 1)),
+        com_height0=np.full(T, 0.9),
+    )
+    effort = jax.jit(lambda u, lim: trajopt.terms(trace, u, T, trajopt.Cost(), lim)["effort"])  # one compile
+    assert float(effort(jnp.full((T, 3), 50.0), jnp.asarray(limits))) == pytest.approx(
+        np.mean((50.0 / limits) ** 2), rel=1e-9
+    )  # 60 N m on every joint: 0.694
 
 
 def test_flags_are_the_config_fields(capsys):

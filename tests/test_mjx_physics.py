@@ -143,3 +143,74 @@ def test_implicit_and_unrolled_solver_gradients_agree(robot, mx):
         with physics.gradient_solver(kind, int(robot.mj_model.opt.iterations)):
             grads[kind] = float(jax.jit(jax.grad(lambda kp: loss(kp)[0]))(200.0))
     assert grads["implicit"] == pytest.approx(grads["unrolled"], rel=1e-9)
+
+
+# A pendulum whose hinge has friction loss (as Talos's joints): it slides (the friction-loss row
+# saturated, a constant force) and sticks (the row quadratic) within one rollout.
+FRICTION_PENDULUM = """
+<mujoco>
+  <option timestep="0.01"/>
+  <worldbody>
+    <body>
+      <joint name="hinge" axis="0 1 0" frictionloss="0.8" damping="0.05"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -0.4" size="0.03" mass="1"/>
+    </body>
+  </worldbody>
+  <actuator><motor joint="hinge"/></actuator>
+</mujoco>
+"""
+
+
+def test_implicit_solver_derivative_of_a_friction_loss_row_in_each_regime():
+    """Issue 47: d qacc / d ctrl of the friction pendulum through the implicit solver step is 1 / I
+    while it slides (the friction-loss row's force is the constant -+f) and 1 / (I + D) at rest (the
+    row quadratic, stiffness D): the regime held fixed at the solution, as MJX's solver defines it."""
+    import mujoco
+
+    m = mujoco.MjModel.from_xml_string(FRICTION_PENDULUM)
+    mx, d0 = mjx.put_model(m), mjx.make_data(m)
+
+    def acc(u, qvel):
+        d = mjx.forward(mx, d0.replace(qvel=jnp.array([qvel]), ctrl=u[None]))
+        return d.qacc[0], (d._impl.efc_D[0], d._impl.efc_force[0])
+
+    with physics.implicit_solver():
+        grad, (D, force) = jax.jit(jax.vmap(jax.grad(acc, has_aux=True), in_axes=(None, 0)))(
+            jnp.asarray(0.0), jnp.array([1.0, 0.0])
+        )
+    inertia = float(m.body_inertia[1, 1] + m.body_mass[1] * m.body_ipos[1, 2] ** 2)  # about the hinge
+    assert abs(float(force[0])) == pytest.approx(0.8) and abs(float(force[1])) < 0.79  # sliding, sticking
+    assert float(grad[0]) == pytest.approx(1.0 / inertia, rel=1e-9)
+    assert float(grad[1]) == pytest.approx(1.0 / (inertia + float(D[1])), rel=1e-9)
+
+
+@pytest.mark.slow  # 35 s on the loaded 2-core machine (compiling a reverse-mode rollout)
+def test_implicit_solver_gradient_through_joint_friction_loss_matches_central_differences():
+    """Issue 47: the implicit solver derivative holds the friction-loss rows' regime (sliding:
+    constant force; sticking: quadratic) fixed at the solution, as MJX's solver defines the rows; reverse
+    mode through 1.5 s of a PD pendulum with friction loss equals a central difference (float64)."""
+    import mujoco
+
+    m = mujoco.MjModel.from_xml_string(FRICTION_PENDULUM)
+    mx = mjx.put_model(m)
+
+    def loss(kp):
+        def step(d, _):
+            tau = kp * (0.6 - d.qpos[0]) - 0.3 * d.qvel[0]
+            d = mjx.step(mx, d.replace(ctrl=tau[None]))
+            return d, (d.qpos[0], d._impl.efc_force[0])
+
+        _, (q, f) = jax.lax.scan(step, mjx.make_data(m), None, length=150)
+        return jnp.mean((q - 0.6) ** 2), f
+
+    # One program: the gradient at kp and the losses at kp +- eps (the implicit step's value is the
+    # solver's solution, so these are the plain rollout's losses).
+    eps = 1e-4
+    with physics.implicit_solver():
+        (values, force), grads = jax.jit(jax.vmap(jax.value_and_grad(loss, has_aux=True)))(
+            jnp.array([4.0, 4.0 + eps, 4.0 - eps])
+        )
+    force = np.abs(np.asarray(force[0]))
+    assert np.any(np.isclose(force, 0.8)) and np.any(force < 0.79), "both regimes of the friction-loss row"
+    fd = (float(values[1]) - float(values[2])) / (2 * eps)
+    assert float(grads[0]) == pytest.approx(fd, rel=1e-6)  # measured: 1e-10

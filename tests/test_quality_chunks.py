@@ -3,6 +3,7 @@
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from wbc_jax.tuning.orchestration import quality
 
@@ -26,3 +27,17 @@ def test_evaluate_in_calls_keeps_each_candidate_value():
     values = quality.evaluate(pop, 4, lambda p: p, points, filler, 0.25)
     np.testing.assert_allclose(values, points @ np.array([1.0, -2.0, 0.5]) + 0.25, rtol=1e-6)
     assert len(calls) == 3 and np.all(calls[-1][3:] == filler)  # 11 = 4 + 4 + 3, padded with the filler
+
+
+def test_snr_of_heavy_tailed_float32_rows_is_finite():
+    """A few diverging rollouts give per-rollout gradients near float32's range; their variance must not
+    overflow (it did: snr 0.0). One row of 1e30 among 63 of a mean of 1: SNR = |m|^2 / (tr Cov / n)."""
+    rng = np.random.default_rng(0)
+    rows = (1.0 + 0.1 * rng.standard_normal((64, 3))).astype(np.float32)
+    rows[5] = 1e30
+    expected = (lambda r: r.mean(0) @ r.mean(0) / (r.var(0, ddof=1).sum() / len(r)))(rows.astype(np.float64))
+    got = quality.snr(rows)
+    assert np.isfinite(got) and got > 0
+    assert got == pytest.approx(expected, rel=1e-12)
+    # one outlier x among n rows: |m|^2 ~ D (x/n)^2 and tr Cov / n ~ D x^2 / n^2, so the SNR is about 1
+    assert got == pytest.approx(1.0, rel=0.05)

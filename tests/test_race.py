@@ -200,7 +200,7 @@ def _trace(T=20, com_x=0.0, vx=0.0, tilt=0.0):
 
 
 def test_terminal_cost_is_the_capture_point_outside_the_feet_and_tilt_is_measured_from_the_reference():
-    lc = tuning_loss.LossConfig()
+    lc = tuning_loss.LossConfig().with_motor_limits(np.full(23, 60.0))  # the iCub's motors
     assert float(tuning_loss.terminal_cost(_trace(), lc)) == 0.0  # capture point at the centre
     omega = np.sqrt(constants.GRAVITY / 0.5)
     # Moving forward at 0.5 m/s from x = 0: capture point at 0.5 / omega, beyond the toes at 0.1 m.

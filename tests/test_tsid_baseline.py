@@ -19,6 +19,7 @@ from wbc_jax.jobs import envelope, sweep_table
 from wbc_jax.robot import contacts, model
 from wbc_jax.robot import pinocchio as robot_pinocchio
 from wbc_jax.robot.icub import DESCRIPTION as ICUB
+from wbc_jax.robot.talos import DESCRIPTION as TALOS
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
@@ -40,6 +41,7 @@ def _load(name: str, path: pathlib.Path):
 
 tb = _load("tsid_baseline", ROOT / "benchmarks" / "tsid_baseline")
 tp = _load("tsid_peer", ROOT / "benchmarks" / "tsid_peer.py")
+pe = sys.modules["tsid_baseline.push_envelope"]  # (tsid_peer imports it)
 bc = sys.modules["baseline_cpu"]
 
 TSID_PROBLEM = tb.tsid_problem()
@@ -170,7 +172,7 @@ def test_copies_match_wbc_jax(robot):
 
 def test_lip_bound_and_bisection_match_wbc_jax(robot):
     azimuths = [0.0, 45.0, 90.0, 191.25]
-    ours = tp.lip_bound(tb.load_mj_model(), robot.home_qpos(), azimuths)
+    ours = pe.lip_bound(tb.load_mj_model(), robot.home_qpos(), azimuths)
     theirs = sweep_table.lip_bound(robot, azimuths)
     for az in azimuths:
         assert ours[az]["impulse_bound_ns"] == pytest.approx(theirs[az]["impulse_bound_ns"], rel=1e-12)
@@ -178,7 +180,7 @@ def test_lip_bound_and_bisection_match_wbc_jax(robot):
     grid = np.linspace(10.0, 400.0, 64) * 0.1
     thresholds = np.random.default_rng(5).uniform(0.0, 41.0, 40)
     oracle = lambda k, impulse: impulse <= thresholds[k]  # noqa: E731
-    a, b = tp.bisect(grid, oracle, thresholds.size, 0.25), envelope.bisect(grid, oracle, thresholds.size, 0.25)
+    a, b = pe.bisect(grid, oracle, thresholds.size, 0.25), envelope.bisect(grid, oracle, thresholds.size, 0.25)
     for key in ("lo", "hi", "grid_lo", "at_cap", "rollouts", "rounds"):
         np.testing.assert_array_equal(a[key], b[key])
     assert a["rollouts"] <= 8 * thresholds.size  # 6 grid rounds + 2 refinements per direction
@@ -228,10 +230,10 @@ def test_sinusoid_20s_tracks_the_com(peer):
 
 @needs_tsid
 def test_pushes_act_on_the_named_body(peer):
-    push = tp.push_of(40.0, 90.0, 0.5, 0.1)  # 40 N to the left on the chest: recovered
+    push = pe.push_of(40.0, 90.0, 0.5, 0.1)  # 40 N to the left on the chest: recovered
     s = peer.simulate("stand", duration=3.0, push=push, record=False)["summary"]
     assert s["survived"] and s["com_max_err_m"] > 2e-3, s  # it moved the CoM, and the robot recovered
-    s = peer.simulate("stand", duration=3.0, push=tp.push_of(400.0, 0.0, 0.5, 0.1), record=False)["summary"]
+    s = peer.simulate("stand", duration=3.0, push=pe.push_of(400.0, 0.0, 0.5, 0.1), record=False)["summary"]
     assert s["fell"] and not s["survived"], s  # 40 N s forward: over twice the LIP bound
     with pytest.raises(ValueError, match="unknown body 'torso'; valid bodies: .*'chest'"):
         peer.simulate("stand", duration=1.0, push=push, push_body="torso")
@@ -243,12 +245,38 @@ def test_config_checks():
     with pytest.raises(ValueError, match="fz_min <= fz_max"):
         tb.TsidConfig(fz_min=20.0, fz_max=10.0)
     with pytest.raises(ValueError, match="kp_posture must be 23 finite numbers"):
-        tb.TsidConfig(kp_posture=(1.0, 2.0)).gains(23)
-    g = tb.TsidConfig().gains(23)
+        tb.TsidConfig(kp_posture=(1.0, 2.0)).gains(ICUB, 23)
+    g = tb.TsidConfig().gains(ICUB, 23)
     np.testing.assert_array_equal(g["kp_com"], ICUB.gains.kp_com)
     np.testing.assert_allclose(g["kd_com"], 2 * np.sqrt(ICUB.gains.kp_com) / 20)
     np.testing.assert_allclose(g["kd_posture"], 2 * np.sqrt(ICUB.gains.kp_postural))
-    np.testing.assert_array_equal(tb.TsidConfig().corners()[:, 0], [-0.07, -0.045, 0.0])
+    np.testing.assert_array_equal(tb.TsidConfig().corners(ICUB)[:, 0], [-0.07, -0.045, 0.0])
+    # Another robot's defaults are its own: Talos's postural gains and CoP rectangle.
+    np.testing.assert_array_equal(tb.TsidConfig().gains(TALOS)["kp_posture"], TALOS.gains.kp_postural)
+    np.testing.assert_array_equal(tb.TsidConfig().corners(TALOS)[:, 0], [-0.1, -0.06, 0.0])
+
+
+@needs_tsid
+def test_the_peer_runs_on_talos():
+    """Issue 47: TSID's controller on Talos (example-robot-data's URDF in Pinocchio, assets/talos/'s
+    MJCF on C MuJoCo): the URDF's sole frames sit on the MJCF's sole sites, the masses agree, and it
+    stands; a body of the iCub is refused in one line."""
+    import pinocchio as pin
+
+    peer = tb.TsidPeer(robot="talos")
+    m, pm = peer.mj_model, peer.pin_model
+    assert peer.map.joints == TALOS.joints and (pm.nq, pm.nv) == (m.nq, m.nv) == (29, 28)
+    assert pin.computeTotalMass(pm) == pytest.approx(float(m.body_subtreemass[1]), rel=1e-9)
+    d, pd = mujoco.MjData(m), pm.createData()
+    d.qpos[:] = peer.qpos0
+    mujoco.mj_kinematics(m, d)
+    pin.framesForwardKinematics(pm, pd, peer.map.q_v(peer.qpos0, np.zeros(m.nv))[0])
+    for site, frame in zip(TALOS.feet, TALOS.pinocchio_feet):
+        np.testing.assert_allclose(pd.oMf[pm.getFrameId(frame)].translation, d.site_xpos[m.site(site).id], atol=1e-9)
+    s = peer.simulate("stand", duration=1.0, record=False)["summary"]
+    assert s["survived"] and s["com_max_err_m"] < 1e-3 and s["qp_infeasible_ticks"] == 0, s
+    with pytest.raises(SystemExit, match="unknown body 'chest'"):
+        tp.main(["--robot", "talos", "--body", "chest", "--out", "/nonexistent/tsid.json"])
 
 
 @needs_tsid

@@ -176,8 +176,9 @@ def test_bad_tune_config_is_a_clear_error(kwargs, message):
 # The loss and its rank statistics (synthetic traces: no compilation of the closed loop)
 
 
-def _trace(T=60, shift=0.0, tilt=0.0, slip=0.0, speed=0.0):
-    """A synthetic TuneTrace: a standing robot whose CoM moves by ``shift`` m along x at ``speed``."""
+def _trace(T=60, shift=0.0, tilt=0.0, slip=0.0, speed=0.0, tau=0.0, joints=23):
+    """A synthetic TuneTrace: a standing robot whose CoM moves by ``shift`` m along x at ``speed``,
+    every one of its ``joints`` joints at torque ``tau`` N m."""
     corners = np.array([[x, y] for y0 in (0.07, -0.07) for x in (-0.05, 0.1) for y in (y0 - 0.03, y0 + 0.03)])
     t = np.linspace(0, 1, T)[:, None]
     com = np.concatenate([shift * t, np.zeros((T, 1)), np.full((T, 1), 0.5)], 1)
@@ -190,7 +191,7 @@ def _trace(T=60, shift=0.0, tilt=0.0, slip=0.0, speed=0.0):
         com=jnp.asarray(com),
         com_ref=jnp.asarray(com * [0, 1, 1]),
         com_vel=jnp.asarray(vel),
-        tau=jnp.zeros((T, 23)),
+        tau=jnp.full((T, joints), float(tau)),
         support_xy=jnp.asarray(sup),
         com_height0=jnp.full(T, 0.5),
         foot_normal=jnp.asarray(normals),
@@ -198,8 +199,12 @@ def _trace(T=60, shift=0.0, tilt=0.0, slip=0.0, speed=0.0):
     return tuning_loss.TuneTrace(base=base, foot_normal=jnp.asarray(normals), qp_infeasible=jnp.zeros(T, bool))
 
 
+# The iCub's motors, each limited to the same torque (the model's actuators' ctrlrange).
+ICUB_MOTOR_LIMITS = np.full(len(ICUB.joints), 60.0)
+
+
 def test_loss_terms_grow_with_each_failure_mode():
-    lc = tuning_loss.LossConfig()
+    lc = tuning_loss.LossConfig().with_motor_limits(ICUB_MOTOR_LIMITS)
     still = tuning_loss.loss_terms(_trace(), lc)
     assert float(still["total"]) < 1e-3
     assert float(tuning_loss.loss_terms(_trace(shift=0.3), lc)["capture"]) > 1.0  # CoM beyond the toes
@@ -211,6 +216,29 @@ def test_loss_terms_grow_with_each_failure_mode():
     short = tuning_loss.loss_terms(_trace(shift=0.3), lc, n_ticks=10)
     assert float(short["capture"]) < float(tuning_loss.loss_terms(_trace(shift=0.3), lc)["capture"])
     assert float(tuning_loss.batch_objective(jnp.array([0.0, np.e - 1]), lc)) == pytest.approx(0.5)
+
+
+def test_the_loss_scales_each_joints_torque_by_the_robots_motor_limit():
+    """Issue 47: effort and saturation divide each joint's torque by its motor limit from the robot's
+    model (Talos: 17.86-300 N m), never a number of the iCub's (60 N m on every joint, which the iCub's
+    problem keeps); a config whose limits were never filled in is refused in one line."""
+    talos = tp.make_problem(config.TuneConfig(robot="talos", **TINY))
+    limits = np.asarray(talos.robot.index.torque_limit, float)
+    assert talos.lc.torque_limit == tuple(limits) == talos.lc.torque_scale
+    assert (limits.min(), limits.max()) == (17.86, 300.0)
+    terms = jax.jit(lambda tr: tuning_loss.loss_terms(tr, talos.lc))(_trace(tau=100.0, joints=len(limits)))
+    effort, saturation = (
+        np.mean((100.0 / limits) ** 2),
+        np.mean((np.maximum(100.0 - 0.9 * limits, 0) / (0.1 * limits)) ** 2),
+    )
+    assert float(terms["effort"]) == pytest.approx(effort, rel=1e-9)
+    assert float(terms["saturation"]) == pytest.approx(saturation, rel=1e-9)
+    # 60 N m on every joint would give (100 / 60)^2 = 2.78 and ((100 - 54) / 6)^2 = 58.8.
+    assert abs(effort - (100 / 60) ** 2) > 1.0 and abs(saturation - (46 / 6) ** 2) > 1.0
+    icub = tp.make_problem(config.TuneConfig(**TINY))
+    assert icub.lc.torque_limit == tuple(ICUB_MOTOR_LIMITS) == icub.lc.torque_scale
+    with pytest.raises(ValueError, match=r"torque_limit are None .*with_motor_limits"):
+        tuning_loss.loss_terms(_trace(), tuning_loss.LossConfig())
 
 
 def test_rank_statistics():

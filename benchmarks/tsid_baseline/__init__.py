@@ -1,8 +1,13 @@
-"""[TSID peer] The iCub balanced by TSID (Pinocchio + eiquadprog, C++) on C MuJoCo physics.
+"""[TSID peer] A robot balanced by TSID (Pinocchio + eiquadprog, C++) on C MuJoCo physics: the iCub
+by default, any robot of ``wbc_jax.robot.robots`` whose description has a URDF (``robot=``; Talos:
+example-robot-data's URDF, its sole frames ``urdf_feet``). Everything robot-specific (MJCF, joints,
+feet, CoP rectangle, default gains, the trunk role of ``push_body``) comes from the robot's
+description; what follows describes the iCub, and holds for Talos with its own numbers.
 
-    model.py       the packages, the plant's C model and contacts, wbc_jax's numbers, the task references
-    controller.py  the TSID controller and its settings
-    peer.py        the closed loop on C MuJoCo
+    model.py          the packages, the plant's C model and contacts, wbc_jax's numbers, the task references
+    controller.py     the TSID controller and its settings
+    peer.py           the closed loop on C MuJoCo
+    push_envelope.py  pushes: the LIP bound, the strict envelope by bisection, the full grid, the sensitivity
 
 A real peer of wbc_jax on the CPU: the controller a user of this robot would otherwise write with
 TSID (stack-of-tasks/tsid), on the same plant, tasks, pushes and metrics as the rest of the project,

@@ -8,10 +8,11 @@ import math
 import mujoco
 import numpy as np
 
-from wbc_jax.robot import icub
+from wbc_jax.robot.description import RobotDescription
 from wbc_jax.robot.pinocchio import StateMap
+from wbc_jax.robot.robots import DEFAULT_ROBOT, describe
 
-from .model import FEET, FOOT_SIZE, FZ_MAX, FZ_MIN, floor_friction, import_tsid
+from .model import FZ_MAX, FZ_MIN, floor_friction, import_tsid
 
 
 @dataclasses.dataclass(frozen=True)
@@ -23,12 +24,13 @@ class TsidConfig:
         tasks and the contacts' force regularisation.
       kp_com, kd_com (3,): CoM task PD (1/s^2, 1/s); None: the WBC's K_P,CoM, K_D,CoM.
       kp_am (3,): angular-momentum task gain (1/s); None: the WBC's K_P,w.
-      kp_posture (n,): posture PD stiffness (1/s^2, ``DRIVEN_JOINTS`` order); None: the WBC's
+      kp_posture (n,): posture PD stiffness (1/s^2, the controlled joints' order); None: the WBC's
         postural k_p values. kd_posture (n,): None: 2 sqrt(kp_posture) (critical damping).
       contact_kp: PD gain of the soles' motion constraints (Kd = 2 sqrt(Kp)); 0: rigid contact.
       mu: friction coefficient of the corners' pyramids; None: the model's floor friction.
       fz_min, fz_max: bounds of each sole's normal force (N). foot_size: the CoP rectangle
-        ((x_min, x_max), (y_min, y_max)) m in the sole frame, its corners the contact points.
+        ((x_min, x_max), (y_min, y_max)) m in the sole frame, its corners the contact points;
+        None: the robot's (its description's ``sole_cop``, the WBC's).
       compensate_damping: add the model's joint damping D s_dot to the torques.
     """
 
@@ -45,7 +47,7 @@ class TsidConfig:
     mu: float | None = None
     fz_min: float = FZ_MIN
     fz_max: float = FZ_MAX
-    foot_size: tuple = FOOT_SIZE
+    foot_size: tuple | None = None
     compensate_damping: bool = True
 
     def __post_init__(self):
@@ -57,14 +59,17 @@ class TsidConfig:
             raise ValueError(f"TsidConfig needs 0 < fz_min <= fz_max, got {self.fz_min}, {self.fz_max}")
         if self.mu is not None and not (math.isfinite(self.mu) and self.mu > 0):
             raise ValueError(f"TsidConfig.mu must be positive, got {self.mu!r}")
-        (x0, x1), (y0, y1) = self.foot_size
-        if not (x0 < x1 and y0 < y1):
-            raise ValueError(f"TsidConfig.foot_size needs x_min < x_max and y_min < y_max, got {self.foot_size}")
+        if self.foot_size is not None:
+            (x0, x1), (y0, y1) = self.foot_size
+            if not (x0 < x1 and y0 < y1):
+                raise ValueError(f"TsidConfig.foot_size needs x_min < x_max and y_min < y_max, got {self.foot_size}")
 
-    def gains(self, n: int) -> dict[str, np.ndarray]:
-        """The resolved gains (float64): kp_com, kd_com, kp_am (3,), kp_posture, kd_posture (n,),
-        in ``DRIVEN_JOINTS`` order. Raises ValueError on a wrong shape or a negative gain."""
-        wbc = icub.DESCRIPTION.default_gain_values(n)
+    def gains(self, robot: RobotDescription, n: int | None = None) -> dict[str, np.ndarray]:
+        """The resolved gains (float64) on ``robot`` (None fields: its WBC defaults): kp_com, kd_com,
+        kp_am (3,), kp_posture, kd_posture (n,), in its joints' order. Raises ValueError on a wrong
+        shape or a negative gain (``n``: the joint count the caller expects)."""
+        n = len(robot.joints) if n is None else n
+        wbc = robot.default_gain_values(n)
         out = {
             "kp_com": wbc["kp_com"] if self.kp_com is None else self.kp_com,
             "kd_com": wbc["kd_com"] if self.kd_com is None else self.kd_com,
@@ -80,14 +85,18 @@ class TsidConfig:
                 raise ValueError(f"TsidConfig {name} must be {size} finite numbers >= 0, got {value.tolist()}")
         return out
 
-    def corners(self) -> np.ndarray:
+    def sole_rectangle(self, robot: RobotDescription) -> tuple:
+        """The CoP rectangle ((x_min, x_max), (y_min, y_max)) m on ``robot``: ``foot_size`` or its own."""
+        return robot.sole_cop if self.foot_size is None else self.foot_size
+
+    def corners(self, robot: RobotDescription) -> np.ndarray:
         """The contact points (3, 4): the CoP rectangle's corners on the sole plane (sole frame)."""
-        (x0, x1), (y0, y1) = self.foot_size
+        (x0, x1), (y0, y1) = self.sole_rectangle(robot)
         return np.array([[x, y, 0.0] for x in (x0, x1) for y in (y0, y1)]).T
 
 
 class TsidController:
-    """TSID's balancing controller for the 23-joint iCub (module docstring), built at a state.
+    """TSID's balancing controller for a robot's controlled joints (module docstring), built at a state.
 
     Usage: ``tau, info = ctrl(t, qpos, qvel, ref)`` once per control tick with MuJoCo's state.
 
@@ -95,7 +104,8 @@ class TsidController:
       pin_model: :func:`pinocchio_model`. state_map: :class:`StateMap` of it and the MuJoCo model.
       mj_model: the MuJoCo model (floor friction, joint damping).
       qpos0 (nq,): MuJoCo state at which the soles' contact references are taken (zero velocity).
-      s_des (n,): the posture reference (``DRIVEN_JOINTS`` order). config: :class:`TsidConfig`.
+      s_des (n,): the posture reference (the joints' order). config: :class:`TsidConfig`.
+      robot: the robot's name (its description: default gains, CoP rectangle, sole frames).
     """
 
     def __init__(
@@ -106,13 +116,15 @@ class TsidController:
         qpos0: np.ndarray,
         s_des: np.ndarray,
         config: TsidConfig | None = None,
+        robot: str = DEFAULT_ROBOT,
     ):
         tsid = import_tsid()
         self.tsid = tsid
         self.config = cfg = TsidConfig() if config is None else config
+        self.description = desc = describe(robot)
         self.map = state_map
         n = len(state_map.joints)
-        g = cfg.gains(n)
+        g = cfg.gains(desc, n)
         self.gains = g
         mu = floor_friction(mj_model) if cfg.mu is None else float(cfg.mu)
         self.mu = mu
@@ -123,9 +135,9 @@ class TsidController:
         form.computeProblemData(0.0, q0, v0)
         data = form.data()
         model = self.robot.model()
-        points, normal = cfg.corners(), np.array([0.0, 0.0, 1.0])
+        points, normal = cfg.corners(desc), np.array([0.0, 0.0, 1.0])
         self.contacts = []
-        for frame in FEET:
+        for frame in desc.pinocchio_feet:
             if not model.existFrame(frame):
                 raise ValueError(f"the Pinocchio model has no frame {frame!r}")
             contact = tsid.Contact6d(f"contact_{frame}", self.robot, frame, points, normal, mu, cfg.fz_min, cfg.fz_max)
@@ -160,7 +172,7 @@ class TsidController:
         self._tau_prev = np.zeros(n)
 
     def set_posture(self, s_des: np.ndarray) -> None:
-        """Posture reference s_des (n,) (``DRIVEN_JOINTS`` order), zero velocity and acceleration."""
+        """Posture reference s_des (n,) (the controlled joints' order), zero velocity and acceleration."""
         s_des = np.asarray(s_des, float)
         n = len(self.map.joints)
         if s_des.shape != (n,):
@@ -188,7 +200,7 @@ class TsidController:
         """One control tick from MuJoCo's state qpos (nq,), qvel (nv,) (R (3, 3): base orientation).
 
         ref: com_pos, com_vel, com_acc (3,) (``baseline_cpu.schedule_table`` rows).
-        Returns (tau (n,) unsaturated, ``DRIVEN_JOINTS`` order; info dict: ``status`` (eiquadprog's,
+        Returns (tau (n,) unsaturated, the controlled joints' order; info dict: ``status`` (eiquadprog's,
         0 = solved), ``infeasible`` (bool: the previous torques are kept), ``solution``)."""
         q, v = self.map.q_v(qpos, qvel, R)
         tau_pin, sol = self.solve(t, q, v, ref["com_pos"], ref["com_vel"], ref["com_acc"])
@@ -196,7 +208,7 @@ class TsidController:
         return tau, {"status": int(sol.status), "infeasible": tau_pin is None, "solution": sol}
 
     def torques(self, tau_pin: np.ndarray | None, s_dot: np.ndarray) -> np.ndarray:
-        """The motor torques (n,), unsaturated, ``DRIVEN_JOINTS`` order, from TSID's tau_pin (n,)
+        """The motor torques (n,), unsaturated, the controlled joints' order, from TSID's tau_pin (n,)
         (Pinocchio's order) plus the joint damping D s_dot (s_dot (n,)); tau_pin None (a failed
         solve): the previous tick's torques."""
         if tau_pin is None:

@@ -14,8 +14,9 @@ import warnings
 import mujoco
 import numpy as np
 
+from wbc_jax.robot.robots import DEFAULT_ROBOT, describe
+
 ROOT = pathlib.Path(__file__).resolve().parents[2]
-MODEL_XML = ROOT / "assets" / "icub" / "icub_23dof.xml"
 
 
 def _load_by_path(name: str, path: pathlib.Path):
@@ -37,14 +38,16 @@ def _load_by_path(name: str, path: pathlib.Path):
 
 
 bc = _load_by_path("baseline_cpu", ROOT / "benchmarks" / "baseline_cpu")
-mjcf = _load_by_path("_wbc_build_icub_mjcf", ROOT / "assets" / "build_icub_mjcf.py")
 constants = bc.constants
 
-DRIVEN_JOINTS: tuple[str, ...] = tuple(mjcf.DRIVEN_JOINTS)
-FEET = ("l_sole", "r_sole")
+# The default robot's (the iCub's) names; another robot's come from its description (``--robot``).
+DEFAULT = describe(DEFAULT_ROBOT)
+MODEL_XML = DEFAULT.model_path
+DRIVEN_JOINTS: tuple[str, ...] = DEFAULT.joints
+FEET = DEFAULT.feet
+FOOT_SIZE = DEFAULT.sole_cop  # the CoP rectangle (m, sole frame): robot.contacts.ContactParams().foot_size
 TASKS = ("stand", "sinusoid")
 # Copies of wbc_jax names (modules that import JAX), checked in tests/test_tsid_baseline.py:
-FOOT_SIZE = ((-0.07, 0.12), (-0.045, 0.045))  # robot.contacts.ContactParams().foot_size (m, sole frame)
 FZ_MIN = 10.0  # robot.contacts.ContactParams().fz_min (N, per foot)
 TASK_DURATION = {"stand": 10.0, "sinusoid": 20.0}  # control.references.make_schedule's defaults (s)
 SINE_AMPLITUDE, SINE_FREQUENCY, SINE_AXIS = 0.02, 0.2, (0.0, 1.0, 0.0)  # its sinusoid (m, Hz)
@@ -88,14 +91,15 @@ def import_tsid():
     return tsid
 
 
-def load_mj_model(path: pathlib.Path | str = MODEL_XML) -> mujoco.MjModel:
+def load_mj_model(path: pathlib.Path | str | None = None, robot: str = DEFAULT_ROBOT) -> mujoco.MjModel:
     """The C MuJoCo model as :func:`wbc_jax.robot.model.load_mj_model` (``visual=False``) compiles it: the
     MJCF without its visual mesh geoms and meshes (they never collide), no auto-reset either way.
+    path: None: the robot's model file (its description's).
 
     Raises FileNotFoundError (missing model file)."""
-    path = pathlib.Path(path)
+    path = describe(robot).model_path if path is None else pathlib.Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"model file {path} is missing; regenerate it with 'python assets/build_icub_mjcf.py'")
+        raise FileNotFoundError(f"model file {path} is missing; regenerate it with 'python {describe(robot).builder}'")
     spec = mujoco.MjSpec.from_file(str(path))
     for geom in list(spec.geoms):
         if geom.type == mujoco.mjtGeom.mjGEOM_MESH:
@@ -123,29 +127,30 @@ def floor_friction(m: mujoco.MjModel) -> float:
     return float(mu[0])
 
 
-def sole_contact_rectangle(m: mujoco.MjModel, qpos: np.ndarray | None = None) -> tuple:
+def sole_contact_rectangle(m: mujoco.MjModel, qpos: np.ndarray | None = None, robot: str = DEFAULT_ROBOT) -> tuple:
     """The largest rectangle ((x_min, x_max), (y_min, y_max)) m, in sole-frame coordinates, inside
-    the contact spheres' centres of both soles (the model's feet: 4 spheres per sole, geoms
-    ``{l,r}_foot_contact_*``), at qpos (nq,) (None: the home keyframe)."""
+    the contact spheres' centres of both soles (the robot's feet: 4 spheres per sole, geoms named
+    by its description's ``foot_contact_prefixes``), at qpos (nq,) (None: the nominal keyframe)."""
+    desc = describe(robot)
     d = mujoco.MjData(m)
-    d.qpos[:] = m.key("home").qpos if qpos is None else qpos
+    d.qpos[:] = m.key(desc.nominal_keyframe).qpos if qpos is None else qpos
     mujoco.mj_kinematics(m, d)
     lo, hi = np.full(2, -np.inf), np.full(2, np.inf)
-    for site in FEET:
+    for site, prefix in zip(desc.feet, desc.foot_contact_prefixes):
         s = m.site(site).id
         R, p = d.site_xmat[s].reshape(3, 3), d.site_xpos[s]
-        geoms = [g for g in range(m.ngeom) if m.geom(g).name.startswith(f"{site[0]}_foot_contact_")]
+        geoms = [g for g in range(m.ngeom) if m.geom(g).name.startswith(prefix)]
         if not geoms:
-            raise ValueError(f"the model has no contact geoms {site[0]}_foot_contact_*")
+            raise ValueError(f"the model has no contact geoms {prefix}*")
         local = (d.geom_xpos[geoms] - p) @ R
         lo, hi = np.maximum(lo, local[:, :2].min(0)), np.minimum(hi, local[:, :2].max(0))
     return ((float(lo[0]), float(hi[0])), (float(lo[1]), float(hi[1])))
 
 
-def non_foot_bodies(m: mujoco.MjModel) -> np.ndarray:
+def non_foot_bodies(m: mujoco.MjModel, feet: tuple[str, str] = FEET) -> np.ndarray:
     """Bodies that must stay off the floor (wbc_jax.sim.loop.ClosedLoop): all but the world, the soles'
-    bodies and their parents (the ankles). (k,) int."""
-    feet = np.array([m.site_bodyid[m.site(s).id] for s in FEET])
+    bodies (of the sole sites ``feet``) and their parents (the ankles). (k,) int."""
+    feet = np.array([m.site_bodyid[m.site(s).id] for s in feet])
     excluded = set(feet.tolist()) | set(m.body_parentid[feet].tolist())
     return np.array([b for b in range(1, m.nbody) if b not in excluded])
 

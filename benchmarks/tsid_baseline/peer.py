@@ -9,12 +9,10 @@ import mujoco
 import numpy as np
 
 from wbc_jax.robot.pinocchio import StateMap, pinocchio_model
+from wbc_jax.robot.robots import DEFAULT_ROBOT, describe
 
 from .controller import TsidConfig, TsidController
 from .model import (
-    DRIVEN_JOINTS,
-    FEET,
-    FOOT_SIZE,
     TaskSchedule,
     bc,
     body_id,
@@ -27,19 +25,22 @@ from .model import (
 
 class TsidPeer:
     """The robot loaded once for many closed loops: the MuJoCo model (no auto-reset), the reduced
-    Pinocchio model, their :class:`StateMap`, the home state and its references.
+    Pinocchio model, their :class:`StateMap`, the nominal state and its references.
 
-    Args: mj_model: None: :func:`load_mj_model`. pin_model: None: :func:`wbc_jax.robot.pinocchio.pinocchio_model` of ``DRIVEN_JOINTS``.
+    Args: robot: the robot's name (``wbc_jax.robot.robots``). mj_model: None: :func:`load_mj_model`
+    of the robot. pin_model: None: :func:`wbc_jax.robot.pinocchio.pinocchio_model` of its joints.
     """
 
-    def __init__(self, mj_model: mujoco.MjModel | None = None, pin_model=None):
-        self.mj_model = bc.solver_model(load_mj_model() if mj_model is None else mj_model)
-        self.pin_model = pinocchio_model(DRIVEN_JOINTS) if pin_model is None else pin_model
-        self.map = StateMap(self.mj_model, self.pin_model, DRIVEN_JOINTS)
+    def __init__(self, mj_model: mujoco.MjModel | None = None, pin_model=None, robot: str = DEFAULT_ROBOT):
+        self.robot, self.description = robot, describe(robot)
+        joints = self.description.joints
+        self.mj_model = bc.solver_model(load_mj_model(robot=robot) if mj_model is None else mj_model)
+        self.pin_model = pinocchio_model(joints, robot=robot) if pin_model is None else pin_model
+        self.map = StateMap(self.mj_model, self.pin_model, joints)
         m = self.mj_model
-        self.qpos0 = m.key("home").qpos.copy()
-        self.foot_sites = np.array([m.site(s).id for s in FEET])
-        self.non_foot_bodies = non_foot_bodies(m)
+        self.qpos0 = m.key(self.description.nominal_keyframe).qpos.copy()
+        self.foot_sites = np.array([m.site(s).id for s in self.description.feet])
+        self.non_foot_bodies = non_foot_bodies(m, self.description.feet)
         self.control_dt = constants.CONTROL_DT
         self.physics_dt = float(m.opt.timestep)
         self.n_sub = int(round(self.control_dt / self.physics_dt))
@@ -64,7 +65,7 @@ class TsidPeer:
         *,
         duration: float | None = None,
         push=None,
-        push_body: str = "chest",
+        push_body: str = "trunk",
         config: TsidConfig | None = None,
         record: bool = True,
         timing: bool = False,
@@ -74,7 +75,7 @@ class TsidPeer:
         Args:
           task: ``stand`` or ``sinusoid``; duration: seconds (None: the task's default).
           push: force (P, 3) N or (3,), onset, duration (P,) s (a dict; ``baseline_cpu.push_to_numpy``)
-            on ``push_body``'s CoM, world axes; None: no push.
+            on ``push_body``'s CoM (a body or a role such as ``trunk``), world axes; None: no push.
           config: :class:`TsidConfig` (None: the defaults). record: keep the CoM and torques per tick.
           timing: time the controller (state map; TSID problem data + solve + torques) and the physics
             (mj_step1 + mj_step2 + the tick's other mj_step): wall clock (perf_counter) and this
@@ -88,20 +89,22 @@ class TsidPeer:
           microseconds per tick of each part).
         """
         m, smap = self.mj_model, self.map
-        pb = body_id(m, push_body)
+        pb = body_id(m, self.description.body(push_body))
         sched = self.schedule(task, duration)
         T = int(round(sched.duration / self.control_dt))
         ref = bc.schedule_table(sched, np.arange(T) * self.control_dt)
         pu = bc.push_to_numpy(push, 1)
-        ctrl = TsidController(self.pin_model, smap, m, self.qpos0, sched.s0, config)
+        ctrl = TsidController(self.pin_model, smap, m, self.qpos0, sched.s0, config, self.robot)
         d = mujoco.MjData(m)
         d.qpos[:] = self.qpos0
         d.qvel[:] = 0.0
         mujoco.mj_forward(m, d)
         sites, base, nfb = self.foot_sites, smap.base_body, self.non_foot_bodies
-        # The metrics' support rectangle is the project's (FOOT_SIZE), whatever the contact points.
+        # The metrics' support rectangle is the project's (the robot's CoP rectangle), whatever the contact points.
         W_R_feet0 = d.site_xmat[sites].reshape(1, 2, 3, 3).copy()
-        tracker = bc.LoopMetrics(FOOT_SIZE, d.site_xpos[sites][None].copy(), W_R_feet0, d.subtree_com[base, 2:3].copy())
+        tracker = bc.LoopMetrics(
+            self.description.sole_cop, d.site_xpos[sites][None].copy(), W_R_feet0, d.subtree_com[base, 2:3].copy()
+        )
         rec = {"com": np.zeros((T, 3)), "tau": np.zeros((T, len(smap.joints))), "status": np.zeros(T, int)}
         wall, cpu = time.perf_counter, time.thread_time
         t_map, t_tsid, t_phys = [0.0, 0.0], [0.0, 0.0], [0.0, 0.0]  # (wall, this thread's CPU) seconds
@@ -195,7 +198,7 @@ class TsidPeer:
         return out
 
 
-def simulate(task: str = "stand", **kwargs: Any) -> dict:
+def simulate(task: str = "stand", robot: str = DEFAULT_ROBOT, **kwargs: Any) -> dict:
     """:meth:`TsidPeer.simulate` on a freshly loaded robot (for one run; load a :class:`TsidPeer`
     once for many)."""
-    return TsidPeer().simulate(task, **kwargs)
+    return TsidPeer(robot=robot).simulate(task, **kwargs)

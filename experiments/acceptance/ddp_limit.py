@@ -68,7 +68,7 @@ def main() -> None:
     except ValueError as err:
         sys.exit(str(err))
     rows = {a: table[str(a)] for a in azimuths}
-    witness_path = out.with_name(out.stem + "_witness.npz")  # the verified tests' replayed torques
+    witness_path = limit_ddp.witness_path(out)  # the verified tests' replayed torques
     witnesses = dict(np.load(witness_path)) if witness_path.exists() else {}
     alone = {
         float(a): r["limit_replayed_alone"]
@@ -79,6 +79,7 @@ def main() -> None:
     command = "python experiments/acceptance/ddp_limit.py " + " ".join(sys.argv[1:])
     commands = (previous or {}).get("commands", [(previous or {}).get("command")] if previous else [])
     wall0, t0 = (previous or {}).get("wall_s", 0.0), time.perf_counter()
+    parts = (previous or {}).get("parts")  # a merged file (ddp_merge.py): this run becomes one more part
 
     def write() -> None:
         directions = {}
@@ -98,19 +99,20 @@ def main() -> None:
             }
             if a in alone and alone[a]["impulse_ns"] == lo:
                 directions[str(a)]["limit_replayed_alone"] = alone[a]
-        io.atomic_write_json(
-            out,
-            {
-                "what": "crocoddyl BoxFDDP from the C MuJoCo post-push state, tracked in C MuJoCo by the tuned controller "
-                "with feedforward torques, strict criterion; limit_ns: the largest impulse whose tracked DDP "
-                "trajectory passed (0: none did); bracket_ns: [limit, smallest failed impulse above it]",
-                "commands": commands + [command],
-                "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
-                "directions": directions,
-                "wall_s": round(wall0 + time.perf_counter() - t0, 1),
-                "provenance": provenance.record({"gains": GAINS}),
-            },
-        )
+        record, run_s = provenance.record({"gains": GAINS}), round(time.perf_counter() - t0, 1)
+        doc = {
+            "what": "crocoddyl BoxFDDP from the C MuJoCo post-push state, tracked in C MuJoCo by the tuned controller "
+            "with feedforward torques, strict criterion; limit_ns: the largest impulse whose tracked DDP "
+            "trajectory passed (0: none did); bracket_ns: [limit, smallest failed impulse above it]",
+            "commands": commands + [command],
+            "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
+            "directions": directions,
+            "wall_s": round(wall0 + run_s, 1),
+        }
+        if parts is not None:
+            this_run = {"file": out.name, "wall_s": run_s, "device": record["device"]["label"], "provenance": record}
+            doc["parts"] = [*parts, this_run]
+        io.atomic_write_json(out, {**doc, "provenance": record})
 
     order = list(dict.fromkeys([float(a) for a in args.directions] + azimuths))  # as given first, then the file's
     if args.recheck is not None:

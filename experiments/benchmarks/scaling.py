@@ -14,18 +14,27 @@ earlier calls with other sweep flags (``calls``) and replaces those of the same 
 when the outcomes of N GPUs differ from one GPU's in more cells than the engine's own repeat
 floor (the bar: outcomes equal within the repeat floor) or a run fails; the speed-up targets are
 reported as met or not.
+
+Diagnostics of issue 45 (why 4 GPUs of MJX-Warp ran slower than one; BENCHMARKS.md): ``--launch
+processes`` runs N GPUs as N processes of one GPU each joined by jax.distributed (nothing of Python
+or Warp shared between GPUs); ``--switch-interval-ms`` sets the runs' interpreter thread switch
+interval; the sweep's own ``--warp-graph-cache`` (after ``--``) bounds Warp's CUDA graphs. Each row
+records its launch, switch interval and the graphs each Warp call held after its last run.
 """
 
 from __future__ import annotations
 
 import argparse
 import hashlib
+import importlib.util
 import json
 import os
 import pathlib
 import shutil
 import subprocess
 import sys
+import tempfile
+import time
 
 import numpy as np
 
@@ -34,22 +43,38 @@ from wbc_jax.core import io, provenance
 OUTCOMES = ("survived", "upright")
 TARGETS = {"warp": {2: 1.9, 4: 3.6}, "jax": {2: 1.9, 4: 3.6}}  # issue 45
 
+# One process of a configuration: its settings (argv[2], JSON) before JAX starts, then the runs.
 RUN = """
 import json, sys
+settings = json.loads(sys.argv[2])
+if settings["switch_interval_ms"] is not None:  # the interpreter's thread switch interval, this process only
+    sys.setswitchinterval(settings["switch_interval_ms"] / 1000)
+if settings["distributed"] is not None:  # one of several processes, one GPU each (before JAX starts)
+    from wbc_jax.core import processes
+    processes.initialize(processes.DistributedConfig(**settings["distributed"]), "scaling.py")
 from wbc_jax import cli
 from wbc_jax.jobs import sweep
-from wbc_jax.sim import runner
+from wbc_jax.sim import runner, warp_graphs
 runner.enable_compilation_cache()
-out, repeats, flags = sys.argv[1], int(sys.argv[2]), sys.argv[3:]
+out, flags = sys.argv[1], sys.argv[3:]
 res = []
-for k in range(repeats):
+for k in range(settings["repeats"]):
     cfg = cli.push_sweep_config([*flags, "--out", f"{out}/run{k}"])
     s = sweep.run_sweep(cfg, progress=False)
     res.append({key: s[key] for key in ("run_s", "compile_s", "survival_rate", "n_devices", "device", "n_envs",
                                        "physics_steps_per_s")})
     res[-1]["timeline"] = json.load(open(f"{out}/run{k}/timeline.json"))["totals_by_device"]
+    res[-1]["warp_graphs"] = warp_graphs.held()  # graphs held by each Warp call after the run, and their bound
+    res[-1]["switch_interval_s"] = sys.getswitchinterval()
+    if k == 0:  # foreign calls in the first device program's optimized HLO (an unrolled scan repeats them)
+        import collections, re
+        from wbc_jax.sim import loop as loop_lib
+        hlo = [next(iter(p.compiled.values())).as_text() for p in loop_lib.PROGRAMS.values()
+               if isinstance(getattr(p, "compiled", None), dict)]
+        res[-1]["custom_calls"] = [dict(collections.Counter(re.findall(r'custom_call_target="([^"]+)"', t))) for t in hlo]
 print("RESULT " + json.dumps(res))
 """
+LAUNCHES = ("threads", "processes")
 
 
 def _outcomes(folder: pathlib.Path):
@@ -91,6 +116,73 @@ def earlier_calls(path: pathlib.Path) -> dict:
     return calls
 
 
+def _free_port() -> int:
+    """A free TCP port on localhost (experiments/checks/multihost_check.py's)."""
+    path = pathlib.Path(__file__).resolve().parents[1] / "checks" / "multihost_check.py"
+    spec = importlib.util.spec_from_file_location("multihost_check", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.free_port()
+
+
+def launch(n: int, folder: pathlib.Path, flags: list[str], args: argparse.Namespace) -> list[tuple[list[str], str]]:
+    """The commands (each with its CUDA_VISIBLE_DEVICES) that run a configuration on ``n`` GPUs:
+    one process with the first ``n`` GPUs (``--launch threads``: one host thread per GPU inside it,
+    wbc_jax.sim.per_device), or ``n`` processes of one GPU each joined by jax.distributed
+    (``--launch processes``: no interpreter lock, Warp lock or Warp graph cache shared between GPUs)."""
+    settings = {"repeats": args.repeats, "switch_interval_ms": args.switch_interval_ms, "distributed": None}
+    if args.launch == "threads" or n == 1:
+        cmd = [sys.executable, "-c", RUN, str(folder), json.dumps(settings), *flags]
+        return [(cmd, ",".join(str(i) for i in range(n)))]
+    port = _free_port()
+    out = []
+    for rank in range(n):
+        dist = {"distributed": True, "coordinator": f"localhost:{port}", "num_processes": n, "process_id": rank}
+        cmd = [sys.executable, "-c", RUN, str(folder), json.dumps({**settings, "distributed": dist}), *flags]
+        out.append((cmd, str(rank)))
+    return out
+
+
+def run_configuration(n: int, folder: pathlib.Path, flags: list[str], args: argparse.Namespace) -> list[dict]:
+    """Run one configuration (:func:`launch`) within ``--timeout`` s; the first process's runs (the
+    one that writes the tables). A failed or timed-out process raises RuntimeError naming it."""
+    commands = launch(n, folder, flags, args)
+    # Each process's output goes to a file of its own: pipes read one after the other would fill.
+    logs = [(tempfile.TemporaryFile("w+"), tempfile.TemporaryFile("w+")) for _ in commands]
+    procs = [
+        subprocess.Popen(cmd, env={**os.environ, "CUDA_VISIBLE_DEVICES": gpus}, stdout=out, stderr=err, text=True)
+        for (cmd, gpus), (out, err) in zip(commands, logs, strict=True)
+    ]
+
+    def read(f) -> str:
+        f.seek(0)
+        return f.read()
+
+    deadline = time.monotonic() + args.timeout
+    try:
+        for rank, proc in enumerate(procs):
+            try:
+                proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                raise RuntimeError(f"process {rank} of {len(procs)} ran past --timeout {args.timeout:g} s") from None
+            if proc.returncode != 0:
+                err = " | ".join(read(logs[rank][1]).strip().splitlines()[-4:])
+                raise RuntimeError(f"process {rank} of {len(procs)}: rc {proc.returncode}: {err}")
+        stdout, stderr = read(logs[0][0]), read(logs[0][1])
+    finally:  # a failed process leaves its peers waiting on it: end them
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        for out, err in logs:
+            out.close()
+            err.close()
+    line = [x for x in stdout.splitlines() if x.startswith("RESULT ")]
+    if not line:
+        raise RuntimeError(f"no result line: {' | '.join(stderr.strip().splitlines()[-4:])}")
+    return json.loads(line[-1][len("RESULT ") :])
+
+
 def check(rows: list[dict]) -> list[str]:
     """The bar: every run finished, and each multi-GPU table's survival flips against one GPU are at
     most the engine's repeat floor (flips between two one-GPU runs), plus one cell of slack."""
@@ -127,7 +219,25 @@ def main(argv=None) -> int:
         help="runs of each configuration in its process (the repeat floor needs two or more)",
     )
     p.add_argument("--timeout", type=float, default=1500.0)
+    p.add_argument(
+        "--launch",
+        default="threads",
+        choices=LAUNCHES,
+        help="several GPUs as one process with a host thread per GPU (threads), or as one process per GPU "
+        "joined by jax.distributed (processes)",
+    )
+    p.add_argument(
+        "--switch-interval-ms",
+        type=float,
+        default=None,
+        metavar="0.01..100",
+        help="the runs' interpreter thread switch interval (sys.setswitchinterval; default: Python's 5 ms)",
+    )
     args = p.parse_args(own)
+    if args.switch_interval_ms is not None and not 0.01 <= args.switch_interval_ms <= 100:
+        raise SystemExit(
+            f"scaling.py: error: --switch-interval-ms must be a number in [0.01, 100] ms, got {args.switch_interval_ms:g}"
+        )
     out = pathlib.Path(args.out)
     calls = earlier_calls(out / "scaling.json")
     ident = call_id(flags)
@@ -135,17 +245,17 @@ def main(argv=None) -> int:
     for backend in args.backends:
         tables = {}
         for n in sorted(args.gpus):
-            env = {**os.environ, "CUDA_VISIBLE_DEVICES": ",".join(str(i) for i in range(n))}
             folder = out / "runs" / ident / f"{backend}_{n}gpu"
             shutil.rmtree(folder, ignore_errors=True)  # this call's own runs, redone: measured, not resumed
-            cmd = [sys.executable, "-c", RUN, str(folder), str(args.repeats), *flags, "--backend", backend]
-            row = {"backend": backend, "gpus": n, "runs": folder.relative_to(out).as_posix()}
+            row = {
+                "backend": backend,
+                "gpus": n,
+                "runs": folder.relative_to(out).as_posix(),
+                "launch": "threads" if n == 1 else args.launch,
+                "switch_interval_ms": args.switch_interval_ms,
+            }
             try:
-                proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=args.timeout)
-                line = [x for x in proc.stdout.splitlines() if x.startswith("RESULT ")]
-                if proc.returncode != 0 or not line:
-                    raise RuntimeError(f"rc {proc.returncode}: {' | '.join(proc.stderr.strip().splitlines()[-4:])}")
-                runs = json.loads(line[-1][len("RESULT ") :])
+                runs = run_configuration(n, folder, [*flags, "--backend", backend], args)
                 tables[n] = [_outcomes(folder / f"run{k}") for k in range(args.repeats)]
                 last = runs[-1]
                 row.update(
@@ -159,11 +269,14 @@ def main(argv=None) -> int:
                         "envs": last["n_envs"],
                         "physics_steps_per_s": last["physics_steps_per_s"],
                         "timeline_last_run": last["timeline"],
+                        "warp_graphs_last_run": last["warp_graphs"],
+                        "custom_calls_per_program": runs[0].get("custom_calls", []),
+                        "switch_interval_s": last["switch_interval_s"],
                         "repeats": args.repeats,
                         "repeat_flips": repeat_floor(tables[n]),
                     }
                 )
-            except (RuntimeError, subprocess.TimeoutExpired) as err:
+            except RuntimeError as err:
                 row["error"] = str(err)
             rows.append(row)
         earlier = [r for r in calls.get(ident, {}).get("rows", []) if r["backend"] == backend]

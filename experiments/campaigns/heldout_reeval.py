@@ -33,7 +33,7 @@ DEFAULT_SETS = (
 def defaults():
     """The held-out job's config (``wbc-jax heldout``'s flags and defaults) with this script's sets and
     folder."""
-    from wbc_jax.tuning.config import heldout_default_config
+    from wbc_jax.tuning.heldout_config import heldout_default_config
 
     return dataclasses.replace(heldout_default_config(), sets=DEFAULT_SETS, out="runs/heldout_reeval")
 

@@ -7,7 +7,7 @@ import dataclasses
 import json
 
 from wbc_jax.commands import Command
-from wbc_jax.tuning import config
+from wbc_jax.tuning import config, heldout_config
 
 
 @dataclasses.dataclass(frozen=True)
@@ -15,10 +15,10 @@ class TuneJob:
     """The tune command's two configs (each checked when it is made)."""
 
     tune: config.TuneConfig
-    heldout: config.HeldoutConfig
+    heldout: heldout_config.HeldoutConfig
 
 
-def combine(tc: config.TuneConfig, hc: config.HeldoutConfig) -> TuneJob:
+def combine(tc: config.TuneConfig, hc: heldout_config.HeldoutConfig) -> TuneJob:
     return TuneJob(tc, dataclasses.replace(hc, robot=tc.robot, controller=tc.controller))
 
 
@@ -34,6 +34,6 @@ COMMAND = Command(
     config.default_config,
     run,
     resumable=True,
-    shared=((config.heldout_default_config, ("out", "robot", "controller")),),
+    shared=((heldout_config.heldout_default_config, ("out", "robot", "controller")),),
     combine=combine,
 )

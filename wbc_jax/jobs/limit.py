@@ -45,6 +45,9 @@ from wbc_jax.sim import scenario
 
 MAX_HORIZON_S = 60.0  # a limit search rolls out its whole horizon per judge: minutes, not hours
 MAX_WINDOW_S = 5.0  # optimised seconds: a push is recovered (or not) within seconds
+# The flags in N m are checked against the robot's largest motor limit (LimitConfig.check); this
+# declared range only keeps a typo's exponent out of the help text's ranges.
+MAX_TORQUE_NM = 1e4
 
 
 def _files(values) -> tuple[str, ...]:
@@ -116,9 +119,17 @@ class LimitConfig:
         choices=trajopt.METHODS,
     )
     iterations: int = option(40, "optimiser (Adam) steps per round", ge=1, le=100_000)
-    learning_rate: float = option(1.0, "Adam's step [N m]", gt=0.0, le=60.0, unit="N m")
+    learning_rate: float = option(
+        1.0, "Adam's step [N m], at most the robot's largest motor limit", gt=0.0, le=MAX_TORQUE_NM, unit="N m"
+    )
     es_pairs: int = option(8, "es: antithetic sample pairs per candidate and step", ge=1, le=1024)
-    es_sigma: float = option(2.0, "es: spread of the samples [N m]", gt=0.0, le=60.0, unit="N m")
+    es_sigma: float = option(
+        2.0,
+        "es: spread of the samples [N m], at most the robot's largest motor limit",
+        gt=0.0,
+        le=MAX_TORQUE_NM,
+        unit="N m",
+    )
     clip_norm: float = option(10.0, "gradient: per-candidate gradient clip (global norm)", gt=0.0, le=1e6)
     judge_every: int = option(
         10, "optimiser steps between strict checks on MJX (a passing trajectory is kept)", ge=1, le=100_000
@@ -174,6 +185,7 @@ class LimitConfig:
                 f"--horizon {self.horizon:g} s must end after the push and the optimised window and tail ({ends})"
             )
         self.sweep("mujoco").check()
+        check_torque_steps(self)
         load_envelopes(self)
         runs.check_output_dir(self.out, "limit", fingerprint(self))
         if self.time_limit == 0 and not (pathlib.Path(self.out) / "state.json").exists():
@@ -220,6 +232,18 @@ def fingerprint(cfg: LimitConfig) -> dict:
     machine resumes where it lies)."""
     fields = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("time_limit", "out")}
     return runs.fingerprint({**fields, "dtype": str(scenario.float_dtype())}, [cfg.gains, *cfg.envelopes], cfg.robot)
+
+
+def check_torque_steps(cfg: LimitConfig) -> None:
+    """Adam's step and the samples' spread (N m, alike on every joint) within the robot's largest
+    motor limit: beyond it every sample saturates every joint (one line naming the flag otherwise)."""
+    largest = float(np.max(model.load_robot(cfg.robot).index.torque_limit))
+    for flag, value in (("--learning-rate", cfg.learning_rate), ("--es-sigma", cfg.es_sigma)):
+        if value > largest:
+            raise ValueError(
+                f"{flag} {value:g} N m exceeds the largest motor limit of robot {cfg.robot!r} ({largest:g} N m); "
+                f"valid: > 0 and <= {largest:g}"
+            )
 
 
 def load_envelopes(cfg: LimitConfig) -> dict:

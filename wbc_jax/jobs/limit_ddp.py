@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import pathlib
 import time
 
 import jax
@@ -106,7 +107,7 @@ class DdpConfig:
         problem = crocoddyl_problem()
         if problem is not None:
             raise ValueError(problem)
-        peers = pinocchio.ROBOTS  # the robots whose Pinocchio model wbc_jax.robot.pinocchio builds
+        peers = pinocchio.ROBOTS  # the robots whose crocoddyl check was run
         if self.robot not in peers:
             raise ValueError(
                 f"--robot {self.robot}: the crocoddyl cross-check has the Pinocchio models of {list(peers)}"
@@ -144,7 +145,7 @@ class CrossCheck:
         self.search = limit_rounds.Search(cfg.limit_config())
         robot = self.search.replay_setup.robot
         m = robot.mj_model
-        self.pin_model = pinocchio.pinocchio_model(robot.index.joints)
+        self.pin_model = pinocchio.pinocchio_model(robot.index.joints, robot=cfg.robot)
         self.map = pinocchio.StateMap(m, self.pin_model, robot.index.joints)
         self.loop = self.search.replay_setup.loop
         self.dt = self.loop.cfg.control_dt
@@ -403,16 +404,29 @@ def bisect(
     return tested
 
 
+def witness_path(path) -> pathlib.Path:
+    """Where a cross-check file keeps its verified tests' replayed torques: ``<file>_witness.npz``."""
+    path = pathlib.Path(path)
+    return path.with_name(path.stem + "_witness.npz")
+
+
+def stored_config(config: dict) -> dict:
+    """A cross-check file's ``config`` with every field it predates at its default (the run had
+    that setting then): the form two files' configs are compared in."""
+    return {**{name: f.default for name, f in DdpConfig.__dataclass_fields__.items()}, **config}
+
+
 def resumed_tests(previous: dict | None, cfg: DdpConfig, path) -> dict[float, list[dict]]:
     """{azimuth: tests} of a cross-check file written before (None: a fresh run) whose problem is
     ``cfg``'s: every config field but the directions and the tests per direction must agree, else a
     one-line error naming the file and the first field that differs."""
     if previous is None:
         return {}
+    stored = stored_config(previous["config"])
     for name in cfg.__dataclass_fields__:
         if name in RESUME_FREE:
             continue
-        was, now = previous["config"].get(name, cfg.__dataclass_fields__[name].default), getattr(cfg, name)
+        was, now = stored[name], getattr(cfg, name)
         if was != now:
             raise ValueError(
                 f"{path} was written with {name}={was!r}, this run has {now!r}: pass the same settings "

@@ -117,7 +117,10 @@ def make_setup(
         perturb_plant=cfg.perturbs_plant,
         # the engine as it resolves here: "auto" and the engine it picks build the same programs (one cache entry)
         physics=physics.PhysicsConfig(
-            backend=physics.resolve_backend(cfg.backend), solver_iterations=cfg.solver_iterations
+            backend=physics.resolve_backend(cfg.backend),
+            solver_iterations=cfg.solver_iterations,
+            warp_graph_mode=cfg.warp_graph_mode,
+            warp_graph_cache=cfg.warp_graph_cache,
         ),
     )
     return scenario.setup(

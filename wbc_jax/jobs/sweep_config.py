@@ -16,7 +16,7 @@ from wbc_jax.jobs import runs
 from wbc_jax.jobs.grids import azimuths, magnitude_grid, show_magnitude_grid
 from wbc_jax.robot import model
 from wbc_jax.robot.robots import robot_option
-from wbc_jax.sim import physics, scenario, watchdog
+from wbc_jax.sim import physics, scenario, warp_graphs, watchdog
 
 SWEEP_TASKS = ("stand", "one-foot")
 # The one-foot task (references.make_schedule) balances on the left foot from 7 to 9 s.
@@ -134,6 +134,19 @@ class SweepConfig:
         le=watchdog.MAX_STALL_S,
         unit="s",
     )
+    warp_graph_mode: str = option(
+        "warp",
+        "who captures MJX-Warp's CUDA graphs: Warp (per GPU and buffer addresses; MJX's default), JAX "
+        "(XLA's command buffers) or none; a diagnostic of issue 45",
+        choices=warp_graphs.GRAPH_MODES,
+    )
+    warp_graph_cache: int | None = option(
+        None,
+        "CUDA graphs each MJX-Warp foreign call keeps, for all GPUs of the process together (0: no bound; "
+        "default: Warp's 32); a diagnostic of issue 45, it changes no result",
+        ge=0,
+        le=warp_graphs.MAX_GRAPH_CACHE,
+    )
     simulate_stall: tuple[int, int] | None = option(
         None,
         "test of the watchdog: device DEVICE (its index in the run's devices) blocks in chunk CHUNK until "
@@ -146,7 +159,8 @@ class SweepConfig:
 
     KIND: ClassVar[str] = "sweep"  # the run kind of its output folder (jobs/runs.py)
     # Fields that bound or test how a run proceeds, not what it computes: no part of the fingerprint.
-    PROCEDURE: ClassVar[tuple[str, ...]] = ("stall_timeout_s", "simulate_stall")
+    # The Warp graph settings launch the same kernels otherwise (issue 45's diagnostics): an older run resumes.
+    PROCEDURE: ClassVar[tuple[str, ...]] = ("stall_timeout_s", "simulate_stall", "warp_graph_mode", "warp_graph_cache")
 
     def check(self) -> None:
         """Every check that compiles nothing (run first, before any file is written): the declared
@@ -178,6 +192,15 @@ class SweepConfig:
                     f"{self.push_duration} s is outside it (e.g. --push-onset 7.5 --horizon 9)"
                 )
         backend = physics.resolve_backend(self.backend)
+        for flag, value, default in (
+            ("--warp-graph-cache", self.warp_graph_cache, None),
+            ("--warp-graph-mode", self.warp_graph_mode, "warp"),
+        ):
+            if value != default and backend != "warp":
+                raise ValueError(
+                    f"{flag} sets MJX-Warp's CUDA graphs: it needs --backend warp (--backend {self.backend} "
+                    f"runs {backend} here)"
+                )
         if self.queue > 1 and backend == "mujoco":
             raise ValueError(
                 f"--queue {self.queue} (scenarios per batch slot) needs an MJX backend: --backend jax or "

@@ -4,13 +4,14 @@ The policy. In a window of T ticks from the push onset (tick k0) the plant gets
 
 .. math::
 
-    \\tau_k = \\mathrm{sat}_{\\pm 60}\\big(\\tau_{WBC}(x_k) + u_k\\big), \\qquad k_0 \\le k < k_0 + T,
+    \\tau_k = \\mathrm{sat}_{\\pm \\bar\\tau}\\big(\\tau_{WBC}(x_k) + u_k\\big), \\qquad k_0 \\le k < k_0 + T,
 
+with tau_bar (n,) each joint's motor limit (the robot model's actuators, ``RobotIndex.torque_limit``),
 and the balancing controller's own torques after it (:class:`wbc_jax.sim.state.Feedforward`). The
 decision variables are the knots ``z`` (Kn, n) of u, linear between knots ``knot`` ticks apart
 (u = W z, W (T, Kn); ``knot`` 1: every tick free); z = 0 is the controller's own trajectory (the
 warm start). The torques applied are every zero-order-hold trajectory at the control rate
-(100 Hz) within +-60 N m over the window that is tau_WBC + u for such a u: with ``knot`` 1 every
+(100 Hz) within +-tau_bar over the window that is tau_WBC + u for such a u: with ``knot`` 1 every
 one (any trajectory tau is tau_WBC + u with u_k = tau_k - tau_WBC(x_k) along its own states);
 with coarser knots the feedforward part is smooth, the feedback part is not, and the search
 runs over fewer, better conditioned variables (a restriction: the limit found stays a lower
@@ -30,7 +31,8 @@ the onset (simulated once, the same for every push):
 * capture, over the tail: relu(capture_margin - margin(xi))^2 / scale^2 with xi = c + v / omega
   the instantaneous capture point against the soles' support polygon, and |v_CoM|^2 / speed^2:
   the controller takes over a robot that a linear inverted pendulum says can stop on its feet;
-* effort: mean (u / 60)^2, small: it also pulls a u that the saturation cuts off back in range.
+* effort: mean (u / tau_bar)^2 per joint, small: it also pulls a u that the saturation cuts off back
+  in range.
 
 The mean of each over the W ticks, weighted (:class:`Cost`), summed: ``total``; the objective is
 log(1 + total). Two ways to descend it, each candidate with its own Adam state (optax):
@@ -125,8 +127,9 @@ def knot_matrix(T: int, knot: int) -> np.ndarray:
     return np.maximum(0.0, 1.0 - np.abs(t[:, None] - np.arange(Kn)[None, :]))
 
 
-def terms(trace: LossTrace, u, window: int, cost: Cost) -> dict:
-    """The cost terms {name: ()} of one candidate's trace (W ticks: the window, then the tail)."""
+def terms(trace: LossTrace, u, window: int, cost: Cost, motor_limit) -> dict:
+    """The cost terms {name: ()} of one candidate's trace (W ticks: the window, then the tail), its
+    torques u (T, n) and the motor limits (n,) N m that scale the effort per joint."""
     W = trace.com.shape[0]
     F = trace.support_xy.shape[1]
     centre = trace.support_xy.reshape(W, 2, F // 2, 2).mean(2)  # (W, 2 soles, 2)
@@ -149,7 +152,7 @@ def terms(trace: LossTrace, u, window: int, cost: Cost) -> dict:
         "height": jnp.mean(height_pen),
         "capture": capture,
         "speed": speed,
-        "effort": jnp.mean((u / 60.0) ** 2),
+        "effort": jnp.mean((u / motor_limit) ** 2),
     }
     out["total"] = sum(getattr(cost, f"w_{k}") * v for k, v in out.items())
     return out
@@ -191,6 +194,7 @@ class Optimiser:
         self.setup, self.k0, self.window, self.tail, self.cost = setup, int(onset_tick), int(window), int(tail), cost
         self.method, self.pairs, self.sigma = method, int(pairs), float(sigma)
         self.n = setup.robot.index.n
+        self.motor_limit = np.asarray(setup.robot.index.torque_limit, float)  # (n,) N m: the effort's scale
         self.W = knot_matrix(self.window, knot)
         self.iterations = int(setup.robot.mj_model.opt.iterations)
         clip = [optax.clip_by_global_norm(clip_norm)] if method == "gradient" else []
@@ -231,7 +235,7 @@ class Optimiser:
         ff = Feedforward(start=jnp.asarray(self.k0, jnp.int32), torque=u)
         carry = mjx_loop.touch(carry0, jnp.sum(z))  # every carry leaf batched (and tangent) from the start
         _, trace = mjx_loop.chunk(loop, self.plant, self.setup.gains, push, carry, self.k0, self.window + self.tail, ff)
-        t = terms(trace, u, self.window, self.cost)
+        t = terms(trace, u, self.window, self.cost, jnp.asarray(self.motor_limit, u.dtype))
         return jnp.log1p(t["total"]), t
 
     def init(self, z0, seed: int = 0) -> OptState:

@@ -69,6 +69,9 @@ class RobotDescription:
       foot_lift_deg: joint -> degrees added to the posture to lift the right foot, sole parallel to
         the floor (the one-foot task).
       mesh_dir: the visual meshes' folder (a callable: it may import an installed package), or None.
+      urdf_text: the URDF the model file is built from, as text, for Pinocchio (the TSID peer, the
+        crocoddyl check): a callable (it may import an installed package), or None.
+      urdf_feet: the URDF frames at the sole sites ``feet`` (left, right); None: the same names.
     """
 
     name: str
@@ -89,6 +92,8 @@ class RobotDescription:
     hand_set_gains: str | None = None
     default_envelope: str | None = None
     mesh_dir: object = None
+    urdf_text: object = None
+    urdf_feet: tuple[str, str] | None = None
 
     def __post_init__(self):
         if len(self.gains.kp_postural) != len(self.joints):
@@ -107,6 +112,11 @@ class RobotDescription:
     def asset_path(self, relative: str | None):
         """A package data file of this robot (None stays None)."""
         return None if relative is None else asset(relative)
+
+    @property
+    def pinocchio_feet(self) -> tuple[str, str]:
+        """The URDF (Pinocchio) frames of the left and right sole sites."""
+        return self.feet if self.urdf_feet is None else self.urdf_feet
 
     def body(self, name: str) -> str:
         """A body name, or the body of a role (``trunk`` -> the iCub's ``chest``)."""

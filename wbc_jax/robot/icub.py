@@ -24,6 +24,15 @@ def _mesh_dir():
     return urdf.parents[2] / "meshes" / "simmechanics"
 
 
+def _urdf_text() -> str:
+    """The URDF of iCubGazeboV2_5 in the installed ``icub-models`` package (the MJCF's source)."""
+    import pathlib
+
+    import icub_models
+
+    return pathlib.Path(str(icub_models.get_model_file("iCubGazeboV2_5"))).read_text()
+
+
 DESCRIPTION = RobotDescription(
     name="icub",
     model_file="icub/icub_23dof.xml",
@@ -86,4 +95,5 @@ DESCRIPTION = RobotDescription(
     # Lift the right foot 5 cm, sole parallel to the floor (from the iCub kinematics at home).
     foot_lift_deg=types.MappingProxyType({"r_hip_pitch": 20.0, "r_knee": -40.0, "r_ankle_pitch": -20.0}),
     mesh_dir=_mesh_dir,
+    urdf_text=_urdf_text,
 )

@@ -18,27 +18,30 @@ from collections.abc import Sequence
 import mujoco
 import numpy as np
 
-ICUB_URDF_MODEL = "iCubGazeboV2_5"  # icub-models' robot whose URDF the MJCF is built from
-ROBOTS = ("icub",)  # the robots whose Pinocchio model this module builds (wbc_jax.jobs.limit_ddp checks)
+# The robots whose crocoddyl check wbc_jax.jobs.limit_ddp runs (every robot with a URDF has a
+# Pinocchio model here: the TSID peer runs on Talos too; the crocoddyl check was never run on it).
+ROBOTS = ("icub",)
 
 
-def icub_urdf() -> pathlib.Path:
-    """The URDF file of :data:`ICUB_URDF_MODEL` in the installed ``icub-models`` package."""
-    import icub_models
-
-    return pathlib.Path(str(icub_models.get_model_file(ICUB_URDF_MODEL)))
-
-
-def pinocchio_model(joints: Sequence[str], urdf: pathlib.Path | str | None = None):
+def pinocchio_model(joints: Sequence[str], urdf: pathlib.Path | str | None = None, robot: str = "icub"):
     """The URDF in Pinocchio with a free flyer, reduced to ``joints`` (the controller's, every other
-    joint locked at 0). Returns a ``pinocchio.Model`` (iCub: nq = 30, nv = 29).
+    joint locked at 0). Returns a ``pinocchio.Model`` (iCub: nq = 30, nv = 29; Talos: 29, 28).
 
-    urdf: None: icub-models' URDF of the MJCF (:func:`icub_urdf`).
-    Raises ValueError if the URDF lacks one of ``joints``."""
+    urdf: a URDF file; None: the URDF the robot's MJCF is built from (its description's
+    ``urdf_text``). Raises ValueError if the URDF lacks one of ``joints`` or the robot has no URDF."""
     import pinocchio as pin
 
-    path = str(icub_urdf() if urdf is None else urdf)
-    full = pin.buildModelFromUrdf(path, pin.JointModelFreeFlyer())
+    from wbc_jax.robot.robots import describe
+
+    if urdf is not None:
+        path = str(urdf)
+        full = pin.buildModelFromUrdf(path, pin.JointModelFreeFlyer())
+    else:
+        desc = describe(robot)
+        if desc.urdf_text is None:
+            raise ValueError(f"robot {robot!r} has no URDF for Pinocchio (its description's urdf_text)")
+        path = f"the URDF of {robot}"
+        full = pin.buildModelFromXML(desc.urdf_text(), pin.JointModelFreeFlyer())
     names = list(full.names)
     missing = [j for j in joints if j not in names]
     if missing:
@@ -61,9 +64,9 @@ def base_velocity_to_pinocchio(R: np.ndarray, qvel_base: np.ndarray) -> np.ndarr
 
 
 class StateMap:
-    """Index maps between C MuJoCo's coordinates and Pinocchio's for the 23-joint iCub.
+    """Index maps between C MuJoCo's coordinates and Pinocchio's for a robot's controlled joints.
 
-    Attributes (n = 23, joints in ``joints`` order): mj_qpos, mj_dof, actuators (n,): MuJoCo qpos
+    Attributes (n joints, in ``joints`` order): mj_qpos, mj_dof, actuators (n,): MuJoCo qpos
     and dof addresses and actuator ids; pin_q, pin_v (n,): Pinocchio q and v indices; to_pin_order
     (n,): ``x_pin = x[to_pin_order]`` puts a joint vector in Pinocchio's actuated order (v[6:]);
     from_pin_order (n,): its inverse; base_body: MuJoCo's free-floating body.

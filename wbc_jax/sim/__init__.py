@@ -2,5 +2,5 @@
 (``loop``), the horizon on MJX (``mjx_loop``) or on C MuJoCo (``host_loop``: a Python loop of ticks,
 or ``host_scan``: one compiled program calling C MuJoCo through ``native``), the metrics
 (``metrics``), scenes and set-ups (``scenario``), batched runs on any engine and device mesh
-(``runner``, one program per device: ``per_device``, under a ``watchdog``) and compiled programs
-kept on disk (``executables``)."""
+(``runner``, one program per device: ``per_device``, under a ``watchdog``; MJX-Warp's CUDA graph
+cache: ``warp_graphs``) and compiled programs kept on disk (``executables``)."""

@@ -36,6 +36,7 @@ from wbc_jax.core import mjx as mjx_device
 from wbc_jax.core.constants import DIVERGED_SPEED
 from wbc_jax.core.mjx import mjx
 from wbc_jax.core.types import Array
+from wbc_jax.sim import warp_graphs
 
 BACKENDS = ("auto", "jax", "warp", "mujoco")
 FLOOR_GEOM = 0  # the floor is the model's first geom (the model builders of assets/; tested)
@@ -49,11 +50,18 @@ class PhysicsConfig:
     Attributes:
       backend: one of :data:`BACKENDS`.
       solver_iterations / ls_iterations: Newton / line-search iterations (None: the model's).
+      warp_graph_mode: who captures MJX-Warp's CUDA graphs (:data:`warp_graphs.GRAPH_MODES`):
+        ``warp`` (MJX's default on a GPU), ``jax`` (XLA, within its own command buffers), ``none``.
+      warp_graph_cache: CUDA graphs each Warp foreign call keeps, for all devices together
+        (:mod:`wbc_jax.sim.warp_graphs`; 0: no bound; None: Warp's 32). Shapes no program and
+        changes no result: left out of the repr, so of ``ClosedLoop.structure_key``.
     """
 
     backend: str = "auto"
     solver_iterations: int | None = None
     ls_iterations: int | None = None
+    warp_graph_mode: str = "warp"
+    warp_graph_cache: int | None = dataclasses.field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         if self.backend not in BACKENDS:
@@ -62,6 +70,7 @@ class PhysicsConfig:
             value = getattr(self, name)
             if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
                 raise ValueError(f"{name} must be a positive integer or None, got {value!r}")
+        warp_graphs.check(self.warp_graph_cache, self.warp_graph_mode)
 
 
 def has_cuda() -> bool:
@@ -166,8 +175,10 @@ def device_model(robot_mj: mujoco.MjModel, backend: str, cfg: PhysicsConfig) -> 
     """The MJX model of a plant for an MJX backend, with the solver overrides."""
     if backend == "warp":
         from mujoco.mjx.third_party.mujoco_warp._src.types import OverflowType
+        from warp import JaxCallableGraphMode
 
-        mx = solver_model(mjx_device.put_model(robot_mj, impl="warp"), cfg)
+        mode = JaxCallableGraphMode[cfg.warp_graph_mode.upper()]
+        mx = solver_model(mjx_device.put_model(robot_mj, impl="warp", graph_mode=mode), cfg)
         # Buffer overflows are reported (they would drop contacts or constraints); reaching the
         # solver's iteration cap is normal for fallen robots (as in C MuJoCo) and is not.
         quiet = ~(OverflowType.ITERATIONS | OverflowType.LS_ITERATIONS)
@@ -270,23 +281,37 @@ def implicit_solver():
     implicit-function theorem's, da/dtheta = -H^-1 dg/dtheta (M, f_smooth, J, D and aref all depend on
     the state and the torques). The backward pass is then two Cholesky solves with H and products with
     M and J per physics step, instead of the reverse pass of every Newton and line-search iteration.
-    The constraint forces follow from a with the same active set."""
+    The constraint forces follow from a with the same active set.
+
+    Joint friction loss (Talos's motors; MJX's ``_update_constraint``): a friction-loss row is
+    quadratic while |J a - aref| < f / D and linear beyond, its force then the constant -+f (no
+    curvature); which rows are linear is held fixed at a* as the active set is."""
     from mujoco.mjx._src import solver, support
+    from mujoco.mjx._src.types import DisableBit
 
     original = solver.solve
 
     def solve(m, d):
         impl = d._impl
-        if m.opt.cone != mujoco.mjtCone.mjCONE_PYRAMIDAL or np.any(np.asarray(m._impl.dof_hasfrictionloss)):
-            raise ValueError("the implicit solver gradient needs pyramidal cones and no friction loss")
+        if m.opt.cone != mujoco.mjtCone.mjCONE_PYRAMIDAL or np.any(np.asarray(m._impl.tendon_hasfrictionloss)):
+            raise ValueError("the implicit solver gradient needs pyramidal cones and no tendon friction loss")
         sg = lambda t: jax.tree_util.tree_map(jax.lax.stop_gradient, t)  # noqa: E731
         a_star = jax.lax.stop_gradient(original(m, sg(d)).qacc)  # the plant model carries no tangents here
         J, aref = impl.efc_J, impl.efc_aref
-        active = (jax.lax.stop_gradient(J @ a_star - aref) < 0).at[: impl.ne + impl.nf].set(True)
+        jaref = jax.lax.stop_gradient(J @ a_star - aref)
+        active = (jaref < 0).at[: impl.ne + impl.nf].set(True)
+        floss = jnp.zeros_like(aref)
+        if np.any(np.asarray(m._impl.dof_hasfrictionloss)) and not m.opt.disableflags & DisableBit.FRICTIONLOSS:
+            f = impl.efc_frictionloss
+            r = 1.0 / (impl.efc_D + (impl.efc_D == 0.0) * mujoco.mjMINVAL)
+            linear_neg = (jaref <= -r * f) & (f > 0)
+            linear_pos = (jaref >= r * f) & (f > 0)
+            active = active & ~linear_neg & ~linear_pos
+            floss = linear_neg * f - linear_pos * f
         w = impl.efc_D * active
 
         def force(a):
-            return -w * (J @ a - aref)
+            return -w * (J @ a - aref) + floss
 
         g = support.mul_m(m, d, a_star) - d.qfrc_smooth - J.T @ force(a_star)
         H = jax.lax.stop_gradient(support.full_m(m, d) + (J.T * w) @ J)

@@ -15,7 +15,9 @@ T ticks of a rollout (B rollouts, F = 8 sole corners, n joints):
   own polygon margin (relu(-margin(c))^2 / capture_scale^2);
 * ``height``: relu(height_frac h0 - h)^2 / capture_scale^2 (CoM dropping);
 * ``com``: |c - c_ref|^2 / com_scale^2 (recovery of the reference);
-* ``effort`` (tau / torque_scale)^2 and ``saturation`` relu(|tau| - 0.9 limit)^2 / (0.1 limit)^2.
+* ``effort`` (tau / torque_scale)^2 and ``saturation`` relu(|tau| - 0.9 limit)^2 / (0.1 limit)^2, per
+  joint: scale and limit are each joint's motor limit unless set (:meth:`LossConfig.with_motor_limits`:
+  from the robot's model; one robot's motors may differ by a factor of ten between its joints).
 
 The total per rollout is the weighted sum; training minimises the mean over the batch of
 log(1 + total) (``robust``): a rollout that falls far saturates instead of dominating the batch's
@@ -73,11 +75,16 @@ def tuning_loop(loop: loop_lib.ClosedLoop, remat: bool | str = False) -> loop_li
 
 
 TERMS = ("capture", "tilt", "slip", "settle", "height", "com", "effort", "saturation")
+TORQUE_FIELDS = ("torque_scale", "torque_limit")  # N m, per joint where a tuple (LossConfig)
 
 
 @dataclasses.dataclass(frozen=True)
 class LossConfig:
-    """Weights (w_*) and scales of the tuning loss (module docstring); all finite, scales > 0."""
+    """Weights (w_*) and scales of the tuning loss (module docstring); all finite, scales > 0.
+
+    ``torque_scale`` and ``torque_limit`` (N m): one value for every joint, or one per joint (n,);
+    None: each joint's motor limit, filled in by :meth:`with_motor_limits` (the tuning problem does,
+    from its robot's model) before the loss is evaluated."""
 
     w_capture: float = 1.0
     w_tilt: float = 1.0
@@ -95,21 +102,40 @@ class LossConfig:
     settle_s: float = 0.5
     height_frac: float = 0.9
     com_scale: float = 0.02
-    torque_scale: float = 60.0
-    torque_limit: float = 60.0
+    torque_scale: float | tuple[float, ...] | None = None
+    torque_limit: float | tuple[float, ...] | None = None
     robust: bool = True
 
     def __post_init__(self):
+        for name in TORQUE_FIELDS:  # per joint, as read back from a run's config.json (a list)
+            if isinstance(getattr(self, name), (list, np.ndarray)):
+                object.__setattr__(self, name, tuple(float(x) for x in getattr(self, name)))
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
-            if isinstance(v, bool):
+            if isinstance(v, bool) or (v is None and f.name in TORQUE_FIELDS):
                 continue
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"LossConfig.{f.name} must be finite and >= 0, got {v!r}")
-            if not f.name.startswith("w_") and f.name != "capture_margin" and not v > 0:
-                raise ValueError(f"LossConfig.{f.name} must be positive, got {v!r}")
+            for x in v if f.name in TORQUE_FIELDS and isinstance(v, tuple) else (v,):
+                if not (isinstance(x, (int, float)) and math.isfinite(x) and x >= 0):
+                    raise ValueError(f"LossConfig.{f.name} must be finite and >= 0, got {v!r}")
+                if not f.name.startswith("w_") and f.name != "capture_margin" and not x > 0:
+                    raise ValueError(f"LossConfig.{f.name} must be positive, got {v!r}")
         if not self.height_frac < 1:
             raise ValueError(f"LossConfig.height_frac must be < 1, got {self.height_frac}")
+
+    def with_motor_limits(self, motor_limits) -> LossConfig:
+        """This config with each torque field left None set to the motor limits (n,) N m per joint
+        (a robot's ``RobotIndex.torque_limit``); fields already set stay."""
+        limits = tuple(float(x) for x in np.asarray(motor_limits, float).reshape(-1))
+        return dataclasses.replace(self, **{k: limits for k in TORQUE_FIELDS if getattr(self, k) is None})
+
+    def torque_scales(self) -> tuple[Array, Array]:
+        """(effort scale, saturation limit), each () or (n,) N m; ValueError while one is None."""
+        if self.torque_scale is None or self.torque_limit is None:
+            raise ValueError(
+                "LossConfig.torque_scale/torque_limit are None (each joint's motor limit): fill them with "
+                "LossConfig.with_motor_limits(robot.index.torque_limit) before evaluating the loss"
+            )
+        return jnp.asarray(self.torque_scale), jnp.asarray(self.torque_limit)
 
 
 def _margins(points: Array, p: Array) -> Array:
@@ -130,6 +156,7 @@ def loss_terms(
     trace's first tick; a window of a rollout passes the rollout's).
 
     Returns {term: ()} for :data:`TERMS` and ``total`` (the weighted sum)."""
+    torque_scale, torque_limit = lc.torque_scales()  # first: a config without them fails before any work
     tr = jax.tree_util.tree_map(lambda x: x[:n_ticks], trace) if n_ticks is not None else trace
     b = tr.base
     T = b.com.shape[0]
@@ -148,8 +175,8 @@ def loss_terms(
     settle = jnp.mean(speed2 + jax.nn.relu(-m_com) ** 2 / lc.capture_scale**2)
     height = jnp.mean(jax.nn.relu(lc.height_frac * b.com_height0 - b.com[:, 2]) ** 2) / lc.capture_scale**2
     com = jnp.mean(jnp.sum((b.com - b.com_ref) ** 2, -1)) / lc.com_scale**2
-    effort = jnp.mean((b.tau / lc.torque_scale) ** 2)
-    saturation = jnp.mean(jax.nn.relu(jnp.abs(b.tau) - 0.9 * lc.torque_limit) ** 2) / (0.1 * lc.torque_limit) ** 2
+    effort = jnp.mean((b.tau / torque_scale) ** 2)
+    saturation = jnp.mean((jax.nn.relu(jnp.abs(b.tau) - 0.9 * torque_limit) / (0.1 * torque_limit)) ** 2)
     terms = {
         "capture": capture,
         "tilt": tilt,

@@ -230,9 +230,10 @@ def make_problem(
     schedule evaluated at each tick with ``parameterisation == "scheduled"``). ``horizon``: seconds
     (default ``tc.horizon``); ``checkpoint``: the loop's ``remat`` (default from
     ``tc.checkpoint``); ``backend``: the physics engine (gradients need ``jax``)."""
-    lc = tuning_loss.LossConfig() if lc is None else lc
     dtype = scenario.float_dtype()
     robot = model_lib.load_robot(tc.robot)
+    # The effort and saturation terms scale each joint's torque by its motor limit (the robot's model).
+    lc = (tuning_loss.LossConfig() if lc is None else lc).with_motor_limits(robot.index.torque_limit)
     for b in tc.train_bodies:
         robot.index.pushable_body_id(b)
     base = default_gains(robot.description, dtype)

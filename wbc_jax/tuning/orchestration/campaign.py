@@ -44,9 +44,10 @@ from wbc_jax.tuning.algorithms import gradient as tuning
 from wbc_jax.tuning.algorithms import problem as tp
 from wbc_jax.tuning.algorithms.loss import LossConfig
 from wbc_jax.tuning.algorithms.params import nava_conditions
-from wbc_jax.tuning.config import HeldoutConfig, TuneConfig, heldout_default_config
+from wbc_jax.tuning.config import TuneConfig
+from wbc_jax.tuning.heldout_config import HeldoutConfig, heldout_default_config
 from wbc_jax.tuning.orchestration import heldout as tuning_eval
-from wbc_jax.tuning.orchestration import race
+from wbc_jax.tuning.orchestration import heldout_report, prediction, race
 
 
 def _search_times(tc: TuneConfig, kind: str) -> list:
@@ -207,7 +208,7 @@ def run(
         {
             "tune": {k: v for k, v in flat_dict(tc).items() if k not in ("out", "phases", *tc.PROCEDURE)},
             "heldout": {k: v for k, v in flat_dict(hc).items() if k != "out"},
-            "loss": dataclasses.asdict(lc),
+            "loss": dataclasses.asdict(problem.lc),  # the torque scales resolved for the robot
             "dtype": str(scenario.float_dtype()),
         },
         list(files.values()),
@@ -222,7 +223,7 @@ def run(
         {
             "tune": flat_dict(tc),
             "heldout": flat_dict(hc),
-            "loss": dataclasses.asdict(lc),
+            "loss": dataclasses.asdict(problem.lc),  # the torque scales resolved for the robot
             "provenance": provenance.record(files),
         },
     )
@@ -240,7 +241,7 @@ def run(
 
     summary: dict = {"phases": list(tc.phases)}
     if "predict" in tc.phases:
-        pred = timed("predict", lambda: tuning_eval.survival_prediction(problem, tc.eval_pushes, out=out))
+        pred = timed("predict", lambda: prediction.survival_prediction(problem, tc.eval_pushes, out=out))
         summary["predict"] = {k: pred[k] for k in ("n", "survival_rate", "spearman_train_horizon", "auc_train_horizon")}
     # One gradient program for training and the quality figures (compiled once).
     step = None
@@ -315,7 +316,7 @@ def report(problem: tp.Problem, out: pathlib.Path, hc: HeldoutConfig, reference:
             extra[name] = {
                 k: v for k, v in json.loads((out / f"{name}.json").read_text()).items() if not isinstance(v, list)
             }
-    rep = tuning_eval.write_heldout(
+    rep = heldout_report.write_heldout(
         out / "heldout.json",
         results,
         budgets,
@@ -330,7 +331,7 @@ def report(problem: tp.Problem, out: pathlib.Path, hc: HeldoutConfig, reference:
     }
     histories.update(hybrid.histories(out, index))
     tuning_plots.learning_curves(histories, out / "learning_curves.png")
-    line = {n: {k: rep[n][k] for k in tuning_eval.SUMMARY_KEYS} for n in sets if n in rep}
+    line = {n: {k: rep[n][k] for k in heldout_report.SUMMARY_KEYS} for n in sets if n in rep}
     if tc.budget_s > 0:
         race_report = race.write(out, problem, rep, index, histories)
         line = {"sets": line, "race": race_report["verdict"], "recommended": race_report["recommended"]}

@@ -5,7 +5,7 @@ What a gain set is judged on, none of which the tuning loss saw (S gain sets; :c
 * the push grid of ``docs/sweep_h100`` (the trunk, 0.1 s at 0.5 s, M magnitudes x D directions, 3 s),
   on the held-out backend: strict survival rate, envelope (largest survived impulse per direction)
   as a fraction of the feet-in-place LIP bound, min / median over directions;
-* unseen variations (:data:`wbc_jax.tuning.config.VARIATIONS`): pushes on the left hand (the body of
+* unseen variations (:data:`wbc_jax.tuning.heldout_config.VARIATIONS`): pushes on the left hand (the body of
   the robot's ``left_hand`` role) and the right thigh, durations 0.02 s and 0.5 s, floor
   friction 0.5, and pushes during the single-support phase of the one-foot task;
 * the 20 s CoM sinusoid of the seed (``balance``'s task): CoM RMSE (<= 1.5 mm to keep the seed's
@@ -13,8 +13,9 @@ What a gain set is judged on, none of which the tuning loss saw (S gain sets; :c
 
 A gain set is a Gains or a :class:`~wbc_jax.tuning.algorithms.schedule.GainSchedule` with its regularisation;
 all sets of one kind and regularisation run as one batch (one compiled program per task; gains are
-data), in chunks written as Parquet parts (resumable). :func:`write_heldout` writes heldout.json
-with its provenance; :func:`run` is the ``wbc-jax heldout`` job on gains files.
+data), in chunks written as Parquet parts (resumable).
+:func:`~wbc_jax.tuning.orchestration.heldout_report.write_heldout` writes heldout.json with its provenance;
+:func:`run` is the ``wbc-jax heldout`` job on gains files.
 """
 
 from __future__ import annotations
@@ -23,29 +24,26 @@ import dataclasses
 import hashlib
 import json
 import pathlib
-import time
 
 import jax
 import numpy as np
 
 from wbc_jax.control.controller import ControllerConfig
 from wbc_jax.control.gains import Gains, default_gains, load_gains
-from wbc_jax.core import constants, io, provenance
+from wbc_jax.core import io
 from wbc_jax.core.options import flat_dict
 from wbc_jax.jobs import chunks, grids, runs, sweep, sweep_config, sweep_table
 from wbc_jax.report import tuning_plots
-from wbc_jax.report.tuning_plots import survival_vs_loss
 from wbc_jax.robot.description import RobotDescription
 from wbc_jax.robot.robots import describe
 from wbc_jax.sim import metrics as metrics_lib
-from wbc_jax.sim import mjx_loop, physics, runner, scenario
+from wbc_jax.sim import physics, runner, scenario
 from wbc_jax.sim.state import Push, Scenario, SimConfig
 from wbc_jax.tuning import store
-from wbc_jax.tuning.algorithms import loss as tuning_loss
 from wbc_jax.tuning.algorithms import params as tuning_params
-from wbc_jax.tuning.algorithms import problem as tp
 from wbc_jax.tuning.algorithms import schedule as gain_schedule
-from wbc_jax.tuning.config import VARIATIONS, HeldoutConfig, heldout_default_config
+from wbc_jax.tuning.heldout_config import VARIATIONS, HeldoutConfig, heldout_default_config
+from wbc_jax.tuning.orchestration.heldout_report import SUMMARY_KEYS, write_heldout
 
 
 def load_sets(specs, robot: RobotDescription, dtype, regularisation=None) -> dict:
@@ -339,175 +337,6 @@ def sinusoid(controls: list, reg, hc: HeldoutConfig) -> tuple[list, dict]:
         "run_s": round(res.run_s, 2),
         "backend": st.backend,
     }
-
-
-# ---------------------------------------------------------------------------------------------
-# Does the loss predict survival? (held-out pushes of the training distribution)
-
-
-def survival_prediction(problem: tp.Problem, n: int, *, gains=None, reg=None, out=None) -> dict:
-    """Does the loss predict strict survival? ``n`` held-out pushes of the training distribution
-    (stream 4), rolled out for ``eval_horizon`` s with the given gains (default: the start of the
-    search); strict survival at the end against the loss of the training horizon (the trace's
-    first ticks) and of the whole rollout: Spearman correlation, ROC area, per-push values;
-    survival_vs_loss.png and prediction.json in ``out``."""
-    tc = problem.tc
-    ev = tp.make_problem(tc, problem.lc, horizon=tc.eval_horizon, checkpoint=False)
-    scen, cols = tp.sample_pushes(tc, ev.robot, ev.table, tp.batch_rng(tc.seed, 4, 0), n, ev.setup.dtype)
-    if gains is None:  # the start of the search (a schedule's at W = 0 with --parameterisation scheduled)
-        gains = ev.controls(ev.init_params())[0]
-    regd = dict(zip(("pinv_damping", "kp_postural_reg"), np.asarray(problem.reg0 if reg is None else reg, float)))
-    n_train = problem.loop.n_ticks
-
-    def both(g, r, s):
-        metrics, trace = mjx_loop.rollout(ev.loop, *_env_args(ev, s), g, s.push, controller_overrides=r)
-        return tuning_loss.loss_terms(trace, ev.lc, n_train), tuning_loss.loss_terms(trace, ev.lc), metrics
-
-    t0 = time.perf_counter()
-    terms, full_terms, metrics = jax.jit(jax.vmap(both, in_axes=(None, None, 0)))(gains, regd, scen)
-    wall = time.perf_counter() - t0
-    outcome = metrics_lib.summarize(metrics)
-    survived = np.asarray(outcome["survived"])
-    train_loss, full_loss = np.asarray(terms["total"]), np.asarray(full_terms["total"])
-    per_term = {
-        k: {"spearman": tuning_loss.spearman(np.asarray(v), survived), "auc": tuning_loss.auc(np.asarray(v), survived)}
-        for k, v in terms.items()
-        if k != "total"
-    }
-    rel = cols["impulse_ns"] / tp.interp_periodic(*problem.table, cols["azimuth_deg"])
-    edges = np.linspace(*tc.magnitude_range, 5)
-    bins = np.clip(np.searchsorted(edges, rel, side="right") - 1, 0, 3)
-    by_size = [
-        {
-            "impulse_fraction": [float(edges[i]), float(edges[i + 1])],
-            "n": int(np.sum(bins == i)),
-            "survival_rate": float(survived[bins == i].mean()) if np.any(bins == i) else None,
-        }
-        for i in range(4)
-    ]
-    res = {
-        "n": n,
-        "survival_rate": float(survived.mean()),
-        "horizon_s": tc.eval_horizon,
-        "train_horizon_s": tc.horizon,
-        "spearman_train_horizon": tuning_loss.spearman(train_loss, survived),
-        "spearman_full": tuning_loss.spearman(full_loss, survived),
-        "auc_train_horizon": tuning_loss.auc(train_loss, survived),
-        "auc_full": tuning_loss.auc(full_loss, survived),
-        "spearman_impulse_fraction": tuning_loss.spearman(rel, survived),
-        "auc_impulse_fraction": tuning_loss.auc(rel, survived),
-        "wall_s": round(wall, 1),
-        "loss_train_horizon": train_loss.tolist(),
-        "loss_full": full_loss.tolist(),
-        "survived": survived.tolist(),
-        "impulse_fraction_of_envelope": rel.tolist(),
-        "per_term_train_horizon": per_term,
-        "device": provenance.device_label(),
-        "terms_train_horizon": {k: np.asarray(v).tolist() for k, v in terms.items()},
-        "terms_full": {k: np.asarray(v).tolist() for k, v in full_terms.items()},
-        "outcome": {k: np.asarray(v, float).tolist() for k, v in outcome.items()},
-        "survival_by_impulse_fraction": by_size,
-        "failure_rates": {k: float(np.mean(v)) for k, v in metrics_lib.failed_tests(outcome).items()},
-    }
-    if out is not None:
-        out = pathlib.Path(out)
-        res["provenance"] = provenance.record(
-            {"init_gains": tc.init_gains, "envelope": tc.envelope, "tasks": tc.controller.tasks}
-        )
-        io.atomic_write_json(out / "prediction.json", res)
-        survival_vs_loss(train_loss, survived, res, out / "survival_vs_loss.png")
-    return res
-
-
-def _env_args(problem: tp.Problem, s):
-    st, loop = problem.setup, problem.loop
-    nominal = physics.device_model(st.robot.mj_model, "jax", loop.cfg.physics)
-    return physics.plant_model(nominal, s.friction, s.mass_scale), loop.initial_qpos(
-        jax.numpy.asarray(st.qpos0, st.dtype), s.joint_offset
-    )
-
-
-# ---------------------------------------------------------------------------------------------
-# heldout.json and figures
-
-
-def targets(summary: dict) -> dict:
-    """The issue's targets for the gradient-tuned set against the default and the best hand-set row
-    (``critical``), from a heldout.json-like summary {name: {...}}."""
-    g, d = summary.get("gradient"), summary.get("default")
-    if g is None or d is None:
-        return {}
-    gd, dd = g["grid_envelope"], d["grid_envelope"]
-    below = [a for a in gd if gd[a]["fraction"] < dd[a]["fraction"] - 1e-9]
-    out = {
-        "median_fraction_ge_0.8": g["envelope_fraction_median"] >= 0.8,
-        "min_fraction_ge_0.6": g["envelope_fraction_min"] >= 0.6,
-        "no_direction_below_default": not below,
-        "directions_below_default": below,
-        "survival_ge_1.5x_default": g["survival_rate"] >= 1.5 * d["survival_rate"],
-        "sinusoid_rmse_le_1.5mm": (
-            g.get("sinusoid_com_rmse_m") is not None and g["sinusoid_com_rmse_m"] <= constants.SINUSOID_MAX_COM_RMSE_M
-        ),
-    }
-    hand = [n for n in ("critical",) if n in summary]
-    if hand:
-        best = max(hand, key=lambda n: summary[n]["survival_rate"])
-        out["survival_above_best_hand_set"] = g["survival_rate"] > summary[best]["survival_rate"]
-    if "cmaes" in summary:
-        out["envelope_median_ge_cmaes"] = g["envelope_fraction_median"] >= summary["cmaes"]["envelope_fraction_median"]
-    return out
-
-
-def write_heldout(path, results: dict, budgets: dict, *, extra: dict | None = None, inputs: dict | None = None) -> dict:
-    """heldout.json: one object per gain set (envelope_fraction_median/_min, survival_rate,
-    sinusoid_com_rmse_m, sim_steps, wall_s, device, the per-direction envelope, the unseen
-    variations and the one-foot task), the targets, the survival criterion used and the provenance
-    (``inputs``: {name: file} of the gain sets and other input files).
-    ``budgets``: {name: {"sim_steps", "wall_s"}} of the tuning runs (0 for hand-set rows)."""
-    device = provenance.device_label()
-    summary = {}
-    for name, r in results.items():
-        if name.startswith("_"):
-            continue
-        grid = r["grid"]
-        summary[name] = {
-            "envelope_fraction_median": grid["envelope_fraction_median"],
-            "envelope_fraction_min": grid["envelope_fraction_min"],
-            "survival_rate": grid["survival_rate"],
-            "sinusoid_com_rmse_m": r.get("sinusoid_com_rmse_m"),
-            "sim_steps": int(budgets.get(name, {}).get("sim_steps", 0)),
-            "wall_s": float(budgets.get(name, {}).get("wall_s", 0.0)),
-            "device": device,
-            "effort_peak_torque_nm_median": grid["peak_torque_nm_median"],
-            "upright_rate": grid["upright_rate"],
-            "envelope_fraction_monotone_median": grid["envelope_fraction_monotone_median"],
-            "envelope_fraction_monotone_min": grid["envelope_fraction_monotone_min"],
-            "grid_envelope": grid["envelope"],
-            "unseen": {
-                v: {k: e[k] for k in ("survival_rate", "envelope_fraction_median", "envelope_fraction_min")}
-                for v, e in {**r["variations"], **({"one_foot": r["one_foot"]} if "one_foot" in r else {})}.items()
-            },
-        }
-    report = {
-        **summary,
-        "targets": targets(summary),
-        "survival_criterion": dict(constants.SURVIVAL_CRITERION),
-        "timing": results.get("_timing", {}),
-        **(extra or {}),
-        "provenance": provenance.record(inputs),
-    }
-    io.atomic_write_json(pathlib.Path(path), report)
-    return report
-
-
-SUMMARY_KEYS = (
-    "envelope_fraction_median",
-    "envelope_fraction_min",
-    "survival_rate",
-    "sinusoid_com_rmse_m",
-    "sim_steps",
-    "wall_s",
-)
 
 
 def run(hc: HeldoutConfig | None = None, *, progress: bool = True) -> dict:

@@ -87,7 +87,10 @@ def batch_consistency(means: np.ndarray) -> float:
 
 
 def snr(rows: np.ndarray) -> float:
-    """|mean|^2 / (tr Cov / n) of finite per-rollout rows (n, D): how far the mean stands out of its noise."""
+    """|mean|^2 / (tr Cov / n) of finite per-rollout rows (n, D): how far the mean stands out of its noise.
+    In float64: float32 per-rollout gradients of a few diverging rollouts reach 1e20 and more, and their
+    variance overflowed to inf (the race's quality phase reported 0.0 and NaN, 2026-11-26)."""
+    rows = np.asarray(rows, np.float64)
     rows = rows[np.all(np.isfinite(rows), 1)]
     if len(rows) < 2:
         return float("nan")
