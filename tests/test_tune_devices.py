@@ -82,7 +82,9 @@ for n in (1, 2):
             step(params, step.optimizer.init(params), 0)
         except watchdog.DeviceStalled as err:
             out["stall"], out["stall_after_s"] = str(err), time.perf_counter() - t0
-print(json.dumps(out))
+print(json.dumps(out), flush=True)
+import os
+os._exit(0)  # as the CLI leaves: a stalled device's daemon thread may still be in XLA at teardown
 """
 
 
@@ -136,7 +138,7 @@ from wbc_jax.tuning.algorithms import estimators, objectives, gradient
 from wbc_jax.tuning.algorithms import problem as tp
 
 tc = config.TuneConfig(horizon=0.05, push_onset=0.0, duration_range=(0.02, 0.04), eval_horizon=0.1, batch=2,
-                       quality_pushes=2, population=1, es_batch=1)
+                       quality_pushes=2, population=2, es_batch=1)
 problem = tp.make_problem(tc)
 params = problem.init_params()
 scen = objectives.cast_batch(gradient.training_batch(problem, 0)[0], problem.setup.dtype)
@@ -152,7 +154,9 @@ for n in (1, 2):
     out[n] = {"values": np.asarray(values).tolist(), "grad": np.asarray(estimators.rows(
         jax.tree_util.tree_map(lambda x: x[None], grad))[0]).tolist(), "population": np.asarray(obj).tolist(),
         "ran_on": grads_fn.ran_on, "population_ran_on": pop_fn.ran_on}
-print(json.dumps(out))
+print(json.dumps(out), flush=True)
+import os
+os._exit(0)  # as the CLI leaves: a stalled device's daemon thread may still be in XLA at teardown
 """
 
 
