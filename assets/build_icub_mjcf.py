@@ -28,34 +28,12 @@ import re
 import mujoco
 import numpy as np
 
+from wbc_jax.robot.icub import DESCRIPTION
+
 ROBOT_NAME = "iCubGazeboV2_5"
 OUT = pathlib.Path(__file__).resolve().parent / "icub" / "icub_23dof.xml"
 
-DRIVEN_JOINTS = (
-    "torso_pitch",
-    "torso_roll",
-    "torso_yaw",
-    "l_shoulder_pitch",
-    "l_shoulder_roll",
-    "l_shoulder_yaw",
-    "l_elbow",
-    "r_shoulder_pitch",
-    "r_shoulder_roll",
-    "r_shoulder_yaw",
-    "r_elbow",
-    "l_hip_pitch",
-    "l_hip_roll",
-    "l_hip_yaw",
-    "l_knee",
-    "l_ankle_pitch",
-    "l_ankle_roll",
-    "r_hip_pitch",
-    "r_hip_roll",
-    "r_hip_yaw",
-    "r_knee",
-    "r_ankle_pitch",
-    "r_ankle_roll",
-)
+DRIVEN_JOINTS = DESCRIPTION.joints  # the controller's 23 joints, in order (one declaration: wbc_jax/robot/icub.py)
 FIXED_JOINTS = ("neck_pitch", "neck_roll", "neck_yaw") + tuple(
     f"{side}_wrist_{j}" for side in "lr" for j in ("prosup", "pitch", "yaw")
 )
