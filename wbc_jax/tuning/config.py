@@ -341,6 +341,11 @@ class TuneConfig:
         physics.PhysicsConfig(backend="jax", solver_iterations=self.solver_iterations, ls_iterations=self.ls_iterations)
 
     @property
+    def input_files(self) -> dict:
+        """{name: path or None} of the files a tuning result reads, for its provenance (sha256 each)."""
+        return {"init_gains": self.init_gains, "envelope": self.envelope, "tasks": self.controller.tasks}
+
+    @property
     def candidate_batch(self) -> int:
         """Pushes per candidate of the gradient-free searches."""
         return self.es_batch or max(1, self.batch // (self.population + 1))

@@ -297,9 +297,7 @@ def train(
             parameters=int(flat0.size),
             **(step_fn.memory_mb() or {}),
         )
-        info["provenance"] = provenance.record(
-            {"init_gains": tc.init_gains, "envelope": tc.envelope, "tasks": tc.controller.tasks}
-        )
+        info["provenance"] = provenance.record(tc.input_files)
         io.atomic_write_json(info_path, info)
     if not rows:
         wall = float(info.get("compile_s", 0.0))

@@ -83,9 +83,7 @@ def survival_prediction(problem: tp.Problem, n: int, *, gains=None, reg=None, ou
     }
     if out is not None:
         out = pathlib.Path(out)
-        res["provenance"] = provenance.record(
-            {"init_gains": tc.init_gains, "envelope": tc.envelope, "tasks": tc.controller.tasks}
-        )
+        res["provenance"] = provenance.record(tc.input_files)
         io.atomic_write_json(out / "prediction.json", res)
         survival_vs_loss(train_loss, survived, res, out / "survival_vs_loss.png")
     return res

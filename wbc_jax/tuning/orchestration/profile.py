@@ -142,9 +142,7 @@ def measure(problem: tp.Problem, out, *, mesh=None) -> dict:
         "summary": summary,
         "compile_s": {name: round(v[0], 1) for name, v in res.items()},
         "device": provenance.device_label(),
-        "provenance": provenance.record(
-            {"init_gains": tc.init_gains, "envelope": tc.envelope, "tasks": tc.controller.tasks}
-        ),
+        "provenance": provenance.record(tc.input_files),
     }
     io.atomic_write_json(pathlib.Path(out) / "profile.json", result)
     return result

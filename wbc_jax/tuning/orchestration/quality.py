@@ -255,8 +255,6 @@ def measure(problem: tp.Problem, out, *, mesh=None, progress: bool = True, step=
         if name == "interpolated":
             entry["alpha_mean"] = float(np.mean(alphas))
         result["estimates"][name] = entry
-    result["provenance"] = provenance.record(
-        {"init_gains": tc.init_gains, "envelope": tc.envelope, "tasks": tc.controller.tasks}
-    )
+    result["provenance"] = provenance.record(tc.input_files)
     io.atomic_write_json(out / "quality.json", result)
     return result
