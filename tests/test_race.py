@@ -300,6 +300,36 @@ def test_write_once_refuses_other_contents(tmp_path):
         store.write_once(path, {"x": [1.0, 2.5]})
 
 
+def test_tuning_programs_are_shared_by_phases_alike_and_only_by_them():
+    """The race's phases and processes load each other's compiled gradient and window programs
+    (sim/executables.py, keyed by Problem.program_identity and the arguments' shapes): problems built alike share
+    a key whatever --out and --phases; a setting that changes the program without changing the arguments'
+    shapes (the horizon, a loss weight, the start) or the tuning code gives another key."""
+    from wbc_jax.sim import executables
+    from wbc_jax.tuning import config
+    from wbc_jax.tuning.algorithms import problem as tp
+
+    tc = config.TuneConfig(batch=2, horizon=0.1, push_onset=0.0, duration_range=(0.02, 0.05), eval_horizon=0.1)
+    base = tp.make_problem(tc)
+    ident = base.program_identity()
+    args = (base.init_params(),)
+    key = executables.program_key("tune_gradient", ident, args)
+    alike = tp.make_problem(config.TuneConfig(**{**vars(tc), "out": "elsewhere", "phases": ("quality",)}))
+    assert executables.program_key("tune_gradient", alike.program_identity(), args) == key
+    others = [
+        tp.make_problem(config.TuneConfig(**{**vars(tc), "horizon": 0.2})),
+        tp.make_problem(tc, tuning_loss.LossConfig(w_tilt=2.0)),
+        tp.make_problem(
+            config.TuneConfig(**{**vars(tc), "init_gains": str(ROOT / "experiments" / "gains" / "tuned_cmaes.json")})
+        ),
+    ]
+    keys = {executables.program_key("tune_gradient", p.program_identity(), args) for p in others}
+    assert len(keys) == len(others) and key not in keys
+    assert executables.source_digest(("tuning",)) in ident and executables.source_digest(("tuning",)) != (
+        executables.source_digest()
+    )
+
+
 # ---------------------------------------------------------------------------------------------
 # The whole pipeline at tiny sizes (slow: compiles the gradient, window and population programs)
 
@@ -353,8 +383,10 @@ TINY_RUN = [
 ]
 
 
-# pytest's 1200 s is too short for the race on the loaded 2-core machine (1204 s when stopped): the gradient, window,
-# population and held-out programs compile whatever the sizes; the limit covers both calls' subprocess timeouts.
+# pytest's 1200 s is too short for the race on a loaded 2-core machine: the gradient, window, population and held-out
+# programs compile whatever the sizes (the gains case: 628 s at load 3.5, its gradient program traced and compiled once
+# and loaded by the hybrid's budgets; 3000 s and over at load 7-10 while each budget traced it again). The limit
+# covers both calls' subprocess timeouts.
 @pytest.mark.slow
 @pytest.mark.timeout(3000 + 1500)
 @pytest.mark.parametrize(

@@ -46,11 +46,12 @@ TRACED = ("core", "robot", "control", "sim")
 
 
 @functools.cache
-def source_digest() -> str:
-    """sha256 of the Python and C++ sources of the layers traced into programs (a program compiled
-    from other code never loads)."""
+def source_digest(layers: tuple[str, ...] = TRACED) -> str:
+    """sha256 of the Python and C++ sources of ``layers`` (default: those traced into every program; a
+    program compiled from other code never loads). Programs that trace more code (the tuning objectives)
+    add the digest of their own layers to their key."""
     h = hashlib.sha256()
-    paths = [p for layer in TRACED for p in (PACKAGE / layer).rglob("*") if p.suffix in (".py", ".cc")]
+    paths = [p for layer in layers for p in (PACKAGE / layer).rglob("*") if p.suffix in (".py", ".cc")]
     for path in sorted(paths):
         h.update(str(path.relative_to(PACKAGE)).encode() + b"\0" + path.read_bytes() + b"\0")
     return h.hexdigest()

@@ -164,21 +164,34 @@ class GradientStep:
         scen = objectives.cast_batch(training_batch(problem, k)[0], problem.setup.dtype)
         if not self.windowed:
             return params_b, eps, pair_rows(scen, tc.pairs), None, 0
-        rng = tp.batch_rng(tc.seed, 5, k)
-        ticks = tw.sample_starts(rng, self.rollouts, tc.windows, problem.loop.n_ticks, self.W)
-        starts, terms, metrics = self.sampler(params, scen, ticks)
+        starts, terms, metrics = self.sampler(*self._sampler_args(params, k, scen))
         fwd_steps = self.rollouts * problem.steps_per_rollout
         return params_b, eps, pair_rows(starts, tc.pairs), (terms, metrics), fwd_steps
 
+    def _sampler_args(self, params, k: int, scen=None) -> tuple:
+        """The window sampler's arguments of step ``k``: (params, the step's pushes, window start ticks)."""
+        tc, problem = self.problem.tc, self.problem
+        if scen is None:
+            scen = objectives.cast_batch(training_batch(problem, k)[0], problem.setup.dtype)
+        ticks = tw.sample_starts(tp.batch_rng(tc.seed, 5, k), self.rollouts, tc.windows, problem.loop.n_ticks, self.W)
+        return params, scen, ticks
+
     def compile(self, params, opt_state) -> float:
-        """Build the step's programs ahead of time; returns the seconds spent (0 when already built)."""
+        """Build the step's programs ahead of time; returns the seconds spent (0 when already built).
+
+        On one device the gradient and window programs load when an earlier phase or process compiled
+        them (:meth:`~wbc_jax.tuning.algorithms.problem.Problem.program_identity` keys them): the race's
+        hybrid builds its step once per budget, and a separate quality phase builds it again."""
         if self.compiled:
             return 0.0
         self.compiled = True
         t0 = time.perf_counter()
+        identity = self.problem.program_identity(objectives.mesh_of(self.mesh))
+        if self.windowed:
+            self.sampler.compile(*self._sampler_args(params, 0), saved_as=("tune_window_sampler", identity))
         params_b, eps, rollouts, _, _ = self.rows_of(params, 0)
-        out = self.grads.eval_shape(params_b, rollouts)
-        self.grads.compile(params_b, rollouts)  # one device: keyed in the persistent cache by the program alone
+        self.grads.compile(params_b, rollouts, saved_as=("tune_gradient", identity))
+        out = self.grads.eval_shape(params_b, rollouts)  # the compiled program's own shapes on one device
         self.update = runner.compile_ahead(self.update, params, opt_state, out[0], out[1], eps, out[2])
         return time.perf_counter() - t0
 

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from wbc_jax.sim import physics, runner, watchdog
+from wbc_jax.sim import executables, physics, runner, watchdog
 from wbc_jax.sim.per_device import PerDevice
 from wbc_jax.tuning.algorithms import loss as tuning_loss
 from wbc_jax.tuning.algorithms import problem as tp
@@ -137,16 +137,28 @@ class DevicePrograms:
         return args if self.pre is None else self.pre(*args)
 
     def eval_shape(self, *args):
-        """The outputs' shapes and dtypes for ``args``."""
+        """The outputs' shapes and dtypes for ``args`` (a compiled one-device program's own, with no trace)."""
+        if self.compiled and self.n_devices == 1:
+            return self.program.out_info
         return jax.eval_shape(self.whole, *args)
 
-    def compile(self, *args) -> float:
+    def compile(self, *args, saved_as: tuple[str, tuple] | None = None) -> float:
         """Compile for ``args`` (each device's program, on several); returns the seconds spent (0 when
-        compiled already)."""
+        compiled already).
+
+        ``saved_as`` = (name, key parts): on one device, the program is loaded from
+        :func:`wbc_jax.sim.executables.compiled` when an earlier phase or process compiled it under that key,
+        else compiled and kept there. JAX's persistent cache skips only XLA's compile; this skips the trace
+        too (tracing the reverse-mode closed loop took 190 of the gradient program's 230 s on a 2-core CPU).
+        On several devices each device's program is traced and compiled (the persistent cache as ever)."""
         if self.compiled:
             return 0.0
         t0 = time.perf_counter()
-        if self.n_devices == 1:
+        if self.n_devices == 1 and saved_as is not None:
+            name, key_parts = saved_as
+            jitted = self.program
+            self.program = executables.compiled(name, key_parts, args, lambda: runner.lower_fresh(jitted, *args))
+        elif self.n_devices == 1:
             self.program = runner.compile_ahead(self.program, *args)  # keyed by the program alone
         else:  # as runner.lower_fresh: each device's lowered text (its persistent-cache key) is the program's alone
             jax.clear_caches()

@@ -30,9 +30,9 @@ from wbc_jax.control.gains import Gains, default_gains, load_gains
 from wbc_jax.core import constants, loader
 from wbc_jax.jobs import sweep_table
 from wbc_jax.robot import model as model_lib
+from wbc_jax.sim import executables, mjx_loop, physics, scenario
 from wbc_jax.sim import loop as loop_lib
 from wbc_jax.sim import metrics as metrics_lib
-from wbc_jax.sim import mjx_loop, physics, scenario
 from wbc_jax.sim.state import Push, Scenario, SimConfig
 from wbc_jax.tuning.algorithms import loss as tuning_loss
 from wbc_jax.tuning.algorithms import params as tuning_params
@@ -197,6 +197,25 @@ class Problem:
         """Checkpoints belong to this: the configs and the envelope table the pushes scale with."""
         table = hashlib.sha256(np.asarray(self.table, float).tobytes()).hexdigest()[:8]
         return f"{config_key(self.tc, self.lc, exclude=NOT_TRAINING)}-{table}"
+
+    def program_identity(self, mesh=None) -> tuple:
+        """What shapes this problem's compiled programs besides their arguments' shapes (the key parts of
+        :func:`wbc_jax.sim.executables.compiled`, which loads a program compiled by an earlier phase or
+        process instead of tracing it again): every tuning and loss setting, the loop, the constants the
+        objectives close over (start, bounds, envelope table), the tuning code and the device mesh."""
+        consts = jax.tree_util.tree_leaves(
+            (self.base, self.reg0, self.init, self.bounds.lo, self.bounds.hi, self.table)
+        )
+        digest = hashlib.sha256(b"".join(np.asarray(x).tobytes() for x in consts)).hexdigest()
+        devices = None if mesh is None else (repr(mesh.shape), [str(d) for d in mesh.devices.flat])
+        return (
+            config_key(self.tc, self.lc, exclude=("out", "phases")),
+            self.loop.structure_key,
+            digest,
+            self.iterations,
+            executables.source_digest(("tuning",)),
+            devices,
+        )
 
     def regularisation(self, reg) -> np.ndarray:
         """(2,) Reg.pinvDamp, Reg.KP_postural of a controls dict (None: the controller's)."""
