@@ -5,8 +5,9 @@ from CMA-ES's current solution at B / 2 (its mean after the last generation with
 ``cmaes_t<B/2>``, which the race keeps when phase ``hybrid`` is asked for) and refines it with the
 gradient for the remaining B / 2 seconds of wall time: the training of phase ``train`` (same flags,
 optimiser, estimator, batch; :func:`wbc_jax.tuning.algorithms.gradient.train` from the parent's parameters), its
-program compiled afresh and the compile counted in that half (with JAX's persistent cache mostly a
-load). Its set at B (``hybrid_t<B>``, ``hybrid`` at ``--budget-s``) is the parameters after its last
+program built afresh and that time counted in that half (on one device a load of the program phase
+``train`` compiled, :func:`wbc_jax.sim.executables.compiled`: seconds, where tracing it again took minutes
+on a CPU). Its set at B (``hybrid_t<B>``, ``hybrid`` at ``--budget-s``) is the parameters after its last
 step within B / 2 (the parent itself when none fits), with the wall time and simulated steps of both
 halves added. One resumable gradient run per budget, in ``hybrid/t<B>/``.
 """
