@@ -1,16 +1,22 @@
 """A re-run of a finished run leaves its summary's timings alone (issue 41, class 3), for the resumable
-jobs that write timings besides push-sweep and limit (tests/test_reliability_runs.py): tune's
-timings.json and the heldout job's heldout.json. The expensive work of each is a stand-in that takes a
+jobs that write timings besides push-sweep (tests/test_reliability_runs.py): tune's timings.json, the
+heldout job's heldout.json and limit's summary.json. (balance and envelope resume nothing: a re-run
+computes every figure again, its timings with them.) The expensive work of each is a stand-in that takes a
 known time on its first call only, so a re-run that measured again would show another time; nothing
 compiles (the tripwire)."""
 
 import json
 import time
+import types
 
 import jax
+import numpy as np
 import pytest
 
+from wbc_jax.control.gains import default_gains
 from wbc_jax.core import io
+from wbc_jax.jobs import limit, limit_rounds
+from wbc_jax.robot.icub import DESCRIPTION as ICUB
 from wbc_jax.tuning import config
 from wbc_jax.tuning.heldout_config import HeldoutConfig
 from wbc_jax.tuning.orchestration import campaign, prediction
@@ -108,3 +114,36 @@ def test_a_finished_heldout_rerun_leaves_heldout_json_alone(tmp_path, monkeypatc
     assert json.loads(written)["timing"]["stand_0"]["run_s"] == FIRST_S
     assert tuning_eval.run(hc, progress=False) == first
     assert calls == [["default"]] and (tmp_path / "h" / "heldout.json").read_bytes() == written
+
+
+class _LimitSearch:
+    """limit_rounds.Search's shape for one direction: a round verifies the impulses below 10 N s and takes
+    FIRST_S on the process's first round (its compile), ~0 s later."""
+
+    azimuths, lip, envelopes = [0.0], {0.0: {"impulse_bound_ns": 20.0}}, {}
+    lower, upper, Kn, n, k0 = [2.0], [16.0], 2, 3, 0
+    dtype, physics_steps_per_candidate_step = np.float32, 1
+    opt = types.SimpleNamespace(torques=lambda z: 2.0 * np.asarray(z))
+
+    def __init__(self, cfg):
+        self.base, self.steps, self.timing = default_gains(ICUB), 0, {"optimiser_s": 0.0}
+
+    def round(self, impulses, warm, on_step, on_judge, deadline):
+        seconds = FIRST_S if self.steps == 0 else 0.0
+        time.sleep(seconds)
+        self.steps += 1
+        self.timing["optimiser_s"] += seconds
+        J = np.asarray(impulses, float).ravel()
+        columns = {"direction": np.zeros(J.size, int), "impulse_ns": J, "verified": J < 10.0}
+        return columns, np.ones((J.size, self.Kn, self.n))
+
+
+def test_a_finished_limit_rerun_leaves_its_summary_alone(tmp_path, monkeypatch, tripwire):
+    """limit again on its finished folder: no round runs and summary.json (wall_s, optimiser_s) keeps its bytes."""
+    monkeypatch.setattr(limit_rounds, "Search", _LimitSearch)
+    cfg = limit.LimitConfig(directions=(0.0,), candidates=2, rounds=2, out=str(tmp_path / "lim"))
+    first = limit_rounds.run(cfg, progress=False)
+    written = (tmp_path / "lim" / "summary.json").read_bytes()
+    assert first["rounds_done"] == 2 and first["optimiser_s"] == FIRST_S and first["wall_s"] >= FIRST_S
+    again = limit_rounds.run(cfg, progress=False)
+    assert again["optimiser_steps"] == 0 and (tmp_path / "lim" / "summary.json").read_bytes() == written
