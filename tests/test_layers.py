@@ -388,3 +388,30 @@ def test_one_chunk_runner():
     assert users == {"jobs/sweep.py", "tuning/orchestration/heldout.py"}
     naming = sorted(str(p.relative_to(PACKAGE)) for p in PACKAGE.rglob("*.py") if "part-{" in p.read_text())
     assert naming == ["jobs/chunks.py"], f"part files named outside jobs/chunks.py: {naming}"
+
+
+# Issue 44: the push grid's flags (--magnitudes, --directions, a push's length and start) are declared once, in
+# wbc_jax/jobs/grids.py; the configs of push-sweep, envelope, limit, its cross-check, balance, tune and the held-out
+# evaluation name only their defaults and help.
+GRID_DECLARATION = re.compile(
+    r"parse=(grids\.)?(magnitude_grid|azimuths)\b"  # a grid axis
+    r"|option\(\s*[\d.]+,\s*\"[^\"]*\",\s*ge=\w+\.MIN_PUSH_DURATION_S"  # a push's length
+    r"|ge=0\.0, lt=\w+\.MAX_HORIZON_S"  # a push's start
+)
+
+
+def test_the_push_grid_flags_are_declared_once():
+    declared = {
+        p.relative_to(PACKAGE).as_posix() for p in PACKAGE.rglob("*.py") if GRID_DECLARATION.search(p.read_text())
+    }
+    assert declared == {"jobs/grids.py"}
+
+
+def test_the_grid_declaration_scan_finds_each_form():
+    for text in (
+        "x = option((1.0,), 'h', parse=magnitude_grid)",
+        "x = option(azimuths(4), 'h', metavar='N', parse=grids.azimuths)",
+        'push_duration: float = option(\n    0.1, "push length [s]", ge=limits.MIN_PUSH_DURATION_S, le=1.0\n)',
+        'push_onset: float = option(0.5, "push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")',
+    ):
+        assert GRID_DECLARATION.search(text), text

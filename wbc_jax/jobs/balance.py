@@ -18,7 +18,7 @@ from wbc_jax.control.gains import gains_to_dict, load_gains
 from wbc_jax.core import constants as limits
 from wbc_jax.core import io, options, provenance
 from wbc_jax.core.options import check_options, flat_dict, nested, option
-from wbc_jax.jobs import runs
+from wbc_jax.jobs import grids, runs
 from wbc_jax.robot.robots import robot_option
 from wbc_jax.sim import host_loop, physics, runner, scenario
 from wbc_jax.sim import metrics as metrics_lib
@@ -52,10 +52,8 @@ class BalanceConfig:
         le=limits.MAX_PUSH_N,
         unit="N",
     )
-    push_onset: float = option(1.0, "push start [s]", ge=0.0, lt=limits.MAX_HORIZON_S, unit="s")
-    push_duration: float = option(
-        0.1, "push length [s]", ge=limits.MIN_PUSH_DURATION_S, le=limits.MAX_PUSH_DURATION_S, unit="s"
-    )
+    push_onset: float = grids.push_onset_option(1.0)
+    push_duration: float = grids.push_duration_option()
     control_dt: float = option(
         0.01, "controller period [s], a multiple of the 1 ms physics step", ge=0.001, le=0.1, unit="s"
     )

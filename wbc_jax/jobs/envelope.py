@@ -30,7 +30,7 @@ import jax
 import numpy as np
 
 from wbc_jax.control.gains import gains_to_dict
-from wbc_jax.core import constants, io, provenance
+from wbc_jax.core import io, provenance
 from wbc_jax.core.options import flat_dict, option
 from wbc_jax.jobs import grids, runs, sweep, sweep_config, sweep_table
 from wbc_jax.robot import model
@@ -50,17 +50,10 @@ class EnvelopeConfig(sweep_config.SweepConfig):
     and the bracket width to reach. The CLI flags of ``wbc-jax envelope`` are generated from
     these fields."""
 
-    magnitudes: tuple[float, ...] = option(
+    magnitudes: tuple[float, ...] = grids.magnitudes_option(
         DEFAULT_MAGNITUDES,
         "push force grid [N]: LO HI N (the impulses searched: each x --push-duration)",
-        nargs=3,
-        metavar=("LO", "HI", "N"),
-        parse=grids.magnitude_grid,
-        show=grids.show_magnitude_grid,
-        gt=0.0,
-        le=constants.MAX_PUSH_N,
-        unit="N",
-        nonempty=True,
+        positive=True,
     )
     chunk_size: int = option(
         1024,

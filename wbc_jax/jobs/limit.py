@@ -60,22 +60,10 @@ class LimitConfig:
     ranges checked by :meth:`check`."""
 
     robot: str = robot_option()
-    directions: tuple[float, ...] = option(
-        (0.0, 90.0, 180.0, 270.0),
-        "number of push azimuths over 360 deg (0 = forward, 90 = left)",
-        metavar="N",
-        parse=grids.azimuths,
-        show=len,
-        ge=-360.0,
-        le=360.0,
-        unit="deg",
-        nonempty=True,
-    )
+    directions: tuple[float, ...] = grids.directions_option((0.0, 90.0, 180.0, 270.0))
     elevation: float = option(0.0, "push elevation [deg]", ge=-90.0, le=90.0, unit="deg")
-    push_duration: float = option(
-        0.1, "push length [s]", ge=constants.MIN_PUSH_DURATION_S, le=constants.MAX_PUSH_DURATION_S, unit="s"
-    )
-    push_onset: float = option(0.5, "push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
+    push_duration: float = grids.push_duration_option()
+    push_onset: float = grids.push_onset_option()
     body: str = option(
         "trunk",
         "pushed body: a body of the robot or a role (trunk, pelvis, left_hand, right_thigh)",

@@ -58,27 +58,15 @@ def crocoddyl_problem() -> str | None:
 class DdpConfig:
     """The crocoddyl cross-check: the pushes (as ``wbc-jax limit``'s), the DDP problem, the bisection."""
 
-    directions: tuple[float, ...] = option(
-        (0.0, 90.0, 180.0, 270.0),
-        "number of push azimuths over 360 deg (0 = forward, 90 = left)",
-        metavar="N",
-        parse=grids.azimuths,
-        show=len,
-        ge=-360.0,
-        le=360.0,
-        unit="deg",
-        nonempty=True,
-    )
+    directions: tuple[float, ...] = grids.directions_option((0.0, 90.0, 180.0, 270.0))
     robot: str = robot_option()
     body: str = option(
         "trunk",
         "pushed body: a body of the robot or a role (trunk, pelvis, left_hand, right_thigh)",
         names=model.pushable_bodies,
     )
-    push_duration: float = option(
-        0.1, "push length [s]", ge=constants.MIN_PUSH_DURATION_S, le=constants.MAX_PUSH_DURATION_S, unit="s"
-    )
-    push_onset: float = option(0.5, "push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
+    push_duration: float = grids.push_duration_option()
+    push_onset: float = grids.push_onset_option()
     gains: str | None = option(None, "gains JSON file of the tracking controller", metavar="FILE", input_file=True)
     horizon: float = option(
         3.0, "seconds per replay (the strict criterion is judged at its end)", gt=0.0, le=limit.MAX_HORIZON_S, unit="s"

@@ -12,8 +12,7 @@ from wbc_jax.control.controller import ControllerConfig
 from wbc_jax.control.flags import ControllerFlags
 from wbc_jax.core import constants as limits
 from wbc_jax.core.options import check_options, flat_dict, nested, option
-from wbc_jax.jobs import runs
-from wbc_jax.jobs.grids import azimuths, magnitude_grid, show_magnitude_grid
+from wbc_jax.jobs import grids, runs
 from wbc_jax.robot import model
 from wbc_jax.robot.robots import robot_option
 from wbc_jax.sim import physics, scenario, warp_graphs, watchdog
@@ -33,34 +32,11 @@ class SweepConfig:
     ranges are checked by :meth:`check`."""
 
     robot: str = robot_option()
-    magnitudes: tuple[float, ...] = option(
-        (20.0, 60.0, 100.0),
-        "push force grid [N]: LO HI N",
-        nargs=3,
-        metavar=("LO", "HI", "N"),
-        parse=magnitude_grid,
-        show=show_magnitude_grid,
-        ge=0.0,
-        le=limits.MAX_PUSH_N,
-        unit="N",
-        nonempty=True,
-    )
-    directions: tuple[float, ...] = option(
-        (0.0, 90.0, 180.0, 270.0),
-        "number of push azimuths over 360 deg (0 = forward, 90 = left)",
-        metavar="N",
-        parse=azimuths,
-        show=len,
-        ge=-360.0,
-        le=360.0,
-        unit="deg",
-        nonempty=True,
-    )
+    magnitudes: tuple[float, ...] = grids.magnitudes_option((20.0, 60.0, 100.0), "push force grid [N]: LO HI N")
+    directions: tuple[float, ...] = grids.directions_option((0.0, 90.0, 180.0, 270.0))
     elevation: float = option(0.0, "push elevation [deg] (+90: straight up)", ge=-90.0, le=90.0, unit="deg")
-    push_duration: float = option(
-        0.1, "push length [s]", ge=limits.MIN_PUSH_DURATION_S, le=limits.MAX_PUSH_DURATION_S, unit="s"
-    )
-    push_onset: float = option(0.5, "push start [s]", ge=0.0, lt=limits.MAX_HORIZON_S, unit="s")
+    push_duration: float = grids.push_duration_option()
+    push_onset: float = grids.push_onset_option()
     body: str = option(
         "trunk",
         "pushed body: a body of the robot or a role (trunk, pelvis, left_hand, right_thigh)",

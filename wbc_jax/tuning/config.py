@@ -13,6 +13,7 @@ from typing import ClassVar
 from wbc_jax.control.flags import ControllerFlags
 from wbc_jax.core import constants
 from wbc_jax.core.options import check_options, flat_dict, nested, option
+from wbc_jax.jobs import grids
 from wbc_jax.robot import model
 from wbc_jax.robot.robots import robot_option
 from wbc_jax.sim import physics, watchdog
@@ -174,7 +175,7 @@ class TuneConfig:
         unit="s",
         ordered=True,
     )
-    push_onset: float = option(0.2, "push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
+    push_onset: float = grids.push_onset_option(0.2)
     friction_range: tuple[float, float] = option(
         (0.6, 1.2),
         "floor friction",

@@ -11,7 +11,7 @@ import numpy as np
 from wbc_jax.control.flags import ControllerFlags
 from wbc_jax.core import constants
 from wbc_jax.core.options import check_input_file, check_options, nested, option
-from wbc_jax.jobs.grids import MAX_GRID_AXIS, azimuths, magnitude_grid, show_magnitude_grid
+from wbc_jax.jobs import grids
 from wbc_jax.jobs.sweep_config import ONE_FOOT_WINDOW
 from wbc_jax.robot.robots import robot_option
 from wbc_jax.sim import physics
@@ -48,43 +48,24 @@ class HeldoutConfig:
         "NAME=FILE (a gains file or a gain-schedule file); wbc-jax tune adds its own",
         nargs="*",
     )
-    grid_magnitudes: tuple[float, ...] = option(
-        magnitude_grid((10.0, 400.0, 64)),
-        "held-out grid of trunk push forces [N]: LO HI N",
-        nargs=3,
-        metavar=("LO", "HI", "N"),
-        parse=magnitude_grid,
-        show=show_magnitude_grid,
-        ge=0.0,
-        le=constants.MAX_PUSH_N,
-        unit="N",
-        nonempty=True,
+    grid_magnitudes: tuple[float, ...] = grids.magnitudes_option(
+        grids.magnitude_grid((10.0, 400.0, 64)), "held-out grid of trunk push forces [N]: LO HI N"
     )
-    grid_directions: tuple[float, ...] = option(
-        azimuths(32),
-        "held-out push azimuths over 360 deg",
-        metavar="N",
-        parse=azimuths,
-        show=len,
-        ge=-360.0,
-        le=360.0,
-        unit="deg",
-        nonempty=True,
+    grid_directions: tuple[float, ...] = grids.directions_option(
+        grids.azimuths(32), "held-out push azimuths over 360 deg"
     )
-    grid_duration: float = option(
-        0.1, "held-out push length [s]", ge=constants.MIN_PUSH_DURATION_S, le=constants.MAX_PUSH_DURATION_S, unit="s"
-    )
-    grid_onset: float = option(0.5, "held-out push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
+    grid_duration: float = grids.push_duration_option(0.1, "held-out push length [s]")
+    grid_onset: float = grids.push_onset_option(0.5, "held-out push start [s]")
     grid_horizon: float = option(3.0, "seconds per held-out rollout", gt=0.0, le=constants.MAX_HORIZON_S, unit="s")
     variations: tuple[str, ...] = option(
         tuple(VARIATIONS), "unseen variations of the grid's pushes", nargs="*", choices=tuple(VARIATIONS)
     )
-    variation_magnitudes: int = option(16, "impulses per direction of each variation", ge=1, le=MAX_GRID_AXIS)
+    variation_magnitudes: int = option(16, "impulses per direction of each variation", ge=1, le=grids.MAX_GRID_AXIS)
     variation_directions: int = option(
-        16, "directions of each variation and of the one-foot pushes", ge=1, le=MAX_GRID_AXIS
+        16, "directions of each variation and of the one-foot pushes", ge=1, le=grids.MAX_GRID_AXIS
     )
     one_foot: bool = option(True, "also push during the one-foot task's single-support phase")
-    one_foot_onset: float = option(7.5, "one-foot push start [s]", ge=0.0, lt=constants.MAX_HORIZON_S, unit="s")
+    one_foot_onset: float = grids.push_onset_option(7.5, "one-foot push start [s]")
     one_foot_horizon: float = option(9.0, "seconds per one-foot rollout", gt=0.0, le=constants.MAX_HORIZON_S, unit="s")
     sinusoid_s: float = option(
         20.0, "seconds of the seed's CoM sinusoid (its RMSE; 0: skip)", ge=0.0, le=constants.MAX_HORIZON_S, unit="s"

@@ -10,6 +10,9 @@
     heldout   heldout/, heldout_raw.json             every gain set on the held-out evaluation
     report    heldout.json, race.json, summary.json, envelope_polar.png, learning_curves.png, race.png
 
+timings.json holds each phase's wall seconds; a re-run of a finished phase leaves its time as it was
+(:mod:`wbc_jax.tuning.orchestration.timings`).
+
 Two budgets. Without ``--budget-s`` (the equal-steps comparison): the gradient runs ``--steps``, the
 searches its simulated steps (and its wall time, ``--wall-budget``); the sets are ``gradient``, ``cmaes``,
 ``random`` (equal steps) and ``cmaes_wall``, ``random_wall`` (equal wall time). With ``--budget-s T`` (the
@@ -27,7 +30,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import pathlib
-import time
 
 import jax
 import numpy as np
@@ -48,6 +50,7 @@ from wbc_jax.tuning.config import TuneConfig
 from wbc_jax.tuning.heldout_config import HeldoutConfig, heldout_default_config
 from wbc_jax.tuning.orchestration import heldout as tuning_eval
 from wbc_jax.tuning.orchestration import heldout_report, prediction, race
+from wbc_jax.tuning.orchestration.timings import PhaseTimings
 
 
 def _search_times(tc: TuneConfig, kind: str) -> list:
@@ -227,21 +230,15 @@ def run(
             "provenance": provenance.record(files),
         },
     )
-    timings_path = out / "timings.json"
-    timings = json.loads(timings_path.read_text()) if timings_path.exists() else {}
-
-    def timed(name, fn):
-        t0 = time.perf_counter()
-        result = fn()
-        timings[name] = round(time.perf_counter() - t0, 1)
-        io.atomic_write_json(timings_path, timings)
-        if progress:
-            print(json.dumps({"phase": name, "s": timings[name]}), flush=True)
-        return result
+    timed = PhaseTimings(out, progress=progress).run  # timings.json (its module docstring)
 
     summary: dict = {"phases": list(tc.phases)}
     if "predict" in tc.phases:
-        pred = timed("predict", lambda: prediction.survival_prediction(problem, tc.eval_pushes, out=out))
+        pred = timed(
+            "predict",
+            lambda: prediction.survival_prediction(problem, tc.eval_pushes, out=out),
+            out / "prediction.json",
+        )
         summary["predict"] = {k: pred[k] for k in ("n", "survival_rate", "spearman_train_horizon", "auc_train_horizon")}
     # One gradient program for training and the quality figures (compiled once).
     step = None
@@ -256,7 +253,11 @@ def run(
     if "quality" in tc.phases:
         from wbc_jax.tuning.orchestration import quality
 
-        q = timed("quality", lambda: quality.measure(problem, out, mesh=mesh, progress=progress, step=step))
+        q = timed(
+            "quality",
+            lambda: quality.measure(problem, out, mesh=mesh, progress=progress, step=step),
+            out / "quality.json",
+        )
         summary["quality"] = {
             k: {m: e[m] for m in ("cosine_zeroth_order", "directional_correlation") if m in e}
             for k, e in q["estimates"].items()
@@ -264,7 +265,9 @@ def run(
     if "profile" in tc.phases:
         from wbc_jax.tuning.orchestration import profile
 
-        summary["profile"] = timed("profile", lambda: profile.measure(problem, out, mesh=mesh))["summary"]
+        summary["profile"] = timed("profile", lambda: profile.measure(problem, out, mesh=mesh), out / "profile.json")[
+            "summary"
+        ]
     for kind in tc.searches:
         budget = {"sim_steps": 0, "wall_s": 0.0} if tc.budget_s > 0 else _gradient_budget(out)
         times = _search_times(tc, kind) if tc.budget_s else ()
@@ -285,8 +288,13 @@ def run(
         }
     if "heldout" in tc.phases:
         sets = {**reference, **tuned_sets(problem, out)}
-        results = timed("heldout", lambda: tuning_eval.heldout(sets, hc, out / "heldout", progress=progress))
-        io.atomic_write_json(out / "heldout_raw.json", results)
+
+        def held_out() -> None:
+            io.atomic_write_json(
+                out / "heldout_raw.json", tuning_eval.heldout(sets, hc, out / "heldout", progress=progress)
+            )
+
+        timed("heldout", held_out, out / "heldout_raw.json")
     if "report" in tc.phases:
         summary["heldout"] = report(problem, out, hc, reference)
     return summary
