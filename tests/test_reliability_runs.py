@@ -452,7 +452,7 @@ def test_scaling_refuses_a_scaling_json_it_did_not_write_before_running(tmp_path
 
 @pytest.mark.slow
 def test_scaling_writes_only_under_its_out_and_takes_a_second_call_with_other_flags(finished, tmp_path):
-    """experiments/benchmarks/scaling.py on the CPU (C MuJoCo, the fixture's compiled program): its runs
+    """benchmarks/scaling.py on the CPU (C MuJoCo, the fixture's compiled program): its runs
     (with their timelines) and scaling.json under --out alone; a second call with other sweep flags
     keeps the first's rows."""
     out = tmp_path / "scaling"
