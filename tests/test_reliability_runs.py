@@ -422,7 +422,7 @@ def test_the_timeline_has_a_row_per_chunk_and_device_within_its_wall_time(finish
 
 SCALING = [
     sys.executable,
-    str(ROOT / "experiments" / "benchmarks" / "scaling.py"),
+    str(ROOT / "benchmarks" / "scaling.py"),
     "--gpus",
     "1",
     "--backends",
