@@ -2,7 +2,7 @@
 
     python benchmarks/benchmark.py --out runs/bench [--batches 1 1024 16384] [--horizon 1.0]
         [--backends jax warp mujoco] [--iterations 4 2 1] [--cpu-baseline-envs 64]
-        [--cpu-workers 16] [--json docs/benchmarks.json]
+        [--cpu-workers 16] [--json results/benchmarks.json]
 
 For each physics backend (``jax``: MJX's JAX implementation, ``warp``: MJX-Warp on a CUDA GPU,
 ``mujoco``: C MuJoCo on the host with the jitted JAX controller), solver iteration count and batch
@@ -15,7 +15,7 @@ NumPy, one worker process per core) on the same task, and the ratio of each clos
 the baseline on one 1 s stand with a 40 N lateral chest push, CoM difference.
 
 Writes bench.json (everything) into --out and prints it; ``--json FILE`` also appends/updates one
-row per measured setting (backend, iterations, batch, device) in FILE (docs/benchmarks.json).
+row per measured setting (backend, iterations, batch, device) in FILE (results/benchmarks.json).
 The check (:func:`failures`): the trajectory check's CoM within ``EQUIVALENCE_BAR_M`` (1 mm) over
 the second at every iteration count measured (none with --skip-equivalence); exit status 1
 otherwise, after bench.json is written.
@@ -166,7 +166,7 @@ def parse_args(argv=None):
         "--json",
         default=None,
         metavar="FILE",
-        help="also append/update one row per setting in FILE (e.g. docs/benchmarks.json)",
+        help="also append/update one row per setting in FILE (e.g. results/benchmarks.json)",
     )
     parser.add_argument(
         "--backends",

@@ -1,6 +1,6 @@
 """The one-robot CPU targets (issue 36): where a tick's time goes, the compiled loop, re-runs.
 
-    python benchmarks/cpu_loop.py --out docs/cpu_loop.json [--parts profile sinusoid rerun notebook]
+    python benchmarks/cpu_loop.py --out results/cpu_loop.json [--parts profile sinusoid rerun notebook]
 
 * ``profile`` (in this process): the 20 s sinusoid's ticks on C MuJoCo, trajectories recorded (what
   ``wbc-jax balance`` runs), split by where the time goes: in the Python loop of ticks
@@ -21,7 +21,7 @@
   seconds compiling (target 0).
 * ``acceptance``: ``experiments/acceptance/balance_acceptance.py`` (every scenario, now the compiled loop) into a
   new summary (or ``--acceptance-summary``, one made before), each figure against
-  ``--acceptance-baseline`` (docs/balance_acceptance.json as committed): the largest relative
+  ``--acceptance-baseline`` (results/balance_acceptance.json as committed): the largest relative
   differences per scenario (target: float noise).
 
 One robot runs with XLA's CPU thread pool of one thread (``PJRT_NPROC=1`` unless set, as
@@ -340,7 +340,7 @@ def main(argv=None) -> dict:
     p.add_argument("--parts", nargs="+", default=list(PARTS), choices=PARTS)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--ticks", type=int, default=2000, help="ticks of the profiled sinusoid")
-    p.add_argument("--acceptance-baseline", default=str(ROOT / "docs" / "balance_acceptance.json"))
+    p.add_argument("--acceptance-baseline", default=str(ROOT / "results" / "balance_acceptance.json"))
     p.add_argument("--acceptance-summary", default=None, help="compare this summary instead of running the scenarios")
     args = p.parse_args(argv)
     if args.repeats < 1 or args.ticks < 1:

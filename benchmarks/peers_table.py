@@ -1,7 +1,7 @@
-"""TSID and our controller side by side: the tables of docs/peers from their two JSON files.
+"""TSID and our controller side by side: the tables of results/peers from their two JSON files.
 
-    python benchmarks/peers_table.py --tsid docs/peers/tsid.json --wbc docs/peers/wbc_jax.json \\
-        [--out docs/peers/side_by_side.md]
+    python benchmarks/peers_table.py --tsid results/peers/tsid.json --wbc results/peers/wbc_jax.json \\
+        [--out results/peers/side_by_side.md]
 
 Reads the TSID peer's file (``benchmarks/tsid_peer.py``) and ours (``benchmarks/wbc_peer.py``, one
 column per gain set) and prints two Markdown tables: the summary (time per tick on one core, the
@@ -126,8 +126,8 @@ def direction_table(cols: dict) -> str:
 
 def main(argv=None) -> str:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--tsid", default=str(ROOT / "docs" / "peers" / "tsid.json"))
-    p.add_argument("--wbc", default=str(ROOT / "docs" / "peers" / "wbc_jax.json"))
+    p.add_argument("--tsid", default=str(ROOT / "results" / "peers" / "tsid.json"))
+    p.add_argument("--wbc", default=str(ROOT / "results" / "peers" / "wbc_jax.json"))
     p.add_argument("--out", default=None, help="also write the tables to this Markdown file")
     args = p.parse_args(argv)
     docs = []

@@ -26,13 +26,13 @@ description, the push body ``--body`` may be a role (``trunk``: the iCub's chest
 
 The pushes (3, 4) are ``benchmarks/tsid_baseline/push_envelope.py``.
 
-Writes a JSON file (default ``docs/peers/tsid.json``): every figure with the command that produced
+Writes a JSON file (default ``results/peers/tsid.json``): every figure with the command that produced
 it, the CPU, the date, the load average, the package versions and the controller's settings.
 JAX-free, as the baseline.
 
-    python benchmarks/tsid_peer.py --cpu 1 --full-grid --sensitivity --out docs/peers/tsid.json
+    python benchmarks/tsid_peer.py --cpu 1 --full-grid --sensitivity --out results/peers/tsid.json
     python benchmarks/tsid_peer.py --robot talos --cpu 1 --magnitudes 10 700 70 --directions 8 \\
-        --horizon 2.5 --resolution 1 --wbc-timing --out docs/talos/tsid_peer.json
+        --horizon 2.5 --resolution 1 --wbc-timing --out results/talos/tsid_peer.json
 """
 
 from __future__ import annotations
@@ -236,7 +236,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    p.add_argument("--out", default=str(HERE.parent / "docs" / "peers" / "tsid.json"), help="JSON file to write")
+    p.add_argument("--out", default=str(HERE.parent / "results" / "peers" / "tsid.json"), help="JSON file to write")
     p.add_argument("--cpu", type=int, default=None, help="pin the process to this core (default: no pinning)")
     p.add_argument(
         "--magnitudes", type=float, nargs=3, default=MAGNITUDES, metavar=("LO", "HI", "N"), help="push force grid [N]"

@@ -1,7 +1,7 @@
 """Our controller measured as the TSID peer is (``benchmarks/tsid_peer.py``, branch tsid), per gain set.
 
     python benchmarks/wbc_peer.py --cpu 1 --gains default experiments/gains/tuned_gradient.json \\
-        --out docs/peers/wbc_jax.json [--parts timing envelope grid]
+        --out results/peers/wbc_jax.json [--parts timing envelope grid]
 
 For each gain set (``default``: the WBC gains; or a gains file), on C MuJoCo 3.17.0 with the same
 MJCF, 1 kHz physics, 10 ms ticks and chest pushes through ``xfrc_applied``:
@@ -264,7 +264,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--robot", default=DEFAULT_ROBOT, choices=ROBOT_NAMES, help="the robot (wbc_jax/robot/<name>.py)")
     p.add_argument("--cpu", type=int, default=None, help="the core the timing runs on (default: no pinning)")
     p.add_argument("--timing-repeats", type=int, default=5)
-    p.add_argument("--out", default=str(ROOT / "docs" / "peers" / "wbc_jax.json"))
+    p.add_argument("--out", default=str(ROOT / "results" / "peers" / "wbc_jax.json"))
     p.add_argument("--work", default=str(ROOT / "runs" / "peers"), help="sweep folders (resumable)")
     p.add_argument("--timing-worker", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)

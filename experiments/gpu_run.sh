@@ -45,8 +45,8 @@ for job in "$@"; do
       run bench python3 benchmarks/benchmark.py --out "$OUT/bench" --json "$OUT/bench/benchmarks.json" \
         --backends warp jax --batches 16384 65536 --horizon 0.5 --cpu-baseline-envs 64 --cpu-workers 16 \
         --repeats 2 --skip-equivalence ;;
-    sweep)  # the 64 x 32 x 8 sweep of docs/sweep_h100 on warp, twice in one process (first-run costs)
-      run sweep python3 experiments/benchmarks/sweep_timing.py --out "$OUT/sweep" --repeats 2 -- \
+    sweep)  # the 64 x 32 x 8 sweep of results/sweep_h100 on warp, twice in one process (first-run costs)
+      run sweep python3 benchmarks/sweep_timing.py --out "$OUT/sweep" --repeats 2 -- \
         --magnitudes 10 400 64 --directions 32 --gain-sets 8 --horizon 3 --chunk-size 16384 --backend warp ;;
     agree)  # default-gain grid (2,048 envs) on warp and on jax: outcomes outside the transition band
       mkdir -p "$OUT/agree"
@@ -75,24 +75,24 @@ for job in "$@"; do
     queue)  # the 64 x 32 x 8 sweep on warp: plain, with 2 and 4 scenarios per batch slot (fallen robots retired),
             # and plain at chunk 8192
       for q in ${QUEUES:-1 2 4}; do
-        run queue_$q python3 experiments/benchmarks/sweep_timing.py --out "$OUT/queue_$q" --repeats 2 -- --magnitudes 10 400 64 \
+        run queue_$q python3 benchmarks/sweep_timing.py --out "$OUT/queue_$q" --repeats 2 -- --magnitudes 10 400 64 \
           --directions 32 --gain-sets 8 --horizon 3 --chunk-size 16384 --backend ${QUEUE_BACKEND:-warp} --queue $q
       done
       # the control: the plain sweep compiled at another chunk size (float32 rounding alone)
-      run queue_1c python3 experiments/benchmarks/sweep_timing.py --out "$OUT/queue_1c" --repeats 1 -- --magnitudes 10 400 64 \
+      run queue_1c python3 benchmarks/sweep_timing.py --out "$OUT/queue_1c" --repeats 1 -- --magnitudes 10 400 64 \
         --directions 32 --gain-sets 8 --horizon 3 --chunk-size 8192 --backend ${QUEUE_BACKEND:-warp}
       run queue_check python3 experiments/checks/queue_check.py "$OUT/queue_1" "$OUT/queue_1c" \
         $(for q in ${QUEUES:-1 2 4}; do [ $q != 1 ] && echo "$OUT/queue_$q"; done) --out "$OUT/queue_check.json" ;;
     scaling_jax|scaling_warp)  # issue 33: the 64 x 32 x 8 sweep on 1 and 2 GPUs, each twice (repeat floor)
       b=${job#scaling_}
-      run $job python3 experiments/benchmarks/scaling.py --out "$OUT/$job" --gpus 1 2 --backends $b -- \
+      run $job python3 benchmarks/scaling.py --out "$OUT/$job" --gpus 1 2 --backends $b -- \
         --magnitudes 10 400 64 --directions 32 --gain-sets 8 --horizon 3 --chunk-size 16384 --push-onset 0.5 \
         --push-duration 0.1 ;;
     scaling4_jax|scaling4_warp)  # issue 45: 32,768 envs on 1, 2 and 4 GPUs, 3 runs each (repeat floor), under a
             # watchdog (a device stalled 240 s in a chunk: one line naming it, the row's error). SCALING_GPUS: the GPU
             # counts of this call (one GPU's runs stay in /tmp/scaling4 on a warm machine for a later call's comparison).
       b=${job#scaling4_}
-      run $job python3 experiments/benchmarks/scaling.py --out /tmp/scaling4 --gpus ${SCALING_GPUS:-1 2 4} \
+      run $job python3 benchmarks/scaling.py --out /tmp/scaling4 --gpus ${SCALING_GPUS:-1 2 4} \
         --backends $b --repeats 3 --timeout 560 -- --magnitudes 10 400 64 --directions 32 --gain-sets 16 --horizon 3 \
         --chunk-size 32768 --push-onset 0.5 --push-duration 0.1 --stall-timeout-s 240
       mkdir -p "$OUT/$job"; cp /tmp/scaling4/scaling.json "$OUT/$job/"
@@ -122,7 +122,7 @@ for job in "$@"; do
           *) echo "scaling4_warp_diag: unknown variant $v (valid: base graphs0 processes switch three graphjax)"
              continue ;;
         esac
-        run $job python3 experiments/benchmarks/scaling.py --out /tmp/diag/$v $a --backends warp --repeats 2 \
+        run $job python3 benchmarks/scaling.py --out /tmp/diag/$v $a --backends warp --repeats 2 \
           --timeout 240 -- $D $s
         [ -f /tmp/diag/$v/scaling.json ] && cp /tmp/diag/$v/scaling.json "$OUT/$job/$v.json"
         python3 -c "import json,sys; [print('$v', r['gpus'], r.get('launch'), r.get('run_s_each'), r.get('error', ''),
@@ -141,11 +141,11 @@ for job in "$@"; do
       if [ ! -d /tmp/limit_$body ] && [ -f .ws/limit_$body.tgz ]; then tar -xzf .ws/limit_$body.tgz -C /tmp; fi
       run $job env XLA_FLAGS="${LIMIT_XLA_FLAGS---xla_gpu_autotune_level=0}" timeout ${LIMIT_WALL:-510} \
         python3 -m wbc_jax.cli limit --quiet --body $body --directions 32 \
-        --gains experiments/gains/tuned_gradient.json --envelopes docs/limit/envelopes/*_$body/summary.json \
+        --gains experiments/gains/tuned_gradient.json --envelopes results/limit/envelopes/*_$body/summary.json \
         --candidates 3 --rounds 3 --iterations 30 --judge-every 5 --es-pairs 8 --window 0.5 --tail 0.2 \
         --time-limit ${LIMIT_TIME:-390} --out /tmp/limit_$body ${LIMIT_FLAGS:-}
       tar -czf "$OUT/limit_$body.tgz" -C /tmp limit_$body ;;
-    gputests)  # the tests marked gpu (their log goes to docs/ with the device)
+    gputests)  # the tests marked gpu (their log goes to results/ with the device)
       run gputests env JAX_PLATFORMS=cuda,cpu python3 -m pytest -q -n 0 -m gpu -p no:cacheprovider tests ;;
     race)  # issue 35 in about 8 minutes: gradient throughput (new, old settings), gradient quality, the race if
            # time is left; everything in $OUT/race (summary.json, race_gpu.tgz): experiments/campaigns/race_gpu.sh

@@ -7,7 +7,7 @@
 #   .wr/viz.tar.xz         (with --viz) rerun-sdk 0.41.0 without its viewer binary (the SDK records to files; its
 #                          native bindings stripped of symbols) and the notebook runner (nbformat, nbclient, ipykernel
 #                          and what they need that the GPU image lacks), for the gpu set's rerun and notebook tests:
-#                          about 45 MB, so a call of its own on a held machine (.ci/nightly gpu; docs/nightly/).
+#                          about 45 MB, so a call of its own on a held machine (.ci/nightly gpu; results/nightly/).
 # A device call carries 64 MiB with the working tree: each call to a fresh machine carries .wa, one warp third and the
 # race's state (.ws/); three calls on one held machine collect Warp. All these folders are git-ignored.
 #

@@ -1,6 +1,6 @@
 """The check scripts (experiments/checks/, benchmarks/benchmark.py, experiments/acceptance/cpu_targets.py): each
 states its bar in ``--help``, and its ``failures(result)`` passes a result within the bar and fails one outside it.
-Recorded results of docs/ serve as inputs where they exist: some pass, and some (TensorFloat-32 on the GPU, the soak
+The recorded results (results/) serve as inputs where they exist: some pass, and some (TensorFloat-32 on the GPU, the soak
 before the margin fix) are known failures that the bar must catch. No JAX compile: the functions read dicts."""
 
 import ast
@@ -74,7 +74,7 @@ def test_exit_status_follows_the_verdict(capsys):
 
 def test_backend_check_bar_is_one_millimetre():
     bc = script("backend_check")
-    ok = doc("docs/gpu_h200/check/backend_check.json")  # H200: Warp, JAX, C MuJoCo within 4e-6 m
+    ok = doc("results/gpu_h200/check/backend_check.json")  # H200: Warp, JAX, C MuJoCo within 4e-6 m
     assert bc.failures(ok) == []
     bad = copy.deepcopy(ok)
     bad["max_com_difference_m"]["warp-jax"] = 1.5e-3
@@ -86,13 +86,13 @@ def test_backend_check_bar_is_one_millimetre():
 
 def test_envelope_check_bar_is_one_grid_step_in_every_direction():
     ec = script("envelope_check")
-    assert ec.failures(doc("docs/envelope/cpu_mujoco/envelope_check.json")) == []
-    assert ec.failures(doc("docs/envelope/h100_warp_highest/envelope_check.json")) == []  # exactly one step
+    assert ec.failures(doc("results/envelope/cpu_mujoco/envelope_check.json")) == []
+    assert ec.failures(doc("results/envelope/h100_warp_highest/envelope_check.json")) == []  # exactly one step
     # TensorFloat-32 products on the H100 (before SimConfig.matmul_precision): 0.77 N s > the 0.62 N s step.
-    tf32 = ec.failures(doc("docs/envelope/h100_jax_tf32/envelope_check.json"))
+    tf32 = ec.failures(doc("results/envelope/h100_jax_tf32/envelope_check.json"))
     assert len(tf32) >= 1 and all("grid step" in line for line in tf32)
     # The verdict is recomputed from the directions, not read from the recorded flag.
-    forged = doc("docs/envelope/h100_jax_tf32/envelope_check.json")
+    forged = doc("results/envelope/h100_jax_tf32/envelope_check.json")
     forged["within_one_grid_step"] = True
     assert ec.failures(forged) == tf32
 
@@ -156,7 +156,8 @@ def test_island_check_script_exits_1_on_a_far_flip(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "path", ["docs/gpu_h200/queue/queue_check.json", "docs/gpu_h200/queue/constant_activation/queue_check_32.json"]
+    "path",
+    ["results/gpu_h200/queue/queue_check.json", "results/gpu_h200/queue/constant_activation/queue_check_32.json"],
 )
 def test_queue_check_passes_the_measured_floor(path):
     assert script("queue_check").failures(doc(path)) == []
@@ -164,7 +165,7 @@ def test_queue_check_passes_the_measured_floor(path):
 
 def test_queue_check_fails_over_the_bar_and_any_nan_difference():
     qc = script("queue_check")
-    ok = doc("docs/gpu_h200/queue/queue_check.json")
+    ok = doc("results/gpu_h200/queue/queue_check.json")
     n = ok["plain"]["n_envs"]
     bad = copy.deepcopy(ok)
     bad["queued"][1]["outcomes"]["survived"]["differ"] = int(0.02 * n)  # 2 % > 1.5 %
@@ -185,14 +186,14 @@ def test_margin_precision_check_bar():
         "old_default": {"max_abs_err_m": 0.267, "sign_flips": 32},
     }
     assert mp.failures(ok) == []  # the old function is shown, not checked
-    tf32 = dict(ok, current_default=doc("docs/gpu_h200/margin_fix/tf32_check.json")["old_default"])
+    tf32 = dict(ok, current_default=doc("results/gpu_h200/margin_fix/tf32_check.json")["old_default"])
     assert len(mp.failures(tf32)) == 2  # 32 sign flips, 0.27 m off
     assert mp.failures({"n": 256, "current_default": exact}) == ["current_highest: not measured"]
 
 
 def test_kill_trials_bar():
     kt = script("kill_trials")
-    reliability = doc("docs/reliability.json")  # counts only (recorded before the trials were kept)
+    reliability = doc("results/reliability.json")  # counts only (recorded before the trials were kept)
     assert kt.failures(reliability["kill_sweep"]) == []
     assert kt.failures(reliability["kill_tune"]) == []  # 8 of 10 killed, none differs
     assert len(kt.failures(dict(reliability["kill_sweep"], kill_mismatches=2))) == 1
@@ -207,7 +208,7 @@ def test_kill_trials_bar():
 
 def test_soak_bar():
     soak = script("soak")
-    reliability = doc("docs/reliability.json")
+    reliability = doc("results/reliability.json")
     assert soak.failures(reliability["soak_jax_h200_1m"]) == []  # 592 divergences flagged: outcomes, not failures
     leaky = soak.failures(reliability["soak_warp_h200"])  # before the margin fix: 170,317 NaN leaks
     assert len(leaky) == 1 and "NaN leaks" in leaky[0]
@@ -219,10 +220,10 @@ def test_soak_bar():
 
 def test_grad_check_bar():
     gc = script("grad_check")
-    ok = doc("docs/tuning/grad_check_100.json")  # H100, N = 100
+    ok = doc("results/tuning/grad_check_100.json")  # H100, N = 100
     assert gc.failures(ok) == []
     off = copy.deepcopy(ok)
-    off["fd"]["kd_postural"][0]["rel_err"] = 0.09  # the frozen projector's 9 % (docs/tuning/grad_check_sources.json)
+    off["fd"]["kd_postural"][0]["rel_err"] = 0.09  # the frozen projector's 9 % (results/tuning/grad_check_sources.json)
     assert len(gc.failures(off)) == 1 and "kd_postural" in gc.failures(off)[0]
     rough = copy.deepcopy(ok)
     for row in rough["fd"]["kp_com"]:
@@ -244,7 +245,7 @@ def test_benchmark_trajectory_check_bar():
 
 def test_cpu_targets_bar():
     ct = script("cpu_targets")
-    ok = doc("docs/cpu_targets/cpu_targets.json")
+    ok = doc("results/cpu_targets/cpu_targets.json")
     assert ct.failures(ok) == []
     slow = copy.deepcopy(ok)
     slow["main_job"]["met"] = False
@@ -253,7 +254,7 @@ def test_cpu_targets_bar():
 
 def test_bad_input_bar_is_every_case_failing_fast_and_clearly():
     bi = script("bad_input")
-    ok = doc("docs/reliability.json")["bad_input_pass3"]  # 151 cases on the 2-core CPU, all passed
+    ok = doc("results/reliability.json")["bad_input_pass3"]  # 151 cases on the 2-core CPU, all passed
     assert ok["cases"] >= 90 and bi.failures(ok) == []
     bad = copy.deepcopy(ok)
     bad["cases_run"][0].update(ok=False, problems=["exit code 0", "wrote --out"])
@@ -276,7 +277,7 @@ def test_bad_input_bar_is_every_case_failing_fast_and_clearly():
 
 def test_memory_estimate_bar_is_no_measurement_above_the_estimate():
     me = script("memory_estimate")
-    ok = doc("docs/memory_estimate/memory_estimate.json")  # the 2-core CPU: at most 0.66 of the estimate
+    ok = doc("results/memory_estimate/memory_estimate.json")  # the 2-core CPU: at most 0.66 of the estimate
     assert me.failures(ok) == [] and all(r["measured_over_estimate"] <= 1.0 for r in ok["rows"])
     bad = copy.deepcopy(ok)
     bad["rows"][-1]["measured_over_estimate"] = 1.2

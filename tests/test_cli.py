@@ -82,7 +82,7 @@ def test_heldout_reeval_takes_the_heldout_jobs_flags():
         chunk_size=7,
         one_foot=False,
     )
-    assert previous.endswith("docs/tuning/heldout.json")
+    assert previous.endswith("results/tuning/heldout.json")
     with pytest.raises(ValueError, match=r"--chunk-size must be a whole number in \[1, "):
         script.parse(["--chunk-size", "0"])
 

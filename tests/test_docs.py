@@ -1,8 +1,8 @@
 """The written docs match the code (issue 44): every ``wbc_jax.…`` name cited in the package's
 docstrings and in the written markdown imports, each subpackage's docstring lists its modules,
 docs/architecture.md names only modules and files that exist, links between the markdown pages
-resolve, and README.md stays a five-minute read that names every command and carries .ci/run's
-test command verbatim."""
+resolve, README.md stays a five-minute read that names every command and carries .ci/run's
+test command verbatim, and the generated results stay apart from the written pages (results/ and docs/)."""
 
 import ast
 import importlib
@@ -11,10 +11,10 @@ import re
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 PACKAGE = ROOT / "wbc_jax"
-# The written pages (generated result files under docs/ are JSON, CSV, images: not scanned).
+# The written pages (the generated result files are under results/: not scanned).
 TOP_PAGES = [ROOT / "README.md", ROOT / "BENCHMARKS.md"]
 WRITTEN = sorted({*TOP_PAGES, *(ROOT / "experiments").rglob("*.md"), *(ROOT / "docs").rglob("*.md")})
-# A dotted name of the package; not a file name such as docs/peers/wbc_jax.json.
+# A dotted name of the package; not a file name such as results/peers/wbc_jax.json.
 CITED = re.compile(r"(?<![\w/.-])wbc_jax(?:\.[A-Za-z_]\w*)+")
 FILE_SUFFIXES = {"json", "py", "md", "yaml", "yml", "npz", "parquet", "png", "csv", "txt", "log", "cc"}
 
@@ -57,7 +57,9 @@ def test_the_name_check_is_not_vacuous():
     assert _resolves("wbc_jax.sim.loop.ClosedLoop.control")
     assert not _resolves("wbc_jax.sim.rollout.LossTrace")  # a module that is gone
     assert not _resolves("wbc_jax.sim.loop.ClosedLoop.rollout")  # a method that is gone
-    assert _cited("see `wbc_jax.sim.state.LossTrace` and docs/peers/wbc_jax.json.") == {"wbc_jax.sim.state.LossTrace"}
+    assert _cited("see `wbc_jax.sim.state.LossTrace` and results/peers/wbc_jax.json.") == {
+        "wbc_jax.sim.state.LossTrace"
+    }
 
 
 def _modules(folder: pathlib.Path) -> set[str]:
@@ -137,3 +139,45 @@ def test_readme_is_a_five_minute_read_naming_every_command():
     ci_command = (ROOT / ".ci" / "run").read_text().strip().splitlines()[-1]
     assert ci_command.startswith("python3 .ci/install_libtsid.py") and ci_command in readme
     assert "python3 -m pip install -e . && wbc-jax push-sweep" in readme
+
+
+# What may name a result file: every text file of the repository but the results themselves (records keep the
+# docs/ paths they were written with: wbc_jax.core.provenance.current_path), the provenance tests of that reading
+# and this file's own example.
+SCANNED_SUFFIXES = {".py", ".md", ".sh", ".toml", ".ipynb", ".json", ".yaml", ".yml", ".cfg", ""}
+NOT_SCANNED = {ROOT / "tests" / "test_provenance.py", pathlib.Path(__file__).resolve()}
+NAMED_UNDER_DOCS = re.compile(r"(?<![\w./-])docs/(\w[\w.-]*(?:/[\w.-]+)*)")
+
+
+def _results_named_under_docs(text: str) -> list[str]:
+    """The docs/ paths of ``text`` that are not written pages (.md) nor folders of them."""
+    return [
+        f"docs/{rest}"
+        for rest in NAMED_UNDER_DOCS.findall(text)
+        if not rest.endswith(".md") and not (ROOT / "docs" / rest).is_dir()
+    ]
+
+
+def test_docs_holds_only_written_pages_and_each_topic_has_its_results():
+    """docs/ holds markdown only; docs/<topic>/README.md explains results/<topic>/, which exists."""
+    generated = [
+        p.relative_to(ROOT).as_posix() for p in (ROOT / "docs").rglob("*") if p.is_file() and p.suffix != ".md"
+    ]
+    assert not generated, f"generated files belong in results/ (same sub-path): {generated}"
+    topics = [p.parent.name for p in (ROOT / "docs").glob("*/README.md")]
+    assert len(topics) >= 5 and all((ROOT / "results" / t).is_dir() for t in topics), topics
+
+
+def test_nothing_names_a_result_under_docs():
+    example = "--out docs/tuning/heldout.json; docs/tuning/README.md, docs/limit/, ``docs/...``, docs/../x.json"
+    assert _results_named_under_docs(example) == ["docs/tuning/heldout.json"]
+    files = [ROOT / "README.md", ROOT / "BENCHMARKS.md", ROOT / "pyproject.toml", ROOT / ".gitignore"]
+    for folder in ("wbc_jax", "tests", "benchmarks", "experiments", "notebooks", "docs", ".ci", "assets"):
+        files += [p for p in sorted((ROOT / folder).rglob("*")) if p.is_file() and p.suffix in SCANNED_SUFFIXES]
+    stale = [
+        f"{path.relative_to(ROOT)}: {name}"
+        for path in files
+        if path not in NOT_SCANNED and "__pycache__" not in path.parts
+        for name in _results_named_under_docs(path.read_text(errors="replace"))
+    ]
+    assert not stale, "results are under results/ now:\n" + "\n".join(stale)

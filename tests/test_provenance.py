@@ -1,4 +1,4 @@
-"""Results name their inputs (wbc_jax.core.provenance): every result JSON of docs/ that names a gains file of the
+"""Results name their inputs (wbc_jax.core.provenance): every result JSON of results/ that names a gains file of the
 repository records its sha256, and the file still has it; every gains file is in experiments/gains/index.json, exists,
 parses and has the sha256 listed there. JSON only: no JAX."""
 
@@ -14,12 +14,12 @@ from wbc_jax.robot.robots import DESCRIPTIONS
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 INDEX = ROOT / "experiments" / "gains" / "index.json"
-RESULTS = sorted(p for p in (ROOT / "docs").rglob("*.json") if "runs" not in p.parts)
+RESULTS = sorted(p for p in (ROOT / "results").rglob("*.json") if "runs" not in p.parts)
 STATUSES = ("current", "record")
 
 
 def gains_problems(path: pathlib.Path, root: pathlib.Path = ROOT) -> list[str]:
-    """What is wrong with a result of docs/ as a record of its gains files (empty: nothing)."""
+    """What is wrong with a result of results/ as a record of its gains files (empty: nothing)."""
     result = json.loads(path.read_text())
     problems = provenance.check_inputs(result, root) if isinstance(result, dict) else []
     recorded = {}
@@ -27,7 +27,9 @@ def gains_problems(path: pathlib.Path, root: pathlib.Path = ROOT) -> list[str]:
         # A run's gains/provenance.json (tuning/store.py) records each set's inputs in that set's own provenance.
         records = [result] if "provenance" in result else [e for e in result.values() if isinstance(e, dict)]
         recorded = {
-            e["path"]: e["sha256"] for r in records for e in ((r.get("provenance") or {}).get("inputs") or {}).values()
+            provenance.current_path(e["path"]): e["sha256"]
+            for r in records
+            for e in ((r.get("provenance") or {}).get("inputs") or {}).values()
         }
     for name in sorted(provenance.mentioned_files(result)):
         if loader.is_gains_file(root / name) and name not in recorded:
@@ -35,7 +37,7 @@ def gains_problems(path: pathlib.Path, root: pathlib.Path = ROOT) -> list[str]:
     return problems
 
 
-@pytest.mark.parametrize("path", RESULTS, ids=lambda p: p.relative_to(ROOT / "docs").as_posix())
+@pytest.mark.parametrize("path", RESULTS, ids=lambda p: p.relative_to(ROOT / "results").as_posix())
 def test_result_records_the_gains_it_names_and_they_are_unchanged(path):
     problems = gains_problems(path)
     assert not problems, f"{path.relative_to(ROOT)}: " + "; ".join(problems)
@@ -45,12 +47,12 @@ def test_a_result_whose_gains_file_changed_or_is_unrecorded_fails(tmp_path):
     """The check bites: an overwritten gains file, a gains file named without its sha256, a missing one."""
     gains = {k: v.tolist() for k, v in ICUB.default_gain_values().items()}
     (tmp_path / "experiments" / "gains").mkdir(parents=True)
-    (tmp_path / "docs").mkdir()
+    (tmp_path / "results").mkdir()
     target = tmp_path / "experiments" / "gains" / "g.json"
     target.write_text(json.dumps(gains))
     record = {"inputs": {"gains": {"path": "experiments/gains/g.json", "sha256": provenance.sha256(target)}}}
     result = {"command": "wbc-jax push-sweep --gains experiments/gains/g.json", "provenance": record}
-    doc = tmp_path / "docs" / "r.json"
+    doc = tmp_path / "results" / "r.json"
     doc.write_text(json.dumps(result))
     assert gains_problems(doc, tmp_path) == []
     target.write_text(json.dumps({**gains, "kp_com": [1.0, 1.0, 1.0]}))  # overwritten by a later campaign
@@ -78,12 +80,32 @@ def test_inputs_outside_the_repository_are_not_checked():
 def test_mentioned_files_finds_relative_and_absolute_spellings():
     result = {
         "command": "python x.py --sets g=/work/main/experiments/gains/a.json c=experiments/gains/b.json.",
-        "runs": ["(docs/tuning/heldout.json)", "runs/experiments/c.json", "docs/reliability_soak_chunks.jsonl"],
+        "runs": ["(results/tuning/heldout.json)", "runs/experiments/c.json", "results/reliability_soak_chunks.jsonl"],
+        "before_issue_44": "--out docs/limit/limit.json, as docs/limit/README.md says",  # results were under docs/
     }
     assert provenance.mentioned_files(result) == {
         "experiments/gains/a.json",
         "experiments/gains/b.json",
-        "docs/tuning/heldout.json",
+        "results/tuning/heldout.json",
+        "results/limit/limit.json",
+    }
+
+
+def test_a_result_recorded_under_docs_is_read_from_results():
+    """Records written before issue 44 name docs/<path>: the file now at results/<path> is the one checked."""
+    assert provenance.current_path("docs/tuning/issue5/tuned_gains.json") == "results/tuning/issue5/tuned_gains.json"
+    assert provenance.current_path("docs/tuning/README.md") == "docs/tuning/README.md"  # a written page stays
+    assert provenance.current_path("experiments/gains/tuned_gradient.json") == "experiments/gains/tuned_gradient.json"
+    gains = "results/tuning/issue5/tuned_gains.json"
+    legacy = {"provenance": {"inputs": {"gains": {"path": "docs/tuning/issue5/tuned_gains.json", "sha256": ""}}}}
+    legacy["provenance"]["inputs"]["gains"]["sha256"] = provenance.sha256(ROOT / gains)
+    assert provenance.check_inputs(legacy) == []
+    legacy["provenance"]["inputs"]["gains"]["sha256"] = "0" * 64
+    assert provenance.check_inputs(legacy) == [
+        f"gains: docs/tuning/issue5/tuned_gains.json has changed since (sha256 {'0' * 12}...)"
+    ]
+    assert provenance.spellings("--gains /work/main/docs/tuning/issue5/tuned_gains.json", gains) == {
+        "/work/main/docs/tuning/issue5/tuned_gains.json"
     }
 
 
@@ -120,7 +142,7 @@ def _index() -> dict:
 def _repository_gains_files() -> set[str]:
     return {
         provenance.display_path(p)
-        for folder in ("experiments", "docs", "assets")
+        for folder in ("experiments", "results", "assets")
         for p in (ROOT / folder).rglob("*.json")
         if loader.is_gains_file(p)
     }

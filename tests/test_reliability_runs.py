@@ -422,7 +422,7 @@ def test_the_timeline_has_a_row_per_chunk_and_device_within_its_wall_time(finish
 
 SCALING = [
     sys.executable,
-    str(ROOT / "experiments" / "benchmarks" / "scaling.py"),
+    str(ROOT / "benchmarks" / "scaling.py"),
     "--gpus",
     "1",
     "--backends",
@@ -452,7 +452,7 @@ def test_scaling_refuses_a_scaling_json_it_did_not_write_before_running(tmp_path
 
 @pytest.mark.slow
 def test_scaling_writes_only_under_its_out_and_takes_a_second_call_with_other_flags(finished, tmp_path):
-    """experiments/benchmarks/scaling.py on the CPU (C MuJoCo, the fixture's compiled program): its runs
+    """benchmarks/scaling.py on the CPU (C MuJoCo, the fixture's compiled program): its runs
     (with their timelines) and scaling.json under --out alone; a second call with other sweep flags
     keeps the first's rows."""
     out = tmp_path / "scaling"

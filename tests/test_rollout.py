@@ -341,7 +341,7 @@ def test_a_differentiated_loop_is_composed_with_its_trace_and_remat():
 def _float32_com(backend: str, platforms: str, out: pathlib.Path) -> np.ndarray:
     """The benchmark scenario's CoM (T, 3) in float32 on ``backend``, in a process of its own: a
     float32 program traced in this float64 session mixes int64 index constants with int32 sizes,
-    which JAX 0.11 refuses (docs/nightly/gpu_before_fix.log)."""
+    which JAX 0.11 refuses (results/nightly/gpu_before_fix.log)."""
     code = (
         "import numpy as np, sys; from tests.test_rollout import _run; "  # `python -c` puts its cwd first on sys.path
         "np.save(sys.argv[2], np.asarray(_run(sys.argv[1])[1].records.com[0], np.float64))"
@@ -361,10 +361,10 @@ def cpu_float32_com(tmp_path_factory):
 def test_gpu_backends_follow_c_mujoco(runs, cpu_float32_com, backend, tmp_path):
     """On a CUDA GPU (skipped on the CPU): the MJX closed loop (Warp, JAX) in float32 on the GPU
     follows the same loop in float32 on the CPU within 2e-5 m of CoM over the benchmark scenario
-    (the README's 4.0e-6 m between the float32 backends on an H200, docs/gpu_h200/check, with room),
+    (the README's 4.0e-6 m between the float32 backends on an H200, results/gpu_h200/check, with room),
     and the float64 C MuJoCo loop within 2.5e-4 m: float32 itself moves the pushed robot's CoM by
     1.14e-4 m from float64 on the CPU (measured: MJX-JAX float32 against C MuJoCo float64), and by
-    the same on the GPU (docs/nightly/gpu.log)."""
+    the same on the GPU (results/nightly/gpu.log)."""
     if backend == "warp" and not physics.has_warp():
         pytest.skip("warp-lang is not installed (pip install -e '.[gpu]')")
     com_gpu, com_c = _float32_com(backend, "cuda,cpu", tmp_path / "com.npy"), runs["mujoco"][1].records.com[0]

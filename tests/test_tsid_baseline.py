@@ -198,7 +198,7 @@ def test_stand_10s_survives_with_small_drift(peer):
     drift = float(np.linalg.norm(r["com"][-1] - r["com_ref"][-1]))
     print(f"stand: drift {drift:.2e} m, {s}")
     assert s["survived"] and s["qp_infeasible_ticks"] == 0 and not s["nan"]
-    # Measured 8.5e-5 m (the WBC controller: 4.7e-5 m RMSE, docs/balance_acceptance.json).
+    # Measured 8.5e-5 m (the WBC controller: 4.7e-5 m RMSE, results/balance_acceptance.json).
     assert drift < 2e-4 and s["com_rmse_m"] < 2e-4
     assert s["max_foot_slip_m"] < 1e-4 and s["max_foot_tilt_deg"] < 0.05
     # Standing still asks the static torques only (measured 3.54 N m, the WBC's 3.47 N m).
@@ -219,7 +219,7 @@ def test_sinusoid_20s_tracks_the_com(peer):
     print(f"sinusoid: {s}; timing {r['timing']}")
     assert s["survived"] and s["qp_infeasible_ticks"] == 0
     # Measured 0.83 mm; the bar: the WBC controller's 1.00 mm on the same task and plant
-    # (docs/balance_acceptance.json), under the project's tuning bound SINUSOID_MAX_COM_RMSE_M (1.5 mm).
+    # (results/balance_acceptance.json), under the project's tuning bound SINUSOID_MAX_COM_RMSE_M (1.5 mm).
     # Standing still instead of tracking would give 2 cm / sqrt(2) = 14 mm.
     assert s["com_rmse_m"] < 1.0e-3 < constants.SINUSOID_MAX_COM_RMSE_M
     late = r["t"] >= 10.0

@@ -13,7 +13,7 @@ from wbc_jax import cli
 from wbc_jax.jobs import sweep, sweep_config
 from wbc_jax.sim import physics, warp_graphs
 
-scaling = load_script("experiments/benchmarks/scaling.py")
+scaling = load_script("benchmarks/scaling.py")
 
 
 def _one_line(capsys) -> str:
@@ -115,9 +115,9 @@ def test_scaling_processes_report_the_failing_one(tmp_path, monkeypatch):
 
 @pytest.mark.gpu
 def test_the_callback_cost_counts_the_steps_arguments_and_times_both_paths(tmp_path):
-    """experiments/benchmarks/warp_callback_cost.py on warp-lang's own structures (the gpu set)."""
+    """benchmarks/warp_callback_cost.py on warp-lang's own structures (the gpu set)."""
     pytest.importorskip("warp")
-    cost = load_script("experiments/benchmarks/warp_callback_cost.py")
+    cost = load_script("benchmarks/warp_callback_cost.py")
     assert cost.main(["--out", str(tmp_path / "c.json"), "--repeats", "10"]) == 0
     result = json.loads((tmp_path / "c.json").read_text())
     assert result["step_array_arguments"] >= 500  # mujoco-mjx 3.17's step: 559

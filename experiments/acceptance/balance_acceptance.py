@@ -3,8 +3,8 @@
     python experiments/acceptance/balance_acceptance.py [--robot NAME] [--only NAME ...] [--out runs/acceptance]
 
 Runs each scenario with ``wbc_jax.jobs.balance.run`` and merges the metrics into
-``docs/balance_acceptance.json`` (the default robot's; another robot's into
-``docs/<robot>/balance_acceptance.json``; one key per scenario, NAME-mjx on ``--backend jax``;
+``results/balance_acceptance.json`` (the default robot's; another robot's into
+``results/<robot>/balance_acceptance.json``; one key per scenario, NAME-mjx on ``--backend jax``;
 re-running one scenario updates it).
 Scenarios: stand (10 s), sinusoid (20 s, 2 cm at 0.2 Hz), one-foot (16 s), push-qp /
 push-analytic (same lateral push, both force distributions), sinusoid-60-stable /
@@ -26,7 +26,7 @@ from wbc_jax.sim import runner
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 
-# 4 N s lateral: inside the measured survival envelope at 90 deg (~6 N s, docs/sweep_h100).
+# 4 N s lateral: inside the measured survival envelope at 90 deg (~6 N s, results/sweep_h100).
 PUSH = {"push_force": (0.0, 40.0, 0.0), "push_onset": 1.0, "push_duration": 0.1}  # trunk, world +y (left)
 
 SCENARIOS = {
@@ -80,7 +80,7 @@ def main(argv=None) -> None:
     parser.add_argument(
         "--summary",
         default=None,
-        help="default: docs/balance_acceptance.json, another robot's docs/<robot>/balance_acceptance.json",
+        help="default: results/balance_acceptance.json, another robot's results/<robot>/balance_acceptance.json",
     )
     parser.add_argument("--backend", default="auto", help="physics backend (wbc_jax.sim.physics.BACKENDS)")
     parser.add_argument(
@@ -92,9 +92,9 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     record = provenance.record(argv=provenance.script_argv(__file__, argv))
     runner.enable_compilation_cache()  # scenarios of the same shape compile once, as in the CLI
-    docs = ROOT / "docs" if args.robot == DEFAULT_ROBOT else ROOT / "docs" / args.robot
+    results = ROOT / "results" if args.robot == DEFAULT_ROBOT else ROOT / "results" / args.robot
     out = pathlib.Path(args.out) if args.robot == DEFAULT_ROBOT else pathlib.Path(args.out) / args.robot
-    summary_path = pathlib.Path(args.summary) if args.summary else docs / "balance_acceptance.json"
+    summary_path = pathlib.Path(args.summary) if args.summary else results / "balance_acceptance.json"
     summary_path.parent.mkdir(parents=True, exist_ok=True)
     it = args.solver_iterations
     for name in args.only:
@@ -114,7 +114,7 @@ def main(argv=None) -> None:
         current[key] = {**result, "provenance": record}
         io.atomic_write_json(summary_path, current)
     if (out / "sinusoid-60-stable").exists() or (out / "sinusoid-60-seed").exists():
-        figure = docs / "postural_joint_error.png"
+        figure = results / "postural_joint_error.png"
         current = json.loads(summary_path.read_text()) if summary_path.exists() else {}
         current["postural_comparison"] = {**joint_error_figure(out, figure), "provenance": record}
         io.atomic_write_json(summary_path, current)

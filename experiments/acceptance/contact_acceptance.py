@@ -8,7 +8,7 @@ Parts (each writes its keys into OUT/acceptance.json, with the device, precision
 part replaces its keys):
 
 - ``sweep``: the hand-on-table chest-push sweep (experiments/tasks/hand_on_table.yaml, contact
-  detection on; 0.1 s pushes, 20-600 N x 8 directions, 3 s as docs/contacts; ``--quick``: 100-400 N
+  detection on; 0.1 s pushes, 20-600 N x 8 directions, 3 s as results/contacts; ``--quick``: 100-400 N
   x 4 directions, 2 s). ``hand_sweep_max_violation_rel``: the largest violation of a contact's own
   constraints by the commanded wrenches, relative to that contact's normal force, at any tick of any
   environment that did not fall (also given for the strictly surviving ones).
@@ -346,7 +346,7 @@ def main(argv=None) -> dict:
     )
     p.add_argument("--quick", action="store_true", help="CPU sizes (see the module docstring)")
     p.add_argument("--only", nargs="+", choices=PARTS, default=list(PARTS))
-    p.add_argument("--out", default="docs/contacts")
+    p.add_argument("--out", default="results/contacts")
     args = p.parse_args(argv)
     runner.enable_compilation_cache()
     inputs = {"hand_on_table": HAND, "hand_on_wall": WALL, "feet": FEET, "posture": POSTURE}

@@ -1,8 +1,8 @@
-"""docs/limit/controller_<body>.json: the tracking controller's own trajectory as a witness of the limit (issue 43).
+"""results/limit/controller_<body>.json: the tracking controller's own trajectory as a witness of the limit (issue 43).
 
 The limit is the largest impulse from which some torque trajectory recovers; the controller's own (zero feedforward)
-is one. Where a controller envelope (docs/limit/envelopes, judged by the envelope job) lies above every optimiser's
-limit in docs/limit/limit.json, this replays that controller alone at its envelope impulse through the limit's own
+is one. Where a controller envelope (results/limit/envelopes, judged by the envelope job) lies above every optimiser's
+limit in results/limit/limit.json, this replays that controller alone at its envelope impulse through the limit's own
 judge (C MuJoCo, float64, the strict criterion, a batch of its own: ``limit_ddp.CrossCheck.replay_alone`` with zero
 feedforward). A pass is a witness like any other: the file has the cross-check files' format, its optimiser named
 ``"<gain set> controller (u = 0)"`` (``limit_table.ddp_label``); its bracket's upper end is the envelope's own first
@@ -25,8 +25,8 @@ import numpy as np
 from wbc_jax.core import io, loader, provenance
 from wbc_jax.jobs import limit_ddp
 
-LIMIT_JSON = pathlib.Path("docs/limit/limit.json")
-ENVELOPES = pathlib.Path("docs/limit/envelopes")
+LIMIT_JSON = pathlib.Path("results/limit/limit.json")
+ENVELOPES = pathlib.Path("results/limit/envelopes")
 OWN = " controller (u = 0)"  # the optimiser's name of a controller witness, after its gain set
 GAIN_SETS = {
     "tuned": ("tuned_gradient", "experiments/gains/tuned_gradient.json")
@@ -37,9 +37,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--body", default="chest", choices=("chest", "root_link"))
     parser.add_argument("--gain-set", default="tuned", choices=sorted(GAIN_SETS))
-    parser.add_argument("--out", help="default: docs/limit/controller_<body>.json")
+    parser.add_argument("--out", help="default: results/limit/controller_<body>.json")
     args = parser.parse_args()
-    out = pathlib.Path(args.out or f"docs/limit/controller_{args.body}.json")
+    out = pathlib.Path(args.out or f"results/limit/controller_{args.body}.json")
     name, gains = GAIN_SETS[args.gain_set]
     table = loader.read_json(LIMIT_JSON, "limit table")["bodies"][args.body]["directions"]
     envelope_file = ENVELOPES / f"{name}_{args.body}" / "summary.json"

@@ -1,6 +1,6 @@
 """The CPU targets of the CPU-path issue, measured in one run on this machine (no GPU).
 
-    python experiments/acceptance/cpu_targets.py --out docs/cpu_targets [--skip notebooks]
+    python experiments/acceptance/cpu_targets.py --out results/cpu_targets [--skip notebooks]
 
 Each figure comes from the command a user types, run in a subprocess with a fresh compilation
 cache where the target is about a first run:

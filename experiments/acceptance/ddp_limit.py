@@ -1,9 +1,9 @@
-"""docs/limit/ddp_<body>.json: the crocoddyl cross-check of the limit (issue 43), on the CPU.
+"""results/limit/ddp_<body>.json: the crocoddyl cross-check of the limit (issue 43), on the CPU.
 
 Per direction, a bisection over the impulse (:func:`wbc_jax.jobs.limit_ddp.bisect`): crocoddyl's
 BoxFDDP from the C MuJoCo post-push state, tracked in C MuJoCo by the tuned controller with
 feedforward torques and judged by the limit's strict criterion. It starts at the best impulse known
-to pass there (every controller envelope and the limit in docs/limit/limit.json: a test below it
+to pass there (every controller envelope and the limit in results/limit/limit.json: a test below it
 cannot raise the limit) and is capped at the flywheel bound. Directions run ``--batch`` at a time;
 the file is rewritten atomically after every bisection step, and a rerun with the same ``--out``
 resumes: directions already tested keep their tests (and continue if ``--tests`` grew), new
@@ -24,7 +24,7 @@ import numpy as np
 from wbc_jax.core import io, loader, provenance
 from wbc_jax.jobs import limit, limit_ddp
 
-LIMIT_JSON = pathlib.Path("docs/limit/limit.json")
+LIMIT_JSON = pathlib.Path("results/limit/limit.json")
 GAINS = "experiments/gains/tuned_gradient.json"
 
 
@@ -36,7 +36,7 @@ def main() -> None:
     parser.add_argument("--max-iterations", type=int, default=40, help="DDP iterations per solve")
     parser.add_argument("--cop-scale", type=float, default=1.0, help="the DDP's CoP rectangle / the controller's")
     parser.add_argument("--batch", type=int, default=4, help="directions per batch (one C MuJoCo replay batch)")
-    parser.add_argument("--out", help="default: docs/limit/ddp_<body>.json")
+    parser.add_argument("--out", help="default: results/limit/ddp_<body>.json")
     parser.add_argument(
         "--recheck",
         nargs="*",
@@ -46,7 +46,7 @@ def main() -> None:
         "stored witness replayed, or (none stored) solved and replayed anew",
     )
     args = parser.parse_args()
-    out = pathlib.Path(args.out or f"docs/limit/ddp_{args.body}.json")
+    out = pathlib.Path(args.out or f"results/limit/ddp_{args.body}.json")
     if args.batch < 1:
         sys.exit(f"--batch must be >= 1, got {args.batch}")
     table = json.loads(LIMIT_JSON.read_text())["bodies"][args.body]["directions"]

@@ -1,7 +1,7 @@
 """Merge crocoddyl cross-check files of one optimiser (experiments/acceptance/ddp_limit.py runs, e.g. one
 direction per process on a many-core host) into one file (issue 43).
 
-    python experiments/acceptance/ddp_merge.py --into docs/limit/ddp_chest_cop08.json /tmp/ddp/chest_*.json
+    python experiments/acceptance/ddp_merge.py --into results/limit/ddp_chest_cop08.json /tmp/ddp/chest_*.json
 
 Every source must have the target's config except ``directions`` (another setting is another optimiser: a
 file of its own, limit_table.ddp_label), and a direction present twice must have the same content. The result
@@ -148,7 +148,7 @@ def merge_witnesses(into: str, target: dict[str, np.ndarray], sources: list[tupl
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
-        "--into", required=True, help="the merged file (created if missing), e.g. docs/limit/ddp_X.json"
+        "--into", required=True, help="the merged file (created if missing), e.g. results/limit/ddp_X.json"
     )
     parser.add_argument("sources", nargs="+", help="ddp_limit.py files of the same optimiser")
     args = parser.parse_args(argv)

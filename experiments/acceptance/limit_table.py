@@ -1,9 +1,9 @@
-"""docs/limit/limit.json and limit.png: the physical limit of push recovery per pushed body and
+"""results/limit/limit.json and limit.png: the physical limit of push recovery per pushed body and
 direction (``wbc-jax limit`` runs), the LIP bound and the strict envelopes of the default, hand-set
-and tuned gain sets (``wbc-jax envelope`` runs in docs/limit/envelopes), as fractions of the limit.
+and tuned gain sets (``wbc-jax envelope`` runs in results/limit/envelopes), as fractions of the limit.
 
     python experiments/acceptance/limit_table.py --chest runs/limit_chest --root-link runs/limit_root_link \
-        [--ddp-chest docs/limit/ddp_chest.json ...] [--ddp-root-link docs/limit/ddp_root_link.json ...]
+        [--ddp-chest results/limit/ddp_chest.json ...] [--ddp-root-link results/limit/ddp_root_link.json ...]
 
 A body without its limit run keeps its envelopes and LIP bound; ``missing`` in the file names the
 command that fills its limit in.
@@ -17,7 +17,7 @@ import sys
 from wbc_jax.core import io
 from wbc_jax.jobs import limit_table
 
-ENVELOPES = pathlib.Path("docs/limit/envelopes")
+ENVELOPES = pathlib.Path("results/limit/envelopes")
 GAIN_SETS = {"default": "default", "hand-set": "com_critical_100", "tuned": "tuned_gradient"}
 COMMANDS = {
     body: f"bash experiments/gpu_run.sh {job} (one H100), then python experiments/acceptance/limit_table.py "
@@ -42,7 +42,7 @@ def main() -> None:
         default=(),
         help="root_link's crocoddyl cross-checks (ddp_limit.py --body root_link)",
     )
-    parser.add_argument("--out", default="docs/limit")
+    parser.add_argument("--out", default="results/limit")
     args = parser.parse_args()
     bodies = {}
     for body, run, ddp in (("chest", args.chest, args.ddp_chest), ("root_link", args.root_link, args.ddp_root_link)):

@@ -1,9 +1,9 @@
-"""Which gains each recorded result of docs/ was made with, from the repository's history (issue 32, 2026-11-25).
+"""Which gains each recorded result (results/) was made with, from the repository's history (issue 32, 2026-11-25).
 
     python experiments/archive/restore_gain_records.py [--dry-run]
 
 A later campaign overwrote experiments/gains/tuned_*.json, so a result that named one of them by path no longer
-said which gains it had measured. For every result JSON of docs/ that names a gains file of the repository (in its
+said which gains it had measured. For every result JSON of results/ that names a gains file of the repository (in its
 command, its config, its gain sets) and does not yet record its sha256: the commit that wrote the result (the oldest
 commit, following renames, whose copy of the file is today's), that gains file's contents at that commit, and:
 
@@ -16,7 +16,7 @@ run's folder and were copied to experiments/gains/ (docs/tuning/README.md). ``EV
 recorded only if the Nava 2016 damping ratios the result holds for that set (``nava_2016[set].zeta_com``) are the
 file's, K_D,CoM / (2 sqrt(K_P,CoM)).
 
-``provenance.check_inputs`` then holds each result to those files; tests/test_provenance.py runs it over docs/.
+``provenance.check_inputs`` then holds each result to those files; tests/test_provenance.py runs it over results/.
 Needs git and the repository's history. One run did the repair; run again, it finds nothing left to do.
 """
 
@@ -34,18 +34,18 @@ ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 
 EVALUATED = {  # result: {gain set: the copy in experiments/gains/ of the run's gains file}
-    "docs/tuning/heldout.json": {"gradient": "tuned_gradient", "cmaes": "tuned_cmaes", "random": "tuned_random"},
-    "docs/tuning/keep_tracking/heldout.json": {
+    "results/tuning/heldout.json": {"gradient": "tuned_gradient", "cmaes": "tuned_cmaes", "random": "tuned_random"},
+    "results/tuning/keep_tracking/heldout.json": {
         "gradient": "tuned_gradient_keep_tracking",
         "cmaes": "tuned_cmaes_keep_tracking",
         "random": "tuned_random_keep_tracking",
     },
-    "docs/tuning/envelope_scaled/before_margin_fix/heldout.json": {
+    "results/tuning/envelope_scaled/before_margin_fix/heldout.json": {
         "gradient": "tuned_gradient_envelope_scaled",
         "cmaes": "tuned_cmaes_envelope_scaled",
         "random": "tuned_random_envelope_scaled",
     },
-    "docs/tuning/from_critical/heldout.json": {"gradient": "tuned_gradient_from_critical"},
+    "results/tuning/from_critical/heldout.json": {"gradient": "tuned_gradient_from_critical"},
 }
 
 
@@ -80,9 +80,9 @@ def writing_commit(path: str) -> str:
 
 
 def gains_files() -> dict[str, str]:
-    """{sha256: path} of every gains file of the repository (experiments/, docs/, assets/)."""
+    """{sha256: path} of every gains file of the repository (experiments/, results/, assets/)."""
     out = {}
-    for folder in ("experiments", "docs", "assets"):
+    for folder in ("experiments", "results", "assets"):
         for p in sorted((ROOT / folder).rglob("*.json")):
             if loader.is_gains_file(p):
                 out.setdefault(provenance.sha256(p), provenance.display_path(p))
@@ -177,7 +177,7 @@ def main(argv=None) -> int:
     p.add_argument("--dry-run", action="store_true", help="show what would change, write nothing")
     args = p.parse_args(argv)
     known = gains_files()
-    for path in sorted((ROOT / "docs").rglob("*.json")):
+    for path in sorted((ROOT / "results").rglob("*.json")):
         done = repair(path, known, args.dry_run)
         if done:
             print(json.dumps(done), flush=True)

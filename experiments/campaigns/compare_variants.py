@@ -2,7 +2,7 @@
 one foot. Each variant is a `wbc-jax push-sweep` into OUT/<variant>/; the comparison (survival rate
 and envelope fraction of the LIP bound per direction) goes to OUT/comparison.json.
 
-    python experiments/campaigns/compare_variants.py --out docs/variants_cpu \
+    python experiments/campaigns/compare_variants.py --out results/variants_cpu \
         [--magnitudes 20 160 8] [--directions 8] [--horizon 2.5]
 
 Small defaults for the CPU; `experiments/gpu_run.sh variants one-foot` runs a 32 x 16 grid.

@@ -1,8 +1,8 @@
 """The strict envelope against the QP's CoP rectangle (issue: gradient tuning, the 0.8 target).
 
-    python experiments/campaigns/cop_margin.py --out docs/tuning/cop_margin/wbc_8 --scales 1.0 0.9 0.8 0.7 0.6 \
+    python experiments/campaigns/cop_margin.py --out results/tuning/cop_margin/wbc_8 --scales 1.0 0.9 0.8 0.7 0.6 \
         --gains gradient=experiments/gains/tuned_gradient.json critical=assets/gains/com_critical_100.json
-    python experiments/campaigns/cop_margin.py --rectangle sole --out docs/tuning/cop_margin/sole_8 ...
+    python experiments/campaigns/cop_margin.py --rectangle sole --out results/tuning/cop_margin/sole_8 ...
     python experiments/campaigns/cop_margin.py --rectangle sole --scales 0.95 --angular-weights 1 0.1 0.01 ...
 
 Foot tilt ends most directions' strict envelope (experiments/campaigns/envelope_limits.py): the force QP may

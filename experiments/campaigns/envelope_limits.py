@@ -1,6 +1,6 @@
 """Which test of strict survival ends each direction's envelope (issue: gradient tuning, the 0.8 target).
 
-    python experiments/campaigns/envelope_limits.py NAME=SWEEP_DIR ... --out docs/tuning/envelope_limits.json
+    python experiments/campaigns/envelope_limits.py NAME=SWEEP_DIR ... --out results/tuning/envelope_limits.json
 
 For each finished push sweep (gain set 0): per direction, the monotone envelope (largest impulse
 below the first failure, as a fraction of the LIP bound m w d) under the strict criterion, under

@@ -1,10 +1,10 @@
 """Evaluate gains files on issue 20's held-out set again, without their tuning runs.
 
-    python experiments/campaigns/heldout_reeval.py --out runs/heldout_reeval [--previous docs/tuning/heldout.json]
+    python experiments/campaigns/heldout_reeval.py --out runs/heldout_reeval [--previous results/tuning/heldout.json]
         [--sets default gradient=experiments/gains/tuned_gradient.json ...] [--sinusoid-s 0] [wbc-jax heldout's flags]
 
 ``wbc-jax heldout --sets NAME=FILE ...`` evaluates any gains files; this script is that job with the
-budgets and sinusoid figures of an earlier heldout.json kept (the sets of docs/tuning by default), and
+budgets and sinusoid figures of an earlier heldout.json kept (the sets of results/tuning by default), and
 writes heldout.json and envelope_polar.png as ``wbc-jax tune``'s report does. What a gains file does
 not hold is taken from ``--previous`` (a heldout.json): each set's tuning budget (sim_steps, wall_s)
 and, with ``--sinusoid-s 0``, its 20 s sinusoid RMSE (run on C MuJoCo on the host).
@@ -48,7 +48,7 @@ def parse(argv=None):
     cli.add_config_arguments(p, base)
     p.add_argument(
         "--previous",
-        default=str(ROOT / "docs" / "tuning" / "heldout.json"),
+        default=str(ROOT / "results" / "tuning" / "heldout.json"),
         help="heldout.json whose budgets (and sinusoid RMSE, with --sinusoid-s 0) are kept",
     )
     args = p.parse_args(argv)

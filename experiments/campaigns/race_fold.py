@@ -1,7 +1,7 @@
-"""Issue 35's GPU figures in one file, and into docs: what experiments/campaigns/race_gpu.sh ran.
+"""Issue 35's GPU figures in one file, and into results/: what experiments/campaigns/race_gpu.sh ran.
 
     python experiments/campaigns/race_fold.py --from RUNS [--summary FILE] [--docs DIR]
-    python experiments/campaigns/race_fold.py --from RUN --docs DIR --table docs/tuning/race.json
+    python experiments/campaigns/race_fold.py --from RUN --docs DIR --table results/tuning/race.json
 
 The second form folds one race run folder of experiments/campaigns/race_piece.sh (its ``race_<param>.tgz``
 unpacked): its results and gain files into DIR, its rows (one per method x budget) into the table.
@@ -11,7 +11,7 @@ unpacked): its results and gain files into DIR, its rows (one per method x budge
 
 * ``throughput``: physics steps/s with gradient (each step's rollouts x physics steps over its median
   wall time, the first step left out as the train phase does) at the new settings (``new``) and the old
-  (``old``; without it, docs/tuning/train_info.json, the committed before), their ratio, and the
+  (``old``; without it, results/tuning/train_info.json, the committed before), their ratio, and the
   issue's target (500,000) met or not;
 * ``quality``: per estimate, its cosine with the zeroth-order estimate, the directional correlation
   and slope, the consistency over batches and the signal-to-noise ratio (quality.json);
@@ -20,7 +20,7 @@ unpacked): its results and gain files into DIR, its rows (one per method x budge
 
 with the provenance of each file read (sha256) and this command. ``--docs DIR`` also copies the run
 files (train_info, history, quality, profile; race.json, race.png, heldout.json) into ``DIR`` under
-flat names, and race.json beside ``DIR`` (docs/tuning/race.json for ``--docs docs/tuning/race_h100``).
+flat names, and race.json beside ``DIR`` (results/tuning/race.json for ``--docs results/tuning/race_h100``).
 Exits 1 when no figure was found.
 """
 
@@ -37,7 +37,7 @@ import tempfile
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 TARGET_STEPS_PER_S = 500_000.0  # issue 35
-BEFORE = ROOT / "docs" / "tuning" / "train_info.json"  # the committed H100 figure (unrolled solver, batch 1,024)
+BEFORE = ROOT / "results" / "tuning" / "train_info.json"  # the committed H100 figure (unrolled solver, batch 1,024)
 QUALITY_KEYS = ("cosine_zeroth_order", "directional_correlation", "directional_slope", "batch_consistency", "snr")
 
 
@@ -202,7 +202,7 @@ def race_rows(run: pathlib.Path) -> list[dict]:
 
 def fold_piece(run: pathlib.Path, docs: pathlib.Path, table: pathlib.Path) -> dict:
     """Copy a race run folder's results and gain files into ``docs`` and merge its rows into ``table``
-    (docs/tuning/race.json: the rows of every parameterisation raced so far, one GPU kind)."""
+    (results/tuning/race.json: the rows of every parameterisation raced so far, one GPU kind)."""
     from wbc_jax.core import io
 
     for rel in PIECE_FILES:
@@ -264,12 +264,12 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--from", dest="src", required=True, help="race_gpu.sh's run folder or race_gpu.tgz")
     p.add_argument("--summary", default=None, help="summary.json to write (default: DOCS/summary.json)")
-    p.add_argument("--docs", default=None, help="docs folder to fold the files into, e.g. docs/tuning/race_h100")
+    p.add_argument("--docs", default=None, help="results folder to fold the files into, e.g. results/tuning/race_h100")
     p.add_argument(
         "--table",
         default=None,
         help="with --docs: --from is a race run folder of race_piece.sh "
-        "(RUNS/<param>); fold it into DOCS and merge its rows into TABLE (docs/tuning/race.json)",
+        "(RUNS/<param>); fold it into DOCS and merge its rows into TABLE (results/tuning/race.json)",
     )
     args = p.parse_args(argv)
     from wbc_jax.core import io

@@ -5,7 +5,7 @@
 #   a. gradient throughput at the new settings (--solver-gradient implicit, --checkpoint tick, batch
 #      $RACE_BATCH, 2,048): `wbc-jax tune --phases train` (compile + $RACE_STEPS (2) steps: train_info.json,
 #      history.csv with each step's time), then at the old settings (--solver-gradient unrolled,
-#      batch 1,024) when $RACE_OLD_NEED seconds are left (else the before is docs/tuning/train_info.json);
+#      batch 1,024) when $RACE_OLD_NEED seconds are left (else the before is results/tuning/train_info.json);
 #   b. gradient quality on the same program (phase quality, --quality-directions 0: no other compile),
 #      then phase profile (the per-tick parts, implicit against unrolled solver gradients);
 #   c. the race at a $RACE_BUDGET s wall budget per method, with its sets also kept at $RACE_SNAPSHOTS s
@@ -18,8 +18,8 @@
 #   bash experiments/campaigns/race_gpu.sh OUT_DIR   # TINY=1: tiny sizes (CPU check); RACE_PARTS="new profile old race"
 #
 # Writes OUT_DIR/summary.json (experiments/campaigns/race_fold.py: the figures and their provenance) and
-# OUT_DIR/race_gpu.tgz (every run folder, less checkpoints' caches). Fold into docs with
-#   python experiments/campaigns/race_fold.py --from <returned OUT_DIR or the tgz> --docs docs/tuning/race_h100
+# OUT_DIR/race_gpu.tgz (every run folder, less checkpoints' caches). Fold into results/ with
+#   python experiments/campaigns/race_fold.py --from <returned OUT_DIR or the tgz> --docs results/tuning/race_h100
 set -uo pipefail
 OUT_DIR=${1:?usage: race_gpu.sh OUT_DIR}
 mkdir -p "$OUT_DIR"
@@ -69,7 +69,7 @@ if [ "$(left)" -ge "${RACE_OLD_NEED:-330}" ]; then
   part old "$(cap 330)" "${TUNE[@]}" --out "$RUNS/old" --phases train --steps 2 --batch "$OLD_B" \
     --quality-pushes "$OLD_B" --solver-gradient unrolled --checkpoint tick "${COMMON[@]}"
 else
-  echo "part old: skipped ($(left)s left; the before is docs/tuning/train_info.json)"
+  echo "part old: skipped ($(left)s left; the before is results/tuning/train_info.json)"
 fi
 if [ "$(left)" -ge "${RACE_C_NEED:-600}" ]; then
   read -r -a SNAPSHOTS <<< "${RACE_SNAPSHOTS:-}"  # wall times [s] within the budget: more race budgets

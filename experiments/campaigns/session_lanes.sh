@@ -79,6 +79,6 @@ case "$ACTION" in
     nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv,noheader; uptime
     mkdir -p "$OUT"
     tar -czf "$OUT/results.tgz" -C / tmp/race_q tmp/race_p tmp/ddp tmp/scaling4/scaling.json \
-      "${LANES#/}"/repo/docs/nightly/gpu.log $(cd / && ls -d "${LANES#/}"/*/log.txt "${LANES#/}"/*/out "${LANES#/}"/*/done 2>/dev/null) 2>/dev/null
+      "${LANES#/}"/repo/results/nightly/gpu.log $(cd / && ls -d "${LANES#/}"/*/log.txt "${LANES#/}"/*/out "${LANES#/}"/*/done 2>/dev/null) 2>/dev/null
     ls -la "$OUT" ;;
 esac

@@ -1,6 +1,6 @@
 """Why tuned gains lose the seed's CoM sinusoid: tracking error and posture drift over time.
 
-    python experiments/campaigns/sinusoid_drift.py --out docs/tuning/stiff_com/drift.json
+    python experiments/campaigns/sinusoid_drift.py --out results/tuning/stiff_com/drift.json
 
 On C MuJoCo (the ``balance`` closed loop): (1) the CoM RMSE of each gain set on the sinusoid task
 run for 2, 5, 10 and 20 s (does a short window rank the sets as the 20 s bound does?); (2) for the

@@ -1,9 +1,9 @@
 """Tuned gains that keep the seed's task: raise K_P,CoM in x and y to a floor, keep the damping ratios.
 
-    python experiments/campaigns/stiffen_com.py --out docs/tuning/stiff_com [--floors 30 50 70 85 100] [--write-gains]
+    python experiments/campaigns/stiffen_com.py --out results/tuning/stiff_com [--floors 30 50 70 85 100] [--write-gains]
         [--restore-yaw]
 
-The three tuners of docs/tuning lower K_P,CoM in x and y from 100 to 15-22, and the seed's 20 s CoM
+The three tuners of results/tuning lower K_P,CoM in x and y from 100 to 15-22, and the seed's 20 s CoM
 sinusoid (2 cm along y at 0.2 Hz) is then tracked with 2.2-4.4 mm RMSE against issue 20's bound of
 1.5 mm. This measures, on C MuJoCo (the ``balance`` closed loop, all sets in one batch), the
 sinusoid RMSE of each tuned set with K_P,CoM x, y raised to each floor (K_D,CoM = 2 zeta sqrt(K_P,CoM),

@@ -2,7 +2,7 @@
 second pass).
 
     python experiments/checks/bad_input.py                    # run every case, print a table
-    python experiments/checks/bad_input.py --record           # and write the cases into docs/reliability.json
+    python experiments/checks/bad_input.py --record           # and write the cases into results/reliability.json
 
 A case passes when the command fails fast and clearly: exit code 2, within --max-seconds (30 s on
 the 2-core CPU machine: the check comes before anything compiles), no traceback, one error line
@@ -640,7 +640,7 @@ def main(argv=None) -> dict:
     p.add_argument("--timeout", type=float, default=120.0, help="a case still running after this is a hang (s)")
     p.add_argument("-k", default=None, help="only cases whose command contains this text")
     p.add_argument("--out", default="runs/bad_input", help="folder of bad_input.json")
-    p.add_argument("--record", action="store_true", help="also write the cases into docs/reliability.json")
+    p.add_argument("--record", action="store_true", help="also write the cases into results/reliability.json")
     args = p.parse_args(argv)
     env = {**os.environ, "JAX_PLATFORMS": os.environ.get("JAX_PLATFORMS", "cpu")}
     rows = []
@@ -682,7 +682,7 @@ def main(argv=None) -> dict:
     result["check"] = checks.verdict(failures(result), BAR)
     io.atomic_write_json(pathlib.Path(args.out) / "bad_input.json", result)
     if args.record:
-        path = ROOT / "docs" / "reliability.json"
+        path = ROOT / "results" / "reliability.json"
         doc = json.loads(path.read_text()) if path.exists() else {}
         doc.pop("bad_input_pass2", None)  # the second pass's cases are in git history
         doc["bad_input_pass3"] = {k: v for k, v in result.items() if k != "provenance"}

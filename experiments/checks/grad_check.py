@@ -9,7 +9,7 @@ magnitudes 0-150 N and azimuths, friction 0.6-1.2, mass +-10 %, joint noise), a 
 non-finite values, and central finite differences against the gradient for every parameter
 group on the first scenarios: the CoM, angular-momentum and postural gains and damping ratios and
 the regularisation (Reg.pinvDamp, Reg.KP_postural). Prints one JSON line (and writes it to
---out). tests/test_tune.py runs it with N = 24; docs/tuning/grad_check_100.json is N = 100.
+--out). tests/test_tune.py runs it with N = 24; results/tuning/grad_check_100.json is N = 100.
 XLA's backend optimisation is lowered by the caller (XLA_FLAGS) to keep the compile to minutes on
 a 2-core CPU.
 

@@ -1,6 +1,6 @@
 """Are the survival islands of a push sweep numerical artefacts? Compare the same grid run with
 different numerics or engines (the ``agree`` and ``regrid`` jobs of ``experiments/gpu_run.sh``; on
-2026-11-23 float32 with 4 and 8 Newton iterations and float64 with 4, docs/sweep_h100/islands/).
+2026-11-23 float32 with 4 and 8 Newton iterations and float64 with 4, results/sweep_h100/islands/).
 
     python experiments/checks/island_check.py SWEEP_DIR [SWEEP_DIR ...] --out FILE
 

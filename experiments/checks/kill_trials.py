@@ -8,7 +8,7 @@ Each trial starts the job in a subprocess on the same --out, sends SIGKILL after
 (uniform in --kill-after), and starts it again until it exits 0; then the result files are
 compared with a reference run that was never interrupted: the sweep's results.parquet (every
 column, every env, exactly), the tuning run's gradient/history.csv (losses and gradient norms) and
-gains/gradient.json. Writes kill_<job>.json into --out (and the kill keys of docs/reliability.json
+gains/gradient.json. Writes kill_<job>.json into --out (and the kill keys of results/reliability.json
 with --record).
 
 The check (:func:`failures`): every trial's resumed results equal the reference's, and at least
@@ -189,7 +189,7 @@ def main(argv=None) -> dict:
 
     io.atomic_write_json(out / f"kill_{args.job}.json", result)
     if args.record:
-        path = ROOT / "docs" / "reliability.json"
+        path = ROOT / "results" / "reliability.json"
         current = json.loads(path.read_text()) if path.exists() else {}
         current[f"kill_{args.job}"] = result
         io.atomic_write_json(path, current)

@@ -12,7 +12,7 @@ run while the main thread waits inside XLA). Counted: environments, hangs, NaN l
 should be finite but is not, for an environment not flagged as diverged; or a non-finite
 aggregate), flagged divergences, falls. Chunk c's scenarios come from the seed (--seed, c), and each
 finished chunk is appended to --out/chunks.jsonl, so a stopped soak resumes where it stopped with
-the same scenarios. Writes soak.json into --out and the soak keys of docs/reliability.json with
+the same scenarios. Writes soak.json into --out and the soak keys of results/reliability.json with
 --record.
 
 The check (:func:`failures`): no hang, no NaN leak, every environment run; exit status 1
@@ -125,7 +125,7 @@ def main(argv=None) -> dict:
     p.add_argument("--chunk-timeout", type=float, default=1800.0, help="s; a chunk slower than this is a hang")
     p.add_argument("--quick", action="store_true", help="256 envs in chunks of 64 (a CPU check)")
     p.add_argument("--out", default="runs/soak")
-    p.add_argument("--record", action="store_true", help="also merge the figures into docs/reliability.json")
+    p.add_argument("--record", action="store_true", help="also merge the figures into results/reliability.json")
     args = p.parse_args(argv)
     if args.quick:
         args.envs, args.chunk = 256, 64
@@ -226,7 +226,7 @@ def main(argv=None) -> dict:
     result["check"] = checks.verdict(failures(result), BAR)
     io.atomic_write_json(out / "soak.json", result)
     if args.record:
-        path = ROOT / "docs" / "reliability.json"
+        path = ROOT / "results" / "reliability.json"
         current = json.loads(path.read_text()) if path.exists() else {}
         current["soak"] = result
         io.atomic_write_json(path, current)

@@ -8,7 +8,7 @@
    force distribution); the envelope gain per direction is the ratio of the largest impulses
    survived below the first failure.
 
-    python experiments/demos/contact_demos.py --out docs/contacts            # GPU: a few minutes
+    python experiments/demos/contact_demos.py --out results/contacts            # GPU: a few minutes
     python experiments/demos/contact_demos.py --duration 2 --magnitudes 100 300 2 --directions 1  # CPU check
 
 Writes OUT/demos.json, OUT/hand_on_table/ (balance run: metrics, trajectory, plots) and

@@ -1,6 +1,6 @@
 """Demonstrations 1-2 of the general task hierarchy: reaching while balancing, priority inversion.
 
-    python experiments/demos/hierarchy_demos.py [--duration 20] [--out docs/hierarchy] [--runs NAME ...]
+    python experiments/demos/hierarchy_demos.py [--duration 20] [--out results/hierarchy] [--runs NAME ...]
 
 Closed-loop runs of the ``stand`` task (two feet, constant CoM reference), each a
 ``wbc-jax balance`` run with a task file of experiments/tasks/:
@@ -59,7 +59,7 @@ def summarize(out: pathlib.Path, duration: float) -> dict:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--duration", type=float, default=20.0)
-    parser.add_argument("--out", default="docs/hierarchy")
+    parser.add_argument("--out", default="results/hierarchy")
     parser.add_argument("--runs", nargs="+", default=list(RUNS), choices=list(RUNS))
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)

@@ -55,7 +55,7 @@ class ControllerConfig:
         momentum QP (1: WBC; < 1: the CoM first where a push asks more than the feet can give).
       normal_force_weight: desired normal forces against the torques in the force QP.
       freeze_postural_projector: hold the postural projector constant in derivatives (the earlier,
-        inexact gradient; kept for comparison: docs/tuning/grad_check_sources.json).
+        inexact gradient; kept for comparison: results/tuning/grad_check_sources.json).
       solution_damping, projector_reg: of the motion-task hierarchy (None: by precision,
         :data:`wbc_jax.control.hierarchy.SOLUTION_DAMPING` / :data:`wbc_jax.control.hierarchy.PROJECTOR_REG`).
       effort_damping: mu >= 0 of the hierarchy's effort-bounded pseudo-inverses

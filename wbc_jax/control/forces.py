@@ -185,7 +185,7 @@ def soft_momentum_qp(
 
     (c = ``settings.torque_weight_soft``; W = diag(1, 1, 1, a, a, a) with a =
     ``settings.angular_weight_soft``: a < 1 keeps the force that moves the CoM and gives up the
-    angular-momentum rate first, docs/tuning/angular_weight/). Arguments as :func:`momentum_equality_qp`."""
+    angular-momentum rate first, results/tuning/angular_weight/). Arguments as :func:`momentum_equality_qp`."""
     dtype = A.dtype
     keep = _row_mask(cset, mask)
     C, b = constraints(cset, W_R, jnp.ones(len(cset.contacts), dtype))

@@ -153,7 +153,7 @@ def postural_torque(
     ``pinv_damping``, so N_Lambda must be I - damped_pinv(Lambda, pinv_damping) Lambda (no default
     damping: a mismatch would give a projector of another X). Holding P constant in derivatives
     (``freeze_projector``, kept for comparison) made reverse-mode gradients differ from central
-    differences by up to 9 % (docs/tuning/grad_check_sources.json); differentiated, they agree to 1e-6.
+    differences by up to 9 % (results/tuning/grad_check_sources.json); differentiated, they agree to 1e-6.
     """
     if variant == "seed":
         return -kp * s_err - kd * s_dot

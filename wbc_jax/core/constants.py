@@ -2,7 +2,7 @@
 
 This module imports neither JAX nor MuJoCo: the baseline's worker processes load it alone.
 Sources of the numbers: the whole-body-controllers conventions (robotology) and the measurements in
-docs/ of this repository; robot-specific numbers live in the robot descriptions (wbc_jax/robot/).
+results/ of this repository; robot-specific numbers live in the robot descriptions (wbc_jax/robot/).
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ SURVIVAL_MAX_TILT_DEG = 5.0
 SURVIVAL_END_COM_SPEED = 0.05  # m/s: CoM speed at the end
 # Tuned gains must keep the seed's task: CoM RMSE on the 20 s sinusoid (issue 20's bound).
 SINUSOID_MAX_COM_RMSE_M = 1.5e-3
-# Tuning bounds that keep that bound (docs/tuning/README.md, docs/tuning/stiff_com/ and keep_tracking/; measured
+# Tuning bounds that keep that bound (docs/tuning/README.md, results/tuning/stiff_com/ and keep_tracking/; measured
 # on the tuned sets of 2026-11-25): K_P,CoM in x and y at least this, and the yaw (z) entries of the
 # angular-momentum task, K_I,w and its damping ratio, at least this fraction of the WBC defaults.
 TRACKING_KP_COM_FLOOR = 30.0

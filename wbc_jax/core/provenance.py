@@ -8,7 +8,8 @@ contents (sha256) of every input file, in one format for every job and script.
 has changed since, so a figure whose gains file was later overwritten is caught;
 :func:`mentioned_files` lists the repository files a result names anywhere (its command, config,
 notes), so a gains file named without its sha256 is caught too (tests/test_provenance.py runs both
-over every result file in docs/).
+over every result file in results/). Results recorded before results/ was split from docs/ name
+``docs/<path>``: :func:`current_path` reads that as ``results/<path>``, so their records stay as written.
 """
 
 from __future__ import annotations
@@ -66,9 +67,17 @@ def display_path(path) -> str:
     return p.as_posix()
 
 
+def current_path(relative: str) -> str:
+    """Where a recorded repository path lies now: generated results were under docs/ until issue 44
+    moved them to results/ (same sub-path); docs/ keeps only the written pages (.md)."""
+    head, _, rest = relative.partition("/")
+    return f"results/{rest}" if head == "docs" and not rest.endswith(".md") else relative
+
+
 def _repository_file(base: pathlib.Path, relative: str) -> pathlib.Path:
-    """The file of a recorded relative path: ``assets/...`` is the package data when ``base`` is this
-    package's repository (an installed wheel has no repository around its data)."""
+    """The file of a recorded relative path (:func:`current_path`): ``assets/...`` is the package data
+    when ``base`` is this package's repository (an installed wheel has no repository around its data)."""
+    relative = current_path(relative)
     head, _, rest = relative.partition("/")
     return ASSETS / rest if head == "assets" and base == REPO_ROOT else base / relative
 
@@ -177,10 +186,13 @@ def check_inputs(result: dict, base: pathlib.Path = REPO_ROOT) -> list[str]:
     return problems
 
 
-# A repository file named in a result's text: experiments/..., docs/... or assets/... (relative, or
-# absolute with the repository's folder before it), ending in .json, .yaml or .yml.
-_FOLDERS = ("experiments", "docs", "assets")
-_NAMED_FILE = re.compile(r"(?<![\w./-])((?:/[\w.-]+)*/?(?:experiments|docs|assets)/[\w./-]*?\.(?:json|ya?ml))(?![\w-])")
+# A repository file named in a result's text: experiments/..., results/..., assets/... or docs/... (results
+# recorded before issue 44; relative, or absolute with the repository's folder before it), ending in .json,
+# .yaml or .yml.
+_FOLDERS = ("experiments", "results", "assets", "docs")
+_NAMED_FILE = re.compile(
+    r"(?<![\w./-])((?:/[\w.-]+)*/?(?:experiments|results|assets|docs)/[\w./-]*?\.(?:json|ya?ml))(?![\w-])"
+)
 
 
 def _relative(token: str) -> str:
@@ -190,8 +202,9 @@ def _relative(token: str) -> str:
 
 
 def mentioned_files(result) -> set[str]:
-    """Repository paths (experiments/..., docs/..., assets/...; .json, .yaml) named in any string of a result,
-    absolute spellings made relative: the files its command, config and notes refer to."""
+    """Repository paths (experiments/..., results/..., assets/...; .json, .yaml) named in any string of a result,
+    absolute spellings made relative, results under docs/ by their place now (:func:`current_path`): the files its
+    command, config and notes refer to."""
     found = set()
 
     def walk(x):
@@ -202,12 +215,13 @@ def mentioned_files(result) -> set[str]:
             for v in x:
                 walk(v)
         elif isinstance(x, str):
-            found.update(_relative(t) for t in _NAMED_FILE.findall(x))
+            found.update(current_path(_relative(t)) for t in _NAMED_FILE.findall(x))
 
     walk(result)
     return found
 
 
 def spellings(text: str, path: str) -> set[str]:
-    """The substrings of ``text`` that name the repository file ``path`` (relative or absolute)."""
-    return {t for t in _NAMED_FILE.findall(text) if _relative(t) == path}
+    """The substrings of ``text`` that name the repository file ``path`` (relative or absolute, or under docs/
+    as results recorded before issue 44 name it)."""
+    return {t for t in _NAMED_FILE.findall(text) if current_path(_relative(t)) == path}

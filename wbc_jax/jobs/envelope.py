@@ -37,7 +37,7 @@ from wbc_jax.robot import model
 from wbc_jax.sim import metrics as metrics_lib
 from wbc_jax.sim import runner, scenario
 
-# The grid of the documented sweeps (docs/sweep_h100): 64 trunk pushes of 10-400 N for 0.1 s.
+# The grid of the documented sweeps (results/sweep_h100): 64 trunk pushes of 10-400 N for 0.1 s.
 DEFAULT_MAGNITUDES = tuple(float(x) for x in np.linspace(10.0, 400.0, 64))
 # Bisection rounds inside one grid step at most: 2^-20 of a step is far below any engine's
 # run-to-run variation.

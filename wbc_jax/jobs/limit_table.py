@@ -1,4 +1,4 @@
-"""The table of docs/limit: per pushed body and direction, the physical limit of push recovery
+"""The table of results/limit: per pushed body and direction, the physical limit of push recovery
 (``wbc-jax limit`` summaries), the feet-in-place LIP bound and the strict envelopes of controllers
 (``wbc-jax envelope`` summaries), each as a fraction of the limit.
 
@@ -154,7 +154,7 @@ def _targets(rows: dict, summary: dict | None) -> dict:
 
 
 def write(out_dir, bodies: dict, commands: dict, robot: str) -> dict:
-    """docs/limit/limit.json and limit.png from ``bodies`` {body: {"limit": summary path or None,
+    """results/limit/limit.json and limit.png from ``bodies`` {body: {"limit": summary path or None,
     "envelopes": {label: summary path}, "ddp": the crocoddyl cross-checks' files (optional)}}; ``commands`` {body: the command that fills in a missing
     body's limit}; ``robot``: the robot's name."""
     from wbc_jax.report import limit_plots

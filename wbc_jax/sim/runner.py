@@ -345,7 +345,7 @@ def _run_mjx_queue(
     (:func:`wbc_jax.sim.mjx_loop.rollout_queue`, vmap over its slots; :class:`PerDevice`). A
     scenario's outcome does not depend on the slot that runs it, so the results equal the plain
     run's on any number of devices. ``check_ticks``: the most ticks between hand-ins
-    (``experiments/benchmarks/queue_overhead.py`` varies it)."""
+    (``benchmarks/queue_overhead.py`` varies it)."""
     loop, dtype = setup_.loop, setup_.dtype
     mesh = device_mesh()
     n_dev = mesh.devices.size

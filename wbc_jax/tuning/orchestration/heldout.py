@@ -2,7 +2,7 @@
 
 What a gain set is judged on, none of which the tuning loss saw (S gain sets; :class:`HeldoutConfig`):
 
-* the push grid of ``docs/sweep_h100`` (the trunk, 0.1 s at 0.5 s, M magnitudes x D directions, 3 s),
+* the push grid of ``results/sweep_h100`` (the trunk, 0.1 s at 0.5 s, M magnitudes x D directions, 3 s),
   on the held-out backend: strict survival rate, envelope (largest survived impulse per direction)
   as a fraction of the feet-in-place LIP bound, min / median over directions;
 * unseen variations (:data:`wbc_jax.tuning.heldout_config.VARIATIONS`): pushes on the left hand (the body of

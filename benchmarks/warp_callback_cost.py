@@ -1,7 +1,7 @@
 """The host work of one MJX-Warp step's callback, without a GPU (issue 45, BENCHMARKS.md "Why 4 GPUs of Warp were
 slower").
 
-    python experiments/benchmarks/warp_callback_cost.py --out docs/scaling/warp_callback_cost_cpu.json
+    python benchmarks/warp_callback_cost.py --out results/scaling/warp_callback_cost_cpu.json
 
 Each time XLA reaches MJX-Warp's step, Warp's callback runs under its process-wide lock
 (warp/_src/jax/ffi.py:896). Its two Python paths are timed here on this host, on warp-lang's own
@@ -92,7 +92,7 @@ def main(argv=None) -> int:
         "replay_key_s": replay_key_seconds(n, args.repeats),
         "wrap_buffers_s": wrap_seconds(n, max(10, args.repeats // 10)),
         "warp": wp.__version__,
-        "provenance": provenance.record(argv=["experiments/benchmarks/warp_callback_cost.py", *sys.argv[1:]]),
+        "provenance": provenance.record(argv=["benchmarks/warp_callback_cost.py", *sys.argv[1:]]),
     }
     io.atomic_write_json(pathlib.Path(args.out), result)
     print(result)

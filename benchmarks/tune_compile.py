@@ -1,7 +1,7 @@
 """Where the gradient program's build time goes: trace (Python: jaxpr of value_and_grad(vmap(
 closed loop))), lowering (StableHLO) and XLA compilation, then two timed steps.
 
-    python experiments/benchmarks/tune_compile.py --batch 4 --horizon 1.0 [--no-seed-carry] [--checkpoint none]
+    python benchmarks/tune_compile.py --batch 4 --horizon 1.0 [--no-seed-carry] [--checkpoint none]
         [--solver-iterations 2] [--mode grad|forward] [--no-compile] [--cache DIR] [--out FILE]
 
 Prints one JSON line (appended to --out): trace_s, lower_s, stablehlo_lines, compile_s, hlo_lines,

@@ -1,6 +1,6 @@
 """Where a control tick's time goes (issue: GPU throughput, "a cheaper controller tick").
 
-    python experiments/benchmarks/profile_tick.py --batch 65536 --out runs/profile_tick [--trace DIR]
+    python benchmarks/profile_tick.py --batch 65536 --out runs/profile_tick [--trace DIR]
 
 Times each stage of the controller tick on its own, jitted and vmapped over ``--batch`` states
 near the standing posture, on this device: the dynamics terms (kinematics, its derivative, mass

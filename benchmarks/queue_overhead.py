@@ -1,6 +1,6 @@
 """What the queue's machinery costs by itself (issue: GPU throughput, retire-and-refill).
 
-    python experiments/benchmarks/queue_overhead.py --out runs/queue_overhead -- [push-sweep flags]
+    python benchmarks/queue_overhead.py --out runs/queue_overhead -- [push-sweep flags]
 
 Runs the sweep's scenarios as one batch three ways in one process, each timed twice after its
 compile: the plain program, and the queue program (``runner._run_mjx_queue``) with one

@@ -1,6 +1,6 @@
 """Time one push sweep several times in one process (issue: GPU throughput, "know what you measure").
 
-    python experiments/benchmarks/sweep_timing.py --out runs/sweep_timing --repeats 2 -- [push-sweep flags]
+    python benchmarks/sweep_timing.py --out runs/sweep_timing --repeats 2 -- [push-sweep flags]
 
 Runs ``wbc-jax push-sweep`` with the given flags ``--repeats`` times, each into its own folder
 (same compiled programs), and reports each run's compile and run seconds: the first run pays the

@@ -1,6 +1,6 @@
 """One GPU against several: run time, speed-up and outcome agreement of the same push sweep (issue 33).
 
-    python experiments/benchmarks/scaling.py --out docs/scaling --gpus 1 2 --backends warp jax -- SWEEP FLAGS
+    python benchmarks/scaling.py --out results/scaling --gpus 1 2 --backends warp jax -- SWEEP FLAGS
 
 For each backend and GPU count, one process (``CUDA_VISIBLE_DEVICES`` = the first N GPUs) runs
 ``wbc-jax push-sweep SWEEP FLAGS`` ``--repeats`` times (the last run is the steady-state timing;
@@ -118,7 +118,7 @@ def earlier_calls(path: pathlib.Path) -> dict:
 
 def _free_port() -> int:
     """A free TCP port on localhost (experiments/checks/multihost_check.py's)."""
-    path = pathlib.Path(__file__).resolve().parents[1] / "checks" / "multihost_check.py"
+    path = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "checks" / "multihost_check.py"
     spec = importlib.util.spec_from_file_location("multihost_check", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
@@ -306,7 +306,7 @@ def main(argv=None) -> int:
         "sweep_flags": flags,
         "rows": rows,
         "failures": failures,
-        "provenance": provenance.record(argv=["experiments/benchmarks/scaling.py", *argv]),
+        "provenance": provenance.record(argv=["benchmarks/scaling.py", *argv]),
     }
     every = list(calls.values())
     result = {
