@@ -315,7 +315,7 @@ def acceptance(work: pathlib.Path, baseline: pathlib.Path, summary: pathlib.Path
         summary = work / "balance_acceptance.json"
         cmd = [
             sys.executable,
-            str(ROOT / "experiments" / "balance_acceptance.py"),
+            str(ROOT / "experiments" / "acceptance" / "balance_acceptance.py"),
             "--out",
             str(work / "acceptance"),
             "--summary",

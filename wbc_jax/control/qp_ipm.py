@@ -21,9 +21,6 @@ Array = jax.Array
 _STEP_TO_BOUNDARY = 0.99  # fraction of the max step keeping s, lam > 0
 
 
-_STEP_TO_BOUNDARY = 0.99  # fraction of the max step keeping s, lam > 0
-
-
 @dataclasses.dataclass(frozen=True)
 class IPMResult:
     """Raw interior-point result in the units of the original problem."""
@@ -184,44 +181,50 @@ def interior_point(
         Cx = Cs @ x
         r_d = Hx + gs + Cz
         r_p = Cx + s - bs
-        res_d = jnp.max(jnp.abs(r_d)) / (1.0 + jnp.maximum(jnp.max(jnp.abs(Hx)), jnp.max(jnp.abs(Cz))))
-        res_p = jnp.max(jnp.abs(r_p)) / (1.0 + jnp.max(jnp.abs(Cx)))
+        # The max-norms as two reductions over stacked vectors (one kernel each on a CPU, not seven).
+        max_r_d, max_Hx, max_Cz, max_x = jnp.max(jnp.abs(jnp.stack([r_d, Hx, Cz, x])), axis=1)
+        max_r_p, max_Cx, max_z = jnp.max(jnp.abs(jnp.stack([r_p, Cx, z])), axis=1)
+        res_d = max_r_d / (1.0 + jnp.maximum(max_Hx, max_Cz))
+        res_p = max_r_p / (1.0 + max_Cx)
         # Complementarity pair by pair: an active row's slack is an error in x
         # (unit rows), an inactive row's multiplier pushes x by ~z_i/|H|. The
         # duality gap s'z relative to the objective is too weak a test: it
         # lets inactive rows keep multipliers of 1e-3 max(z) (x off by 1e-3).
-        res_c = jnp.max(jnp.minimum(s / (1.0 + jnp.max(jnp.abs(x))), z / (1.0 + jnp.max(jnp.abs(z)))))
+        res_c = jnp.max(jnp.minimum(s / (1.0 + max_x), z / (1.0 + max_z)))
         return r_d, r_p, jnp.maximum(jnp.maximum(res_d, res_p), res_c)
 
+    # The residuals of an iterate are computed once, at the end of the step that made it, and
+    # carried: the loop stops right after the step that converged (no extra Newton step whose
+    # result would be thrown away) and the final residual is the carried one.
     def step(carry):
-        x, s, z, done, count, k = carry
-        r_d, r_p, res = residuals(x, s, z)
-        done = done | (res <= tol)
+        x, s, z, r_d, r_p, res, count, k = carry
+        done = res <= tol
         mu = (s @ z) / m
         newton = _newton_solver(Hs + reg * eye, Cs, s, z, r_d, r_p, n_keep)
 
         # Predictor (affine scaling) step: target s_i z_i = 0.
         dx_a, ds_a, dz_a = newton(s * z)
-        a_aff = jnp.minimum(_max_step(s, ds_a), _max_step(z, dz_a))
+        a_aff = _max_step(jnp.concatenate([s, z]), jnp.concatenate([ds_a, dz_a]))
         mu_aff = ((s + a_aff * ds_a) @ (z + a_aff * dz_a)) / m
         sigma = jnp.clip(mu_aff / mu, 0.0, 1.0) ** 3
         # Corrector: centring sigma mu plus the second-order term ds_a dz_a.
         dx, ds, dz = newton(s * z + ds_a * dz_a - sigma * mu)
-        alpha = _STEP_TO_BOUNDARY * jnp.minimum(_max_step(s, ds), _max_step(z, dz))
-        x_n, s_n, z_n = x + alpha * dx, s + alpha * ds, z + alpha * dz
-        ok = jnp.all(jnp.isfinite(x_n)) & jnp.all(s_n > 0) & jnp.all(z_n > 0) & jnp.all(jnp.isfinite(s_n * z_n))
+        sz = jnp.concatenate([s, z])
+        alpha = _STEP_TO_BOUNDARY * _max_step(sz, jnp.concatenate([ds, dz]))
+        x_n, sz_n = x + alpha * dx, sz + alpha * jnp.concatenate([ds, dz])
+        ok = jnp.all(jnp.isfinite(x_n)) & jnp.all(sz_n > 0) & jnp.all(jnp.isfinite(sz_n[:m] * sz_n[m:]))
         take = ~done & ok
         x = jnp.where(take, x_n, x)
-        s = jnp.where(take, s_n, s)
-        z = jnp.where(take, z_n, z)
-        return x, s, z, done, count + take.astype(jnp.int32), k + 1
+        s = jnp.where(take, sz_n[:m], s)
+        z = jnp.where(take, sz_n[m:], z)
+        r_d, r_p, res = residuals(x, s, z)
+        return x, s, z, r_d, r_p, res, count + take.astype(jnp.int32), k + 1
 
     def running(carry):
-        return ~carry[3] & (carry[5] < iterations)
+        return ~(carry[5] <= tol) & (carry[7] < iterations)
 
-    init = (x0, s0, z0, jnp.array(False), jnp.array(0, jnp.int32), jnp.array(0, jnp.int32))
-    x, s, z, _, count, _ = lax.while_loop(running, step, init)
-    _, _, res = residuals(x, s, z)
+    init = (x0, s0, z0, *residuals(x0, s0, z0), jnp.array(0, jnp.int32), jnp.array(0, jnp.int32))
+    x, s, z, _, _, res, count, _ = lax.while_loop(running, step, init)
     finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(z)) & jnp.all(jnp.isfinite(s))
     violation = jnp.max(jnp.maximum(Cs @ x - bs, 0.0)) / (1.0 + jnp.max(jnp.abs(x)))
     return IPMResult(
