@@ -27,7 +27,7 @@ bg() {  # name, shell command: run in a session of its own, its log in $LANES/na
   setsid nohup bash -c "cd $REPO && { $*; }; echo \"rc=\$? \$(date +%T)\" > $LANES/$name/done" \
     > "$LANES/$name/log.txt" 2>&1 < /dev/null &
 }
-wait_for() { echo "until [ -f $1 ]; do sleep 5; done"; }
+wait_for() { echo "until [ -f $1 ]; do sleep 5; done;"; }
 
 case "$ACTION" in
   start)
