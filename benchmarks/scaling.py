@@ -190,6 +190,8 @@ def check(rows: list[dict]) -> list[str]:
     for r in rows:
         if r.get("error"):
             failures.append(f"{r['backend']} on {r['gpus']} GPU(s): {r['error']}")
+        elif r["gpus"] > 1 and "flips_vs_one_gpu" not in r:
+            failures.append(f"{r['backend']} on {r['gpus']} GPUs: no one-GPU run in this --out to compare with")
         elif r["gpus"] > 1 and r["flips_vs_one_gpu"] > r["repeat_floor_one_gpu"] + 1:
             failures.append(
                 f"{r['backend']} on {r['gpus']} GPUs: {r['flips_vs_one_gpu']} survival flips vs one GPU, "
