@@ -61,6 +61,22 @@ def test_the_warp_graph_cache_reaches_the_loop_and_shapes_no_program():
     assert "warp_graph_mode" not in str(sweep_config.SweepConfig(backend="jax").fingerprint())
 
 
+def test_the_default_bound_gives_each_device_warps_32_graphs(monkeypatch):
+    """On one device Warp's own bound is left alone; on N devices, 32 N (four GPUs' sweep held 50
+    graphs, which a shared 32 made every call capture again); an asked bound, 0 included, wins."""
+
+    class Callable:  # Warp 1.18's FfiCallable, as far as warp_graphs uses it
+        name, graph_cache_max, graph_cache_size = "step", 32, 0
+
+    calls = [Callable(), Callable()]
+    monkeypatch.setattr(warp_graphs, "_callables", lambda: calls)
+    assert warp_graphs.bound(None, 1) == 0 and [c.graph_cache_max for c in calls] == [32, 32]
+    assert warp_graphs.bound(None, 4) == 2 and [c.graph_cache_max for c in calls] == [128, 128]
+    assert warp_graphs.bound(7, 4) == 2 and [c.graph_cache_max for c in calls] == [7, 7]
+    assert warp_graphs.bound(0, 4) == 2 and [c.graph_cache_max for c in calls] == [None, None]
+    assert warp_graphs.default_bound(3) == 96 and warp_graphs.default_bound(1) is None
+
+
 @pytest.mark.gpu
 def test_bound_sets_every_registered_warp_call():
     """On Warp's own registry (warp-lang is installed with the GPU's wheels: the gpu set runs it)."""

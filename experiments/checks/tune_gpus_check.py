@@ -44,6 +44,8 @@ BAR = (
 RACE_FLAGS = [
     "--batch",
     "2048",
+    "--quality-pushes",
+    "2048",
     "--horizon",
     "2",
     "--solver-gradient",

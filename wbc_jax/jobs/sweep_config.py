@@ -119,7 +119,7 @@ class SweepConfig:
     warp_graph_cache: int | None = option(
         None,
         "CUDA graphs each MJX-Warp foreign call keeps, for all GPUs of the process together (0: no bound; "
-        "default: Warp's 32); a diagnostic of issue 45, it changes no result",
+        "default: Warp's 32 on one GPU, 32 per GPU on several); it changes no result, only the speed",
         ge=0,
         le=warp_graphs.MAX_GRAPH_CACHE,
     )

@@ -53,7 +53,7 @@ class PhysicsConfig:
       warp_graph_mode: who captures MJX-Warp's CUDA graphs (:data:`warp_graphs.GRAPH_MODES`):
         ``warp`` (MJX's default on a GPU), ``jax`` (XLA, within its own command buffers), ``none``.
       warp_graph_cache: CUDA graphs each Warp foreign call keeps, for all devices together
-        (:mod:`wbc_jax.sim.warp_graphs`; 0: no bound; None: Warp's 32). Shapes no program and
+        (:mod:`wbc_jax.sim.warp_graphs`; 0: no bound; None: Warp's 32 per device of the run). Shapes no program and
         changes no result: left out of the repr, so of ``ClosedLoop.structure_key``.
     """
 

@@ -299,7 +299,7 @@ def _run_mjx(
 
             cache[key] = PerDevice(jax.vmap(one), mesh, (True, True))
             compile_s = cache[key].compile(scen_dev, ff_dev, watch=watch)
-        _bound_warp_graphs(loop)
+        _bound_warp_graphs(loop, len(cache[key].devices))
         t0 = time.perf_counter()
         one_process = jax.process_count() == 1  # each device's share copied to the host in its own thread
         outs = cache[key](scen_dev, ff_dev, watch=watch, to_host=one_process)
@@ -376,18 +376,19 @@ def _run_mjx_queue(
 
         cache[key] = PerDevice(on_device, mesh, (True,))
         compile_s = cache[key].compile(scen_dev, watch=watch)
-    _bound_warp_graphs(loop)
+    _bound_warp_graphs(loop, len(cache[key].devices))
     t0 = time.perf_counter()
     outs = cache[key](scen_dev, watch=watch, to_host=jax.process_count() == 1)
     metrics = jax.tree_util.tree_map(lambda x: _to_host(x)[:size], outs)
     return Run(metrics, None, compile_s, time.perf_counter() - t0)
 
 
-def _bound_warp_graphs(loop) -> None:
-    """MJX-Warp's graph cache bound (``PhysicsConfig.warp_graph_cache``), set after the programs are
-    traced (tracing may set Warp's own again) and before they run (:mod:`wbc_jax.sim.warp_graphs`)."""
+def _bound_warp_graphs(loop, devices: int) -> None:
+    """MJX-Warp's graph cache bound (``PhysicsConfig.warp_graph_cache``; None: 32 graphs per device of
+    the run), set after the programs are traced (tracing may set Warp's own again) and before they run
+    (:mod:`wbc_jax.sim.warp_graphs`)."""
     if loop.backend == "warp":
-        warp_graphs.bound(loop.cfg.physics.warp_graph_cache)
+        warp_graphs.bound(loop.cfg.physics.warp_graph_cache, devices)
 
 
 def _to_host(x) -> np.ndarray:

@@ -1,6 +1,7 @@
 """The CUDA graphs MJX-Warp's foreign calls keep: their bound, and how many are held (issue 45).
 
     warp_graphs.bound(0)       # after tracing, before the run: keep every graph captured
+    warp_graphs.bound(None, 4) # the default on 4 GPUs: 32 graphs per GPU
     warp_graphs.held()         # {callable name: graphs held}, after the run
 
 MJX-Warp's step enters XLA as a Warp ``jax_callable`` in graph mode WARP (mujoco-mjx 3.17.0,
@@ -25,6 +26,11 @@ import sys
 
 # A bound on graphs per callable: 0 keeps every graph captured; more than this is a typo.
 MAX_GRAPH_CACHE = 100_000
+# Warp's own bound (JAX_CALLABLE_DEFAULT_GRAPH_CACHE_MAX), which it shares among all devices. One GPU's
+# sweep holds 20 graphs; four held 50 unbounded, so under 32 every call missed and captured again under
+# Warp's process-wide lock: 4 GPUs ran 6x slower than one (BENCHMARKS.md, "Why 4 GPUs of Warp were
+# slower"). The default bound is this many per device of the run.
+WARP_GRAPH_CACHE = 32
 # Who captures the step's CUDA graphs (Warp's JaxCallableGraphMode): Warp, per device, call site and
 # buffer addresses (MJX's default on a GPU); XLA, as part of its command buffers (the callback runs
 # only while XLA captures); nobody (every call launches each kernel from Python). The staged modes
@@ -63,10 +69,19 @@ def check(limit: int | None, mode: str = "warp") -> None:
         )
 
 
-def bound(limit: int | None) -> int:
+def default_bound(devices: int) -> int | None:
+    """The bound when none is asked for: Warp's own on one device (None: left alone), else
+    :data:`WARP_GRAPH_CACHE` graphs per device, as if each device had Warp's cache to itself."""
+    return None if devices <= 1 else WARP_GRAPH_CACHE * devices
+
+
+def bound(limit: int | None, devices: int = 1) -> int:
     """Set the graph cache of every registered Warp callable: ``limit`` graphs, 0 for no bound,
-    None to leave Warp's own (32, or what the last trace set). Returns the callables set."""
+    None for :func:`default_bound` of ``devices`` (the devices the run's programs run on). Returns
+    the callables set."""
     check(limit)
+    if limit is None:
+        limit = default_bound(devices)
     if limit is None:
         return 0
     callables = _callables()
