@@ -14,7 +14,8 @@ seams as it does in the tick):
    Sigma, tau_model);
 4. + the ``stable`` postural task instead (the projector pinv(N_Lambda Mbar) N_Lambda Mbar);
 5. + the force distribution (the contact QPs);
-6. the loop's whole control tick (``ClosedLoop.control``: the above, saturation, metrics, records).
+6. the loop's whole control tick (``ClosedLoop.control``: the above, saturation, metrics, records),
+   its state carried from tick to tick as in the loop (the force QP's warm start).
 
 A stage's cost is its program's time less the previous one's. CPU microseconds per tick, the
 median and the range of ``--repeats`` runs, the programs interleaved within each repeat (a shared
@@ -83,7 +84,7 @@ def sinusoid_states(ticks: int):
     return qpos, qvel, st
 
 
-def programs(ticks: int, pkg: str = "wbc_jax"):
+def programs(ticks: int, pkg: str = "wbc_jax", warm_start: bool = False):
     """The cumulative stage programs (module docstring) of the sinusoid's controller built by the
     package ``pkg`` (this checkout's, or a copy of another commit's: :func:`import_commit`), each
     ``(qpos (T, nq), qvel (T, nv)) -> ()``."""
@@ -97,7 +98,9 @@ def programs(ticks: int, pkg: str = "wbc_jax"):
     scenario = importlib.import_module(f"{pkg}.sim.scenario")
     physics, state = importlib.import_module(f"{pkg}.sim.physics"), importlib.import_module(f"{pkg}.sim.state")
     sim = state.SimConfig(record=True, host_loop="compiled", physics=physics.PhysicsConfig(backend="mujoco"))
-    st = scenario.setup("sinusoid", duration=ticks * 0.01, sim=sim)
+    controller = importlib.import_module(f"{pkg}.control.controller")
+    config = controller.ControllerConfig(qp_warm_start=True) if warm_start else None
+    st = scenario.setup("sinusoid", duration=ticks * 0.01, sim=sim, controller=config)
     loop, ctrl, dtype = st.loop, st.loop.controller, st.dtype
     cset, cfg, gains = ctrl.contact_set, ctrl.config, st.gains
     state0 = loop.init(jnp.asarray(st.qpos0, dtype))
@@ -146,25 +149,28 @@ def programs(ticks: int, pkg: str = "wbc_jax"):
             return Ldot_star, tt.Sigma, tt.tau_model
         A = constraints.wrench_map(cset, ct.W_p, t.W_p_CoM).astype(dtype)
         wrench = Ldot_star - constraints.gravity_wrench(mass, dtype)
-        f, infeasible = forces.distribute(cset, ct.activation, A, wrench, tt, ct.W_R, cfg.force_settings)
+        # Cold QP starts (the whole tick, stage 6, starts from the last tick's); [:2]: a commit before
+        # the warm start (--before) returns no third item.
+        f, infeasible = forces.distribute(cset, ct.activation, A, wrench, tt, ct.W_R, cfg.force_settings)[:2]
         return tt.tau_model + tt.Sigma @ f, infeasible
 
     one = jax.tree_util.tree_map(lambda x: x[0], scenario.single(st))
 
     def scanned(depth: int):
         def run(qs, vs):
-            def tick(acc, x):
+            def tick(carry, x):
+                acc, state = carry
                 q, v, k = x
-                if depth == len(STAGES):
-                    _, ctrl_out, rec = loop.control(one.gains, state0, q, v, k, jnp.bool_(True), one.push)
+                if depth == len(STAGES):  # the loop's state carried, as in the loop (the QP's warm start)
+                    state, ctrl_out, rec = loop.control(one.gains, state, q, v, k, jnp.bool_(True), one.push)
                     out = (ctrl_out, rec.com)
                 else:
                     out = prefix(depth, q, v, k)
                 total = sum(jnp.sum(jnp.asarray(leaf, dtype)) for leaf in jax.tree_util.tree_leaves(out))
-                return acc + total, None
+                return (acc + total, state), None
 
             ks = jnp.arange(qs.shape[0], dtype=jnp.int32)
-            return jax.lax.scan(tick, jnp.zeros((), dtype), (qs, vs, ks))[0]
+            return jax.lax.scan(tick, (jnp.zeros((), dtype), state0), (qs, vs, ks))[0][0]
 
         return run
 
@@ -262,6 +268,11 @@ def main(argv=None) -> dict:
         metavar="REF",
         help="also the stages of git commit REF's controller, interleaved with this checkout's",
     )
+    p.add_argument(
+        "--qp-warm-start",
+        action="store_true",
+        help="also this checkout's controller with qp_warm_start (the force QP from the last tick's solution)",
+    )
     args = p.parse_args(argv)
     if args.ticks < 2 or args.repeats < 1:
         p.error("--ticks must be >= 2 and --repeats >= 1")
@@ -271,16 +282,18 @@ def main(argv=None) -> dict:
     from wbc_jax.core import io, provenance
     from wbc_jax.sim import runner
 
-    variants = {"now": "wbc_jax"}
+    variants = {"now": ("wbc_jax", False)}
+    if args.qp_warm_start:
+        variants["now, qp_warm_start"] = ("wbc_jax", True)
     if args.before:
-        variants[f"before ({args.before})"] = import_commit(args.before)
+        variants[f"before ({args.before})"] = (import_commit(args.before), False)
     runner.enable_compilation_cache()
     qpos, qvel, st = sinusoid_states(args.ticks)
     qs, vs = jnp.asarray(qpos, st.dtype), jnp.asarray(qvel, st.dtype)
     compiled = {}
     with jax.default_matmul_precision(st.loop.cfg.matmul_precision):  # as the loop's programs
-        for name, pkg in variants.items():
-            compiled[name] = [jax.jit(fn).lower(qs, vs).compile() for fn in programs(args.ticks, pkg)]
+        for name, (pkg, warm) in variants.items():
+            compiled[name] = [jax.jit(fn).lower(qs, vs).compile() for fn in programs(args.ticks, pkg, warm)]
     cpu_us = {name: [[] for _ in STAGES] for name in variants}
     for _ in range(args.repeats):  # interleaved: the machine's load reaches every program alike
         for i in range(len(STAGES)):

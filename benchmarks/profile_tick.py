@@ -85,7 +85,7 @@ def main(argv=None) -> dict:
         ct = contacts.contact_terms(cset, t, 0.5, ref.activation)
         A = constraints.wrench_map(cset, ct.W_p, t.W_p_CoM)
         w = jnp.asarray([5.0, -3.0, 9.81 * st.robot.index.mass, 0.5, -1.0, 0.2], dtype)
-        return forces.distribute(cset, ct.activation, A, w, tt, ct.W_R, settings)
+        return forces.distribute(cset, ct.activation, A, w, tt, ct.W_R, settings)[:2]
 
     def stage_equality_qp(t, tt):  # the distribution's first QP alone, without its soft fallback
         ref = ref_at(0.5)

@@ -136,8 +136,8 @@ def distribution(hand_scene):
             s_des=t.s,
         )
         A = constraints.wrench_map(cset, ct.W_p, t.W_p_CoM)
-        f, infeasible = forces.wbc_qp(cset, jnp.ones(3), A, wrench, tt, ct.W_R, cfg.force_settings)
-        f_bad, infeasible_bad = forces.wbc_qp(cset, jnp.ones(3), A, -wrench, tt, ct.W_R, cfg.force_settings)
+        f, infeasible, _ = forces.wbc_qp(cset, jnp.ones(3), A, wrench, tt, ct.W_R, cfg.force_settings)
+        f_bad, infeasible_bad, _ = forces.wbc_qp(cset, jnp.ones(3), A, -wrench, tt, ct.W_R, cfg.force_settings)
         return {
             "t": t,
             "ct": ct,

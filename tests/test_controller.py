@@ -189,6 +189,28 @@ def test_force_distribution_realises_the_momentum_rate(robot, standing_terms, fo
         assert float(out.qp_violation) < 1e-6
 
 
+@pytest.mark.slow
+def test_warm_started_force_qp_carries_the_last_ticks_solution(robot, standing_terms):
+    """With ``qp_warm_start`` the state carries the force QP's multipliers and slacks (NaN before
+    the first tick), and the second tick of the same problem, warm-started, gives the first
+    tick's wrenches within the QP's tolerance (the cheap check of the solver's warm start:
+    tests/test_forces.py::test_solve_qp_warm_start_same_solution_fewer_steps)."""
+    t = standing_terms
+    gains = G.default_gains(ICUB, jnp.float64)
+    ctrl = C.make_controller(robot, C.ControllerConfig(qp_warm_start=True))
+
+    @jax.jit
+    def two_ticks(gains, t):
+        state0 = ctrl.init(t)
+        out1, state1 = ctrl.step(gains, state0, t, _reference(t), 0.0)
+        out2, state2 = ctrl.step(gains, state1, t, _reference(t), 0.0)
+        return state0.qp_start, state1.qp_start, out1.f, out2.f
+
+    start0, start1, f1, f2 = two_ticks(gains, t)
+    assert np.all(np.isnan(start0)) and np.all(np.isfinite(start1)) and np.all(np.asarray(start1) > 0)
+    np.testing.assert_allclose(f2, f1, rtol=0, atol=1e-8 * float(jnp.max(jnp.abs(f1))))
+
+
 def test_unrealisable_momentum_rate_keeps_the_contact_constraints(robot, state_terms):
     """Random base orientation: the feet are tilted, the momentum rate cannot be realised by
     admissible wrenches. The QP path then keeps the wrenches admissible (soft momentum QP)
@@ -233,6 +255,8 @@ def test_bad_modes_and_gain_files(tmp_path):
         C.ControllerConfig(forces="lp")
     with pytest.raises(ValueError, match=r"unknown postural variant 'x'.*stable"):
         C.ControllerConfig(postural="x")
+    with pytest.raises(ValueError, match=r"qp_warm_start must be True or False, got 1"):
+        C.ControllerConfig(qp_warm_start=1)
     with pytest.raises(ValueError, match=r"unknown keys \['kp_foo'\], missing keys \['kp_com'\]"):
         d = G.gains_to_dict(G.default_gains(ICUB))
         d["kp_foo"] = d.pop("kp_com")

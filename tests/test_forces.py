@@ -492,6 +492,32 @@ def test_solve_qp_validates_shapes():
         qp.solve_qp(jnp.eye(3), jnp.zeros(3), jnp.zeros((4, 2)), jnp.zeros(4))
     with pytest.raises(ValueError, match="m >= 1"):
         qp.solve_qp(jnp.eye(3), jnp.zeros(3), jnp.zeros((0, 3)), jnp.zeros(0))
+    with pytest.raises(ValueError, match=r"start must have shape \(2, 4\)"):
+        qp.solve_qp(jnp.eye(3), jnp.zeros(3), jnp.zeros((4, 3)), jnp.zeros(4), start=jnp.zeros((2, 3)))
+
+
+def test_solve_qp_warm_start_same_solution_fewer_steps(random_qps, solve_batch):
+    """A warm start from a nearby problem's solution (the last control tick's) reaches the cold
+    start's solution in fewer Newton steps; a NaN start is the cold start, bit for bit."""
+    s = random_qps[(6, 38)]
+    rng = np.random.default_rng(11)
+    solve = jit(jax.vmap(lambda H, g, C, b, start: qp.solve_qp(H, g, C, b, start=start)))
+    data = [jnp.asarray(s[k]) for k in "HgCb"]
+    _, first = solve(*data, jnp.full((len(s["b"]), 2, 38), jnp.nan))
+    # The next tick's problem: the linear term and the bounds moved by ~1 %.
+    H, g, C, b = data
+    g = g * (1.0 + 0.01 * rng.standard_normal(g.shape))
+    b = b + 0.01 * np.abs(np.asarray(b)).mean() * rng.standard_normal(b.shape)
+    x_cold, cold = solve(H, g, C, b, jnp.full((len(s["b"]), 2, 38), jnp.nan))
+    x_warm, warm = solve(H, g, C, b, first.start)
+    assert np.all(cold.converged) and np.all(warm.converged)
+    x_plain, _ = solve_batch(H, g, C, b)
+    np.testing.assert_array_equal(np.asarray(x_cold), np.asarray(x_plain))
+    scale = 1.0 + np.max(np.abs(np.asarray(x_cold)), axis=1)
+    err = np.max(np.abs(np.asarray(x_warm) - np.asarray(x_cold)), axis=1) / scale
+    assert np.max(err) < 1e-9  # both within the float64 tolerance 1e-11 of the KKT point
+    # Measured: 8.2 steps warm against 11.4 cold on average (float64, tol 1e-11); max err 1.7e-11.
+    assert np.mean(warm.iterations) < np.mean(cold.iterations) - 1.0, (warm.iterations, cold.iterations)
 
 
 # --------------------------------------------------------------------------------------
@@ -782,7 +808,7 @@ def test_distribute_batch_runs_fallbacks_only_where_needed(two_feet_problems):
 
     def one(Sigma, tau_model, A, w_des, W_R_left, W_R_right, activation):
         tt = types.SimpleNamespace(Sigma=Sigma, tau_model=tau_model)
-        return forces.distribute(FEET, activation, A, w_des, tt, jnp.stack([W_R_left, W_R_right]), SETTINGS)
+        return forces.distribute(FEET, activation, A, w_des, tt, jnp.stack([W_R_left, W_R_right]), SETTINGS)[:2]
 
     probs = [dict(p) for p in two_feet_problems[:4]]
     pull = np.array([0.0, 0.0, -100.0, 0.0, 0.0, 0.0])  # infeasible: the feet cannot pull

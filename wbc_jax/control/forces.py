@@ -76,6 +76,7 @@ class ForceSettings:
     angular_weight_soft: float = 1.0  # the angular rows of |A f - w|^2 against the linear ones, soft QP
     normal_force_weight: float = 1e3  # desired normal forces, per N^2 against (N m)^2
     violation_tol: float | None = None  # accepted contact_violation of a QP's wrenches (None: by dtype)
+    warm_start: bool = False  # the equality QP from the last tick's multipliers and slacks
 
     def tolerance(self, dtype) -> float:
         """The largest :func:`contact_violation` a formulation's wrenches may have (else the next
@@ -118,8 +119,25 @@ def _normal_force_scaling(NZ: Array, weight: float) -> Array:
     return jnp.eye(NZ.shape[1], dtype=NZ.dtype) + (Vt.T * (scale - 1.0)) @ Vt
 
 
+def qp_start_rows(cset: ContactSet) -> int:
+    """M, the constraint rows of the contact set: a QP warm start (``qp.QPInfo.start``) is (2, M)."""
+    return len(constraint_contact(cset))
+
+
+def cold_start(cset: ContactSet, dtype) -> Array:
+    """(2, M) the warm start that means none: the next force QP starts cold."""
+    return jnp.full((2, qp_start_rows(cset)), jnp.nan, dtype)
+
+
 def momentum_equality_qp(
-    cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: Array, settings: ForceSettings
+    cset: ContactSet,
+    mask: Array,
+    A: Array,
+    wrench_des: Array,
+    tt,
+    W_R: Array,
+    settings: ForceSettings,
+    start: Array | None = None,
 ) -> tuple[Array, qp.QPInfo]:
     """The WBC QP (module docstring) over the contacts with ``mask`` = 1, the others' wrenches 0::
 
@@ -133,6 +151,7 @@ def momentum_equality_qp(
       mask: (K,) 1 for the contacts that may carry a wrench. A: (6, D) wrench map.
       wrench_des: (6,) L_dot* - f_grav. tt: anything with ``Sigma`` (n, D) and ``tau_model`` (n,)
         (:class:`wbc_jax.control.torques.TorqueTerms`). W_R: (K, 3, 3) contact frames.
+      start: (2, M) ``info.start`` of the last tick's solve (:func:`wbc_jax.control.qp.solve_qp`), or None.
 
     Returns:
       ``(f (D,), info)``; where infeasible, f = f1 + Z y with y the unconstrained minimiser (the
@@ -155,6 +174,7 @@ def momentum_equality_qp(
             max_violation=jnp.maximum(violation, 0.0),
             kkt_residual=zero,
             iterations=jnp.zeros((), jnp.int32),
+            start=cold_start(cset, dtype),
         )
     S_n = S_n * keep[None, :]
     w_n = settings.normal_force_weight
@@ -171,6 +191,7 @@ def momentum_equality_qp(
         jnp.where(row_kept, b - C @ f1, 1.0),
         iterations=settings.qp_iterations,
         row_weight=row_weights(cset),
+        start=start if settings.warm_start else None,
     )
     return f1 + Z @ y, info
 
@@ -208,8 +229,15 @@ def soft_momentum_qp(
 
 
 def wbc_qp(
-    cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: Array, settings: ForceSettings
-) -> tuple[Array, Array]:
+    cset: ContactSet,
+    mask: Array,
+    A: Array,
+    wrench_des: Array,
+    tt,
+    W_R: Array,
+    settings: ForceSettings,
+    start: Array | None = None,
+) -> tuple[Array, Array, Array]:
     """:func:`momentum_equality_qp`, or :func:`soft_momentum_qp` where the equality is infeasible
     (a push asks for a momentum rate that no feasible wrench realises).
 
@@ -218,14 +246,15 @@ def wbc_qp(
     stops short of an infeasible problem can return a point whose violation is small next to the
     feet's forces but not next to a hand's (the 0.34 of a hand's normal force under pushes).
 
-    Returns ``(f (D,), infeasible ())``: infeasible when the soft QP failed too (flagged, or its
-    wrenches violate a contact's constraints beyond the tolerance)."""
+    Returns ``(f (D,), infeasible (), next_start (2, M))``: infeasible when the soft QP failed too
+    (flagged, or its wrenches violate a contact's constraints beyond the tolerance); next_start
+    the equality QP's ``info.start`` (``start``: the last tick's, or None)."""
     tol = settings.tolerance(A.dtype)
 
     def exceeds(f):
         return jnp.max(jnp.where(mask > 0, contact_violation(cset, f, W_R, mask), 0.0)) > tol
 
-    f, info = momentum_equality_qp(cset, mask, A, wrench_des, tt, W_R, settings)
+    f, info = momentum_equality_qp(cset, mask, A, wrench_des, tt, W_R, settings, start)
 
     def soft():
         f_soft, info_soft = soft_momentum_qp(cset, mask, A, wrench_des, tt, W_R, settings)
@@ -235,7 +264,7 @@ def wbc_qp(
     # The soft QP only in ticks where some environment of a batch needs it (batch_any), used
     # only where this one does.
     f_soft, soft_failed = lax.cond(batch_any(use_soft), soft, lambda: (f, jnp.zeros((), bool)))
-    return jnp.where(use_soft, f_soft, f), use_soft & soft_failed
+    return jnp.where(use_soft, f_soft, f), use_soft & soft_failed, info.start
 
 
 def analytic(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, settings: ForceSettings) -> Array:
@@ -255,13 +284,25 @@ def analytic(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, set
 
 
 def distribute(
-    cset: ContactSet, activation: Array, A: Array, wrench_des: Array, tt, W_R: Array, settings: ForceSettings
-) -> tuple[Array, Array]:
+    cset: ContactSet,
+    activation: Array,
+    A: Array,
+    wrench_des: Array,
+    tt,
+    W_R: Array,
+    settings: ForceSettings,
+    start: Array | None = None,
+) -> tuple[Array, Array, Array]:
     """Contact wrenches f (D,) for the momentum rate ``wrench_des`` (6,) = L_dot* - f_grav, with the
     blend of the module docstring over the activations (K,).
 
-    Returns ``(f (D,), infeasible ())``: infeasible when a formulation in use had no feasible
-    solution (its soft QP failed too); always False for ``analytic``.
+    ``start`` (2, M): the last tick's ``next_start`` (None or :func:`cold_start`: none), from
+    which the engaged contacts' equality QP, solved every tick, is warm-started
+    (``settings.warm_start``).
+
+    Returns ``(f (D,), infeasible (), next_start (2, M))``: infeasible when a formulation in use had
+    no feasible solution (its soft QP failed too); always False for ``analytic``; next_start the
+    equality QP's multipliers and slacks for the next tick (NaN: none).
     """
     act = jnp.clip(activation, 0.0, 1.0)
     # Sets that cannot be empty (their wrench map must have rank 6): with no contact engaged the
@@ -271,18 +312,21 @@ def distribute(
     active = jnp.where(jnp.any(act >= 1), act >= 1, act >= jnp.max(act)).astype(A.dtype)
     w = jnp.min(jnp.where(act > 0, act, 1.0))
 
-    def formulation(mask):
+    def formulation(mask, start=None):
         if settings.mode == "analytic":
-            return analytic(cset, mask, A, wrench_des, tt, settings), jnp.zeros((), bool)
-        return wbc_qp(cset, mask, A, wrench_des, tt, W_R, settings)
+            return analytic(cset, mask, A, wrench_des, tt, settings), jnp.zeros((), bool), cold_start(cset, A.dtype)
+        return wbc_qp(cset, mask, A, wrench_des, tt, W_R, settings, start)
 
-    f_engaged, infeasible_engaged = formulation(engaged)
+    f_engaged, infeasible_engaged, next_start = formulation(engaged, start)
     # The fully active contacts' formulation only in ticks where a contact of some environment
     # of the batch ramps (w < 1), used only where one does.
     ramping = w < 1
     f_active, infeasible_active = lax.cond(
-        batch_any(ramping), lambda: formulation(active), lambda: (jnp.zeros_like(f_engaged), jnp.zeros((), bool))
+        batch_any(ramping),
+        lambda: formulation(active)[:2],
+        lambda: (jnp.zeros_like(f_engaged), jnp.zeros((), bool)),
     )
     f_active = jnp.where(ramping, f_active, 0.0)
     f = jnp.where(any_engaged, w * f_engaged + (1.0 - w) * f_active, 0.0)
-    return f, any_engaged & ((w > 0) & infeasible_engaged | (w < 1) & infeasible_active)
+    next_start = next_start if settings.warm_start else cold_start(cset, A.dtype)
+    return f, any_engaged & ((w > 0) & infeasible_engaged | (w < 1) & infeasible_active), next_start

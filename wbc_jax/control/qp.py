@@ -24,6 +24,14 @@ iterate has converged (under ``vmap``: once every problem of the batch has):
   equations (H + C' diag(z/s) C) are 30x cheaper on a CPU but lose H in the
   float32 rounding of C' diag(z/s) C near the solution: measured 1e-3 errors
   and 30-90 % convergence in float32, against 1e-5 and 100 % here.
+* Warm start (``start``): a control loop solves a nearby problem every tick, so it can
+  pass the last tick's multipliers and slacks (``QPInfo.start``; the controller's
+  ``qp_warm_start``, off by default: ControllerConfig says why), raised to a floor
+  (:data:`wbc_jax.control.qp_ipm.WARM_START_FLOOR`) so that the steps to the boundary stay
+  long; x starts at the cold start's point (it does not depend on the basis of null(A),
+  which the caller may change from one tick to the next). Measured in closed loop
+  (float32): 6.0 -> 4.0 Newton steps a tick in the 20 s sinusoid, 6.2 -> 4.4 in the
+  acceptance push (at most 12 -> 8); the solution is the cold start's within the tolerance.
 * Once a problem has converged its iterate is frozen (``jnp.where``), so
   surplus iterations of a batch cannot degrade it; a step that would produce
   non-finite numbers is rejected likewise. The loop is never differentiated
@@ -106,6 +114,8 @@ class QPInfo:
             ``max(primal, dual, complementarity)`` residuals of the scaled
             problem, each relative to the size of its terms (compare with tol).
         iterations: () int32, Newton steps taken before the iterate froze.
+        start: (2, m) the multipliers and slacks of the solution, the ``start`` of a next solve
+            of a nearby problem (NaN where the solver fell back: that solve starts cold).
     """
 
     converged: Array
@@ -113,6 +123,7 @@ class QPInfo:
     max_violation: Array
     kkt_residual: Array
     iterations: Array
+    start: Array
 
 
 jax.tree_util.register_dataclass(
@@ -123,6 +134,7 @@ jax.tree_util.register_dataclass(
         "max_violation",
         "kkt_residual",
         "iterations",
+        "start",
     ],
     meta_fields=[],
 )
@@ -151,6 +163,7 @@ def solve_qp(
     tol: float | None = None,
     fallback_tol: float | None = None,
     row_weight: Any = None,
+    start: Array | None = None,
 ) -> tuple[Array, QPInfo]:
     """Solve a small dense convex QP with inequality constraints.
 
@@ -179,6 +192,9 @@ def solve_qp(
             residual and violation count ``row_weight[i]`` times more in the
             tolerances: rows whose natural scale is smaller than the problem's (a
             hand's 1 N next to feet of 300 N) are met as tightly, relative to it.
+        start: (2, m) ``info.start`` of a previous solve of a nearby problem (the last control
+            tick's) to warm-start the interior point from, or None (cold start). The solution
+            is the same within ``tol``; it takes fewer Newton steps.
 
     Returns:
         ``(x, info)``: x (n,) in the promoted float dtype of the inputs, and a
@@ -207,7 +223,13 @@ def solve_qp(
     weight = None if row_weight is None else lax.stop_gradient(jnp.asarray(row_weight, dtype))
     if weight is not None and weight.shape != b.shape:
         raise ValueError(f"solve_qp: row_weight must have shape {b.shape}, got {weight.shape}")
-    ipm = interior_point(Hp, gp, Cp, bp, int(iterations), tol, weight)
+    if start is not None:
+        start = lax.stop_gradient(jnp.asarray(start, dtype))
+        if start.shape != (2, b.shape[0]):
+            raise ValueError(
+                f"solve_qp: start must have shape (2, {b.shape[0]}) (multipliers, slacks), got {start.shape}"
+            )
+    ipm = interior_point(Hp, gp, Cp, bp, int(iterations), tol, weight, start)
 
     finite_input = jnp.all(jnp.array([jnp.all(jnp.isfinite(a)) for a in (Hp, gp, Cp, bp)]))
     fallback = (~ipm.converged & (ipm.violation > fallback_tol)) | ~ipm.finite
@@ -230,6 +252,7 @@ def solve_qp(
         max_violation=jnp.max(jnp.maximum(Cp @ x_p - bp, 0.0)),
         kkt_residual=ipm.kkt_residual,
         iterations=ipm.iterations,
+        start=jnp.where(fallback, jnp.nan, jnp.stack([ipm.lam, ipm.s])),
     )
     return x, info
 

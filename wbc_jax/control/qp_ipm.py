@@ -19,6 +19,12 @@ from jax import lax
 Array = jax.Array
 
 _STEP_TO_BOUNDARY = 0.99  # fraction of the max step keeping s, lam > 0
+# A warm start's slacks and multipliers are raised to at least this (scaled problem, O(1) data):
+# the last solution's are ~tol on its active/inactive rows, a corner from which the steps to the
+# boundary of a nearby problem would be tiny. Measured on the sinusoid's 1000 two-feet QPs
+# (float32): 0.1 takes 4.0 Newton steps (6.0 cold) with the solution within 2.6e-5 of float64's
+# (cold: 1.1e-3); 0.03 takes 3.4 but lands 3e-4 off; 0.3 takes 4.8.
+WARM_START_FLOOR = 0.1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,7 +115,14 @@ def _newton_solver(
 
 
 def interior_point(
-    H: Array, g: Array, C: Array, b: Array, iterations: int, tol: float, weight: Array | None = None
+    H: Array,
+    g: Array,
+    C: Array,
+    b: Array,
+    iterations: int,
+    tol: float,
+    weight: Array | None = None,
+    start: Array | None = None,
 ) -> IPMResult:
     """Mehrotra predictor-corrector interior point for ``min 1/2 x'Hx + g'x, Cx <= b``.
 
@@ -132,6 +145,10 @@ def interior_point(
         iterations: number of Newton steps.
         tol: relative KKT tolerance at which the iterate freezes.
         weight: (m,) row weights (:func:`solve_qp`'s ``row_weight``) or None.
+        start: (2, m) multipliers and slacks (original units) of a nearby problem's solution to
+            start from (each raised to :data:`WARM_START_FLOOR` in the scaled problem; x starts
+            at the cold start's least-squares point, which does not depend on a basis the
+            caller may have changed), or None; any non-finite entry: the cold start.
 
     Returns:
         The raw result, unscaled back to the original units.
@@ -174,6 +191,12 @@ def interior_point(
     z0 = -s0
     s0 = s0 + jnp.maximum(0.0, 1.0 - jnp.min(s0))
     z0 = z0 + jnp.maximum(0.0, 1.0 - jnp.min(z0))
+    if start is not None:
+        z_warm = jnp.maximum(start[0] * row / (h * data), WARM_START_FLOOR)
+        s_warm = jnp.maximum(start[1] / (row * data), WARM_START_FLOOR)
+        warm = jnp.all(jnp.isfinite(z_warm)) & jnp.all(jnp.isfinite(s_warm))
+        s0 = jnp.where(warm, s_warm, s0)
+        z0 = jnp.where(warm, z_warm, z0)
 
     def residuals(x, s, z):
         Hx = Hs @ x

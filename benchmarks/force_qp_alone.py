@@ -1,0 +1,163 @@
+"""The tick's force QP alone, cold and warm-started, on one core (issue 46).
+
+    taskset -c 1 python benchmarks/force_qp_alone.py --out runs/force_qp_alone.json [--ticks 1000]
+
+The QPs are the 20 s sinusoid's own (``wbc-jax balance --task sinusoid``, C MuJoCo, recorded; the
+first QP of each tick, the engaged feet's equality QP, with the weight as its momentum rate): its
+inputs ``(H, g, C, b)`` are computed once, then :func:`wbc_jax.control.qp.solve_qp` runs alone in
+a ``lax.scan`` over them, from the cold start every tick and warm-started from the last tick's
+``info.start`` (what ``ControllerConfig.qp_warm_start`` does), and with its iterations capped at
+1 and 3 (the cost of a Newton step: the difference over the steps). CPU microseconds per QP, the
+median of ``--repeats``, programs interleaved; Newton steps per QP; the warm solutions' distance
+to the cold ones, relative to ``1 + max|y|``. One thread of XLA's CPU pool (``PJRT_NPROC=1``).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("PJRT_NPROC", "1")
+
+import argparse
+import json
+import pathlib
+import statistics
+import sys
+import time
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+
+def qp_inputs(ticks: int):
+    """(H, g, C, b) stacked over the sinusoid's ticks: the tick's first force QP (the feet's equality QP)."""
+    import jax
+    import jax.numpy as jnp
+    from controller_stages import sinusoid_states
+
+    from wbc_jax.control import constraints, forces, qp, torques
+    from wbc_jax.robot import contacts
+
+    qpos, qvel, st = sinusoid_states(ticks)
+    loop, ctrl, dtype = st.loop, st.loop.controller, st.dtype
+    cset, cfg, gains = ctrl.contact_set, ctrl.config, st.gains
+
+    def inputs(q, v, k):
+        t = loop.terms(q, v)
+        ref = loop.schedule.at(k * loop.cfg.control_dt, dtype)
+        ct = contacts.contact_terms(cset, t, k * loop.cfg.control_dt, jnp.clip(ref.activation, 0.0, 1.0))
+        tt = torques.torque_terms(
+            t,
+            ct.J,
+            ct.Jdot_nu,
+            postural=cfg.postural,
+            kp_postural=gains.kp_postural,
+            kd_postural=gains.kd_postural,
+            s_des=ref.s_des,
+        )
+        A = constraints.wrench_map(cset, ct.W_p, t.W_p_CoM).astype(dtype)
+        w = jnp.asarray([0.0, 0.0, 9.81 * st.robot.index.mass, 0.0, 0.0, 0.0], dtype)
+        captured = []
+        solve = qp.solve_qp
+
+        def capture(H, g, C, b, **kwargs):  # the QP as momentum_equality_qp builds it
+            captured.append((H, g, C, b))
+            return solve(H, g, C, b, **kwargs)
+
+        qp.solve_qp = capture
+        try:
+            forces.momentum_equality_qp(cset, jnp.ones(len(cset.contacts), dtype), A, w, tt, ct.W_R, cfg.force_settings)
+        finally:
+            qp.solve_qp = solve
+        return captured[0]
+
+    ks = jnp.arange(ticks, dtype=jnp.int32)
+    return jax.jit(jax.vmap(inputs))(jnp.asarray(qpos, dtype), jnp.asarray(qvel, dtype), ks)
+
+
+def program(data, warm: bool, iterations: int):
+    """The compiled scan of solve_qp over the ticks: ``data -> (y (T, n), steps (T,))``."""
+    import jax
+    import jax.numpy as jnp
+
+    from wbc_jax.control import qp
+
+    def run(H, g, C, b):
+        def tick(start, x):
+            y, info = qp.solve_qp(*x, iterations=iterations, start=start if warm else None)
+            return info.start, (y, info.iterations)
+
+        start0 = jnp.full((2, C.shape[1]), jnp.nan, H.dtype)
+        return jax.lax.scan(tick, start0, (H, g, C, b))[1]
+
+    return jax.jit(run).lower(*data).compile()
+
+
+def main(argv=None) -> dict:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--out", default=str(ROOT / "runs" / "force_qp_alone.json"))
+    p.add_argument("--ticks", type=int, default=1000, help="ticks of the sinusoid (10 ms each)")
+    p.add_argument("--repeats", type=int, default=15)
+    args = p.parse_args(argv)
+    if args.ticks < 2 or args.repeats < 1:
+        p.error("--ticks must be >= 2 and --repeats >= 1")
+    import jax
+    import numpy as np
+
+    from wbc_jax.control import qp
+    from wbc_jax.core import io, provenance
+    from wbc_jax.sim import runner
+
+    runner.enable_compilation_cache()
+    data = qp_inputs(args.ticks)
+    variants = {
+        "cold": (False, qp.DEFAULT_ITERATIONS),
+        "warm (qp_warm_start)": (True, qp.DEFAULT_ITERATIONS),
+        "cold, 1 Newton step": (False, 1),
+        "cold, 3 Newton steps": (False, 3),
+    }
+    compiled = {name: program(data, *v) for name, v in variants.items()}
+    results = {name: fn(*data) for name, fn in compiled.items()}
+    cpu_us = {name: [] for name in variants}
+    for _ in range(args.repeats):  # interleaved: the machine's load reaches every program alike
+        for name, fn in compiled.items():
+            t0 = time.process_time()
+            jax.block_until_ready(fn(*data))
+            cpu_us[name].append(1e6 * (time.process_time() - t0) / args.ticks)
+    y_cold = np.asarray(results["cold"][0])
+    scale = 1.0 + np.max(np.abs(y_cold), axis=1)
+    warm_gap = np.max(np.abs(np.asarray(results["warm (qp_warm_start)"][0]) - y_cold), axis=1) / scale
+    per_step = (
+        statistics.median(cpu_us["cold, 3 Newton steps"]) - statistics.median(cpu_us["cold, 1 Newton step"])
+    ) / 2
+    result = {
+        "command": "python benchmarks/force_qp_alone.py " + " ".join(argv),
+        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "device": provenance.device_label(),
+        "dtype": str(data[0].dtype),
+        "qp_size": {"n": int(data[0].shape[1]), "m": int(data[2].shape[1])},
+        "ticks": args.ticks,
+        "repeats": args.repeats,
+        "affinity": sorted(os.sched_getaffinity(0)),
+        "load_average": [round(x, 2) for x in os.getloadavg()],
+        "cpu_us_per_qp": {
+            name: {"median": round(statistics.median(v), 1), "range": [round(min(v), 1), round(max(v), 1)]}
+            for name, v in cpu_us.items()
+        },
+        "newton_steps": {
+            name: {"mean": round(float(np.mean(r[1])), 2), "max": int(np.max(r[1]))}
+            for name, r in results.items()
+            if variants[name][1] == qp.DEFAULT_ITERATIONS
+        },
+        "cpu_us_per_newton_step": round(per_step, 1),
+        "warm_vs_cold_max_relative": float(f"{np.max(warm_gap):.3g}"),
+        "provenance": provenance.record(argv=[__file__, *argv]),
+    }
+    io.atomic_write_json(pathlib.Path(args.out), result)
+    print(json.dumps({k: v for k, v in result.items() if k != "provenance"}), flush=True)
+    return result
+
+
+if __name__ == "__main__":
+    main()
