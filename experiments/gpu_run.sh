@@ -97,6 +97,12 @@ for job in "$@"; do
         --chunk-size 32768 --push-onset 0.5 --push-duration 0.1 --stall-timeout-s 240
       mkdir -p "$OUT/$job"; cp /tmp/scaling4/scaling.json "$OUT/$job/"
       find /tmp/scaling4/runs -name timeline.json | tar -czf "$OUT/$job/timelines.tgz" -T - ;;
+    profile_tick)  # issue 46: each stage of the controller tick jitted and vmapped alone at 65,536 envs (no Warp needed)
+      run profile_tick python3 benchmarks/profile_tick.py --batch 65536 --out "$OUT/profile_tick" ;;
+    bench46)  # issue 46: the Warp closed loop at 65,536 envs beside the physics alone and C MuJoCo + NumPy on 16 cores
+      run bench46 python3 benchmarks/benchmark.py --out "$OUT/bench46" --json "$OUT/bench46/benchmarks.json" \
+        --backends warp --batches 65536 --horizon 0.5 --cpu-baseline-envs 64 --cpu-workers 16 --repeats 2 \
+        --skip-equivalence ;;
     tune_gpus)  # issue 45: the tune job's gradient step and a CMA-ES generation at the race's settings on 1 GPU and on
             # all of them (loss, gradient, their difference, step seconds, speed-up). A call cut off by its limit
             # leaves the compiled programs in $WBC_JAX_CACHE: the same call on the warm machine goes on from them.

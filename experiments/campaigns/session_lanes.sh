@@ -8,19 +8,20 @@
 #   bash experiments/gpu_run.sh setup && touch /tmp/viz_ready                                  # the call with .wr2
 #   bash experiments/campaigns/session_lanes.sh poll $OUT [SECONDS]   # wait up to SECONDS, pack results.tgz
 #
-# Lanes (the GPUs' timings never share a GPU with another job):
-#   scaling: the JAX rows of scaling4_jax on 1 and 2 GPUs (GPUs 0-1; needs no Warp, so it runs while the wheels
-#     arrive); once the gpu set and the Talos campaign are done, its 4-GPU rows; then the Warp diagnosis
-#     (scaling4_warp_diag) and tuning on every GPU (tune_gpus), all on GPUs 0-3;
-#   gpuset: the gpu test set on GPU 3 (.ci/nightly gpu; waits for Warp and the .wr wheels);
-#   talos: `wbc-jax tune --robot talos`, CMA-ES at the race's settings (issue 47) on GPU 2, capped at TALOS_CAP s.
+# Lanes (the GPUs' timings never share a GPU with another job). SESSION_PLAN picks them:
+#   four (a machine of 4 GPUs; issues 45, 41, 47): scaling (the JAX rows of scaling4_jax on 1 and 2 GPUs while the
+#     wheels arrive, its 4-GPU rows once the other lanes are done, then scaling4_warp_diag and tune_gpus on GPUs 0-3);
+#     gpuset (the gpu test set on GPU 3); talos (`wbc-jax tune --robot talos`, CMA-ES, on GPU 2, capped at TALOS_CAP s);
+#   two (a machine of 2 GPUs; issues 45, 46): scaling (profile_tick on GPU 0, no Warp needed, while the wheels arrive;
+#     then scaling4_warp on 1 and 2 GPUs, tune_gpus on both, bench46 on GPU 0).
 # Git-less copy: NIGHTLY_COMMIT names the commit in the gpu set's log.
 set -uo pipefail
 ACTION=${1:?usage: session_lanes.sh start|poll OUT [SECONDS]}
 LANES=${SESSION_LANES_DIR:-/tmp/lanes}
 REPO=$LANES/repo  # a copy of the checkout: a later call replaces the working tree under a running lane
 export PYTHONPATH=/tmp/site:$REPO PYTHONUNBUFFERED=1 TF_CPP_MIN_LOG_LEVEL=3
-LANE_NAMES="scaling gpuset talos"
+PLAN=${SESSION_PLAN:-four}
+LANE_NAMES="scaling gpuset talos"; [ "$PLAN" = two ] && LANE_NAMES=scaling
 
 bg() {  # name, shell command: run in a session of its own, its log in $LANES/name/log.txt, then a done file
   local name=$1; shift; mkdir -p "$LANES/$name"
@@ -35,6 +36,13 @@ case "$ACTION" in
     mkdir -p "$REPO" && cp -r . "$REPO/" && rm -rf "$REPO"/.w[a-z]*
     cd "$REPO" || exit 1
     G="OUT=$LANES/scaling/out"
+    if [ "$PLAN" = two ]; then
+      bg scaling "CUDA_VISIBLE_DEVICES=0 $G bash experiments/gpu_run.sh profile_tick; $(wait_for /tmp/warp_ready) \
+        SCALING_GPUS='1 2' $G bash experiments/gpu_run.sh scaling4_warp; \
+        TUNE_GPUS_FLAGS='${TUNE_GPUS_FLAGS:---repeats 2}' $G bash experiments/gpu_run.sh tune_gpus; \
+        CUDA_VISIBLE_DEVICES=0 $G bash experiments/gpu_run.sh bench46"
+      sleep 2; echo "lanes started ($(nproc) cores, plan two): $(ls "$LANES")"; exit 0
+    fi
     bg scaling "CUDA_VISIBLE_DEVICES=0,1 SCALING_GPUS='1 2' $G bash experiments/gpu_run.sh scaling4_jax; \
       $(wait_for "$LANES/gpuset/done") $(wait_for "$LANES/talos/done") \
       SCALING_GPUS=4 $G bash experiments/gpu_run.sh scaling4_jax; \
