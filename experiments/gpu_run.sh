@@ -91,12 +91,14 @@ for job in "$@"; do
     scaling4_jax|scaling4_warp)  # issue 45: 32,768 envs on 1, 2 and 4 GPUs, 3 runs each (repeat floor), under a
             # watchdog (a device stalled 240 s in a chunk: one line naming it, the row's error). SCALING_GPUS: the GPU
             # counts of this call (one GPU's runs stay in /tmp/scaling4 on a warm machine for a later call's comparison).
-      b=${job#scaling4_}
-      run $job python3 benchmarks/scaling.py --out /tmp/scaling4 --gpus ${SCALING_GPUS:-1 2 4} \
-        --backends $b --repeats 3 --timeout 560 -- --magnitudes 10 400 64 --directions 32 --gain-sets 16 --horizon 3 \
-        --chunk-size 32768 --push-onset 0.5 --push-duration 0.1 --stall-timeout-s 240
-      mkdir -p "$OUT/$job"; cp /tmp/scaling4/scaling.json "$OUT/$job/"
-      find /tmp/scaling4/runs -name timeline.json | tar -czf "$OUT/$job/timelines.tgz" -T - ;;
+            # SCALING_GAIN_SETS=32: 65,536 envs (one chunk; /tmp/scaling4_65536, $OUT/${job}_65536).
+      b=${job#scaling4_}; gs=${SCALING_GAIN_SETS:-16}; envs=$((2048 * gs))
+      sd=/tmp/scaling4; od=$OUT/$job; [ "$envs" != 32768 ] && { sd=/tmp/scaling4_$envs; od=$OUT/${job}_$envs; }
+      run $job python3 benchmarks/scaling.py --out $sd --gpus ${SCALING_GPUS:-1 2 4} \
+        --backends $b --repeats 3 --timeout $((gs > 16 ? 900 : 560)) -- --magnitudes 10 400 64 --directions 32 --gain-sets $gs --horizon 3 \
+        --chunk-size $envs --push-onset 0.5 --push-duration 0.1 --stall-timeout-s 240
+      mkdir -p "$od"; cp $sd/scaling.json "$od/"
+      find $sd/runs -name timeline.json | tar -czf "$od/timelines.tgz" -T - ;;
     profile_tick)  # issue 46: each stage of the controller tick jitted and vmapped alone at 65,536 envs (no Warp needed)
       run profile_tick python3 benchmarks/profile_tick.py --batch 65536 --out "$OUT/profile_tick" ;;
     bench46)  # issue 46: the Warp closed loop at 65,536 envs beside the physics alone and C MuJoCo + NumPy on 16 cores

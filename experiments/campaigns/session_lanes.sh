@@ -13,7 +13,8 @@
 #     wheels arrive, its 4-GPU rows once the other lanes are done, then scaling4_warp_diag and tune_gpus on GPUs 0-3);
 #     gpuset (the gpu test set on GPU 3); talos (`wbc-jax tune --robot talos`, CMA-ES, on GPU 2, capped at TALOS_CAP s);
 #   two (a machine of 2 GPUs; issues 45, 46): scaling (profile_tick on GPU 0, no Warp needed, while the wheels arrive;
-#     then scaling4_warp on 1 and 2 GPUs, tune_gpus on both, bench46 on GPU 0).
+#     then scaling4_warp on 1 and 2 GPUs, tune_gpus on both, scaling4_jax at 65,536 envs on 1 and 2 GPUs, bench46 on
+#     GPU 0).
 # Git-less copy: NIGHTLY_COMMIT names the commit in the gpu set's log.
 set -uo pipefail
 ACTION=${1:?usage: session_lanes.sh start|poll OUT [SECONDS]}
@@ -40,6 +41,7 @@ case "$ACTION" in
       bg scaling "CUDA_VISIBLE_DEVICES=0 $G bash experiments/gpu_run.sh profile_tick; $(wait_for /tmp/warp_ready) \
         SCALING_GPUS='1 2' $G bash experiments/gpu_run.sh scaling4_warp; \
         TUNE_GPUS_FLAGS='${TUNE_GPUS_FLAGS:---repeats 2}' $G bash experiments/gpu_run.sh tune_gpus; \
+        SCALING_GPUS='1 2' SCALING_GAIN_SETS=32 $G bash experiments/gpu_run.sh scaling4_jax; \
         CUDA_VISIBLE_DEVICES=0 $G bash experiments/gpu_run.sh bench46"
       sleep 2; echo "lanes started ($(nproc) cores, plan two): $(ls "$LANES")"; exit 0
     fi
@@ -65,7 +67,7 @@ case "$ACTION" in
     done
     nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv,noheader; uptime
     mkdir -p "$OUT"
-    tar -czf "$OUT/results.tgz" -C / tmp/scaling4/scaling.json tmp/talos_tune \
+    tar -czf "$OUT/results.tgz" -C / tmp/scaling4/scaling.json tmp/scaling4_65536/scaling.json tmp/talos_tune \
       "${LANES#/}"/repo/results/nightly/gpu.log $(cd / && ls -d "${LANES#/}"/*/log.txt "${LANES#/}"/*/out "${LANES#/}"/*/done 2>/dev/null) 2>/dev/null
     ls -la "$OUT" ;;
 esac
