@@ -119,6 +119,14 @@ def default_folder() -> pathlib.Path | None:
     return pathlib.Path(cache) / FOLDER if cache else None
 
 
+def _devices_of(program: jax.stages.Compiled) -> list:
+    """The devices a compiled program runs on, by id: where its loaded copy must run too (left to
+    itself, a deserialised program runs on every device of the backend and expects a shard of each
+    argument per device)."""
+    shardings = jax.tree_util.tree_leaves(program.input_shardings)
+    return sorted({d for sharding in shardings for d in sharding.device_set}, key=lambda d: d.id)
+
+
 def compiled(
     name: str, key_parts, args, lower: Callable[[], jax.stages.Lowered], folder: pathlib.Path | None = None
 ) -> jax.stages.Compiled:
@@ -137,9 +145,12 @@ def compiled(
     path = None if where is None else where / program_key(name, key_parts, args)
     if path is not None and path.exists():
         try:
-            payload, in_tree, out_tree = pickle.loads(path.read_bytes())
+            payload, in_tree, out_tree, platform_name, device_ids = pickle.loads(path.read_bytes())
+            by_id = {d.id: d for d in jax.devices(platform_name)}
             _init_lapack()
-            return serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+            return serialize_executable.deserialize_and_load(
+                payload, in_tree, out_tree, backend=platform_name, execution_devices=[by_id[i] for i in device_ids]
+            )
         except Exception as err:
             warnings.warn(f"recompiling {name}: the saved program {path} did not load ({err})", stacklevel=2)
     if path is None:
@@ -148,7 +159,10 @@ def compiled(
     with _persistent_cache_bypassed():
         program = lowered.compile()
     try:
-        payload = pickle.dumps(serialize_executable.serialize(program))
+        devices = _devices_of(program) or jax.devices()[:1]  # a program without arguments: the default device
+        payload = pickle.dumps(
+            (*serialize_executable.serialize(program), devices[0].platform, [d.id for d in devices])
+        )
     except (NotImplementedError, ValueError, pickle.PicklingError) as err:  # e.g. hoisted constants
         warnings.warn(f"{name} is not kept on disk: {err}", stacklevel=2)
         return program
