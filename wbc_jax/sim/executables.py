@@ -160,9 +160,7 @@ def compiled(
         program = lowered.compile()
     try:
         devices = _devices_of(program) or jax.devices()[:1]  # a program without arguments: the default device
-        payload = pickle.dumps(
-            (*serialize_executable.serialize(program), devices[0].platform, [d.id for d in devices])
-        )
+        payload = pickle.dumps((*serialize_executable.serialize(program), devices[0].platform, [d.id for d in devices]))
     except (NotImplementedError, ValueError, pickle.PicklingError) as err:  # e.g. hoisted constants
         warnings.warn(f"{name} is not kept on disk: {err}", stacklevel=2)
         return program
