@@ -314,3 +314,21 @@ def test_tune_gpus_check_bar_is_the_gradient_within_the_bound_on_every_device():
     ]
     nan = {**two, "gradient": [float("nan"), -2.0, 0.0]}
     assert "differs from one device's by inf" in tg.failures({"comparison": tg.compare(run, nan, 1e-3), "all": nan})[0]
+    # With the shares run on one device: the bar is the split against them; the whole batch's rounding is reported.
+    far = {
+        **two,
+        "gradient": [0.6, -2.0, 0.0],
+        "shares_on_first_device": {"values": run["values"], "gradient": [0.6, -2.0, 1e-9]},
+    }
+    cmp = tg.compare(run, far, 1e-3)
+    assert cmp["gradient_vs_shares_max_rel_diff"] == pytest.approx(5e-10) and cmp[
+        "gradient_max_rel_diff"
+    ] == pytest.approx(0.05)
+    assert (
+        cmp["shares_vs_one_gradient_max_rel_diff"] == pytest.approx(0.05)
+        and tg.failures({"comparison": cmp, "all": far}) == []
+    )
+    split_off = {**far, "gradient": [0.6, -2.01, 0.0]}
+    assert tg.failures({"comparison": tg.compare(run, split_off, 1e-3), "all": split_off}) == [
+        "the 2-device gradient differs from the same shares on one device by 0.005 of its largest entry (bound 0.001)"
+    ]
