@@ -54,6 +54,9 @@ def closed_form_rollout(problem, n_ticks=None, *, batch=1):
     return env
 
 tp.rollout_fn = closed_form_rollout
+from wbc_jax.sim import warp_graphs
+bounds, warp_bound = [], warp_graphs.bound
+warp_graphs.bound = lambda limit, devices=1: bounds.append([limit, devices]) or warp_bound(limit, devices)
 tc = config.TuneConfig(horizon=0.5, push_onset=0.05, duration_range=(0.05, 0.1), eval_horizon=0.5, batch=8, steps=2,
                        estimator="interpolated", population=2, es_batch=3, quality_pushes=4)
 problem = tp.make_problem(tc)
@@ -82,6 +85,7 @@ for n in (1, 2):
             step(params, step.optimizer.init(params), 0)
         except watchdog.DeviceStalled as err:
             out["stall"], out["stall_after_s"] = str(err), time.perf_counter() - t0
+out["warp_graph_bounds"] = bounds
 print(json.dumps(out), flush=True)
 import os
 os._exit(0)  # as the CLI leaves: a stalled device's daemon thread may still be in XLA at teardown
@@ -116,6 +120,8 @@ def test_tuning_on_two_devices_gives_the_one_device_loss_gradient_and_search_and
         "are kept: rerun the same command to resume"
     )
     assert 1.0 <= res["stall_after_s"] < 10.0
+    # Each 2-device program, once compiled, sets MJX-Warp's graph bound for 2 devices (32 each), as a sweep does
+    assert res["warp_graph_bounds"] and all(b == [None, 2] for b in res["warp_graph_bounds"])
 
 
 def test_stall_timeout_is_checked_and_no_part_of_the_run_keys():

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from wbc_jax.sim import executables, physics, runner, watchdog
+from wbc_jax.sim import executables, physics, runner, warp_graphs, watchdog
 from wbc_jax.sim.per_device import PerDevice
 from wbc_jax.tuning.algorithms import loss as tuning_loss
 from wbc_jax.tuning.algorithms import problem as tp
@@ -163,6 +163,8 @@ class DevicePrograms:
         else:  # as runner.lower_fresh: each device's lowered text (its persistent-cache key) is the program's alone
             jax.clear_caches()
             self.program.compile(*self._place(self._core_args(args)), watch=self.watch())
+            # MJX-Warp's graphs: 32 per device (tracing set Warp's shared 32 again; a no-op without Warp), as a sweep
+            warp_graphs.bound(None, self.n_devices)
         self.compiled = True
         return time.perf_counter() - t0
 
