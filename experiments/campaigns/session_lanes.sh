@@ -12,6 +12,7 @@
 #   four (a machine of 4 GPUs; issues 45, 41, 47): scaling (the JAX rows of scaling4_jax on 1 and 2 GPUs while the
 #     wheels arrive, its 4-GPU rows once the other lanes are done, then scaling4_warp_diag and tune_gpus on GPUs 0-3);
 #     gpuset (the gpu test set on GPU 3); talos (`wbc-jax tune --robot talos`, CMA-ES, on GPU 2, capped at TALOS_CAP s);
+#   one (one GPU; issue 46): profile_tick while the wheels arrive, then bench46;
 #   two (a machine of 2 GPUs; issues 45, 46): scaling (profile_tick on GPU 0, no Warp needed, while the wheels arrive;
 #     then scaling4_warp on 1 and 2 GPUs, tune_gpus on both, scaling4_jax at 65,536 envs on 1 and 2 GPUs, bench46 on
 #     GPU 0).
@@ -22,7 +23,7 @@ LANES=${SESSION_LANES_DIR:-/tmp/lanes}
 REPO=$LANES/repo  # a copy of the checkout: a later call replaces the working tree under a running lane
 export PYTHONPATH=/tmp/site:$REPO PYTHONUNBUFFERED=1 TF_CPP_MIN_LOG_LEVEL=3
 PLAN=${SESSION_PLAN:-four}
-LANE_NAMES="scaling gpuset talos"; [ "$PLAN" = two ] && LANE_NAMES=scaling
+LANE_NAMES="scaling gpuset talos"; [ "$PLAN" != four ] && LANE_NAMES=scaling
 
 bg() {  # name, shell command: run in a session of its own, its log in $LANES/name/log.txt, then a done file
   local name=$1; shift; mkdir -p "$LANES/$name"
@@ -37,10 +38,15 @@ case "$ACTION" in
     mkdir -p "$REPO" && cp -r . "$REPO/" && rm -rf "$REPO"/.w[a-z]*
     cd "$REPO" || exit 1
     G="OUT=$LANES/scaling/out"
+    if [ "$PLAN" = one ]; then
+      bg scaling "$G bash experiments/gpu_run.sh profile_tick; $(wait_for /tmp/warp_ready) \
+        $G bash experiments/gpu_run.sh bench46"
+      sleep 2; echo "lanes started ($(nproc) cores, plan one): $(ls "$LANES")"; exit 0
+    fi
     if [ "$PLAN" = two ]; then
       bg scaling "CUDA_VISIBLE_DEVICES=0 $G bash experiments/gpu_run.sh profile_tick; $(wait_for /tmp/warp_ready) \
         SCALING_GPUS='1 2' $G bash experiments/gpu_run.sh scaling4_warp; \
-        TUNE_GPUS_FLAGS='${TUNE_GPUS_FLAGS:---repeats 2}' $G bash experiments/gpu_run.sh tune_gpus; \
+        TUNE_GPUS_FLAGS='${TUNE_GPUS_FLAGS:---repeats 2}' TUNE_GPUS_WALL=${TUNE_GPUS_WALL:-1500} $G bash experiments/gpu_run.sh tune_gpus; \
         SCALING_GPUS='1 2' SCALING_GAIN_SETS=32 $G bash experiments/gpu_run.sh scaling4_jax; \
         CUDA_VISIBLE_DEVICES=0 $G bash experiments/gpu_run.sh bench46"
       sleep 2; echo "lanes started ($(nproc) cores, plan two): $(ls "$LANES")"; exit 0
