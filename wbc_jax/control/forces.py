@@ -44,7 +44,7 @@ from wbc_jax.control.constraints import (
     row_weights,
 )
 from wbc_jax.core.math import batch_any, cho_solve_spd
-from wbc_jax.core.types import Array
+from wbc_jax.core.types import Array, pytree_dataclass
 from wbc_jax.robot.contacts import ContactSet
 
 FORCE_MODES = ("qp", "analytic")
@@ -84,10 +84,11 @@ class ForceSettings:
         return VIOLATION_TOL[jnp.dtype(dtype).itemsize] if self.violation_tol is None else self.violation_tol
 
 
-def _restricted(cset: ContactSet, A: Array, mask: Array, wrench_des: Array):
-    """f1, Z of the momentum equality restricted to the contacts with ``mask`` (K,) = 1: the other
-    contacts' wrenches are zero. Z (D, D - 6) spans null(A) over the kept coordinates; its surplus
-    columns (fewer kept coordinates) are zero and flagged in ``spare`` (D - 6,)."""
+def null_space(cset: ContactSet, A: Array, mask: Array, wrench_des: Array) -> tuple[Array, Array, Array, Array]:
+    """``(f1 (D,), Z (D, D - 6), spare (D - 6,), keep (D,))`` of the momentum equality restricted to
+    the contacts with ``mask`` (K,) = 1 (the other contacts' wrenches are zero): f1 = A^+ wrench_des,
+    Z spans null(A) over the kept coordinates ``keep``; its surplus columns (fewer kept
+    coordinates) are zero and flagged in ``spare``."""
     D = cset.dim
     dtype = A.dtype
     keep = _row_mask(cset, mask)
@@ -158,12 +159,12 @@ def momentum_equality_qp(
       solver's fallback) and ``info.infeasible`` set.
     """
     dtype = A.dtype
-    f1, Z, spare, keep = _restricted(cset, A, mask, wrench_des)
-    C, b = constraints(cset, W_R, jnp.ones(len(cset.contacts), dtype))
-    row_kept = mask[jnp.asarray(constraint_contact(cset))] > 0
-    S_n, F_n = normal_force_rows(cset, W_R)
+    data = equality_qp_data(cset, mask, A, wrench_des, tt, W_R, settings)
+    f1, Z = data.f1, data.Z
     if Z.shape[1] == 0:  # a single surface contact: the equality fixes the wrench
+        C, b = constraints(cset, W_R, jnp.ones(len(cset.contacts), dtype))
         rows = jnp.linalg.norm(C, axis=1)
+        row_kept = mask[jnp.asarray(constraint_contact(cset))] > 0
         excess = jnp.where(row_kept, (C @ f1 - b) / rows, 0.0)
         violation = jnp.max(excess)
         infeasible = violation > qp.default_tolerances(dtype)[1] * (1.0 + jnp.max(jnp.abs(f1)))
@@ -176,6 +177,43 @@ def momentum_equality_qp(
             iterations=jnp.zeros((), jnp.int32),
             start=cold_start(cset, dtype),
         )
+    y, info = qp.solve_qp(
+        data.H,
+        data.g,
+        data.C,
+        data.b,
+        iterations=settings.qp_iterations,
+        row_weight=row_weights(cset),
+        start=start if settings.warm_start else None,
+    )
+    return f1 + Z @ y, info
+
+
+@pytree_dataclass
+class EqualityQP:
+    """The equality QP of :func:`momentum_equality_qp` in y (f = f1 + Z y): min 1/2 y'Hy + g'y s.t. C y <= b."""
+
+    f1: Array  # (D,) A^+ wrench_des over the kept contacts
+    Z: Array  # (D, n) the basis of null(A) over them (n = D - 6), rescaled for desired normal forces
+    H: Array  # (n, n)
+    g: Array  # (n,)
+    C: Array  # (M, n)
+    b: Array  # (M,)
+
+
+def equality_qp_data(
+    cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: Array, settings: ForceSettings
+) -> EqualityQP:
+    """The QP that :func:`momentum_equality_qp` solves (arguments as there); with a single surface
+    contact (n = 0) only f1 and Z are meaningful."""
+    dtype = A.dtype
+    f1, Z, spare, keep = null_space(cset, A, mask, wrench_des)
+    if Z.shape[1] == 0:
+        empty = jnp.zeros((0, 0), dtype)
+        return EqualityQP(f1=f1, Z=Z, H=empty, g=jnp.zeros(0, dtype), C=empty, b=jnp.zeros(0, dtype))
+    C, b = constraints(cset, W_R, jnp.ones(len(cset.contacts), dtype))
+    row_kept = mask[jnp.asarray(constraint_contact(cset))] > 0
+    S_n, F_n = normal_force_rows(cset, W_R)
     S_n = S_n * keep[None, :]
     w_n = settings.normal_force_weight
     if S_n.shape[0]:
@@ -184,16 +222,7 @@ def momentum_equality_qp(
     H = SZ.T @ SZ + w_n * NZ.T @ NZ + jnp.diag(settings.hessian_reg + spare.astype(dtype))
     g = SZ.T @ (tt.tau_model + tt.Sigma @ f1) + w_n * NZ.T @ (S_n @ f1 - F_n)
     # Rows of dropped contacts: 0 <= 1, trivially met (their wrench is zero).
-    y, info = qp.solve_qp(
-        H,
-        g,
-        C @ Z,
-        jnp.where(row_kept, b - C @ f1, 1.0),
-        iterations=settings.qp_iterations,
-        row_weight=row_weights(cset),
-        start=start if settings.warm_start else None,
-    )
-    return f1 + Z @ y, info
+    return EqualityQP(f1=f1, Z=Z, H=H, g=g, C=C @ Z, b=jnp.where(row_kept, b - C @ f1, 1.0))
 
 
 def soft_momentum_qp(
@@ -272,7 +301,7 @@ def analytic(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, set
     among the wrenches that realise the momentum rate, no inequality constraints (one foot:
     ``f = A_k^-1 wrench_des``). Returns f (D,)."""
     dtype = A.dtype
-    f1, Z, spare, _ = _restricted(cset, A, mask, wrench_des)
+    f1, Z, spare, _ = null_space(cset, A, mask, wrench_des)
     if Z.shape[1] == 0:
         return f1
     SZ = tt.Sigma @ Z
