@@ -390,6 +390,40 @@ def test_world_constraints_rotate_the_wrench():
     assert C32.dtype == jnp.float32
 
 
+@pytest.mark.parametrize(
+    "types_, mask",
+    [
+        (("surface", "surface"), (1, 1)),
+        (("surface", "surface"), (0, 1)),
+        (("surface", "point", "surface"), (0, 1, 1)),
+        (("point", "surface", "point", "point"), (1, 1, 1, 1)),
+        (("point", "surface", "point", "point"), (1, 0, 1, 1)),  # no surface kept: the eigenbasis
+    ],
+)
+def test_null_space_basis_of_the_kept_contacts(types_, mask):
+    """Z is an orthonormal basis of null(A) over the kept contacts' coordinates (the same space as
+    scipy's null_space of their columns), its surplus columns zero and flagged; A f1 = w."""
+    from scipy.linalg import null_space as scipy_null_space
+
+    rng = np.random.default_rng(11)
+    cset = contacts.ContactSet(
+        tuple(dataclasses.replace(c, type=t) for c, t in zip(contact_set(len(types_)).contacts, types_))
+    )
+    p_c = np.array([0.0, 0.0, 0.5])
+    A = np.concatenate([centroidal_map(rng.uniform(-0.3, 0.3, 3), p_c)[:, : c.dim] for c in cset.contacts], axis=1)
+    w = rng.normal(size=6) * 50
+    f1, Z, spare, keep = forces.null_space(cset, jnp.asarray(A), jnp.asarray(mask, float), jnp.asarray(w))
+    Z, spare, keep = np.asarray(Z), np.asarray(spare), np.asarray(keep) > 0
+    reference = np.zeros((cset.dim, cset.dim))
+    basis = scipy_null_space(A[:, keep])
+    reference[np.ix_(keep, keep)] = basis @ basis.T
+    assert np.sum(~spare) == basis.shape[1] == keep.sum() - 6
+    np.testing.assert_allclose(Z @ Z.T, reference, atol=1e-12)
+    np.testing.assert_allclose(Z.T @ Z, np.diag(~spare).astype(float), atol=1e-12)
+    assert np.all(Z[:, spare] == 0.0) and np.all(Z[~keep] == 0.0)
+    np.testing.assert_allclose(A @ np.asarray(f1), w, atol=1e-10)
+
+
 # --------------------------------------------------------------------------------------
 # solve_qp
 # --------------------------------------------------------------------------------------

@@ -31,7 +31,9 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
 from wbc_jax.control import qp
@@ -87,8 +89,16 @@ class ForceSettings:
 def null_space(cset: ContactSet, A: Array, mask: Array, wrench_des: Array) -> tuple[Array, Array, Array, Array]:
     """``(f1 (D,), Z (D, D - 6), spare (D - 6,), keep (D,))`` of the momentum equality restricted to
     the contacts with ``mask`` (K,) = 1 (the other contacts' wrenches are zero): f1 = A^+ wrench_des,
-    Z spans null(A) over the kept coordinates ``keep``; its surplus columns (fewer kept
-    coordinates) are zero and flagged in ``spare``."""
+    Z an orthonormal basis of null(A) over the kept coordinates ``keep``; its surplus columns (fewer
+    kept coordinates) are zero and flagged in ``spare``.
+
+    The basis: with N the orthogonal projector onto that null space, a kept surface contact p (the
+    first) has an invertible 6 x 6 block of A, so the columns of N outside p's coordinates (N E)
+    span the null space; ``Z = N E L^-T`` with ``L L' = (N E)'(N E)`` (Cholesky; a 12 x 12
+    eigensolver cost three times as much on a CPU). L is held constant in derivatives (dZ = dN E
+    L^-T, as :func:`range_basis`): the QP's solution ``Z y`` does not depend on the basis of the
+    same space. A set that can keep three point contacts and no surface one uses
+    :func:`range_basis` where it does."""
     D = cset.dim
     dtype = A.dtype
     keep = _row_mask(cset, mask)
@@ -96,11 +106,37 @@ def null_space(cset: ContactSet, A: Array, mask: Array, wrench_des: Array) -> tu
     A_pinv = cho_solve_spd(A_m @ A_m.T, A_m).T  # A_m has full row rank 6 (a sole is kept)
     f1 = A_pinv @ wrench_des
     N = keep[:, None] * (jnp.eye(D, dtype=dtype) - A_pinv @ A_m) * keep[None, :]
-    Z = range_basis(N, D - 6)
-    spare = lax.stop_gradient(jnp.sum(Z * Z, axis=0)) < 0.5
-    # Surplus columns are rounding noise: zero them, or the QP solver's unit-row scaling would
-    # blow the noise up into a direction the wrenches could move along.
-    return f1, jnp.where(spare[None, :], 0.0, Z), spare, keep
+    selections, surface = _pivot_selections(cset)
+    kept_surface = mask[surface] > 0
+    pivot = kept_surface & (jnp.cumsum(kept_surface) == 1)  # the first kept surface contact
+    E = jnp.tensordot(pivot.astype(dtype), jnp.asarray(selections, dtype), 1)  # (D, D - 6)
+    spare = lax.stop_gradient(keep @ E) < 0.5  # free coordinates of dropped contacts (or no pivot)
+    NE = N @ E
+    L = jnp.linalg.cholesky(lax.stop_gradient(NE.T @ NE + jnp.diag(spare.astype(dtype))))
+    Z = jax.scipy.linalg.solve_triangular(L, NE.T, lower=True).T
+    if sum(c.type == "point" for c in cset.contacts) < 3:  # rank 6 needs a surface contact
+        return f1, Z, spare, keep
+
+    def eigen_basis():
+        Z = range_basis(N, D - 6)
+        spare = lax.stop_gradient(jnp.sum(Z * Z, axis=0)) < 0.5
+        # Surplus columns are rounding noise: zero them, or the QP solver's unit-row scaling would
+        # blow the noise up into a direction the wrenches could move along.
+        return jnp.where(spare[None, :], 0.0, Z), spare
+
+    Z, spare = lax.cond(batch_any(~jnp.any(kept_surface)), eigen_basis, lambda: (Z, spare))
+    return f1, Z, spare, keep
+
+
+def _pivot_selections(cset: ContactSet) -> tuple[np.ndarray, np.ndarray]:
+    """``(E (S, D, D - 6), surface (S,))``: for each surface contact, the selection of the D - 6
+    coordinates outside it, and the surface contacts' indices in the set."""
+    surface = [k for k, c in enumerate(cset.contacts) if c.type == "surface"]
+    E = np.zeros((len(surface), cset.dim, cset.dim - 6))
+    for j, k in enumerate(surface):
+        free = np.delete(np.arange(cset.dim), np.arange(cset.dim)[cset.slices()[k]])
+        E[j, free, np.arange(cset.dim - 6)] = 1.0
+    return E, np.asarray(surface, int)
 
 
 def _row_mask(cset: ContactSet, mask: Array) -> Array:
