@@ -39,7 +39,9 @@ from jax import lax
 from wbc_jax.control import qp
 from wbc_jax.control.constraints import (
     VIOLATION_TOL,
+    constraint_bounds,
     constraint_contact,
+    constraint_products,
     constraints,
     contact_violation,
     normal_force_rows,
@@ -247,18 +249,30 @@ def equality_qp_data(
     if Z.shape[1] == 0:
         empty = jnp.zeros((0, 0), dtype)
         return EqualityQP(f1=f1, Z=Z, H=empty, g=jnp.zeros(0, dtype), C=empty, b=jnp.zeros(0, dtype))
-    C, b = constraints(cset, W_R, jnp.ones(len(cset.contacts), dtype))
+    b = constraint_bounds(cset, jnp.ones(len(cset.contacts), dtype))
     row_kept = mask[jnp.asarray(constraint_contact(cset))] > 0
     S_n, F_n = normal_force_rows(cset, W_R)
     S_n = S_n * keep[None, :]
     w_n = settings.normal_force_weight
     if S_n.shape[0]:
         Z = Z @ _normal_force_scaling(S_n @ Z, w_n)
-    SZ, NZ = tt.Sigma @ Z, S_n @ Z
-    H = SZ.T @ SZ + w_n * NZ.T @ NZ + jnp.diag(settings.hessian_reg + spare.astype(dtype))
-    g = SZ.T @ (tt.tau_model + tt.Sigma @ f1) + w_n * NZ.T @ (S_n @ f1 - F_n)
-    # Rows of dropped contacts: 0 <= 1, trivially met (their wrench is zero).
-    return EqualityQP(f1=f1, Z=Z, H=H, g=g, C=C @ Z, b=jnp.where(row_kept, b - C @ f1, 1.0))
+    # f1 and Z side by side, so that each product is one (on a CPU a tiny product's cost is its call):
+    # R = [r, R_Z], the residuals of the cost |tau_model + Sigma f|^2 + w_n |S_n f - F_n|^2 at f1 and
+    # their derivative along Z; then R_Z' R = [g, H] and C [f1, Z] = [C f1, C Z].
+    F = jnp.concatenate([f1[:, None], Z], axis=1)
+    R = (tt.Sigma @ F).at[:, 0].add(tt.tau_model)
+    if S_n.shape[0]:
+        R = jnp.concatenate([R, math.sqrt(w_n) * (S_n @ F).at[:, 0].add(-F_n)])
+    gH = R[:, 1:].T @ R
+    CF = constraint_products(cset, W_R, F)
+    return EqualityQP(
+        f1=f1,
+        Z=Z,
+        H=gH[:, 1:] + jnp.diag(settings.hessian_reg + spare.astype(dtype)),
+        g=gH[:, 0],
+        C=CF[:, 1:],
+        b=jnp.where(row_kept, b - CF[:, 0], 1.0),  # rows of dropped contacts: 0 <= 1 (their wrench is 0)
+    )
 
 
 def soft_momentum_qp(
