@@ -96,8 +96,8 @@ def null_space(cset: ContactSet, A: Array, mask: Array, wrench_des: Array) -> tu
 
     The basis: with N the orthogonal projector onto that null space, a kept surface contact p (the
     first) has an invertible 6 x 6 block of A, so the columns of N outside p's coordinates (N E)
-    span the null space; ``Z = N E L^-T`` with ``L L' = (N E)'(N E)`` (Cholesky; a 12 x 12
-    eigensolver cost three times as much on a CPU). L is held constant in derivatives (dZ = dN E
+    span the null space; ``Z = N E L^-T`` with ``L L' = (N E)'(N E)`` (Cholesky: with a 12 x 12
+    eigensolver instead the null space cost twice as much on a CPU, benchmarks/force_build.py). L is held constant in derivatives (dZ = dN E
     L^-T, as :func:`range_basis`): the QP's solution ``Z y`` does not depend on the basis of the
     same space. A set that can keep three point contacts and no surface one uses
     :func:`range_basis` where it does."""
