@@ -84,11 +84,10 @@ def sinusoid_states(ticks: int):
     return qpos, qvel, st
 
 
-def programs(ticks: int, pkg: str = "wbc_jax", warm_start: bool = False):
-    """The cumulative stage programs (module docstring) of the sinusoid's controller built by the
-    package ``pkg`` (this checkout's, or a copy of another commit's: :func:`import_commit`), each
-    ``(qpos (T, nq), qvel (T, nv)) -> ()``."""
-    import jax
+def stage_prefix(ticks: int, pkg: str = "wbc_jax", warm_start: bool = False):
+    """``(prefix, st, state0)``: ``prefix(depth, q, v, k)`` the tick's first ``depth`` stages (module
+    docstring) of the sinusoid's controller built by the package ``pkg``; with ``force_inputs``, depth 5
+    returns the arguments ``(cset, activation, A, wrench, tt, W_R, settings)`` of the force distribution."""
     import jax.numpy as jnp
 
     constraints, forces, momentum, torques = (
@@ -106,7 +105,7 @@ def programs(ticks: int, pkg: str = "wbc_jax", warm_start: bool = False):
     state0 = loop.init(jnp.asarray(st.qpos0, dtype))
     mass = st.robot.index.mass
 
-    def prefix(depth: int, q, v, k):
+    def prefix(depth: int, q, v, k, force_inputs: bool = False):
         time_now = k * loop.cfg.control_dt
         t = loop.terms(q, v)
         if depth == 1:
@@ -149,11 +148,26 @@ def programs(ticks: int, pkg: str = "wbc_jax", warm_start: bool = False):
             return Ldot_star, tt.Sigma, tt.tau_model
         A = constraints.wrench_map(cset, ct.W_p, t.W_p_CoM).astype(dtype)
         wrench = Ldot_star - constraints.gravity_wrench(mass, dtype)
+        if force_inputs:
+            return cset, ct.activation, A, wrench, tt, ct.W_R, cfg.force_settings
         # Cold QP starts (the whole tick, stage 6, starts from the last tick's); [:2]: a commit before
         # the warm start (--before) returns no third item.
         f, infeasible = forces.distribute(cset, ct.activation, A, wrench, tt, ct.W_R, cfg.force_settings)[:2]
         return tt.tau_model + tt.Sigma @ f, infeasible
 
+    return prefix, st, state0
+
+
+def programs(ticks: int, pkg: str = "wbc_jax", warm_start: bool = False):
+    """The cumulative stage programs (module docstring) of the sinusoid's controller built by the
+    package ``pkg`` (this checkout's, or a copy of another commit's: :func:`import_commit`), each
+    ``(qpos (T, nq), qvel (T, nv)) -> ()``."""
+    import jax
+    import jax.numpy as jnp
+
+    prefix, st, state0 = stage_prefix(ticks, pkg, warm_start)
+    scenario = importlib.import_module(f"{pkg}.sim.scenario")
+    loop, dtype = st.loop, st.dtype
     one = jax.tree_util.tree_map(lambda x: x[0], scenario.single(st))
 
     def scanned(depth: int):

@@ -375,19 +375,96 @@ def test_foot_constraints_torsion_and_unilateral():
     assert np.flatnonzero(C @ wrench_with_cop(params.fz_min - 1e-3, 0, 0) > b).tolist() == [14]
 
 
-def test_world_constraints_rotate_the_wrench():
+def test_constraint_products_rotate_the_wrench():
+    """C f of the world-axes wrenches (constraint_products, and constraints' C) equals each contact's
+    contact-frame rows on its wrench rotated into its frame, for a set of surface and point contacts."""
     rng = np.random.default_rng(3)
-    C_foot, b_foot = constraints.contact_constraints(contacts.ContactParams())
-    R = random_sole_rotation(rng, tilt=0.5, yaw=3.0)
-    C, b = constraints.world_constraints(C_foot, b_foot, jnp.asarray(R))
-    assert C.shape == (19, 6) and C.dtype == jnp.float64
-    for _ in range(20):
-        f_sole = rng.normal(size=6) * [30, 30, 100, 5, 5, 1] + [0, 0, 150, 0, 0, 0]
-        f_world = np.concatenate([R @ f_sole[:3], R @ f_sole[3:]])
-        np.testing.assert_allclose(np.asarray(C) @ f_world, C_foot @ f_sole, atol=1e-10)
-    np.testing.assert_array_equal(np.asarray(b), b_foot)
-    C32, _ = constraints.world_constraints(C_foot, b_foot, jnp.asarray(R, jnp.float32))
+    cset = contacts.ContactSet(
+        tuple(dataclasses.replace(c, type=t) for c, t in zip(contact_set(3).contacts, ("surface", "point", "surface")))
+    )
+    R = np.stack([random_sole_rotation(rng, tilt=0.5, yaw=3.0) for _ in range(3)])
+    rows = [constraints.contact_constraints(c.params, c.type) for c in cset.contacts]
+    scale = np.array([1.0, 0.5, 0.25])
+    C, b = constraints.constraints(cset, jnp.asarray(R), jnp.asarray(scale))
+    assert C.shape == (19 + 13 + 19, 15) and C.dtype == jnp.float64
+    f_local = [rng.normal(size=(c.dim, 4)) * 30 for c in cset.contacts]
+    f_world = np.concatenate(
+        [np.concatenate([R[k] @ f[i : i + 3] for i in range(0, len(f), 3)]) for k, f in enumerate(f_local)]
+    )
+    expected = np.concatenate([C_k @ f for (C_k, _), f in zip(rows, f_local)])
+    np.testing.assert_allclose(
+        constraints.constraint_products(cset, jnp.asarray(R), jnp.asarray(f_world)), expected, atol=1e-10
+    )
+    np.testing.assert_allclose(np.asarray(C) @ f_world, expected, atol=1e-10)
+    np.testing.assert_allclose(
+        constraints.constraint_products(cset, jnp.asarray(R), jnp.asarray(f_world[:, 0])), expected[:, 0], atol=1e-10
+    )
+    # b: each contact's -fz_min on its unilateral row, times its scale; zero elsewhere.
+    np.testing.assert_array_equal(np.asarray(b), np.concatenate([b_k * s for (_, b_k), s in zip(rows, scale)]))
+    C32 = constraints.constraint_products(cset, jnp.asarray(R, jnp.float32), jnp.asarray(f_world, jnp.float32))
     assert C32.dtype == jnp.float32
+
+
+def test_contact_violation_per_contact_relative_to_its_normal_force():
+    """Each contact's largest constraint excess over its normal force (or its scaled fz_min), from
+    its contact-frame rows, for surface and point contacts and wrenches inside and outside."""
+    rng = np.random.default_rng(5)
+    cset = contacts.ContactSet(
+        tuple(dataclasses.replace(c, type=t) for c, t in zip(contact_set(3).contacts, ("surface", "point", "surface")))
+    )
+    R = np.stack([random_sole_rotation(rng, tilt=0.5, yaw=3.0) for _ in range(3)])
+    activation = np.array([1.0, 0.5, 0.0])
+    seen = set()
+    for _ in range(30):
+        f_local = [
+            rng.normal(size=c.dim) * [20, 20, 60, 3, 3, 1][: c.dim] + [0, 0, 40, 0, 0, 0][: c.dim]
+            for c in cset.contacts
+        ]
+        f_world = np.concatenate(
+            [np.concatenate([R[k] @ f[i : i + 3] for i in range(0, len(f), 3)]) for k, f in enumerate(f_local)]
+        )
+        expected = []
+        for c, f, a in zip(cset.contacts, f_local, activation):
+            C_k, b_k = constraints.contact_constraints(c.params, c.type)
+            expected.append(max(np.max(C_k @ f - a * b_k), 0.0) / max(f[2], c.params.fz_min))
+        got = constraints.contact_violation(cset, jnp.asarray(f_world), jnp.asarray(R), jnp.asarray(activation))
+        np.testing.assert_allclose(np.asarray(got), expected, rtol=1e-12, atol=1e-14)
+        seen.update(np.flatnonzero(np.asarray(expected) > 0))
+    assert seen == {0, 1, 2}  # every contact was violated somewhere
+
+
+@pytest.mark.parametrize(
+    "types_, mask",
+    [
+        (("surface", "surface"), (1, 1)),
+        (("surface", "surface"), (0, 1)),
+        (("surface", "point", "surface"), (0, 1, 1)),
+        (("point", "surface", "point", "point"), (1, 1, 1, 1)),
+        (("point", "surface", "point", "point"), (1, 0, 1, 1)),  # no surface kept: the eigenbasis
+    ],
+)
+def test_null_space_basis_of_the_kept_contacts(types_, mask):
+    """Z is an orthonormal basis of null(A) over the kept contacts' coordinates (the same space as
+    scipy's null_space of their columns), its surplus columns zero and flagged; A f1 = w."""
+    from scipy.linalg import null_space as scipy_null_space
+
+    rng = np.random.default_rng(11)
+    cset = contacts.ContactSet(
+        tuple(dataclasses.replace(c, type=t) for c, t in zip(contact_set(len(types_)).contacts, types_))
+    )
+    p_c = np.array([0.0, 0.0, 0.5])
+    A = np.concatenate([centroidal_map(rng.uniform(-0.3, 0.3, 3), p_c)[:, : c.dim] for c in cset.contacts], axis=1)
+    w = rng.normal(size=6) * 50
+    f1, Z, spare, keep = forces.null_space(cset, jnp.asarray(A), jnp.asarray(mask, float), jnp.asarray(w))
+    Z, spare, keep = np.asarray(Z), np.asarray(spare), np.asarray(keep) > 0
+    reference = np.zeros((cset.dim, cset.dim))
+    basis = scipy_null_space(A[:, keep])
+    reference[np.ix_(keep, keep)] = basis @ basis.T
+    assert np.sum(~spare) == basis.shape[1] == keep.sum() - 6
+    np.testing.assert_allclose(Z @ Z.T, reference, atol=1e-12)
+    np.testing.assert_allclose(Z.T @ Z, np.diag(~spare).astype(float), atol=1e-12)
+    assert np.all(Z[:, spare] == 0.0) and np.all(Z[~keep] == 0.0)
+    np.testing.assert_allclose(A @ np.asarray(f1), w, atol=1e-10)
 
 
 # --------------------------------------------------------------------------------------

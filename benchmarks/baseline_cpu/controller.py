@@ -389,7 +389,7 @@ class NumpyController:
     def null_basis(W_p_feet: np.ndarray) -> np.ndarray:
         """Orthonormal basis Z (B, 12, 6) of null(A) = range(N_A).
 
-        forces.range_basis takes the top singular vectors of N_A; the QPs' solution
+        forces.null_space orthonormalises N_A's columns outside a sole (Cholesky); the QPs' solution
         f = f1 + Z y does not depend on which orthonormal basis is used (the regulariser
         |y|^2 = |Z y|^2 too), so Z comes from the QR factorisation of the closed-form basis
         [I 0; 0 I; -I 0; -S(p_L - p_R) -I] (A f = 0 <=> F_R = -F_L,

@@ -12,6 +12,7 @@ Every function takes a :class:`wbc_jax.robot.contacts.ContactSet` (static) and a
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import jax.numpy as jnp
@@ -105,38 +106,49 @@ def contact_constraints(params: ContactParams, contact_type: str = "surface") ->
     return C, b
 
 
-def world_constraints(C_local: np.ndarray | Array, b: np.ndarray | Array, W_R: Array) -> tuple[Array, Array]:
-    """Constraints of a world-axes wrench (force, moment: each rotated by ``W_R'``) from those in the
-    contact frame. C_local: (m, 6) or (m, 3); W_R: (3, 3) contact frame -> world."""
-    R = jnp.asarray(W_R)
-    C_local = jnp.asarray(C_local, R.dtype)
-    blocks = [C_local[:, k : k + 3] @ R.T for k in range(0, C_local.shape[1], 3)]
-    return jnp.concatenate(blocks, axis=1), jnp.asarray(b, R.dtype)
+@functools.cache
+def _contact_frame_rows(cset: ContactSet) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(C (M, D), b (M,), block_contact (D / 3,), unilateral (K,))``: every contact's constraints
+    on its wrench in its own frame, block-diagonal (:func:`contact_constraints`); the contact of
+    each 3-vector (force, moment) of the stacked wrenches; the unilateral row of each contact."""
+    parts = [contact_constraints(c.params, c.type) for c in cset.contacts]
+    C = np.zeros((sum(len(b) for _, b in parts), cset.dim))
+    r, unilateral = 0, []
+    for (C_k, b_k), c, sl in zip(parts, cset.contacts, cset.slices(), strict=True):
+        C[r : r + len(b_k), sl] = C_k
+        unilateral.append(r + constraint_rows(c.params, c.type).unilateral)
+        r += len(b_k)
+    block_contact = np.concatenate([np.full(c.dim // 3, k) for k, c in enumerate(cset.contacts)])
+    return C, np.concatenate([b for _, b in parts]), block_contact, np.asarray(unilateral)
+
+
+def constraint_products(cset: ContactSet, W_R: Array, X: Array) -> Array:
+    """``C X`` (M, ...) for stacked world-axes wrenches X (D, ...) and the world-axes ``C`` of
+    :func:`constraints`, without building C: each force and moment of X rotated into its contact
+    frame (W_R (K, 3, 3): contact frame -> world), then the contact-frame rows (constants).
+    Two products in all, whatever the number of contacts."""
+    C_local, _, block_contact, _ = _contact_frame_rows(cset)
+    blocks = X.reshape(len(block_contact), 3, -1)
+    local = jnp.einsum("bij,bic->bjc", W_R[block_contact], blocks).reshape(X.shape)
+    return jnp.asarray(C_local, X.dtype) @ local
+
+
+def constraint_bounds(cset: ContactSet, fz_min_scale: Array) -> Array:
+    """b (M,) of :func:`constraints`: each contact's minimum normal force times ``fz_min_scale`` (K,)."""
+    _, b, _, _ = _contact_frame_rows(cset)
+    return jnp.asarray(b, fz_min_scale.dtype) * fz_min_scale[constraint_contact(cset)]
 
 
 def constraints(cset: ContactSet, W_R: Array, fz_min_scale: Array) -> tuple[Array, Array]:
-    """Block-diagonal ``C`` (M, D), ``b`` (M,) of all contacts, world axes.
+    """Block-diagonal ``C`` (M, D), ``b`` (M,) of all contacts, world axes (``C f``:
+    :func:`constraint_products`, without building C).
 
     Args:
       cset: the contact set. W_R: (K, 3, 3) contact frames.
       fz_min_scale: (K,) multiplies each contact's minimum normal force (the activation when the
         violation of a contact being released is measured; 1 in the QPs).
     """
-    dtype = W_R.dtype
-    blocks, bs = [], []
-    for k, c in enumerate(cset.contacts):
-        C_local, b_local = contact_constraints(c.params, c.type)
-        unilateral = constraint_rows(c.params, c.type).unilateral
-        C_w, b_w = world_constraints(C_local, b_local, W_R[k])
-        blocks.append(C_w)
-        bs.append(b_w.at[unilateral].multiply(fz_min_scale[k]))
-    rows = sum(b.shape[0] for b in blocks)
-    C = jnp.zeros((rows, cset.dim), dtype)
-    r = 0
-    for blk, sl in zip(blocks, cset.slices(), strict=True):
-        C = C.at[r : r + blk.shape[0], sl].set(blk)
-        r += blk.shape[0]
-    return C, jnp.concatenate(bs)
+    return constraint_products(cset, W_R, jnp.eye(cset.dim, dtype=W_R.dtype)), constraint_bounds(cset, fz_min_scale)
 
 
 def constraint_contact(cset: ContactSet) -> np.ndarray:
@@ -188,12 +200,13 @@ def contact_violation(cset: ContactSet, f: Array, W_R: Array, activation: Array)
     """(K,) each contact's ``max(C_k f_k - b_k, 0) / max(f_n,k, fz_min,k)``: its constraint
     violation relative to its own normal force (dimensionless). The minimum normal force is scaled
     by the activation (a contact being released may go down to zero)."""
-    C, b = constraints(cset, W_R, activation)
-    excess = jnp.maximum(C @ f - b, 0.0)
+    Cf = constraint_products(cset, W_R, f)
+    excess = jnp.maximum(Cf - constraint_bounds(cset, activation.astype(f.dtype)), 0.0)
     owner = constraint_contact(cset)
-    fn = normal_forces(cset, f, W_R)
+    fn = -Cf[_contact_frame_rows(cset)[3]]  # the unilateral rows: -f_n <= -fz_min
     fz_min = jnp.asarray([c.params.fz_min for c in cset.contacts], f.dtype)
-    per_contact = jnp.stack([jnp.max(excess[owner == k]) for k in range(len(cset.contacts))])
+    # Each contact's largest excess (>= 0), one reduction over the rows for all contacts.
+    per_contact = jnp.max(jnp.where(owner[None, :] == np.arange(len(cset.contacts))[:, None], excess, 0.0), axis=1)
     return per_contact / jnp.maximum(fn, fz_min)
 
 

@@ -31,20 +31,24 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
 from wbc_jax.control import qp
 from wbc_jax.control.constraints import (
     VIOLATION_TOL,
+    constraint_bounds,
     constraint_contact,
+    constraint_products,
     constraints,
     contact_violation,
     normal_force_rows,
     row_weights,
 )
 from wbc_jax.core.math import batch_any, cho_solve_spd
-from wbc_jax.core.types import Array
+from wbc_jax.core.types import Array, pytree_dataclass
 from wbc_jax.robot.contacts import ContactSet
 
 FORCE_MODES = ("qp", "analytic")
@@ -84,10 +88,19 @@ class ForceSettings:
         return VIOLATION_TOL[jnp.dtype(dtype).itemsize] if self.violation_tol is None else self.violation_tol
 
 
-def _restricted(cset: ContactSet, A: Array, mask: Array, wrench_des: Array):
-    """f1, Z of the momentum equality restricted to the contacts with ``mask`` (K,) = 1: the other
-    contacts' wrenches are zero. Z (D, D - 6) spans null(A) over the kept coordinates; its surplus
-    columns (fewer kept coordinates) are zero and flagged in ``spare`` (D - 6,)."""
+def null_space(cset: ContactSet, A: Array, mask: Array, wrench_des: Array) -> tuple[Array, Array, Array, Array]:
+    """``(f1 (D,), Z (D, D - 6), spare (D - 6,), keep (D,))`` of the momentum equality restricted to
+    the contacts with ``mask`` (K,) = 1 (the other contacts' wrenches are zero): f1 = A^+ wrench_des,
+    Z an orthonormal basis of null(A) over the kept coordinates ``keep``; its surplus columns (fewer
+    kept coordinates) are zero and flagged in ``spare``.
+
+    The basis: with N the orthogonal projector onto that null space, a kept surface contact p (the
+    first) has an invertible 6 x 6 block of A, so the columns of N outside p's coordinates (N E)
+    span the null space; ``Z = N E L^-T`` with ``L L' = (N E)'(N E)`` (Cholesky: with a 12 x 12
+    eigensolver instead the null space cost twice as much on a CPU, benchmarks/force_build.py). L is held constant in derivatives (dZ = dN E
+    L^-T, as :func:`range_basis`): the QP's solution ``Z y`` does not depend on the basis of the
+    same space. A set that can keep three point contacts and no surface one uses
+    :func:`range_basis` where it does."""
     D = cset.dim
     dtype = A.dtype
     keep = _row_mask(cset, mask)
@@ -95,11 +108,37 @@ def _restricted(cset: ContactSet, A: Array, mask: Array, wrench_des: Array):
     A_pinv = cho_solve_spd(A_m @ A_m.T, A_m).T  # A_m has full row rank 6 (a sole is kept)
     f1 = A_pinv @ wrench_des
     N = keep[:, None] * (jnp.eye(D, dtype=dtype) - A_pinv @ A_m) * keep[None, :]
-    Z = range_basis(N, D - 6)
-    spare = lax.stop_gradient(jnp.sum(Z * Z, axis=0)) < 0.5
-    # Surplus columns are rounding noise: zero them, or the QP solver's unit-row scaling would
-    # blow the noise up into a direction the wrenches could move along.
-    return f1, jnp.where(spare[None, :], 0.0, Z), spare, keep
+    selections, surface = _pivot_selections(cset)
+    kept_surface = mask[surface] > 0
+    pivot = kept_surface & (jnp.cumsum(kept_surface) == 1)  # the first kept surface contact
+    E = jnp.tensordot(pivot.astype(dtype), jnp.asarray(selections, dtype), 1)  # (D, D - 6)
+    spare = lax.stop_gradient(keep @ E) < 0.5  # free coordinates of dropped contacts (or no pivot)
+    NE = N @ E
+    L = jnp.linalg.cholesky(lax.stop_gradient(NE.T @ NE + jnp.diag(spare.astype(dtype))))
+    Z = jax.scipy.linalg.solve_triangular(L, NE.T, lower=True).T
+    if sum(c.type == "point" for c in cset.contacts) < 3:  # rank 6 needs a surface contact
+        return f1, Z, spare, keep
+
+    def eigen_basis():
+        Z = range_basis(N, D - 6)
+        spare = lax.stop_gradient(jnp.sum(Z * Z, axis=0)) < 0.5
+        # Surplus columns are rounding noise: zero them, or the QP solver's unit-row scaling would
+        # blow the noise up into a direction the wrenches could move along.
+        return jnp.where(spare[None, :], 0.0, Z), spare
+
+    Z, spare = lax.cond(batch_any(~jnp.any(kept_surface)), eigen_basis, lambda: (Z, spare))
+    return f1, Z, spare, keep
+
+
+def _pivot_selections(cset: ContactSet) -> tuple[np.ndarray, np.ndarray]:
+    """``(E (S, D, D - 6), surface (S,))``: for each surface contact, the selection of the D - 6
+    coordinates outside it, and the surface contacts' indices in the set."""
+    surface = [k for k, c in enumerate(cset.contacts) if c.type == "surface"]
+    E = np.zeros((len(surface), cset.dim, cset.dim - 6))
+    for j, k in enumerate(surface):
+        free = np.delete(np.arange(cset.dim), np.arange(cset.dim)[cset.slices()[k]])
+        E[j, free, np.arange(cset.dim - 6)] = 1.0
+    return E, np.asarray(surface, int)
 
 
 def _row_mask(cset: ContactSet, mask: Array) -> Array:
@@ -158,12 +197,12 @@ def momentum_equality_qp(
       solver's fallback) and ``info.infeasible`` set.
     """
     dtype = A.dtype
-    f1, Z, spare, keep = _restricted(cset, A, mask, wrench_des)
-    C, b = constraints(cset, W_R, jnp.ones(len(cset.contacts), dtype))
-    row_kept = mask[jnp.asarray(constraint_contact(cset))] > 0
-    S_n, F_n = normal_force_rows(cset, W_R)
+    data = equality_qp_data(cset, mask, A, wrench_des, tt, W_R, settings)
+    f1, Z = data.f1, data.Z
     if Z.shape[1] == 0:  # a single surface contact: the equality fixes the wrench
+        C, b = constraints(cset, W_R, jnp.ones(len(cset.contacts), dtype))
         rows = jnp.linalg.norm(C, axis=1)
+        row_kept = mask[jnp.asarray(constraint_contact(cset))] > 0
         excess = jnp.where(row_kept, (C @ f1 - b) / rows, 0.0)
         violation = jnp.max(excess)
         infeasible = violation > qp.default_tolerances(dtype)[1] * (1.0 + jnp.max(jnp.abs(f1)))
@@ -176,24 +215,64 @@ def momentum_equality_qp(
             iterations=jnp.zeros((), jnp.int32),
             start=cold_start(cset, dtype),
         )
-    S_n = S_n * keep[None, :]
-    w_n = settings.normal_force_weight
-    if S_n.shape[0]:
-        Z = Z @ _normal_force_scaling(S_n @ Z, w_n)
-    SZ, NZ = tt.Sigma @ Z, S_n @ Z
-    H = SZ.T @ SZ + w_n * NZ.T @ NZ + jnp.diag(settings.hessian_reg + spare.astype(dtype))
-    g = SZ.T @ (tt.tau_model + tt.Sigma @ f1) + w_n * NZ.T @ (S_n @ f1 - F_n)
-    # Rows of dropped contacts: 0 <= 1, trivially met (their wrench is zero).
     y, info = qp.solve_qp(
-        H,
-        g,
-        C @ Z,
-        jnp.where(row_kept, b - C @ f1, 1.0),
+        data.H,
+        data.g,
+        data.C,
+        data.b,
         iterations=settings.qp_iterations,
         row_weight=row_weights(cset),
         start=start if settings.warm_start else None,
     )
     return f1 + Z @ y, info
+
+
+@pytree_dataclass
+class EqualityQP:
+    """The equality QP of :func:`momentum_equality_qp` in y (f = f1 + Z y): min 1/2 y'Hy + g'y s.t. C y <= b."""
+
+    f1: Array  # (D,) A^+ wrench_des over the kept contacts
+    Z: Array  # (D, n) the basis of null(A) over them (n = D - 6), rescaled for desired normal forces
+    H: Array  # (n, n)
+    g: Array  # (n,)
+    C: Array  # (M, n)
+    b: Array  # (M,)
+
+
+def equality_qp_data(
+    cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, W_R: Array, settings: ForceSettings
+) -> EqualityQP:
+    """The QP that :func:`momentum_equality_qp` solves (arguments as there); with a single surface
+    contact (n = 0) only f1 and Z are meaningful."""
+    dtype = A.dtype
+    f1, Z, spare, keep = null_space(cset, A, mask, wrench_des)
+    if Z.shape[1] == 0:
+        empty = jnp.zeros((0, 0), dtype)
+        return EqualityQP(f1=f1, Z=Z, H=empty, g=jnp.zeros(0, dtype), C=empty, b=jnp.zeros(0, dtype))
+    b = constraint_bounds(cset, jnp.ones(len(cset.contacts), dtype))
+    row_kept = mask[jnp.asarray(constraint_contact(cset))] > 0
+    S_n, F_n = normal_force_rows(cset, W_R)
+    S_n = S_n * keep[None, :]
+    w_n = settings.normal_force_weight
+    if S_n.shape[0]:
+        Z = Z @ _normal_force_scaling(S_n @ Z, w_n)
+    # f1 and Z side by side, so that each product is one (on a CPU a tiny product's cost is its call):
+    # R = [r, R_Z], the residuals of the cost |tau_model + Sigma f|^2 + w_n |S_n f - F_n|^2 at f1 and
+    # their derivative along Z; then R_Z' R = [g, H] and C [f1, Z] = [C f1, C Z].
+    F = jnp.concatenate([f1[:, None], Z], axis=1)
+    R = (tt.Sigma @ F).at[:, 0].add(tt.tau_model)
+    if S_n.shape[0]:
+        R = jnp.concatenate([R, math.sqrt(w_n) * (S_n @ F).at[:, 0].add(-F_n)])
+    gH = R[:, 1:].T @ R
+    CF = constraint_products(cset, W_R, F)
+    return EqualityQP(
+        f1=f1,
+        Z=Z,
+        H=gH[:, 1:] + jnp.diag(settings.hessian_reg + spare.astype(dtype)),
+        g=gH[:, 0],
+        C=CF[:, 1:],
+        b=jnp.where(row_kept, b - CF[:, 0], 1.0),  # rows of dropped contacts: 0 <= 1 (their wrench is 0)
+    )
 
 
 def soft_momentum_qp(
@@ -272,7 +351,7 @@ def analytic(cset: ContactSet, mask: Array, A: Array, wrench_des: Array, tt, set
     among the wrenches that realise the momentum rate, no inequality constraints (one foot:
     ``f = A_k^-1 wrench_des``). Returns f (D,)."""
     dtype = A.dtype
-    f1, Z, spare, _ = _restricted(cset, A, mask, wrench_des)
+    f1, Z, spare, _ = null_space(cset, A, mask, wrench_des)
     if Z.shape[1] == 0:
         return f1
     SZ = tt.Sigma @ Z
