@@ -8,7 +8,9 @@ program is a ``lax.scan`` over those ticks of the tick's first stages, one stage
 (cumulative, so every stage runs on the data the stage before produced and XLA fuses across the
 seams as it does in the tick):
 
-1. dynamics terms (kinematics, Jacobians and their derivative, mass matrix, bias);
+1. dynamics terms (kinematics, Jacobians and their derivative, mass matrix, bias), all of them:
+   a stage that returned only M left the bias and Jdot nu to the next stage that reads them, the
+   torque law (the split recorded in results/cpu_targets/qp46);
 2. + contact terms and the momentum task (L_dot*);
 3. + the torque law with the ``seed`` postural task (Lambda, its damped pseudo-inverse, N_Lambda,
    Sigma, tau_model);
@@ -110,7 +112,7 @@ def programs(ticks: int, pkg: str = "wbc_jax", warm_start: bool = False):
         time_now = k * loop.cfg.control_dt
         t = loop.terms(q, v)
         if depth == 1:
-            return t.M
+            return t
         ref = loop.schedule.at(time_now, dtype)
         ct = contacts.contact_terms(cset, t, time_now, jnp.clip(ref.activation, 0.0, 1.0))
         Ldot_star = momentum.momentum_rate_reference(
