@@ -8,7 +8,10 @@ program is a ``lax.scan`` over those ticks of the tick's first stages, one stage
 (cumulative, so every stage runs on the data the stage before produced and XLA fuses across the
 seams as it does in the tick):
 
-1. dynamics terms (kinematics, Jacobians and their derivative, mass matrix, bias);
+1. dynamics terms (kinematics, Jacobians and their derivative, mass matrix, bias), all of them,
+   and every later program returns them too: a program that returned only what its stage makes
+   left the bias and Jdot nu (dead code to XLA before) to the torque law's stage, which was
+   charged with them (the split recorded in results/cpu_targets/qp46);
 2. + contact terms and the momentum task (L_dot*);
 3. + the torque law with the ``seed`` postural task (Lambda, its damped pseudo-inverse, N_Lambda,
    Sigma, tau_model);
@@ -109,7 +112,7 @@ def stage_prefix(ticks: int, pkg: str = "wbc_jax", warm_start: bool = False):
         time_now = k * loop.cfg.control_dt
         t = loop.terms(q, v)
         if depth == 1:
-            return t.M
+            return t
         ref = loop.schedule.at(time_now, dtype)
         ct = contacts.contact_terms(cset, t, time_now, jnp.clip(ref.activation, 0.0, 1.0))
         Ldot_star = momentum.momentum_rate_reference(
@@ -129,7 +132,7 @@ def stage_prefix(ticks: int, pkg: str = "wbc_jax", warm_start: bool = False):
             ki_ang=gains.ki_ang,
         )
         if depth == 2:
-            return Ldot_star, ct.J
+            return t, Ldot_star, ct.J
         rows = contacts.row_activation(cset, ct.activation)
         tt = torques.torque_terms(
             t,
@@ -145,7 +148,7 @@ def stage_prefix(ticks: int, pkg: str = "wbc_jax", warm_start: bool = False):
             compensate_passive=cfg.compensate_passive,
         )
         if depth <= 4:
-            return Ldot_star, tt.Sigma, tt.tau_model
+            return t, Ldot_star, tt.Sigma, tt.tau_model
         A = constraints.wrench_map(cset, ct.W_p, t.W_p_CoM).astype(dtype)
         wrench = Ldot_star - constraints.gravity_wrench(mass, dtype)
         if force_inputs:
@@ -153,7 +156,7 @@ def stage_prefix(ticks: int, pkg: str = "wbc_jax", warm_start: bool = False):
         # Cold QP starts (the whole tick, stage 6, starts from the last tick's); [:2]: a commit before
         # the warm start (--before) returns no third item.
         f, infeasible = forces.distribute(cset, ct.activation, A, wrench, tt, ct.W_R, cfg.force_settings)[:2]
-        return tt.tau_model + tt.Sigma @ f, infeasible
+        return t, tt.tau_model + tt.Sigma @ f, infeasible
 
     return prefix, st, state0
 

@@ -26,7 +26,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from wbc_jax.core.math import damped_pinv
+from wbc_jax.core.math import batch_any, cho_solve_spd, damped_pinv
 from wbc_jax.core.types import Array, pytree_dataclass
 from wbc_jax.robot.dynamics import DynamicsTerms
 
@@ -69,14 +69,14 @@ class TorqueTerms:
 
 
 def postural_projector(
-    Lambda: Array, Mbar: Array, pinv_damping: Array | float, pinv_tol: float, Mbar_factor: Array | None = None
+    Lambda: Array, Mbar: Array, pinv_damping: Array | float, pinv_tol: float, Mbar_inv: Array | None = None
 ) -> Array:
     """P (n, n) = pinv(X, tol) X for X = N_Lambda Mbar: the projector on X's right singular
     vectors whose singular values exceed ``pinv_tol`` (absolute, as MATLAB's ``pinv(X, tol)``).
 
     Lambda: (D, n); Mbar: (n, n) positive definite; pinv_damping > 0 (of N_Lambda's damped
-    pseudo-inverse); Mbar_factor: (n, n) Mbar's lower Cholesky factor where the caller has it
-    (:func:`torque_terms` reads it off M's), None: factorised here. With that pseudo-inverse N_Lambda = (I + Lambda^T Lambda / damping)^-1
+    pseudo-inverse); Mbar_inv: (n, n) Mbar^-1 where the caller has it (:func:`torque_terms` reads
+    it off its solve with M), None: solved here. With that pseudo-inverse N_Lambda = (I + Lambda^T Lambda / damping)^-1
     (Woodbury), so X^-1 = Mbar^-1 (I + Lambda^T Lambda / damping) = V S^-1 U^T and the cut
     directions are the eigenvectors of X^-1 X^-T = V S^-2 V^T with eigenvalues 1 / s^2 above
     1 / tol^2 (computed for damping X^-1, whose entries stay in float32's range for any damping).
@@ -85,20 +85,36 @@ def postural_projector(
     (X^T X would put them at 1e-11 next to rounding of 1e-8). Differentiable
     (:func:`spectral_projector`): the derivative is undefined only where a cut and a kept
     singular value coincide.
+
+    The cut directions lie near Mbar^-1 Lambda^T's D columns, :func:`spectral_projector`'s start:
+    damping X^-1 = E + F with E = damping Mbar^-1 and F = Mbar^-1 Lambda^T Lambda of rank D, so a
+    cut direction u (singular value of damping X^-1 above damping / tol) lies within
+    sin = tol |Mbar^-1| of F's range (3e-3 for iCub), and at most D are cut where that is below 1.
     """
     n = Mbar.shape[0]
     eye = jnp.eye(n, dtype=Mbar.dtype)
-    L = jnp.linalg.cholesky(Mbar) if Mbar_factor is None else Mbar_factor
-    X_inv_scaled = jax.scipy.linalg.cho_solve((L, True), pinv_damping * eye + Lambda.T @ Lambda)  # damping X^-1
-    return eye - spectral_projector(X_inv_scaled @ X_inv_scaled.T, (pinv_damping / pinv_tol) ** 2)
+    Mbar_inv = cho_solve_spd(Mbar, eye) if Mbar_inv is None else Mbar_inv
+    X_inv_scaled = Mbar_inv @ (pinv_damping * eye + Lambda.T @ Lambda)  # damping X^-1
+    threshold = (pinv_damping / pinv_tol) ** 2
+    return eye - spectral_projector(X_inv_scaled @ X_inv_scaled.T, threshold, Mbar_inv @ Lambda.T)
 
 
 @jax.custom_jvp
-def spectral_projector(A: Array, threshold: Array | float) -> Array:
+def spectral_projector(A: Array, threshold: Array | float, start: Array | None = None) -> Array:
     """(n, n) the orthogonal projector V_c V_c^T on the eigenvectors of the symmetric A (n, n)
     whose eigenvalues exceed ``threshold`` (not differentiated: the cut is a step).
 
-    Its derivative (a custom JVP) involves only pairs of a cut and a kept eigenvalue:
+    ``start`` (n, k): columns whose span is near the cut eigenvectors' (k < n). Then the cut
+    directions are first taken from A's Ritz vectors on the span of A start (a QR and a k x k
+    ``eigh``, on a CPU cheaper than the n x n one, the postural task's dearest op), and kept where
+    they are certified to be what the whole eigenproblem gives, to its rounding: their residual
+    |A V_c - V_c Theta_c| at most n eps |A| (eigh's backward error; the projector's error is that
+    over the gap to the other eigenvalues, for either), and the rest of A, (I - P) A (I - P), of
+    Frobenius norm below the threshold (no cut direction missed; Ritz values never exceed the
+    eigenvalues they approximate, so none is cut wrongly). Elsewhere the whole eigenproblem runs.
+
+    Its derivative (a custom JVP, from the whole eigendecomposition) involves only pairs of a cut
+    and a kept eigenvalue:
 
     .. math::
 
@@ -109,7 +125,14 @@ def spectral_projector(A: Array, threshold: Array | float) -> Array:
     is NaN wherever two eigenvalues coincide, even with a zero tangent (inf x 0): at any
     left-right symmetric posture of the robot, whose mirrored limbs give equal pairs. The
     projector's derivative is defined there, and equals eigh's elsewhere."""
-    _, V, cut = _cut_eigenvectors(A, threshold)
+    if start is None:
+        return _projector(*_cut_eigenvectors(A, threshold)[1:])
+    P, certified = _ritz_projector(A, threshold, start)
+    # batch_any: a branch under vmap too, the whole eigenproblem only in ticks where some robot needs it.
+    return jax.lax.cond(batch_any(~certified), lambda: _projector(*_cut_eigenvectors(A, threshold)[1:]), lambda: P)
+
+
+def _projector(V, cut):
     return (V * cut) @ V.T
 
 
@@ -118,15 +141,36 @@ def _cut_eigenvectors(A, threshold):
     return w, V, w > threshold
 
 
+def _ritz_projector(A, threshold, start):
+    """The projector on A's Ritz vectors (on the span of A start) above ``threshold`` and whether
+    it is certified (:func:`spectral_projector`)."""
+    n = A.shape[0]
+    Q = jnp.linalg.qr(A @ start)[0]
+    AQ = A @ Q
+    ritz, W = jnp.linalg.eigh(Q.T @ AQ)
+    cut = ritz > threshold
+    V = Q @ W
+    P = _projector(V, cut)
+    residual = (AQ @ W - V * ritz) * cut  # A V_c - V_c Theta_c
+    rest = A - P @ A - A @ P + P @ A @ P  # (I - P) A (I - P)
+    eps = jnp.finfo(A.dtype).eps
+    norm = jnp.sqrt(jnp.sum(A * A))
+    certified = (jnp.sqrt(jnp.sum(residual * residual)) <= n * eps * norm) & (
+        jnp.sqrt(jnp.sum(rest * rest)) < threshold
+    )
+    return P, certified
+
+
 @spectral_projector.defjvp
 def _spectral_projector_jvp(primals, tangents):
-    A, threshold = primals
+    A, threshold, start = primals
     dA = tangents[0]
     w, V, cut = _cut_eigenvectors(A, threshold)
     across = cut[:, None] & ~cut[None, :]  # (i cut, j kept)
     gap = jnp.where(across, w[:, None] - w[None, :], 1.0)
     F = jnp.where(across, (V.T @ dA @ V) / gap, 0.0)
-    return (V * cut) @ V.T, V @ (F + F.T) @ V.T
+    P = _projector(V, cut) if start is None else spectral_projector(A, threshold, start)
+    return P, V @ (F + F.T) @ V.T
 
 
 def postural_torque(
@@ -143,9 +187,9 @@ def postural_torque(
     pinv_tol: float = 1e-5,
     kp_reg: float = 0.1,
     freeze_projector: bool = False,
-    Mbar_factor: Array | None = None,
+    Mbar_inv: Array | None = None,
 ) -> Array:
-    """u_0 (n,) of the postural task (module docstring). kp, kd, s_err, s_dot: (n,); Mbar_factor:
+    """u_0 (n,) of the postural task (module docstring). kp, kd, s_err, s_dot: (n,); Mbar_inv:
     as :func:`postural_projector`'s.
 
     For ``stable``, diag(k) pinv(X) X v is evaluated as diag(k) P v with P = pinv(X) X
@@ -158,10 +202,9 @@ def postural_torque(
     if variant == "seed":
         return -kp * s_err - kd * s_dot
     if variant == "stable":
-        X = N_Lambda @ Mbar
-        P = postural_projector(Lambda, Mbar, pinv_damping, pinv_tol, Mbar_factor)
+        P = postural_projector(Lambda, Mbar, pinv_damping, pinv_tol, Mbar_inv)
         P = jax.lax.stop_gradient(P) if freeze_projector else P
-        return -kp * (P @ s_err) - kp_reg * (X @ s_err) - kd * (P @ s_dot)
+        return -kp * (P @ s_err) - kp_reg * (N_Lambda @ (Mbar @ s_err)) - kd * (P @ s_dot)
     raise ValueError(f"unknown postural variant {variant!r}; valid: {list(POSTURAL_VARIANTS)}")
 
 
@@ -201,11 +244,15 @@ def torque_terms(
     n, D = t.s.shape[0], J_c.shape[0]
     M = t.M
     h = t.h - t.tau_passive if compensate_passive else t.h
-    # One Cholesky factorisation of M serves every solve of the tick: M = L L^T with
-    # L = [[L_b, 0], [L_sb, L_s]] gives M_sb M_b^-1 = L_sb L_b^-1 and the base-eliminated inertia
-    # Mbar = M_s - M_sb M_b^-1 M_bs = L_s L_s^T, whose factor the postural projector solves with.
+    # One Cholesky factorisation of M and one solve with stacked right-hand sides serve the tick:
+    # M^-1 (J_c^T, h) and, for the projector, M^-1's joint columns, whose joint block is Mbar^-1
+    # (the base-eliminated inertia Mbar = M_s - M_sb M_b^-1 M_bs = L_s L_s^T for M = L L^T).
     L = jnp.linalg.cholesky(M)
-    Minv = jax.scipy.linalg.cho_solve((L, True), jnp.concatenate([J_c.T, h[:, None]], axis=1))
+    stable = postural == "stable"
+    columns = [J_c.T, h[:, None]]
+    if stable:
+        columns.append(jnp.eye(n + 6, n, -6, dtype=M.dtype))
+    Minv = jax.scipy.linalg.cho_solve((L, True), jnp.concatenate(columns, axis=1))
     Minv_JcT, Minv_h = Minv[:, :D], Minv[:, D]  # (nv, D), (nv,)
     Lambda = Minv_JcT.T[:, 6:]  # M symmetric
     Lambda_pinv = damped_pinv(Lambda, pinv_damping)
@@ -228,10 +275,11 @@ def torque_terms(
         pinv_tol=pinv_tol,
         kp_reg=kp_postural_reg,
         freeze_projector=freeze_projector,
-        Mbar_factor=L_s,
+        Mbar_inv=Minv[6:, D + 1 :] if stable else None,
     )
     Sigma_c = -Lambda_pinv @ (J_c @ Minv_JcT)
     tau_c = Lambda_pinv @ (J_c @ Minv_h - Jdot_nu_c)
+    # The joint rows of M x = r give r_s - M_sb M_b^-1 r_b = Mbar x_s: with x = M^-1 (J_c^T, h), at hand.
     Sigma_0 = -(J_c[:, 6:].T - Msb_Mb_inv_JbT)
     tau_0 = h[6:] - Msb_Mb_inv_hb + u0
     Sigma = Sigma_c + N_Lambda @ Sigma_0
