@@ -89,17 +89,14 @@ def postural_projector(
     The cut directions lie near Mbar^-1 Lambda^T's D columns, :func:`spectral_projector`'s start:
     damping X^-1 = E + F with E = damping Mbar^-1 and F = Mbar^-1 Lambda^T Lambda of rank D, so a
     cut direction u (singular value of damping X^-1 above damping / tol) lies within
-    sin = tol |Mbar^-1| of F's range (about 3e-3 for the humanoids in assets/), and at most D are cut where that
-    is below 1. That start is used on the CPU only: under vmap on a GPU its QR, small ``eigh`` and branch
-    cost more than the batched whole ``eigh`` (BENCHMARKS.md, "Where the controller's tick goes").
+    sin = tol |Mbar^-1| of F's range (3e-3 for the default robot), and at most D are cut where that is below 1.
     """
     n = Mbar.shape[0]
     eye = jnp.eye(n, dtype=Mbar.dtype)
     Mbar_inv = cho_solve_spd(Mbar, eye) if Mbar_inv is None else Mbar_inv
     X_inv_scaled = Mbar_inv @ (pinv_damping * eye + Lambda.T @ Lambda)  # damping X^-1
     threshold = (pinv_damping / pinv_tol) ** 2
-    start = Mbar_inv @ Lambda.T if jax.default_backend() == "cpu" else None  # docstring: the CPU's
-    return eye - spectral_projector(X_inv_scaled @ X_inv_scaled.T, threshold, start)
+    return eye - spectral_projector(X_inv_scaled @ X_inv_scaled.T, threshold, Mbar_inv @ Lambda.T)
 
 
 @jax.custom_jvp
