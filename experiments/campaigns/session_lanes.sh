@@ -13,9 +13,8 @@
 #     wheels arrive, its 4-GPU rows once the other lanes are done, then scaling4_warp_diag and tune_gpus on GPUs 0-3);
 #     gpuset (the gpu test set on GPU 3); talos (`wbc-jax tune --robot talos`, CMA-ES, on GPU 2, capped at TALOS_CAP s);
 #   one (one GPU; issue 46): profile_tick while the wheels arrive, then bench46;
-#   two (a machine of 2 GPUs; issues 45, 46): scaling (profile_tick on GPU 0, no Warp needed, while the wheels arrive;
-#     then scaling4_warp on 1 and 2 GPUs, tune_gpus on both, scaling4_jax at 65,536 envs on 1 and 2 GPUs, bench46 on
-#     GPU 0).
+#   two (a machine of 2 GPUs; issue 45): scaling (once Warp is there: tune_gpus on both GPUs, then both engines at
+#     65,536 envs on 1 and 2 GPUs).
 # Git-less copy: NIGHTLY_COMMIT names the commit in the gpu set's log.
 set -uo pipefail
 ACTION=${1:?usage: session_lanes.sh start|poll OUT [SECONDS]}
@@ -44,11 +43,10 @@ case "$ACTION" in
       sleep 2; echo "lanes started ($(nproc) cores, plan one): $(ls "$LANES")"; exit 0
     fi
     if [ "$PLAN" = two ]; then
-      bg scaling "CUDA_VISIBLE_DEVICES=0 $G bash experiments/gpu_run.sh profile_tick; $(wait_for /tmp/warp_ready) \
-        SCALING_GPUS='1 2' $G bash experiments/gpu_run.sh scaling4_warp; \
+      bg scaling "$(wait_for /tmp/warp_ready) \
         TUNE_GPUS_FLAGS='${TUNE_GPUS_FLAGS:---repeats 2}' TUNE_GPUS_WALL=${TUNE_GPUS_WALL:-1500} $G bash experiments/gpu_run.sh tune_gpus; \
-        SCALING_GPUS='1 2' SCALING_GAIN_SETS=32 $G bash experiments/gpu_run.sh scaling4_jax; \
-        CUDA_VISIBLE_DEVICES=0 $G bash experiments/gpu_run.sh bench46"
+        SCALING_GPUS='1 2' SCALING_GAIN_SETS=32 $G bash experiments/gpu_run.sh scaling4_warp; \
+        SCALING_GPUS='1 2' SCALING_GAIN_SETS=32 $G bash experiments/gpu_run.sh scaling4_jax"
       sleep 2; echo "lanes started ($(nproc) cores, plan two): $(ls "$LANES")"; exit 0
     fi
     bg scaling "CUDA_VISIBLE_DEVICES=0,1 SCALING_GPUS='1 2' $G bash experiments/gpu_run.sh scaling4_jax; \
