@@ -3,7 +3,7 @@
     taskset -c 1 python benchmarks/force_qp_alone.py --out runs/force_qp_alone.json [--ticks 1000]
 
 The QPs are the 20 s sinusoid's own (``wbc-jax balance --task sinusoid``, C MuJoCo, recorded; the
-first QP of each tick, the engaged feet's equality QP, with the weight as its momentum rate): its
+first QP of each tick, the engaged feet's equality QP with the tick's momentum-rate reference): its
 inputs ``(H, g, C, b)`` are computed once, then :func:`wbc_jax.control.qp.solve_qp` runs alone in
 a ``lax.scan`` over them, from the cold start every tick and warm-started from the last tick's
 ``info.start`` (what ``ControllerConfig.qp_warm_start`` does), and with its iterations capped at
@@ -29,49 +29,24 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 
 def qp_inputs(ticks: int):
-    """(H, g, C, b) stacked over the sinusoid's ticks: the tick's first force QP (the feet's equality QP)."""
+    """(H, g, C, b) stacked over the sinusoid's ticks: the tick's first force QP (the feet's equality QP,
+    :func:`wbc_jax.control.forces.equality_qp_data` on the force distribution's inputs of each tick,
+    :func:`force_build.distribute_inputs`)."""
     import jax
     import jax.numpy as jnp
-    from controller_stages import sinusoid_states
+    from force_build import distribute_inputs
 
-    from wbc_jax.control import constraints, forces, qp, torques
-    from wbc_jax.robot import contacts
+    from wbc_jax.control import forces
 
-    qpos, qvel, st = sinusoid_states(ticks)
-    loop, ctrl, dtype = st.loop, st.loop.controller, st.dtype
-    cset, cfg, gains = ctrl.contact_set, ctrl.config, st.gains
+    (cset, settings), stacked, st = distribute_inputs(ticks)
+    ones = jnp.ones(len(cset.contacts), st.dtype)
 
-    def inputs(q, v, k):
-        t = loop.terms(q, v)
-        ref = loop.schedule.at(k * loop.cfg.control_dt, dtype)
-        ct = contacts.contact_terms(cset, t, k * loop.cfg.control_dt, jnp.clip(ref.activation, 0.0, 1.0))
-        tt = torques.torque_terms(
-            t,
-            ct.J,
-            ct.Jdot_nu,
-            postural=cfg.postural,
-            kp_postural=gains.kp_postural,
-            kd_postural=gains.kd_postural,
-            s_des=ref.s_des,
-        )
-        A = constraints.wrench_map(cset, ct.W_p, t.W_p_CoM).astype(dtype)
-        w = jnp.asarray([0.0, 0.0, 9.81 * st.robot.index.mass, 0.0, 0.0, 0.0], dtype)
-        captured = []
-        solve = qp.solve_qp
+    def qp_of(activation, A, wrench, tt, W_R):
+        data = forces.equality_qp_data(cset, ones, A, wrench, tt, W_R, settings)
+        return data.H, data.g, data.C, data.b
 
-        def capture(H, g, C, b, **kwargs):  # the QP as momentum_equality_qp builds it
-            captured.append((H, g, C, b))
-            return solve(H, g, C, b, **kwargs)
-
-        qp.solve_qp = capture
-        try:
-            forces.momentum_equality_qp(cset, jnp.ones(len(cset.contacts), dtype), A, w, tt, ct.W_R, cfg.force_settings)
-        finally:
-            qp.solve_qp = solve
-        return captured[0]
-
-    ks = jnp.arange(ticks, dtype=jnp.int32)
-    return jax.jit(jax.vmap(inputs))(jnp.asarray(qpos, dtype), jnp.asarray(qvel, dtype), ks)
+    with jax.default_matmul_precision(st.loop.cfg.matmul_precision):
+        return jax.jit(jax.vmap(qp_of))(*stacked)
 
 
 def program(data, warm: bool, iterations: int):
