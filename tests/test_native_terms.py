@@ -44,7 +44,7 @@ def test_split_step_equals_mj_step_bit_for_bit(robot, frames):
     same states, divergence flags and contact slots bit for bit (an environment blown up and
     restored, one frozen before stepping by a NaN torque: its slots passed on); the terms are those
     of the state returned (the mass matrix and bias of mj_forward there, bit for bit)."""
-    B, n_sub, ticks = 3, 10, 30
+    B, n_sub, ticks_run = 3, 10, 30
     m = physics.solver_mj_model(robot.mj_model, physics.PhysicsConfig())
     rng = np.random.default_rng(0)
     qpos = robot.home_qpos()[None].repeat(B, 0)
@@ -54,12 +54,13 @@ def test_split_step_equals_mj_step_bit_for_bit(robot, frames):
     ids = native.handles(split.models, split.data)
     n_con = physics.max_contacts(m)
     step = jax.jit(lambda ctrl, xfrc, ok, slots: step_terms(robot, frames, ids, ctrl, xfrc, ok, slots))
+    native.physics_cpu(reset=True)
     slots = start_terms(robot, frames, ids, B, n_con)[3]
     ok = np.ones(B, bool)
     chest = robot.index.body_id("chest")
     fresh = mujoco.MjData(m)
     M, M_ref = np.zeros((m.nv, m.nv)), np.zeros((m.nv, m.nv))
-    for k in range(ticks):
+    for k in range(ticks_run):
         ctrl = rng.normal(scale=5.0, size=(B, m.nu))
         xfrc = np.zeros((B, n_sub, m.nbody, 6))
         xfrc[:, 3:, chest, 1] = 40.0 * (k % 2)  # the push changes inside a tick
@@ -81,6 +82,10 @@ def test_split_step_equals_mj_step_bit_for_bit(robot, frames):
             mujoco.mj_fullM(m, fresh, M_ref)
             np.testing.assert_array_equal(engine.M[b], M_ref)
             np.testing.assert_array_equal(engine.bias[b], fresh.qfrc_bias)
+    # The accounting: every stepping call a tick of physics (the start is none), mj_step1 and
+    # mj_step2 in the physics' CPU time, the terms' extraction apart (the controller's).
+    physics_s, ticks = native.physics_cpu()
+    assert ticks == ticks_run and 0 < native.terms_cpu() < physics_s
     assert ok.tolist() == [True, False, False]
     assert float(np.abs(q[0] - qpos[0]).max()) > 1e-3 and sum(int(d.ncon) for d in split.data) > 0
     del M
