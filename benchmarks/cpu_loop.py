@@ -7,8 +7,10 @@
   (``--host-loop python``: reading the state, the controller's call and its XLA time, the pushes'
   wrenches, C MuJoCo's steps, the contact slots, the measured wrenches, and the Python between
   them), in the compiled loop (one XLA program; C MuJoCo's steps timed inside it by the native
-  step) and the controller's tick alone in a ``lax.scan`` (no physics, no calls between ticks);
-  wall and CPU microseconds per tick, the fastest of ``--repeats``.
+  step, ``mj_step1`` and ``mj_step2`` as physics; the dynamics terms it reads out of C MuJoCo for
+  the controller are part of the rest, and shown apart) and the controller's tick alone in a
+  ``lax.scan`` (no physics, no calls between ticks; its dynamics terms computed in XLA); wall and
+  CPU microseconds per tick, the fastest of ``--repeats``.
 * ``sinusoid``: ``wbc-jax balance --task sinusoid --duration 20`` with ``--host-loop compiled`` and
   ``python``, and the compiled loop with XLA's CPU pool of a thread per core, each in its own
   process with a warm compilation cache (run once before): loop time, real-time factor, CoM RMSE
@@ -142,14 +144,16 @@ def profile(repeats: int, ticks: int) -> dict:
     def compiled_run():
         native.physics_cpu(reset=True)
         runner.run(st, scenario.single(st))
-        return native.physics_cpu()[0]
+        return native.physics_cpu()[0], native.terms_cpu()
 
-    wall, cpu, physics_cpu = _best(compiled_run, repeats)
+    wall, cpu, (physics_cpu, terms_cpu) = _best(compiled_run, repeats)
     out["compiled_loop"] = {
         "per_tick_wall_us": us(wall),
         "per_tick_cpu_us": us(cpu),
         "physics_cpu_us": us(physics_cpu),
         "rest_cpu_us": us(cpu - physics_cpu),
+        # of the rest: the controller's dynamics terms read out of C MuJoCo's data (native.step_terms)
+        "terms_from_c_mujoco_cpu_us": us(terms_cpu),
     }
 
     # The controller's tick alone (controller, metrics, records) in a scan: no physics, no calls.

@@ -101,6 +101,36 @@ class DynamicsTerms:
     xpos: Array
 
 
+@pytree_dataclass
+class EngineTerms:
+    """What the controller's dynamics terms need of C MuJoCo's data after ``mj_step1`` at one
+    state, in MuJoCo's order, as :func:`wbc_jax.sim.native.step_terms` returns them (with a batch
+    axis) and :func:`terms_from_engine` converts them; k frames.
+
+    Attributes:
+      M:           (nv, nv)     mass matrix (``mj_fullM``)
+      bias:        (nv,)        ``qfrc_bias``
+      passive:     (nv,)        ``qfrc_passive``
+      xpos, xmat:  (nbody, 3), (nbody, 3, 3)  body poses
+      com:         (3,)         the robot's CoM (``subtree_com`` of its base)
+      J:           (k, 6, nv)   frame Jacobians [point; angular] (``mj_jac``)
+      Jdot_qvel:   (k, 6)       their ``mj_jacDot`` times qvel
+      A_G:         (6, nv)      centroidal momentum matrix [sum m Jp; sum I_W Jr + m S(c_b - c) Jp]
+      com_Jdot_qvel: (3,)       sum over bodies of m ``mj_jacDot`` at the body's CoM times qvel
+    """
+
+    M: Array
+    bias: Array
+    passive: Array
+    xpos: Array
+    xmat: Array
+    com: Array
+    J: Array
+    Jdot_qvel: Array
+    A_G: Array
+    com_Jdot_qvel: Array
+
+
 def mixed_velocity(idx: RobotIndex, qpos: Array, qvel: Array) -> Array:
     """MuJoCo ``qvel`` (nv,) -> mixed ``nu`` (nv,): rotate the base angular velocity to world
     axes and reorder the joints into controller order. The only place this conversion lives."""
@@ -137,6 +167,12 @@ def _to_mixed_cols(idx: RobotIndex, J_mj: Array, R: Array) -> Array:
     """J_mj (..., nv) in MuJoCo dof order/velocity -> mixed, controller order (J T^-1)."""
     J = J_mj[..., idx.dof_perm]
     return J.at[..., 3:6].set(J[..., 3:6] @ R.T)
+
+
+def _to_mixed_rows(idx: RobotIndex, x: Array, R: Array) -> Array:
+    """x (nv, ...) rows in MuJoCo dof order (generalised forces) -> mixed, controller order (T^-T x)."""
+    x = x[idx.dof_perm]
+    return x.at[3:6].set(R @ x[3:6])
 
 
 def _kinematics(m: mjx.Model, d: mjx.Data, idx: RobotIndex, qpos: Array, frames: Frames):
@@ -207,13 +243,7 @@ def terms(m: mjx.Model, d: mjx.Data, idx: RobotIndex, frames: Frames | None = No
     dk = mjx.com_vel(m, dk)
     dk = mjx.passive(m, dk)
     dk = mjx.rne(m, dk)
-    perm = idx.dof_perm
-
-    def rows_to_mixed(x: Array) -> Array:  # T^-T applied on the left
-        x = x[perm]
-        return x.at[3:6].set(R @ x[3:6])
-
-    M = rows_to_mixed(_to_mixed_cols(idx, mjx.full_m(m, dk), R))
+    M = _to_mixed_rows(idx, _to_mixed_cols(idx, mjx.full_m(m, dk), R), R)
     L_G = A_G @ nu
     return DynamicsTerms(
         nu=nu,
@@ -222,8 +252,8 @@ def terms(m: mjx.Model, d: mjx.Data, idx: RobotIndex, frames: Frames | None = No
         W_p_B=dk.xpos[idx.base_body],
         W_R_B=R,
         M=M,
-        h=rows_to_mixed(dk.qfrc_bias),
-        tau_passive=rows_to_mixed(dk.qfrc_passive),
+        h=_to_mixed_rows(idx, dk.qfrc_bias, R),
+        tau_passive=_to_mixed_rows(idx, dk.qfrc_passive, R),
         W_p_frames=W_p_frames,
         W_R_frames=W_R_frames,
         J_frames=J_frames,
@@ -235,4 +265,42 @@ def terms(m: mjx.Model, d: mjx.Data, idx: RobotIndex, frames: Frames | None = No
         A_G=A_G,
         L_G=L_G,
         xpos=dk.xpos,
+    )
+
+
+def terms_from_engine(idx: RobotIndex, qpos: Array, qvel: Array, e: EngineTerms, frames: Frames) -> DynamicsTerms:
+    """The controller-side dynamics terms at (``qpos`` (nq,), ``qvel`` (nv,)) from C MuJoCo's own
+    (:class:`EngineTerms` at that state, one environment): :func:`terms`'s, up to rounding.
+
+    The frame Jacobians' derivative needs no term of the representation's: with
+    ``J_mixed = J_mj T^-1``, ``Jdot_mixed nu = Jdot_mj qvel + J_mj d/dt(T^-1) nu`` and the last term is
+    zero (module docstring), so ``mj_jacDot`` times ``qvel`` is the mixed ``Jdot nu``.
+    """
+    nu = mixed_velocity(idx, qpos, qvel)
+    R = e.xmat[idx.base_body]
+    bodies = np.asarray(frames.bodies, dtype=int)
+    W_R = e.xmat[bodies]
+    W_p = e.xpos[bodies] + jnp.einsum("kij,kj->ki", W_R, jnp.asarray(np.asarray(frames.points), W_R.dtype))
+    A_G = _to_mixed_cols(idx, e.A_G, R)
+    L_G = A_G @ nu
+    return DynamicsTerms(
+        nu=nu,
+        s=qpos[idx.qpos_joints],
+        s_dot=nu[6:],
+        W_p_B=e.xpos[idx.base_body],
+        W_R_B=R,
+        M=_to_mixed_rows(idx, _to_mixed_cols(idx, e.M, R), R),
+        h=_to_mixed_rows(idx, e.bias, R),
+        tau_passive=_to_mixed_rows(idx, e.passive, R),
+        W_p_frames=W_p,
+        W_R_frames=W_R,
+        J_frames=_to_mixed_cols(idx, e.J, R),
+        Jdot_nu_frames=e.Jdot_qvel,
+        W_p_CoM=e.com,
+        W_v_CoM=L_G[:3] / idx.mass,
+        J_CoM=A_G[:3] / idx.mass,
+        Jdot_nu_CoM=e.com_Jdot_qvel / idx.mass,
+        A_G=A_G,
+        L_G=L_G,
+        xpos=e.xpos,
     )

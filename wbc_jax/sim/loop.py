@@ -154,11 +154,12 @@ class ClosedLoop:
         return dynamics.terms(self.mx, d, self.idx, self.controller.frames)
 
     @_traced_at_matmul_precision
-    def init(self, qpos0: Array) -> LoopState:
+    def init(self, qpos0: Array, terms: dynamics.DynamicsTerms | None = None) -> LoopState:
         """Loop state at the initial posture ``qpos0`` (nq,), zero velocity; it is also the
-        controller's postural reference."""
+        controller's postural reference. ``terms``: the dynamics terms there, where the engine
+        computed them (None: :meth:`terms`)."""
         dtype = qpos0.dtype
-        t0 = self.terms(qpos0, jnp.zeros(self.idx.nv, dtype))
+        t0 = self.terms(qpos0, jnp.zeros(self.idx.nv, dtype)) if terms is None else terms
         cset = self.contact_set
         R_bc = jnp.asarray(np.array([c.R_body_contact for c in cset.contacts]).reshape(-1, 3, 3), dtype)
         K = len(cset.contacts)
@@ -185,17 +186,19 @@ class ClosedLoop:
         physics_ok: Array,
         push: Push,
         feedforward: Feedforward | None = None,
+        terms: dynamics.DynamicsTerms | None = None,
     ):
         """One control tick at the state (qpos, qvel) of tick ``k``.
 
         ``physics_ok``: () False when the last physics steps diverged (the state was frozen).
         ``feedforward``: torques added to the controller's in a window of ticks (None: none); the
-        records and metrics then see the torques applied. Returns ``(state, ctrl (nu,), record)``; record is a :class:`Trajectory` (``f_meas`` and
+        records and metrics then see the torques applied. ``terms``: the dynamics terms at the
+        state, where the engine computed them (C MuJoCo's compiled loop); None: :meth:`terms`. Returns ``(state, ctrl (nu,), record)``; record is a :class:`Trajectory` (``f_meas`` and
         ``Ldot_meas`` still zero), a :class:`LossTrace` or None, by the settings."""
         cfg, idx = self.cfg, self.idx
         dtype = qpos.dtype
         t_now = k * cfg.control_dt
-        terms = self.terms(qpos, qvel)
+        terms = self.terms(qpos, qvel) if terms is None else terms
         ref = self.schedule.at(t_now, dtype)
         if self.gains_at is not None:
             gains = self.gains_at(gains, qpos, qvel)

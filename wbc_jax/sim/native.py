@@ -3,14 +3,18 @@
     available()                          -> None, or why the native step cannot be used here
     step(handles, ctrl, xfrc, ok)        -> (qpos (B, nq), qvel (B, nv), ok (B,))   one tick's physics
     contacts(handles, after, C, dtype)   -> contact slots (B, C, ...) after it
+    step_terms(handles, ctrl, xfrc, ok, slots, ...) -> (qpos, qvel, ok, slots, EngineTerms)
+                                            the tick's physics split at mj_step1, with the
+                                            controller's dynamics terms from C MuJoCo
     handles(models, datas)               -> (B, 4) uint32: each environment's model and data
     physics_cpu(reset=False)             -> (CPU seconds inside the physics, ticks) so far
+    terms_cpu()                          -> CPU seconds extracting the dynamics terms so far
 
 ``mujoco_ffi.cc`` is compiled at first use with the system's C++ compiler (``$CXX``, ``c++``,
 ``g++`` or ``clang++``) against the FFI headers jaxlib ships and the MuJoCo library the
 ``mujoco`` package ships, into a folder beside JAX's compilation cache (a temporary folder without
 one), keyed by the source, the compiler and both versions; later processes load it from there.
-The two handlers are registered with :func:`jax.ffi.register_ffi_target` by name, so programs that
+The handlers are registered with :func:`jax.ffi.register_ffi_target` by name, so programs that
 call them are ordinary XLA programs: JAX's persistent cache and serialised executables work
 (programs with Python callbacks get neither). Without a compiler, :func:`available` says so and
 the C MuJoCo engine runs its ticks in Python (:mod:`wbc_jax.sim.host_loop`).
@@ -33,9 +37,14 @@ import mujoco
 import numpy as np
 
 from wbc_jax.core.constants import DIVERGED_SPEED
+from wbc_jax.robot.dynamics import EngineTerms
 
 SOURCE = pathlib.Path(__file__).with_name("mujoco_ffi.cc")
-TARGETS = {"wbc_mujoco_step": "WbcMujocoStep", "wbc_mujoco_contacts": "WbcMujocoContacts"}
+TARGETS = {
+    "wbc_mujoco_step": "WbcMujocoStep",
+    "wbc_mujoco_contacts": "WbcMujocoContacts",
+    "wbc_mujoco_step_terms": "WbcMujocoStepTerms",
+}
 BUILD_TIMEOUT_S = 300
 
 
@@ -118,7 +127,8 @@ def _register() -> str | None:
         return f"building the native C MuJoCo step failed: {err}"
     for name, symbol in TARGETS.items():
         jax.ffi.register_ffi_target(name, jax.ffi.pycapsule(getattr(library, symbol)), platform="cpu")
-    library.WbcMujocoPhysicsNs.restype = library.WbcMujocoPhysicsTicks.restype = ctypes.c_int64
+    for counter in (library.WbcMujocoPhysicsNs, library.WbcMujocoPhysicsTicks, library.WbcMujocoTermsNs):
+        counter.restype = ctypes.c_int64
     _LIBRARY.append(library)
     return None
 
@@ -139,6 +149,16 @@ def physics_cpu(reset: bool = False) -> tuple[float, int]:
     if reset:
         lib.WbcMujocoResetCounters()
     return out
+
+
+def terms_cpu() -> float:
+    """CPU seconds the programs' threads spent extracting the dynamics terms in :func:`step_terms`
+    (the controller's share of that call; its mj_step1 and mj_step2 count in :func:`physics_cpu`)
+    since the counters' last reset."""
+    problem = available()
+    if problem is not None:
+        raise RuntimeError(problem)
+    return _LIBRARY[0].WbcMujocoTermsNs() * 1e-9
 
 
 def handles(models, datas) -> np.ndarray:
@@ -176,3 +196,42 @@ def contacts(handles, after, max_contacts: int, dtype):
         jax.ShapeDtypeStruct((B, max_contacts, 2), np.int32),
     )
     return jax.ffi.ffi_call("wbc_mujoco_contacts", out, has_side_effect=True)(handles, after)
+
+
+def step_terms(handles, ctrl, xfrc, ok, slots, *, nq: int, nv: int, nbody: int, base_body: int, frames, start=False):
+    """One tick's physics of B environments (:func:`step`'s) with C MuJoCo's ``mj_step`` split at
+    ``mj_step1``, and the dynamics terms at the new state. The data hold ``mj_step1`` of their state
+    between calls: ``start`` (the loop's first call) steps nothing and runs it at the initial state.
+
+    Args:
+      handles: (B, 4) uint32. ctrl: (B, nu). xfrc: (B, n_sub, nbody, 6). ok: (B,) bool.
+      slots: the last call's contact slots (points (B, C, 3), forces (B, C, 3), geoms (B, C, 2)
+        int32), passed on by environments that do not step (C may be 0).
+      frames: :class:`wbc_jax.robot.dynamics.Frames` whose Jacobians the controller needs.
+
+    Returns:
+      (qpos (B, nq), qvel (B, nv), ok (B,), the contact slots after the tick (those of
+      :func:`contacts`), :class:`EngineTerms`), in ctrl's dtype.
+    """
+    B, dtype, C, k = ctrl.shape[0], ctrl.dtype, slots[0].shape[1], len(frames)
+    shapes = [(B, nq), (B, nv), (B,), (B, C, 3), (B, C, 3), (B, C, 2)]
+    shapes += [(B, nv, nv), (B, nv), (B, nv), (B, nbody, 3), (B, nbody, 3, 3), (B, 3), (B, k, 6, nv)]
+    shapes += [(B, k, 6), (B, 6, nv), (B, 3)]
+    types = {2: np.bool_, 5: np.int32}
+    out = tuple(jax.ShapeDtypeStruct(shape, types.get(i, dtype)) for i, shape in enumerate(shapes))
+    call = jax.ffi.ffi_call("wbc_mujoco_step_terms", out, has_side_effect=True)
+    res = call(
+        handles,
+        ctrl,
+        xfrc.astype(dtype),
+        ok,
+        slots[0].astype(dtype),
+        slots[1].astype(dtype),
+        slots[2],
+        max_speed=np.float64(DIVERGED_SPEED),
+        start=bool(start),
+        base_body=np.int64(base_body),
+        frame_bodies=np.asarray(frames.bodies, np.int64),
+        frame_points=np.asarray(frames.points, np.float64).reshape(-1),
+    )
+    return res[0], res[1], res[2], tuple(res[3:6]), EngineTerms(*res[6:])
