@@ -96,7 +96,7 @@ def _newton_solver(
     _, keep = lax.top_k(ratio, n_keep)  # (n_keep,) row indices
     # Each row's place among the kept ones (n_keep: eliminated); one scatter serves the mask
     # and, as a gather, the kept rows' dz.
-    slot = jnp.full(m, n_keep, jnp.int32).at[keep].set(np.arange(n_keep, dtype=np.int32))
+    slot = jnp.sum(jnp.where(keep[None, :] == np.arange(m)[:, None], np.arange(n_keep) - n_keep, 0), axis=1) + n_keep
     in_k = slot < n_keep
     C_eT = jnp.where(in_k, 0.0, C.T)  # eliminated rows' C'
     C_k = C[keep]
@@ -109,13 +109,14 @@ def _newton_solver(
         ],
         axis=0,
     )
-    lu = jax.scipy.linalg.lu_factor(K)
+    lu, _, perm = lax.linalg.lu(K)
     dz_k_of_row = n + jnp.minimum(slot, n_keep - 1)  # index into d of a kept row's dz
 
     def newton(r_c):
         t = (z * r_p - r_c) / s  # eliminated rows: dz_i = t_i + w_i C_i dx
-        rhs = jnp.concatenate([-r_d - C_eT @ t, -(t * s / denom)[keep]])
-        d = jax.scipy.linalg.lu_solve(lu, rhs)
+        rhs = jnp.concatenate([-r_d - C_eT @ t, -(t * s / denom)[keep]])[perm, None]
+        d = lax.linalg.triangular_solve(lu, rhs, left_side=True, lower=True, unit_diagonal=True)
+        d = lax.linalg.triangular_solve(lu, d, left_side=True, lower=False)[:, 0]
         Cdx = C_pad @ d
         return d[:n], jnp.concatenate([-r_p - Cdx, jnp.where(in_k, d[dz_k_of_row], t + ratio * Cdx)])
 
