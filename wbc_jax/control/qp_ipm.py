@@ -71,10 +71,13 @@ def _newton_solver(
         [H + C_E' W_E C_E   C_K'       ] [dx  ]   [-r_d - C_E' S^-1 (Z r_p - r_c)_E]
         [z_K C_K/(z+s)_K    -s_K/(z+s)_K] [dz_K] = [(r_c - Z r_p)_K / (z+s)_K      ]
 
-    an (n + n_keep) LU whose entries stay O(1) near the solution. (Measured against the
-    pivot-free alternatives of the same system on one CPU core: the symmetric
-    quasi-definite form's two Cholesky factors and Schur complement cost more library
-    calls than this one LU, and an unrolled Gauss-Jordan more kernels; BENCHMARKS.md.)
+    an (n + n_keep) LU whose entries stay O(1) near the solution. Measured against
+    pivot-free forms of the same system on one CPU core (BENCHMARKS.md, qpn46): the
+    symmetric quasi-definite one (rows scaled by 1/D; a Cholesky factor of the (1,1)
+    block, then of the Schur complement) needs more library calls than this one LU and
+    cost 10 % more a QP; an unrolled Gauss-Jordan inverse, more kernels and no float32
+    convergence. The LU's solve is written out so that its row permutation is gathered
+    by the kernel that builds the right-hand side.
 
     Args:
         H: (n, n) Hessian (regularised).
@@ -94,8 +97,8 @@ def _newton_solver(
     n, m = H.shape[0], C.shape[0]
     ratio = z / s
     _, keep = lax.top_k(ratio, n_keep)  # (n_keep,) row indices
-    # Each row's place among the kept ones (n_keep: eliminated); one scatter serves the mask
-    # and, as a gather, the kept rows' dz.
+    # Each row's place among the kept ones (n_keep where eliminated), by one reduction rather
+    # than a scatter: it gives the mask and, as a gather, the kept rows' dz.
     slot = jnp.sum(jnp.where(keep[None, :] == np.arange(m)[:, None], np.arange(n_keep) - n_keep, 0), axis=1) + n_keep
     in_k = slot < n_keep
     C_eT = jnp.where(in_k, 0.0, C.T)  # eliminated rows' C'
@@ -114,7 +117,7 @@ def _newton_solver(
 
     def newton(r_c):
         t = (z * r_p - r_c) / s  # eliminated rows: dz_i = t_i + w_i C_i dx
-        rhs = jnp.concatenate([-r_d - C_eT @ t, -(t * s / denom)[keep]])[perm, None]
+        rhs = jnp.concatenate([-r_d - C_eT @ t, -(t * s / denom)[keep]])[perm, None]  # P rhs
         d = lax.linalg.triangular_solve(lu, rhs, left_side=True, lower=True, unit_diagonal=True)
         d = lax.linalg.triangular_solve(lu, d, left_side=True, lower=False)[:, 0]
         Cdx = C_pad @ d
