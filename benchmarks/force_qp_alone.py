@@ -90,6 +90,11 @@ def main(argv=None) -> dict:
     from wbc_jax.core import io, provenance
     from wbc_jax.sim import runner
 
+    packages = {"": "wbc_jax"}
+    if args.before:  # a bad REF stops here, before anything compiles
+        from controller_stages import import_commit
+
+        packages[f"before ({args.before}), "] = import_commit(args.before)
     runner.enable_compilation_cache()
     data = qp_inputs(args.ticks)
     variants = {
@@ -98,11 +103,6 @@ def main(argv=None) -> dict:
         "cold, 1 Newton step": (False, 1),
         "cold, 3 Newton steps": (False, 3),
     }
-    packages = {"": "wbc_jax"}
-    if args.before:
-        from controller_stages import import_commit
-
-        packages[f"before ({args.before}), "] = import_commit(args.before)
     variants = {prefix + name: (*v, pkg) for prefix, pkg in packages.items() for name, v in variants.items()}
     compiled = {name: program(data, *v) for name, v in variants.items()}
     results = {name: fn(*data) for name, fn in compiled.items()}
