@@ -1,6 +1,6 @@
 """The tick's force QP alone, cold and warm-started, on one core (issue 46).
 
-    taskset -c 1 python benchmarks/force_qp_alone.py --out runs/force_qp_alone.json [--ticks 1000]
+    taskset -c 1 python benchmarks/force_qp_alone.py --out runs/force_qp_alone.json [--ticks 1000] [--before REF]
 
 The QPs are the 20 s sinusoid's own (``wbc-jax balance --task sinusoid``, C MuJoCo, recorded; the
 first QP of each tick, the engaged feet's equality QP with the tick's momentum-rate reference): its
@@ -10,6 +10,9 @@ a ``lax.scan`` over them, from the cold start every tick and warm-started from t
 1 and 3 (the cost of a Newton step: the difference over the steps). CPU microseconds per QP, the
 median of ``--repeats``, programs interleaved; Newton steps per QP; the warm solutions' distance
 to the cold ones, relative to ``1 + max|y|``. One thread of XLA's CPU pool (``PJRT_NPROC=1``).
+``--before REF``: the same programs of commit REF's solver on the same QPs, interleaved with these, and
+the distance of this checkout's cold solutions to REF's; the XLA kernels of a Newton step (the
+while loop's body) of each.
 """
 
 from __future__ import annotations
@@ -19,11 +22,13 @@ import os
 os.environ.setdefault("PJRT_NPROC", "1")
 
 import argparse
+import importlib
 import json
 import pathlib
 import statistics
 import sys
 import time
+import types
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
@@ -49,12 +54,13 @@ def qp_inputs(ticks: int):
         return jax.jit(jax.vmap(qp_of))(*stacked)
 
 
-def program(data, warm: bool, iterations: int):
-    """The compiled scan of solve_qp over the ticks: ``data -> (y (T, n), steps (T,))``."""
+def program(data, warm: bool, iterations: int, pkg: str = "wbc_jax"):
+    """The compiled scan of solve_qp over the ticks: ``data -> (y (T, n), steps (T,))``, with the
+    solver of package ``pkg`` (this checkout's or another commit's, :func:`controller_stages.import_commit`)."""
     import jax
     import jax.numpy as jnp
 
-    from wbc_jax.control import qp
+    qp = importlib.import_module(f"{pkg}.control.qp")
 
     def run(H, g, C, b):
         def tick(start, x):
@@ -73,6 +79,7 @@ def main(argv=None) -> dict:
     p.add_argument("--out", default=str(ROOT / "runs" / "force_qp_alone.json"))
     p.add_argument("--ticks", type=int, default=1000, help="ticks of the sinusoid (10 ms each)")
     p.add_argument("--repeats", type=int, default=15)
+    p.add_argument("--before", default=None, help="also time this git commit's solver on the same QPs")
     args = p.parse_args(argv)
     if args.ticks < 2 or args.repeats < 1:
         p.error("--ticks must be >= 2 and --repeats >= 1")
@@ -83,6 +90,11 @@ def main(argv=None) -> dict:
     from wbc_jax.core import io, provenance
     from wbc_jax.sim import runner
 
+    packages = {"": "wbc_jax"}
+    if args.before:  # a bad REF stops here, before anything compiles
+        from controller_stages import import_commit
+
+        packages[f"before ({args.before}), "] = import_commit(args.before)
     runner.enable_compilation_cache()
     data = qp_inputs(args.ticks)
     variants = {
@@ -91,6 +103,7 @@ def main(argv=None) -> dict:
         "cold, 1 Newton step": (False, 1),
         "cold, 3 Newton steps": (False, 3),
     }
+    variants = {prefix + name: (*v, pkg) for prefix, pkg in packages.items() for name, v in variants.items()}
     compiled = {name: program(data, *v) for name, v in variants.items()}
     results = {name: fn(*data) for name, fn in compiled.items()}
     cpu_us = {name: [] for name in variants}
@@ -102,9 +115,11 @@ def main(argv=None) -> dict:
     y_cold = np.asarray(results["cold"][0])
     scale = 1.0 + np.max(np.abs(y_cold), axis=1)
     warm_gap = np.max(np.abs(np.asarray(results["warm (qp_warm_start)"][0]) - y_cold), axis=1) / scale
-    per_step = (
-        statistics.median(cpu_us["cold, 3 Newton steps"]) - statistics.median(cpu_us["cold, 1 Newton step"])
-    ) / 2
+
+    def per_step(prefix: str) -> float:
+        three, one = (statistics.median(cpu_us[f"{prefix}cold, {k} Newton step{'s' * (k > 1)}"]) for k in (3, 1))
+        return round((three - one) / 2, 2)
+
     result = {
         "command": "python benchmarks/force_qp_alone.py " + " ".join(argv),
         "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
@@ -124,13 +139,37 @@ def main(argv=None) -> dict:
             for name, r in results.items()
             if variants[name][1] == qp.DEFAULT_ITERATIONS
         },
-        "cpu_us_per_newton_step": round(per_step, 1),
+        "cpu_us_per_newton_step": {prefix or "now": per_step(prefix) for prefix in packages},
         "warm_vs_cold_max_relative": float(f"{np.max(warm_gap):.3g}"),
+        **(before_figures(results, compiled, packages, y_cold, scale) if args.before else {}),
         "provenance": provenance.record(argv=[__file__, *argv]),
     }
     io.atomic_write_json(pathlib.Path(args.out), result)
     print(json.dumps({k: v for k, v in result.items() if k != "provenance"}), flush=True)
     return result
+
+
+def before_figures(results, compiled, packages, y_cold, scale) -> dict:
+    """The cold solutions' distance to the ``--before`` commit's, and each solver's kernels a Newton step."""
+    import re
+
+    import numpy as np
+    from controller_stages import op_counts
+
+    (prefix,) = [p for p in packages if p]
+    y_before = np.asarray(results[prefix + "cold"][0])
+    gap = np.max(np.abs(y_before - y_cold), axis=1) / scale
+
+    def step_ops(name: str) -> dict:
+        # The Newton loop's body: the one computation that calls the LU (getrf).
+        (body,) = [c for c in re.split(r"\n(?=\S)", compiled[name].as_text()) if "getrf" in c]
+        return op_counts(types.SimpleNamespace(as_text=lambda: body))
+
+    return {
+        "cold_vs_before_max_relative": float(f"{np.max(gap):.3g}"),
+        "cold_vs_before_median_relative": float(f"{np.median(gap):.3g}"),
+        "newton_step_ops": {p or "now": step_ops(p + "cold, 3 Newton steps") for p in packages},
+    }
 
 
 if __name__ == "__main__":

@@ -14,6 +14,7 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
 Array = jax.Array
@@ -42,14 +43,15 @@ class IPMResult:
 
 
 def _max_step(v: Array, dv: Array) -> Array:
-    """Largest alpha in (0, 1] with ``v + alpha dv >= 0`` (v > 0 elementwise)."""
+    """Largest alpha in (0, 1] with ``v + alpha dv >= 0`` (v > 0 elementwise); NaN where some
+    entry of dv is not finite (``0 dv`` is NaN there), so one reduction also tests the direction."""
     ratios = jnp.where(dv < 0, -v / jnp.where(dv < 0, dv, -1.0), jnp.inf)
-    return jnp.minimum(1.0, jnp.min(ratios))
+    return jnp.minimum(1.0, jnp.min(ratios + 0.0 * dv))
 
 
 def _newton_solver(
-    H: Array, C: Array, s: Array, z: Array, r_d: Array, r_p: Array, n_keep: int
-) -> Callable[[Array], tuple[Array, Array, Array]]:
+    H: Array, C: Array, C_pad: Array, s: Array, z: Array, r_d: Array, r_p: Array, n_keep: int
+) -> Callable[[Array], tuple[Array, Array]]:
     """Factorise the interior-point Newton system; return its solve function.
 
     The primal-dual Newton system (W = Z/S, r_c the complementarity target)::
@@ -69,11 +71,19 @@ def _newton_solver(
         [H + C_E' W_E C_E   C_K'       ] [dx  ]   [-r_d - C_E' S^-1 (Z r_p - r_c)_E]
         [z_K C_K/(z+s)_K    -s_K/(z+s)_K] [dz_K] = [(r_c - Z r_p)_K / (z+s)_K      ]
 
-    an (n + n_keep) LU whose entries stay O(1) near the solution.
+    an (n + n_keep) LU whose entries stay O(1) near the solution. Measured against
+    pivot-free forms of the same system on one CPU core (BENCHMARKS.md, qpn46): the
+    symmetric quasi-definite one (rows scaled by 1/D; a Cholesky factor of the (1,1)
+    block, then of the Schur complement) needs more library calls than this one LU and
+    cost 10 % more a QP; an unrolled Gauss-Jordan inverse, more kernels and no float32
+    convergence. The LU's solve is written out so that its row permutation is gathered
+    by the kernel that builds the right-hand side.
 
     Args:
         H: (n, n) Hessian (regularised).
         C: (m, n) constraint rows.
+        C_pad: (m, n + n_keep) C with zero columns appended: ``C_pad @ d = C @ dx`` for the
+            system's solution d = (dx, dz_K), without slicing dx out first.
         s: (m,) slacks, > 0.
         z: (m,) multipliers, > 0.
         r_d: (n,) dual residual.
@@ -81,35 +91,37 @@ def _newton_solver(
         n_keep: number of rows kept unreduced (static, <= m).
 
     Returns:
-        ``newton(r_c) -> (dx, ds, dz)``.
+        ``newton(r_c) -> (dx, [ds, dz])`` (the slack and multiplier steps concatenated,
+        as the iterate carries them).
     """
-    n = H.shape[0]
+    n, m = H.shape[0], C.shape[0]
     ratio = z / s
     _, keep = lax.top_k(ratio, n_keep)  # (n_keep,) row indices
-    in_k = jnp.zeros(ratio.shape, bool).at[keep].set(True)
-    w_e = jnp.where(in_k, 0.0, ratio)  # eliminated rows' weights
+    # Each row's place among the kept ones (n_keep where eliminated), by one reduction rather
+    # than a scatter: it gives the mask and, as a gather, the kept rows' dz.
+    slot = jnp.sum(jnp.where(keep[None, :] == np.arange(m)[:, None], np.arange(n_keep) - n_keep, 0), axis=1) + n_keep
+    in_k = slot < n_keep
+    C_eT = jnp.where(in_k, 0.0, C.T)  # eliminated rows' C'
     C_k = C[keep]
-    denom_k = z[keep] + s[keep]
+    # Every row's z/(z+s) and s/(z+s) in one kernel, the kept ones gathered where they are used.
+    denom = z + s
     K = jnp.concatenate(
         [
-            jnp.concatenate([H + (C.T * w_e) @ C, C_k.T], axis=1),
-            jnp.concatenate(
-                [(z[keep] / denom_k)[:, None] * C_k, -jnp.diag(s[keep] / denom_k)],
-                axis=1,
-            ),
+            jnp.concatenate([H + (C_eT * ratio) @ C, C_k.T], axis=1),
+            jnp.concatenate([(z / denom)[keep][:, None] * C_k, -jnp.diag((s / denom)[keep])], axis=1),
         ],
         axis=0,
     )
-    lu = jax.scipy.linalg.lu_factor(K)
+    lu, _, perm = lax.linalg.lu(K)
+    dz_k_of_row = n + jnp.minimum(slot, n_keep - 1)  # index into d of a kept row's dz
 
     def newton(r_c):
         t = (z * r_p - r_c) / s  # eliminated rows: dz_i = t_i + w_i C_i dx
-        rhs = jnp.concatenate([-r_d - C.T @ jnp.where(in_k, 0.0, t), -(t * s)[keep] / denom_k])
-        d = jax.scipy.linalg.lu_solve(lu, rhs)
-        dx = d[:n]
-        ds = -r_p - C @ dx
-        dz = jnp.where(in_k, 0.0, t + ratio * (C @ dx)).at[keep].set(d[n:])
-        return dx, ds, dz
+        rhs = jnp.concatenate([-r_d - C_eT @ t, -(t * s / denom)[keep]])[perm, None]  # P rhs
+        d = lax.linalg.triangular_solve(lu, rhs, left_side=True, lower=True, unit_diagonal=True)
+        d = lax.linalg.triangular_solve(lu, d, left_side=True, lower=False)[:, 0]
+        Cdx = C_pad @ d
+        return d[:n], jnp.concatenate([-r_p - Cdx, jnp.where(in_k, d[dz_k_of_row], t + ratio * Cdx)])
 
     return newton
 
@@ -198,10 +210,17 @@ def interior_point(
         s0 = jnp.where(warm, s_warm, s0)
         z0 = jnp.where(warm, z_warm, z0)
 
-    def residuals(x, s, z):
-        Hx = Hs @ x
+    # Loop invariants: the Newton matrices' Hessian, [H; C] (H x and C x in one product) and
+    # C padded for the Newton system's solution (see _newton_solver).
+    H_reg = Hs + reg * eye
+    HC = jnp.concatenate([Hs, Cs])
+    C_pad = jnp.concatenate([Cs, jnp.zeros((m, n_keep), dtype)], axis=1)
+
+    def residuals(x, sz):
+        s, z = sz[:m], sz[m:]
+        HCx = HC @ x
+        Hx, Cx = HCx[:n], HCx[n:]
         Cz = Cs.T @ z
-        Cx = Cs @ x
         r_d = Hx + gs + Cz
         r_p = Cx + s - bs
         # The max-norms as two reductions over stacked vectors (one kernel each on a CPU, not seven).
@@ -218,36 +237,42 @@ def interior_point(
 
     # The residuals of an iterate are computed once, at the end of the step that made it, and
     # carried: the loop stops right after the step that converged (no extra Newton step whose
-    # result would be thrown away) and the final residual is the carried one.
+    # result would be thrown away) and the final residual is the carried one. The slacks and
+    # multipliers travel as one vector sz = [s, z] (each update one kernel on a CPU, not two).
     def step(carry):
-        x, s, z, r_d, r_p, res, count, k = carry
+        x, sz, mu, r_d, r_p, res, count, k = carry
+        s, z = sz[:m], sz[m:]
         done = res <= tol
-        mu = (s @ z) / m
-        newton = _newton_solver(Hs + reg * eye, Cs, s, z, r_d, r_p, n_keep)
+        newton = _newton_solver(H_reg, Cs, C_pad, s, z, r_d, r_p, n_keep)
 
         # Predictor (affine scaling) step: target s_i z_i = 0.
-        dx_a, ds_a, dz_a = newton(s * z)
-        a_aff = _max_step(jnp.concatenate([s, z]), jnp.concatenate([ds_a, dz_a]))
-        mu_aff = ((s + a_aff * ds_a) @ (z + a_aff * dz_a)) / m
+        _, dsz_a = newton(s * z)
+        a_aff = _max_step(sz, dsz_a)
+        sz_aff = sz + a_aff * dsz_a
+        mu_aff = (sz_aff[:m] @ sz_aff[m:]) / m
         sigma = jnp.clip(mu_aff / mu, 0.0, 1.0) ** 3
         # Corrector: centring sigma mu plus the second-order term ds_a dz_a.
-        dx, ds, dz = newton(s * z + ds_a * dz_a - sigma * mu)
-        sz = jnp.concatenate([s, z])
-        alpha = _STEP_TO_BOUNDARY * _max_step(sz, jnp.concatenate([ds, dz]))
-        x_n, sz_n = x + alpha * dx, sz + alpha * jnp.concatenate([ds, dz])
-        ok = jnp.all(jnp.isfinite(x_n)) & jnp.all(sz_n > 0) & jnp.all(jnp.isfinite(sz_n[:m] * sz_n[m:]))
-        take = ~done & ok
+        dx, dsz = newton(s * z + dsz_a[:m] * dsz_a[m:] - sigma * mu)
+        alpha = _STEP_TO_BOUNDARY * _max_step(sz, dsz)
+        x_n, sz_n = x + alpha * dx, sz + alpha * dsz
+        mu_n = (sz_n[:m] @ sz_n[m:]) / m
+        # The step is taken where it is finite, with no reduction of its own: alpha is NaN where
+        # (dx, ds, dz) is not (_max_step; dx's entries reach every C dx), alpha < the step to the
+        # boundary keeps s, z > 0, and mu_n (the next step's mu) is finite unless s z overflows.
+        take = ~done & jnp.isfinite(alpha) & jnp.isfinite(mu_n)
         x = jnp.where(take, x_n, x)
-        s = jnp.where(take, sz_n[:m], s)
-        z = jnp.where(take, sz_n[m:], z)
-        r_d, r_p, res = residuals(x, s, z)
-        return x, s, z, r_d, r_p, res, count + take.astype(jnp.int32), k + 1
+        sz = jnp.where(take, sz_n, sz)
+        mu = jnp.where(take, mu_n, mu)
+        r_d, r_p, res = residuals(x, sz)
+        return x, sz, mu, r_d, r_p, res, count + take.astype(jnp.int32), k + 1
 
     def running(carry):
         return ~(carry[5] <= tol) & (carry[7] < iterations)
 
-    init = (x0, s0, z0, *residuals(x0, s0, z0), jnp.array(0, jnp.int32), jnp.array(0, jnp.int32))
-    x, s, z, _, _, res, count, _ = lax.while_loop(running, step, init)
+    sz0 = jnp.concatenate([s0, z0])
+    init = (x0, sz0, (s0 @ z0) / m, *residuals(x0, sz0), jnp.array(0, jnp.int32), jnp.array(0, jnp.int32))
+    x, sz, _, _, _, res, count, _ = lax.while_loop(running, step, init)
+    s, z = sz[:m], sz[m:]
     finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(z)) & jnp.all(jnp.isfinite(s))
     violation = jnp.max(jnp.maximum(Cs @ x - bs, 0.0)) / (1.0 + jnp.max(jnp.abs(x)))
     return IPMResult(
