@@ -13,8 +13,8 @@
 #     wheels arrive, its 4-GPU rows once the other lanes are done, then scaling4_warp_diag and tune_gpus on GPUs 0-3);
 #     gpuset (the gpu test set on GPU 3); talos (`wbc-jax tune --robot talos`, CMA-ES, on GPU 2, capped at TALOS_CAP s);
 #   one (one GPU; issue 46): profile_tick while the wheels arrive, then bench46;
-#   two (a machine of 2 GPUs; issue 45): scaling (once Warp is there: tune_gpus on both GPUs, then both engines at
-#     65,536 envs on 1 and 2 GPUs).
+#   two (a machine of 2 GPUs; issue 45): scaling (once Warp is there: tune_gpus on both GPUs, then JAX at 65,536
+#     envs on 1 and 2 GPUs; Warp's 65,536-env rows: results/scaling/h200x2_s54).
 # Git-less copy: NIGHTLY_COMMIT names the commit in the gpu set's log.
 set -uo pipefail
 ACTION=${1:?usage: session_lanes.sh start|poll OUT [SECONDS]}
@@ -45,7 +45,6 @@ case "$ACTION" in
     if [ "$PLAN" = two ]; then
       bg scaling "$(wait_for /tmp/warp_ready) \
         TUNE_GPUS_FLAGS='${TUNE_GPUS_FLAGS:---repeats 2}' TUNE_GPUS_WALL=${TUNE_GPUS_WALL:-1500} $G bash experiments/gpu_run.sh tune_gpus; \
-        SCALING_GPUS='1 2' SCALING_GAIN_SETS=32 $G bash experiments/gpu_run.sh scaling4_warp; \
         SCALING_GPUS='1 2' SCALING_GAIN_SETS=32 $G bash experiments/gpu_run.sh scaling4_jax"
       sleep 2; echo "lanes started ($(nproc) cores, plan two): $(ls "$LANES")"; exit 0
     fi

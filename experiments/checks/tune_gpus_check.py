@@ -110,7 +110,7 @@ def measure(problem, devices: list, repeats: int, work: pathlib.Path) -> dict:
     grad, stats = combine(jnp.asarray(values), jax.tree_util.tree_map(jnp.asarray, grads), eps)
     shares = None
     if len(devices) > 1:  # the same shares, one after another on the first device: what the split must give
-        shares = shares_on_first_device(step.grads.whole, params_b, rollouts, devices[0], len(devices))
+        shares = shares_on_first_device(step.grads, params_b, rollouts, devices[0], len(devices))
         shares_grad, _ = combine(*shares[:2], eps)
         shares = {"values": np.asarray(shares[0], float).tolist(), "gradient": flat(shares_grad)}
     values = np.asarray(values, float)
@@ -159,14 +159,20 @@ def flat(tree) -> list[float]:
     return np.asarray(ravel_pytree(tree)[0], float).tolist()
 
 
-def shares_on_first_device(whole, params_b, rollouts, device, n: int) -> tuple:
-    """(values (B,), per-rollout grads {group: (B, ...)}) of ``whole`` run on ``device`` over the batch's
-    ``n`` contiguous shares one after another (the per-device program's shape), concatenated in batch order."""
+def shares_on_first_device(grads, params_b, rollouts, device, n: int) -> tuple:
+    """(values (B,), per-rollout grads {group: (B, ...)}) of the N-device program's own executable for ``device``
+    (``grads.program.compiled[device]``, :class:`wbc_jax.sim.per_device.PerDevice`) run over the batch's ``n``
+    contiguous shares one after another, concatenated in batch order. Reusing that executable costs no trace or
+    compile (a fresh ``jit`` of the reverse-mode closed loop took minutes on the GPU machine, 2026-11-26)."""
     import jax
     import jax.numpy as jnp
 
+    if grads.pre is not None or grads.post is not None:
+        raise ValueError(
+            "shares_on_first_device: the gradient program has a pre or post stage; expected its core alone"
+        )
+    program = grads.program.compiled[device]
     size = int(jax.tree_util.tree_leaves(rollouts)[0].shape[0]) // n
-    program = jax.jit(whole)
     outs = []
     for k in range(n):
         rows = slice(k * size, (k + 1) * size)
