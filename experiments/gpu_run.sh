@@ -16,7 +16,7 @@ OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 exec > >(tee -a "$OUT/log.txt") 2>&1
 SITE=/tmp/site; mkdir -p "$SITE" ~/wp
 export PYTHONPATH=$SITE:$PWD PYTHONUNBUFFERED=1 TF_CPP_MIN_LOG_LEVEL=3 WBC_JAX_CACHE=/tmp/xla-cache
-for d in .wa .wb .wc .wd .wr .wt1 .wt2; do [ -d $d ] && cp $d/* ~/wp/; done
+for d in .wa .wb .wc .wd .wr .wt1 .wt2 .wt3; do [ -d $d ] && cp $d/* ~/wp/; done
 if [ ! -d $SITE/mujoco ] && [ -f ~/wp/site_small.tar.xz ]; then
   xz -dc ~/wp/site_small.tar.xz | tar xf - -C $SITE && echo "wheels unpacked"
 fi
@@ -39,7 +39,7 @@ for job in "$@"; do
     cpu_peer)  # issue 46 on this host's own CPU (an Intel Xeon on these machines; the CI machine is an AMD EPYC):
             # our compiled loop's tick (benchmarks/cpu_loop.py --parts profile) and TSID's (benchmarks/tsid_peer.py)
             # on core 1, alternating, CPU_PEER_RUNS times each. Needs TSID's Python 3.12 wheels, carried in .wt1/
-            # (cmeel-boost) and .wt2/ (tsid, pin, coal, eigenpy, eiquadprog, their cmeel libraries, and libtsid's
+            # (cmeel-boost), .wt3/ (icub-models) and .wt2/ (tsid, pin, coal, eigenpy, eiquadprog, their cmeel libraries, and libtsid's
             # files as libtsid-1.10.0.tar.xz: the package index here has no libtsid wheel), installed apart in
             # /tmp/site-tsid.
       TS=/tmp/site-tsid
@@ -47,6 +47,8 @@ for job in "$@"; do
         python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target $TS ~/wp/*.whl \
           && xz -dc ~/wp/libtsid-*.tar.xz | tar xf - -C $TS
       fi
+      [ -d $TS/icub_models ] || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target $TS \
+        ~/wp/icub_models-*.whl  # the iCub's URDF for Pinocchio (.wt3/)
       mkdir -p "$OUT/cpu_peer"; lscpu | grep -E "Model name|^CPU\(s\)|MHz" > "$OUT/cpu_peer/cpu.txt"; uptime >> "$OUT/cpu_peer/cpu.txt"
       for i in $(seq 1 ${CPU_PEER_RUNS:-3}); do
         run cpu_peer_wbc_$i taskset -c 1 python3 benchmarks/cpu_loop.py --parts profile --out "$OUT/cpu_peer/wbc_$i.json"
