@@ -47,12 +47,15 @@ for job in "$@"; do
         python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target $TS ~/wp/*.whl \
           && xz -dc ~/wp/libtsid-*.tar.xz | tar xf - -C $TS
       fi
-      [ -d $TS/icub_models ] || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target $TS \
-        ~/wp/icub_models-*.whl  # the iCub's URDF for Pinocchio (.wt3/)
+      # The iCub's URDF for Pinocchio (.wt3/): icub_models finds its share/ five folders above its module, as a
+      # --prefix install lays it out (under --target its data files are dropped).
+      IC=/tmp/icub-prefix
+      [ -d $IC/share/iCub ] || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir \
+        --ignore-installed --prefix $IC ~/wp/icub_models-*.whl
       mkdir -p "$OUT/cpu_peer"; lscpu | grep -E "Model name|^CPU\(s\)|MHz" > "$OUT/cpu_peer/cpu.txt"; uptime >> "$OUT/cpu_peer/cpu.txt"
       for i in $(seq 1 ${CPU_PEER_RUNS:-3}); do
         run cpu_peer_wbc_$i taskset -c 1 python3 benchmarks/cpu_loop.py --parts profile --out "$OUT/cpu_peer/wbc_$i.json"
-        PYTHONPATH=$TS/cmeel.prefix/lib/python3.12/site-packages:$TS:$PYTHONPATH run cpu_peer_tsid_$i \
+        PYTHONPATH=$IC/lib/python3.12/site-packages:$TS/cmeel.prefix/lib/python3.12/site-packages:$TS:$PYTHONPATH run cpu_peer_tsid_$i \
           python3 benchmarks/tsid_peer.py --cpu 1 --no-envelope --out "$OUT/cpu_peer/tsid_$i.json"
       done ;;
     setup)  # what is there
