@@ -31,8 +31,6 @@ import statistics
 import sys
 import time
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-
 PARTS = (
     "kinematics + com_pos",
     "Jacobians + A_G",
