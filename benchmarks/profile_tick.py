@@ -61,6 +61,8 @@ def parse_args(argv=None) -> argparse.Namespace:
             p.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     if not (args.horizon > 0 and 0 <= args.push_onset and args.push_duration > 0):
         p.error("--horizon and --push-duration must be > 0 s and --push-onset >= 0 s")
+    if args.push_onset + args.push_duration >= args.horizon:
+        p.error(f"--push-onset + --push-duration must end before --horizon {args.horizon} s (ticks after the push)")
     try:
         physics.resolve_backend(args.backend)
     except ValueError as err:
@@ -301,7 +303,7 @@ def profile_group(st, fns: dict, group: dict, args, trace: str | None = None) ->
 
 def main(argv=None) -> dict:
     args = parse_args(argv)  # bad flags refused before anything compiles
-    from loop_timing import make_setup
+    from loop_timing import PUSH_MAGNITUDE, make_setup
 
     from wbc_jax.core import io, provenance
     from wbc_jax.sim import runner
@@ -324,7 +326,7 @@ def main(argv=None) -> dict:
         result["loop"] = {
             "envs": args.loop_envs,
             "horizon_s": args.horizon,
-            "push": {"magnitude_n": 40.0, "onset_s": args.push_onset, "duration_s": args.push_duration},
+            "push": {"magnitude_n": PUSH_MAGNITUDE, "onset_s": args.push_onset, "duration_s": args.push_duration},
             "azimuths": "evenly over 360 deg (benchmarks/loop_timing.push_batch)",
             "engine": "jax",
         }

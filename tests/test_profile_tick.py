@@ -28,6 +28,7 @@ def profile_tick():
         (["--states", "random"], ("--states", "'loop'", "'synthetic'")),
         (["--ticks", "50"], ("--ticks", "0..49")),
         (["--batch", "0"], ("--batch", ">= 1")),
+        (["--push-onset", "0.45"], ("--push-onset", "--horizon")),
     ],
 )
 def test_bad_flags_are_refused_in_one_line(profile_tick, capsys, argv, names):
