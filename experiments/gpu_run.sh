@@ -121,8 +121,11 @@ for job in "$@"; do
         --chunk-size $envs --push-onset 0.5 --push-duration 0.1 --stall-timeout-s 240
       mkdir -p "$od"; cp $sd/scaling.json "$od/"
       find $sd/runs -name timeline.json | tar -czf "$od/timelines.tgz" -T - ;;
-    profile_tick)  # issue 46: each stage of the controller tick jitted and vmapped alone at 65,536 envs (no Warp needed)
-      run profile_tick python3 benchmarks/profile_tick.py --batch 65536 --out "$OUT/profile_tick" ;;
+    profile_tick)  # issue 46: each stage of the controller tick jitted and vmapped alone at 65,536 envs (no Warp needed),
+            # on the benchmark loop's own states (256 pushes, ticks before/in/after the push), then on the synthetic ones
+      run profile_tick python3 benchmarks/profile_tick.py --batch 65536 --states loop --out "$OUT/profile_tick"
+      run profile_tick_synthetic python3 benchmarks/profile_tick.py --batch 65536 --states synthetic \
+        --out "$OUT/profile_tick_synthetic" ;;
     bench46)  # issue 46: the Warp closed loop at 65,536 envs beside the physics alone and C MuJoCo + NumPy on 16 cores
       run bench46 python3 benchmarks/benchmark.py --out "$OUT/bench46" --json "$OUT/bench46/benchmarks.json" \
         --backends warp --batches 65536 --horizon 0.5 --cpu-baseline-envs 64 --cpu-workers 16 --repeats 2 \

@@ -91,12 +91,35 @@ def postural_projector(
     cut direction u (singular value of damping X^-1 above damping / tol) lies within
     sin = tol |Mbar^-1| of F's range (3e-3 for the default robot), and at most D are cut where that is below 1.
     """
-    n = Mbar.shape[0]
-    eye = jnp.eye(n, dtype=Mbar.dtype)
+    A, threshold, start = _projector_problem(Lambda, Mbar, pinv_damping, pinv_tol, Mbar_inv)
+    return jnp.eye(Mbar.shape[0], dtype=Mbar.dtype) - spectral_projector(A, threshold, start)
+
+
+def _projector_problem(Lambda, Mbar, pinv_damping, pinv_tol, Mbar_inv):
+    """(A (n, n), threshold, start (n, D)): the eigenproblem of :func:`postural_projector`."""
+    eye = jnp.eye(Mbar.shape[0], dtype=Mbar.dtype)
     Mbar_inv = cho_solve_spd(Mbar, eye) if Mbar_inv is None else Mbar_inv
     X_inv_scaled = Mbar_inv @ (pinv_damping * eye + Lambda.T @ Lambda)  # damping X^-1
-    threshold = (pinv_damping / pinv_tol) ** 2
-    return eye - spectral_projector(X_inv_scaled @ X_inv_scaled.T, threshold, Mbar_inv @ Lambda.T)
+    return X_inv_scaled @ X_inv_scaled.T, (pinv_damping / pinv_tol) ** 2, Mbar_inv @ Lambda.T
+
+
+def projector_certified(
+    t: DynamicsTerms,
+    J_c: Array,
+    *,
+    pinv_damping: Array | float = 1.0,
+    pinv_tol: float = 1e-5,
+    compensate_passive: bool = True,
+) -> Array:
+    """() bool: whether the ``stable`` postural projector that :func:`torque_terms` builds at this
+    state (same arguments, same computations) is its Ritz start's, certified
+    (:func:`spectral_projector`); False: the tick needs the whole ``eigh``, and under vmap the
+    batch runs it for every environment. A diagnostic (benchmarks/profile_tick.py)."""
+    D = J_c.shape[0]
+    L, _, Minv = _mass_solve(t, J_c, compensate_passive, stable=True)
+    Mbar = L[6:, 6:] @ L[6:, 6:].T
+    problem = _projector_problem(Minv[:, :D].T[:, 6:], Mbar, pinv_damping, pinv_tol, Minv[6:, D + 1 :])
+    return _ritz_projector(*problem)[1]
 
 
 @jax.custom_jvp
@@ -208,6 +231,21 @@ def postural_torque(
     raise ValueError(f"unknown postural variant {variant!r}; valid: {list(POSTURAL_VARIANTS)}")
 
 
+def _mass_solve(t: DynamicsTerms, J_c: Array, compensate_passive: bool, stable: bool):
+    """(L, h, Minv): M = L L^T, the bias h, M^-1 (J_c^T, h[, the joint columns of I]).
+
+    One Cholesky factorisation of M and one solve with stacked right-hand sides serve the tick:
+    M^-1 (J_c^T, h) and, for the projector (``stable``), M^-1's joint columns, whose joint block is
+    Mbar^-1 (the base-eliminated inertia Mbar = M_s - M_sb M_b^-1 M_bs = L_s L_s^T)."""
+    n, M = t.s.shape[0], t.M
+    h = t.h - t.tau_passive if compensate_passive else t.h
+    L = jnp.linalg.cholesky(M)
+    columns = [J_c.T, h[:, None]]
+    if stable:
+        columns.append(jnp.eye(n + 6, n, -6, dtype=M.dtype))
+    return L, h, jax.scipy.linalg.cho_solve((L, True), jnp.concatenate(columns, axis=1))
+
+
 def torque_terms(
     t: DynamicsTerms,
     J_c: Array,
@@ -243,16 +281,8 @@ def torque_terms(
     """
     n, D = t.s.shape[0], J_c.shape[0]
     M = t.M
-    h = t.h - t.tau_passive if compensate_passive else t.h
-    # One Cholesky factorisation of M and one solve with stacked right-hand sides serve the tick:
-    # M^-1 (J_c^T, h) and, for the projector, M^-1's joint columns, whose joint block is Mbar^-1
-    # (the base-eliminated inertia Mbar = M_s - M_sb M_b^-1 M_bs = L_s L_s^T for M = L L^T).
-    L = jnp.linalg.cholesky(M)
     stable = postural == "stable"
-    columns = [J_c.T, h[:, None]]
-    if stable:
-        columns.append(jnp.eye(n + 6, n, -6, dtype=M.dtype))
-    Minv = jax.scipy.linalg.cho_solve((L, True), jnp.concatenate(columns, axis=1))
+    L, h, Minv = _mass_solve(t, J_c, compensate_passive, stable)
     Minv_JcT, Minv_h = Minv[:, :D], Minv[:, D]  # (nv, D), (nv,)
     Lambda = Minv_JcT.T[:, 6:]  # M symmetric
     Lambda_pinv = damped_pinv(Lambda, pinv_damping)
