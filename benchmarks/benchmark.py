@@ -60,7 +60,8 @@ JSON_KEYS = (
     "sweep_run_s",
     "sweep_envs",
 )
-JSON_ROW_KEY = ("device", "backend", "solver_iterations", "batch", "n_devices", "sweep_name")
+# qp_warm_start: only in a warm-started run's row (the rows before it, all cold, have no such key)
+JSON_ROW_KEY = ("device", "backend", "solver_iterations", "batch", "n_devices", "sweep_name", "qp_warm_start")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -129,6 +130,8 @@ def json_rows(result: dict) -> list[dict]:
             continue  # a batch that failed (out of memory)
         entry = {k: row.get(k) for k in JSON_KEYS}
         entry.update(date=result["date"], command=result["command"], sweep_name=None, sweep_run_s=None, sweep_envs=None)
+        if row.get("qp_warm_start"):
+            entry["qp_warm_start"] = True
         rows.append(entry)
     return rows
 
@@ -162,6 +165,11 @@ def parse_args(argv=None):
         epilog=f"Check: {BAR}; exit status 1 otherwise.",
     )
     parser.add_argument("--out", default=str(ROOT / "runs" / "bench"), help="folder of bench.json")
+    parser.add_argument(
+        "--qp-warm-start",
+        action="store_true",
+        help="the closed loops' force QP warm-started from the last tick (ControllerConfig.qp_warm_start)",
+    )
     parser.add_argument(
         "--json",
         default=None,
@@ -291,12 +299,13 @@ def main(argv=None) -> dict:
             batches = list(args.batches)
             if args.find_largest:  # doublings past the last requested size, until one fails
                 batches += [max(args.batches) * 2**k for k in range(1, args.find_largest + 1)]
-            st = make_setup(backend, args.horizon, it)
+            st = make_setup(backend, args.horizon, it, qp_warm_start=args.qp_warm_start)
             iterations = int(physics.solver_mj_model(st.robot.mj_model, st.loop.cfg.physics).opt.iterations)
             tau = None if args.skip_physics_only else hold_torques(st)
             for batch in batches:
                 row = {
                     "backend": backend,
+                    "qp_warm_start": args.qp_warm_start,
                     "device": device_description(backend),
                     "batch": batch,
                     "solver_iterations": iterations,

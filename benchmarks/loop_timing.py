@@ -11,13 +11,18 @@ import time
 PUSH_MAGNITUDE = 40.0  # N, horizontal, azimuths spread over 360 deg
 
 
-def make_setup(backend: str, horizon: float, iterations: int | None, *, record: bool = False):
-    """The stand task's closed loop on ``backend`` (default gains, the two feet)."""
+def make_setup(
+    backend: str, horizon: float, iterations: int | None, *, record: bool = False, qp_warm_start: bool = False
+):
+    """The stand task's closed loop on ``backend`` (default gains, the two feet; ``qp_warm_start``: the
+    controller's force QP warm-started, ``ControllerConfig.qp_warm_start``)."""
+    from wbc_jax.control.controller import ControllerConfig
     from wbc_jax.sim import physics, scenario
     from wbc_jax.sim.state import SimConfig
 
     sim = SimConfig(record=record, physics=physics.PhysicsConfig(backend=backend, solver_iterations=iterations))
-    return scenario.setup("stand", duration=horizon, sim=sim)
+    controller = ControllerConfig(qp_warm_start=qp_warm_start)
+    return scenario.setup("stand", duration=horizon, sim=sim, controller=controller)
 
 
 def push_batch(st, batch: int, onset: float, duration: float):

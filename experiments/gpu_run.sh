@@ -130,6 +130,12 @@ for job in "$@"; do
       run bench46 python3 benchmarks/benchmark.py --out "$OUT/bench46" --json "$OUT/bench46/benchmarks.json" \
         --backends warp --batches 65536 --horizon 0.5 --cpu-baseline-envs 64 --cpu-workers 16 --repeats 2 \
         --skip-equivalence ;;
+    bench46_warm)  # issue 46: the same with the force QP warm-started (--qp-warm-start): under vmap the QP's while
+            # loop runs the batch's slowest problem's Newton steps (14 after the push against 7.9 in the mean on the
+            # CPU, results/cpu_targets/pt46), which a warm start cuts; run right after bench46 on the same machine
+      run bench46_warm python3 benchmarks/benchmark.py --out "$OUT/bench46_warm" --json "$OUT/bench46_warm/benchmarks.json" \
+        --backends warp --batches 65536 --horizon 0.5 --cpu-baseline-envs 64 --cpu-workers 16 --repeats 2 \
+        --skip-equivalence --qp-warm-start ;;
     tune_gpus)  # issue 45: the tune job's gradient step and a CMA-ES generation at the race's settings on 1 GPU and on
             # all of them (loss, gradient, their difference, step seconds, speed-up). A call cut off by its limit
             # leaves the compiled programs in $WBC_JAX_CACHE: the same call on the warm machine goes on from them.

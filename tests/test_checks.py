@@ -243,6 +243,21 @@ def test_benchmark_trajectory_check_bar():
     assert len(bm.failures({"equivalence": [dict(eq, com_max_diff_m=float("nan"))]})) == 1
 
 
+def test_benchmark_json_keeps_a_warm_started_row_beside_the_cold_one(tmp_path):
+    """Issue 46: a ``--qp-warm-start`` run's row is its own setting in results/benchmarks.json; a cold run
+    replaces the cold row (the rows before the flag have no such key)."""
+    bm = script("benchmark")
+    path = tmp_path / "benchmarks.json"
+    setting = {"device": "gpu", "backend": "warp", "solver_iterations": 4, "batch": 65536, "n_devices": 1}
+    result = {"date": "d", "command": "c", "runs": [dict(setting, closed_loop_steps_per_s=1.0)]}
+    bm.update_json_rows(path, bm.json_rows(result))
+    warm = dict(result, runs=[dict(setting, closed_loop_steps_per_s=2.0, qp_warm_start=True)])
+    bm.update_json_rows(path, bm.json_rows(warm))
+    cold = dict(result, runs=[dict(setting, closed_loop_steps_per_s=3.0, qp_warm_start=False)])
+    rows = bm.update_json_rows(path, bm.json_rows(cold))
+    assert sorted((r["closed_loop_steps_per_s"], r.get("qp_warm_start")) for r in rows) == [(2.0, True), (3.0, None)]
+
+
 def test_cpu_targets_bar():
     ct = script("cpu_targets")
     ok = doc("results/cpu_targets/cpu_targets.json")

@@ -80,7 +80,7 @@ def test_each_job_checks_its_config_once(name, tmp_path, monkeypatch, capsys):
     assert calls == [config_class.__name__], calls
 
 
-CONTROLLER_FLAGS = ("tasks", "forces", "postural", "angular_weight_soft")
+CONTROLLER_FLAGS = ("tasks", "forces", "postural", "angular_weight_soft", "qp_warm_start")
 
 
 def _configs():
@@ -109,6 +109,18 @@ def test_every_job_takes_the_robot_and_the_controller_flags_from_one_declaration
             robot = {f.name: f for f in dataclasses.fields(configs[0])}["robot"]
             assert robot.metadata["valid"].choices == ROBOT_NAMES, name
     assert set(ROBOT_NAMES) >= {"icub", "talos"}
+
+
+@pytest.mark.parametrize("flags, warm", [([], False), (["--qp-warm-start"], True), (["--no-qp-warm-start"], False)])
+def test_qp_warm_start_flag_reaches_the_controller(flags, warm):
+    """Issue 46: ``--qp-warm-start`` (off by default) is the controller's ``qp_warm_start`` in every job."""
+    from wbc_jax import cli
+
+    for command in ("push-sweep", "balance"):
+        config = cli.config_from_args(
+            cli.build_parser().parse_args([command, *flags]), registry()[command].default_config()
+        )
+        assert config.controller.config().qp_warm_start is warm, (command, flags)
 
 
 def test_the_robot_is_part_of_every_fingerprint(tmp_path):

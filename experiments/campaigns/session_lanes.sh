@@ -12,7 +12,7 @@
 #   four (a machine of 4 GPUs; issues 45, 41, 47): scaling (the JAX rows of scaling4_jax on 1 and 2 GPUs while the
 #     wheels arrive, its 4-GPU rows once the other lanes are done, then scaling4_warp_diag and tune_gpus on GPUs 0-3);
 #     gpuset (the gpu test set on GPU 3); talos (`wbc-jax tune --robot talos`, CMA-ES, on GPU 2, capped at TALOS_CAP s);
-#   one (one GPU; issue 46): profile_tick while the wheels arrive, then bench46;
+#   one (one GPU; issue 46): profile_tick while the wheels arrive, then bench46 and bench46_warm;
 #   two (a machine of 2 GPUs; issue 45): scaling (once Warp is there: tune_gpus on both GPUs, then JAX at 65,536
 #     envs on 1 and 2 GPUs; Warp's 65,536-env rows: results/scaling/h200x2_s54).
 # Git-less copy: NIGHTLY_COMMIT names the commit in the gpu set's log.
@@ -39,7 +39,7 @@ case "$ACTION" in
     G="OUT=$LANES/scaling/out"
     if [ "$PLAN" = one ]; then
       bg scaling "$G bash experiments/gpu_run.sh profile_tick; $(wait_for /tmp/warp_ready) \
-        $G bash experiments/gpu_run.sh bench46"
+        $G bash experiments/gpu_run.sh bench46 bench46_warm"
       sleep 2; echo "lanes started ($(nproc) cores, plan one): $(ls "$LANES")"; exit 0
     fi
     if [ "$PLAN" = two ]; then

@@ -1,6 +1,6 @@
 """The controller's job flags, declared once: every job that runs the controller holds a
 :class:`ControllerFlags` as a nested field (:func:`wbc_jax.core.options.nested`), so ``--tasks``,
-``--forces``, ``--postural`` and ``--angular-weight-soft`` mean the same in balance, push-sweep,
+``--forces``, ``--postural``, ``--angular-weight-soft`` and ``--qp-warm-start`` mean the same in balance, push-sweep,
 envelope, limit, tune and heldout."""
 
 from __future__ import annotations
@@ -34,6 +34,11 @@ class ControllerFlags:
         gt=constants.ANGULAR_WEIGHT_RANGE[0],
         le=constants.ANGULAR_WEIGHT_RANGE[1],
     )
+    qp_warm_start: bool = option(
+        False,
+        "start each tick's force QP from the last tick's multipliers and slacks: fewer interior-point steps, "
+        "solutions that differ from a cold start's within the solver's tolerance (BENCHMARKS.md, issue 46)",
+    )
 
     def config(self, base: ControllerConfig | None = None) -> ControllerConfig:
         """``base`` (default: the defaults) with these settings (the jobs' configs check the declared
@@ -43,4 +48,5 @@ class ControllerFlags:
             forces=self.forces,
             postural=self.postural,
             angular_weight_soft=self.angular_weight_soft,
+            qp_warm_start=self.qp_warm_start,
         )
