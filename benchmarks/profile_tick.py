@@ -55,6 +55,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--backend", default="jax", help="physics backend of the scale step")
     p.add_argument("--out", default="runs/profile_tick")
     p.add_argument("--trace", default=None)
+    p.add_argument(
+        "--qp-warm-start",
+        action="store_true",
+        help="the controller's force QP warm-started (ControllerConfig.qp_warm_start), in the recorded loop too",
+    )
     args = p.parse_args(argv)
     for name in ("batch", "repeats", "loop_envs"):
         if getattr(args, name) < 1:
@@ -310,13 +315,14 @@ def main(argv=None) -> dict:
 
     runner.enable_compilation_cache()
     # benchmark.py's closed loop (the JAX engine: the states are recorded), at the scale step's backend.
-    st = make_setup("jax", args.horizon, None)
+    st = make_setup("jax", args.horizon, None, qp_warm_start=args.qp_warm_start)
     fns = stage_functions(st)
     groups = state_groups(st, args)
     if args.backend != "jax":
-        st = make_setup(args.backend, args.horizon, None)
+        st = make_setup(args.backend, args.horizon, None, qp_warm_start=args.qp_warm_start)
     result = {
         "batch": args.batch,
+        "qp_warm_start": args.qp_warm_start,
         "device": provenance.device_label(),
         "dtype": str(st.dtype),
         "states": args.states,
