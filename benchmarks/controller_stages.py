@@ -273,12 +273,50 @@ def split(cpu_us: list[list[float]]) -> dict:
     return stages
 
 
+def timing_parser(
+    script: str, doc: str, ticks: int, repeats: int, out_required: bool = False
+) -> argparse.ArgumentParser:
+    """The sinusoid timing scripts' common flags (this one, force_build, force_qp_alone, torque_law_alone,
+    dynamics_terms_parts): ``--out`` (default runs/SCRIPT.json), ``--ticks`` of the sinusoid, ``--repeats``."""
+    p = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    if out_required:
+        p.add_argument("--out", required=True)
+    else:
+        p.add_argument("--out", default=str(ROOT / "runs" / f"{script}.json"))
+    p.add_argument("--ticks", type=int, default=ticks, help="ticks of the sinusoid (10 ms each)")
+    p.add_argument("--repeats", type=int, default=repeats)
+    return p
+
+
+def parse_timing_args(p: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
+    """``p``'s arguments, ``--ticks`` < 2 or ``--repeats`` < 1 refused in one line."""
+    args = p.parse_args(argv)
+    if args.ticks < 2 or args.repeats < 1:
+        p.error("--ticks must be >= 2 and --repeats >= 1")
+    return args
+
+
+def result_header(script: str, argv: list[str], args: argparse.Namespace, dtype) -> dict:
+    """What every timing script's result holds: the command, date, device, dtype, ticks, repeats, the
+    process's cores, the machine's load and the provenance."""
+    from wbc_jax.core import provenance
+
+    return {
+        "command": f"python benchmarks/{script}.py " + " ".join(argv),
+        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "device": provenance.device_label(),
+        "dtype": str(dtype),
+        "ticks": args.ticks,
+        "repeats": args.repeats,
+        "affinity": sorted(os.sched_getaffinity(0)),
+        "load_average": [round(x, 2) for x in os.getloadavg()],
+        "provenance": provenance.record(argv=[str(ROOT / "benchmarks" / f"{script}.py"), *argv]),
+    }
+
+
 def main(argv=None) -> dict:
     argv = list(sys.argv[1:] if argv is None else argv)
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", default=str(ROOT / "runs" / "controller_stages.json"))
-    p.add_argument("--ticks", type=int, default=2000, help="ticks of the sinusoid (10 ms each)")
-    p.add_argument("--repeats", type=int, default=7)
+    p = timing_parser("controller_stages", __doc__, ticks=2000, repeats=7)
     p.add_argument(
         "--before",
         default=None,
@@ -290,13 +328,11 @@ def main(argv=None) -> dict:
         action="store_true",
         help="also this checkout's controller with qp_warm_start (the force QP from the last tick's solution)",
     )
-    args = p.parse_args(argv)
-    if args.ticks < 2 or args.repeats < 1:
-        p.error("--ticks must be >= 2 and --repeats >= 1")
+    args = parse_timing_args(p, argv)
     import jax
     import jax.numpy as jnp
 
-    from wbc_jax.core import io, provenance
+    from wbc_jax.core import io
     from wbc_jax.sim import runner
 
     variants = {"now": ("wbc_jax", False)}
@@ -319,18 +355,10 @@ def main(argv=None) -> dict:
                 jax.block_until_ready(compiled[name][i](qs, vs))
                 cpu_us[name][i].append(1e6 * (time.process_time() - t0) / args.ticks)
     result = {
-        "command": "python benchmarks/controller_stages.py " + " ".join(argv),
-        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "device": provenance.device_label(),
-        "dtype": str(st.dtype),
-        "ticks": args.ticks,
-        "repeats": args.repeats,
-        "affinity": sorted(os.sched_getaffinity(0)),
-        "load_average": [round(x, 2) for x in os.getloadavg()],
+        **result_header("controller_stages", argv, args, st.dtype),
         "stages_cpu_us_per_tick": {name: split(cpu_us[name]) for name in variants},
         "whole_tick_program": {name: op_counts(compiled[name][-1]) for name in variants},
         "qp_newton_steps": qp_newton_steps(st, qs, vs),
-        "provenance": provenance.record(argv=[__file__, *argv]),
     }
     io.atomic_write_json(pathlib.Path(args.out), result)
     print(json.dumps(result), flush=True)

@@ -24,7 +24,6 @@ import os
 
 os.environ.setdefault("PJRT_NPROC", "1")
 
-import argparse
 import json
 import pathlib
 import statistics
@@ -141,18 +140,16 @@ def split(cpu_us: list[list[float]]) -> dict:
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--out", required=True)
-    p.add_argument("--ticks", type=int, default=300)
-    p.add_argument("--repeats", type=int, default=5)
-    args = p.parse_args(argv)
-    if args.ticks < 2 or args.repeats < 1:
-        p.error("--ticks must be >= 2 and --repeats >= 1")
+    from controller_stages import parse_timing_args, result_header, timing_parser
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    p = timing_parser("dynamics_terms_parts", __doc__, ticks=300, repeats=5, out_required=True)
+    args = parse_timing_args(p, argv)
     import jax
     import jax.numpy as jnp
     from controller_stages import sinusoid_states
 
-    from wbc_jax.core import io, provenance
+    from wbc_jax.core import io
     from wbc_jax.sim import runner
 
     runner.enable_compilation_cache()
@@ -167,17 +164,9 @@ def main(argv=None):
             jax.block_until_ready(fn(qs, vs))
             cpu_us[i].append(1e6 * (time.process_time() - t0) / args.ticks)
     result = {
-        "command": "python benchmarks/dynamics_terms_parts.py " + " ".join(argv or sys.argv[1:]),
-        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "device": provenance.device_label(),
-        "dtype": str(st.dtype),
-        "ticks": args.ticks,
-        "repeats": args.repeats,
-        "affinity": sorted(os.sched_getaffinity(0)),
-        "load_average": [round(x, 2) for x in os.getloadavg()],
+        **result_header("dynamics_terms_parts", argv, args, st.dtype),
         "xla_parts_cpu_us_per_tick": split(cpu_us),
         "c_mujoco_cpu_us_per_state": c_mujoco_us(st, qpos, qvel, args.repeats),
-        "provenance": provenance.record(argv=[__file__, *(argv or sys.argv[1:])]),
     }
     io.atomic_write_json(pathlib.Path(args.out), result)
     print(json.dumps(result, indent=1), flush=True)

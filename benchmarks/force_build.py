@@ -18,7 +18,6 @@ import os
 
 os.environ.setdefault("PJRT_NPROC", "1")
 
-import argparse
 import importlib
 import json
 import pathlib
@@ -94,26 +93,23 @@ def scanned(fn, dtype):
 
 
 def main(argv=None) -> dict:
+    from controller_stages import parse_timing_args, result_header, timing_parser
+
     argv = list(sys.argv[1:] if argv is None else argv)
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", default=str(ROOT / "runs" / "force_build.json"))
-    p.add_argument("--ticks", type=int, default=1000, help="ticks of the sinusoid (10 ms each)")
-    p.add_argument("--repeats", type=int, default=9)
+    p = timing_parser("force_build", __doc__, ticks=1000, repeats=9)
     p.add_argument(
         "--before",
         default=None,
         metavar="REF",
         help="also the pieces of git commit REF's force distribution, interleaved with this checkout's",
     )
-    args = p.parse_args(argv)
-    if args.ticks < 2 or args.repeats < 1:
-        p.error("--ticks must be >= 2 and --repeats >= 1")
+    args = parse_timing_args(p, argv)
     import jax
     from controller_stages import import_commit, op_counts
 
     from wbc_jax.control import qp
     from wbc_jax.control.constraints import row_weights
-    from wbc_jax.core import io, provenance
+    from wbc_jax.core import io
     from wbc_jax.sim import runner
 
     runner.enable_compilation_cache()
@@ -142,14 +138,7 @@ def main(argv=None) -> dict:
             jax.block_until_ready(fn(data[name]))
             cpu_us[name].append(1e6 * (time.process_time() - t0) / args.ticks)
     result = {
-        "command": "python benchmarks/force_build.py " + " ".join(argv),
-        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "device": provenance.device_label(),
-        "dtype": str(st.dtype),
-        "ticks": args.ticks,
-        "repeats": args.repeats,
-        "affinity": sorted(os.sched_getaffinity(0)),
-        "load_average": [round(x, 2) for x in os.getloadavg()],
+        **result_header("force_build", argv, args, st.dtype),
         "cpu_us_per_tick": {
             variant: {
                 name: {"median": round(statistics.median(v), 1), "range": [round(min(v), 1), round(max(v), 1)]}
@@ -162,7 +151,6 @@ def main(argv=None) -> dict:
             variant: {name: op_counts(fn) for (var, name), fn in compiled.items() if var == variant}
             for variant in packages
         },
-        "provenance": provenance.record(argv=[__file__, *argv]),
     }
     io.atomic_write_json(pathlib.Path(args.out), result)
     print(json.dumps({k: v for k, v in result.items() if k != "provenance"}, indent=1), flush=True)

@@ -21,7 +21,6 @@ import os
 
 os.environ.setdefault("PJRT_NPROC", "1")
 
-import argparse
 import importlib
 import json
 import pathlib
@@ -74,20 +73,17 @@ def program(data, warm: bool, iterations: int, pkg: str = "wbc_jax"):
 
 
 def main(argv=None) -> dict:
+    from controller_stages import parse_timing_args, result_header, timing_parser
+
     argv = list(sys.argv[1:] if argv is None else argv)
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", default=str(ROOT / "runs" / "force_qp_alone.json"))
-    p.add_argument("--ticks", type=int, default=1000, help="ticks of the sinusoid (10 ms each)")
-    p.add_argument("--repeats", type=int, default=15)
+    p = timing_parser("force_qp_alone", __doc__, ticks=1000, repeats=15)
     p.add_argument("--before", default=None, help="also time this git commit's solver on the same QPs")
-    args = p.parse_args(argv)
-    if args.ticks < 2 or args.repeats < 1:
-        p.error("--ticks must be >= 2 and --repeats >= 1")
+    args = parse_timing_args(p, argv)
     import jax
     import numpy as np
 
     from wbc_jax.control import qp
-    from wbc_jax.core import io, provenance
+    from wbc_jax.core import io
     from wbc_jax.sim import runner
 
     packages = {"": "wbc_jax"}
@@ -121,15 +117,8 @@ def main(argv=None) -> dict:
         return round((three - one) / 2, 2)
 
     result = {
-        "command": "python benchmarks/force_qp_alone.py " + " ".join(argv),
-        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "device": provenance.device_label(),
-        "dtype": str(data[0].dtype),
+        **result_header("force_qp_alone", argv, args, data[0].dtype),
         "qp_size": {"n": int(data[0].shape[1]), "m": int(data[2].shape[1])},
-        "ticks": args.ticks,
-        "repeats": args.repeats,
-        "affinity": sorted(os.sched_getaffinity(0)),
-        "load_average": [round(x, 2) for x in os.getloadavg()],
         "cpu_us_per_qp": {
             name: {"median": round(statistics.median(v), 1), "range": [round(min(v), 1), round(max(v), 1)]}
             for name, v in cpu_us.items()
@@ -142,7 +131,6 @@ def main(argv=None) -> dict:
         "cpu_us_per_newton_step": {prefix or "now": per_step(prefix) for prefix in packages},
         "warm_vs_cold_max_relative": float(f"{np.max(warm_gap):.3g}"),
         **(before_figures(results, compiled, packages, y_cold, scale) if args.before else {}),
-        "provenance": provenance.record(argv=[__file__, *argv]),
     }
     io.atomic_write_json(pathlib.Path(args.out), result)
     print(json.dumps({k: v for k, v in result.items() if k != "provenance"}), flush=True)

@@ -16,7 +16,6 @@ import os
 
 os.environ.setdefault("PJRT_NPROC", "1")
 
-import argparse
 import importlib
 import json
 import pathlib
@@ -87,18 +86,13 @@ def law_program(pkg: str, postural: str, st):
 
 def main(argv=None) -> dict:
     argv = list(sys.argv[1:] if argv is None else argv)
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", default=str(ROOT / "runs" / "torque_law_alone.json"))
-    p.add_argument("--ticks", type=int, default=300, help="ticks of the sinusoid (10 ms each)")
-    p.add_argument("--repeats", type=int, default=11)
+    p = controller_stages.timing_parser("torque_law_alone", __doc__, ticks=300, repeats=11)
     p.add_argument("--before", default=None, metavar="REF", help="also git commit REF's torque law, interleaved")
-    args = p.parse_args(argv)
-    if args.ticks < 2 or args.repeats < 1:
-        p.error("--ticks must be >= 2 and --repeats >= 1")
+    args = controller_stages.parse_timing_args(p, argv)
     import jax
     import jax.numpy as jnp
 
-    from wbc_jax.core import io, provenance
+    from wbc_jax.core import io
     from wbc_jax.sim import runner
 
     packages = {"now": "wbc_jax"}
@@ -120,14 +114,7 @@ def main(argv=None) -> dict:
             jax.block_until_ready(program(inputs))
             cpu_us[key].append(1e6 * (time.process_time() - t0) / args.ticks)
     result = {
-        "command": "python benchmarks/torque_law_alone.py " + " ".join(argv),
-        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "device": provenance.device_label(),
-        "dtype": str(st.dtype),
-        "ticks": args.ticks,
-        "repeats": args.repeats,
-        "affinity": sorted(os.sched_getaffinity(0)),
-        "load_average": [round(x, 2) for x in os.getloadavg()],
+        **controller_stages.result_header("torque_law_alone", argv, args, st.dtype),
         "torque_law_cpu_us_per_tick": {
             f"{name}, {postural}": {
                 "median_us": round(statistics.median(times), 1),
@@ -136,7 +123,6 @@ def main(argv=None) -> dict:
             }
             for (name, postural), times in cpu_us.items()
         },
-        "provenance": provenance.record(argv=[__file__, *argv]),
     }
     io.atomic_write_json(pathlib.Path(args.out), result)
     print(json.dumps(result), flush=True)

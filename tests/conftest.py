@@ -161,6 +161,20 @@ def assert_close(actual, expected, name: str, rtol: float, atol: float = 0.0):
     np.testing.assert_allclose(np.asarray(actual), np.asarray(expected), rtol=rtol, atol=atol, err_msg=name)
 
 
+def stepping_inputs(rng, k: int, m: mujoco.MjModel, batch: int, n_sub: int, chest: int):
+    """Tick ``k``'s (ctrl (B, nu), xfrc (B, n_sub, nbody, 6)) of the native-step tests (B >= 3): random
+    torques, a chest push that changes inside the tick, env 2 blown up at tick 20 (restored and flagged
+    after stepping), env 1 given a NaN torque at tick 25 (flagged before stepping)."""
+    ctrl = rng.normal(scale=5.0, size=(batch, m.nu))
+    xfrc = np.zeros((batch, n_sub, m.nbody, 6))
+    xfrc[:, 3:, chest, 1] = 40.0 * (k % 2)
+    if k == 20:
+        xfrc[2, :, chest, 0] = 1e12
+    if k == 25:
+        ctrl[1, 4] = np.nan
+    return ctrl, xfrc
+
+
 def c_data(robot, qpos, qvel) -> mujoco.MjData:
     d = mujoco.MjData(robot.mj_model)
     d.qpos[:], d.qvel[:] = qpos, qvel

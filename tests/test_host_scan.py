@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from conftest import stepping_inputs
 
 from wbc_jax.sim import executables, host_loop, native, physics, scenario
 from wbc_jax.sim.state import SimConfig
@@ -51,13 +52,7 @@ def test_native_step_equals_host_batch_bit_for_bit(robot):
     ok = np.ones(B, bool)
     chest = robot.index.body_id("chest")
     for k in range(ticks):
-        ctrl = rng.normal(scale=5.0, size=(B, m.nu))
-        xfrc = np.zeros((B, n_sub, m.nbody, 6))
-        xfrc[:, 3:, chest, 1] = 40.0 * (k % 2)  # the push changes inside a tick
-        if k == 20:
-            xfrc[2, :, chest, 0] = 1e12  # env 2 blows up: restored and flagged after stepping
-        if k == 25:
-            ctrl[1, 4] = np.nan  # env 1: flagged before stepping
+        ctrl, xfrc = stepping_inputs(rng, k, m, B, n_sub, chest)
         python.step(ctrl, xfrc)
         q, v, ok, slots = jax.device_get(tick(ctrl, xfrc, ok))
         q_py, v_py = python.state()

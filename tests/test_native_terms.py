@@ -7,6 +7,7 @@ import jax
 import mujoco
 import numpy as np
 import pytest
+from conftest import stepping_inputs
 
 from wbc_jax.robot import dynamics
 from wbc_jax.sim import native, physics
@@ -61,13 +62,7 @@ def test_split_step_equals_mj_step_bit_for_bit(robot, frames):
     fresh = mujoco.MjData(m)
     M, M_ref = np.zeros((m.nv, m.nv)), np.zeros((m.nv, m.nv))
     for k in range(ticks_run):
-        ctrl = rng.normal(scale=5.0, size=(B, m.nu))
-        xfrc = np.zeros((B, n_sub, m.nbody, 6))
-        xfrc[:, 3:, chest, 1] = 40.0 * (k % 2)  # the push changes inside a tick
-        if k == 20:
-            xfrc[2, :, chest, 0] = 1e12  # env 2 blows up: restored and flagged after stepping
-        if k == 25:
-            ctrl[1, 4] = np.nan  # env 1: flagged before stepping
+        ctrl, xfrc = stepping_inputs(rng, k, m, B, n_sub, chest)
         python.step(ctrl, xfrc)
         q, v, ok, slots, engine = jax.device_get(step(ctrl, xfrc, ok, slots))
         q_py, v_py = python.state()

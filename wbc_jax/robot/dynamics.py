@@ -175,6 +175,14 @@ def _to_mixed_rows(idx: RobotIndex, x: Array, R: Array) -> Array:
     return x.at[3:6].set(R @ x[3:6])
 
 
+def _frame_poses(xpos: Array, xmat: Array, frames: Frames) -> tuple[Array, Array]:
+    """The frames' points (k, 3) (body origin + point in body axes) and their bodies' orientations
+    (k, 3, 3), from the bodies' poses xpos (nbody, 3), xmat (nbody, 3, 3)."""
+    bodies = np.asarray(frames.bodies, dtype=int)
+    W_R = xmat[bodies]
+    return xpos[bodies] + jnp.einsum("kij,kj->ki", W_R, jnp.asarray(np.asarray(frames.points), W_R.dtype)), W_R
+
+
 def _kinematics(m: mjx.Model, d: mjx.Data, idx: RobotIndex, qpos: Array, frames: Frames):
     """Frame Jacobians, centroidal momentum matrix and poses as functions of qpos only."""
     d = d.replace(qpos=qpos)
@@ -191,10 +199,8 @@ def _kinematics(m: mjx.Model, d: mjx.Data, idx: RobotIndex, qpos: Array, frames:
         return jacp.T, jacr.T  # (3, nv) each
 
     # Frame Jacobians [linear of the point; angular of its body].
-    bodies = np.asarray(frames.bodies, dtype=int)
-    W_R = d.xmat[bodies]
-    W_p = d.xpos[bodies] + jnp.einsum("kij,kj->ki", W_R, jnp.asarray(np.asarray(frames.points), W_R.dtype))
-    jp, jr = jax.vmap(point_jacobian)(W_p, masks[bodies])
+    W_p, W_R = _frame_poses(d.xpos, d.xmat, frames)
+    jp, jr = jax.vmap(point_jacobian)(W_p, masks[np.asarray(frames.bodies, dtype=int)])
     J_frames = _to_mixed_cols(idx, jnp.concatenate([jp, jr], axis=1), R)
 
     # Centroidal momentum matrix: sum over bodies of [m Jp; I_W Jr + m S(c_b - c) Jp].
@@ -278,9 +284,7 @@ def terms_from_engine(idx: RobotIndex, qpos: Array, qvel: Array, e: EngineTerms,
     """
     nu = mixed_velocity(idx, qpos, qvel)
     R = e.xmat[idx.base_body]
-    bodies = np.asarray(frames.bodies, dtype=int)
-    W_R = e.xmat[bodies]
-    W_p = e.xpos[bodies] + jnp.einsum("kij,kj->ki", W_R, jnp.asarray(np.asarray(frames.points), W_R.dtype))
+    W_p, W_R = _frame_poses(e.xpos, e.xmat, frames)
     A_G = _to_mixed_cols(idx, e.A_G, R)
     L_G = A_G @ nu
     return DynamicsTerms(
