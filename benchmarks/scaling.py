@@ -25,6 +25,8 @@ records its launch, switch interval and the graphs each Warp call held after its
 from __future__ import annotations
 
 import argparse
+import contextlib
+import fcntl
 import hashlib
 import importlib.util
 import json
@@ -116,6 +118,59 @@ def earlier_calls(path: pathlib.Path) -> dict:
     return calls
 
 
+def visible_gpus(n: int) -> list[str]:
+    """The first ``n`` GPUs this process may use: ``CUDA_VISIBLE_DEVICES``'s (so calls on disjoint
+    GPUs of one host can run at once), else 0..n-1; too few named is refused in one line."""
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES", "").strip()
+    ids = [g.strip() for g in visible.split(",") if g.strip()] if visible else [str(i) for i in range(n)]
+    if len(ids) < n:
+        raise SystemExit(
+            f"scaling.py: error: --gpus {n}: CUDA_VISIBLE_DEVICES={visible} names {len(ids)} GPU(s); "
+            f"name {n} or more, or leave it unset (GPUs 0..{n - 1})"
+        )
+    return ids[:n]
+
+
+@contextlib.contextmanager
+def locked(folder: pathlib.Path):
+    """Hold an exclusive lock on ``folder`` (flock on the folder itself: no file beside the results),
+    so calls sharing an --out merge their rows one after the other."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # closing releases the lock
+
+
+def compare(rows: list[dict], out: pathlib.Path) -> list[dict]:
+    """Each row of a backend against that backend's one-GPU row, whichever call measured either (the
+    runs are read back from ``out``): speed-up, the one-GPU repeat floor, survival flips of the last
+    tables, and the target of issue 45. Rows with no one-GPU row to compare with carry none of these."""
+    derived = ("speed_up", "repeat_floor_one_gpu", "flips_vs_one_gpu", "speed_up_target", "speed_up_met")
+    rows = [{k: v for k, v in r.items() if k not in derived} for r in rows]
+
+    def last_table(r: dict) -> dict:
+        return _outcomes(out / r["runs"] / f"run{r['repeats'] - 1}")
+
+    for backend in sorted({r["backend"] for r in rows}):
+        one = next((r for r in rows if r["backend"] == backend and r["gpus"] == 1 and "error" not in r), None)
+        if one is None:
+            continue
+        base = last_table(one)
+        for r in rows:
+            if r["backend"] != backend or "error" in r:
+                continue
+            r["speed_up"] = round(one["run_s"] / r["run_s"], 3)
+            r["repeat_floor_one_gpu"] = one["repeat_flips"]
+            r["flips_vs_one_gpu"] = flips(base, last_table(r))
+            target = TARGETS.get(backend, {}).get(r["gpus"])
+            if target is not None:
+                r["speed_up_target"] = target
+                r["speed_up_met"] = r["speed_up"] >= target
+    return rows
+
+
 def _free_port() -> int:
     """A free TCP port on localhost (experiments/checks/multihost_check.py's)."""
     path = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "checks" / "multihost_check.py"
@@ -127,19 +182,20 @@ def _free_port() -> int:
 
 def launch(n: int, folder: pathlib.Path, flags: list[str], args: argparse.Namespace) -> list[tuple[list[str], str]]:
     """The commands (each with its CUDA_VISIBLE_DEVICES) that run a configuration on ``n`` GPUs:
-    one process with the first ``n`` GPUs (``--launch threads``: one host thread per GPU inside it,
+    one process with the first ``n`` GPUs this process may use (:func:`visible_gpus`; ``--launch threads``: one host thread per GPU inside it,
     wbc_jax.sim.per_device), or ``n`` processes of one GPU each joined by jax.distributed
     (``--launch processes``: no interpreter lock, Warp lock or Warp graph cache shared between GPUs)."""
     settings = {"repeats": args.repeats, "switch_interval_ms": args.switch_interval_ms, "distributed": None}
+    gpus = visible_gpus(n)
     if args.launch == "threads" or n == 1:
         cmd = [sys.executable, "-c", RUN, str(folder), json.dumps(settings), *flags]
-        return [(cmd, ",".join(str(i) for i in range(n)))]
+        return [(cmd, ",".join(gpus))]
     port = _free_port()
     out = []
     for rank in range(n):
         dist = {"distributed": True, "coordinator": f"localhost:{port}", "num_processes": n, "process_id": rank}
         cmd = [sys.executable, "-c", RUN, str(folder), json.dumps({**settings, "distributed": dist}), *flags]
-        out.append((cmd, str(rank)))
+        out.append((cmd, gpus[rank]))
     return out
 
 
@@ -240,8 +296,10 @@ def main(argv=None) -> int:
         raise SystemExit(
             f"scaling.py: error: --switch-interval-ms must be a number in [0.01, 100] ms, got {args.switch_interval_ms:g}"
         )
+    if args.backends != ["mujoco"]:
+        visible_gpus(max(args.gpus))  # too few GPUs named: refused before anything runs
     out = pathlib.Path(args.out)
-    calls = earlier_calls(out / "scaling.json")
+    calls = earlier_calls(out / "scaling.json")  # refused before anything runs; read again under the lock
     ident = call_id(flags)
     rows = []
     for backend in args.backends:
@@ -281,43 +339,28 @@ def main(argv=None) -> int:
             except RuntimeError as err:
                 row["error"] = str(err)
             rows.append(row)
-        earlier = [r for r in calls.get(ident, {}).get("rows", []) if r["backend"] == backend]
-        one = next((r for r in rows if r["backend"] == backend and r["gpus"] == 1 and "error" not in r), None)
-        if one is None and 1 not in tables:  # one GPU measured by an earlier call with these flags, its runs kept
-            one = next((r for r in earlier if r["gpus"] == 1 and "error" not in r), None)
-            tables[1] = (
-                None if one is None else [_outcomes(out / one["runs"] / f"run{k}") for k in range(one["repeats"])]
-            )
-        for r in rows:
-            if r["backend"] != backend or "error" in r or one is None:
-                continue
-            r["speed_up"] = round(one["run_s"] / r["run_s"], 3)
-            r["repeat_floor_one_gpu"] = one["repeat_flips"]
-            r["flips_vs_one_gpu"] = flips(tables[1][-1], tables[r["gpus"]][-1])
-            target = TARGETS.get(backend, {}).get(r["gpus"])
-            if target is not None:
-                r["speed_up_target"] = target
-                r["speed_up_met"] = r["speed_up"] >= target
         print(json.dumps([r for r in rows if r["backend"] == backend]), flush=True)
-    # Rows of an earlier call with these flags stay unless this call measured their backend and GPUs again.
-    done = {(r["backend"], r["gpus"]) for r in rows}
-    kept = [r for r in calls.get(ident, {}).get("rows", []) if (r["backend"], r["gpus"]) not in done]
-    rows = sorted(kept + rows, key=lambda r: (r["backend"], r["gpus"]))
-    failures = check(rows)
-    calls[ident] = {
-        "sweep_flags": flags,
-        "rows": rows,
-        "failures": failures,
-        "provenance": provenance.record(argv=["benchmarks/scaling.py", *argv]),
-    }
-    every = list(calls.values())
-    result = {
-        "calls": calls,
-        "rows": [{**r, "sweep_flags": c["sweep_flags"]} for c in every for r in c["rows"]],
-        "failures": [f for c in every for f in c["failures"]],
-    }
     out.mkdir(parents=True, exist_ok=True)
-    io.atomic_write_json(out / "scaling.json", result)
+    with locked(out):  # another call on other GPUs may have written since this one started: merge with it
+        calls = earlier_calls(out / "scaling.json")
+        # Rows of an earlier call with these flags stay unless this call measured their backend and GPUs again.
+        done = {(r["backend"], r["gpus"]) for r in rows}
+        kept = [r for r in calls.get(ident, {}).get("rows", []) if (r["backend"], r["gpus"]) not in done]
+        rows = compare(sorted(kept + rows, key=lambda r: (r["backend"], r["gpus"])), out)
+        failures = check(rows)
+        calls[ident] = {
+            "sweep_flags": flags,
+            "rows": rows,
+            "failures": failures,
+            "provenance": provenance.record(argv=["benchmarks/scaling.py", *argv]),
+        }
+        every = list(calls.values())
+        result = {
+            "calls": calls,
+            "rows": [{**r, "sweep_flags": c["sweep_flags"]} for c in every for r in c["rows"]],
+            "failures": [f for c in every for f in c["failures"]],
+        }
+        io.atomic_write_json(out / "scaling.json", result)
     print(json.dumps({"failures": failures}), flush=True)
     return 1 if failures else 0
 

@@ -113,12 +113,15 @@ for job in "$@"; do
     scaling4_jax|scaling4_warp)  # issue 45: 32,768 envs on 1, 2 and 4 GPUs, 3 runs each (repeat floor), under a
             # watchdog (a device stalled 240 s in a chunk: one line naming it, the row's error). SCALING_GPUS: the GPU
             # counts of this call (one GPU's runs stay in /tmp/scaling4 on a warm machine for a later call's comparison).
-            # SCALING_GAIN_SETS=32: 65,536 envs (one chunk; /tmp/scaling4_65536, $OUT/${job}_65536).
+            # SCALING_GAIN_SETS=32: 65,536 envs (one chunk; /tmp/scaling4_65536, $OUT/${job}_65536); 64: 131,072 (a
+            # chunk stalls after 600 s: one GPU of JAX runs it in about 260). CUDA_VISIBLE_DEVICES: the GPUs it uses
+            # (calls on disjoint GPUs run at once, their rows merged in one --out); SCALING_REPEATS: runs of each.
       b=${job#scaling4_}; gs=${SCALING_GAIN_SETS:-16}; envs=$((2048 * gs))
       sd=/tmp/scaling4; od=$OUT/$job; [ "$envs" != 32768 ] && { sd=/tmp/scaling4_$envs; od=$OUT/${job}_$envs; }
-      run $job python3 benchmarks/scaling.py --out $sd --gpus ${SCALING_GPUS:-1 2 4} \
-        --backends $b --repeats 3 --timeout $((gs > 16 ? 900 : 560)) -- --magnitudes 10 400 64 --directions 32 --gain-sets $gs --horizon 3 \
-        --chunk-size $envs --push-onset 0.5 --push-duration 0.1 --stall-timeout-s 240
+      run $job python3 benchmarks/scaling.py --out $sd --gpus ${SCALING_GPUS:-1 2 4} --backends $b \
+        --repeats ${SCALING_REPEATS:-3} --timeout $((gs > 32 ? 1560 : gs > 16 ? 900 : 560)) -- --magnitudes 10 400 64 \
+        --directions 32 --gain-sets $gs --horizon 3 --chunk-size $envs --push-onset 0.5 --push-duration 0.1 \
+        --stall-timeout-s $((gs > 32 ? 600 : 240))
       mkdir -p "$od"; cp $sd/scaling.json "$od/"
       find $sd/runs -name timeline.json | tar -czf "$od/timelines.tgz" -T - ;;
     profile_tick)  # issue 46: each stage of the controller tick jitted and vmapped alone at 65,536 envs (no Warp needed),

@@ -483,3 +483,45 @@ def test_scaling_writes_only_under_its_out_and_takes_a_second_call_with_other_fl
     for row in result["rows"]:
         assert row["repeat_flips"] == 0 and "error" not in row, row  # C MuJoCo repeats itself exactly
         assert (out / row["runs"] / "run1" / "timeline.json").is_file() and row["timeline_last_run"]
+
+
+def _write_table(folder: pathlib.Path, survived) -> None:
+    folder.mkdir(parents=True)
+    survived = np.asarray(survived, bool)
+    pd.DataFrame({"survived": survived, "upright": survived}).to_parquet(folder / "results.parquet")
+
+
+def test_scaling_compares_rows_of_calls_that_ran_at_once_on_other_gpus(tmp_path, monkeypatch):
+    """benchmarks/scaling.py split over calls on disjoint GPUs: a 2-GPU row written before its one-GPU
+    row is compared once the one-GPU row is there (flips of the last tables, speed-up, the target),
+    stale comparisons are dropped, and CUDA_VISIBLE_DEVICES picks the GPUs, too few refused."""
+    from conftest import load_script
+
+    scaling = load_script("benchmarks/scaling.py")
+    one_runs = [[1, 1, 0, 0, 1, 0], [1, 1, 0, 1, 1, 0]]  # one flip between the one-GPU repeats
+    for k, table in enumerate(one_runs):
+        _write_table(tmp_path / "runs/x/warp_1gpu" / f"run{k}", table)
+    for k, table in enumerate([[0, 0, 0, 0, 1, 0], [0, 1, 1, 1, 1, 0]]):  # last: 2 flips against [1,1,0,1,1,0]
+        _write_table(tmp_path / "runs/x/warp_2gpu" / f"run{k}", table)
+    two = {"backend": "warp", "gpus": 2, "runs": "runs/x/warp_2gpu", "repeats": 2, "run_s": 5.0, "repeat_flips": 4}
+    one = {"backend": "warp", "gpus": 1, "runs": "runs/x/warp_1gpu", "repeats": 2, "run_s": 9.6, "repeat_flips": 1}
+    alone = scaling.compare([{**two, "speed_up": 9.9, "flips_vs_one_gpu": 0}], tmp_path)
+    assert alone == [two]  # no one-GPU row yet: no comparison, the stale one dropped
+    assert scaling.check(alone) == ["warp on 2 GPUs: no one-GPU run in this --out to compare with"]
+    rows = scaling.compare([one, two], tmp_path)
+    assert rows[1] == {
+        **two,
+        "speed_up": 1.92,
+        "repeat_floor_one_gpu": 1,
+        "flips_vs_one_gpu": 2,
+        "speed_up_target": 1.9,
+        "speed_up_met": True,
+    }
+    assert rows[0]["flips_vs_one_gpu"] == 0 and rows[0]["speed_up"] == 1.0
+    assert scaling.check(rows) == []  # 2 flips <= floor 1 + one cell of slack
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,3")
+    assert scaling.visible_gpus(2) == ["2", "3"] and scaling.visible_gpus(1) == ["2"]
+    with pytest.raises(SystemExit, match=r"--gpus 4: CUDA_VISIBLE_DEVICES=2,3 names 2 GPU\(s\); name 4 or more"):
+        scaling.visible_gpus(4)
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
+    assert scaling.visible_gpus(4) == ["0", "1", "2", "3"]

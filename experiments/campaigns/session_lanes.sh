@@ -9,9 +9,10 @@
 #   bash experiments/campaigns/session_lanes.sh poll $OUT [SECONDS]   # wait up to SECONDS, pack results.tgz
 #
 # Lanes (the GPUs' timings never share a GPU with another job). SESSION_PLAN picks them:
-#   four (a machine of 4 GPUs; issues 45, 41, 47): scaling (the JAX rows of scaling4_jax on 1 and 2 GPUs while the
-#     wheels arrive, its 4-GPU rows once the other lanes are done, then scaling4_warp_diag and tune_gpus on GPUs 0-3);
-#     gpuset (the gpu test set on GPU 3); talos (`wbc-jax tune --robot talos`, CMA-ES, on GPU 2, capped at TALOS_CAP s);
+#   four (a machine of 4 GPUs; issue 45): the 131,072-env chest sweep (64 x 32 x 64, one chunk) on 1, 2 and 4 GPUs of
+#     both engines, rows merged in /tmp/scaling4_131072: four (JAX on all 4 GPUs from the first call, then Warp once
+#     it arrived, 2 runs each), then at once on disjoint GPUs: jax1 (JAX on GPU 0, 3 runs: the repeat floor), warp1
+#     (Warp on GPU 1, 3 runs), jax2 (JAX, then Warp, on GPUs 2-3, 2 runs each); scaling ends when all are done;
 #   one (one GPU; issue 46): profile_tick while the wheels arrive, then bench46 and bench46_warm;
 #   two (a machine of 2 GPUs; issue 45): scaling (once Warp is there: tune_gpus on both GPUs, then JAX at 65,536
 #     envs on 1 and 2 GPUs; Warp's 65,536-env rows: results/scaling/h200x2_s54).
@@ -22,7 +23,7 @@ LANES=${SESSION_LANES_DIR:-/tmp/lanes}
 REPO=$LANES/repo  # a copy of the checkout: a later call replaces the working tree under a running lane
 export PYTHONPATH=/tmp/site:$REPO PYTHONUNBUFFERED=1 TF_CPP_MIN_LOG_LEVEL=3
 PLAN=${SESSION_PLAN:-four}
-LANE_NAMES="scaling gpuset talos"; [ "$PLAN" != four ] && LANE_NAMES=scaling
+LANE_NAMES="four jax1 warp1 jax2 scaling"; [ "$PLAN" != four ] && LANE_NAMES=scaling
 
 bg() {  # name, shell command: run in a session of its own, its log in $LANES/name/log.txt, then a done file
   local name=$1; shift; mkdir -p "$LANES/$name"
@@ -48,19 +49,15 @@ case "$ACTION" in
         SCALING_GPUS='1 2' SCALING_GAIN_SETS=32 $G bash experiments/gpu_run.sh scaling4_jax"
       sleep 2; echo "lanes started ($(nproc) cores, plan two): $(ls "$LANES")"; exit 0
     fi
-    bg scaling "CUDA_VISIBLE_DEVICES=0,1 SCALING_GPUS='1 2' $G bash experiments/gpu_run.sh scaling4_jax; \
-      $(wait_for "$LANES/gpuset/done") $(wait_for "$LANES/talos/done") \
-      SCALING_GPUS=4 $G bash experiments/gpu_run.sh scaling4_jax; \
-      DIAG_VARIANTS='${DIAG_VARIANTS:-base graphs0 processes three}' $G bash experiments/gpu_run.sh scaling4_warp_diag; \
-      $G bash experiments/gpu_run.sh tune_gpus"
-    bg gpuset "$(wait_for /tmp/warp_ready) $(wait_for /tmp/viz_ready) CUDA_VISIBLE_DEVICES=3 \
-      NIGHTLY_COMMIT=${NIGHTLY_COMMIT:-} WBC_JAX_CACHE=/tmp/xla-gpuset bash .ci/nightly gpu"
-    bg talos "$(wait_for /tmp/warp_ready) CUDA_VISIBLE_DEVICES=2 WBC_JAX_CACHE=/tmp/xla-talos \
-      XLA_FLAGS=--xla_gpu_autotune_level=0 timeout --signal=INT --kill-after=20 ${TALOS_CAP:-600} \
-      python3 -m wbc_jax.cli tune --robot talos --quiet --out /tmp/talos_tune --phases cmaes \
-      --budget-s ${TALOS_BUDGET:-420} --snapshots-s 120 300 --batch 2048 --quality-pushes 2048 --search-backend auto \
-      --horizon 2 --push-scale lip --magnitude-range 0.3 1.0 --init-gains assets/talos/gains/com_critical_100.json \
-      --population 16 --es-batch 60 --chunk-size 16384 --no-wall-budget"
+    S="SCALING_GAIN_SETS=64"; L=$LANES; F=$(wait_for $L/four/done)
+    bg four "$S SCALING_GPUS=4 SCALING_REPEATS=2 OUT=$L/four/out bash experiments/gpu_run.sh scaling4_jax; \
+      $(wait_for /tmp/warp_ready) $S SCALING_GPUS=4 SCALING_REPEATS=2 OUT=$L/four/out bash experiments/gpu_run.sh scaling4_warp"
+    bg jax1 "$F CUDA_VISIBLE_DEVICES=0 $S SCALING_GPUS=1 OUT=$L/jax1/out bash experiments/gpu_run.sh scaling4_jax"
+    bg warp1 "$F CUDA_VISIBLE_DEVICES=1 $S SCALING_GPUS=1 OUT=$L/warp1/out bash experiments/gpu_run.sh scaling4_warp"
+    bg jax2 "$F CUDA_VISIBLE_DEVICES=2,3 $S SCALING_GPUS=2 SCALING_REPEATS=2 OUT=$L/jax2/out \
+      bash experiments/gpu_run.sh scaling4_jax scaling4_warp"
+    bg scaling "$(wait_for $L/jax1/done) $(wait_for $L/jax2/done) $(wait_for $L/warp1/done) \
+      mkdir -p $L/scaling/out && cp /tmp/scaling4_131072/scaling.json $L/scaling/out/"
     sleep 2; echo "lanes started ($(nproc) cores): $(ls "$LANES")" ;;
   poll)
     OUT=${2:?poll OUT [SECONDS]}; WAIT=${3:-0}; SECONDS=0
@@ -70,7 +67,7 @@ case "$ACTION" in
     done
     nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv,noheader; uptime
     mkdir -p "$OUT"
-    tar -czf "$OUT/results.tgz" -C / tmp/scaling4/scaling.json tmp/scaling4_65536/scaling.json tmp/talos_tune \
+    tar -czf "$OUT/results.tgz" -C / tmp/scaling4/scaling.json tmp/scaling4_65536/scaling.json tmp/scaling4_131072/scaling.json \
       "${LANES#/}"/repo/results/nightly/gpu.log $(cd / && ls -d "${LANES#/}"/*/log.txt "${LANES#/}"/*/out "${LANES#/}"/*/done 2>/dev/null) 2>/dev/null
     ls -la "$OUT" ;;
 esac
