@@ -58,6 +58,12 @@ for job in "$@"; do
         PYTHONPATH=$IC/lib/python3.12/site-packages:$TS/cmeel.prefix/lib/python3.12/site-packages:$TS:$PYTHONPATH run cpu_peer_tsid_$i \
           python3 benchmarks/tsid_peer.py --cpu 1 --no-envelope --out "$OUT/cpu_peer/tsid_$i.json"
       done ;;
+    cpu_stages)  # issue 46 on this host's Intel Xeon, stage by stage: where our controller's tick goes there (on the
+            # AMD EPYC it costs 0.81x TSID's, on this Xeon about 1.3x against each run's own physics:
+            # results/cpu_targets/xeon_s55); run with JAX_PLATFORMS=cpu
+      mkdir -p "$OUT/cpu_stages"; lscpu | grep -E "Model name|^CPU\(s\)|Flags" > "$OUT/cpu_stages/cpu.txt"
+      run cpu_stages taskset -c 1 python3 benchmarks/controller_stages.py --ticks 300 --repeats 5 \
+        --out "$OUT/cpu_stages/controller_stages.json" ;;
     setup)  # what is there
       nvidia-smi -L; python3 -c "import jax, mujoco; print(jax.__version__, mujoco.__version__, jax.devices())"
       python3 -c "import warp; print('warp', warp.__version__)" 2>&1 | tail -1 ;;

@@ -300,6 +300,21 @@ def test_memory_estimate_bar_is_no_measurement_above_the_estimate():
     assert me.failures({"rows": []}) == ["nothing was measured"]
 
 
+def test_tune_gpus_check_takes_the_one_device_half_only_from_a_call_measured_alike(tmp_path):
+    """A call cut off in the N-device half leaves the one-device figures; the next call with the same tune flags,
+    repeats and device kind reuses them, any other call (or a damaged file) measures them again."""
+    tg = script("tune_gpus_check")
+    half = {"tune_flags": ["--batch", "4"], "repeats": 2, "device": "NVIDIA H200"}
+    path = tmp_path / tg.ONE_DEVICE_FILE
+    assert tg.one_device_half(path, half) is None  # nothing there yet
+    path.write_text(json.dumps({**half, "one": {"loss": 2.5}}))
+    assert tg.one_device_half(path, half) == {"loss": 2.5}
+    for key, other in (("repeats", 3), ("device", "NVIDIA H100 80GB HBM3"), ("tune_flags", ["--batch", "8"])):
+        assert tg.one_device_half(path, {**half, key: other}) is None, key
+    path.write_text("{not json")
+    assert tg.one_device_half(path, half) is None
+
+
 def test_tune_gpus_check_bar_is_the_gradient_within_the_bound_on_every_device():
     tg = script("tune_gpus_check")
     run = {

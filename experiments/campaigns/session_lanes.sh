@@ -14,8 +14,8 @@
 #     it arrived, 2 runs each), then at once on disjoint GPUs: jax1 (JAX on GPU 0, 3 runs: the repeat floor), warp1
 #     (Warp on GPU 1, 3 runs), jax2 (JAX, then Warp, on GPUs 2-3, 2 runs each); scaling ends when all are done;
 #   one (one GPU; issue 46): profile_tick while the wheels arrive, then bench46 and bench46_warm;
-#   two (a machine of 2 GPUs; issue 45): scaling (once Warp is there: tune_gpus on both GPUs, then JAX at 65,536
-#     envs on 1 and 2 GPUs; Warp's 65,536-env rows: results/scaling/h200x2_s54).
+#   two (a machine of 2 or more GPUs; issue 45): scaling (once Warp is there: tune_gpus on one GPU, then on all; its
+#     one-GPU half is kept in $OUT/tune_gpus/tune_gpus_one_device.json as soon as it ends).
 # Git-less copy: NIGHTLY_COMMIT names the commit in the gpu set's log.
 set -uo pipefail
 ACTION=${1:?usage: session_lanes.sh start|poll OUT [SECONDS]}
@@ -45,8 +45,7 @@ case "$ACTION" in
     fi
     if [ "$PLAN" = two ]; then
       bg scaling "$(wait_for /tmp/warp_ready) \
-        TUNE_GPUS_FLAGS='${TUNE_GPUS_FLAGS:---repeats 2}' TUNE_GPUS_WALL=${TUNE_GPUS_WALL:-1500} $G bash experiments/gpu_run.sh tune_gpus; \
-        SCALING_GPUS='1 2' SCALING_GAIN_SETS=32 $G bash experiments/gpu_run.sh scaling4_jax"
+        TUNE_GPUS_FLAGS='${TUNE_GPUS_FLAGS:---repeats 2}' TUNE_GPUS_WALL=${TUNE_GPUS_WALL:-1500} $G bash experiments/gpu_run.sh tune_gpus"
       sleep 2; echo "lanes started ($(nproc) cores, plan two): $(ls "$LANES")"; exit 0
     fi
     S="SCALING_GAIN_SETS=64"; L=$LANES; F=$(wait_for $L/four/done)

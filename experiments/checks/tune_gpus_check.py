@@ -26,7 +26,8 @@ one-device whole batch, relative to the latter's largest entry, the shares' own 
 with provenance (command, device names). Exits 1 when the N-device gradient differs from the shares' by more than
 ``--max-rel-diff`` or fewer than two devices are there.
 Compiled programs go to JAX's persistent cache (``$WBC_JAX_CACHE``): a call cut off by a time limit leaves them
-for the next. On a CPU, host devices: ``XLA_FLAGS=--xla_force_host_platform_device_count=2``.
+for the next. The one-device half's figures are written to DIR/tune_gpus_one_device.json as soon as it ends; a later
+call with the same tune flags, --repeats and device kind takes them from there and runs only the N-device half. On a CPU, host devices: ``XLA_FLAGS=--xla_force_host_platform_device_count=2``.
 """
 
 from __future__ import annotations
@@ -237,6 +238,23 @@ def failures(result: dict) -> list[str]:
     return out
 
 
+ONE_DEVICE_FILE = "tune_gpus_one_device.json"
+
+
+def one_device_half(path: pathlib.Path, half: dict) -> dict | None:
+    """The one-device figures an earlier call with the same tune flags, repeats and device kind left in ``path``
+    (written as soon as that half finished, so a call cut off in the N-device half loses nothing); None when there
+    are none or they were measured otherwise."""
+    try:
+        earlier = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(earlier, dict) or any(earlier.get(k) != v for k, v in half.items()) or "one" not in earlier:
+        return None
+    print(f"one device: the figures of an earlier call ({path})", flush=True)
+    return earlier["one"]
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(
         description=__doc__,
@@ -275,8 +293,12 @@ def main(argv=None) -> dict:
     problem = tp.make_problem(tc)
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    half = {"tune_flags": [*RACE_FLAGS, *raw[split + 1 :]], "repeats": args.repeats, "device": devices[0].device_kind}
     with tempfile.TemporaryDirectory() as work:
-        one = measure(problem, devices[:1], args.repeats, pathlib.Path(work))
+        one = one_device_half(out / ONE_DEVICE_FILE, half)
+        if one is None:
+            one = measure(problem, devices[:1], args.repeats, pathlib.Path(work))
+            io.atomic_write_json(out / ONE_DEVICE_FILE, {**half, "one": one})  # a call cut off later keeps it
         print(json.dumps({"devices": 1, "step_s_median": one["step_s_median"], "loss": one["loss"]}), flush=True)
         many = measure(problem, devices, args.repeats, pathlib.Path(work))
     result = {
