@@ -55,6 +55,11 @@ for job in "$@"; do
       mkdir -p "$OUT/cpu_peer"; lscpu | grep -E "Model name|^CPU\(s\)|MHz" > "$OUT/cpu_peer/cpu.txt"; uptime >> "$OUT/cpu_peer/cpu.txt"
       for i in $(seq 1 ${CPU_PEER_RUNS:-3}); do
         run cpu_peer_wbc_$i taskset -c 1 python3 benchmarks/cpu_loop.py --parts profile --out "$OUT/cpu_peer/wbc_$i.json"
+        # CPU_PEER_ISA=AVX2: also our loop with XLA's code capped at that ISA (AVX-512 may lower an Intel core's clock;
+        # on the AMD EPYC the cap changed nothing beyond noise, 2026-11-26), its own compilation cache
+        [ -n "${CPU_PEER_ISA:-}" ] && run cpu_peer_wbc_isa_$i env XLA_FLAGS=--xla_cpu_max_isa=$CPU_PEER_ISA \
+          WBC_JAX_CACHE=/tmp/xla-cache-isa taskset -c 1 python3 benchmarks/cpu_loop.py --parts profile \
+          --out "$OUT/cpu_peer/wbc_isa_${CPU_PEER_ISA}_$i.json"
         PYTHONPATH=$IC/lib/python3.12/site-packages:$TS/cmeel.prefix/lib/python3.12/site-packages:$TS:$PYTHONPATH run cpu_peer_tsid_$i \
           python3 benchmarks/tsid_peer.py --cpu 1 --no-envelope --out "$OUT/cpu_peer/tsid_$i.json"
       done ;;
