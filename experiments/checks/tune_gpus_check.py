@@ -298,7 +298,8 @@ def main(argv=None) -> dict:
         one = one_device_half(out / ONE_DEVICE_FILE, half)
         if one is None:
             one = measure(problem, devices[:1], args.repeats, pathlib.Path(work))
-            io.atomic_write_json(out / ONE_DEVICE_FILE, {**half, "one": one})  # a call cut off later keeps it
+            record = {**half, "one": one, "provenance": provenance.record({"init_gains": tc.init_gains})}
+            io.atomic_write_json(out / ONE_DEVICE_FILE, record)  # a call cut off later keeps it
         print(json.dumps({"devices": 1, "step_s_median": one["step_s_median"], "loss": one["loss"]}), flush=True)
         many = measure(problem, devices, args.repeats, pathlib.Path(work))
     result = {
