@@ -63,6 +63,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--explain-tick", type=int, default=None, help="default: the last of --ticks")
     p.add_argument("--explain-count", type=int, default=4, help="the slowest problems explained")
     p.add_argument("--one-foot", action="store_true", help="the one-foot acceptance scenario per pair")
+    p.add_argument("--runs", default="runs/qp_slowest_one_foot", help="the one-foot runs' own outputs (trajectories)")
     args = p.parse_args(argv)
     try:
         args.pairs = [parse_pair(t) for t in args.pairs]
@@ -176,8 +177,11 @@ def explain(qps, weight, y_ref, lam_ref, steps, tick: int, count: int, names: li
     slowest = np.argsort(-steps[:, tick], kind="stable")[:count]
 
     def run(k: int):  # k Newton steps whatever the residual (tol 0), every problem of the tick
-        res = jax.jit(jax.vmap(lambda *p: interior_point(*p, k, 0.0, weight)))(H, g, C, b)
-        return np.asarray(res.residual_parts), np.asarray(res.lam), np.asarray(res.s)
+        def one(*problem):
+            res = interior_point(*problem, k, 0.0, weight)
+            return res.residual_parts, res.lam, res.s
+
+        return tuple(np.asarray(a) for a in jax.jit(jax.vmap(one))(H, g, C, b))
 
     most = int(steps[:, tick].max())
     by_step = [run(k)[0][slowest] for k in range(1, most + 1)]
@@ -218,7 +222,7 @@ def save_slowest(qps, steps, tick: int, path: pathlib.Path, count: int = 16) -> 
     np.savez(path, env=slowest, tick=tick, cold_newton_steps=steps[slowest, tick], **arrays)
 
 
-def one_foot(tol: float | None, warm: bool, out: pathlib.Path) -> dict:
+def one_foot(tol: float | None, warm: bool, runs: pathlib.Path) -> dict:
     """The one-foot acceptance scenario with this pair: figures and their relative change against
     results/balance_acceptance.json."""
     from wbc_jax.control.controller import ControllerConfig
@@ -226,7 +230,7 @@ def one_foot(tol: float | None, warm: bool, out: pathlib.Path) -> dict:
 
     key = f"{tol or 'default'}_{'warm' if warm else 'cold'}"
     r = balance.run(
-        out=str(out / "one_foot" / key),
+        out=str(runs / key),
         progress=False,
         controller=ControllerConfig(qp_tol=tol),
         qp_warm_start=warm,
@@ -283,7 +287,7 @@ def main(argv=None) -> dict:
             },
         }
         if args.one_foot:
-            pairs[key]["one_foot"] = one_foot(tol, warm, pathlib.Path(args.out))
+            pairs[key]["one_foot"] = one_foot(tol, warm, pathlib.Path(args.runs))
         print(key, json.dumps(pairs[key]), flush=True)
     if steps_cold is None:
         steps_cold = solve_chain(qps, weight, None, False)[1]
