@@ -179,6 +179,10 @@ def stage_functions(st) -> dict:
         start = state.controller.qp_start if cfg.qp_warm_start else None
         return forces.momentum_equality_qp(cset, engaged, A, wrench, tt, W_R, cfg.force_settings, start)
 
+    def first_qp_data(tt, act, A, wrench, W_R):  # that QP's (H, g, C, b), as momentum_equality_qp builds it
+        data = forces.equality_qp_data(cset, engaged_mask(act), A, wrench, tt, W_R, cfg.force_settings)
+        return data.H, data.g, data.C, data.b
+
     def diagnostics(q, v, state, k):
         t, out = loop.terms(q, v), tick(q, v, state, k)
         tt = torque_law(t, state, k)
@@ -213,6 +217,7 @@ def stage_functions(st) -> dict:
         force_inputs=force_inputs,
         distribution=distribution,
         first_qp=lambda *a: first_qp(*a)[0],
+        first_qp_data=first_qp_data,
         diagnostics=diagnostics,
     )
 

@@ -146,10 +146,16 @@ for job in "$@"; do
         --skip-equivalence ;;
     bench46_warm)  # issue 46: the same with the force QP warm-started (--qp-warm-start): under vmap the QP's while
             # loop runs the batch's slowest problem's Newton steps (14 after the push against 7.9 in the mean on the
-            # CPU, results/cpu_targets/pt46), which a warm start cuts; run right after bench46 on the same machine
+            # CPU, results/cpu_targets/pt46), which a warm start cuts (to 10 at tol 5e-7, results/cpu_targets/qpmax46);
+            # run right after bench46 on the same machine
       run bench46_warm python3 benchmarks/benchmark.py --out "$OUT/bench46_warm" --json "$OUT/bench46_warm/benchmarks.json" \
         --backends warp --batches 65536 --horizon 0.5 --cpu-baseline-envs 64 --cpu-workers 16 --repeats 2 \
         --skip-equivalence --qp-warm-start ;;
+    profile_tick_warm)  # issue 46 (qpmax46): profile_tick at 65,536 envs with the force QP warm-started at its own
+            # float32 tolerance (qp.WARM_START_TOL_FLOAT32, 5e-7; one-foot's acceptance within 0.03 %): the batch's
+            # slowest QP's Newton steps and the force stage's µs before, in and after the push, beside profile_tick's
+      run profile_tick_warm python3 benchmarks/profile_tick.py --batch 65536 --states loop --qp-warm-start \
+        --out "$OUT/profile_tick_warm" ;;
     tune_gpus)  # issue 45: the tune job's gradient step and a CMA-ES generation at the race's settings on 1 GPU and on
             # all of them (loss, gradient, their difference, step seconds, speed-up). A call cut off by its limit
             # leaves the compiled programs in $WBC_JAX_CACHE: the same call on the warm machine goes on from them.

@@ -1,6 +1,7 @@
 """Measured acceptance of the balancing controller (issue: the controller of the seed paper).
 
     python experiments/acceptance/balance_acceptance.py [--robot NAME] [--only NAME ...] [--out runs/acceptance]
+        [--summary FILE] [--qp-warm-start]
 
 Runs each scenario with ``wbc_jax.jobs.balance.run`` and merges the metrics into
 ``results/balance_acceptance.json`` (the default robot's; another robot's into
@@ -89,6 +90,11 @@ def main(argv=None) -> None:
         default=None,
         help="MJX Newton iterations (default: the model's 4); results keyed NAME-itN",
     )
+    parser.add_argument(
+        "--qp-warm-start",
+        action="store_true",
+        help="the force QP warm-started (ControllerConfig.qp_warm_start); compare with cpu_loop.py's acceptance part",
+    )
     args = parser.parse_args(argv)
     record = provenance.record(argv=provenance.script_argv(__file__, argv))
     runner.enable_compilation_cache()  # scenarios of the same shape compile once, as in the CLI
@@ -106,6 +112,7 @@ def main(argv=None) -> None:
             solver_iterations=it,
             backend=args.backend,
             robot=args.robot,
+            qp_warm_start=args.qp_warm_start,
             **SCENARIOS[name],
         )
         print(key, json.dumps(result), flush=True)

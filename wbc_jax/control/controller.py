@@ -51,10 +51,13 @@ class ControllerConfig:
       torque_limit: saturation (N m); None: each joint's motor limit in the robot's model (the
         actuators' ctrlrange, ``torque_limit`` of :class:`~wbc_jax.robot.model.RobotIndex`). qp_iterations: at most this many interior-point steps.
       qp_warm_start: start the force QP's interior point from the last tick's multipliers and
-        slacks (4 Newton steps a tick instead of 6 in the sinusoid, the same solution within the
-        solver's tolerance); off by default: float32's solutions differ from the cold start's
-        by up to 1e-3 in weakly determined directions, and the one-foot acceptance scenario
-        (which falls) amplifies that to 1.4 % in its CoM error and 4.6 % in its end speed.
+        slacks (4 Newton steps a tick instead of 6 in the sinusoid; after a push the batch's
+        slowest QP 10 instead of 14), stopping at the warm start's own float32 tolerance
+        (:data:`wbc_jax.control.qp.WARM_START_TOL_FLOAT32`): at the cold start's 2e-6 the one-foot
+        acceptance scenario (which falls) amplified the different stopping points to 8.9 % in its
+        end CoM speed, at 5e-7 0.03 % (BENCHMARKS.md, qpmax46). Off by default.
+      qp_tol: the force QPs' relative KKT tolerance (None: :func:`wbc_jax.control.qp.default_tolerances`
+        of the precision, 2e-6 in float32).
       torque_weight_soft: |tau|^2 against |A f - w|^2 in the soft momentum QP.
       angular_weight_soft: the angular rows of |A f - w|^2 against the linear ones in the soft
         momentum QP (1: WBC; < 1: the CoM first where a push asks more than the feet can give).
@@ -89,6 +92,7 @@ class ControllerConfig:
     torque_limit: float | None = None
     qp_iterations: int = qp.DEFAULT_ITERATIONS
     qp_warm_start: bool = False
+    qp_tol: float | None = None
     torque_weight_soft: float = 1e-4
     angular_weight_soft: float = 1.0
     normal_force_weight: float = 1e3
@@ -150,7 +154,7 @@ class ControllerConfig:
             isinstance(self.effort_damping, (int, float)) and 0.0 <= self.effort_damping < math.inf
         ):
             raise ValueError(f"controller setting effort_damping must be >= 0 and finite, got {self.effort_damping!r}")
-        for name in ("solution_damping", "projector_reg", "violation_tol"):
+        for name in ("solution_damping", "projector_reg", "violation_tol", "qp_tol"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ValueError(f"controller setting {name} must be positive or None, got {value!r}")
@@ -162,6 +166,7 @@ class ControllerConfig:
             hessian_reg=self.hessian_reg,
             qp_iterations=self.qp_iterations,
             warm_start=self.qp_warm_start,
+            qp_tol=self.qp_tol,
             torque_weight_soft=self.torque_weight_soft,
             angular_weight_soft=self.angular_weight_soft,
             normal_force_weight=self.normal_force_weight,

@@ -81,6 +81,7 @@ class ForceSettings:
     normal_force_weight: float = 1e3  # desired normal forces, per N^2 against (N m)^2
     violation_tol: float | None = None  # accepted contact_violation of a QP's wrenches (None: by dtype)
     warm_start: bool = False  # the equality QP from the last tick's multipliers and slacks
+    qp_tol: float | None = None  # the QPs' relative KKT tolerance (None: qp.default_tolerances)
 
     def tolerance(self, dtype) -> float:
         """The largest :func:`contact_violation` a formulation's wrenches may have (else the next
@@ -221,6 +222,7 @@ def momentum_equality_qp(
         data.C,
         data.b,
         iterations=settings.qp_iterations,
+        tol=settings.qp_tol,
         row_weight=row_weights(cset),
         start=start if settings.warm_start else None,
     )
@@ -302,6 +304,7 @@ def soft_momentum_qp(
         C * keep[None, :],
         jnp.where(row_kept, b, 1.0),
         iterations=settings.qp_iterations,
+        tol=settings.qp_tol,
         row_weight=row_weights(cset),
     )
     return keep * x, info

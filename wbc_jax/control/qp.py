@@ -32,6 +32,8 @@ iterate has converged (under ``vmap``: once every problem of the batch has):
   which the caller may change from one tick to the next). Measured in closed loop
   (float32): 6.0 -> 4.0 Newton steps a tick in the 20 s sinusoid, 6.2 -> 4.4 in the
   acceptance push (at most 12 -> 8); the solution is the cold start's within the tolerance.
+  A warm-started solve stops at its own, tighter float32 tolerance
+  (:data:`WARM_START_TOL_FLOAT32`), which costs no step of the batch's slowest problem.
 * Once a problem has converged its iterate is frozen (``jnp.where``), so
   surplus iterations of a batch cannot degrade it; a step that would produce
   non-finite numbers is rejected likewise. The loop is never differentiated
@@ -96,6 +98,14 @@ converge in 8-19 (float64, tol 1e-11) or 7-22 (float32, tol 2e-6); the loop stop
 the iterate has converged."""
 
 
+WARM_START_TOL_FLOAT32 = 5e-7
+"""float32 ``tol`` of a warm-started solve. Measured on the one-foot acceptance scenario, whose
+figures amplify the QP's solution error (BENCHMARKS.md, qpmax46): warm-started at 2e-6 its end CoM
+speed moves 8.9 % from the cold start's, at 5e-7 0.03 %; cold, 2e-6 -> 5e-7 moves it 0.25 %. On the
+benchmark loop's states after a push the batch's slowest warm-started QP takes 10 Newton steps at
+either tolerance (14 cold at 2e-6)."""
+
+
 # --------------------------------------------------------------------------------------
 # Generic dense QP
 # --------------------------------------------------------------------------------------
@@ -140,17 +150,21 @@ jax.tree_util.register_dataclass(
 )
 
 
-def default_tolerances(dtype: Any) -> tuple[float, float]:
+def default_tolerances(dtype: Any, warm_start: bool = False) -> tuple[float, float]:
     """Default ``(tol, fallback_tol)`` of :func:`solve_qp` for a float dtype.
 
     ``tol`` bounds the relative KKT residual at which the iterate freezes; in
     float32 it sits just above what rounding in the residuals lets us reach.
     ``fallback_tol`` is the relative constraint violation above which a
     non-converged result is declared infeasible.
+
+    ``warm_start``: the tolerance of a solve from a nearby problem's solution (``start``), in
+    float32 :data:`WARM_START_TOL_FLOAT32`. A warm start and a cold one stop at different points
+    of the band that ``tol`` allows, and the difference accumulates over a closed loop's ticks.
     """
     if jnp.finfo(dtype).bits >= 64:
         return 1e-11, 1e-6
-    return 2e-6, 1e-3
+    return (WARM_START_TOL_FLOAT32 if warm_start else 2e-6), 1e-3
 
 
 def solve_qp(
@@ -184,7 +198,7 @@ def solve_qp(
         b: (m,) constraint bounds.
         iterations: number of Newton steps (static).
         tol: relative KKT tolerance (static); default from
-            :func:`default_tolerances`.
+            :func:`default_tolerances` (tighter with ``start`` in float32).
         fallback_tol: relative violation above which a non-converged result
             falls back to ``-H^{-1} g`` (static); default likewise.
         row_weight: (m,) positive weights of the rows in the scaled problem, or None
@@ -212,7 +226,7 @@ def solve_qp(
         raise ValueError("solve_qp: needs at least one constraint row (m >= 1)")
     if int(iterations) < 1:
         raise ValueError(f"solve_qp: iterations must be >= 1, got {iterations}")
-    d_tol, d_fallback = default_tolerances(dtype)
+    d_tol, d_fallback = default_tolerances(dtype, warm_start=start is not None)
     tol = d_tol if tol is None else float(tol)
     fallback_tol = d_fallback if fallback_tol is None else float(fallback_tol)
 

@@ -40,6 +40,9 @@ class IPMResult:
     violation: Array  # () max(C x - b, 0) of the scaled problem (relative)
     kkt_residual: Array  # ()
     iterations: Array  # () int32
+    # (3,) the final iterate's dual, primal and complementarity residuals (kkt_residual is their max);
+    # recomputed after the loop, so a caller that does not read them pays nothing (dead code).
+    residual_parts: Array
 
 
 def _max_step(v: Array, dv: Array) -> Array:
@@ -233,7 +236,7 @@ def interior_point(
         # duality gap s'z relative to the objective is too weak a test: it
         # lets inactive rows keep multipliers of 1e-3 max(z) (x off by 1e-3).
         res_c = jnp.max(jnp.minimum(s / (1.0 + max_x), z / (1.0 + max_z)))
-        return r_d, r_p, jnp.maximum(jnp.maximum(res_d, res_p), res_c)
+        return r_d, r_p, jnp.maximum(jnp.maximum(res_d, res_p), res_c), jnp.stack([res_d, res_p, res_c])
 
     # The residuals of an iterate are computed once, at the end of the step that made it, and
     # carried: the loop stops right after the step that converged (no extra Newton step whose
@@ -263,14 +266,14 @@ def interior_point(
         x = jnp.where(take, x_n, x)
         sz = jnp.where(take, sz_n, sz)
         mu = jnp.where(take, mu_n, mu)
-        r_d, r_p, res = residuals(x, sz)
+        r_d, r_p, res, _ = residuals(x, sz)
         return x, sz, mu, r_d, r_p, res, count + take.astype(jnp.int32), k + 1
 
     def running(carry):
         return ~(carry[5] <= tol) & (carry[7] < iterations)
 
     sz0 = jnp.concatenate([s0, z0])
-    init = (x0, sz0, (s0 @ z0) / m, *residuals(x0, sz0), jnp.array(0, jnp.int32), jnp.array(0, jnp.int32))
+    init = (x0, sz0, (s0 @ z0) / m, *residuals(x0, sz0)[:3], jnp.array(0, jnp.int32), jnp.array(0, jnp.int32))
     x, sz, _, _, _, res, count, _ = lax.while_loop(running, step, init)
     s, z = sz[:m], sz[m:]
     finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(z)) & jnp.all(jnp.isfinite(s))
@@ -285,4 +288,5 @@ def interior_point(
         violation=jnp.where(finite, violation, jnp.inf),
         kkt_residual=res,
         iterations=count,
+        residual_parts=residuals(x, sz)[3],
     )
