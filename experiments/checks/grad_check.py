@@ -1,6 +1,6 @@
 """Gradient check of the differentiable closed loop on the tuning loss (issues 5, 20).
 
-    python experiments/checks/grad_check.py N [--out FILE]
+    python experiments/checks/grad_check.py N [--out FILE] [--qp-warm-start]
 
 Per-scenario reverse-mode gradients of the tuning loss (wbc_jax/tuning/algorithms/loss.py: capture point,
 foot tilt and slip, settling, CoM, effort; log1p of the total) over N random push scenarios
@@ -65,6 +65,11 @@ def main(argv=None) -> dict:
     parser.add_argument("n", type=int, help="number of random scenarios")
     parser.add_argument("--out", default=None, help="also write the JSON here")
     parser.add_argument("--fd-scenarios", type=int, default=3, help="scenarios checked by central differences")
+    parser.add_argument(
+        "--qp-warm-start",
+        action="store_true",
+        help="the force QP warm-started from the last tick's solution (ControllerConfig.qp_warm_start)",
+    )
     args = parser.parse_args(argv)
     n = args.n
     if n < 1:
@@ -74,6 +79,7 @@ def main(argv=None) -> dict:
     jax.config.update("jax_enable_x64", True)  # before any array is made
     import jax.numpy as jnp
 
+    from wbc_jax.control.flags import ControllerFlags
     from wbc_jax.core import io
     from wbc_jax.tuning import config
     from wbc_jax.tuning.algorithms import params as tuning_params
@@ -89,6 +95,7 @@ def main(argv=None) -> dict:
         mass_range=(0.9, 1.1),
         tune_regularisation=True,
         eval_horizon=0.1,
+        controller=ControllerFlags(qp_warm_start=args.qp_warm_start),
     )
     problem = tp.make_problem(tc, checkpoint=True)
     robot = problem.robot
