@@ -195,3 +195,14 @@ def load_script(relative: str):
         sys.modules[key] = module
         spec.loader.exec_module(module)
     return sys.modules[key]
+
+
+def refused_in_one_line(main, argv: list[str], capsys) -> str:
+    """Run a script's ``main(argv)``, which must refuse it as argparse does (exit status 2) with
+    exactly one ``error:`` line on stderr; returns that line."""
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    errors = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
+    assert len(errors) == 1, errors
+    return errors[0]
