@@ -94,6 +94,27 @@ def timed(fn, *args, repeats: int) -> float:
     return best
 
 
+def staged(loop, fn, in_axes=0):
+    """jit(vmap(fn, in_axes)) called and lowered at the loop's matmul precision (``SimConfig.matmul_precision``), as
+    the loop's own programs are traced (``wbc_jax.sim.state.traced_at_matmul_precision``): at JAX's default a GPU
+    runs float32 products in TF32, another controller than the loop's (on an H100 every environment's postural
+    projector then missed its certificate and the whole ``eigh`` ran, 2026-11-27)."""
+    import jax
+
+    program = jax.jit(jax.vmap(fn, in_axes=in_axes))
+
+    def run(*args):
+        with jax.default_matmul_precision(loop.cfg.matmul_precision):
+            return program(*args)
+
+    def lower(*args):
+        with jax.default_matmul_precision(loop.cfg.matmul_precision):
+            return program.lower(*args)
+
+    run.lower = lower
+    return run
+
+
 def record_tick_inputs(record, new_state, state, qpos, qvel):
     """The loop's recorder (``wbc_jax.sim.loop.Recorder``) of what the controller's tick starts from."""
     return record, (qpos, qvel, state)
@@ -263,24 +284,22 @@ def profile_group(st, fns: dict, group: dict, args, trace: str | None = None) ->
     loop, dtype, B, reps = st.loop, st.dtype, args.batch, args.repeats
     q, v, state, k = group["qpos"], group["qvel"], group["state"], jnp.asarray(group["tick"], jnp.int32)
     per_env = (0, 0, 0, None)  # the tick k is the batch's, as in the loop's scan
-    diag = jax.jit(jax.vmap(fns["diagnostics"], in_axes=per_env))(q, v, state, k)
-    vt = jax.jit(jax.vmap(loop.terms))
+    diag = staged(loop, fns["diagnostics"], per_env)(q, v, state, k)
+    vt = staged(loop, loop.terms)
     t = vt(q, v)
-    vtt = jax.jit(jax.vmap(fns["torque_law"], in_axes=(0, 0, None)))
+    vtt = staged(loop, fns["torque_law"], (0, 0, None))
     tt = vtt(t, state, k)
-    inputs = jax.jit(jax.vmap(fns["force_inputs"], in_axes=(0, None, 0)))(t, k, diag["Ldot_star"])
+    inputs = staged(loop, fns["force_inputs"], (0, None, 0))(t, k, diag["Ldot_star"])
     us = lambda s: round(1e6 * s / B, 3)  # noqa: E731
     figures = {
         "dynamics_terms": us(timed(vt, q, v, repeats=reps)),
         "torque_law": us(timed(vtt, t, state, k, repeats=reps)),
-        "force_distribution": us(timed(jax.jit(jax.vmap(fns["distribution"])), tt, state, *inputs, repeats=reps)),
+        "force_distribution": us(timed(staged(loop, fns["distribution"]), tt, state, *inputs, repeats=reps)),
         # Under vmap the soft QP runs for the whole batch where some environment needs it
         # (batch_any); the difference between these two figures is what that costs.
-        "force_distribution_first_qp_only": us(
-            timed(jax.jit(jax.vmap(fns["first_qp"])), tt, state, *inputs, repeats=reps)
-        ),
+        "force_distribution_first_qp_only": us(timed(staged(loop, fns["first_qp"]), tt, state, *inputs, repeats=reps)),
     }
-    vw = jax.jit(jax.vmap(fns["tick"], in_axes=per_env))
+    vw = staged(loop, fns["tick"], per_env)
     figures["whole_tick"] = us(timed(vw, q, v, state, k, repeats=reps))
     # Ten physics steps of the same batch from its postures, for scale (a tick holds 10).
     m = physics.device_model(st.robot.mj_model, loop.backend, loop.cfg.physics)
@@ -291,7 +310,7 @@ def profile_group(st, fns: dict, group: dict, args, trace: str | None = None) ->
         d = physics.device_data(st.robot.mj_model, loop.backend, loop.cfg.physics, qp, dtype, batch=B)
         return jax.lax.scan(lambda dd, _: (physics.step(m, dd, tau, xfrc), None), d, None, length=10)[0].qpos
 
-    figures[f"physics_10_steps_{loop.backend}"] = us(timed(jax.jit(jax.vmap(ten_steps)), q, repeats=reps))
+    figures[f"physics_10_steps_{loop.backend}"] = us(timed(staged(loop, ten_steps), q, repeats=reps))
     if trace:
         with jax.profiler.trace(trace):
             jax.block_until_ready(vw(q, v, state, k))
@@ -330,6 +349,7 @@ def main(argv=None) -> dict:
         "qp_warm_start": args.qp_warm_start,
         "device": provenance.device_label(),
         "dtype": str(st.dtype),
+        "matmul_precision": st.loop.cfg.matmul_precision,
         "states": args.states,
         "groups": [profile_group(st, fns, g, args, args.trace if i == 0 else None) for i, g in enumerate(groups)],
     }

@@ -248,15 +248,27 @@ def one_foot(tol: float | None, warm: bool, runs: pathlib.Path) -> dict:
 
 def main(argv=None) -> dict:
     args = parse_args(argv)  # bad flags refused before anything compiles
-    import numpy as np
+    import jax
     from loop_timing import make_setup
 
-    from wbc_jax.control.constraints import row_weights
-    from wbc_jax.core import constants, io, provenance
     from wbc_jax.sim import runner
 
     runner.enable_compilation_cache()
     st = make_setup("jax", args.horizon, None)  # the recorded loop cold, as benchmark.py's default
+    # The loop's matmul precision, as its own programs are traced (profile_tick.staged: a GPU's default is TF32).
+    with jax.default_matmul_precision(st.loop.cfg.matmul_precision):
+        result = measure(st, args, argv)
+    print(json.dumps({k: v for k, v in result.items() if k != "provenance"}), flush=True)
+    return result
+
+
+def measure(st, args, argv) -> dict:
+    """qp_slowest.json's figures (module docstring) on ``st``'s recorded loop; writes it and slowest_qps.npz."""
+    import numpy as np
+
+    from wbc_jax.control.constraints import row_weights
+    from wbc_jax.core import constants, io, provenance
+
     cset = st.loop.controller.contact_set
     qps = loop_qps(st, args)
     weight = row_weights(cset)
@@ -299,6 +311,7 @@ def main(argv=None) -> dict:
             "push_duration_s": args.push_duration,
         },
         "dtype": str(st.dtype),
+        "matmul_precision": st.loop.cfg.matmul_precision,
         "qp_size": {"n": int(qps[1].shape[-1]), "m": int(qps[3].shape[-1])},
         "active_rows_at_quadprog_solution": {
             f"tick_{k}": np.bincount(
@@ -318,7 +331,6 @@ def main(argv=None) -> dict:
     }
     io.atomic_write_json(pathlib.Path(args.out) / "qp_slowest.json", result)
     save_slowest(qps, steps_cold, args.explain_tick, pathlib.Path(args.out) / "slowest_qps.npz")
-    print(json.dumps({k: v for k, v in result.items() if k != "provenance"}), flush=True)
     return result
 
 

@@ -98,3 +98,21 @@ def test_loop_states_are_the_ticks_the_loop_records(profile_tick):
     )
     [group] = profile_tick.state_groups(st, ns)
     np.testing.assert_array_equal(np.asarray(group["qpos"]), qpos[np.arange(6) % envs, 15].astype(st.dtype))
+
+
+def test_stages_are_traced_at_the_loops_matmul_precision(profile_tick):
+    """The stages run at the loop's matmul precision (``highest``), as the loop's programs: at JAX's
+    default a GPU runs float32 products in TF32 (on an H100 every environment's postural projector then
+    missed its certificate, another controller than the loop's). Lowered only, nothing compiles."""
+    from loop_timing import make_setup
+
+    st = make_setup("jax", 0.3, None)
+    assert st.loop.cfg.matmul_precision == "highest"
+    q = jax.ShapeDtypeStruct((2, *st.qpos0.shape), st.dtype)
+    v = jax.ShapeDtypeStruct((2, st.robot.index.nv), st.dtype)
+    t = jax.eval_shape(jax.vmap(st.loop.terms), q, v)
+    state = jax.eval_shape(jax.vmap(st.loop.init), q)
+    law = profile_tick.stage_functions(st)["torque_law"]
+    text = profile_tick.staged(st.loop, law, (0, 0, None)).lower(t, state, jnp.int32(0)).as_text()
+    dots = [line for line in text.splitlines() if "dot_general" in line]
+    assert len(dots) > 10 and all("HIGHEST" in line for line in dots), dots[:3]
