@@ -362,3 +362,49 @@ def test_tune_gpus_check_bar_is_the_gradient_within_the_bound_on_every_device():
     assert tg.failures({"comparison": tg.compare(run, split_off, 1e-3), "all": split_off}) == [
         "the 2-device gradient differs from the same shares on one device by 0.005 of its largest entry (bound 0.001)"
     ]
+
+
+def test_tune_gpus_check_bound_is_the_shares_repeat_floor_where_the_device_is_not_deterministic():
+    """On a GPU the same executable gives other values run to run (results/tuning/tune_gpus_h200x2_s56/): the bound
+    is then FLOOR_FACTOR x the shares' repeat on the first device, for the gradient and the rollouts' median; a
+    split that scrambles the rollouts fails on their values though the floor lifts the gradient's bound."""
+    tg = script("tune_gpus_check")
+    one = {
+        "values": [1.0, 2.0, 4.0, 8.0],
+        "gradient": [1.0, -2.0],
+        "loss": 2.0,
+        "step_s_median": 4.0,
+        "cmaes": {"gen_s_median": 3.0, "generation_0": {"loss": 1.0}},
+        "devices": 1,
+        "ran_on": ["gpu:0"],
+    }
+    shares = {"values": [1.0, 2.0, 4.0, 8.0], "gradient": [1.0, -2.0]}
+    repeat = {"values": [1.01, 2.02, 4.0, 8.0], "gradient": [1.1, -2.0]}  # median 0.5 %, gradient 0.05
+    noisy = {
+        **one,
+        "values": [1.0075, 2.015, 4.03, 8.0],  # median 0.75 %
+        "gradient": [1.0, -2.16],  # 0.08 of the largest entry
+        "devices": 2,
+        "ran_on": ["gpu:0", "gpu:1"],
+        "shares_on_first_device": shares,
+        "shares_repeat_on_first_device": repeat,
+    }
+    cmp = tg.compare(one, noisy, 1e-3)
+    assert cmp["repeat_gradient_max_rel_diff"] == pytest.approx(0.05)
+    assert cmp["repeat_rollout_values_median_rel_diff"] == pytest.approx(0.005)
+    assert cmp["rollout_values_vs_shares_median_rel_diff"] == pytest.approx(0.0075)
+    assert tg.failures({"comparison": cmp, "all": noisy}) == []  # within 2 x the floor: 0.1 and 1 %
+    scrambled = {**noisy, "values": [8.0, 4.0, 2.0, 1.0]}  # rows gathered out of order
+    assert tg.failures({"comparison": tg.compare(one, scrambled, 1e-3), "all": scrambled}) == [
+        "the 2-device rollouts' values differ from the same shares on one device by 0.938 in the median"
+        " (bound 2 x the shares' own repeat, 0.01)"
+    ]
+    far = {**noisy, "gradient": [1.0, -2.3]}
+    assert tg.failures({"comparison": tg.compare(one, far, 1e-3), "all": far}) == [
+        "the 2-device gradient differs from the same shares on one device by 0.15 of its largest entry"
+        " (bound 2 x the shares' own repeat, 0.1)"
+    ]
+    broken = {**noisy, "shares_repeat_on_first_device": {**repeat, "gradient": [float("nan"), -2.0]}}
+    assert tg.failures({"comparison": tg.compare(one, broken, 1e-3), "all": broken})[0].startswith(
+        "the shares' repeat on one device is not finite"
+    )

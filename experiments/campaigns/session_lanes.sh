@@ -15,7 +15,8 @@
 #     (Warp on GPU 1, 3 runs), jax2 (JAX, then Warp, on GPUs 2-3, 2 runs each); scaling ends when all are done;
 #   one (one GPU; issue 46): profile_tick while the wheels arrive, then bench46_warm, bench46, profile_tick_warm;
 #   two (a machine of 2 or more GPUs; issue 45): scaling (once Warp is there: tune_gpus on one GPU, then on all; its
-#     one-GPU half is kept in $OUT/tune_gpus/tune_gpus_one_device.json as soon as it ends).
+#     one-GPU half is kept in $OUT/tune_gpus/tune_gpus_one_device.json as soon as it ends, and taken from
+#     TUNE_GPUS_SEED, an earlier call's, where that was measured alike: then only the N-GPU half runs).
 # Git-less copy: NIGHTLY_COMMIT names the commit in the gpu set's log.
 set -uo pipefail
 ACTION=${1:?usage: session_lanes.sh start|poll OUT [SECONDS]}
@@ -44,6 +45,9 @@ case "$ACTION" in
       sleep 2; echo "lanes started ($(nproc) cores, plan one): $(ls "$LANES")"; exit 0
     fi
     if [ "$PLAN" = two ]; then
+      # An earlier one-GPU half (TUNE_GPUS_SEED): the check reuses it where measured alike (device kind, flags).
+      SEED=${TUNE_GPUS_SEED-results/tuning/tune_gpus_h200x2_s56/tune_gpus_one_device.json}
+      mkdir -p "$LANES/scaling/out/tune_gpus"; [ -n "$SEED" ] && cp "$SEED" "$LANES/scaling/out/tune_gpus/"
       bg scaling "$(wait_for /tmp/warp_ready) \
         TUNE_GPUS_FLAGS='${TUNE_GPUS_FLAGS:---repeats 2}' TUNE_GPUS_WALL=${TUNE_GPUS_WALL:-1500} $G bash experiments/gpu_run.sh tune_gpus"
       sleep 2; echo "lanes started ($(nproc) cores, plan two): $(ls "$LANES")"; exit 0

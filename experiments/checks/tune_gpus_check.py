@@ -14,7 +14,10 @@ local devices (one single-device program per device, :class:`wbc_jax.tuning.algo
   objective of the mean and its best and median candidates, the median of the later generations' seconds.
 
 On N devices the N per-device shares of step 0's rollouts are also run one after another on the first device
-(the per-device program's shape) and combined alike: what the split and gather must give exactly. Against one
+(the per-device program's shape) and combined alike: what the split and gather must give exactly; they run twice,
+and the second run, the same executable on the same device from the same inputs, is the device's repeat floor (on a
+GPU not zero: XLA's atomics round in another order each run, and the closed loop grows it; ``XLA_FLAGS=
+--xla_gpu_deterministic_ops=true`` asks XLA for determinism). Against one
 device's whole batch they differ by float32 rounding of another batch shape, grown through the closed loop's ticks
 (two host CPU devices, batch 4 of 0.3 s: rollout values 0.8 % apart, the gradient 17 % of its largest entry; in
 float64 bit-equal, tests/test_tune_devices.py).
@@ -34,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import pathlib
 import sys
 import tempfile
@@ -44,11 +48,18 @@ import numpy as np
 from wbc_jax.core import checks, io, provenance
 
 MAX_REL_DIFF = 1e-3  # default bound: float32 rounding of other per-device batch shapes through the closed loop
+# Where the device is not deterministic run to run, the bound is this many times the shares' own repeat. On
+# 2 x H200 (results/tuning/tune_gpus_h200x2_s56/) the same executable on the same device from the same inputs gave
+# other values in 1023 of 1024 rollouts (median 0.38 %, the chaotic closed loop growing XLA's atomics' rounding);
+# the three noise-level gradient differences there (whole batch vs shares 0.162, 2 devices vs shares 0.184, vs the
+# whole batch 0.219 of the largest entry) lie within 1.35x of each other, the rollouts' medians within 1.03x.
+FLOOR_FACTOR = 2.0
 BAR = (
-    f"the N-device gradient within --max-rel-diff (default {MAX_REL_DIFF:g}) of the same per-device shares run one "
-    "after another on the first device, relative to its largest entry (the split and gather exact; the difference "
-    "from one device's whole batch, float32 rounding of another batch shape through the closed loop, is reported "
-    "beside it); every device's share of the last step finished"
+    "the N-device gradient (relative to its largest entry) and its rollouts' values (the median relative difference) "
+    f"within --max-rel-diff (default {MAX_REL_DIFF:g}) of the same per-device shares run one after another on the "
+    f"first device, or within {FLOOR_FACTOR:g}x those shares' own repeat there where the device is not deterministic "
+    "(the split and gather exact; the difference from one device's whole batch, float32 rounding of another batch "
+    "shape through the closed loop, is reported beside it); every device's share of the last step finished"
 )
 RACE_FLAGS = [
     "--batch",
@@ -109,11 +120,13 @@ def measure(problem, devices: list, repeats: int, work: pathlib.Path) -> dict:
         )
     )
     grad, stats = combine(jnp.asarray(values), jax.tree_util.tree_map(jnp.asarray, grads), eps)
-    shares = None
-    if len(devices) > 1:  # the same shares, one after another on the first device: what the split must give
-        shares = shares_on_first_device(step.grads, params_b, rollouts, devices[0], len(devices))
-        shares_grad, _ = combine(*shares[:2], eps)
-        shares = {"values": np.asarray(shares[0], float).tolist(), "gradient": flat(shares_grad)}
+    shares = []
+    # The same shares, one after another on the first device (what the split must give), twice: the second run is
+    # the repeat floor, what the same executable gives again on the same device from the same inputs.
+    for _ in range(2 if len(devices) > 1 else 0):
+        on_first = shares_on_first_device(step.grads, params_b, rollouts, devices[0], len(devices))
+        shares_grad, _ = combine(*on_first[:2], eps)
+        shares.append({"values": np.asarray(on_first[0], float).tolist(), "gradient": flat(shares_grad)})
     values = np.asarray(values, float)
     _, _, first = step(params, opt_state, 0)  # its first call: what compiles lazily (the host-side programs)
     step_s = []
@@ -140,7 +153,8 @@ def measure(problem, devices: list, repeats: int, work: pathlib.Path) -> dict:
         "finite_rollouts": int(np.isfinite(values).sum()),
         "values": values.tolist(),
         "gradient": flat(grad),
-        "shares_on_first_device": shares,
+        "shares_on_first_device": shares[0] if shares else None,
+        "shares_repeat_on_first_device": shares[1] if shares else None,
         "nonfinite_envs": int(stats["nonfinite_envs"]),
         "step_s": [round(s, 4) for s in step_s],
         "step_s_median": float(np.median(step_s)),
@@ -194,16 +208,30 @@ def relative(a, b) -> float:
     return float(np.max(np.abs(a[ok] - b[ok])) / scale) if np.isfinite(a[ok]).all() else float("inf")
 
 
+def median_relative(a, b) -> float:
+    """The median over finite entries of b of |a - b| / |b| (inf where a is not finite there; NaN when b has none)."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    ok = np.isfinite(b)
+    if not ok.any():
+        return float("nan")
+    rel = np.abs(a[ok] - b[ok]) / np.maximum(np.abs(b[ok]), 1e-300)
+    return float(np.median(np.where(np.isfinite(rel), rel, np.inf)))
+
+
 def compare(one: dict, many: dict, bound: float) -> dict:
     """The N-device figures against one device's: relative differences and speed-ups."""
-    shares = many.get("shares_on_first_device")
+    shares, repeat = many.get("shares_on_first_device"), many.get("shares_repeat_on_first_device")
     against_shares = {}
     if shares:
         against_shares = {
             "gradient_vs_shares_max_rel_diff": relative(many["gradient"], shares["gradient"]),
             "rollout_values_vs_shares_max_rel_diff": relative(many["values"], shares["values"]),
+            "rollout_values_vs_shares_median_rel_diff": median_relative(many["values"], shares["values"]),
             "shares_vs_one_gradient_max_rel_diff": relative(shares["gradient"], one["gradient"]),
         }
+    if shares and repeat:  # the repeat floor: the same executable, device and inputs again
+        against_shares["repeat_gradient_max_rel_diff"] = relative(repeat["gradient"], shares["gradient"])
+        against_shares["repeat_rollout_values_median_rel_diff"] = median_relative(repeat["values"], shares["values"])
     return {
         **against_shares,
         "gradient_max_rel_diff": relative(many["gradient"], one["gradient"]),
@@ -221,18 +249,33 @@ def compare(one: dict, many: dict, bound: float) -> dict:
 
 
 def failures(result: dict) -> list[str]:
-    """The gradients apart by more than the bound (or not finite); a device whose share did not run."""
+    """The gradient, or the rollouts' values, apart from the shares' by more than the bound: --max-rel-diff, or
+    FLOOR_FACTOR x the shares' own repeat where that is larger (or any of them not finite); a device whose share did
+    not run."""
     cmp, many = result["comparison"], result["all"]
-    out = []
+    out, n = [], many["devices"]
+    floor = {k: cmp.get(f"repeat_{k}") for k in ("gradient_max_rel_diff", "rollout_values_median_rel_diff")}
+    if any(v is not None and not np.isfinite(v) for v in floor.values()):
+        out.append(f"the shares' repeat on one device is not finite: {floor}")
     if "gradient_vs_shares_max_rel_diff" in cmp:
         diff, against = cmp["gradient_vs_shares_max_rel_diff"], "the same shares on one device"
     else:
         diff, against = cmp["gradient_max_rel_diff"], "one device's"
-    if not diff <= cmp["max_rel_diff_bound"]:  # NaN fails too
-        out.append(
-            f"the {many['devices']}-device gradient differs from {against} by {diff:.3g}"
-            f" of its largest entry (bound {cmp['max_rel_diff_bound']:g})"
-        )
+    checked = [("gradient differs", diff, "of its largest entry", floor["gradient_max_rel_diff"])]
+    if "rollout_values_vs_shares_median_rel_diff" in cmp:
+        checked.append(
+            ("rollouts' values differ", cmp["rollout_values_vs_shares_median_rel_diff"], "in the median",
+             floor["rollout_values_median_rel_diff"])
+        )  # fmt: skip
+    for what, value, how, repeat in checked:
+        bound, bound_text = cmp["max_rel_diff_bound"], f"{cmp['max_rel_diff_bound']:g}"
+        if repeat is not None and np.isfinite(repeat) and FLOOR_FACTOR * repeat > bound:
+            bound, bound_text = (
+                FLOOR_FACTOR * repeat,
+                f"{FLOOR_FACTOR:g} x the shares' own repeat, {FLOOR_FACTOR * repeat:.3g}",
+            )
+        if not value <= bound:  # NaN fails too
+            out.append(f"the {n}-device {what} from {against} by {value:.3g} {how} (bound {bound_text})")
     if len(set(many["ran_on"])) != many["devices"]:
         out.append(f"the {many['devices']}-device step's last call finished on {many['ran_on']} only")
     return out
@@ -293,7 +336,12 @@ def main(argv=None) -> dict:
     problem = tp.make_problem(tc)
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    half = {"tune_flags": [*RACE_FLAGS, *raw[split + 1 :]], "repeats": args.repeats, "device": devices[0].device_kind}
+    half = {
+        "tune_flags": [*RACE_FLAGS, *raw[split + 1 :]],
+        "repeats": args.repeats,
+        "device": devices[0].device_kind,
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),  # deterministic ops or not: other numbers, other speed
+    }
     with tempfile.TemporaryDirectory() as work:
         one = one_device_half(out / ONE_DEVICE_FILE, half)
         if one is None:
@@ -308,6 +356,7 @@ def main(argv=None) -> dict:
         "all": many,
         "device_names": sorted({d.device_kind for d in devices}),
         "tune_flags": [*RACE_FLAGS, *raw[split + 1 :]],
+        "xla_flags": half["xla_flags"],
         "provenance": provenance.record({"init_gains": tc.init_gains}),
     }
     result["check"] = checks.verdict(failures(result), BAR)
@@ -316,6 +365,9 @@ def main(argv=None) -> dict:
         k: result["comparison"][k]
         for k in (
             "gradient_vs_shares_max_rel_diff",
+            "repeat_gradient_max_rel_diff",
+            "rollout_values_vs_shares_median_rel_diff",
+            "repeat_rollout_values_median_rel_diff",
             "shares_vs_one_gradient_max_rel_diff",
             "gradient_max_rel_diff",
             "loss_rel_diff",
