@@ -24,8 +24,9 @@ whole ``eigh`` then runs for the whole batch, ``batch_any``), the first QP's New
 problem (mean, and max: the while loop runs until the slowest problem converged), its infeasible
 fraction, and the fraction that switch to the soft QP (its branch then runs for the whole batch). ``stage_tau_error``: the stages' torques (torque law
 plus distribution) against the whole tick's, so the stages are the tick's computation.
-``us_per_env``: the mean over the groups. ``--trace DIR``: a JAX profiler (Perfetto) trace of the
-whole tick on the first group.
+``us_per_env``: the mean over the groups. ``--trace DIR``: a JAX profiler (Perfetto) trace of three
+whole ticks of each group in DIR/tick_K, summarised in the group's ``trace``: the device's time per source file,
+function, opcode and op, µs per environment (benchmarks/trace_summary.py).
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ import pathlib
 import time
 
 STATE_SETS = ("loop", "synthetic")
+TRACE_CALLS = 3  # whole ticks per group in a --trace
 SYNTHETIC_TIME_S = 0.5
 
 
@@ -311,9 +313,18 @@ def profile_group(st, fns: dict, group: dict, args, trace: str | None = None) ->
         return jax.lax.scan(lambda dd, _: (physics.step(m, dd, tau, xfrc), None), d, None, length=10)[0].qpos
 
     figures[f"physics_10_steps_{loop.backend}"] = us(timed(staged(loop, ten_steps), q, repeats=reps))
-    if trace:
-        with jax.profiler.trace(trace):
-            jax.block_until_ready(vw(q, v, state, k))
+    traced = None
+    if trace:  # the whole tick's ops, per source file and function (trace_summary.py)
+        from trace_summary import summarize
+
+        where = pathlib.Path(trace) / f"tick_{int(group['tick'])}"
+        with jax.profiler.trace(str(where), create_perfetto_trace=True):
+            for _ in range(TRACE_CALLS):
+                jax.block_until_ready(vw(q, v, state, k))
+        try:  # a trace without the program's ops must not cost the profile measured above
+            traced = summarize(where, vw.lower(q, v, state, k).compile().as_text(), calls=TRACE_CALLS, batch=B)
+        except (OSError, ValueError) as err:
+            traced = {"error": f"{type(err).__name__}: {err}"}
     uncertified = ~np.asarray(diag["certified"])
     steps = np.asarray(diag["newton_steps"])
     return {
@@ -327,6 +338,7 @@ def profile_group(st, fns: dict, group: dict, args, trace: str | None = None) ->
         "soft_qp_fraction": float(np.mean(diag["soft_qp"])),
         "soft_qp_branch_taken": bool(np.any(diag["soft_qp"])),
         "stage_tau_error_nm": float(np.max(diag["tau_error"])),
+        **({"trace": traced} if traced else {}),
     }
 
 
@@ -351,7 +363,7 @@ def main(argv=None) -> dict:
         "dtype": str(st.dtype),
         "matmul_precision": st.loop.cfg.matmul_precision,
         "states": args.states,
-        "groups": [profile_group(st, fns, g, args, args.trace if i == 0 else None) for i, g in enumerate(groups)],
+        "groups": [profile_group(st, fns, g, args, args.trace) for g in groups],
     }
     if args.states == "loop":
         result["loop"] = {

@@ -137,7 +137,9 @@ for job in "$@"; do
       find $sd/runs -name timeline.json | tar -czf "$od/timelines.tgz" -T - ;;
     profile_tick)  # issue 46: each stage of the controller tick jitted and vmapped alone at 65,536 envs (no Warp needed),
             # on the benchmark loop's own states (256 pushes, ticks before/in/after the push), then on the synthetic ones
-      run profile_tick python3 benchmarks/profile_tick.py --batch 65536 --states loop --out "$OUT/profile_tick"
+      # --trace: the whole tick's kernels per source file and function, in profile_tick.json (the raw traces stay here)
+      run profile_tick python3 benchmarks/profile_tick.py --batch 65536 --states loop --out "$OUT/profile_tick" \
+        --trace /tmp/traces/profile_tick
       run profile_tick_synthetic python3 benchmarks/profile_tick.py --batch 65536 --states synthetic \
         --out "$OUT/profile_tick_synthetic" ;;
     bench46)  # issue 46: the Warp closed loop at 65,536 envs beside the physics alone and C MuJoCo + NumPy on 16 cores
@@ -155,7 +157,7 @@ for job in "$@"; do
             # float32 tolerance (qp.WARM_START_TOL_FLOAT32, 5e-7; one-foot's acceptance within 0.03 %): the batch's
             # slowest QP's Newton steps and the force stage's µs before, in and after the push, beside profile_tick's
       run profile_tick_warm python3 benchmarks/profile_tick.py --batch 65536 --states loop --qp-warm-start \
-        --out "$OUT/profile_tick_warm" ;;
+        --out "$OUT/profile_tick_warm" --trace /tmp/traces/profile_tick_warm ;;
     tune_gpus)  # issue 45: the tune job's gradient step and a CMA-ES generation at the race's settings on 1 GPU and on
             # all of them (loss, gradient, their difference, step seconds, speed-up). A call cut off by its limit
             # leaves the compiled programs in $WBC_JAX_CACHE: the same call on the warm machine goes on from them.

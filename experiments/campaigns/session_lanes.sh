@@ -13,7 +13,8 @@
 #     both engines, rows merged in /tmp/scaling4_131072: four (JAX on all 4 GPUs from the first call, then Warp once
 #     it arrived, 2 runs each), then at once on disjoint GPUs: jax1 (JAX on GPU 0, 3 runs: the repeat floor), warp1
 #     (Warp on GPU 1, 3 runs), jax2 (JAX, then Warp, on GPUs 2-3, 2 runs each); scaling ends when all are done;
-#   one (one GPU; issue 46): profile_tick while the wheels arrive, then bench46_warm, bench46, profile_tick_warm;
+#   one (one GPU; issue 46): ONE_JOBS (default profile_tick profile_tick_warm: no Warp needed, so no wheels
+#     beyond .wa), then ONE_WARP_JOBS once Warp's wheels arrived (default none; e.g. "bench46_warm bench46");
 #   two (a machine of 2 or more GPUs; issue 45): scaling (once Warp is there: tune_gpus on one GPU, then on all; its
 #     one-GPU half is kept in $OUT/tune_gpus/tune_gpus_one_device.json as soon as it ends, and taken from
 #     TUNE_GPUS_SEED, an earlier call's, where that was measured alike: then only the N-GPU half runs).
@@ -40,8 +41,9 @@ case "$ACTION" in
     cd "$REPO" || exit 1
     G="OUT=$LANES/scaling/out"
     if [ "$PLAN" = one ]; then
-      bg scaling "$G bash experiments/gpu_run.sh profile_tick; $(wait_for /tmp/warp_ready) \
-        $G bash experiments/gpu_run.sh bench46_warm bench46 profile_tick_warm"
+      W=${ONE_WARP_JOBS-}  # jobs that need Warp's wheels (e.g. "bench46_warm bench46"): after /tmp/warp_ready
+      bg scaling "$G bash experiments/gpu_run.sh ${ONE_JOBS-profile_tick profile_tick_warm}; \
+        ${W:+$(wait_for /tmp/warp_ready) $G bash experiments/gpu_run.sh $W}"
       sleep 2; echo "lanes started ($(nproc) cores, plan one): $(ls "$LANES")"; exit 0
     fi
     if [ "$PLAN" = two ]; then
