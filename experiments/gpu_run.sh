@@ -65,7 +65,8 @@ for job in "$@"; do
       done ;;
     cpu_stages)  # issue 46 on this host's Intel Xeon, stage by stage: where our controller's tick goes there (on the
             # AMD EPYC it costs 0.81x TSID's, on this Xeon about 1.3x against each run's own physics:
-            # results/cpu_targets/xeon_s55); run with JAX_PLATFORMS=cpu
+            # results/cpu_targets/xeon_s55); run with JAX_PLATFORMS=cpu. About 210 s (its compiles) on the loaded AMD:
+            # a limit of 150 s on the Xeon stopped every run before it printed (2026-11-27), allow 400
       mkdir -p "$OUT/cpu_stages"; lscpu | grep -E "Model name|^CPU\(s\)|Flags" > "$OUT/cpu_stages/cpu.txt"
       run cpu_stages taskset -c 1 python3 benchmarks/controller_stages.py --ticks 300 --repeats 5 \
         --out "$OUT/cpu_stages/controller_stages.json" ;;
