@@ -275,6 +275,32 @@ def state_groups(st, args) -> list[dict]:
     ]
 
 
+def trace_tick(program, args: tuple, where: pathlib.Path, batch: int) -> dict:
+    """The whole tick's ops per source file, function, opcode and op (trace_summary.py), from TRACE_CALLS calls
+    traced into ``where``; {"error": ...} where the trace has none of its ops (the timings stand without it). On a
+    GPU the tick is compiled for the trace without XLA's command buffers: inside a CUDA graph a kernel loses its HLO
+    op in the trace (openxla/xprof issue 3070)."""
+    import jax
+    from trace_summary import summarize
+
+    lowered = program.lower(*args)
+    options = {"xla_gpu_enable_command_buffer": ""} if jax.default_backend() == "gpu" else None
+    try:
+        compiled, command_buffers = lowered.compile(compiler_options=options), "off" if options else "n/a"
+    except Exception as err:  # an XLA that refuses the option: the default program, attributed as far as it goes
+        compiled, command_buffers = lowered.compile(), f"default ({type(err).__name__})"
+    with jax.profiler.trace(str(where), create_perfetto_trace=True):
+        for _ in range(TRACE_CALLS):
+            jax.block_until_ready(compiled(*args))
+    try:
+        return {
+            "command_buffers": command_buffers,
+            **summarize(where, compiled.as_text(), calls=TRACE_CALLS, batch=batch),
+        }
+    except (OSError, ValueError) as err:
+        return {"command_buffers": command_buffers, "error": f"{type(err).__name__}: {err}"}
+
+
 def profile_group(st, fns: dict, group: dict, args, trace: str | None = None) -> dict:
     """The stages' µs per environment and the branch diagnostics of one group of states."""
     import jax
@@ -313,18 +339,7 @@ def profile_group(st, fns: dict, group: dict, args, trace: str | None = None) ->
         return jax.lax.scan(lambda dd, _: (physics.step(m, dd, tau, xfrc), None), d, None, length=10)[0].qpos
 
     figures[f"physics_10_steps_{loop.backend}"] = us(timed(staged(loop, ten_steps), q, repeats=reps))
-    traced = None
-    if trace:  # the whole tick's ops, per source file and function (trace_summary.py)
-        from trace_summary import summarize
-
-        where = pathlib.Path(trace) / f"tick_{int(group['tick'])}"
-        with jax.profiler.trace(str(where), create_perfetto_trace=True):
-            for _ in range(TRACE_CALLS):
-                jax.block_until_ready(vw(q, v, state, k))
-        try:  # a trace without the program's ops must not cost the profile measured above
-            traced = summarize(where, vw.lower(q, v, state, k).compile().as_text(), calls=TRACE_CALLS, batch=B)
-        except (OSError, ValueError) as err:
-            traced = {"error": f"{type(err).__name__}: {err}"}
+    traced = trace_tick(vw, (q, v, state, k), pathlib.Path(trace) / f"tick_{int(group['tick'])}", B) if trace else None
     uncertified = ~np.asarray(diag["certified"])
     steps = np.asarray(diag["newton_steps"])
     return {

@@ -1,7 +1,9 @@
 """benchmarks/trace_summary.py (issue 46): a profiler trace summed per op and attributed to the op's source
 function, each op's time counted once (a CPU while loop's thunk holds its body's)."""
 
+import sys
 import time
+import types
 
 import jax
 import jax.numpy as jnp
@@ -54,3 +56,15 @@ def test_each_op_counted_once(traced):
     assert sum(f["us_per_env"] for f in summary["by_file"]) == pytest.approx(summary["total_us_per_env"], rel=1e-3)
     loop = [o for o in summary["by_opcode"] if o["name"] == "while"]
     assert not loop or loop[0]["share"] < 0.2  # the while's own time excludes its body
+
+
+def test_profile_tick_traces_its_programs_own_ops(tmp_path):
+    """profile_tick's --trace path (trace_tick): the program traced at the loop's precision, its ops attributed."""
+    sys.modules.setdefault("trace_summary", load_script("benchmarks/trace_summary.py"))
+    sys.modules.setdefault("loop_timing", load_script("benchmarks/loop_timing.py"))
+    pt = load_script("benchmarks/profile_tick.py")
+    loop = types.SimpleNamespace(cfg=types.SimpleNamespace(matmul_precision="highest"))
+    x = jnp.ones((4, 192, 192), jnp.float32) * 0.01
+    summary = pt.trace_tick(pt.staged(loop, program), (x,), tmp_path, batch=4)
+    assert summary["command_buffers"] == "n/a" and summary["calls"] == pt.TRACE_CALLS
+    assert summary["by_function"][0]["name"].endswith("tests/test_trace_summary.py:heavy"), summary["by_function"]
