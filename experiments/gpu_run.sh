@@ -70,6 +70,14 @@ for job in "$@"; do
       mkdir -p "$OUT/cpu_stages"; lscpu | grep -E "Model name|^CPU\(s\)|Flags" > "$OUT/cpu_stages/cpu.txt"
       run cpu_stages taskset -c 1 python3 benchmarks/controller_stages.py --ticks 300 --repeats 5 \
         --out "$OUT/cpu_stages/controller_stages.json" ;;
+    cpu_profile)  # issue 46 on this host's Intel Xeon, op by op: profile_tick at batch 1 on core 1 (the CPU loop's
+            # case) with --trace, so profile_tick.json says per source function where the tick's time goes, beside
+            # the same run on the AMD EPYC (results/cpu_targets/profile_s56/); run with JAX_PLATFORMS=cpu (175 s on
+            # the AMD). At batch 1 the profiler's own cost per op inflates the traced sum (about 2.5x the tick's
+            # wall time there): compare the shares between the CPUs, not the sums with the tick
+      mkdir -p "$OUT/cpu_profile"; lscpu | grep -E "Model name|^CPU\(s\)" > "$OUT/cpu_profile/cpu.txt"
+      run cpu_profile taskset -c 1 python3 benchmarks/profile_tick.py --batch 1 --loop-envs 8 --repeats 20 \
+        --trace /tmp/traces/cpu_profile --out "$OUT/cpu_profile" ;;
     setup)  # what is there
       nvidia-smi -L; python3 -c "import jax, mujoco; print(jax.__version__, mujoco.__version__, jax.devices())"
       python3 -c "import warp; print('warp', warp.__version__)" 2>&1 | tail -1 ;;
