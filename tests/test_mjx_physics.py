@@ -123,7 +123,7 @@ def test_reverse_mode_gradient_through_standing_contact_matches_central_differen
 
     One program: the losses at kp +- eps come from the same compiled value-and-gradient (its value is the
     solver's solution, a* less one Newton step of size at the solver's tolerance). A second program for the
-    plain rollout cost 21 of 74 CPU s here; its central difference agreed with this one's to 5e-7."""
+    plain rollout cost 21 of 74 CPU s here; its central difference agreed with this one's to 1e-9."""
     loss = _standing_loss(robot, mx, push=30.0)
     eps = 0.1
     with physics.implicit_solver():
