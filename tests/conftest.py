@@ -44,25 +44,31 @@ def pytest_configure(config):
 # loop loaded), test_controller 27, test_tune 23 (the loop loaded), test_race 17. test_reliability_runs compiles the
 # short sweep that test_cli's resume test then loads. The MJX modules were measured only by wall time on the loaded
 # machine (test_mjx_physics the longest): its 256-environment subprocess is a unit of its own (_OWN_UNITS).
+# Units not listed start last: test_profile_tick (~20 CPU s: it traces the loop's terms and init), test_tune_devices
+# (~16) and test_qp_slowest were among them and ended the run on one worker; they are placed here now (the ci56
+# branch, 2026-11-27: test_contacts' compiled ticks moved to `slow`, ~25 s less).
 _LONGEST_FIRST = [
     "test_rollout",
     "test_mjx_physics",
     "test_viz",
     "test_forces",
     "test_reliability_runs",
-    "test_contacts",
     "test_limit",
     "test_hierarchy",
+    "test_contacts",
     "test_reliability_paths",
     "test_vmapped_rollout_of_256_envs_completes_on_cpu",
     "test_sweep",
     "test_baseline_cpu",
+    "test_profile_tick",
+    "test_tune_devices",
     "test_cli",
     "test_controller",
     "test_tune",
     "test_dynamics",
     "test_wheel",
     "test_race",
+    "test_qp_slowest",
     "04_gain_tuning",
     "test_tsid_baseline",
     "test_watchdog",
