@@ -44,25 +44,33 @@ def pytest_configure(config):
 # loop loaded), test_controller 27, test_tune 23 (the loop loaded), test_race 17. test_reliability_runs compiles the
 # short sweep that test_cli's resume test then loads. The MJX modules were measured only by wall time on the loaded
 # machine (test_mjx_physics the longest): its 256-environment subprocess is a unit of its own (_OWN_UNITS).
+# The ci56 branch (2026-11-27, two workers, wall seconds per unit in the suite): test_rollout 100, test_forces 78,
+# test_viz 57, test_limit 35, test_sweep 33, test_hierarchy 32, test_tune 32, test_reliability_paths 28,
+# test_mjx_physics ~25 (its iCub gradient, 117, is nightly now), test_contacts 23 (its compiled ticks nightly), the
+# 256 environments 21, test_tune_devices 20, test_profile_tick 16. Units not listed start last, in file order
+# (test_profile_tick, test_tune_devices and test_qp_slowest, 39 s together, were among them).
 _LONGEST_FIRST = [
     "test_rollout",
-    "test_mjx_physics",
-    "test_viz",
     "test_forces",
+    "test_viz",
     "test_reliability_runs",
-    "test_contacts",
     "test_limit",
+    "test_sweep",
     "test_hierarchy",
     "test_reliability_paths",
+    "test_mjx_physics",
+    "test_contacts",
     "test_vmapped_rollout_of_256_envs_completes_on_cpu",
-    "test_sweep",
     "test_baseline_cpu",
+    "test_profile_tick",
+    "test_tune_devices",
     "test_cli",
     "test_controller",
     "test_tune",
     "test_dynamics",
     "test_wheel",
     "test_race",
+    "test_qp_slowest",
     "04_gain_tuning",
     "test_tsid_baseline",
     "test_watchdog",

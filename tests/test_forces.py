@@ -902,10 +902,15 @@ def test_distribute_batch_runs_fallbacks_only_where_needed(two_feet_problems):
         assert bool(infeasible_batch[i]) == bool(inf_i)
     # The fallbacks were taken where needed and only there: the pull got the soft QP's wrenches
     # (not the equality QP's unconstrained fallback), the ramping feet a blend of two formulations.
-    tt1 = types.SimpleNamespace(Sigma=args[0][1], tau_model=args[1][1])
     W_R1 = jnp.stack([args[4][1], args[5][1]])
-    f_soft, _ = forces.soft_momentum_qp(FEET, jnp.ones(2), args[2][1], args[3][1], tt1, W_R1, SETTINGS)
-    f_eq, info_eq = forces.momentum_equality_qp(FEET, jnp.ones(2), args[2][1], args[3][1], tt1, W_R1, SETTINGS)
+
+    @jit  # compiled: op by op these two QPs cost more CPU time than their programs' compile
+    def both_formulations(Sigma, tau_model, A, w_des, W_R):
+        tt = types.SimpleNamespace(Sigma=Sigma, tau_model=tau_model)
+        soft = forces.soft_momentum_qp(FEET, jnp.ones(2), A, w_des, tt, W_R, SETTINGS)
+        return soft, forces.momentum_equality_qp(FEET, jnp.ones(2), A, w_des, tt, W_R, SETTINGS)
+
+    (f_soft, _), (f_eq, info_eq) = both_formulations(*(a[1] for a in args[:4]), W_R1)
     assert bool(info_eq.infeasible)
     np.testing.assert_allclose(f_batch[1], f_soft, rtol=1e-9, atol=1e-9 * np.abs(f_soft).max())
     assert np.abs(np.asarray(f_batch[1] - f_eq)).max() > 1.0

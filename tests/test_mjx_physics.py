@@ -116,6 +116,55 @@ def _standing_loss(robot, mx, push=0.0):
     return loss
 
 
+# A block standing on four sphere feet (the iCub's soles are spheres on the floor plane, pyramidal cones, Newton).
+FOUR_FEET = """
+<mujoco>
+  <option timestep="0.005"/>
+  <worldbody>
+    <geom type="plane" size="1 1 0.1"/>
+    <body pos="0 0 0.05">
+      <freejoint/>
+      <geom type="sphere" size="0.02" pos="0.1 0.05 -0.03" mass="0.5"/>
+      <geom type="sphere" size="0.02" pos="0.1 -0.05 -0.03" mass="0.5"/>
+      <geom type="sphere" size="0.02" pos="-0.1 0.05 -0.03" mass="0.5"/>
+      <geom type="sphere" size="0.02" pos="-0.1 -0.05 -0.03" mass="0.5"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_implicit_gradient_through_four_standing_feet_matches_central_differences():
+    """The default suite's check of the implicit solver derivative through standing contact (the iCub's,
+    below, is nightly: its compile took 117 s of the 2-core suite): a block on four sphere feet held by
+    static friction (the pyramid's rows active at every step), a PD force and torque of gain kp on it;
+    reverse mode through 50 steps equals a central difference of the plain rollout (float64)."""
+    import mujoco
+
+    m = mujoco.MjModel.from_xml_string(FOUR_FEET)
+    mx, d0 = mjx.put_model(m), mjx.make_data(m)
+
+    def loss(kp):
+        def step(d, _):
+            force = kp * (0.02 - d.qpos[0]) - 2.0 * d.qvel[0]
+            torque = 0.02 * kp * (0.1 - d.qpos[6])
+            d = mjx.step(mx, d.replace(xfrc_applied=jnp.zeros((m.nbody, 6)).at[1, 0].set(force).at[1, 5].set(torque)))
+            return d, (d.qpos[0], d._impl.contact.dist)
+
+        _, (x, dist) = jax.lax.scan(step, d0, None, length=50)
+        return jnp.mean((x - 0.02) ** 2), dist
+
+    with physics.implicit_solver():
+        (value, dist), grad = jax.jit(jax.value_and_grad(loss, has_aux=True))(20.0)
+    assert np.asarray(dist).max() < 1e-12, "every foot touches the floor at every step (0 at the first)"
+    assert np.isfinite(float(value)) and float(grad) != 0.0
+    plain = jax.jit(lambda kp: loss(kp)[0])
+    eps = 1e-2
+    fd = (float(plain(20.0 + eps)) - float(plain(20.0 - eps))) / (2 * eps)
+    assert float(grad) == pytest.approx(fd, rel=1e-6)  # measured: 2.4e-10 (the unrolled solver's gradient: 3e-15)
+
+
+@pytest.mark.slow  # 117 s of the 2-core suite (compiling reverse mode through the iCub's step); the four feet above
 def test_reverse_mode_gradient_through_standing_contact_matches_central_differences(robot, mx):
     """Through 100 steps of standing contact with the model's solver (Newton, 4 iterations), reverse mode
     with the implicit solver derivative (physics.implicit_solver) equals a central difference of the

@@ -141,7 +141,9 @@ def test_sweep_isolates_nan_and_resumes(tmp_path, backend):
     """MJX with two host devices present, and C MuJoCo: the run finishes (a chunk of 8 sharded over
     two CPU devices used to hang), one env from NaN joints is flagged, the other is not; a finished
     sweep resumes from its parts; a changed input is refused."""
-    env = {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    # Added to the inherited XLA_FLAGS: replacing them dropped conftest's compile-time flags (a slower compile).
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2"
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": flags}
     out = tmp_path / "sweep"
     run = lambda mode: subprocess.run(  # noqa: E731
         [sys.executable, "-c", SHARDED, str(out), mode, backend],
