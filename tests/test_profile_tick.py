@@ -100,6 +100,23 @@ def test_loop_states_are_the_ticks_the_loop_records(profile_tick):
     np.testing.assert_array_equal(np.asarray(group["qpos"]), qpos[np.arange(6) % envs, 15].astype(st.dtype))
 
 
+def test_staged_programs_are_lowered_at_the_loops_matmul_precision(profile_tick):
+    """profile_tick.staged, through which every stage is jitted, lowers at the loop's precision: each product is
+    HIGHEST where jax.jit alone gives JAX's default (TF32 on a GPU). The torque law itself: the slow test below."""
+    import types
+
+    loop = types.SimpleNamespace(cfg=types.SimpleNamespace(matmul_precision="highest"))
+    x = jnp.ones((2, 3, 3), jnp.float32)
+    product = lambda a: a @ a.T  # noqa: E731
+    for lowered, highest in (
+        (profile_tick.staged(loop, product).lower(x), True),
+        (jax.jit(jax.vmap(product)).lower(x), False),
+    ):
+        dots = [line for line in lowered.as_text().splitlines() if "dot_general" in line]
+        assert dots and all(("HIGHEST" in line) == highest for line in dots), dots
+
+
+@pytest.mark.slow  # 13 s on the 2-core machine, mostly tracing the loop's terms and init for their shapes
 def test_stages_are_traced_at_the_loops_matmul_precision(profile_tick):
     """The stages run at the loop's matmul precision (``highest``), as the loop's programs: at JAX's
     default a GPU runs float32 products in TF32 (on an H100 every environment's postural projector then
