@@ -42,8 +42,8 @@ case "$ACTION" in
     G="OUT=$LANES/scaling/out"
     if [ "$PLAN" = one ]; then
       W=${ONE_WARP_JOBS-}  # jobs that need Warp's wheels (e.g. "bench46_warm bench46"): after /tmp/warp_ready
-      bg scaling "$G bash experiments/gpu_run.sh ${ONE_JOBS-profile_tick profile_tick_warm}; \
-        ${W:+$(wait_for /tmp/warp_ready) $G bash experiments/gpu_run.sh $W}"
+      bg scaling "$G bash experiments/gpu_run.sh ${ONE_JOBS-profile_tick profile_tick_warm} \
+        ${W:+; $(wait_for /tmp/warp_ready) $G bash experiments/gpu_run.sh $W}"
       sleep 2; echo "lanes started ($(nproc) cores, plan one): $(ls "$LANES")"; exit 0
     fi
     if [ "$PLAN" = two ]; then
