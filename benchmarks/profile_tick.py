@@ -105,15 +105,15 @@ def staged(loop, fn, in_axes=0):
 
     program = jax.jit(jax.vmap(fn, in_axes=in_axes))
 
-    def run(*args):
-        with jax.default_matmul_precision(loop.cfg.matmul_precision):
-            return program(*args)
+    def at_precision(method):
+        def call(*args):
+            with jax.default_matmul_precision(loop.cfg.matmul_precision):
+                return method(*args)
 
-    def lower(*args):
-        with jax.default_matmul_precision(loop.cfg.matmul_precision):
-            return program.lower(*args)
+        return call
 
-    run.lower = lower
+    run = at_precision(program)
+    run.lower = at_precision(program.lower)
     return run
 
 

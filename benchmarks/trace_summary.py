@@ -71,7 +71,8 @@ def op_times(trace_dir: str | pathlib.Path, module: str) -> tuple[str, dict[str,
         raise FileNotFoundError(
             f"no perfetto_trace.json.gz under {trace_dir} (jax.profiler.trace(..., create_perfetto_trace=True))"
         )
-    data = json.load(gzip.open(paths[-1]))
+    with gzip.open(paths[-1]) as f:
+        data = json.load(f)
     events = data["traceEvents"] if isinstance(data, dict) else data
     names = {e["pid"]: e["args"]["name"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"}
     gpu = {pid for pid, name in names.items() if name.startswith("/device:GPU")}
