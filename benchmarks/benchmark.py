@@ -60,8 +60,18 @@ JSON_KEYS = (
     "sweep_run_s",
     "sweep_envs",
 )
-# qp_warm_start: only in a warm-started run's row (the rows before it, all cold, have no such key)
-JSON_ROW_KEY = ("device", "backend", "solver_iterations", "batch", "n_devices", "sweep_name", "qp_warm_start")
+# qp_warm_start, qp_unrolled_steps: only in the row of a run that set them (the rows before, at the defaults, have
+# no such key)
+JSON_ROW_KEY = (
+    "device",
+    "backend",
+    "solver_iterations",
+    "batch",
+    "n_devices",
+    "sweep_name",
+    "qp_warm_start",
+    "qp_unrolled_steps",
+)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -132,6 +142,8 @@ def json_rows(result: dict) -> list[dict]:
         entry.update(date=result["date"], command=result["command"], sweep_name=None, sweep_run_s=None, sweep_envs=None)
         if row.get("qp_warm_start"):
             entry["qp_warm_start"] = True
+        if row.get("qp_unrolled_steps"):
+            entry["qp_unrolled_steps"] = row["qp_unrolled_steps"]
         rows.append(entry)
     return rows
 
@@ -169,6 +181,12 @@ def parse_args(argv=None):
         "--qp-warm-start",
         action="store_true",
         help="the closed loops' force QP warm-started from the last tick (ControllerConfig.qp_warm_start)",
+    )
+    parser.add_argument(
+        "--qp-unrolled-steps",
+        type=int,
+        default=0,
+        help="the force QP's first Newton steps written out before its while loop (ControllerConfig.qp_unrolled_steps)",
     )
     parser.add_argument(
         "--json",
@@ -220,6 +238,8 @@ def parse_args(argv=None):
         help="after --batches, up to K doublings of the largest, until one fails",
     )
     args = parser.parse_args(argv)
+    if not 0 <= args.qp_unrolled_steps <= 25:  # qp.DEFAULT_ITERATIONS, the controller's QP budget
+        parser.error(f"--qp-unrolled-steps must be from 0 to 25 (the QP's iterations), got {args.qp_unrolled_steps}")
     if args.repeats < 1:
         parser.error("--repeats must be >= 1")
     for name in ("batches", "cpu_workers"):
@@ -299,13 +319,20 @@ def main(argv=None) -> dict:
             batches = list(args.batches)
             if args.find_largest:  # doublings past the last requested size, until one fails
                 batches += [max(args.batches) * 2**k for k in range(1, args.find_largest + 1)]
-            st = make_setup(backend, args.horizon, it, qp_warm_start=args.qp_warm_start)
+            st = make_setup(
+                backend,
+                args.horizon,
+                it,
+                qp_warm_start=args.qp_warm_start,
+                qp_unrolled_steps=args.qp_unrolled_steps,
+            )
             iterations = int(physics.solver_mj_model(st.robot.mj_model, st.loop.cfg.physics).opt.iterations)
             tau = None if args.skip_physics_only else hold_torques(st)
             for batch in batches:
                 row = {
                     "backend": backend,
                     "qp_warm_start": args.qp_warm_start,
+                    "qp_unrolled_steps": args.qp_unrolled_steps,
                     "device": device_description(backend),
                     "batch": batch,
                     "solver_iterations": iterations,

@@ -12,16 +12,23 @@ PUSH_MAGNITUDE = 40.0  # N, horizontal, azimuths spread over 360 deg
 
 
 def make_setup(
-    backend: str, horizon: float, iterations: int | None, *, record: bool = False, qp_warm_start: bool = False
+    backend: str,
+    horizon: float,
+    iterations: int | None,
+    *,
+    record: bool = False,
+    qp_warm_start: bool = False,
+    qp_unrolled_steps: int = 0,
 ):
     """The stand task's closed loop on ``backend`` (default gains, the two feet; ``qp_warm_start``: the
-    controller's force QP warm-started, ``ControllerConfig.qp_warm_start``)."""
+    controller's force QP warm-started, ``ControllerConfig.qp_warm_start``; ``qp_unrolled_steps``: its first
+    Newton steps written out before the while loop, ``ControllerConfig.qp_unrolled_steps``)."""
     from wbc_jax.control.controller import ControllerConfig
     from wbc_jax.sim import physics, scenario
     from wbc_jax.sim.state import SimConfig
 
     sim = SimConfig(record=record, physics=physics.PhysicsConfig(backend=backend, solver_iterations=iterations))
-    controller = ControllerConfig(qp_warm_start=qp_warm_start)
+    controller = ControllerConfig(qp_warm_start=qp_warm_start, qp_unrolled_steps=qp_unrolled_steps)
     return scenario.setup("stand", duration=horizon, sim=sim, controller=controller)
 
 

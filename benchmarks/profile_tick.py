@@ -62,7 +62,15 @@ def parse_args(argv=None) -> argparse.Namespace:
         action="store_true",
         help="the controller's force QP warm-started (ControllerConfig.qp_warm_start), in the recorded loop too",
     )
+    p.add_argument(
+        "--qp-unrolled-steps",
+        type=int,
+        default=0,
+        help="the force QP's first Newton steps written out before its while loop (ControllerConfig.qp_unrolled_steps)",
+    )
     args = p.parse_args(argv)
+    if not 0 <= args.qp_unrolled_steps <= 25:  # qp.DEFAULT_ITERATIONS, the controller's QP budget
+        p.error(f"--qp-unrolled-steps must be from 0 to 25 (the QP's iterations), got {args.qp_unrolled_steps}")
     for name in ("batch", "repeats", "loop_envs"):
         if getattr(args, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
@@ -277,7 +285,8 @@ def state_groups(st, args) -> list[dict]:
 
 def trace_tick(program, args: tuple, where: pathlib.Path, batch: int) -> dict:
     """The whole tick's ops per source file, function, opcode and op (trace_summary.py), from TRACE_CALLS calls
-    traced into ``where``; {"error": ...} where the trace has none of its ops (the timings stand without it). On a
+    traced into ``where``, and that program's untraced wall time (``wall_us_per_env``); {"error": ...} where the
+    trace has none of its ops (the timings stand without it). On a
     GPU the tick is compiled for the trace without XLA's command buffers: inside a CUDA graph a kernel loses its HLO
     op in the trace (openxla/xprof issue 3070)."""
     import jax
@@ -289,16 +298,20 @@ def trace_tick(program, args: tuple, where: pathlib.Path, batch: int) -> dict:
         compiled, command_buffers = lowered.compile(compiler_options=options), "off" if options else "n/a"
     except Exception as err:  # an XLA that refuses the option: the default program, attributed as far as it goes
         compiled, command_buffers = lowered.compile(), f"default ({type(err).__name__})"
+    # The traced program's own wall time, untraced: beside whole_tick (the default program) it says what XLA's
+    # command buffers change (on a GPU they can cost: a CUDA graph updated where buffers moved).
+    wall = {"wall_us_per_env": round(1e6 * timed(compiled, *args, repeats=TRACE_CALLS) / batch, 3)}
     with jax.profiler.trace(str(where), create_perfetto_trace=True):
         for _ in range(TRACE_CALLS):
             jax.block_until_ready(compiled(*args))
     try:
         return {
             "command_buffers": command_buffers,
+            **wall,
             **summarize(where, compiled.as_text(), calls=TRACE_CALLS, batch=batch),
         }
     except (OSError, ValueError) as err:
-        return {"command_buffers": command_buffers, "error": f"{type(err).__name__}: {err}"}
+        return {"command_buffers": command_buffers, **wall, "error": f"{type(err).__name__}: {err}"}
 
 
 def profile_group(st, fns: dict, group: dict, args, trace: str | None = None) -> dict:
@@ -366,14 +379,16 @@ def main(argv=None) -> dict:
 
     runner.enable_compilation_cache()
     # benchmark.py's closed loop (the JAX engine: the states are recorded), at the scale step's backend.
-    st = make_setup("jax", args.horizon, None, qp_warm_start=args.qp_warm_start)
+    qp_flags = dict(qp_warm_start=args.qp_warm_start, qp_unrolled_steps=args.qp_unrolled_steps)
+    st = make_setup("jax", args.horizon, None, **qp_flags)
     fns = stage_functions(st)
     groups = state_groups(st, args)
     if args.backend != "jax":
-        st = make_setup(args.backend, args.horizon, None, qp_warm_start=args.qp_warm_start)
+        st = make_setup(args.backend, args.horizon, None, **qp_flags)
     result = {
         "batch": args.batch,
         "qp_warm_start": args.qp_warm_start,
+        "qp_unrolled_steps": args.qp_unrolled_steps,
         "device": provenance.device_label(),
         "dtype": str(st.dtype),
         "matmul_precision": st.loop.cfg.matmul_precision,

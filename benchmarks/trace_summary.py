@@ -7,7 +7,8 @@ op (a GPU kernel, or a CPU thunk) with its ``hlo_op`` and ``hlo_module``; the co
 op's stack frames (file, function, line). Summed per op and attributed to the innermost frame of its call stack,
 the trace says which source file and function the device spent its time in. Device events are the GPU's where the
 trace has them, else the host CPU's; an event's time is its own (nested events, a CPU while loop's body, are counted
-once, in the innermost).
+once, in the innermost). On a GPU, ``device_idle`` adds where the device waited between its kernels within a call
+(a while loop's predicate read by the host, a library's host work, launch gaps), beside the ops' own time.
 """
 
 from __future__ import annotations
@@ -63,9 +64,8 @@ def hlo_sources(hlo_text: str) -> tuple[str, dict[str, dict]]:
     return module, ops
 
 
-def op_times(trace_dir: str | pathlib.Path, module: str) -> tuple[str, dict[str, float]]:
-    """(timeline, {hlo_op: self time in µs summed over the trace}) of ``module``'s ops: the GPU's events where the
-    trace has a GPU timeline, else the host CPU's."""
+def _events(trace_dir: str | pathlib.Path) -> tuple[list[dict], dict[int, str]]:
+    """(the trace's events, {pid: process name}) of the newest perfetto trace under ``trace_dir``."""
     paths = sorted(pathlib.Path(trace_dir).rglob("*perfetto_trace.json.gz"))
     if not paths:
         raise FileNotFoundError(
@@ -75,6 +75,25 @@ def op_times(trace_dir: str | pathlib.Path, module: str) -> tuple[str, dict[str,
         data = json.load(f)
     events = data["traceEvents"] if isinstance(data, dict) else data
     names = {e["pid"]: e["args"]["name"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"}
+    return events, names
+
+
+def same_module(traced: str, module: str) -> bool:
+    """Whether a trace event's ``hlo_module`` names ``module``: the same name, or it with a suffix of XLA's
+    (``jit_tick.1``, ``jit_tick(3)``): runtimes differ in how they name a module's executions."""
+    return traced == module or (traced.startswith(module) and traced[len(module) : len(module) + 1] in (".", "(", "_"))
+
+
+def modules_in(trace_dir: str | pathlib.Path) -> list[str]:
+    """The ``hlo_module`` names of the trace's events that carry an ``hlo_op`` (what a failed match found)."""
+    events, _ = _events(trace_dir)
+    return sorted({str((e.get("args") or {}).get("hlo_module")) for e in events if "hlo_op" in (e.get("args") or {})})
+
+
+def op_times(trace_dir: str | pathlib.Path, module: str) -> tuple[str, dict[str, float]]:
+    """(timeline, {hlo_op: self time in µs summed over the trace}) of ``module``'s ops: the GPU's events where the
+    trace has a GPU timeline, else the host CPU's."""
+    events, names = _events(trace_dir)
     gpu = {pid for pid, name in names.items() if name.startswith("/device:GPU")}
     timeline = "gpu" if gpu else "cpu"
     keep = gpu or {pid for pid, name in names.items() if name.startswith("/host:CPU")}
@@ -85,7 +104,7 @@ def op_times(trace_dir: str | pathlib.Path, module: str) -> tuple[str, dict[str,
             e.get("ph") == "X"
             and e.get("pid") in keep
             and "hlo_op" in args
-            and args.get("hlo_module", module) == module
+            and same_module(args.get("hlo_module", module), module)
         ):
             by_thread[(e["pid"], e.get("tid"))].append((float(e["ts"]), float(e["dur"]), args["hlo_op"]))
     totals: dict[str, float] = collections.defaultdict(float)
@@ -104,13 +123,74 @@ def op_times(trace_dir: str | pathlib.Path, module: str) -> tuple[str, dict[str,
     return timeline, dict(totals)
 
 
+def device_idle(trace_dir: str | pathlib.Path, calls: int, label=lambda op: op, top: int = 10) -> dict | None:
+    """Where the GPU waits within each call (None without a GPU timeline): every GPU event (kernels, copies, with
+    or without an HLO op) merged into busy intervals, split into ``calls`` calls at the ``calls - 1`` longest
+    pauses (the host's time between calls), and per call its span, busy and idle µs; the idle time summed per
+    pair (the op that ends before a pause, the op that starts after it; ``label`` names an op), and the device
+    events that carry no HLO op (a library's copies, say) per name."""
+    events, names = _events(trace_dir)
+    gpu = {pid for pid, name in names.items() if name.startswith("/device:GPU")}
+    spans = sorted(
+        (float(e["ts"]), float(e["ts"]) + float(e["dur"]), (e.get("args") or {}).get("hlo_op"), e.get("name", "?"))
+        for e in events
+        if e.get("ph") == "X" and e.get("pid") in gpu and float(e.get("dur", 0)) > 0
+    )
+    if not spans:
+        return None
+    merged: list[list] = []  # [start, end, the first op, the last op]
+    for start, end, op, name in spans:
+        tag = label(op) if op else f"(no op) {name}"
+        if merged and start <= merged[-1][1]:
+            if end > merged[-1][1]:
+                merged[-1][1], merged[-1][3] = end, tag
+        else:
+            merged.append([start, end, tag, tag])
+    pauses = [(merged[i + 1][0] - merged[i][1], i) for i in range(len(merged) - 1)]
+    cuts = sorted(i for _, i in sorted(pauses, reverse=True)[: max(calls - 1, 0)])
+    groups, first = [], 0
+    for i in cuts + [len(merged) - 1]:
+        groups.append(merged[first : i + 1])
+        first = i + 1
+    by_pair: dict[str, float] = collections.defaultdict(float)
+    span = busy = 0.0
+    for g in groups:
+        span += g[-1][1] - g[0][0]
+        busy += sum(end - start for start, end, _, _ in g)
+        for a, b in zip(g, g[1:]):
+            by_pair[f"{a[3]} -> {b[2]}"] += b[0] - a[1]
+    unattributed: dict[str, float] = collections.defaultdict(float)
+    for start, end, op, name in spans:
+        if not op:
+            unattributed[name] += end - start
+    n = max(len(groups), 1)
+    return {
+        "calls_found": len(groups),
+        "span_us_per_call": round(span / n, 1),
+        "busy_us_per_call": round(busy / n, 1),
+        "idle_us_per_call": round((span - busy) / n, 1),
+        "idle_share": round((span - busy) / span, 4) if span > 0 else 0.0,
+        "pauses_per_call": round(sum(len(g) - 1 for g in groups) / n, 1),
+        "largest_idle": [
+            {"between": k, "us_per_call": round(v / n, 2)} for k, v in sorted(by_pair.items(), key=lambda kv: -kv[1])
+        ][:top],
+        "events_without_op": [
+            {"name": k, "us_per_call": round(v / n, 2)} for k, v in sorted(unattributed.items(), key=lambda kv: -kv[1])
+        ][:top],
+    }
+
+
 def summarize(trace_dir, hlo_text: str, *, calls: int, batch: int, top: int = 25) -> dict:
     """µs per environment and call, per source file, per function (``top``) and per opcode, and the ``top`` ops,
     of the program whose compiled HLO text is ``hlo_text``, traced ``calls`` times at ``batch`` environments."""
     module, ops = hlo_sources(hlo_text)
     timeline, times = op_times(trace_dir, module)
     if not times:
-        raise ValueError(f"the trace under {trace_dir} has no op of module {module!r}")
+        found = modules_in(trace_dir)
+        raise ValueError(
+            f"the trace under {trace_dir} has no op of module {module!r}; its events with an hlo_op name the modules "
+            f"{found[:8]}"
+        )
     scale = 1.0 / (calls * batch)
 
     def ranked(key) -> list[dict]:
@@ -140,4 +220,12 @@ def summarize(trace_dir, hlo_text: str, *, calls: int, batch: int, top: int = 25
         "by_function": ranked(lambda o: f"{short(o['file'])}:{o['function']}")[:top],
         "by_opcode": ranked(lambda o: o["opcode"]),
         "top_ops": ranked(lambda o: f"{o['opcode']} {short(o['file'])}:{o['function']}:{o['line']}")[:top],
+        "device_idle": device_idle(trace_dir, calls, label=lambda op: op_label(ops.get(op), op, short)),
     }
+
+
+def op_label(source: dict | None, op: str, short=lambda path: path) -> str:
+    """``opcode file:function:line`` of an op with a source, else its HLO name."""
+    if not source:
+        return op
+    return f"{source['opcode']} {short(source['file'])}:{source['function']}:{source['line']}"

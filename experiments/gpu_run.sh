@@ -173,6 +173,20 @@ for job in "$@"; do
       run bench46_warm python3 benchmarks/benchmark.py --out "$OUT/bench46_warm" --json "$OUT/bench46_warm/benchmarks.json" \
         --backends warp --batches 65536 --horizon 0.5 --cpu-baseline-envs 64 --cpu-workers 16 --repeats 2 \
         --skip-equivalence --qp-warm-start ;;
+    profile_tick_unrolled|bench46_unrolled)  # issue 46 (s57): the force QP's first QP_UNROLLED_STEPS (default 6)
+            # Newton steps written out before its while loop (--qp-unrolled-steps; the same solutions). On the H100 at
+            # the loop's precision the tick's traced kernels summed 0.31-0.37 µs per env against 0.58-0.81 timed, and
+            # the gap grew by 1.2 ms a tick per Newton step of the batch's slowest QP (results/gpu_h100/s57): each pass
+            # of a while loop waits for its predicate on the host. profile_tick's trace now says where the GPU waits
+            # (device_idle); QP_WARM=1 adds --qp-warm-start. Run beside profile_tick / bench46 on the same machine
+      u="--qp-unrolled-steps ${QP_UNROLLED_STEPS:-6}${QP_WARM:+ --qp-warm-start}"
+      case $job in
+        profile_tick_unrolled) run $job python3 benchmarks/profile_tick.py --batch 65536 --states loop $u \
+          --out "$OUT/$job" --trace /tmp/traces/$job ;;
+        bench46_unrolled) run $job python3 benchmarks/benchmark.py --out "$OUT/$job" --json "$OUT/$job/benchmarks.json" \
+          --backends warp --batches 65536 --horizon 0.5 --cpu-baseline-envs 64 --cpu-workers 16 --repeats 2 \
+          --skip-equivalence $u ;;
+      esac ;;
     profile_tick_warm)  # issue 46 (qpmax46): profile_tick at 65,536 envs with the force QP warm-started at its own
             # float32 tolerance (qp.WARM_START_TOL_FLOAT32, 5e-7; one-foot's acceptance within 0.03 %): the batch's
             # slowest QP's Newton steps and the force stage's µs before, in and after the push, beside profile_tick's

@@ -80,7 +80,7 @@ def test_each_job_checks_its_config_once(name, tmp_path, monkeypatch, capsys):
     assert calls == [config_class.__name__], calls
 
 
-CONTROLLER_FLAGS = ("tasks", "forces", "postural", "angular_weight_soft", "qp_warm_start")
+CONTROLLER_FLAGS = ("tasks", "forces", "postural", "angular_weight_soft", "qp_warm_start", "qp_unrolled_steps")
 
 
 def _configs():
@@ -121,6 +121,22 @@ def test_qp_warm_start_flag_reaches_the_controller(flags, warm):
             cli.build_parser().parse_args([command, *flags]), registry()[command].default_config()
         )
         assert config.controller.config().qp_warm_start is warm, (command, flags)
+
+
+def test_qp_unrolled_steps_flag_reaches_the_controller_and_refuses_what_the_qp_cannot_take():
+    """Issue 46: ``--qp-unrolled-steps`` (0 by default) is the controller's ``qp_unrolled_steps``; a count beyond
+    the QP's iterations is one line naming the range."""
+    from wbc_jax import cli
+    from wbc_jax.control.controller import ControllerConfig
+
+    for command in ("push-sweep", "balance"):
+        for flags, steps in (([], 0), (["--qp-unrolled-steps", "6"], 6)):
+            config = cli.config_from_args(
+                cli.build_parser().parse_args([command, *flags]), registry()[command].default_config()
+            )
+            assert config.controller.config().qp_unrolled_steps == steps, (command, flags)
+    with pytest.raises(ValueError, match=r"qp_unrolled_steps must be an integer from 0 to qp_iterations \(5\)"):
+        ControllerConfig(qp_iterations=5, qp_unrolled_steps=6)
 
 
 def test_the_robot_is_part_of_every_fingerprint(tmp_path):

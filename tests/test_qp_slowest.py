@@ -53,6 +53,44 @@ def test_warm_start_cuts_the_slowest_post_push_qp(slowest):
         assert np.max(np.max(np.abs(np.asarray(y, np.float64) - y_ref), axis=1) / scale) < 1e-4
 
 
+def test_unrolled_newton_steps_give_the_loops_solutions_and_all_of_them_leave_no_while_loop(slowest):
+    """``unrolled`` (ControllerConfig.qp_unrolled_steps): the first Newton steps written out before the while loop.
+    A problem that converged within them takes none of the later ones, so the solutions, step counts and residuals
+    are the loop's (11-14 steps here: 4 written out, the loop the rest); all 14 of a 14-step budget written out, no
+    while loop is left in the program (on a GPU each pass of one waits for its predicate on the host; its
+    solutions: the slow sibling below)."""
+    data, _ = slowest
+    tick = tuple(jnp.asarray(data[k][:, 1]) for k in "HgCb")
+
+    budget = int(np.max(data["cold_newton_steps"]))  # 14: every problem converges within it
+
+    def solver(unrolled):
+        return jax.vmap(lambda H, g, C, b: qp.solve_qp(H, g, C, b, iterations=budget, unrolled=unrolled))
+
+    y0, info0 = jax.jit(solver(0))(*tick)
+    assert budget == 14 and np.all(info0.converged)
+    for unrolled in (4,):
+        y, info = jax.jit(solver(unrolled))(*tick)
+        np.testing.assert_array_equal(np.asarray(info.iterations), np.asarray(info0.iterations))
+        np.testing.assert_allclose(np.asarray(y), np.asarray(y0), rtol=0, atol=1e-6 * float(np.max(np.abs(y0))))
+        np.testing.assert_allclose(np.asarray(info.kkt_residual), np.asarray(info0.kkt_residual), rtol=1e-3, atol=1e-9)
+    loops = lambda u: str(jax.make_jaxpr(solver(u))(*tick)).count("while[")  # noqa: E731
+    assert loops(0) >= 1 and loops(4) == loops(0) and loops(budget) == loops(0) - 1
+    with pytest.raises(ValueError, match=r"unrolled must be an integer from 0 to iterations \(14\), got 15"):
+        qp.solve_qp(*(a[0] for a in tick), iterations=budget, unrolled=15)
+
+
+@pytest.mark.slow
+def test_all_newton_steps_unrolled_give_the_loops_solutions(slowest):
+    """The sibling above with every step of the budget written out (no while loop): 9 s of compiling."""
+    data, _ = slowest
+    tick = tuple(jnp.asarray(data[k][:, 1]) for k in "HgCb")
+    solve = lambda u: jax.jit(jax.vmap(lambda H, g, C, b: qp.solve_qp(H, g, C, b, iterations=14, unrolled=u)))  # noqa: E731
+    (y0, info0), (y, info) = solve(0)(*tick), solve(14)(*tick)
+    np.testing.assert_array_equal(np.asarray(info.iterations), np.asarray(info0.iterations))
+    np.testing.assert_allclose(np.asarray(y), np.asarray(y0), rtol=0, atol=1e-6 * float(np.max(np.abs(y0))))
+
+
 def test_qp_tol_setting_reaches_the_force_qp_and_bad_values_are_refused():
     assert controller.ControllerConfig().force_settings.qp_tol is None  # the solver's default by precision
     assert controller.ControllerConfig(qp_tol=1e-6).force_settings.qp_tol == 1e-6

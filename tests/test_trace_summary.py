@@ -67,4 +67,54 @@ def test_profile_tick_traces_its_programs_own_ops(tmp_path):
     x = jnp.ones((4, 192, 192), jnp.float32) * 0.01
     summary = pt.trace_tick(pt.staged(loop, program), (x,), tmp_path, batch=4)
     assert summary["command_buffers"] == "n/a" and summary["calls"] == pt.TRACE_CALLS
+    assert 0 < summary["wall_us_per_env"] < 1e6  # the traced program timed untraced: four 192^3 products an env
     assert summary["by_function"][0]["name"].endswith("tests/test_trace_summary.py:heavy"), summary["by_function"]
+
+
+def test_device_idle_splits_calls_and_sums_the_pauses_between_kernels(tmp_path):
+    """device_idle on a GPU timeline written by hand: two calls of kernels a and b (a copy without an HLO op after
+    b in the first) a long host pause apart; the device's idle time is the pauses within the calls."""
+    import gzip
+    import json
+
+    ts = load_script("benchmarks/trace_summary.py")
+
+    def kernel(start, dur, op=None, name="k", tid=1):
+        args = {"hlo_op": op, "hlo_module": "jit_f"} if op else {}
+        return {"ph": "X", "pid": 7, "tid": tid, "ts": start, "dur": dur, "name": name, "args": args}
+
+    events = [
+        {"ph": "M", "name": "process_name", "pid": 7, "args": {"name": "/device:GPU:0"}},
+        {"ph": "M", "name": "process_name", "pid": 1, "args": {"name": "/host:CPU"}},
+        {"ph": "X", "pid": 1, "tid": 1, "ts": 0, "dur": 5000, "name": "host work", "args": {}},
+        kernel(0, 10, "a"),
+        kernel(15, 10, "b"),
+        kernel(20, 2, "c", tid=2),  # on another stream, inside b: no pause of its own
+        kernel(25, 2, name="MemcpyDtoH"),
+        kernel(1030, 10, "a"),
+        kernel(1050, 10, "b"),
+    ]
+    where = tmp_path / "plugins" / "profile" / "run"
+    where.mkdir(parents=True)
+    with gzip.open(where / "host.perfetto_trace.json.gz", "wt") as f:
+        json.dump({"traceEvents": events}, f)
+    idle = ts.device_idle(tmp_path, calls=2, label=str.upper)
+    assert idle["calls_found"] == 2 and idle["pauses_per_call"] == 1.0
+    assert idle["span_us_per_call"] == pytest.approx((27 + 30) / 2)
+    assert idle["busy_us_per_call"] == pytest.approx((22 + 20) / 2)
+    assert idle["idle_us_per_call"] == pytest.approx((5 + 10) / 2)
+    assert idle["largest_idle"] == [{"between": "A -> B", "us_per_call": 7.5}]
+    assert idle["events_without_op"] == [{"name": "MemcpyDtoH", "us_per_call": 1.0}]
+    assert ts.device_idle(tmp_path, calls=1, label=str)["idle_us_per_call"] == pytest.approx(5 + 1003 + 10)
+
+
+def test_device_idle_is_none_without_a_gpu_timeline(traced, tmp_path):
+    summary, _ = traced
+    assert summary["device_idle"] is None  # the CPU's threads overlap: no single device timeline to find pauses in
+
+
+def test_a_module_is_matched_by_its_name_or_xlas_suffixes_of_it():
+    ts = load_script("benchmarks/trace_summary.py")
+    assert ts.same_module("jit_tick", "jit_tick") and ts.same_module("jit_tick.1", "jit_tick")
+    assert ts.same_module("jit_tick(3)", "jit_tick")
+    assert not ts.same_module("jit_ticker", "jit_tick") and not ts.same_module("jit_other", "jit_tick")

@@ -58,6 +58,9 @@ class ControllerConfig:
         end CoM speed, at 5e-7 0.03 % (BENCHMARKS.md, qpmax46). Off by default.
       qp_tol: the force QPs' relative KKT tolerance (None: :func:`wbc_jax.control.qp.default_tolerances`
         of the precision, 2e-6 in float32).
+      qp_unrolled_steps: the force QPs' first Newton steps written out before their while loop (0 to
+        qp_iterations; the same solutions): on a GPU each pass of the loop waits for its predicate on the
+        host (BENCHMARKS.md, issue 46). 0 by default.
       torque_weight_soft: |tau|^2 against |A f - w|^2 in the soft momentum QP.
       angular_weight_soft: the angular rows of |A f - w|^2 against the linear ones in the soft
         momentum QP (1: WBC; < 1: the CoM first where a push asks more than the feet can give).
@@ -93,6 +96,7 @@ class ControllerConfig:
     qp_iterations: int = qp.DEFAULT_ITERATIONS
     qp_warm_start: bool = False
     qp_tol: float | None = None
+    qp_unrolled_steps: int = 0
     torque_weight_soft: float = 1e-4
     angular_weight_soft: float = 1.0
     normal_force_weight: float = 1e3
@@ -150,6 +154,12 @@ class ControllerConfig:
             raise ValueError(f"controller setting qp_warm_start must be True or False, got {self.qp_warm_start!r}")
         if isinstance(self.qp_iterations, bool) or not isinstance(self.qp_iterations, int) or self.qp_iterations < 1:
             raise ValueError(f"controller setting qp_iterations must be an integer >= 1, got {self.qp_iterations!r}")
+        steps = self.qp_unrolled_steps
+        if isinstance(steps, bool) or not isinstance(steps, int) or not 0 <= steps <= self.qp_iterations:
+            raise ValueError(
+                f"controller setting qp_unrolled_steps must be an integer from 0 to qp_iterations "
+                f"({self.qp_iterations}), got {steps!r}"
+            )
         if isinstance(self.effort_damping, bool) or not (
             isinstance(self.effort_damping, (int, float)) and 0.0 <= self.effort_damping < math.inf
         ):
@@ -167,6 +177,7 @@ class ControllerConfig:
             qp_iterations=self.qp_iterations,
             warm_start=self.qp_warm_start,
             qp_tol=self.qp_tol,
+            qp_unrolled_steps=self.qp_unrolled_steps,
             torque_weight_soft=self.torque_weight_soft,
             angular_weight_soft=self.angular_weight_soft,
             normal_force_weight=self.normal_force_weight,

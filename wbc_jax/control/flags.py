@@ -1,12 +1,13 @@
 """The controller's job flags, declared once: every job that runs the controller holds a
 :class:`ControllerFlags` as a nested field (:func:`wbc_jax.core.options.nested`), so ``--tasks``,
-``--forces``, ``--postural``, ``--angular-weight-soft`` and ``--qp-warm-start`` mean the same in balance, push-sweep,
-envelope, limit, tune and heldout."""
+``--forces``, ``--postural``, ``--angular-weight-soft``, ``--qp-warm-start`` and ``--qp-unrolled-steps`` mean the same in
+balance, push-sweep, envelope, limit, tune and heldout."""
 
 from __future__ import annotations
 
 import dataclasses
 
+from wbc_jax.control import qp
 from wbc_jax.control.controller import FORCE_MODES, ControllerConfig
 from wbc_jax.control.torques import POSTURAL_VARIANTS
 from wbc_jax.core import constants
@@ -39,6 +40,13 @@ class ControllerFlags:
         "start each tick's force QP from the last tick's multipliers and slacks: fewer interior-point steps "
         "(the batch's slowest after a push 10 instead of 14), at a tighter tolerance (BENCHMARKS.md, issue 46)",
     )
+    qp_unrolled_steps: int = option(
+        0,
+        "the force QP's first Newton steps written out before its while loop (the same solutions; on a GPU each "
+        "pass of the loop waits for its predicate on the host: BENCHMARKS.md, issue 46)",
+        ge=0,
+        le=qp.DEFAULT_ITERATIONS,
+    )
 
     def config(self, base: ControllerConfig | None = None) -> ControllerConfig:
         """``base`` (default: the defaults) with these settings (the jobs' configs check the declared
@@ -49,4 +57,5 @@ class ControllerFlags:
             postural=self.postural,
             angular_weight_soft=self.angular_weight_soft,
             qp_warm_start=self.qp_warm_start,
+            qp_unrolled_steps=self.qp_unrolled_steps,
         )

@@ -82,6 +82,7 @@ class ForceSettings:
     violation_tol: float | None = None  # accepted contact_violation of a QP's wrenches (None: by dtype)
     warm_start: bool = False  # the equality QP from the last tick's multipliers and slacks
     qp_tol: float | None = None  # the QPs' relative KKT tolerance (None: qp.default_tolerances)
+    qp_unrolled_steps: int = 0  # Newton steps written out before the interior point's while loop
 
     def tolerance(self, dtype) -> float:
         """The largest :func:`contact_violation` a formulation's wrenches may have (else the next
@@ -225,6 +226,7 @@ def momentum_equality_qp(
         tol=settings.qp_tol,
         row_weight=row_weights(cset),
         start=start if settings.warm_start else None,
+        unrolled=settings.qp_unrolled_steps,
     )
     return f1 + Z @ y, info
 
@@ -306,6 +308,7 @@ def soft_momentum_qp(
         iterations=settings.qp_iterations,
         tol=settings.qp_tol,
         row_weight=row_weights(cset),
+        unrolled=settings.qp_unrolled_steps,
     )
     return keep * x, info
 

@@ -178,6 +178,7 @@ def solve_qp(
     fallback_tol: float | None = None,
     row_weight: Any = None,
     start: Array | None = None,
+    unrolled: int = 0,
 ) -> tuple[Array, QPInfo]:
     """Solve a small dense convex QP with inequality constraints.
 
@@ -209,6 +210,8 @@ def solve_qp(
         start: (2, m) ``info.start`` of a previous solve of a nearby problem (the last control
             tick's) to warm-start the interior point from, or None (cold start). The solution
             is the same within ``tol``; it takes fewer Newton steps.
+        unrolled: Newton steps written out before the interior point's while loop (static, 0 to
+            ``iterations``): the same solution; on a GPU no pause for the loop's predicate in them.
 
     Returns:
         ``(x, info)``: x (n,) in the promoted float dtype of the inputs, and a
@@ -226,6 +229,8 @@ def solve_qp(
         raise ValueError("solve_qp: needs at least one constraint row (m >= 1)")
     if int(iterations) < 1:
         raise ValueError(f"solve_qp: iterations must be >= 1, got {iterations}")
+    if isinstance(unrolled, bool) or not isinstance(unrolled, int) or not 0 <= unrolled <= int(iterations):
+        raise ValueError(f"solve_qp: unrolled must be an integer from 0 to iterations ({iterations}), got {unrolled!r}")
     d_tol, d_fallback = default_tolerances(dtype, warm_start=start is not None)
     tol = d_tol if tol is None else float(tol)
     fallback_tol = d_fallback if fallback_tol is None else float(fallback_tol)
@@ -243,7 +248,7 @@ def solve_qp(
             raise ValueError(
                 f"solve_qp: start must have shape (2, {b.shape[0]}) (multipliers, slacks), got {start.shape}"
             )
-    ipm = interior_point(Hp, gp, Cp, bp, int(iterations), tol, weight, start)
+    ipm = interior_point(Hp, gp, Cp, bp, int(iterations), tol, weight, start, unrolled)
 
     finite_input = jnp.all(jnp.array([jnp.all(jnp.isfinite(a)) for a in (Hp, gp, Cp, bp)]))
     fallback = (~ipm.converged & (ipm.violation > fallback_tol)) | ~ipm.finite

@@ -2,7 +2,9 @@
 
 A primal-dual interior-point method (Mehrotra predictor-corrector) on the scaled problem
 ``min 1/2 x'Hx + g'x  s.t.  Cx <= b``, in a ``lax.while_loop`` that stops once every problem of a
-vmapped batch has converged. Never differentiated: :mod:`wbc_jax.control.qp` differentiates the
+vmapped batch has converged, after ``unrolled`` steps written out before it (a converged problem's
+later steps are not taken, so the result is the loop's: on a GPU each pass of a while loop waits for
+its predicate on the host, where written-out steps run without that pause). Never differentiated: :mod:`wbc_jax.control.qp` differentiates the
 solution implicitly. The module docstring of :mod:`wbc_jax.control.qp` gives the design and the
 precision reached.
 """
@@ -138,6 +140,7 @@ def interior_point(
     tol: float,
     weight: Array | None = None,
     start: Array | None = None,
+    unrolled: int = 0,
 ) -> IPMResult:
     """Mehrotra predictor-corrector interior point for ``min 1/2 x'Hx + g'x, Cx <= b``.
 
@@ -164,6 +167,8 @@ def interior_point(
             start from (each raised to :data:`WARM_START_FLOOR` in the scaled problem; x starts
             at the cold start's least-squares point, which does not depend on a basis the
             caller may have changed), or None; any non-finite entry: the cold start.
+        unrolled: Newton steps written out before the while loop (static, at most ``iterations``;
+            the loop is left out where they are all of them).
 
     Returns:
         The raw result, unscaled back to the original units.
@@ -274,7 +279,12 @@ def interior_point(
 
     sz0 = jnp.concatenate([s0, z0])
     init = (x0, sz0, (s0 @ z0) / m, *residuals(x0, sz0)[:3], jnp.array(0, jnp.int32), jnp.array(0, jnp.int32))
-    x, sz, _, _, _, res, count, _ = lax.while_loop(running, step, init)
+    carry = init
+    for _ in range(min(unrolled, iterations)):
+        carry = step(carry)
+    if unrolled < iterations:
+        carry = lax.while_loop(running, step, carry)
+    x, sz, _, _, _, res, count, _ = carry
     s, z = sz[:m], sz[m:]
     finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(z)) & jnp.all(jnp.isfinite(s))
     violation = jnp.max(jnp.maximum(Cs @ x - bs, 0.0)) / (1.0 + jnp.max(jnp.abs(x)))
