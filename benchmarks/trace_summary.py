@@ -125,8 +125,8 @@ def op_times(trace_dir: str | pathlib.Path, module: str) -> tuple[str, dict[str,
 
 def device_idle(trace_dir: str | pathlib.Path, calls: int, label=lambda op: op, top: int = 10) -> dict | None:
     """Where the GPU waits within each call (None without a GPU timeline): every GPU event (kernels, copies, with
-    or without an HLO op) merged into busy intervals, split into ``calls`` calls at the ``calls - 1`` longest
-    pauses (the host's time between calls), and per call its span, busy and idle µs; the idle time summed per
+    or without an HLO op) merged into busy intervals, split into ``calls`` calls where the program's first op runs
+    again (else at the ``calls - 1`` longest pauses), and per call its span, busy and idle µs; the idle time summed per
     pair (the op that ends before a pause, the op that starts after it; ``label`` names an op), and the device
     events that carry no HLO op (a library's copies, say) per name."""
     events, names = _events(trace_dir)
@@ -138,16 +138,22 @@ def device_idle(trace_dir: str | pathlib.Path, calls: int, label=lambda op: op, 
     )
     if not spans:
         return None
-    merged: list[list] = []  # [start, end, the first op, the last op]
+    merged: list[list] = []  # [start, end, the first op, the last op, the first event's raw op]
     for start, end, op, name in spans:
         tag = label(op) if op else f"(no op) {name}"
         if merged and start <= merged[-1][1]:
             if end > merged[-1][1]:
                 merged[-1][1], merged[-1][3] = end, tag
         else:
-            merged.append([start, end, tag, tag])
-    pauses = [(merged[i + 1][0] - merged[i][1], i) for i in range(len(merged) - 1)]
-    cuts = sorted(i for _, i in sorted(pauses, reverse=True)[: max(calls - 1, 0)])
+            merged.append([start, end, tag, tag, op])
+    # A call starts where the program's first op runs again, if that op runs once a call; else (an op in a loop)
+    # at the calls - 1 longest pauses (a GPU can wait longer inside a call than between two).
+    starts = [i for i, seg in enumerate(merged) if seg[4] is not None and seg[4] == merged[0][4]]
+    if len(starts) == calls:
+        cuts = [i - 1 for i in starts[1:]]
+    else:
+        pauses = [(merged[i + 1][0] - merged[i][1], i) for i in range(len(merged) - 1)]
+        cuts = sorted(i for _, i in sorted(pauses, reverse=True)[: max(calls - 1, 0)])
     groups, first = [], 0
     for i in cuts + [len(merged) - 1]:
         groups.append(merged[first : i + 1])
@@ -156,7 +162,7 @@ def device_idle(trace_dir: str | pathlib.Path, calls: int, label=lambda op: op, 
     span = busy = 0.0
     for g in groups:
         span += g[-1][1] - g[0][0]
-        busy += sum(end - start for start, end, _, _ in g)
+        busy += sum(seg[1] - seg[0] for seg in g)
         for a, b in zip(g, g[1:]):
             by_pair[f"{a[3]} -> {b[2]}"] += b[0] - a[1]
     unattributed: dict[str, float] = collections.defaultdict(float)

@@ -187,6 +187,21 @@ for job in "$@"; do
           --backends warp --batches 65536 --horizon 0.5 --cpu-baseline-envs 64 --cpu-workers 16 --repeats 2 \
           --skip-equivalence $u ;;
       esac ;;
+    profile_tick_cbuf|bench46_cbuf)  # issue 46 (s57): profile_tick / bench46 with XLA's command buffers taking while
+            # loops and conditionals too (CUDA graph conditional nodes: the predicate stays on the GPU), CBUF_TYPES
+            # (default below). The tick has one QP while loop and about 5 batch_any conds on its path, and at 65,536
+            # envs the H100 waited about 1.4 ms a tick per such pause (results/gpu_h100/s57); QP_UNROLLED_STEPS adds
+            # --qp-unrolled-steps. Run beside profile_tick / bench46 on the same machine
+      u="${QP_UNROLLED_STEPS:+--qp-unrolled-steps $QP_UNROLLED_STEPS}"
+      x="--xla_gpu_enable_command_buffer=${CBUF_TYPES:-FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL}"
+      case $job in
+        profile_tick_cbuf) run $job env XLA_FLAGS="$x" python3 benchmarks/profile_tick.py --batch 65536 \
+          --states loop $u --out "$OUT/$job" --trace /tmp/traces/$job ;;
+        bench46_cbuf) run $job env XLA_FLAGS="$x" python3 benchmarks/benchmark.py --out "$OUT/$job" \
+          --json "$OUT/$job/benchmarks.json" --backends warp --batches 65536 --horizon 0.5 --cpu-baseline-envs 64 \
+          --cpu-workers 16 --repeats 2 --skip-equivalence $u ;;
+      esac
+      echo "$x" > "$OUT/$job/xla_flags.txt" ;;
     profile_tick_warm)  # issue 46 (qpmax46): profile_tick at 65,536 envs with the force QP warm-started at its own
             # float32 tolerance (qp.WARM_START_TOL_FLOAT32, 5e-7; one-foot's acceptance within 0.03 %): the batch's
             # slowest QP's Newton steps and the force stage's µs before, in and after the push, beside profile_tick's

@@ -108,6 +108,28 @@ def test_device_idle_splits_calls_and_sums_the_pauses_between_kernels(tmp_path):
     assert ts.device_idle(tmp_path, calls=1, label=str)["idle_us_per_call"] == pytest.approx(5 + 1003 + 10)
 
 
+def test_device_idle_finds_calls_by_the_programs_first_op_where_the_gpu_waits_longer_inside_a_call(tmp_path):
+    """A pause inside a call (a while loop's predicate read on the host) longer than the host's pause between two
+    calls: the calls are split where the first op (a) runs again, not at the longest pause."""
+    import gzip
+    import json
+
+    ts = load_script("benchmarks/trace_summary.py")
+    gpu = {"ph": "M", "name": "process_name", "pid": 7, "args": {"name": "/device:GPU:0"}}
+
+    def kernel(start, op):
+        return {"ph": "X", "pid": 7, "tid": 1, "ts": start, "dur": 10, "name": "k", "args": {"hlo_op": op}}
+
+    events = [gpu, kernel(0, "a"), kernel(500, "b"), kernel(520, "a"), kernel(1000, "b")]
+    where = tmp_path / "t"
+    where.mkdir()
+    with gzip.open(where / "x.perfetto_trace.json.gz", "wt") as f:
+        json.dump({"traceEvents": events}, f)
+    idle = ts.device_idle(tmp_path, calls=2)
+    assert idle["calls_found"] == 2 and idle["idle_us_per_call"] == pytest.approx((490 + 470) / 2)
+    assert idle["largest_idle"] == [{"between": "a -> b", "us_per_call": 480.0}]
+
+
 def test_device_idle_is_none_without_a_gpu_timeline(traced, tmp_path):
     summary, _ = traced
     assert summary["device_idle"] is None  # the CPU's threads overlap: no single device timeline to find pauses in
