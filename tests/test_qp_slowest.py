@@ -31,13 +31,19 @@ def slowest():
     return data, y_ref
 
 
-def test_warm_start_cuts_the_slowest_post_push_qp(slowest):
-    data, y_ref = slowest
-    solve = jax.jit(jax.vmap(lambda H, g, C, b, start: qp.solve_qp(H, g, C, b, start=start)))
+@pytest.fixture(scope="module")
+def cold_solves(slowest):
+    """The cold solver (the default iterations, no step written out) on both recorded ticks: (ticks, solutions)."""
+    data, _ = slowest
     solve_cold = jax.jit(jax.vmap(lambda H, g, C, b: qp.solve_qp(H, g, C, b)))
     tick = [tuple(jnp.asarray(data[k][:, i]) for k in "HgCb") for i in (0, 1)]
-    _, before = solve_cold(*tick[0])  # the tick before, its solution the warm start
-    y_cold, cold = solve_cold(*tick[1])
+    return tick, [solve_cold(*t) for t in tick]
+
+
+def test_warm_start_cuts_the_slowest_post_push_qp(slowest, cold_solves):
+    data, y_ref = slowest
+    solve = jax.jit(jax.vmap(lambda H, g, C, b, start: qp.solve_qp(H, g, C, b, start=start)))
+    tick, ((_, before), (y_cold, cold)) = cold_solves  # the tick before: its solution the warm start
     y_warm, warm = solve(*tick[1], before.start)
     # The recorded problems are the batch's slowest: cold, the solver here takes what the script counted.
     np.testing.assert_array_equal(np.asarray(cold.iterations), data["cold_newton_steps"])
@@ -53,31 +59,30 @@ def test_warm_start_cuts_the_slowest_post_push_qp(slowest):
         assert np.max(np.max(np.abs(np.asarray(y, np.float64) - y_ref), axis=1) / scale) < 1e-4
 
 
-def test_unrolled_newton_steps_give_the_loops_solutions_and_all_of_them_leave_no_while_loop(slowest):
+def test_unrolled_newton_steps_give_the_loops_solutions_and_all_of_them_leave_no_while_loop(slowest, cold_solves):
     """``unrolled`` (ControllerConfig.qp_unrolled_steps): the first Newton steps written out before the while loop.
     A problem that converged within them takes none of the later ones, so the solutions, step counts and residuals
-    are the loop's (11-14 steps here: 4 written out, the loop the rest); all 14 of a 14-step budget written out, no
-    while loop is left in the program (on a GPU each pass of one waits for its predicate on the host; its
-    solutions: the slow sibling below)."""
-    data, _ = slowest
-    tick = tuple(jnp.asarray(data[k][:, 1]) for k in "HgCb")
-
-    budget = int(np.max(data["cold_newton_steps"]))  # 14: every problem converges within it
+    are the loop's (11-14 steps here: 2 written out, the loop the rest); all of a budget written out, no while
+    loop is left in the program (on a GPU each pass of one waits for its predicate on the host; its solutions: the
+    slow sibling below)."""
+    tick, (_, (y0, info0)) = cold_solves
 
     def solver(unrolled):
-        return jax.vmap(lambda H, g, C, b: qp.solve_qp(H, g, C, b, iterations=budget, unrolled=unrolled))
+        return jax.vmap(lambda H, g, C, b: qp.solve_qp(H, g, C, b, unrolled=unrolled))
 
-    y0, info0 = jax.jit(solver(0))(*tick)
-    assert budget == 14 and np.all(info0.converged)
-    for unrolled in (4,):
-        y, info = jax.jit(solver(unrolled))(*tick)
-        np.testing.assert_array_equal(np.asarray(info.iterations), np.asarray(info0.iterations))
-        np.testing.assert_allclose(np.asarray(y), np.asarray(y0), rtol=0, atol=1e-6 * float(np.max(np.abs(y0))))
-        np.testing.assert_allclose(np.asarray(info.kkt_residual), np.asarray(info0.kkt_residual), rtol=1e-3, atol=1e-9)
-    loops = lambda u: str(jax.make_jaxpr(solver(u))(*tick)).count("while[")  # noqa: E731
-    assert loops(0) >= 1 and loops(4) == loops(0) and loops(budget) == loops(0) - 1
+    assert np.all(info0.converged) and int(np.max(info0.iterations)) == 14
+    y, info = jax.jit(solver(2))(*tick[1])
+    np.testing.assert_array_equal(np.asarray(info.iterations), np.asarray(info0.iterations))
+    np.testing.assert_allclose(np.asarray(y), np.asarray(y0), rtol=0, atol=1e-6 * float(np.max(np.abs(y0))))
+    np.testing.assert_allclose(np.asarray(info.kkt_residual), np.asarray(info0.kkt_residual), rtol=1e-3, atol=1e-9)
+
+    def loops(unrolled, iterations=6):
+        fn = jax.vmap(lambda H, g, C, b: qp.solve_qp(H, g, C, b, iterations=iterations, unrolled=unrolled))
+        return str(jax.make_jaxpr(fn)(*tick[1])).count("while[")
+
+    assert loops(0) >= 1 and loops(2) == loops(0) and loops(6) == loops(0) - 1
     with pytest.raises(ValueError, match=r"unrolled must be an integer from 0 to iterations \(14\), got 15"):
-        qp.solve_qp(*(a[0] for a in tick), iterations=budget, unrolled=15)
+        qp.solve_qp(*(a[0] for a in tick[1]), iterations=14, unrolled=15)
 
 
 @pytest.mark.slow
