@@ -33,6 +33,10 @@ run() {  # name, command...: time a job, keep its output
   "$@" 2>&1 | tail -c 20000 > "$OUT/$name/stdout.txt"; local rc=${PIPESTATUS[0]}
   echo "job $name: rc=$rc ${SECONDS}s"; tail -n 3 "$OUT/$name/stdout.txt"
 }
+keep_trace() {  # job: the last traced tick's perfetto trace beside the job's results (a few MB; for a viewer)
+  local f; f=$(ls -t /tmp/traces/$1/tick_*/plugins/profile/*/*.perfetto_trace.json.gz 2>/dev/null | head -1)
+  [ -n "$f" ] && cp "$f" "$OUT/$1/trace_$(basename "$(dirname "$(dirname "$(dirname "$(dirname "$f")")")")").json.gz"
+}
 SW="python3 -m wbc_jax.cli push-sweep --quiet --horizon 3 --push-onset 0.5 --push-duration 0.1 --magnitudes 10 400 64 --directions 32"
 for job in "$@"; do
   case "$job" in
@@ -160,6 +164,7 @@ for job in "$@"; do
       # --trace: the whole tick's kernels per source file and function, in profile_tick.json (the raw traces stay here)
       run profile_tick python3 benchmarks/profile_tick.py --batch 65536 --states loop --out "$OUT/profile_tick" \
         --trace /tmp/traces/profile_tick
+      keep_trace profile_tick
       run profile_tick_synthetic python3 benchmarks/profile_tick.py --batch 65536 --states synthetic \
         --out "$OUT/profile_tick_synthetic" ;;
     bench46)  # issue 46: the Warp closed loop at 65,536 envs beside the physics alone and C MuJoCo + NumPy on 16 cores
@@ -182,7 +187,7 @@ for job in "$@"; do
       u="--qp-unrolled-steps ${QP_UNROLLED_STEPS:-6}${QP_WARM:+ --qp-warm-start}"
       case $job in
         profile_tick_unrolled) run $job python3 benchmarks/profile_tick.py --batch 65536 --states loop $u \
-          --out "$OUT/$job" --trace /tmp/traces/$job ;;
+          --out "$OUT/$job" --trace /tmp/traces/$job; keep_trace $job ;;
         bench46_unrolled) run $job python3 benchmarks/benchmark.py --out "$OUT/$job" --json "$OUT/$job/benchmarks.json" \
           --backends warp --batches 65536 --horizon 0.5 --cpu-baseline-envs 64 --cpu-workers 16 --repeats 2 \
           --skip-equivalence $u ;;
@@ -196,7 +201,7 @@ for job in "$@"; do
       x="--xla_gpu_enable_command_buffer=${CBUF_TYPES:-FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL}"
       case $job in
         profile_tick_cbuf) run $job env XLA_FLAGS="$x" python3 benchmarks/profile_tick.py --batch 65536 \
-          --states loop $u --out "$OUT/$job" --trace /tmp/traces/$job ;;
+          --states loop $u --out "$OUT/$job" --trace /tmp/traces/$job; keep_trace $job ;;
         bench46_cbuf) run $job env XLA_FLAGS="$x" python3 benchmarks/benchmark.py --out "$OUT/$job" \
           --json "$OUT/$job/benchmarks.json" --backends warp --batches 65536 --horizon 0.5 --cpu-baseline-envs 64 \
           --cpu-workers 16 --repeats 2 --skip-equivalence $u ;;
