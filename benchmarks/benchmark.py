@@ -238,8 +238,12 @@ def parse_args(argv=None):
         help="after --batches, up to K doublings of the largest, until one fails",
     )
     args = parser.parse_args(argv)
-    if not 0 <= args.qp_unrolled_steps <= 25:  # qp.DEFAULT_ITERATIONS, the controller's QP budget
-        parser.error(f"--qp-unrolled-steps must be from 0 to 25 (the QP's iterations), got {args.qp_unrolled_steps}")
+    from wbc_jax.control.qp import DEFAULT_ITERATIONS  # the controller's QP budget
+
+    if not 0 <= args.qp_unrolled_steps <= DEFAULT_ITERATIONS:
+        parser.error(
+            f"--qp-unrolled-steps must be from 0 to {DEFAULT_ITERATIONS} (the QP's iterations), got {args.qp_unrolled_steps}"
+        )
     if args.repeats < 1:
         parser.error("--repeats must be >= 1")
     for name in ("batches", "cpu_workers"):

@@ -69,8 +69,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="the force QP's first Newton steps written out before its while loop (ControllerConfig.qp_unrolled_steps)",
     )
     args = p.parse_args(argv)
-    if not 0 <= args.qp_unrolled_steps <= 25:  # qp.DEFAULT_ITERATIONS, the controller's QP budget
-        p.error(f"--qp-unrolled-steps must be from 0 to 25 (the QP's iterations), got {args.qp_unrolled_steps}")
+    from wbc_jax.control.qp import DEFAULT_ITERATIONS  # the controller's QP budget
+
+    if not 0 <= args.qp_unrolled_steps <= DEFAULT_ITERATIONS:
+        p.error(
+            f"--qp-unrolled-steps must be from 0 to {DEFAULT_ITERATIONS} (the QP's iterations), got {args.qp_unrolled_steps}"
+        )
     for name in ("batch", "repeats", "loop_envs"):
         if getattr(args, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")

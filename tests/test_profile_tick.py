@@ -29,6 +29,7 @@ def profile_tick():
         (["--ticks", "50"], ("--ticks", "0..49")),
         (["--batch", "0"], ("--batch", ">= 1")),
         (["--push-onset", "0.45"], ("--push-onset", "--horizon")),
+        (["--qp-unrolled-steps", "26"], ("--qp-unrolled-steps", "0 to 25")),
     ],
 )
 def test_bad_flags_are_refused_in_one_line(profile_tick, capsys, argv, names):
