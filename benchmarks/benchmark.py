@@ -60,8 +60,8 @@ JSON_KEYS = (
     "sweep_run_s",
     "sweep_envs",
 )
-# qp_warm_start, qp_unrolled_steps: only in the row of a run that set them (the rows before, at the defaults, have
-# no such key)
+# qp_warm_start, qp_unrolled_steps, xla_flags: only in the row of a run that set them (the rows before, at the
+# defaults, have no such key)
 JSON_ROW_KEY = (
     "device",
     "backend",
@@ -71,6 +71,7 @@ JSON_ROW_KEY = (
     "sweep_name",
     "qp_warm_start",
     "qp_unrolled_steps",
+    "xla_flags",
 )
 
 
@@ -144,6 +145,8 @@ def json_rows(result: dict) -> list[dict]:
             entry["qp_warm_start"] = True
         if row.get("qp_unrolled_steps"):
             entry["qp_unrolled_steps"] = row["qp_unrolled_steps"]
+        if row.get("xla_flags"):  # XLA's flags of the run (command buffers, say): a setting of its own
+            entry["xla_flags"] = row["xla_flags"]
         rows.append(entry)
     return rows
 
@@ -337,6 +340,7 @@ def main(argv=None) -> dict:
                     "backend": backend,
                     "qp_warm_start": args.qp_warm_start,
                     "qp_unrolled_steps": args.qp_unrolled_steps,
+                    "xla_flags": os.environ.get("XLA_FLAGS") or None,
                     "device": device_description(backend),
                     "batch": batch,
                     "solver_iterations": iterations,

@@ -256,6 +256,17 @@ def test_benchmark_json_keeps_a_warm_started_row_beside_the_cold_one(tmp_path):
     cold = dict(result, runs=[dict(setting, closed_loop_steps_per_s=3.0, qp_warm_start=False)])
     rows = bm.update_json_rows(path, bm.json_rows(cold))
     assert sorted((r["closed_loop_steps_per_s"], r.get("qp_warm_start")) for r in rows) == [(2.0, True), (3.0, None)]
+    # A run under other XLA flags (gpu_run.sh bench46_cbuf) or with unrolled QP steps: rows of their own too.
+    flagged = dict(
+        result, runs=[dict(setting, closed_loop_steps_per_s=4.0, xla_flags="--xla_gpu_enable_command_buffer=")]
+    )
+    unrolled = dict(result, runs=[dict(setting, closed_loop_steps_per_s=5.0, qp_unrolled_steps=6)])
+    bm.update_json_rows(path, bm.json_rows(flagged))
+    rows = bm.update_json_rows(path, bm.json_rows(unrolled))
+    assert sorted(r["closed_loop_steps_per_s"] for r in rows) == [2.0, 3.0, 4.0, 5.0]
+    assert [r.get("xla_flags") for r in rows if r["closed_loop_steps_per_s"] == 4.0] == [
+        "--xla_gpu_enable_command_buffer="
+    ]
 
 
 def test_cpu_targets_bar():
