@@ -14,6 +14,7 @@ once, in the innermost). On a GPU, ``device_idle`` adds where the device waited 
 from __future__ import annotations
 
 import collections
+import functools
 import gzip
 import json
 import pathlib
@@ -71,7 +72,14 @@ def _events(trace_dir: str | pathlib.Path) -> tuple[list[dict], dict[int, str]]:
         raise FileNotFoundError(
             f"no perfetto_trace.json.gz under {trace_dir} (jax.profiler.trace(..., create_perfetto_trace=True))"
         )
-    with gzip.open(paths[-1]) as f:
+    stat = paths[-1].stat()
+    return _load(str(paths[-1]), stat.st_mtime_ns, stat.st_size)
+
+
+@functools.lru_cache(maxsize=2)
+def _load(path: str, mtime_ns: int, size: int) -> tuple[list[dict], dict[int, str]]:
+    """One trace file parsed once for the summaries that read it (keyed by its path, time and size)."""
+    with gzip.open(path) as f:
         data = json.load(f)
     events = data["traceEvents"] if isinstance(data, dict) else data
     names = {e["pid"]: e["args"]["name"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"}
@@ -81,7 +89,7 @@ def _events(trace_dir: str | pathlib.Path) -> tuple[list[dict], dict[int, str]]:
 def same_module(traced: str, module: str) -> bool:
     """Whether a trace event's ``hlo_module`` names ``module``: the same name, or it with a suffix of XLA's
     (``jit_tick.1``, ``jit_tick(3)``): runtimes differ in how they name a module's executions."""
-    return traced == module or (traced.startswith(module) and traced[len(module) : len(module) + 1] in (".", "(", "_"))
+    return traced == module or (traced.startswith(module) and traced[len(module) : len(module) + 1] in (".", "("))
 
 
 def modules_in(trace_dir: str | pathlib.Path) -> list[str]:
@@ -225,7 +233,7 @@ def summarize(trace_dir, hlo_text: str, *, calls: int, batch: int, top: int = 25
         "by_file": ranked(lambda o: short(o["file"])),
         "by_function": ranked(lambda o: f"{short(o['file'])}:{o['function']}")[:top],
         "by_opcode": ranked(lambda o: o["opcode"]),
-        "top_ops": ranked(lambda o: f"{o['opcode']} {short(o['file'])}:{o['function']}:{o['line']}")[:top],
+        "top_ops": ranked(lambda o: op_label(o, "?", short))[:top],
         "device_idle": device_idle(trace_dir, calls, label=lambda op: op_label(ops.get(op), op, short)),
     }
 

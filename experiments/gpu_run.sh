@@ -37,6 +37,16 @@ keep_trace() {  # job: the last traced tick's perfetto trace beside the job's re
   local f; f=$(ls -t /tmp/traces/$1/tick_*/plugins/profile/*/*.perfetto_trace.json.gz 2>/dev/null | head -1)
   [ -n "$f" ] && cp "$f" "$OUT/$1/trace_$(basename "$(dirname "$(dirname "$(dirname "$(dirname "$f")")")")").json.gz"
 }
+profile46() {  # job, flags...: profile_tick at 65,536 envs on the loop's states, traced; the last traced tick kept
+  local job=$1; shift
+  run $job python3 benchmarks/profile_tick.py --batch 65536 --states loop --out "$OUT/$job" --trace /tmp/traces/$job "$@"
+  keep_trace $job
+}
+bench46_run() {  # job, flags...: the Warp closed loop at 65,536 envs beside the physics alone and C MuJoCo + NumPy
+  local job=$1; shift  # on 16 cores (benchmark.py), its rows in $OUT/job/benchmarks.json
+  run $job python3 benchmarks/benchmark.py --out "$OUT/$job" --json "$OUT/$job/benchmarks.json" --backends warp \
+    --batches 65536 --horizon 0.5 --cpu-baseline-envs 64 --cpu-workers 16 --repeats 2 --skip-equivalence "$@"
+}
 SW="python3 -m wbc_jax.cli push-sweep --quiet --horizon 3 --push-onset 0.5 --push-duration 0.1 --magnitudes 10 400 64 --directions 32"
 for job in "$@"; do
   case "$job" in
@@ -162,22 +172,16 @@ for job in "$@"; do
     profile_tick)  # issue 46: each stage of the controller tick jitted and vmapped alone at 65,536 envs (no Warp needed),
             # on the benchmark loop's own states (256 pushes, ticks before/in/after the push), then on the synthetic ones
       # --trace: the whole tick's kernels per source file and function, in profile_tick.json (the raw traces stay here)
-      run profile_tick python3 benchmarks/profile_tick.py --batch 65536 --states loop --out "$OUT/profile_tick" \
-        --trace /tmp/traces/profile_tick
-      keep_trace profile_tick
+      profile46 profile_tick
       run profile_tick_synthetic python3 benchmarks/profile_tick.py --batch 65536 --states synthetic \
         --out "$OUT/profile_tick_synthetic" ;;
     bench46)  # issue 46: the Warp closed loop at 65,536 envs beside the physics alone and C MuJoCo + NumPy on 16 cores
-      run bench46 python3 benchmarks/benchmark.py --out "$OUT/bench46" --json "$OUT/bench46/benchmarks.json" \
-        --backends warp --batches 65536 --horizon 0.5 --cpu-baseline-envs 64 --cpu-workers 16 --repeats 2 \
-        --skip-equivalence ;;
+      bench46_run bench46 ;;
     bench46_warm)  # issue 46: the same with the force QP warm-started (--qp-warm-start): under vmap the QP's while
             # loop runs the batch's slowest problem's Newton steps (14 after the push against 7.9 in the mean on the
             # CPU, results/cpu_targets/pt46), which a warm start cuts (to 10 at tol 5e-7, results/cpu_targets/qpmax46);
             # run right after bench46 on the same machine
-      run bench46_warm python3 benchmarks/benchmark.py --out "$OUT/bench46_warm" --json "$OUT/bench46_warm/benchmarks.json" \
-        --backends warp --batches 65536 --horizon 0.5 --cpu-baseline-envs 64 --cpu-workers 16 --repeats 2 \
-        --skip-equivalence --qp-warm-start ;;
+      bench46_run bench46_warm --qp-warm-start ;;
     profile_tick_unrolled|bench46_unrolled)  # issue 46 (s57): the force QP's first QP_UNROLLED_STEPS (default 6)
             # Newton steps written out before its while loop (--qp-unrolled-steps; the same solutions). On the H100 at
             # the loop's precision the tick's traced kernels summed 0.31-0.37 µs per env against 0.58-0.81 timed, and
@@ -185,13 +189,7 @@ for job in "$@"; do
             # of a while loop waits for its predicate on the host. profile_tick's trace now says where the GPU waits
             # (device_idle); QP_WARM=1 adds --qp-warm-start. Run beside profile_tick / bench46 on the same machine
       u="--qp-unrolled-steps ${QP_UNROLLED_STEPS:-6}${QP_WARM:+ --qp-warm-start}"
-      case $job in
-        profile_tick_unrolled) run $job python3 benchmarks/profile_tick.py --batch 65536 --states loop $u \
-          --out "$OUT/$job" --trace /tmp/traces/$job; keep_trace $job ;;
-        bench46_unrolled) run $job python3 benchmarks/benchmark.py --out "$OUT/$job" --json "$OUT/$job/benchmarks.json" \
-          --backends warp --batches 65536 --horizon 0.5 --cpu-baseline-envs 64 --cpu-workers 16 --repeats 2 \
-          --skip-equivalence $u ;;
-      esac ;;
+      case $job in profile_tick_unrolled) profile46 $job $u ;; bench46_unrolled) bench46_run $job $u ;; esac ;;
     profile_tick_cbuf|bench46_cbuf)  # issue 46 (s57): profile_tick / bench46 with XLA's command buffers taking while
             # loops and conditionals too (CUDA graph conditional nodes: the predicate stays on the GPU), CBUF_TYPES
             # (default below). The tick has one QP while loop and about 5 batch_any conds on its path, and at 65,536
@@ -200,18 +198,14 @@ for job in "$@"; do
       u="${QP_UNROLLED_STEPS:+--qp-unrolled-steps $QP_UNROLLED_STEPS}"
       x="--xla_gpu_enable_command_buffer=${CBUF_TYPES:-FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL}"
       case $job in
-        profile_tick_cbuf) run $job env XLA_FLAGS="$x" python3 benchmarks/profile_tick.py --batch 65536 \
-          --states loop $u --out "$OUT/$job" --trace /tmp/traces/$job; keep_trace $job ;;
-        bench46_cbuf) run $job env XLA_FLAGS="$x" python3 benchmarks/benchmark.py --out "$OUT/$job" \
-          --json "$OUT/$job/benchmarks.json" --backends warp --batches 65536 --horizon 0.5 --cpu-baseline-envs 64 \
-          --cpu-workers 16 --repeats 2 --skip-equivalence $u ;;
+        profile_tick_cbuf) XLA_FLAGS="$x" profile46 $job $u ;;
+        bench46_cbuf) XLA_FLAGS="$x" bench46_run $job $u ;;
       esac
       echo "$x" > "$OUT/$job/xla_flags.txt" ;;
     profile_tick_warm)  # issue 46 (qpmax46): profile_tick at 65,536 envs with the force QP warm-started at its own
             # float32 tolerance (qp.WARM_START_TOL_FLOAT32, 5e-7; one-foot's acceptance within 0.03 %): the batch's
             # slowest QP's Newton steps and the force stage's µs before, in and after the push, beside profile_tick's
-      run profile_tick_warm python3 benchmarks/profile_tick.py --batch 65536 --states loop --qp-warm-start \
-        --out "$OUT/profile_tick_warm" --trace /tmp/traces/profile_tick_warm ;;
+      profile46 profile_tick_warm --qp-warm-start ;;
     tune_gpus)  # issue 45: the tune job's gradient step and a CMA-ES generation at the race's settings on 1 GPU and on
             # all of them (loss, gradient, their difference, step seconds, speed-up). A call cut off by its limit
             # leaves the compiled programs in $WBC_JAX_CACHE: the same call on the warm machine goes on from them.
