@@ -192,8 +192,8 @@ for job in "$@"; do
       case $job in profile_tick_unrolled) profile46 $job $u ;; bench46_unrolled) bench46_run $job $u ;; esac ;;
     profile_tick_cbuf|bench46_cbuf)  # issue 46 (s57): profile_tick / bench46 with XLA's command buffers taking while
             # loops and conditionals too (CUDA graph conditional nodes: the predicate stays on the GPU), CBUF_TYPES
-            # (default below). The tick has one QP while loop and about 5 batch_any conds on its path, and at 65,536
-            # envs the H100 waited about 1.4 ms a tick per such pause (results/gpu_h100/s57); QP_UNROLLED_STEPS adds
+            # (default below). The tick has one QP while loop and four batch_any conds on its path, and at 65,536
+            # envs the H100 waited about 1.5-1.8 ms a tick per such pause (results/gpu_h100/s57); QP_UNROLLED_STEPS adds
             # --qp-unrolled-steps. Run beside profile_tick / bench46 on the same machine
       u="${QP_UNROLLED_STEPS:+--qp-unrolled-steps $QP_UNROLLED_STEPS}"
       x="--xla_gpu_enable_command_buffer=${CBUF_TYPES:-FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,WHILE,CONDITIONAL}"
