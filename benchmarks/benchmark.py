@@ -60,8 +60,8 @@ JSON_KEYS = (
     "sweep_run_s",
     "sweep_envs",
 )
-# qp_warm_start, qp_unrolled_steps, xla_flags: only in the row of a run that set them (the rows before, at the
-# defaults, have no such key)
+# qp_warm_start, qp_unrolled_steps, qp_engine, xla_flags: only in the row of a run that set them (the rows before, at
+# the defaults, have no such key)
 JSON_ROW_KEY = (
     "device",
     "backend",
@@ -71,6 +71,7 @@ JSON_ROW_KEY = (
     "sweep_name",
     "qp_warm_start",
     "qp_unrolled_steps",
+    "qp_engine",
     "xla_flags",
 )
 
@@ -145,6 +146,8 @@ def json_rows(result: dict) -> list[dict]:
             entry["qp_warm_start"] = True
         if row.get("qp_unrolled_steps"):
             entry["qp_unrolled_steps"] = row["qp_unrolled_steps"]
+        if row.get("qp_engine", "jax") != "jax":  # the force QP's interior point in Warp: a setting of its own
+            entry["qp_engine"] = row["qp_engine"]
         if row.get("xla_flags"):  # XLA's flags of the run (command buffers, say): a setting of its own
             entry["xla_flags"] = row["xla_flags"]
         rows.append(entry)
@@ -190,6 +193,12 @@ def parse_args(argv=None):
         type=int,
         default=0,
         help="the force QP's first Newton steps written out before its while loop (ControllerConfig.qp_unrolled_steps)",
+    )
+    parser.add_argument(
+        "--qp-engine",
+        choices=("jax", "warp"),
+        default="jax",
+        help="the force QP's interior-point engine (ControllerConfig.qp_engine; warp: one Warp kernel)",
     )
     parser.add_argument(
         "--json",
@@ -247,6 +256,8 @@ def parse_args(argv=None):
         parser.error(
             f"--qp-unrolled-steps must be from 0 to {DEFAULT_ITERATIONS} (the QP's iterations), got {args.qp_unrolled_steps}"
         )
+    if args.qp_engine == "warp" and args.qp_unrolled_steps:
+        parser.error("--qp-engine warp takes --qp-unrolled-steps 0 (the Warp kernel has no while loop to unroll)")
     if args.repeats < 1:
         parser.error("--repeats must be >= 1")
     for name in ("batches", "cpu_workers"):
@@ -332,6 +343,7 @@ def main(argv=None) -> dict:
                 it,
                 qp_warm_start=args.qp_warm_start,
                 qp_unrolled_steps=args.qp_unrolled_steps,
+                qp_engine=args.qp_engine,
             )
             iterations = int(physics.solver_mj_model(st.robot.mj_model, st.loop.cfg.physics).opt.iterations)
             tau = None if args.skip_physics_only else hold_torques(st)
@@ -340,6 +352,7 @@ def main(argv=None) -> dict:
                     "backend": backend,
                     "qp_warm_start": args.qp_warm_start,
                     "qp_unrolled_steps": args.qp_unrolled_steps,
+                    "qp_engine": args.qp_engine,
                     "xla_flags": os.environ.get("XLA_FLAGS") or None,
                     "device": device_description(backend),
                     "batch": batch,

@@ -19,16 +19,18 @@ def make_setup(
     record: bool = False,
     qp_warm_start: bool = False,
     qp_unrolled_steps: int = 0,
+    qp_engine: str = "jax",
 ):
     """The stand task's closed loop on ``backend`` (default gains, the two feet; ``qp_warm_start``: the
     controller's force QP warm-started, ``ControllerConfig.qp_warm_start``; ``qp_unrolled_steps``: its first
-    Newton steps written out before the while loop, ``ControllerConfig.qp_unrolled_steps``)."""
+    Newton steps written out before the while loop, ``ControllerConfig.qp_unrolled_steps``; ``qp_engine``:
+    its interior point's engine, ``ControllerConfig.qp_engine``)."""
     from wbc_jax.control.controller import ControllerConfig
     from wbc_jax.sim import physics, scenario
     from wbc_jax.sim.state import SimConfig
 
     sim = SimConfig(record=record, physics=physics.PhysicsConfig(backend=backend, solver_iterations=iterations))
-    controller = ControllerConfig(qp_warm_start=qp_warm_start, qp_unrolled_steps=qp_unrolled_steps)
+    controller = ControllerConfig(qp_warm_start=qp_warm_start, qp_unrolled_steps=qp_unrolled_steps, qp_engine=qp_engine)
     return scenario.setup("stand", duration=horizon, sim=sim, controller=controller)
 
 

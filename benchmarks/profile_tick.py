@@ -68,6 +68,13 @@ def parse_args(argv=None) -> argparse.Namespace:
         default=0,
         help="the force QP's first Newton steps written out before its while loop (ControllerConfig.qp_unrolled_steps)",
     )
+    p.add_argument(
+        "--qp-engine",
+        choices=("jax", "warp"),
+        default="jax",
+        help="the force QP's interior-point engine (ControllerConfig.qp_engine; warp: one Warp kernel), in the "
+        "recorded loop too",
+    )
     args = p.parse_args(argv)
     from wbc_jax.control.qp import DEFAULT_ITERATIONS  # the controller's QP budget
 
@@ -75,6 +82,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.error(
             f"--qp-unrolled-steps must be from 0 to {DEFAULT_ITERATIONS} (the QP's iterations), got {args.qp_unrolled_steps}"
         )
+    if args.qp_engine == "warp" and args.qp_unrolled_steps:
+        p.error("--qp-engine warp takes --qp-unrolled-steps 0 (the Warp kernel has no while loop to unroll)")
     for name in ("batch", "repeats", "loop_envs"):
         if getattr(args, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
@@ -383,7 +392,9 @@ def main(argv=None) -> dict:
 
     runner.enable_compilation_cache()
     # benchmark.py's closed loop (the JAX engine: the states are recorded), at the scale step's backend.
-    qp_flags = dict(qp_warm_start=args.qp_warm_start, qp_unrolled_steps=args.qp_unrolled_steps)
+    qp_flags = dict(
+        qp_warm_start=args.qp_warm_start, qp_unrolled_steps=args.qp_unrolled_steps, qp_engine=args.qp_engine
+    )
     st = make_setup("jax", args.horizon, None, **qp_flags)
     fns = stage_functions(st)
     groups = state_groups(st, args)
@@ -393,6 +404,7 @@ def main(argv=None) -> dict:
         "batch": args.batch,
         "qp_warm_start": args.qp_warm_start,
         "qp_unrolled_steps": args.qp_unrolled_steps,
+        "qp_engine": args.qp_engine,
         "device": provenance.device_label(),
         "dtype": str(st.dtype),
         "matmul_precision": st.loop.cfg.matmul_precision,

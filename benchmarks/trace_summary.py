@@ -120,7 +120,11 @@ def op_times(trace_dir: str | pathlib.Path, module: str) -> tuple[str, dict[str,
         spans.sort(key=lambda s: (s[0], -s[1]))
         stack: list[list] = []  # [end, op, own time]
         for ts, dur, op in spans:
-            while stack and stack[-1][0] <= ts:
+            # An op nests in the open one only where it ends inside it (a CPU while thunk and its body's thunks);
+            # one that starts before the open op's end but ends after it follows it: on a GPU stream the kernels
+            # run one after another, and their clock's rounding overlaps neighbours by a fraction of a µs
+            # (results/gpu_h100/s58: 2,022 such pairs in 3 ticks, 0.1 % of their time).
+            while stack and (stack[-1][0] <= ts or ts + dur > stack[-1][0]):
                 end, name, own = stack.pop()
                 totals[name] += own
             if stack:

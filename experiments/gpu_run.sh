@@ -34,7 +34,7 @@ run() {  # name, command...: time a job, keep its output
   echo "job $name: rc=$rc ${SECONDS}s"; tail -n 3 "$OUT/$name/stdout.txt"
 }
 keep_trace() {  # job: the last traced tick's perfetto trace beside the job's results (a few MB; for a viewer)
-  local f; f=$(ls -t /tmp/traces/$1/tick_*/plugins/profile/*/*.perfetto_trace.json.gz 2>/dev/null | head -1)
+  local f; f=$(ls -t /tmp/traces/$1/tick_*/plugins/profile/*/*perfetto_trace.json.gz 2>/dev/null | head -1)
   [ -n "$f" ] && cp "$f" "$OUT/$1/trace_$(basename "$(dirname "$(dirname "$(dirname "$(dirname "$f")")")")").json.gz"
 }
 profile46() {  # job, flags...: profile_tick at 65,536 envs on the loop's states, traced; the last traced tick kept
@@ -190,6 +190,13 @@ for job in "$@"; do
             # (device_idle); QP_WARM=1 adds --qp-warm-start. Run beside profile_tick / bench46 on the same machine
       u="--qp-unrolled-steps ${QP_UNROLLED_STEPS:-6}${QP_WARM:+ --qp-warm-start}"
       case $job in profile_tick_unrolled) profile46 $job $u ;; bench46_unrolled) bench46_run $job $u ;; esac ;;
+    profile_tick_wqp|bench46_wqp)  # issue 46 (s58): the force QP's interior point as one Warp kernel, one thread per
+            # problem (--qp-engine warp, wbc_jax/control/qp_warp.py), where XLA ran 20 library kernels a Newton step
+            # (batched LU, triangular solves, top_k) on the H100. Run beside profile_tick / bench46 on the same machine
+      case $job in
+        profile_tick_wqp) profile46 $job --qp-engine warp ;;
+        bench46_wqp) bench46_run $job --qp-engine warp ;;
+      esac ;;
     profile_tick_cbuf|bench46_cbuf)  # issue 46 (s57): profile_tick / bench46 with XLA's command buffers taking while
             # loops and conditionals too (CUDA graph conditional nodes: the predicate stays on the GPU), CBUF_TYPES
             # (default below). The tick has one QP while loop and four batch_any conds on its path, and at 65,536

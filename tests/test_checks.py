@@ -264,6 +264,18 @@ def test_benchmark_json_keeps_a_warm_started_row_beside_the_cold_one(tmp_path):
     bm.update_json_rows(path, bm.json_rows(flagged))
     rows = bm.update_json_rows(path, bm.json_rows(unrolled))
     assert sorted(r["closed_loop_steps_per_s"] for r in rows) == [2.0, 3.0, 4.0, 5.0]
+    # The force QP's interior point in Warp (gpu_run.sh bench46_wqp): a row of its own; "jax" is the cold row's.
+    wqp = dict(result, runs=[dict(setting, closed_loop_steps_per_s=6.0, qp_engine="warp")])
+    jax_engine = dict(result, runs=[dict(setting, closed_loop_steps_per_s=7.0, qp_engine="jax")])
+    bm.update_json_rows(path, bm.json_rows(wqp))
+    rows = bm.update_json_rows(path, bm.json_rows(jax_engine))
+    assert sorted((r["closed_loop_steps_per_s"], r.get("qp_engine")) for r in rows) == [
+        (2.0, None),
+        (4.0, None),
+        (5.0, None),
+        (6.0, "warp"),
+        (7.0, None),
+    ]
     assert [r.get("xla_flags") for r in rows if r["closed_loop_steps_per_s"] == 4.0] == [
         "--xla_gpu_enable_command_buffer="
     ]

@@ -80,7 +80,15 @@ def test_each_job_checks_its_config_once(name, tmp_path, monkeypatch, capsys):
     assert calls == [config_class.__name__], calls
 
 
-CONTROLLER_FLAGS = ("tasks", "forces", "postural", "angular_weight_soft", "qp_warm_start", "qp_unrolled_steps")
+CONTROLLER_FLAGS = (
+    "tasks",
+    "forces",
+    "postural",
+    "angular_weight_soft",
+    "qp_warm_start",
+    "qp_unrolled_steps",
+    "qp_engine",
+)
 
 
 def _configs():
@@ -137,6 +145,25 @@ def test_qp_unrolled_steps_flag_reaches_the_controller_and_refuses_what_the_qp_c
             assert config.controller.config().qp_unrolled_steps == steps, (command, flags)
     with pytest.raises(ValueError, match=r"qp_unrolled_steps must be an integer from 0 to qp_iterations \(5\)"):
         ControllerConfig(qp_iterations=5, qp_unrolled_steps=6)
+
+
+def test_qp_engine_flag_reaches_the_controller_and_refuses_what_the_qp_cannot_take(capsys):
+    """Issue 46 (s58): ``--qp-engine`` (jax by default) is the controller's ``qp_engine``; an unknown engine is
+    refused by the parser, and warp with unrolled steps (the Warp kernel has no while loop) by the controller."""
+    from wbc_jax import cli
+    from wbc_jax.control.controller import ControllerConfig
+
+    for command in ("push-sweep", "balance"):
+        for flags, engine in (([], "jax"), (["--qp-engine", "warp"], "warp")):
+            config = cli.config_from_args(
+                cli.build_parser().parse_args([command, *flags]), registry()[command].default_config()
+            )
+            assert config.controller.config().qp_engine == engine, (command, flags)
+        with pytest.raises(SystemExit):
+            cli.build_parser().parse_args([command, "--qp-engine", "cuda"])
+        assert "--qp-engine" in capsys.readouterr().err
+    with pytest.raises(ValueError, match=r"qp_engine 'warp' takes qp_unrolled_steps 0"):
+        ControllerConfig(qp_engine="warp", qp_unrolled_steps=6)
 
 
 def test_the_robot_is_part_of_every_fingerprint(tmp_path):

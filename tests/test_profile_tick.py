@@ -30,6 +30,8 @@ def profile_tick():
         (["--batch", "0"], ("--batch", ">= 1")),
         (["--push-onset", "0.45"], ("--push-onset", "--horizon")),
         (["--qp-unrolled-steps", "26"], ("--qp-unrolled-steps", "0 to 25")),
+        (["--qp-engine", "cuda"], ("--qp-engine", "'jax'", "'warp'")),
+        (["--qp-engine", "warp", "--qp-unrolled-steps", "6"], ("--qp-engine warp", "--qp-unrolled-steps 0")),
     ],
 )
 def test_bad_flags_are_refused_in_one_line(profile_tick, capsys, argv, names):

@@ -71,6 +71,43 @@ def test_profile_tick_traces_its_programs_own_ops(tmp_path):
     assert summary["by_function"][0]["name"].endswith("tests/test_trace_summary.py:heavy"), summary["by_function"]
 
 
+def test_op_times_counts_a_gpu_kernel_whole_where_the_clock_overlaps_it_with_the_next(tmp_path):
+    """GPU kernels on one stream run one after another, but the trace's rounded timestamps can start a kernel a
+    fraction of a µs before the last one ends (results/gpu_h100/s58): that is not nesting, and each kernel keeps its
+    whole time (counted as nested, the first lost the second's and the H100 tick's ops summed to half its busy time).
+    A kernel wholly inside another's span still nests."""
+    import gzip
+    import json
+
+    ts = load_script("benchmarks/trace_summary.py")
+
+    def event(start, dur, op):
+        return {
+            "ph": "X",
+            "pid": 7,
+            "tid": 1,
+            "ts": start,
+            "dur": dur,
+            "name": op,
+            "args": {"hlo_op": op, "hlo_module": "jit_f"},
+        }
+
+    events = [
+        {"ph": "M", "name": "process_name", "pid": 7, "args": {"name": "/device:GPU:0"}},
+        event(0.0, 25.345, "a"),
+        event(25.217, 7.584, "b"),  # starts 0.128 µs before a ends
+        event(32.673, 40.0, "c"),  # and c 0.128 µs before b ends
+        event(40.0, 5.0, "d"),  # wholly inside c: nested
+    ]
+    where = tmp_path / "plugins" / "profile" / "run"
+    where.mkdir(parents=True)
+    with gzip.open(where / "host.perfetto_trace.json.gz", "wt") as f:
+        json.dump({"traceEvents": events}, f)
+    timeline, times = ts.op_times(tmp_path, "jit_f")
+    assert timeline == "gpu"
+    assert times == pytest.approx({"a": 25.345, "b": 7.584, "c": 35.0, "d": 5.0})
+
+
 def test_device_idle_splits_calls_and_sums_the_pauses_between_kernels(tmp_path):
     """device_idle on a GPU timeline written by hand: two calls of kernels a and b (a copy without an HLO op after
     b in the first) a long host pause apart; the device's idle time is the pauses within the calls."""

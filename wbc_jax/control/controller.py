@@ -61,6 +61,8 @@ class ControllerConfig:
       qp_unrolled_steps: the force QPs' first Newton steps written out before their while loop (0 to
         qp_iterations; the same solutions): on a GPU each pass of the loop waits for its predicate on the
         host (BENCHMARKS.md, issue 46). 0 by default.
+      qp_engine: the force QPs' interior-point engine, ``"jax"`` (default) or ``"warp"`` (one Warp kernel, one
+        thread per problem, :mod:`wbc_jax.control.qp_warp`; needs warp-lang and qp_unrolled_steps 0).
       torque_weight_soft: |tau|^2 against |A f - w|^2 in the soft momentum QP.
       angular_weight_soft: the angular rows of |A f - w|^2 against the linear ones in the soft
         momentum QP (1: WBC; < 1: the CoM first where a push asks more than the feet can give).
@@ -97,6 +99,7 @@ class ControllerConfig:
     qp_warm_start: bool = False
     qp_tol: float | None = None
     qp_unrolled_steps: int = 0
+    qp_engine: str = "jax"
     torque_weight_soft: float = 1e-4
     angular_weight_soft: float = 1.0
     normal_force_weight: float = 1e3
@@ -160,6 +163,13 @@ class ControllerConfig:
                 f"controller setting qp_unrolled_steps must be an integer from 0 to qp_iterations "
                 f"({self.qp_iterations}), got {steps!r}"
             )
+        if self.qp_engine not in qp.QP_ENGINES:
+            raise ValueError(f"unknown controller setting qp_engine {self.qp_engine!r}; valid: {list(qp.QP_ENGINES)}")
+        if self.qp_engine == "warp" and steps:
+            raise ValueError(
+                f"controller setting qp_engine 'warp' takes qp_unrolled_steps 0 (the Warp kernel has no while loop "
+                f"to unroll), got {steps!r}"
+            )
         if isinstance(self.effort_damping, bool) or not (
             isinstance(self.effort_damping, (int, float)) and 0.0 <= self.effort_damping < math.inf
         ):
@@ -178,6 +188,7 @@ class ControllerConfig:
             warm_start=self.qp_warm_start,
             qp_tol=self.qp_tol,
             qp_unrolled_steps=self.qp_unrolled_steps,
+            qp_engine=self.qp_engine,
             torque_weight_soft=self.torque_weight_soft,
             angular_weight_soft=self.angular_weight_soft,
             normal_force_weight=self.normal_force_weight,

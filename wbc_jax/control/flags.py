@@ -1,7 +1,7 @@
 """The controller's job flags, declared once: every job that runs the controller holds a
 :class:`ControllerFlags` as a nested field (:func:`wbc_jax.core.options.nested`), so ``--tasks``,
-``--forces``, ``--postural``, ``--angular-weight-soft``, ``--qp-warm-start`` and ``--qp-unrolled-steps`` mean the same in
-balance, push-sweep, envelope, limit, tune and heldout."""
+``--forces``, ``--postural``, ``--angular-weight-soft``, ``--qp-warm-start``, ``--qp-unrolled-steps`` and ``--qp-engine``
+mean the same in balance, push-sweep, envelope, limit, tune and heldout."""
 
 from __future__ import annotations
 
@@ -47,6 +47,12 @@ class ControllerFlags:
         ge=0,
         le=qp.DEFAULT_ITERATIONS,
     )
+    qp_engine: str = option(
+        "jax",
+        "the force QP's interior-point engine: jax, or warp (one Warp kernel, one thread per problem, "
+        "wbc_jax/control/qp_warp.py; needs warp-lang and --qp-unrolled-steps 0)",
+        choices=qp.QP_ENGINES,
+    )
 
     def config(self, base: ControllerConfig | None = None) -> ControllerConfig:
         """``base`` (default: the defaults) with these settings (the jobs' configs check the declared
@@ -58,4 +64,5 @@ class ControllerFlags:
             angular_weight_soft=self.angular_weight_soft,
             qp_warm_start=self.qp_warm_start,
             qp_unrolled_steps=self.qp_unrolled_steps,
+            qp_engine=self.qp_engine,
         )

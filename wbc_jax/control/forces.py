@@ -83,6 +83,7 @@ class ForceSettings:
     warm_start: bool = False  # the equality QP from the last tick's multipliers and slacks
     qp_tol: float | None = None  # the QPs' relative KKT tolerance (None: qp.default_tolerances)
     qp_unrolled_steps: int = 0  # Newton steps written out before the interior point's while loop
+    qp_engine: str = "jax"  # the interior point's engine, qp.QP_ENGINES ("warp": one Warp kernel)
 
     def tolerance(self, dtype) -> float:
         """The largest :func:`contact_violation` a formulation's wrenches may have (else the next
@@ -227,6 +228,7 @@ def momentum_equality_qp(
         row_weight=row_weights(cset),
         start=start if settings.warm_start else None,
         unrolled=settings.qp_unrolled_steps,
+        engine=settings.qp_engine,
     )
     return f1 + Z @ y, info
 
@@ -309,6 +311,7 @@ def soft_momentum_qp(
         tol=settings.qp_tol,
         row_weight=row_weights(cset),
         unrolled=settings.qp_unrolled_steps,
+        engine=settings.qp_engine,
     )
     return keep * x, info
 

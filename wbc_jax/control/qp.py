@@ -92,6 +92,10 @@ from wbc_jax.core.math import batch_any
 Array = jax.Array
 
 
+QP_ENGINES = ("jax", "warp")
+"""Engines of :func:`solve_qp`'s interior-point iterations (its ``engine``)."""
+
+
 DEFAULT_ITERATIONS = 25
 """Default (maximum) number of interior-point (Newton) steps: the contact problems
 converge in 8-19 (float64, tol 1e-11) or 7-22 (float32, tol 2e-6); the loop stops once
@@ -179,6 +183,7 @@ def solve_qp(
     row_weight: Any = None,
     start: Array | None = None,
     unrolled: int = 0,
+    engine: str = "jax",
 ) -> tuple[Array, QPInfo]:
     """Solve a small dense convex QP with inequality constraints.
 
@@ -212,6 +217,10 @@ def solve_qp(
             is the same within ``tol``; it takes fewer Newton steps.
         unrolled: Newton steps written out before the interior point's while loop (static, 0 to
             ``iterations``): the same solution; on a GPU no pause for the loop's predicate in them.
+        engine: the interior-point iterations' engine (static): ``"jax"``
+            (:func:`wbc_jax.control.qp_ipm.interior_point`) or ``"warp"`` (one Warp kernel, one thread per
+            problem, :func:`wbc_jax.control.qp_warp.interior_point_warp`; needs warp-lang, and ``unrolled`` 0:
+            the kernel has no while loop to unroll). The derivative and the fallback stay JAX's.
 
     Returns:
         ``(x, info)``: x (n,) in the promoted float dtype of the inputs, and a
@@ -231,6 +240,12 @@ def solve_qp(
         raise ValueError(f"solve_qp: iterations must be >= 1, got {iterations}")
     if isinstance(unrolled, bool) or not isinstance(unrolled, int) or not 0 <= unrolled <= int(iterations):
         raise ValueError(f"solve_qp: unrolled must be an integer from 0 to iterations ({iterations}), got {unrolled!r}")
+    if engine not in QP_ENGINES:
+        raise ValueError(f"solve_qp: unknown engine {engine!r}; valid: {list(QP_ENGINES)}")
+    if engine == "warp" and unrolled != 0:
+        raise ValueError(
+            f"solve_qp: engine 'warp' takes unrolled 0 (the Warp kernel has no while loop to unroll), got {unrolled!r}"
+        )
     d_tol, d_fallback = default_tolerances(dtype, warm_start=start is not None)
     tol = d_tol if tol is None else float(tol)
     fallback_tol = d_fallback if fallback_tol is None else float(fallback_tol)
@@ -248,7 +263,12 @@ def solve_qp(
             raise ValueError(
                 f"solve_qp: start must have shape (2, {b.shape[0]}) (multipliers, slacks), got {start.shape}"
             )
-    ipm = interior_point(Hp, gp, Cp, bp, int(iterations), tol, weight, start, unrolled)
+    if engine == "warp":
+        from wbc_jax.control import qp_warp  # Warp only where asked for
+
+        ipm = qp_warp.interior_point_warp(Hp, gp, Cp, bp, int(iterations), tol, weight, start)
+    else:
+        ipm = interior_point(Hp, gp, Cp, bp, int(iterations), tol, weight, start, unrolled)
 
     finite_input = jnp.all(jnp.array([jnp.all(jnp.isfinite(a)) for a in (Hp, gp, Cp, bp)]))
     fallback = (~ipm.converged & (ipm.violation > fallback_tol)) | ~ipm.finite
