@@ -247,3 +247,49 @@ def op_label(source: dict | None, op: str, short=lambda path: path) -> str:
     if not source:
         return op
     return f"{source['opcode']} {short(source['file'])}:{source['function']}:{source['line']}"
+
+
+def by_scope(trace_dir: str | pathlib.Path, module: str, calls: int, batch: int) -> dict:
+    """A kept trace summed without the program's HLO text: µs per environment and call of ``module``'s ops per
+    the JAX scope that named them (the events' ``name``: ``jit(tick)/vmap(torque_law)/...`` -> ``vmap(torque_law)``;
+    fusions that XLA named itself are ``(fusion)``), their total, and ``device_idle``."""
+    events, names = _events(trace_dir)
+    gpu = {pid for pid, name in names.items() if name.startswith("/device:GPU")}
+    _, times = op_times(trace_dir, module)
+    scope_of: dict[str, str] = {}
+    for e in events:
+        args = e.get("args") or {}
+        if e.get("pid") in gpu and "hlo_op" in args and args["hlo_op"] not in scope_of:
+            parts = str(args.get("name", "")).split("/")
+            scope_of[args["hlo_op"]] = parts[1] if len(parts) > 2 else ("(fusion)" if "name" not in args else parts[0])
+    scale = 1.0 / (calls * batch)
+    scopes: dict[str, float] = collections.defaultdict(float)
+    for op, t in times.items():
+        scopes[scope_of.get(op, "(fusion)")] += t * scale
+    return {
+        "total_us_per_env": round(sum(times.values()) * scale, 5),
+        "by_scope": {k: round(v, 5) for k, v in sorted(scopes.items(), key=lambda kv: -kv[1])},
+        "device_idle": device_idle(trace_dir, calls),
+    }
+
+
+if __name__ == "__main__":
+    import argparse
+
+    parser = argparse.ArgumentParser(description="A kept perfetto trace summed per JAX scope (by_scope).")
+    parser.add_argument("trace", help="a folder holding a *perfetto_trace.json.gz, or the file itself")
+    parser.add_argument("--module", default="jit_tick")
+    parser.add_argument("--calls", type=int, default=3, help="calls of the program in the trace")
+    parser.add_argument("--batch", type=int, default=65536, help="environments of a call")
+    a = parser.parse_args()
+    where = pathlib.Path(a.trace)
+    if where.is_file():  # a kept trace file: _events looks for *perfetto_trace.json.gz under a folder
+        import tempfile
+
+        tmp = pathlib.Path(tempfile.mkdtemp())
+        (tmp / "kept.perfetto_trace.json.gz").symlink_to(where.resolve())
+        where = tmp
+    summary = by_scope(where, a.module, a.calls, a.batch)
+    if summary["device_idle"]:
+        summary["device_idle"] = {k: v for k, v in summary["device_idle"].items() if not isinstance(v, list)}
+    print(json.dumps(summary, indent=1))

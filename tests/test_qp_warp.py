@@ -103,3 +103,13 @@ def test_a_non_finite_problem_is_flagged_and_does_not_touch_the_others():
     ok = np.asarray([i not in (2, 5) for i in range(8)])
     assert np.all(warp["converged"][ok])
     np.testing.assert_allclose(warp["x"][ok], ref["x"][ok], rtol=0, atol=1e-5)
+
+
+@pytest.mark.gpu
+def test_on_the_gpu_the_same_newton_steps_and_solution_as_the_jax_interior_point():
+    """The kernel as CUDA code (NVRTC), against the JAX engine on the same GPU, float32 at the controller's tol."""
+    assert jax.devices()[0].platform == "gpu"
+    H, g, C, b = _problems(256, seed=5)  # float32
+    ref, warp = _solve("jax", H, g, C, b, tol=2e-6), _solve("warp", H, g, C, b, tol=2e-6)
+    assert np.all(ref["converged"])
+    _assert_same(warp, ref, 1e-5)

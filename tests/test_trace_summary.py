@@ -177,3 +177,33 @@ def test_a_module_is_matched_by_its_name_or_xlas_suffixes_of_it():
     assert ts.same_module("jit_tick", "jit_tick") and ts.same_module("jit_tick.1", "jit_tick")
     assert ts.same_module("jit_tick(3)", "jit_tick")
     assert not ts.same_module("jit_ticker", "jit_tick") and not ts.same_module("jit_other", "jit_tick")
+
+
+def test_by_scope_sums_a_kept_trace_per_jax_scope_without_the_hlo_text(tmp_path):
+    """A trace kept from a GPU run (gpu_run.sh keep_trace) read back on its own: each op's time under the JAX scope
+    that named it, XLA's own fusions apart, µs per environment and call; the total is every op's time once."""
+    import gzip
+    import json
+
+    ts = load_script("benchmarks/trace_summary.py")
+
+    def kernel(start, dur, op, name=None):
+        args = {"hlo_op": op, "hlo_module": "jit_tick", **({"name": name} if name else {})}
+        return {"ph": "X", "pid": 7, "tid": 1, "ts": start, "dur": dur, "name": op, "args": args}
+
+    events = [
+        {"ph": "M", "name": "process_name", "pid": 7, "args": {"name": "/device:GPU:0"}},
+        kernel(0, 30, "lu.1", "jit(tick)/vmap(force_distribution)/lu"),
+        kernel(29.9, 10, "trsm.2", "jit(tick)/vmap(torque_law)/jit(_cho_solve)/triangular_solve"),
+        kernel(40, 20, "loop_fusion.3"),
+        kernel(100, 30, "lu.1", "jit(tick)/vmap(force_distribution)/lu"),
+    ]
+    where = tmp_path / "plugins" / "profile" / "run"
+    where.mkdir(parents=True)
+    with gzip.open(where / "host.perfetto_trace.json.gz", "wt") as f:
+        json.dump({"traceEvents": events}, f)
+    summary = ts.by_scope(tmp_path, "jit_tick", calls=2, batch=5)
+    assert summary["by_scope"] == pytest.approx(
+        {"vmap(force_distribution)": 6.0, "vmap(torque_law)": 1.0, "(fusion)": 2.0}
+    )
+    assert summary["total_us_per_env"] == pytest.approx(9.0)

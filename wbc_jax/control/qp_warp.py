@@ -186,7 +186,11 @@ def _kernel(n: int, m: int, iterations: int, tol: float, float64: bool, weighted
                 dz[k] = t[k] + ratio[k] * cdx
         return dx, ds, dz
 
-    @wp.kernel(enable_backward=False, module="unique")
+    # No loop unrolled by Warp's code generator (max_unroll 1): its default unrolls every loop of up to 16 passes,
+    # and the nested loops over n then make a source of 1.2 MB that NVRTC compiles in 176 s for n = 12 (the soft
+    # QP), against 0.12 MB and 40 s (16 s for n = 6) here, on this repository's CI machine (AMD EPYC). The CUDA
+    # compiler still unrolls what it sees fit.
+    @wp.kernel(enable_backward=False, module="unique", module_options={"max_unroll": 1})
     def ipm(
         H: wp.array3d(dtype=real),
         g: wp.array2d(dtype=real),
