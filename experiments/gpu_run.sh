@@ -119,17 +119,19 @@ for job in "$@"; do
         run envelope_$b python3 experiments/checks/envelope_check.py --grid /tmp/sw/agree_$b --out "$OUT/envelope_$b" -- \
           --backend $b
       done ;;
-    warm_sweep)  # issue 46, the warm-started force QP as the default: the default-gain grid (2,048 envs, 3 s) on Warp
-            # three times cold (the engine's run-to-run floor) and twice with --qp-warm-start, each compared cell by
-            # cell with the first cold grid (island_check: differing cells, their distance from its transition band)
-      mkdir -p "$OUT/warm_sweep"
-      for r in cold1 cold2 cold3 warm1 warm2; do
-        f=""; case $r in warm*) f="--qp-warm-start" ;; esac
-        run warm_sweep_$r $SW --chunk-size 2048 --backend warp $f --out /tmp/sw/ws_$r
-        cp /tmp/sw/ws_$r/summary.json "$OUT/warm_sweep/$r.summary.json"
+    warm_sweep|wqp_sweep)  # issue 46, a setting of the force QP as the default: the default-gain grid (2,048 envs,
+            # 3 s) on Warp three times as now (the engine's run-to-run floor) and twice with the setting, each compared
+            # cell by cell with the first grid (island_check: differing cells, their distance from its transition
+            # band). warm_sweep: --qp-warm-start; wqp_sweep: --qp-engine warp (the QP as one Warp kernel, s58)
+      case $job in warm_sweep) v=warm f="--qp-warm-start" ;; wqp_sweep) v=wqp f="--qp-engine warp" ;; esac
+      mkdir -p "$OUT/$job"
+      for r in cold1 cold2 cold3 ${v}1 ${v}2; do
+        case $r in cold*) g="" ;; *) g=$f ;; esac
+        run ${job}_$r $SW --chunk-size 2048 --backend warp $g --out /tmp/sw/${job}_$r
+        cp /tmp/sw/${job}_$r/summary.json "$OUT/$job/$r.summary.json"
       done
-      run warm_sweep python3 experiments/checks/island_check.py /tmp/sw/ws_cold1 /tmp/sw/ws_cold2 /tmp/sw/ws_cold3 \
-        /tmp/sw/ws_warm1 /tmp/sw/ws_warm2 --out "$OUT/warm_sweep/islands.json" ;;
+      run $job python3 experiments/checks/island_check.py /tmp/sw/${job}_cold1 /tmp/sw/${job}_cold2 \
+        /tmp/sw/${job}_cold3 /tmp/sw/${job}_${v}1 /tmp/sw/${job}_${v}2 --out "$OUT/$job/islands.json" ;;
     regrid)  # the grids of 'agree' run again (the engine's run-to-run floor) and kept with their tables
       for b in ${ENVELOPE_BACKENDS:-warp}; do
         run regrid_$b $SW --chunk-size 2048 --backend $b --out /tmp/sw/agree_${b}_2
