@@ -139,3 +139,19 @@ def qp_slowest():
 def test_qp_slowest_refuses_bad_flags_in_one_line(qp_slowest, capsys, argv, names):
     error = refused_in_one_line(qp_slowest.main, [*argv, "--out", "/nonexistent/never_written"], capsys)
     assert all(name in error for name in names), error
+
+
+def test_the_warp_qp_without_warp_lang_is_refused_in_one_line_before_anything_compiles(monkeypatch, capsys, tmp_path):
+    """``--qp-engine warp`` where warp-lang is not installed: the loop's set-up refuses it, naming what to install
+    and the engine valid here, before the first program is traced (not from inside a compile)."""
+    from wbc_jax import cli
+    from wbc_jax.sim import physics
+
+    monkeypatch.setattr(physics, "has_warp", lambda: False)
+    argv = ["balance", "--task", "stand", "--duration", "0.1", "--qp-engine", "warp", "--out", str(tmp_path / "b")]
+    assert cli.main(argv) == 2
+    errors = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
+    assert len(errors) == 1, errors
+    line = errors[0]
+    assert "qp_engine 'warp'" in line and "pip install 'wbc_jax[cuda]'" in line and "valid here: ['jax']" in line
+    assert not (tmp_path / "b" / "metrics.json").exists()

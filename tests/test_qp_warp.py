@@ -4,6 +4,7 @@ warm-started, under nested vmaps, and with non-finite data. Runs on Warp's CPU b
 installed (the `cuda` extra); the `gpu` set runs it on the GPU."""
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -113,3 +114,21 @@ def test_on_the_gpu_the_same_newton_steps_and_solution_as_the_jax_interior_point
     ref, warp = _solve("jax", H, g, C, b, tol=2e-6), _solve("warp", H, g, C, b, tol=2e-6)
     assert np.all(ref["converged"])
     _assert_same(warp, ref, 1e-5)
+
+
+def test_solve_qp_differentiates_the_warp_engines_solution_as_the_jax_engines():
+    """solve_qp(engine="warp"): the kernel is never differentiated (its inputs are stop_gradient data), and the
+    implicit derivative at its solution is the JAX engine's: reverse and forward mode agree to float64 rounding."""
+    from wbc_jax.control import qp
+
+    H, g, C, b = _problems(4, dtype=np.float64, seed=6)
+
+    def loss(g, engine):
+        x, _ = jax.vmap(lambda H, g, C, b: qp.solve_qp(H, g, C, b, engine=engine))(H, g, C, b)
+        return jnp.sum(x**2)
+
+    grads = {e: jax.jit(jax.grad(loss), static_argnums=1)(g, e) for e in ("jax", "warp")}
+    np.testing.assert_allclose(grads["warp"], grads["jax"], rtol=1e-9, atol=1e-12)
+    assert np.max(np.abs(grads["jax"])) > 1e-3  # a gradient, not zeros
+    tangents = {e: jax.jvp(functools.partial(loss, engine=e), (g,), (jnp.ones_like(g),))[1] for e in ("jax", "warp")}
+    np.testing.assert_allclose(tangents["warp"], tangents["jax"], rtol=1e-9)
