@@ -21,7 +21,7 @@ from jax import lax
 
 Array = jax.Array
 
-_STEP_TO_BOUNDARY = 0.99  # fraction of the max step keeping s, lam > 0
+STEP_TO_BOUNDARY = 0.99  # fraction of the max step keeping s, lam > 0
 # A warm start's slacks and multipliers are raised to at least this (scaled problem, O(1) data):
 # the last solution's are ~tol on its active/inactive rows, a corner from which the steps to the
 # boundary of a nearby problem would be tiny. Measured on the sinusoid's 1000 two-feet QPs
@@ -261,7 +261,7 @@ def interior_point(
         sigma = jnp.clip(mu_aff / mu, 0.0, 1.0) ** 3
         # Corrector: centring sigma mu plus the second-order term ds_a dz_a.
         dx, dsz = newton(s * z + dsz_a[:m] * dsz_a[m:] - sigma * mu)
-        alpha = _STEP_TO_BOUNDARY * _max_step(sz, dsz)
+        alpha = STEP_TO_BOUNDARY * _max_step(sz, dsz)
         x_n, sz_n = x + alpha * dx, sz + alpha * dsz
         mu_n = (sz_n[:m] @ sz_n[m:]) / m
         # The step is taken where it is finite, with no reduction of its own: alpha is NaN where
