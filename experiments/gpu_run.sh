@@ -211,6 +211,9 @@ for job in "$@"; do
         bench46_cbuf) XLA_FLAGS="$x" bench46_run $job $u ;;
       esac
       echo "$x" > "$OUT/$job/xla_flags.txt" ;;
+    warp_terms_cost)  # issue 46 (s58): what the controller's dynamics terms would cost from MuJoCo Warp before building
+            # it: MJX-JAX's dynamics.terms against one MJX-Warp forward and one step at 65,536 envs (µs per env)
+      run $job python3 benchmarks/warp_terms_cost.py --batch 65536 --out "$OUT/$job/warp_terms_cost.json" ;;
     profile_tick_warm)  # issue 46 (qpmax46): profile_tick at 65,536 envs with the force QP warm-started at its own
             # float32 tolerance (qp.WARM_START_TOL_FLOAT32, 5e-7; one-foot's acceptance within 0.03 %): the batch's
             # slowest QP's Newton steps and the force stage's µs before, in and after the push, beside profile_tick's

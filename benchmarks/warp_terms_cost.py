@@ -1,0 +1,124 @@
+"""What the controller's dynamics terms would cost from MuJoCo Warp (issue 46), before building it.
+
+On a GPU the tick's dynamics terms (``wbc_jax.robot.dynamics.terms``: MJX-JAX's kinematics and its JVP, crb, rne) cost
+about 0.21 µs per environment at 65,536 (BENCHMARKS.md, "Where a tick's time goes on one H100"). MJX-Warp wraps
+``forward``, which computes what they read (qM, qfrc_bias, qfrc_passive, cdof, cdof_dot, subtree_com, body poses) at
+the state, beside collision and the constraint solve. This times, vmapped over ``--batch`` copies of the standing
+state with small random joint offsets and velocities, µs per environment of:
+
+- ``jax_terms``: ``dynamics.terms`` (the controller's model, MJX-JAX), as the tick computes them;
+- ``warp_forward``: one MJX-Warp ``forward`` at the same states;
+- ``warp_step``: one MJX-Warp ``step`` (for scale: ten of them are a control tick's physics).
+
+    python benchmarks/warp_terms_cost.py --batch 65536 --out results/gpu_h100/warp_terms_cost.json
+
+Engines that cannot run here (Warp without a GPU or warp-lang) are skipped and named in the result.
+"""
+
+import argparse
+import json
+import pathlib
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wbc_jax.core import io, provenance
+from wbc_jax.robot import dynamics
+from wbc_jax.robot.model import load_robot
+from wbc_jax.sim import physics
+
+ENGINES = ("jax_terms", "warp_forward", "warp_step")
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--batch", type=int, default=1024)
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--robot", default="icub")
+    p.add_argument("--engines", nargs="+", default=list(ENGINES), choices=ENGINES)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default=None, help="JSON file of the result (written atomically)")
+    a = p.parse_args(argv)
+    if a.batch < 1 or a.repeats < 1:
+        p.error(f"--batch and --repeats must be >= 1, got {a.batch} and {a.repeats}")
+    return a
+
+
+def states(robot, batch: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(qpos (B, nq), qvel (B, nv)): the standing posture with joint offsets of 0.05 rad and velocities of 0.2 rad/s."""
+    rng = np.random.default_rng(seed)
+    idx = robot.index
+    qpos = np.tile(robot.home_qpos(), (batch, 1)).astype(np.float32)
+    qpos[:, idx.qpos_joints] += rng.normal(0.0, 0.05, size=(batch, len(idx.qpos_joints)))
+    qvel = rng.normal(0.0, 0.2, size=(batch, idx.nv)).astype(np.float32)
+    return qpos, qvel
+
+
+def timed(fn, *args, repeats: int) -> float:
+    """Median seconds of ``fn(*args)`` (compiled first, outputs waited for)."""
+    jax.block_until_ready(fn(*args))
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def main(argv=None) -> dict:
+    a = parse_args(argv)
+    with jax.default_matmul_precision("highest"):  # the closed loop's (SimConfig.matmul_precision)
+        return _measure(a, argv)
+
+
+def _measure(a: argparse.Namespace, argv) -> dict:
+    robot = load_robot(a.robot)
+    qpos, qvel = (jnp.asarray(x) for x in states(robot, a.batch, a.seed))
+    result = {"batch": a.batch, "robot": a.robot, "device": provenance.device_label(), "us_per_env": {}, "skipped": {}}
+    if "jax_terms" in a.engines:
+        from mujoco import mjx
+
+        mx = mjx.put_model(robot.mj_model)
+        d0 = mjx.make_data(robot.mj_model)
+
+        def terms(q, v):
+            return dynamics.terms(mx, d0.replace(qpos=q, qvel=v), robot.index)
+
+        result["us_per_env"]["jax_terms"] = (
+            timed(jax.jit(jax.vmap(terms)), qpos, qvel, repeats=a.repeats) * 1e6 / a.batch
+        )
+    warp = [e for e in a.engines if e.startswith("warp_")]
+    if warp:
+        try:
+            backend = physics.resolve_backend("warp")
+        except ValueError as err:  # no GPU or no warp-lang: named in the result, the rest measured
+            result["skipped"].update({e: str(err) for e in warp})
+            backend = None
+        if backend == "warp":
+            from mujoco import mjx
+
+            # Warp's CUDA graphs on a GPU (MJX's default); none on Warp's CPU backend (WBC_JAX_WARP_ON_CPU=1)
+            cfg = physics.PhysicsConfig(backend="warp", warp_graph_mode="warp" if physics.has_cuda() else "none")
+            mw = physics.device_model(robot.mj_model, "warp", cfg)
+            dw = physics.device_data(robot.mj_model, "warp", cfg, robot.home_qpos(), jnp.float32, batch=a.batch)
+            fns = {"warp_forward": mjx.forward, "warp_step": mjx.step}
+            for name in warp:
+
+                def call(q, v, fn=fns[name]):
+                    return fn(mw, dw.replace(qpos=q, qvel=v))
+
+                result["us_per_env"][name] = (
+                    timed(jax.jit(jax.vmap(call)), qpos, qvel, repeats=a.repeats) * 1e6 / a.batch
+                )
+    result["us_per_env"] = {k: round(v, 4) for k, v in result["us_per_env"].items()}
+    result["provenance"] = provenance.record(argv=provenance.script_argv(__file__, argv))
+    print(json.dumps(result, indent=1))
+    if a.out:
+        io.atomic_write_json(pathlib.Path(a.out), result)
+    return result
+
+
+if __name__ == "__main__":
+    main()
