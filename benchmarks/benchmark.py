@@ -188,18 +188,9 @@ def parse_args(argv=None):
         action="store_true",
         help="the closed loops' force QP warm-started from the last tick (ControllerConfig.qp_warm_start)",
     )
-    parser.add_argument(
-        "--qp-unrolled-steps",
-        type=int,
-        default=0,
-        help="the force QP's first Newton steps written out before its while loop (ControllerConfig.qp_unrolled_steps)",
-    )
-    parser.add_argument(
-        "--qp-engine",
-        choices=("jax", "warp"),
-        default="jax",
-        help="the force QP's interior-point engine (ControllerConfig.qp_engine; warp: one Warp kernel)",
-    )
+    from loop_timing import add_qp_arguments, check_qp_arguments
+
+    add_qp_arguments(parser)
     parser.add_argument(
         "--json",
         default=None,
@@ -250,14 +241,7 @@ def parse_args(argv=None):
         help="after --batches, up to K doublings of the largest, until one fails",
     )
     args = parser.parse_args(argv)
-    from wbc_jax.control.qp import DEFAULT_ITERATIONS  # the controller's QP budget
-
-    if not 0 <= args.qp_unrolled_steps <= DEFAULT_ITERATIONS:
-        parser.error(
-            f"--qp-unrolled-steps must be from 0 to {DEFAULT_ITERATIONS} (the QP's iterations), got {args.qp_unrolled_steps}"
-        )
-    if args.qp_engine == "warp" and args.qp_unrolled_steps:
-        parser.error("--qp-engine warp takes --qp-unrolled-steps 0 (the Warp kernel has no while loop to unroll)")
+    check_qp_arguments(parser, args)
     if args.repeats < 1:
         parser.error("--repeats must be >= 1")
     for name in ("batches", "cpu_workers"):

@@ -11,6 +11,40 @@ import time
 PUSH_MAGNITUDE = 40.0  # N, horizontal, azimuths spread over 360 deg
 
 
+def add_qp_arguments(parser, recorded_loop: bool = False) -> None:
+    """``--qp-unrolled-steps`` and ``--qp-engine`` (ControllerConfig's) on a benchmark's parser; check them after
+    parsing with :func:`check_qp_arguments`. ``recorded_loop``: say that they also hold in the loop the states come
+    from (profile_tick.py)."""
+    from wbc_jax.control import qp
+
+    also = ", in the recorded loop too" if recorded_loop else ""
+    parser.add_argument(
+        "--qp-unrolled-steps",
+        type=int,
+        default=0,
+        help="the force QP's first Newton steps written out before its while loop (ControllerConfig.qp_unrolled_steps)"
+        + also,
+    )
+    parser.add_argument(
+        "--qp-engine",
+        choices=qp.QP_ENGINES,
+        default="jax",
+        help="the force QP's interior-point engine (ControllerConfig.qp_engine; warp: one Warp kernel)" + also,
+    )
+
+
+def check_qp_arguments(parser, args) -> None:
+    """Refuse, as argparse does, what :func:`add_qp_arguments`' flags cannot take."""
+    from wbc_jax.control.qp import DEFAULT_ITERATIONS  # the controller's QP budget
+
+    if not 0 <= args.qp_unrolled_steps <= DEFAULT_ITERATIONS:
+        parser.error(
+            f"--qp-unrolled-steps must be from 0 to {DEFAULT_ITERATIONS} (the QP's iterations), got {args.qp_unrolled_steps}"
+        )
+    if args.qp_engine == "warp" and args.qp_unrolled_steps:
+        parser.error("--qp-engine warp takes --qp-unrolled-steps 0 (the Warp kernel has no while loop to unroll)")
+
+
 def make_setup(
     backend: str,
     horizon: float,

@@ -62,28 +62,11 @@ def parse_args(argv=None) -> argparse.Namespace:
         action="store_true",
         help="the controller's force QP warm-started (ControllerConfig.qp_warm_start), in the recorded loop too",
     )
-    p.add_argument(
-        "--qp-unrolled-steps",
-        type=int,
-        default=0,
-        help="the force QP's first Newton steps written out before its while loop (ControllerConfig.qp_unrolled_steps)",
-    )
-    p.add_argument(
-        "--qp-engine",
-        choices=("jax", "warp"),
-        default="jax",
-        help="the force QP's interior-point engine (ControllerConfig.qp_engine; warp: one Warp kernel), in the "
-        "recorded loop too",
-    )
-    args = p.parse_args(argv)
-    from wbc_jax.control.qp import DEFAULT_ITERATIONS  # the controller's QP budget
+    from loop_timing import add_qp_arguments, check_qp_arguments
 
-    if not 0 <= args.qp_unrolled_steps <= DEFAULT_ITERATIONS:
-        p.error(
-            f"--qp-unrolled-steps must be from 0 to {DEFAULT_ITERATIONS} (the QP's iterations), got {args.qp_unrolled_steps}"
-        )
-    if args.qp_engine == "warp" and args.qp_unrolled_steps:
-        p.error("--qp-engine warp takes --qp-unrolled-steps 0 (the Warp kernel has no while loop to unroll)")
+    add_qp_arguments(p, recorded_loop=True)
+    args = p.parse_args(argv)
+    check_qp_arguments(p, args)
     for name in ("batch", "repeats", "loop_envs"):
         if getattr(args, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")

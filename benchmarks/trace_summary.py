@@ -66,8 +66,10 @@ def hlo_sources(hlo_text: str) -> tuple[str, dict[str, dict]]:
 
 
 def _events(trace_dir: str | pathlib.Path) -> tuple[list[dict], dict[int, str]]:
-    """(the trace's events, {pid: process name}) of the newest perfetto trace under ``trace_dir``."""
-    paths = sorted(pathlib.Path(trace_dir).rglob("*perfetto_trace.json.gz"))
+    """(the trace's events, {pid: process name}) of the newest perfetto trace under ``trace_dir`` (or that file: a
+    trace kept apart, gpu_run.sh keep_trace)."""
+    where = pathlib.Path(trace_dir)
+    paths = [where] if where.is_file() else sorted(where.rglob("*perfetto_trace.json.gz"))
     if not paths:
         raise FileNotFoundError(
             f"no perfetto_trace.json.gz under {trace_dir} (jax.profiler.trace(..., create_perfetto_trace=True))"
@@ -282,14 +284,7 @@ if __name__ == "__main__":
     parser.add_argument("--calls", type=int, default=3, help="calls of the program in the trace")
     parser.add_argument("--batch", type=int, default=65536, help="environments of a call")
     a = parser.parse_args()
-    where = pathlib.Path(a.trace)
-    if where.is_file():  # a kept trace file: _events looks for *perfetto_trace.json.gz under a folder
-        import tempfile
-
-        tmp = pathlib.Path(tempfile.mkdtemp())
-        (tmp / "kept.perfetto_trace.json.gz").symlink_to(where.resolve())
-        where = tmp
-    summary = by_scope(where, a.module, a.calls, a.batch)
+    summary = by_scope(a.trace, a.module, a.calls, a.batch)
     if summary["device_idle"]:
         summary["device_idle"] = {k: v for k, v in summary["device_idle"].items() if not isinstance(v, list)}
     print(json.dumps(summary, indent=1))

@@ -18,13 +18,17 @@ Engines that cannot run here (Warp without a GPU or warp-lang) are skipped and n
 import argparse
 import json
 import pathlib
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+# from this script's folder (Python puts it first on sys.path): profile_tick's timing, so the figures compare with
+# its dynamics_terms stage (the best of --repeats runs, compiled first)
+from profile_tick import timed
+
 from wbc_jax.core import io, provenance
+from wbc_jax.core import mjx as mjx_device
 from wbc_jax.robot import dynamics
 from wbc_jax.robot.model import load_robot
 from wbc_jax.sim import physics
@@ -56,17 +60,6 @@ def states(robot, batch: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     return qpos, qvel
 
 
-def timed(fn, *args, repeats: int) -> float:
-    """Median seconds of ``fn(*args)`` (compiled first, outputs waited for)."""
-    jax.block_until_ready(fn(*args))
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
-
-
 def main(argv=None) -> dict:
     a = parse_args(argv)
     with jax.default_matmul_precision("highest"):  # the closed loop's (SimConfig.matmul_precision)
@@ -77,41 +70,30 @@ def _measure(a: argparse.Namespace, argv) -> dict:
     robot = load_robot(a.robot)
     qpos, qvel = (jnp.asarray(x) for x in states(robot, a.batch, a.seed))
     result = {"batch": a.batch, "robot": a.robot, "device": provenance.device_label(), "us_per_env": {}, "skipped": {}}
-    if "jax_terms" in a.engines:
-        from mujoco import mjx
 
-        mx = mjx.put_model(robot.mj_model)
-        d0 = mjx.make_data(robot.mj_model)
+    def us_per_env(fn) -> float:  # fn(qpos, qvel) of one environment, vmapped over the batch
+        return timed(jax.jit(jax.vmap(fn)), qpos, qvel, repeats=a.repeats) * 1e6 / a.batch
 
-        def terms(q, v):
-            return dynamics.terms(mx, d0.replace(qpos=q, qvel=v), robot.index)
-
-        result["us_per_env"]["jax_terms"] = (
-            timed(jax.jit(jax.vmap(terms)), qpos, qvel, repeats=a.repeats) * 1e6 / a.batch
+    if "jax_terms" in a.engines:  # the controller's model and data, as the loop builds them (sim/loop.py)
+        mx, d0 = mjx_device.put_model(robot.mj_model), mjx_device.make_data(robot.mj_model)
+        result["us_per_env"]["jax_terms"] = us_per_env(
+            lambda q, v: dynamics.terms(mx, d0.replace(qpos=q, qvel=v), robot.index)
         )
     warp = [e for e in a.engines if e.startswith("warp_")]
     if warp:
         try:
-            backend = physics.resolve_backend("warp")
+            physics.resolve_backend("warp")
         except ValueError as err:  # no GPU or no warp-lang: named in the result, the rest measured
             result["skipped"].update({e: str(err) for e in warp})
-            backend = None
-        if backend == "warp":
-            from mujoco import mjx
-
-            # Warp's CUDA graphs on a GPU (MJX's default); none on Warp's CPU backend (WBC_JAX_WARP_ON_CPU=1)
-            cfg = physics.PhysicsConfig(backend="warp", warp_graph_mode="warp" if physics.has_cuda() else "none")
-            mw = physics.device_model(robot.mj_model, "warp", cfg)
-            dw = physics.device_data(robot.mj_model, "warp", cfg, robot.home_qpos(), jnp.float32, batch=a.batch)
-            fns = {"warp_forward": mjx.forward, "warp_step": mjx.step}
-            for name in warp:
-
-                def call(q, v, fn=fns[name]):
-                    return fn(mw, dw.replace(qpos=q, qvel=v))
-
-                result["us_per_env"][name] = (
-                    timed(jax.jit(jax.vmap(call)), qpos, qvel, repeats=a.repeats) * 1e6 / a.batch
-                )
+            warp = []
+    if warp:
+        # Warp's CUDA graphs on a GPU (MJX's default); none on Warp's CPU backend (WBC_JAX_WARP_ON_CPU=1)
+        cfg = physics.PhysicsConfig(backend="warp", warp_graph_mode="warp" if physics.has_cuda() else "none")
+        mw = physics.device_model(robot.mj_model, "warp", cfg)
+        dw = physics.device_data(robot.mj_model, "warp", cfg, robot.home_qpos(), jnp.float32, batch=a.batch)
+        fns = {"warp_forward": mjx_device.mjx.forward, "warp_step": mjx_device.mjx.step}
+        for name in warp:
+            result["us_per_env"][name] = us_per_env(lambda q, v, fn=fns[name]: fn(mw, dw.replace(qpos=q, qvel=v)))
     result["us_per_env"] = {k: round(v, 4) for k, v in result["us_per_env"].items()}
     result["provenance"] = provenance.record(argv=provenance.script_argv(__file__, argv))
     print(json.dumps(result, indent=1))
