@@ -125,7 +125,7 @@ def op_times(trace_dir: str | pathlib.Path, module: str) -> tuple[str, dict[str,
             # An op nests in the open one only where it ends inside it (a CPU while thunk and its body's thunks);
             # one that starts before the open op's end but ends after it follows it: on a GPU stream the kernels
             # run one after another, and their clock's rounding overlaps neighbours by a fraction of a µs
-            # (results/gpu_h100/s58: 2,022 such pairs in 3 ticks, 0.1 % of their time).
+            # (the kept trace in results/gpu_h100/s58/machine_a/u14/profile_tick_cbuf).
             while stack and (stack[-1][0] <= ts or ts + dur > stack[-1][0]):
                 end, name, own = stack.pop()
                 totals[name] += own
@@ -252,8 +252,8 @@ def op_label(source: dict | None, op: str, short=lambda path: path) -> str:
 
 
 def by_scope(trace_dir: str | pathlib.Path, module: str, calls: int, batch: int) -> dict:
-    """A kept trace summed without the program's HLO text: µs per environment and call of ``module``'s ops per
-    the JAX scope that named them (the events' ``name``: ``jit(tick)/vmap(torque_law)/...`` -> ``vmap(torque_law)``;
+    """A kept trace summed without the program's HLO text: ``module``'s GPU events a call, and µs per environment
+    and call of its ops per the JAX scope that named them (the events' ``name``: ``jit(tick)/vmap(torque_law)/...`` -> ``vmap(torque_law)``;
     fusions that XLA named itself are ``(fusion)``), their total, and ``device_idle``."""
     events, names = _events(trace_dir)
     gpu = {pid for pid, name in names.items() if name.startswith("/device:GPU")}
@@ -268,8 +268,16 @@ def by_scope(trace_dir: str | pathlib.Path, module: str, calls: int, batch: int)
     scopes: dict[str, float] = collections.defaultdict(float)
     for op, t in times.items():
         scopes[scope_of.get(op, "(fusion)")] += t * scale
+    kernels = sum(
+        1
+        for e in events
+        if e.get("ph") == "X"
+        and e.get("pid") in gpu
+        and same_module(str((e.get("args") or {}).get("hlo_module")), module)
+    )
     return {
         "total_us_per_env": round(sum(times.values()) * scale, 5),
+        "kernels_per_call": round(kernels / calls, 1),
         "by_scope": {k: round(v, 5) for k, v in sorted(scopes.items(), key=lambda kv: -kv[1])},
         "device_idle": device_idle(trace_dir, calls),
     }

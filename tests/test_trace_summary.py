@@ -207,3 +207,4 @@ def test_by_scope_sums_a_kept_trace_per_jax_scope_without_the_hlo_text(tmp_path)
         {"vmap(force_distribution)": 6.0, "vmap(torque_law)": 1.0, "(fusion)": 2.0}
     )
     assert summary["total_us_per_env"] == pytest.approx(9.0)
+    assert summary["kernels_per_call"] == 2.0

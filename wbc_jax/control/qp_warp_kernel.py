@@ -176,8 +176,8 @@ def ipm_kernel(n: int, m: int, iterations: int, tol: float, float64: bool, weigh
                 dz[k] = t[k] + ratio[k] * cdx
         return dx, ds, dz
 
-    # max_unroll 1: Warp's default unrolls every loop of up to 16 passes, a 1.2 MB source that NVRTC compiles in 176 s
-    # for n = 12 (the soft QP), against 40 s without (16 s for n = 6; BENCHMARKS.md). CUDA still unrolls as it sees fit.
+    # max_unroll 1: Warp's default unrolls every loop of up to 16 passes, and the nested loops over n then make a
+    # source that took the H100 run 174 s to build, against about 50 s without (BENCHMARKS.md). CUDA still unrolls.
     @wp.kernel(enable_backward=False, module="unique", module_options={"max_unroll": 1})
     def ipm(
         H: wp.array3d(dtype=real),
