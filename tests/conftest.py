@@ -190,12 +190,46 @@ def c_data(robot, qpos, qvel) -> mujoco.MjData:
     return d
 
 
+class _ScriptSiblings:
+    """Imports a loaded script's sibling module (``from loop_timing import ...`` in benchmarks/) as running the
+    script does, where Python puts the script's folder first on sys.path: the sibling is itself loaded by
+    load_script, so a test and the script share one module object. Last on sys.meta_path: installed names win."""
+
+    folders: set = set()
+
+    @classmethod
+    def find_spec(cls, name, path=None, target=None):
+        import importlib.machinery
+        import pathlib
+
+        if path is not None or "." in name:
+            return None
+        root = pathlib.Path(__file__).resolve().parent.parent
+        for folder in sorted(cls.folders):
+            if (root / folder / f"{name}.py").is_file():
+                return importlib.machinery.ModuleSpec(name, cls(f"{folder}/{name}.py"))
+        return None
+
+    def __init__(self, relative: str):
+        self.relative = relative
+
+    def create_module(self, spec):
+        return load_script(self.relative)
+
+    def exec_module(self, module):
+        pass  # load_script ran it
+
+
 def load_script(relative: str):
-    """A script of the repository (experiments/, benchmarks/: not a package) loaded from its file, once."""
+    """A script of the repository (experiments/, benchmarks/: not a package) loaded from its file, once; its
+    sibling modules import as they do when it runs (_ScriptSiblings)."""
     import importlib.util
     import pathlib
     import sys
 
+    if _ScriptSiblings not in sys.meta_path:
+        sys.meta_path.append(_ScriptSiblings)
+    _ScriptSiblings.folders.add(str(pathlib.PurePosixPath(relative).parent))
     key = "script_" + relative.replace("/", "_").removesuffix(".py")
     if key not in sys.modules:
         spec = importlib.util.spec_from_file_location(key, pathlib.Path(__file__).resolve().parent.parent / relative)

@@ -3,7 +3,6 @@ visits, its bad flags are refused in one line before anything compiles, and the 
 certification it reports is the torque law's."""
 
 import argparse
-import sys
 
 import jax
 import jax.numpy as jnp
@@ -18,7 +17,6 @@ from wbc_jax.sim import runner, scenario
 
 @pytest.fixture(scope="module")
 def profile_tick():
-    sys.modules.setdefault("loop_timing", load_script("benchmarks/loop_timing.py"))  # its sibling import
     return load_script("benchmarks/profile_tick.py")
 
 

@@ -4,7 +4,6 @@ takes the slowest from 14 Newton steps to 10, at the warm start's own tighter fl
 (``qp.WARM_START_TOL_FLOAT32``); the settings behind it are refused when bad, before anything compiles."""
 
 import pathlib
-import sys
 
 import jax
 import jax.numpy as jnp
@@ -122,8 +121,6 @@ def test_qp_engine_setting_reaches_the_force_qp_and_bad_values_are_refused():
 
 @pytest.fixture(scope="module")
 def qp_slowest():
-    sys.modules.setdefault("loop_timing", load_script("benchmarks/loop_timing.py"))
-    sys.modules.setdefault("profile_tick", load_script("benchmarks/profile_tick.py"))
     return load_script("benchmarks/qp_slowest.py")
 
 

@@ -1,7 +1,6 @@
 """benchmarks/trace_summary.py (issue 46): a profiler trace summed per op and attributed to the op's source
 function, each op's time counted once (a CPU while loop's thunk holds its body's)."""
 
-import sys
 import time
 import types
 
@@ -60,8 +59,6 @@ def test_each_op_counted_once(traced):
 
 def test_profile_tick_traces_its_programs_own_ops(tmp_path):
     """profile_tick's --trace path (trace_tick): the program traced at the loop's precision, its ops attributed."""
-    sys.modules.setdefault("trace_summary", load_script("benchmarks/trace_summary.py"))
-    sys.modules.setdefault("loop_timing", load_script("benchmarks/loop_timing.py"))
     pt = load_script("benchmarks/profile_tick.py")
     loop = types.SimpleNamespace(cfg=types.SimpleNamespace(matmul_precision="highest"))
     x = jnp.ones((4, 192, 192), jnp.float32) * 0.01
