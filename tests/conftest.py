@@ -48,11 +48,12 @@ def pytest_configure(config):
 # test_viz 57, test_limit 35, test_sweep 33, test_hierarchy 32, test_tune 32, test_reliability_paths 28,
 # test_mjx_physics ~25 (its iCub gradient, 117, is nightly now), test_contacts 23 (its compiled ticks nightly), the
 # 256 environments 21, test_tune_devices 20, test_profile_tick 16. Units not listed start last, in file order
-# (test_profile_tick, test_tune_devices and test_qp_slowest, 39 s together, were among them).
+# (test_profile_tick, test_tune_devices and test_qp_slowest, 39 s together, were among them). 2026-11-27 (s59):
+# test_viz's sweep and replay (109 s) went nightly; its balance run loads the shared loop (14 s), so it starts late,
+# as test_wheel does, when test_rollout has compiled that loop.
 _LONGEST_FIRST = [
     "test_rollout",
     "test_forces",
-    "test_viz",
     "test_reliability_runs",
     "test_limit",
     "test_sweep",
@@ -69,6 +70,7 @@ _LONGEST_FIRST = [
     "test_tune",
     "test_dynamics",
     "test_wheel",
+    "test_viz",
     "test_race",
     "test_qp_slowest",
     "04_gain_tuning",
@@ -140,6 +142,13 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "gpu" in item.keywords:
             item.add_marker(skip)
+
+
+# `balance --duration 1 --backend mujoco` is the closed loop of tests/test_rollout.py and tests/test_baseline_cpu.py
+# (1 s stand on C MuJoCo, the same structure key and shapes): the session compiles it once (30 CPU s) and the balance
+# runs of tests/test_tune.py, tests/test_wheel.py and tests/test_viz.py load it (2 CPU s); gains and pushes are
+# arguments, not part of the program.
+SHARED_BALANCE = ["balance", "--duration", "1.0", "--backend", "mujoco"]
 
 
 @pytest.fixture(scope="session")

@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import SHARED_BALANCE
 
 from wbc_jax import cli
 from wbc_jax.control import gains as C
@@ -711,12 +712,6 @@ def _tuned_gains_file(tmp_path):
     path = tmp_path / "tuned_gains.json"
     path.write_text(json.dumps(C.gains_to_dict(gains)))
     return path, gains
-
-
-# `balance --duration 1 --backend mujoco` is the closed loop of tests/test_rollout.py and tests/test_baseline_cpu.py
-# (1 s stand on C MuJoCo, the same structure key and shapes): the session compiles it once (30 CPU s) and this run
-# loads it (2 CPU s), as tests/test_wheel.py's balance does; the gains are arguments, not part of the program.
-SHARED_BALANCE = ["balance", "--duration", "1.0", "--backend", "mujoco"]
 
 
 def test_tuned_gains_file_runs_in_balance(tmp_path, capsys):

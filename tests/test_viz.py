@@ -1,6 +1,9 @@
-"""rerun visualisation: a tiny real sweep, replay of its envs, the .rrd read back, CLI errors.
+"""rerun visualisation: a real balance run viewed and its .rrd read back; CLI errors; (nightly) a tiny real sweep, the
+replay of its envs and the .rrd of one.
 
-Two compilations in all (the vmapped sweep and the recording replay, shared by every test)."""
+The default suite compiles nothing of its own: the balance run is the session's shared 1 s C MuJoCo loop
+(conftest.SHARED_BALANCE, compiled by tests/test_rollout.py and loaded from the compilation cache). The sweep path
+compiles the vmapped sweep and the recording replay (109 s of the 2-core suite): nightly (`slow`)."""
 
 import collections
 import dataclasses
@@ -8,6 +11,7 @@ import dataclasses
 import mujoco
 import numpy as np
 import pytest
+from conftest import SHARED_BALANCE
 
 from wbc_jax import cli
 from wbc_jax.core import io
@@ -33,6 +37,15 @@ CFG = sweep_config.SweepConfig(
     seed=3,
 )
 COMPARED = ("com_max_err_m", "com_rmse_m", "max_abs_torque_nm", "min_com_height_m", "max_foot_slip_m")
+# The balance run: 40 N to the left on the trunk for 0.1 s from 0.3 s (inputs of the shared program, not its shape).
+PUSH = ["--push-force", "0", "40", "0", "--push-onset", "0.3", "--push-duration", "0.1"]
+
+
+@pytest.fixture(scope="module")
+def balance_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("balance") / "run"
+    assert cli.main([*SHARED_BALANCE, *PUSH, "--out", str(out), "--quiet"]) == 0
+    return out
 
 
 @pytest.fixture(scope="module")
@@ -72,6 +85,7 @@ def column_by_time(batches, component: str) -> dict:
     return out
 
 
+@pytest.mark.slow
 def test_replay_equals_the_sweep_metrics(replays):
     for env, (traj, metrics, row) in enumerate(replays):
         assert traj["t"].shape == (int(round(CFG.horizon / 0.01)),)
@@ -88,10 +102,9 @@ def test_replay_equals_the_sweep_metrics(replays):
     assert abs(m0["com_max_err_m"] - m1["com_max_err_m"]) > 1e-5
 
 
-def test_rrd_of_a_sweep_env(sweep_dir, replays, robot):
-    traj = replays[1][0]
-    assert cli.main(["view", str(sweep_dir), "--env", "1"]) == 0
-    path = sweep_dir / "env_1.rrd"
+def check_rrd(path, traj):
+    """The .rrd at ``path`` shows the trajectory ``traj`` (a run's records, (T, ...)): every entity at every tick,
+    the meshes once, the base's pose, the push arrow while the push acts, the CoM error series."""
     times, static, batches = read_rrd(path)
     m = viz.visual_model()
     bodies = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b) for b in range(1, m.nbody)]
@@ -129,6 +142,7 @@ def test_rrd_of_a_sweep_env(sweep_dir, replays, robot):
     np.testing.assert_allclose(got, traj["qpos"][:, :3], atol=1e-5)
     # Push arrow only while the push acts, pointing along it (+y), scaled by FORCE_SCALE.
     push = column_by_time(batches["/world/push"], "Arrows3D:vectors")
+    assert np.any(traj["push"] != 0)  # the arrow is checked where it shows, not only where it is empty
     for t, f in zip(traj["t"], traj["push"]):
         v = push[int(round(t * 1e9))] or []
         if np.any(f != 0):
@@ -144,39 +158,55 @@ def test_rrd_of_a_sweep_env(sweep_dir, replays, robot):
     )
 
 
-def test_rrd_of_a_balance_run_dir(replays, robot, tmp_path):
-    # A balance run dir holds trajectory.npz as balance.run writes it (same writer, real data).
-    traj = replays[0][0]
-    io.atomic_save_npz(tmp_path / "trajectory.npz", joints=np.array(robot.index.joints), **traj)
+def test_rrd_of_a_balance_run_dir(balance_dir, tmp_path):
+    """`wbc-jax view` of a balance run's folder: the .rrd shows its trajectory.npz, tick by tick."""
     out = tmp_path / "x" / "mine.rrd"
-    assert cli.main(["view", str(tmp_path), "--out", str(out)]) == 0
-    times, _, _ = read_rrd(out)
-    assert len(times["/world/com"]) == len(traj["t"])
-    assert len(times["/plots/tau"]) == len(traj["t"])
+    assert cli.main(["view", str(balance_dir), "--out", str(out)]) == 0
+    with np.load(balance_dir / "trajectory.npz") as data:
+        traj = dict(data)
+    assert traj["t"].shape == (100,)  # 1 s at 100 Hz
+    on = np.any(traj["push"] != 0, axis=1)
+    assert on.sum() in (10, 11)  # 0.1 s at 100 Hz (the end tick is decided by rounding)
+    np.testing.assert_allclose(traj["push"][on], [[0.0, 40.0, 0.0]] * on.sum(), atol=1e-9)
+    check_rrd(out, traj)
 
 
-def test_view_errors_name_the_problem(sweep_dir, tmp_path, capsys):
+@pytest.mark.slow
+def test_rrd_of_a_sweep_env(sweep_dir, replays, robot):
+    """`wbc-jax view SWEEP --env 1`: the .rrd shows that env's replay."""
+    assert cli.main(["view", str(sweep_dir), "--env", "1"]) == 0
+    check_rrd(sweep_dir / "env_1.rrd", replays[1][0])
+
+
+def _refused(argv, message, capsys):
+    assert cli.main(argv) == 2, argv
+    err = capsys.readouterr().err
+    assert __import__("re").search(message, err), (argv, err)
+
+
+def test_view_errors_name_the_problem(balance_dir, tmp_path, capsys):
     (tmp_path / "file.txt").write_text("x")
-    cases = [
+    for argv, message in [
         (["view", str(tmp_path / "nope")], "does not exist"),
         (["view", str(tmp_path / "file.txt")], "is a file"),
         (["view", str(tmp_path)], "neither a balance run"),
+        (["view", str(balance_dir), "--env", "0"], "--env applies to sweeps only"),
+    ]:
+        _refused(argv, message, capsys)
+    io.atomic_save_npz(tmp_path / "trajectory.npz", t=np.zeros(1))
+    _refused(["view", str(tmp_path)], "trajectory lacks fields", capsys)
+    (tmp_path / "trajectory.npz").write_bytes(b"PK\x03\x04 truncated")
+    _refused(["view", str(tmp_path)], "trajectory.npz is unreadable", capsys)
+
+
+@pytest.mark.slow
+def test_view_of_a_sweep_names_its_envs(sweep_dir, capsys):
+    for argv, message in [
         (["view", str(sweep_dir)], r"push sweep of 2 envs: choose one with --env I, I in 0..1"),
         (["view", str(sweep_dir), "--env", "2"], r"env 2 is out of range: this sweep has envs 0..1"),
         (["view", str(sweep_dir), "--env", "-1"], r"--env must be a whole number in \[0, "),
-    ]
-    for argv, message in cases:
-        assert cli.main(argv) == 2, argv
-        err = capsys.readouterr().err
-        assert __import__("re").search(message, err), (argv, err)
-    io.atomic_save_npz(tmp_path / "trajectory.npz", t=np.zeros(1))
-    assert cli.main(["view", str(tmp_path), "--env", "0"]) == 2
-    assert "--env applies to sweeps only" in capsys.readouterr().err
-    assert cli.main(["view", str(tmp_path)]) == 2
-    assert "trajectory lacks fields" in capsys.readouterr().err
-    (tmp_path / "trajectory.npz").write_bytes(b"PK\x03\x04 truncated")
-    assert cli.main(["view", str(tmp_path)]) == 2
-    assert "trajectory.npz is unreadable" in capsys.readouterr().err
+    ]:
+        _refused(argv, message, capsys)
     assert sweep.load_sweep(sweep_dir)[0] == dataclasses.replace(CFG, out=str(sweep_dir))
 
 

@@ -13,6 +13,7 @@ import sys
 import zipfile
 
 import pytest
+from conftest import SHARED_BALANCE
 
 from wbc_jax.core import provenance
 from wbc_jax.core.assets import ASSETS
@@ -21,10 +22,6 @@ from wbc_jax.robot.robots import DESCRIPTIONS
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 # What the build reads: the pyproject's packages, package-dir (assets/) and readme.
 BUILD_INPUTS = ("pyproject.toml", "README.md", "wbc_jax", "assets")
-# A balance run in float64: the program of tests/test_tune.py's balance run and of tests/test_rollout.py's stand loop
-# (SHARED_BALANCE there: 1 s, C MuJoCo), so the session compiles it once (WBC_JAX_CACHE); the wheel is what is tested
-# here, not the numerics.
-BALANCE = ["balance", "--duration", "1.0", "--backend", "mujoco"]
 PIP = [sys.executable, "-m", "pip", "--disable-pip-version-check", "--no-input"]
 
 
@@ -121,7 +118,7 @@ def test_installed_package_runs_info_and_balance_from_another_folder(installed):
     assert (info["nq"], info["nv"], info["nu"]) == (30, 29, 23)
     assert info["mass"] == pytest.approx(33.0617, abs=1e-3)  # the iCubGazeboV2_5 model's total mass, kg
 
-    _run([str(installed["script"]), *BALANCE, "--no-plots", "--quiet", "--out", "bal"], cwd=work, env=env)
+    _run([str(installed["script"]), *SHARED_BALANCE, "--no-plots", "--quiet", "--out", "bal"], cwd=work, env=env)
     metrics = json.loads((work / "bal" / "metrics.json").read_text())
     assert metrics["duration_s"] == 1.0 and metrics["host_loop"] == "compiled"  # the native C MuJoCo step built
     assert metrics["upright"] and not metrics["fell"] and not metrics["nan"]
