@@ -134,9 +134,12 @@ FOUR_FEET = """
 """
 
 
+# Its reverse-mode compile took 60 s of the 2-core suite: nightly (`slow`). The default suite keeps the implicit
+# solver derivative's own checks (the friction-loss rows below, in each regime, and their gradient).
+@pytest.mark.slow
 def test_implicit_gradient_through_four_standing_feet_matches_central_differences():
-    """The default suite's check of the implicit solver derivative through standing contact (the iCub's,
-    below, is nightly: its compile took 117 s of the 2-core suite): a block on four sphere feet held by
+    """The implicit solver derivative through standing contact at small size (the iCub's, below, took 117 s of
+    the 2-core suite): a block on four sphere feet held by
     static friction (the pyramid's rows active at every step), a PD force and torque of gain kp on it;
     reverse mode through 50 steps equals a central difference of the plain rollout (float64)."""
     import mujoco

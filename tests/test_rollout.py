@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial import ConvexHull
 
+from wbc_jax.control.controller import ControllerConfig
 from wbc_jax.core import constants
 from wbc_jax.sim import host_loop, mjx_loop, native, physics, runner, scenario
 from wbc_jax.sim import metrics as metrics_lib
@@ -76,15 +77,15 @@ def test_a_robot_thrown_away_is_neither_upright_nor_survived(runs):
     assert np.degrees(float(standing.metrics.max_trunk_tilt[0])) < 10.0
 
 
-def test_pipelined_host_batch_equals_environments_run_alone(runs):
-    """An even batch without records runs as two halves in a pipeline (one half's controller beside
-    the other half's physics): each environment's metrics equal those of the same environment run
-    alone, a diverged one (NaN joints) is flagged and poisons nothing. The Python loop of ticks and
-    the compiled loop (one program, C MuJoCo called from XLA) give the same metrics to float noise."""
+def _pipelined_against_alone(forces: str):
+    """An even batch without records runs as two halves in a pipeline (one half's controller beside the other
+    half's physics): each environment's metrics equal those of the same environment run alone, a diverged one
+    (NaN joints) is flagged and poisons nothing. Returns (setup, the pushed environment's metrics run alone)."""
     st = scenario.setup(
         "stand",
         duration=1.0,
         sim=SimConfig(record=False, host_loop="python", physics=physics.PhysicsConfig(backend="mujoco")),
+        controller=ControllerConfig(forces=forces),
     )
     pushed = scenario.single(st, scenario.make_push(*PUSH, st.dtype))
     broken = pushed.replace(joint_offset=np.full_like(pushed.joint_offset, np.nan))
@@ -96,13 +97,29 @@ def test_pipelined_host_batch_equals_environments_run_alone(runs):
             np.testing.assert_array_equal(np.asarray(getattr(together, name))[k], np.asarray(value)[0], err_msg=name)
     assert not bool(together.nan[0]) and bool(together.nan[1]) and int(together.ticks[0]) == 100
     assert float(together.com_max_err[0]) > 1e-3  # the push moved the robot
+    return st, alone[0]
+
+
+def test_pipelined_host_batch_equals_environments_run_alone():
+    """The Python loop of ticks (the C MuJoCo loop where the native step is not built), pipelined, on the analytic
+    force distribution: its tick compiles in a fraction of the QP's (the QP's, and the compiled loop against it:
+    the nightly test below)."""
+    _pipelined_against_alone("analytic")
+
+
+# The Python loop's tick with the QP compiles in 50 CPU s on the 2-core machine: nightly (`slow`).
+@pytest.mark.slow
+def test_pipelined_qp_host_batch_equals_the_compiled_loop(runs):
+    """The same on the QP (the benchmark scenario's controller); and the Python loop of ticks and the compiled loop
+    (one program, C MuJoCo called from XLA) give the same metrics to float noise."""
+    _, alone = _pipelined_against_alone("qp")
     compiled = runs["mujoco"][1]
     assert host_loop.driver(runs["mujoco"][0].loop, 1) == ("compiled" if native.available() is None else "python")
     # Two code paths: their float64 rounding differs by CPU. Measured over the metrics: 1.1e-9 relative, 4.9e-11
     # absolute here, 3.8e-10 with XLA held to AVX2, 1.13e-9 on another 2-core x86 (issue 41); bars ~100x that. Any
     # real difference (a tick's push, a sub-step) moves these metrics by > 1e-4. The halves above run the program
     # of one environment alone on the same inputs: bit-equal (measured 0 here and with AVX2).
-    for name, value in vars(alone[0]).items():
+    for name, value in vars(alone).items():
         np.testing.assert_allclose(
             np.asarray(getattr(compiled.metrics, name), float),
             np.asarray(value, float),
