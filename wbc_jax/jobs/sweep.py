@@ -115,6 +115,7 @@ def make_setup(
         record=record,
         push_body=cfg.body,
         perturb_plant=cfg.perturbs_plant,
+        host_loop=cfg.host_loop,
         # the engine as it resolves here: "auto" and the engine it picks build the same programs (one cache entry)
         physics=physics.PhysicsConfig(
             backend=physics.resolve_backend(cfg.backend),

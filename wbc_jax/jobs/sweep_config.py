@@ -16,6 +16,7 @@ from wbc_jax.jobs import grids, runs
 from wbc_jax.robot import model
 from wbc_jax.robot.robots import robot_option
 from wbc_jax.sim import physics, scenario, warp_graphs, watchdog
+from wbc_jax.sim.state import HOST_LOOPS
 
 SWEEP_TASKS = ("stand", "one-foot")
 # The one-foot task (references.make_schedule) balances on the left foot from 7 to 9 s.
@@ -100,6 +101,12 @@ class SweepConfig:
     backend: str = option(
         "auto", "physics engine (auto: C MuJoCo on a CPU, MJX-Warp/JAX on a GPU)", choices=physics.BACKENDS
     )
+    host_loop: str = option(
+        "auto",
+        "C MuJoCo engine: each chunk as one compiled program, or a Python loop of ticks with threaded physics "
+        "(auto: compiled where the native step builds)",
+        choices=HOST_LOOPS,
+    )
     out: str | None = option("runs/push_sweep", "output folder (a sweep resumes there)")
     stall_timeout_s: float | None = option(
         None,
@@ -177,6 +184,11 @@ class SweepConfig:
                     f"{flag} sets MJX-Warp's CUDA graphs: it needs --backend warp (--backend {self.backend} "
                     f"runs {backend} here)"
                 )
+        if self.host_loop != "auto" and backend != "mujoco":
+            raise ValueError(
+                f"--host-loop {self.host_loop} sets how the C MuJoCo engine runs the ticks: it needs --backend "
+                f"mujoco (--backend {self.backend} runs {backend} here)"
+            )
         if self.queue > 1 and backend == "mujoco":
             raise ValueError(
                 f"--queue {self.queue} (scenarios per batch slot) needs an MJX backend: --backend jax or "

@@ -36,12 +36,15 @@ def host_models(loop, scen: Scenario) -> list:
 def driver(loop, batch: int, feedforward: bool = False) -> str:
     """The driver of a batch of ``batch`` environments: "compiled" (one program,
     :mod:`wbc_jax.sim.host_scan`) or "python" (a Python loop of ticks). ``SimConfig.host_loop``
-    "auto" compiles one robot where the native step builds; "compiled" asked for where it cannot
-    build, or with ``feedforward`` torques (the Python loop's alone), is an error."""
+    "auto" compiles any batch where the native step builds (on the 2-core machine it compiles and
+    runs faster than the Python loop, whose threads step a batch's physics on several cores:
+    BENCHMARKS.md, "C MuJoCo drivers"); "compiled" asked for where it cannot build, or with ``feedforward`` torques
+    (the Python loop's alone), is an error."""
+    del batch  # every batch size compiles alike
     choice = loop.cfg.host_loop
     if choice == "compiled" and feedforward:
         raise ValueError("host_loop='compiled' takes no feedforward torques; use host_loop='python' or 'auto'")
-    if choice == "python" or (choice == "auto" and (batch != 1 or feedforward)):
+    if choice == "python" or (choice == "auto" and feedforward):
         return "python"
     problem = native.available()
     if problem is None:
