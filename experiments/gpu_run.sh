@@ -92,6 +92,11 @@ for job in "$@"; do
       mkdir -p "$OUT/cpu_profile"; lscpu | grep -E "Model name|^CPU\(s\)" > "$OUT/cpu_profile/cpu.txt"
       run cpu_profile taskset -c 1 python3 benchmarks/profile_tick.py --batch 1 --loop-envs 8 --repeats 20 \
         --trace /tmp/traces/cpu_profile --out "$OUT/cpu_profile" ;;
+    cpu_drivers)  # the C MuJoCo engine's two drivers on this host's 16 cores (the 2-core AMD EPYC: the compiled batch
+            # program 35 s against 73-83 s for the Python loop on the README main job, BENCHMARKS.md): whether the
+            # Python loop's threaded physics wins a batch on many cores. Run with JAX_PLATFORMS=cpu; about 5 minutes
+      mkdir -p "$OUT/cpu_drivers"; lscpu | grep -E "Model name|^CPU\(s\)" > "$OUT/cpu_drivers/cpu.txt"
+      run cpu_drivers bash benchmarks/host_loop_drivers.sh "$OUT/cpu_drivers/readme_job.jsonl" 2 ;;
     setup)  # what is there
       nvidia-smi -L; python3 -c "import jax, mujoco; print(jax.__version__, mujoco.__version__, jax.devices())"
       python3 -c "import warp; print('warp', warp.__version__)" 2>&1 | tail -1 ;;

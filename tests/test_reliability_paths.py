@@ -4,8 +4,8 @@ run in the default suite.
 
 Class 10's break was a signature: the drivers pass a feedforward the subclasses did not take, so it
 showed only when a program was traced. Here the composed loops are traced through the real drivers
-(``jax.eval_shape``: nothing is compiled), and one control tick of the loop that ``tune --window-s``
-builds with a gain schedule is compiled once and compared number by number with the plain loop."""
+(``jax.eval_shape``: nothing is compiled), and (nightly, ``slow``) one control tick of the loop that ``tune
+--window-s`` builds with a gain schedule is compiled once and compared number by number with the plain loop."""
 
 import os
 import pathlib
@@ -156,6 +156,8 @@ def test_a_gain_schedule_traces_in_every_driver_with_a_feedforward(window_proble
     assert out[1].shape == (st.robot.mj_model.nu,)
 
 
+# Its compile took 52-54 s of the 2-core suite: nightly (`slow`); the default suite keeps the tracing checks above.
+@pytest.mark.slow
 def test_the_window_loop_with_a_schedule_computes_the_plain_loops_tick(window_problem):
     """One tick, compiled once: the loop tune --window-s builds (schedule -> gains, TuneTrace, window
     start recorder; here on the analytic force distribution), given a feedforward, gives the plain tuning loop's torques and trace at the
