@@ -1,10 +1,12 @@
 """The closed loop over a horizon on C MuJoCo (``mujoco``): ticks in a Python loop, or one program.
 
-:func:`run_host` picks the driver (``SimConfig.host_loop``): one robot runs the whole horizon as
-one compiled program (:mod:`wbc_jax.sim.host_scan`: C MuJoCo called from inside XLA); otherwise
-the jitted, vmapped tick of a :class:`wbc_jax.sim.loop.ClosedLoop` (its controller and metrics,
-the same code as on MJX) alternates with C MuJoCo's ``mj_step`` in threads
-(:class:`wbc_jax.sim.physics.HostBatch`) in a Python loop.
+:func:`run_host` picks the driver (``SimConfig.host_loop``): the batch runs the whole horizon as
+one compiled program (:mod:`wbc_jax.sim.host_scan`: C MuJoCo called from inside XLA, one
+environment after another, the controller's dynamics terms from C MuJoCo); otherwise (no C++
+compiler, or ``host_loop="python"``) the jitted, vmapped tick of a
+:class:`wbc_jax.sim.loop.ClosedLoop` (its controller and metrics, the same code as on MJX)
+alternates with C MuJoCo's ``mj_step`` in threads (:class:`wbc_jax.sim.physics.HostBatch`) in a
+Python loop.
 """
 
 from __future__ import annotations
@@ -34,22 +36,18 @@ def host_models(loop, scen: Scenario) -> list:
 
 
 def driver(loop, batch: int, feedforward: bool = False) -> str:
-    """The driver of a batch of ``batch`` environments: "compiled" (one program,
-    :mod:`wbc_jax.sim.host_scan`) or "python" (a Python loop of ticks). ``SimConfig.host_loop``
+    """The driver of a batch of ``batch`` environments (with ``feedforward`` torques or not): "compiled" (one
+    program, :mod:`wbc_jax.sim.host_scan`) or "python" (a Python loop of ticks). ``SimConfig.host_loop``
     "auto" compiles any batch where the native step builds (on the 2-core machine it compiles and
     runs faster than the Python loop, whose threads step a batch's physics on several cores:
-    BENCHMARKS.md, "C MuJoCo drivers"); "compiled" asked for where it cannot build, or with ``feedforward`` torques
-    (the Python loop's alone), is an error."""
-    del batch  # every batch size compiles alike
-    choice = loop.cfg.host_loop
-    if choice == "compiled" and feedforward:
-        raise ValueError("host_loop='compiled' takes no feedforward torques; use host_loop='python' or 'auto'")
-    if choice == "python" or (choice == "auto" and feedforward):
+    BENCHMARKS.md, "C MuJoCo drivers"); "compiled" asked for where it cannot build is an error."""
+    del batch, feedforward  # every batch compiles alike, with feedforward torques or without
+    if loop.cfg.host_loop == "python":
         return "python"
     problem = native.available()
     if problem is None:
         return "compiled"
-    if choice == "compiled":
+    if loop.cfg.host_loop == "compiled":
         raise ValueError(f"host_loop='compiled' cannot run here: {problem}; use host_loop='python'")
     return "python"
 
@@ -89,7 +87,7 @@ def run_host(
     qpos = np.asarray(qpos0, float)[None].repeat(B, 0)
     qpos[:, loop.idx.qpos_joints] += scen.joint_offset
     if driver(loop, B, feedforward is not None) == "compiled":
-        return host_scan.run_scan(loop, scen, models, qpos, dtype, on_tick=on_tick)
+        return host_scan.run_scan(loop, scen, models, qpos, dtype, on_tick=on_tick, feedforward=feedforward)
     cast = lambda x: jnp.asarray(x, dtype if np.asarray(x).dtype.kind == "f" else None)  # noqa: E731
     pipelined = B >= 2 and B % 2 == 0 and not (loop.cfg.record or loop.observes_contacts)
     parts = [slice(0, B // 2), slice(B // 2, B)] if pipelined else [slice(0, B)]

@@ -33,7 +33,7 @@ from wbc_jax.sim.state import Scenario, traced_at_matmul_precision
 
 
 @traced_at_matmul_precision
-def horizon(loop, gains, push, qpos, handles):
+def horizon(loop, gains, push, qpos, handles, feedforward=None):
     """Every tick of B environments on C MuJoCo, traced as one program.
 
     One environment (B = 1) is traced without ``vmap``: under ``vmap`` a branch on a batched
@@ -45,6 +45,7 @@ def horizon(loop, gains, push, qpos, handles):
       qpos: (B, nq) initial positions (zero velocity), in the controller's dtype; the C data of
         ``handles`` hold the same state.
       handles: (B, 4) uint32 (:func:`wbc_jax.sim.native.handles`).
+      feedforward: :class:`wbc_jax.sim.state.Feedforward` torques with a leading batch axis B, or None.
 
     Returns:
       (Metrics with a batch axis, records with axes (B, T, ...) or None).
@@ -53,7 +54,7 @@ def horizon(loop, gains, push, qpos, handles):
     n_con = physics.max_contacts(loop.robot.mj_model)
     if B == 1:  # the batch axis only at the physics calls
         unbatched = lambda tree: jax.tree_util.tree_map(lambda x: x[0], tree)  # noqa: E731
-        gains, push, qpos = unbatched(gains), unbatched(push), unbatched(qpos)
+        gains, push, qpos, feedforward = (unbatched(x) for x in (gains, push, qpos, feedforward))
         batched = lambda fn, in_axes=0: fn  # noqa: E731
         to_physics = lambda x: x[None]  # noqa: E731
         from_physics = lambda x: x[0]  # noqa: E731
@@ -61,8 +62,8 @@ def horizon(loop, gains, push, qpos, handles):
         batched = jax.vmap
         to_physics = from_physics = lambda x: x
     control = batched(
-        lambda g, s, q, v, k, ok, p, t: loop.control(g, s, q, v, k, ok, p, terms=t),
-        in_axes=(0, 0, 0, 0, None, 0, 0, 0),
+        lambda g, s, q, v, k, ok, p, f, t: loop.control(g, s, q, v, k, ok, p, feedforward=f, terms=t),
+        in_axes=(0, 0, 0, 0, None, 0, 0, 0, 0),
     )
     slots_read = loop.cfg.record or loop.observes_contacts
     if engine_terms(loop):
@@ -74,7 +75,7 @@ def horizon(loop, gains, push, qpos, handles):
     def tick(carry, k):
         state, q, v, ok, engine = carry
         terms = None if engine is None else from_engine(q, v, jax.tree_util.tree_map(from_physics, engine[1]))
-        state, ctrl, record = control(gains, state, q, v, k, ok, push, terms)
+        state, ctrl, record = control(gains, state, q, v, k, ok, push, feedforward, terms)
         xfrc = batched(loop.xfrc, in_axes=(0, None))(push, k)
         q, v, ok, slots, engine = physics_step(to_physics(ctrl), to_physics(xfrc), to_physics(ok), engine)
         q, v, ok = from_physics(q), from_physics(v), from_physics(ok)
@@ -144,15 +145,16 @@ class _SplitStep:
         return q, v, ok, slots if self.n_con else (), (slots, e)
 
 
-def program(loop, gains, push, qpos, handles):
-    """The compiled :func:`horizon` for these argument shapes: (program, seconds spent compiling
-    or loading it now). Cached in this process (:data:`wbc_jax.sim.loop.PROGRAMS`) and on disk
-    (:mod:`wbc_jax.sim.executables`)."""
-    key = ("host-scan", loop.structure_key, qpos.shape, str(qpos.dtype))
+def program(loop, gains, push, qpos, handles, feedforward=None):
+    """The compiled :func:`horizon` for these argument shapes (and feedforward window, or none): (program,
+    seconds spent compiling or loading it now). Cached in this process (:data:`wbc_jax.sim.loop.PROGRAMS`) and
+    on disk (:mod:`wbc_jax.sim.executables`)."""
+    window = None if feedforward is None else feedforward.torque.shape
+    key = ("host-scan", loop.structure_key, qpos.shape, str(qpos.dtype), window)
     if key in PROGRAMS:
         return PROGRAMS[key], 0.0
     t0 = time.perf_counter()
-    args = (gains, push, qpos, handles)
+    args = (gains, push, qpos, handles, feedforward)
     PROGRAMS[key] = executables.compiled(
         "host_scan",
         (loop.structure_key, native.SOURCE.read_bytes()),
@@ -162,7 +164,7 @@ def program(loop, gains, push, qpos, handles):
     return PROGRAMS[key], time.perf_counter() - t0
 
 
-def run_scan(loop, scen: Scenario, models: list, qpos: np.ndarray, dtype, *, on_tick=None):
+def run_scan(loop, scen: Scenario, models: list, qpos: np.ndarray, dtype, *, on_tick=None, feedforward=None):
     """Every tick of a batch of B environments on C MuJoCo in one compiled program.
 
     Args:
@@ -171,6 +173,7 @@ def run_scan(loop, scen: Scenario, models: list, qpos: np.ndarray, dtype, *, on_
       qpos: (B, nq) initial positions.
       dtype: the controller's float dtype.
       on_tick: called once with the number of ticks, when the program is done.
+      feedforward: :class:`wbc_jax.sim.state.Feedforward` torques with a leading batch axis B, or None.
 
     Returns:
       (Metrics with a batch axis, records with axes (B, T, ...) or None, seconds compiling).
@@ -180,11 +183,12 @@ def run_scan(loop, scen: Scenario, models: list, qpos: np.ndarray, dtype, *, on_
         raise RuntimeError(f"the compiled C MuJoCo loop is not available here: {problem}")
     floats = lambda x: np.asarray(x, dtype) if np.asarray(x).dtype.kind == "f" else np.asarray(x)  # noqa: E731
     gains, push = (jax.tree_util.tree_map(floats, tree) for tree in (scen.gains, scen.push))
+    ff = None if feedforward is None else jax.tree_util.tree_map(floats, feedforward)
     host = physics.HostBatch(models, qpos, threads=1)
     try:
         ids = native.handles(host.models, host.data)
-        fn, compile_s = program(loop, gains, push, np.asarray(qpos, dtype), ids)
-        metrics, records = jax.block_until_ready(fn(gains, push, np.asarray(qpos, dtype), ids))
+        fn, compile_s = program(loop, gains, push, np.asarray(qpos, dtype), ids, ff)
+        metrics, records = jax.block_until_ready(fn(gains, push, np.asarray(qpos, dtype), ids, ff))
     finally:
         host.close()
     if on_tick is not None:

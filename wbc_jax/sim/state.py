@@ -63,8 +63,7 @@ class SimConfig:
       host_loop: how the C MuJoCo engine (``mujoco``) runs the ticks: "compiled" (the whole
         horizon as one XLA program calling C MuJoCo, :mod:`wbc_jax.sim.host_scan`), "python" (a
         Python loop of jitted ticks and threaded physics, :mod:`wbc_jax.sim.host_loop`; batches
-        run in two pipelined halves), "auto" (compiled where the native step builds and no feedforward
-        torques are given, python otherwise).
+        run in two pipelined halves), "auto" (compiled where the native step builds, python otherwise).
     """
 
     control_dt: float = constants.CONTROL_DT
