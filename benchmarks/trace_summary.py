@@ -251,10 +251,12 @@ def op_label(source: dict | None, op: str, short=lambda path: path) -> str:
     return f"{source['opcode']} {short(source['file'])}:{source['function']}:{source['line']}"
 
 
-def by_scope(trace_dir: str | pathlib.Path, module: str, calls: int, batch: int) -> dict:
+def by_scope(trace_dir: str | pathlib.Path, module: str, calls: int, batch: int, depth: int = 1) -> dict:
     """A kept trace summed without the program's HLO text: ``module``'s GPU events a call, and µs per environment
     and call of its ops per the JAX scope that named them (the events' ``name``: ``jit(tick)/vmap(torque_law)/...`` -> ``vmap(torque_law)``;
-    fusions that XLA named itself are ``(fusion)``), their total, and ``device_idle``."""
+    ``depth`` scopes below the program's: 3 gives ``vmap(torque_law)/jit(_cho_solve)/triangular_solve``, the
+    library call by the function that made it; fusions that XLA named itself are ``(fusion)``), their total, and
+    ``device_idle``."""
     events, names = _events(trace_dir)
     gpu = {pid for pid, name in names.items() if name.startswith("/device:GPU")}
     _, times = op_times(trace_dir, module)
@@ -263,7 +265,8 @@ def by_scope(trace_dir: str | pathlib.Path, module: str, calls: int, batch: int)
         args = e.get("args") or {}
         if e.get("pid") in gpu and "hlo_op" in args and args["hlo_op"] not in scope_of:
             parts = str(args.get("name", "")).split("/")
-            scope_of[args["hlo_op"]] = parts[1] if len(parts) > 2 else ("(fusion)" if "name" not in args else parts[0])
+            inner = "/".join(parts[1 : 1 + depth])
+            scope_of[args["hlo_op"]] = inner if len(parts) > 2 else ("(fusion)" if "name" not in args else parts[0])
     scale = 1.0 / (calls * batch)
     scopes: dict[str, float] = collections.defaultdict(float)
     for op, t in times.items():
@@ -291,8 +294,11 @@ if __name__ == "__main__":
     parser.add_argument("--module", default="jit_tick")
     parser.add_argument("--calls", type=int, default=3, help="calls of the program in the trace")
     parser.add_argument("--batch", type=int, default=65536, help="environments of a call")
+    parser.add_argument("--depth", type=int, default=1, help="scopes below the program's in each key (3: the op)")
     a = parser.parse_args()
-    summary = by_scope(a.trace, a.module, a.calls, a.batch)
+    if a.depth < 1:
+        parser.error(f"--depth must be a whole number >= 1, got {a.depth}")
+    summary = by_scope(a.trace, a.module, a.calls, a.batch, a.depth)
     if summary["device_idle"]:
         summary["device_idle"] = {k: v for k, v in summary["device_idle"].items() if not isinstance(v, list)}
     print(json.dumps(summary, indent=1))

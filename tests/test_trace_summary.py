@@ -205,3 +205,7 @@ def test_by_scope_sums_a_kept_trace_per_jax_scope_without_the_hlo_text(tmp_path)
     )
     assert summary["total_us_per_env"] == pytest.approx(9.0)
     assert summary["kernels_per_call"] == 2.0
+    ops = ts.by_scope(tmp_path, "jit_tick", calls=2, batch=5, depth=3)["by_scope"]
+    assert ops == pytest.approx(
+        {"vmap(force_distribution)/lu": 6.0, "vmap(torque_law)/jit(_cho_solve)/triangular_solve": 1.0, "(fusion)": 2.0}
+    )
