@@ -79,7 +79,7 @@ def timing(gains: str, repeats: int, robot: str) -> dict:
     st = balance.make_setup(
         balance.BalanceConfig(robot=robot, task="sinusoid", duration=20.0, gains=file, backend="mujoco")
     )
-    driver = host_loop.driver(st.loop, 1)
+    driver = host_loop.driver(st.loop)
     runner.run(st, scenario.single(st))  # compile (or load) and warm up
     rows = []
     for _ in range(repeats):

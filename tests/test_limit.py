@@ -38,10 +38,10 @@ def test_feedforward_runs_on_either_host_loop(monkeypatch):
     job's replays, ``replayed`` below) and on the Python loop ('python', or where it cannot build)."""
     auto, python = (SimpleNamespace(cfg=SimpleNamespace(host_loop=c)) for c in ("auto", "python"))
     built = native.available() is None
-    assert host_loop.driver(auto, 4, feedforward=True) == ("compiled" if built else "python")
-    assert host_loop.driver(python, 4, feedforward=True) == "python"
+    assert host_loop.driver(auto) == ("compiled" if built else "python")
+    assert host_loop.driver(python) == "python"
     monkeypatch.setattr(native, "available", lambda: "no C++ compiler found")
-    assert host_loop.driver(auto, 4, feedforward=True) == "python"
+    assert host_loop.driver(auto) == "python"
 
 
 # Two loops of a batch with feedforward torques compile here (about a minute on the 2-core machine): nightly.

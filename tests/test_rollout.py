@@ -130,7 +130,7 @@ def test_pipelined_qp_host_batch_equals_the_compiled_loop(runs):
     (one program, C MuJoCo called from XLA) give the same metrics to float noise."""
     _, alone = _batch_against_alone("qp")
     compiled = runs["mujoco"][1]
-    assert host_loop.driver(runs["mujoco"][0].loop, 1) == ("compiled" if native.available() is None else "python")
+    assert host_loop.driver(runs["mujoco"][0].loop) == ("compiled" if native.available() is None else "python")
     # Two code paths: their float64 rounding differs by CPU. Measured over the metrics: 1.1e-9 relative, 4.9e-11
     # absolute here, 3.8e-10 with XLA held to AVX2, 1.13e-9 on another 2-core x86 (issue 41); bars ~100x that. Any
     # real difference (a tick's push, a sub-step) moves these metrics by > 1e-4. The halves above run the program

@@ -160,7 +160,7 @@ def run(
         "solver_iterations": int(cfg.solver_iterations or st.robot.mj_model.opt.iterations),
         "control_dt_s": loop.cfg.control_dt,
         "backend": st.backend,
-        "host_loop": host_loop.driver(loop, 1) if st.backend == "mujoco" else None,
+        "host_loop": host_loop.driver(loop) if st.backend == "mujoco" else None,
     }
     result.update(metrics_lib.summarize(metrics, push_end))
     result.update(force_task_error(traj))

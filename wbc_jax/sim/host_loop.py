@@ -35,13 +35,12 @@ def host_models(loop, scen: Scenario) -> list:
     ]
 
 
-def driver(loop, batch: int, feedforward: bool = False) -> str:
-    """The driver of a batch of ``batch`` environments (with ``feedforward`` torques or not): "compiled" (one
+def driver(loop) -> str:
+    """The driver of the loop's batches (any size, with feedforward torques or without): "compiled" (one
     program, :mod:`wbc_jax.sim.host_scan`) or "python" (a Python loop of ticks). ``SimConfig.host_loop``
-    "auto" compiles any batch where the native step builds (on the 2-core machine it compiles and
-    runs faster than the Python loop, whose threads step a batch's physics on several cores:
-    BENCHMARKS.md, "C MuJoCo drivers"); "compiled" asked for where it cannot build is an error."""
-    del batch, feedforward  # every batch compiles alike, with feedforward torques or without
+    "auto" compiles where the native step builds (on the 2-core machine it compiles and runs faster
+    than the Python loop, whose threads step a batch's physics on several cores: BENCHMARKS.md,
+    "C MuJoCo drivers"); "compiled" asked for where it cannot build is an error."""
     if loop.cfg.host_loop == "python":
         return "python"
     problem = native.available()
@@ -86,7 +85,7 @@ def run_host(
     models = host_models(loop, scen)
     qpos = np.asarray(qpos0, float)[None].repeat(B, 0)
     qpos[:, loop.idx.qpos_joints] += scen.joint_offset
-    if driver(loop, B, feedforward is not None) == "compiled":
+    if driver(loop) == "compiled":
         return host_scan.run_scan(loop, scen, models, qpos, dtype, on_tick=on_tick, feedforward=feedforward)
     cast = lambda x: jnp.asarray(x, dtype if np.asarray(x).dtype.kind == "f" else None)  # noqa: E731
     pipelined = B >= 2 and B % 2 == 0 and not (loop.cfg.record or loop.observes_contacts)
