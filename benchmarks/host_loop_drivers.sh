@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The README's main job (`wbc-jax push-sweep`, 12 environments, C MuJoCo) with each driver of the C MuJoCo engine,
 # each from a fresh compilation cache (first run: the native step's build, tracing and compiling included) and again
-# with that cache (second run), alternating; one JSON line per run. Usage: bash benchmarks/host_loop_drivers.sh OUT.jsonl [REPEATS]
+# with that cache (second run), alternating; one JSON line per run, with the sweep's device, versions and provenance
+# (its command and input files). Usage: bash benchmarks/host_loop_drivers.sh OUT.jsonl [REPEATS]
 set -euo pipefail
 out=$1; reps=${2:-2}
 : > "$out"
@@ -18,7 +19,8 @@ import json, sys
 driver, rep, run, start, end, folder = sys.argv[1:]
 s = json.load(open(f"{folder}/summary.json"))
 print(json.dumps({"driver": driver, "repeat": int(rep), "run": run, "command_wall_s": round(float(end) - float(start), 1),
-                  "compile_s": s["compile_s"], "run_s": s["run_s"], "survival": s.get("survival_rate")}))
+                  "compile_s": s["compile_s"], "run_s": s["run_s"], "survival": s.get("survival_rate"),
+                  "device": s["device"], "versions": s["versions"], "provenance": s["provenance"]}))
 PY
     done
   done
