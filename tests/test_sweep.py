@@ -186,3 +186,27 @@ def test_sweep_isolates_nan_and_resumes(tmp_path, backend):
     proc = run("resume")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert (out / "parts" / "part-00000.parquet").stat().st_mtime == before
+
+
+def test_host_loop_is_refused_on_an_mjx_backend_in_one_line(tmp_path, capsys):
+    """--host-loop sets how the C MuJoCo engine runs: with an MJX backend it would change nothing, so it is refused
+    before anything compiles; an unknown value names the valid ones."""
+    from wbc_jax import cli
+
+    out = tmp_path / "sw"
+    assert cli.main(["push-sweep", "--backend", "jax", "--host-loop", "python", "--out", str(out)]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert err == [
+        "wbc-jax push-sweep: error: --host-loop python sets how the C MuJoCo engine runs the ticks: it needs "
+        "--backend mujoco (--backend jax runs jax here)"
+    ]
+    proc = subprocess.run(
+        [sys.executable, "-m", "wbc_jax.cli", "push-sweep", "--host-loop", "fast", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    lines = [line for line in proc.stderr.splitlines() if "error:" in line]
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-2000:]
+    assert "argument --host-loop: invalid choice: 'fast' (choose from 'auto', 'compiled', 'python')" in lines[0]
+    assert not out.exists()
