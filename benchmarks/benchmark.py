@@ -146,7 +146,7 @@ def json_rows(result: dict) -> list[dict]:
             entry["qp_warm_start"] = True
         if row.get("qp_unrolled_steps"):
             entry["qp_unrolled_steps"] = row["qp_unrolled_steps"]
-        if row.get("qp_engine", "jax") != "jax":  # the force QP's interior point in Warp: a setting of its own
+        if row.get("qp_engine", "jax") != "jax":  # the force QP in a Warp kernel: a setting of its own
             entry["qp_engine"] = row["qp_engine"]
         if row.get("xla_flags"):  # XLA's flags of the run (command buffers, say): a setting of its own
             entry["xla_flags"] = row["xla_flags"]

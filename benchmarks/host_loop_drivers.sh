@@ -3,6 +3,8 @@
 # each from a fresh compilation cache (first run: the native step's build, tracing and compiling included) and again
 # with that cache (second run), alternating; one JSON line per run, with the sweep's device, versions and provenance
 # (its command and input files). Usage: bash benchmarks/host_loop_drivers.sh OUT.jsonl [REPEATS]
+# WBC_JAX: the command that runs the CLI (default wbc-jax, the installed entry point; a checkout that is not
+# installed, as on the device machines: WBC_JAX='python3 -m wbc_jax.cli').
 set -euo pipefail
 out=$1; reps=${2:-2}
 : > "$out"
@@ -12,7 +14,7 @@ for rep in $(seq 1 "$reps"); do
     for run in first second; do
       dir=$(mktemp -d)/sweep
       start=$(date +%s.%N)
-      WBC_JAX_CACHE=$cache wbc-jax push-sweep --host-loop "$driver" --out "$dir" --quiet > /dev/null
+      WBC_JAX_CACHE=$cache ${WBC_JAX:-wbc-jax} push-sweep --host-loop "$driver" --out "$dir" --quiet > /dev/null
       end=$(date +%s.%N)
       python3 - "$driver" "$rep" "$run" "$start" "$end" "$dir" >> "$out" <<'PY'
 import json, sys

@@ -29,7 +29,8 @@ def add_qp_arguments(parser, recorded_loop: bool = False) -> None:
         "--qp-engine",
         choices=qp.QP_ENGINES,
         default="jax",
-        help="the force QP's interior-point engine (ControllerConfig.qp_engine; warp: one Warp kernel)" + also,
+        help="the force QP's solver (ControllerConfig.qp_engine; warp: the interior point as one Warp kernel, "
+        "warp_active_set: the dual active-set method as one)" + also,
     )
 
 
@@ -41,8 +42,12 @@ def check_qp_arguments(parser, args) -> None:
         parser.error(
             f"--qp-unrolled-steps must be from 0 to {DEFAULT_ITERATIONS} (the QP's iterations), got {args.qp_unrolled_steps}"
         )
-    if args.qp_engine == "warp" and args.qp_unrolled_steps:
-        parser.error("--qp-engine warp takes --qp-unrolled-steps 0 (the Warp kernel has no while loop to unroll)")
+    if args.qp_engine != "jax" and args.qp_unrolled_steps:
+        parser.error(
+            f"--qp-engine {args.qp_engine} takes --qp-unrolled-steps 0 (the Warp kernel has no while loop to unroll)"
+        )
+    if args.qp_engine == "warp_active_set" and getattr(args, "qp_warm_start", False):
+        parser.error("--qp-engine warp_active_set takes no --qp-warm-start (the active-set method starts cold)")
 
 
 def make_setup(

@@ -96,7 +96,9 @@ for job in "$@"; do
             # program 35 s against 73-83 s for the Python loop on the README main job, BENCHMARKS.md): whether the
             # Python loop's threaded physics wins a batch on many cores. Run with JAX_PLATFORMS=cpu; about 5 minutes
       mkdir -p "$OUT/cpu_drivers"; lscpu | grep -E "Model name|^CPU\(s\)" > "$OUT/cpu_drivers/cpu.txt"
-      run cpu_drivers bash benchmarks/host_loop_drivers.sh "$OUT/cpu_drivers/readme_job.jsonl" 2 ;;
+      # the checkout is not installed here: the CLI as a module (s60: `wbc-jax: command not found`)
+      run cpu_drivers env WBC_JAX="python3 -m wbc_jax.cli" bash benchmarks/host_loop_drivers.sh \
+        "$OUT/cpu_drivers/readme_job.jsonl" 2 ;;
     setup)  # what is there
       nvidia-smi -L; python3 -c "import jax, mujoco; print(jax.__version__, mujoco.__version__, jax.devices())"
       python3 -c "import warp; print('warp', warp.__version__)" 2>&1 | tail -1 ;;
@@ -124,11 +126,16 @@ for job in "$@"; do
         run envelope_$b python3 experiments/checks/envelope_check.py --grid /tmp/sw/agree_$b --out "$OUT/envelope_$b" -- \
           --backend $b
       done ;;
-    warm_sweep|wqp_sweep)  # issue 46, a setting of the force QP as the default: the default-gain grid (2,048 envs,
-            # 3 s) on Warp three times as now (the engine's run-to-run floor) and twice with the setting, each compared
-            # cell by cell with the first grid (island_check: differing cells, their distance from its transition
-            # band). warm_sweep: --qp-warm-start; wqp_sweep: --qp-engine warp (the QP as one Warp kernel, s58)
-      case $job in warm_sweep) v=warm f="--qp-warm-start" ;; wqp_sweep) v=wqp f="--qp-engine warp" ;; esac
+    warm_sweep|wqp_sweep|was_sweep)  # issue 46, a setting of the force QP as the default: the default-gain grid
+            # (2,048 envs, 3 s) on Warp three times as now (the engine's run-to-run floor) and twice with the setting,
+            # each compared cell by cell with the first grid (island_check: differing cells, their distance from its
+            # transition band). warm_sweep: --qp-warm-start; wqp_sweep: --qp-engine warp (the QP's interior point as
+            # one Warp kernel, s58); was_sweep: --qp-engine warp_active_set (the dual active-set kernel, s60)
+      case $job in
+        warm_sweep) v=warm f="--qp-warm-start" ;;
+        wqp_sweep) v=wqp f="--qp-engine warp" ;;
+        was_sweep) v=was f="--qp-engine warp_active_set" ;;
+      esac
       mkdir -p "$OUT/$job"
       for r in cold1 cold2 cold3 ${v}1 ${v}2; do
         case $r in cold*) g="" ;; *) g=$f ;; esac
@@ -204,6 +211,16 @@ for job in "$@"; do
         profile_tick_wqp) profile46 $job --qp-engine warp ;;
         bench46_wqp) bench46_run $job --qp-engine warp ;;
       esac ;;
+    profile_tick_was|bench46_was)  # issue 46 (s60): the force QP by the dual active-set method as one Warp kernel
+            # (--qp-engine warp_active_set, wbc_jax/control/qp_active_set_kernel.py): at most n rows active, so a few
+            # rank-k solves where the interior point factorises an (n + n) Newton matrix over all 38 rows per step
+      case $job in
+        profile_tick_was) profile46 $job --qp-engine warp_active_set ;;
+        bench46_was) bench46_run $job --qp-engine warp_active_set ;;
+      esac ;;
+    gpu_tests_qp)  # the force QP's Warp engines' GPU tests (tests/test_qp_warp.py, tests/test_qp_active_set.py)
+      run $job env JAX_PLATFORMS=cuda,cpu python3 -m pytest -q -p no:cacheprovider -o addopts="" -m gpu tests/test_qp_warp.py \
+        tests/test_qp_active_set.py ;;
     profile_tick_cbuf|bench46_cbuf)  # issue 46 (s57): profile_tick / bench46 with XLA's command buffers taking while
             # loops and conditionals too (CUDA graph conditional nodes: the predicate stays on the GPU), CBUF_TYPES
             # (default below). The tick has one QP while loop and four batch_any conds on its path, and at 65,536

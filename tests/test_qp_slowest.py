@@ -108,12 +108,12 @@ def test_qp_engine_setting_reaches_the_force_qp_and_bad_values_are_refused():
     "warp" with unrolled steps is refused (before Warp is imported)."""
     assert controller.ControllerConfig().force_settings.qp_engine == "jax"
     assert controller.ControllerConfig(qp_engine="warp").force_settings.qp_engine == "warp"
-    with pytest.raises(ValueError, match=r"qp_engine 'cuda'; valid: \['jax', 'warp'\]"):
+    with pytest.raises(ValueError, match=r"qp_engine 'cuda'; valid: \['jax', 'warp', 'warp_active_set'\]"):
         controller.ControllerConfig(qp_engine="cuda")
     with pytest.raises(ValueError, match=r"qp_engine 'warp' takes qp_unrolled_steps 0 .*no while loop.*got 2"):
         controller.ControllerConfig(qp_engine="warp", qp_unrolled_steps=2)
     H, g, C, b = jnp.eye(2), jnp.ones(2), jnp.eye(2), jnp.ones(2)
-    with pytest.raises(ValueError, match=r"unknown engine 'cuda'; valid: \['jax', 'warp'\]"):
+    with pytest.raises(ValueError, match=r"unknown engine 'cuda'; valid: \['jax', 'warp', 'warp_active_set'\]"):
         qp.solve_qp(H, g, C, b, engine="cuda")
     with pytest.raises(ValueError, match=r"engine 'warp' takes unrolled 0 \(the Warp kernel has no while loop"):
         qp.solve_qp(H, g, C, b, engine="warp", unrolled=2)

@@ -1,7 +1,7 @@
 """Measured acceptance of the balancing controller (issue: the controller of the seed paper).
 
     python experiments/acceptance/balance_acceptance.py [--robot NAME] [--only NAME ...] [--out runs/acceptance]
-        [--summary FILE] [--qp-warm-start]
+        [--summary FILE] [--qp-warm-start] [--qp-engine ENGINE]
 
 Runs each scenario with ``wbc_jax.jobs.balance.run`` and merges the metrics into
 ``results/balance_acceptance.json`` (the default robot's; another robot's into
@@ -20,6 +20,7 @@ import pathlib
 
 import numpy as np
 
+from wbc_jax.control.qp import QP_ENGINES
 from wbc_jax.core import io, provenance
 from wbc_jax.jobs import balance
 from wbc_jax.robot.robots import DEFAULT_ROBOT, ROBOT_NAMES
@@ -95,6 +96,12 @@ def main(argv=None) -> None:
         action="store_true",
         help="the force QP warm-started (ControllerConfig.qp_warm_start); compare with cpu_loop.py's acceptance part",
     )
+    parser.add_argument(
+        "--qp-engine",
+        default="jax",
+        choices=list(QP_ENGINES),
+        help="the force QP's solver (ControllerConfig.qp_engine; the Warp engines need warp-lang)",
+    )
     args = parser.parse_args(argv)
     record = provenance.record(argv=provenance.script_argv(__file__, argv))
     runner.enable_compilation_cache()  # scenarios of the same shape compile once, as in the CLI
@@ -113,6 +120,7 @@ def main(argv=None) -> None:
             backend=args.backend,
             robot=args.robot,
             qp_warm_start=args.qp_warm_start,
+            qp_engine=args.qp_engine,
             **SCENARIOS[name],
         )
         print(key, json.dumps(result), flush=True)

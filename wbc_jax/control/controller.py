@@ -61,8 +61,10 @@ class ControllerConfig:
       qp_unrolled_steps: the force QPs' first Newton steps written out before their while loop (0 to
         qp_iterations; the same solutions): on a GPU each pass of the loop waits for its predicate on the
         host (BENCHMARKS.md, issue 46). 0 by default.
-      qp_engine: the force QPs' interior-point engine, ``"jax"`` (default) or ``"warp"`` (one Warp kernel, one
-        thread per problem, :mod:`wbc_jax.control.qp_warp`; needs warp-lang and qp_unrolled_steps 0).
+      qp_engine: the force QPs' solver, :data:`wbc_jax.control.qp.QP_ENGINES`: ``"jax"`` (default, the interior
+        point), ``"warp"`` (the same as one Warp kernel, one thread per problem, :mod:`wbc_jax.control.qp_warp`) or
+        ``"warp_active_set"`` (the dual active-set method as one Warp kernel: the exact solution, no warm start).
+        The Warp engines need warp-lang and qp_unrolled_steps 0.
       torque_weight_soft: |tau|^2 against |A f - w|^2 in the soft momentum QP.
       angular_weight_soft: the angular rows of |A f - w|^2 against the linear ones in the soft
         momentum QP (1: WBC; < 1: the CoM first where a push asks more than the feet can give).
@@ -165,10 +167,15 @@ class ControllerConfig:
             )
         if self.qp_engine not in qp.QP_ENGINES:
             raise ValueError(f"unknown controller setting qp_engine {self.qp_engine!r}; valid: {list(qp.QP_ENGINES)}")
-        if self.qp_engine == "warp" and steps:
+        if self.qp_engine in qp.WARP_ENGINES and steps:
             raise ValueError(
-                f"controller setting qp_engine 'warp' takes qp_unrolled_steps 0 (the Warp kernel has no while loop "
-                f"to unroll), got {steps!r}"
+                f"controller setting qp_engine {self.qp_engine!r} takes qp_unrolled_steps 0 (the Warp kernel has no "
+                f"while loop to unroll), got {steps!r}"
+            )
+        if self.qp_engine == "warp_active_set" and self.qp_warm_start:
+            raise ValueError(
+                "controller setting qp_engine 'warp_active_set' takes qp_warm_start False (the active-set method "
+                "starts from the unconstrained minimiser); warm starts: qp_engine 'jax' or 'warp'"
             )
         if isinstance(self.effort_damping, bool) or not (
             isinstance(self.effort_damping, (int, float)) and 0.0 <= self.effort_damping < math.inf

@@ -49,8 +49,9 @@ class ControllerFlags:
     )
     qp_engine: str = option(
         "jax",
-        "the force QP's interior-point engine: jax, or warp (one Warp kernel, one thread per problem, "
-        "wbc_jax/control/qp_warp.py; needs warp-lang and --qp-unrolled-steps 0)",
+        "the force QP's solver: jax (the interior point), warp (the same as one Warp kernel, one thread per problem, "
+        "wbc_jax/control/qp_warp.py) or warp_active_set (the dual active-set method as one Warp kernel: the exact "
+        "solution, no --qp-warm-start); the Warp engines need warp-lang and --qp-unrolled-steps 0",
         choices=qp.QP_ENGINES,
     )
 

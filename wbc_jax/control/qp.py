@@ -92,8 +92,12 @@ from wbc_jax.core.math import batch_any
 Array = jax.Array
 
 
-QP_ENGINES = ("jax", "warp")
-"""Engines of :func:`solve_qp`'s interior-point iterations (its ``engine``)."""
+QP_ENGINES = ("jax", "warp", "warp_active_set")
+"""Engines of :func:`solve_qp` (its ``engine``): the interior point in JAX or as one Warp kernel, or the dual
+active-set method as one Warp kernel (:mod:`wbc_jax.control.qp_active_set_kernel`)."""
+
+WARP_ENGINES = ("warp", "warp_active_set")
+"""The engines that need warp-lang and take no ``unrolled`` steps."""
 
 
 DEFAULT_ITERATIONS = 25
@@ -217,10 +221,12 @@ def solve_qp(
             is the same within ``tol``; it takes fewer Newton steps.
         unrolled: Newton steps written out before the interior point's while loop (static, 0 to
             ``iterations``): the same solution; on a GPU no pause for the loop's predicate in them.
-        engine: the interior-point iterations' engine (static): ``"jax"``
-            (:func:`wbc_jax.control.qp_ipm.interior_point`) or ``"warp"`` (one Warp kernel, one thread per
-            problem, :func:`wbc_jax.control.qp_warp.interior_point_warp`; needs warp-lang, and ``unrolled`` 0:
-            the kernel has no while loop to unroll). The derivative and the fallback stay JAX's.
+        engine: the solver (static): ``"jax"`` (the interior point,
+            :func:`wbc_jax.control.qp_ipm.interior_point`), ``"warp"`` (the same as one Warp kernel, one thread
+            per problem, :func:`wbc_jax.control.qp_warp.interior_point_warp`) or ``"warp_active_set"`` (the dual
+            active-set method as one Warp kernel, :func:`wbc_jax.control.qp_warp.active_set_warp`: the exact
+            solution, to float64 rounding, whatever ``tol``; no ``start``). The Warp engines need warp-lang and
+            ``unrolled`` 0. The derivative and the fallback stay JAX's.
 
     Returns:
         ``(x, info)``: x (n,) in the promoted float dtype of the inputs, and a
@@ -242,9 +248,14 @@ def solve_qp(
         raise ValueError(f"solve_qp: unrolled must be an integer from 0 to iterations ({iterations}), got {unrolled!r}")
     if engine not in QP_ENGINES:
         raise ValueError(f"solve_qp: unknown engine {engine!r}; valid: {list(QP_ENGINES)}")
-    if engine == "warp" and unrolled != 0:
+    if engine in WARP_ENGINES and unrolled != 0:
         raise ValueError(
-            f"solve_qp: engine 'warp' takes unrolled 0 (the Warp kernel has no while loop to unroll), got {unrolled!r}"
+            f"solve_qp: engine {engine!r} takes unrolled 0 (the Warp kernel has no while loop to unroll), got {unrolled!r}"
+        )
+    if engine == "warp_active_set" and start is not None:
+        raise ValueError(
+            "solve_qp: engine 'warp_active_set' takes no start (the active-set method starts from the "
+            "unconstrained minimiser); warm starts: engines ['jax', 'warp']"
         )
     d_tol, d_fallback = default_tolerances(dtype, warm_start=start is not None)
     tol = d_tol if tol is None else float(tol)
@@ -263,10 +274,13 @@ def solve_qp(
             raise ValueError(
                 f"solve_qp: start must have shape (2, {b.shape[0]}) (multipliers, slacks), got {start.shape}"
             )
-    if engine == "warp":
+    if engine in WARP_ENGINES:
         from wbc_jax.control import qp_warp  # Warp only where asked for
 
-        ipm = qp_warp.interior_point_warp(Hp, gp, Cp, bp, int(iterations), tol, weight, start)
+        if engine == "warp":
+            ipm = qp_warp.interior_point_warp(Hp, gp, Cp, bp, int(iterations), tol, weight, start)
+        else:
+            ipm = qp_warp.active_set_warp(Hp, gp, Cp, bp, tol, weight)
     else:
         ipm = interior_point(Hp, gp, Cp, bp, int(iterations), tol, weight, start, unrolled)
 

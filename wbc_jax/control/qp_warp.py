@@ -1,4 +1,8 @@
-"""The interior point of :func:`wbc_jax.control.qp_ipm.interior_point` as one Warp kernel, one thread per problem.
+"""The force QP's Warp engines, each one kernel with one thread per problem: the interior point of
+:func:`wbc_jax.control.qp_ipm.interior_point` (:func:`interior_point_warp`, engine ``"warp"``) and the dual active-set
+method (:func:`active_set_warp`, engine ``"warp_active_set"``; :mod:`wbc_jax.control.qp_active_set_kernel`).
+
+The interior point:
 
 The same iterations, step for step (scaling, start, Mehrotra predictor-corrector, the Newton system with the
 ``n`` rows of largest ``z/s`` kept unreduced and its LU with partial pivoting, the residuals and the stopping
@@ -17,29 +21,30 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_batching import custom_vmap
 
+from wbc_jax.control.qp_active_set_kernel import active_set_kernel
 from wbc_jax.control.qp_ipm import IPMResult
 from wbc_jax.control.qp_warp_kernel import ipm_kernel
 
 Array = jax.Array
 
 
-def _flat_ipm(H, g, C, b, weight, start, *, iterations, tol, weighted, warm):
-    """The kernel over problems with any leading batch shape (flattened into one launch)."""
+def _flat_ipm(H, g, C, b, weight, start, *, iterations, tol, weighted, warm, method="interior_point"):
+    """The kernel over problems with any leading batch shape (flattened into one launch); ``method``
+    ``"active_set"``: the dual active-set kernel (no ``iterations``, no ``start``)."""
     lead = g.shape[:-1]
     n, m = g.shape[-1], b.shape[-1]
     size = int(np.prod(lead)) if lead else 1
     dtype = H.dtype
-    f = ipm_kernel(n, m, int(iterations), float(tol), dtype == jnp.float64, weighted, warm)
     H2, g2, C2, b2 = (a.reshape((size,) + a.shape[len(lead) :]) for a in (H, g, C, b))
     w2 = weight.reshape(size, m) if weighted else jnp.ones((1, 1), dtype)
-    s2 = start.reshape(size, 2, m) if warm else jnp.zeros((1, 1, 1), dtype)
+    if method == "active_set":
+        f = active_set_kernel(n, m, float(tol), dtype == jnp.float64, weighted)
+        inputs = (H2, g2, C2, b2, w2)
+    else:
+        f = ipm_kernel(n, m, int(iterations), float(tol), dtype == jnp.float64, weighted, warm)
+        inputs = (H2, g2, C2, b2, w2, start.reshape(size, 2, m) if warm else jnp.zeros((1, 1, 1), dtype))
     x, lam, s, flags, stats = f(
-        H2,
-        g2,
-        C2,
-        b2,
-        w2,
-        s2,
+        *inputs,
         launch_dims=(size,),
         output_dims={
             "x_out": (size, n),
@@ -59,10 +64,10 @@ def _flat_ipm(H, g, C, b, weight, start, *, iterations, tol, weighted, warm):
 
 
 @functools.cache
-def _batched(iterations: int, tol: float, weighted: bool, warm: bool):
+def _batched(iterations: int, tol: float, weighted: bool, warm: bool, method: str = "interior_point"):
     """The kernel call as a function that vmap batches by widening its leading batch shape (one launch per
     call, whatever the vmaps around it)."""
-    settings = dict(iterations=iterations, tol=tol, weighted=weighted, warm=warm)
+    settings = dict(iterations=iterations, tol=tol, weighted=weighted, warm=warm, method=method)
 
     @custom_vmap
     def call(H, g, C, b, weight, start):
@@ -98,6 +103,33 @@ def interior_point_warp(
     w = weight if weighted else jnp.zeros((), dtype)
     s0 = start if warm else jnp.zeros((), dtype)
     x, lam, s, flags, stats = _batched(int(iterations), float(tol), weighted, warm)(H, g, C, b, w, s0)
+    return IPMResult(
+        x=x,
+        lam=lam,
+        s=s,
+        converged=flags[..., 0] == 1,
+        finite=flags[..., 1] == 1,
+        violation=stats[..., 0],
+        kkt_residual=stats[..., 1],
+        iterations=flags[..., 2],
+        residual_parts=stats[..., 2:],
+    )
+
+
+def active_set_warp(H: Array, g: Array, C: Array, b: Array, tol: float, weight: Array | None = None) -> IPMResult:
+    """The QP ``min 1/2 x'Hx + g'x s.t. Cx <= b`` by the dual active-set method, one Warp kernel
+    (:mod:`wbc_jax.control.qp_active_set_kernel`): H (n, n) positive definite, g (n,), C (m, n), b (m,), weight (m,)
+    or None (the scaled rows' norms, as :func:`wbc_jax.control.qp_ipm.interior_point`'s); under ``vmap`` one launch
+    over the batch. ``tol``: the largest violation of a row, in the scaled problem, that counts as none. Returns the
+    interior point's :class:`wbc_jax.control.qp_ipm.IPMResult`: ``iterations`` the rows added and dropped,
+    ``lam`` zero and ``s`` positive off the active set. float32 or float64 data, solved in float64. Not
+    differentiated (callers pass ``stop_gradient`` data)."""
+    dtype = H.dtype
+    weighted = weight is not None
+    w = weight if weighted else jnp.zeros((), dtype)
+    x, lam, s, flags, stats = _batched(0, float(tol), weighted, False, "active_set")(
+        H, g, C, b, w, jnp.zeros((), dtype)
+    )
     return IPMResult(
         x=x,
         lam=lam,

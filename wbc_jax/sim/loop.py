@@ -102,10 +102,10 @@ class ClosedLoop:
         # (the gradient-free searches' forward rollouts); 'auto' then means 'jax'.
         requested = cfg.physics.backend
         self.backend = physics.resolve_backend(requested, differentiable=trace is not None and requested != "warp")
-        if controller.config.qp_engine == "warp" and not physics.has_warp():
+        if controller.config.qp_engine != "jax" and not physics.has_warp():
             raise ValueError(
-                "controller setting qp_engine 'warp' (the force QP as one Warp kernel) needs warp-lang: "
-                "pip install 'wbc_jax[cuda]'; valid here: ['jax']"
+                f"controller setting qp_engine {controller.config.qp_engine!r} (the force QP as one Warp kernel) "
+                "needs warp-lang: pip install 'wbc_jax[cuda]'; valid here: ['jax']"
             )
         if self.backend == "warp" and controller.config.contact_detection:
             raise ValueError(

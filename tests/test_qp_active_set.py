@@ -1,0 +1,153 @@
+"""The force QP's dual active-set engine (wbc_jax/control/qp_active_set_kernel.py, engine "warp_active_set", issue 46)
+against quadprog (the Goldfarb-Idnani method in C) and the interior point: the solution and the multipliers on
+random problems of the controller's shapes, dependent and inactive rows, infeasible and non-finite problems, the
+implicit derivative, and the settings it refuses. Runs on Warp's CPU backend where warp-lang is installed (the
+`cuda` extra); the `gpu` set runs it on the GPU."""
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+pytest.importorskip("warp", reason="the Warp engines need warp-lang (pip install 'wbc_jax[cuda]')")
+quadprog = pytest.importorskip("quadprog")
+
+from wbc_jax.control import controller, qp, qp_ipm, qp_warp  # noqa: E402
+
+FIELDS = [f.name for f in dataclasses.fields(qp_ipm.IPMResult)]
+
+
+def _problems(batch, n=6, m=38, dtype=np.float64, seed=0):
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(batch, n, n))
+    H = A @ A.transpose(0, 2, 1) + 0.1 * np.eye(n)
+    g = 10.0 * rng.normal(size=(batch, n))
+    C = rng.normal(size=(batch, m, n))
+    b = rng.uniform(0.1, 2.0, size=(batch, m))
+    return [np.asarray(a, dtype) for a in (H, g, C, b)]
+
+
+def _active_set(H, g, C, b, *, tol, weight=None):
+    def one(H, g, C, b, weight):
+        result = qp_warp.active_set_warp(H, g, C, b, tol, weight)
+        return tuple(getattr(result, name) for name in FIELDS)
+
+    axes = (0, 0, 0, 0, None if weight is None else 0)
+    out = jax.jit(jax.vmap(one, in_axes=axes))(*(jnp.asarray(a) for a in (H, g, C, b)), weight)
+    return {name: np.asarray(v) for name, v in zip(FIELDS, out)}
+
+
+def _quadprog(H, g, C, b):
+    """quadprog's x and multipliers of min 1/2 x'Hx + g'x s.t. Cx <= b (its form: G x >= h with G = -C')."""
+    x, _, _, _, lam, _ = quadprog.solve_qp(np.float64(H), -np.float64(g), -np.float64(C).T, -np.float64(b))
+    return x, lam
+
+
+def _relative(a, ref):
+    return np.max(np.abs(a - ref)) / (1.0 + np.max(np.abs(ref)))
+
+
+@pytest.mark.parametrize("dtype, bound", [(np.float64, 1e-11), (np.float32, 2e-6)])
+@pytest.mark.parametrize("n", [6, 12])
+def test_the_solution_and_multipliers_are_quadprogs(dtype, bound, n):
+    """Random problems of the equality QP's (6 x 38) and the soft QP's (12 x 38) shapes, 3-10 rows active: x and
+    the multipliers within float64 rounding of quadprog's (measured 4e-14), or float32's rounding of the inputs
+    and outputs (measured 4e-7; the interior point's float32 error is up to 9e-5, wbc_jax/control/qp.py)."""
+    H, g, C, b = _problems(48, n=n, dtype=dtype, seed=n)
+    got = _active_set(H, g, C, b, tol=1e-11 if dtype == np.float64 else 2e-6)
+    assert np.all(got["converged"]) and np.all(got["finite"])
+    active = []
+    for i in range(len(g)):
+        x, lam = _quadprog(H[i], g[i], C[i], b[i])
+        assert _relative(got["x"][i], x) < bound, i
+        assert _relative(got["lam"][i], lam) < 10 * bound, i
+        active.append(np.sum(lam > 0))
+        # off the active set: no multiplier, a positive slack
+        np.testing.assert_array_equal(got["lam"][i][lam == 0], 0.0)
+        assert np.all(got["s"][i] > 0)
+    assert 3 <= min(active) and max(active) <= n  # the problems exercise the active set
+    assert np.max(got["kkt_residual"]) < 1e-12  # the float64 solve's own KKT residual, scaled
+
+
+def test_dependent_rows_inactive_rows_and_row_weights():
+    """A row repeated, a row that is a multiple of another, and a problem whose unconstrained minimiser is feasible
+    (no step): quadprog's solution; row weights change the scaling, not the solution."""
+    H, g, C, b = _problems(8, seed=21)
+    x0 = np.stack([np.linalg.solve(H[i], -g[i]) for i in range(8)])
+    C[0, 1], b[0, 1] = C[0, 0], b[0, 0]  # the same row twice
+    C[1, 2], b[1, 2] = 3.0 * C[1, 0], 3.0 * b[1, 0]  # a multiple of a row
+    b[2] = C[2] @ x0[2] + 1.0  # no row active
+    weight = np.random.default_rng(22).uniform(0.5, 3.0, size=(8, 38))
+    for w in (None, weight):
+        got = _active_set(H, g, C, b, tol=1e-11, weight=w)
+        assert np.all(got["converged"])
+        for i in range(8):
+            assert _relative(got["x"][i], _quadprog(H[i], g[i], C[i], b[i])[0]) < 1e-11, (i, w is None)
+        assert got["iterations"][2] == 0
+        np.testing.assert_allclose(got["x"][2], x0[2], rtol=1e-12)
+
+
+def test_an_infeasible_or_non_finite_problem_is_flagged_and_falls_back_as_the_interior_points():
+    """x_0 <= -1 and -x_0 <= -1 cannot both hold: not converged, and solve_qp falls back to the unconstrained
+    minimiser as with the interior point; NaN data: not finite, x NaN. The batch's other problems are untouched."""
+    H, g, C, b = _problems(6, seed=23)
+    C[1, :2] = 0.0
+    C[1, 0, 0], C[1, 1, 0], b[1, 0], b[1, 1] = 1.0, -1.0, -1.0, -1.0
+    g[4, 0] = np.nan
+    got = _active_set(H, g, C, b, tol=1e-11)
+    assert not got["converged"][1] and got["finite"][1]
+    assert not got["finite"][4] and not got["converged"][4] and np.all(np.isnan(got["x"][4]))
+    for i in (0, 2, 3, 5):
+        assert got["converged"][i] and _relative(got["x"][i], _quadprog(H[i], g[i], C[i], b[i])[0]) < 1e-11
+
+    def solve(engine):
+        return jax.vmap(lambda H, g, C, b: qp.solve_qp(H, g, C, b, engine=engine))(H, g, C, b)
+
+    (x_as, info_as), (x_ipm, info_ipm) = solve("warp_active_set"), solve("jax")
+    np.testing.assert_array_equal(info_as.infeasible, info_ipm.infeasible)
+    assert info_as.infeasible[1] and info_as.infeasible[4]
+    np.testing.assert_allclose(x_as[1], x_ipm[1], rtol=1e-12)  # the same fallback point
+
+
+def test_solve_qp_differentiates_the_active_set_solution_as_the_interior_points():
+    """The kernel is never differentiated; solve_qp's implicit derivative at its (exact) solution is the interior
+    point's, at float64's interior-point tolerance (1e-11): reverse and forward mode within 1e-6 relative."""
+    H, g, C, b = (jnp.asarray(a) for a in _problems(4, seed=24))
+
+    def loss(g, engine):
+        x, _ = jax.vmap(lambda H, g, C, b: qp.solve_qp(H, g, C, b, engine=engine))(H, g, C, b)
+        return jnp.sum(x**2)
+
+    grads = {e: jax.jit(jax.grad(loss), static_argnums=1)(g, e) for e in ("jax", "warp_active_set")}
+    assert np.max(np.abs(grads["jax"])) > 1e-3
+    np.testing.assert_allclose(grads["warp_active_set"], grads["jax"], rtol=1e-6, atol=1e-9)
+    tangents = {
+        e: jax.jvp(functools.partial(loss, engine=e), (g,), (jnp.ones_like(g),))[1] for e in ("jax", "warp_active_set")
+    }
+    np.testing.assert_allclose(tangents["warp_active_set"], tangents["jax"], rtol=1e-6)
+
+
+def test_a_warm_start_or_unrolled_steps_with_the_active_set_engine_are_refused_in_one_line():
+    H, g, C, b = (jnp.asarray(a[0]) for a in _problems(1, seed=25))
+    with pytest.raises(ValueError, match="takes no start"):
+        qp.solve_qp(H, g, C, b, engine="warp_active_set", start=jnp.ones((2, 38)))
+    with pytest.raises(ValueError, match="takes unrolled 0"):
+        qp.solve_qp(H, g, C, b, engine="warp_active_set", unrolled=2)
+    with pytest.raises(ValueError, match="qp_warm_start False"):
+        controller.ControllerConfig(qp_engine="warp_active_set", qp_warm_start=True)
+    with pytest.raises(ValueError, match="qp_unrolled_steps 0"):
+        controller.ControllerConfig(qp_engine="warp_active_set", qp_unrolled_steps=3)
+
+
+@pytest.mark.gpu
+def test_on_the_gpu_the_solution_is_quadprogs():
+    """The kernel as CUDA code (NVRTC), float32 data as the controller's: quadprog's solution to float32 rounding."""
+    assert jax.devices()[0].platform == "gpu"
+    H, g, C, b = _problems(256, dtype=np.float32, seed=26)
+    got = _active_set(H, g, C, b, tol=2e-6)
+    assert np.all(got["converged"])
+    for i in range(256):
+        assert _relative(got["x"][i], _quadprog(H[i], g[i], C[i], b[i])[0]) < 2e-6, i
