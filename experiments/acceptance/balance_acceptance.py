@@ -129,7 +129,9 @@ def main(argv=None) -> None:
         current[key] = {**result, "provenance": record}
         io.atomic_write_json(summary_path, current)
     if (out / "sinusoid-60-stable").exists() or (out / "sinusoid-60-seed").exists():
-        figure = results / "postural_joint_error.png"
+        figure = (
+            summary_path.parent / "postural_joint_error.png"
+        )  # beside its summary (--summary elsewhere: not results/)
         current = json.loads(summary_path.read_text()) if summary_path.exists() else {}
         current["postural_comparison"] = {**joint_error_figure(out, figure), "provenance": record}
         io.atomic_write_json(summary_path, current)
