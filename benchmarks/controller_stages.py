@@ -87,10 +87,11 @@ def sinusoid_states(ticks: int):
     return qpos, qvel, st
 
 
-def stage_prefix(ticks: int, pkg: str = "wbc_jax", warm_start: bool = False):
+def stage_prefix(ticks: int, pkg: str = "wbc_jax", settings: dict | None = None):
     """``(prefix, st, state0)``: ``prefix(depth, q, v, k)`` the tick's first ``depth`` stages (module
-    docstring) of the sinusoid's controller built by the package ``pkg``; with ``force_inputs``, depth 5
-    returns the arguments ``(cset, activation, A, wrench, tt, W_R, settings)`` of the force distribution."""
+    docstring) of the sinusoid's controller built by the package ``pkg`` (``settings``: ControllerConfig fields
+    other than the defaults); with ``force_inputs``, depth 5 returns the arguments ``(cset, activation, A, wrench,
+    tt, W_R, settings)`` of the force distribution."""
     import jax.numpy as jnp
 
     constraints, forces, momentum, torques = (
@@ -101,7 +102,7 @@ def stage_prefix(ticks: int, pkg: str = "wbc_jax", warm_start: bool = False):
     physics, state = importlib.import_module(f"{pkg}.sim.physics"), importlib.import_module(f"{pkg}.sim.state")
     sim = state.SimConfig(record=True, host_loop="compiled", physics=physics.PhysicsConfig(backend="mujoco"))
     controller = importlib.import_module(f"{pkg}.control.controller")
-    config = controller.ControllerConfig(qp_warm_start=True) if warm_start else None
+    config = controller.ControllerConfig(**settings) if settings else None
     st = scenario.setup("sinusoid", duration=ticks * 0.01, sim=sim, controller=config)
     loop, ctrl, dtype = st.loop, st.loop.controller, st.dtype
     cset, cfg, gains = ctrl.contact_set, ctrl.config, st.gains
@@ -161,14 +162,14 @@ def stage_prefix(ticks: int, pkg: str = "wbc_jax", warm_start: bool = False):
     return prefix, st, state0
 
 
-def programs(ticks: int, pkg: str = "wbc_jax", warm_start: bool = False):
+def programs(ticks: int, pkg: str = "wbc_jax", settings: dict | None = None):
     """The cumulative stage programs (module docstring) of the sinusoid's controller built by the
     package ``pkg`` (this checkout's, or a copy of another commit's: :func:`import_commit`), each
     ``(qpos (T, nq), qvel (T, nv)) -> ()``."""
     import jax
     import jax.numpy as jnp
 
-    prefix, st, state0 = stage_prefix(ticks, pkg, warm_start)
+    prefix, st, state0 = stage_prefix(ticks, pkg, settings)
     scenario = importlib.import_module(f"{pkg}.sim.scenario")
     loop, dtype = st.loop, st.dtype
     one = jax.tree_util.tree_map(lambda x: x[0], scenario.single(st))
@@ -328,25 +329,35 @@ def main(argv=None) -> dict:
         action="store_true",
         help="also this checkout's controller with qp_warm_start (the force QP from the last tick's solution)",
     )
+    p.add_argument(
+        "--qp-engine",
+        default=None,
+        help="also this checkout's controller with this force QP engine (ControllerConfig.qp_engine, e.g. eiquadprog)",
+    )
     args = parse_timing_args(p, argv)
     import jax
     import jax.numpy as jnp
 
+    from wbc_jax.control.qp import QP_ENGINES
     from wbc_jax.core import io
     from wbc_jax.sim import runner
 
-    variants = {"now": ("wbc_jax", False)}
+    if args.qp_engine is not None and args.qp_engine not in QP_ENGINES:
+        p.error(f"--qp-engine must be one of {list(QP_ENGINES)}, got {args.qp_engine!r}")
+    variants = {"now": ("wbc_jax", None)}
     if args.qp_warm_start:
-        variants["now, qp_warm_start"] = ("wbc_jax", True)
+        variants["now, qp_warm_start"] = ("wbc_jax", {"qp_warm_start": True})
+    if args.qp_engine:
+        variants[f"now, qp_engine {args.qp_engine}"] = ("wbc_jax", {"qp_engine": args.qp_engine})
     if args.before:
-        variants[f"before ({args.before})"] = (import_commit(args.before), False)
+        variants[f"before ({args.before})"] = (import_commit(args.before), None)
     runner.enable_compilation_cache()
     qpos, qvel, st = sinusoid_states(args.ticks)
     qs, vs = jnp.asarray(qpos, st.dtype), jnp.asarray(qvel, st.dtype)
     compiled = {}
     with jax.default_matmul_precision(st.loop.cfg.matmul_precision):  # as the loop's programs
-        for name, (pkg, warm) in variants.items():
-            compiled[name] = [jax.jit(fn).lower(qs, vs).compile() for fn in programs(args.ticks, pkg, warm)]
+        for name, (pkg, settings) in variants.items():
+            compiled[name] = [jax.jit(fn).lower(qs, vs).compile() for fn in programs(args.ticks, pkg, settings)]
     cpu_us = {name: [[] for _ in STAGES] for name in variants}
     for _ in range(args.repeats):  # interleaved: the machine's load reaches every program alike
         for i in range(len(STAGES)):

@@ -86,22 +86,29 @@ def _best(fn, repeats: int):
     return best
 
 
-def profile(repeats: int, ticks: int) -> dict:
-    """The ``profile`` part (module docstring)."""
+def profile(repeats: int, ticks: int, qp_engine: str = "jax") -> dict:
+    """The ``profile`` part (module docstring); ``qp_engine``: the controller's force QP engine
+    (``ControllerConfig.qp_engine``)."""
     import jax
     import jax.numpy as jnp
 
+    from wbc_jax.control.controller import ControllerConfig
     from wbc_jax.sim import host_loop, native, physics, runner, scenario
     from wbc_jax.sim.loop import PROGRAMS
     from wbc_jax.sim.state import SimConfig
 
     runner.enable_compilation_cache()
     us = lambda s: round(1e6 * s / ticks, 1)  # noqa: E731
-    out: dict = {"ticks": ticks, "task": f"sinusoid, {ticks * 0.01:g} s, trajectories recorded, one robot"}
+    out: dict = {
+        "ticks": ticks,
+        "task": f"sinusoid, {ticks * 0.01:g} s, trajectories recorded, one robot",
+        "qp_engine": qp_engine,
+    }
+    controller = ControllerConfig(qp_engine=qp_engine)
 
     def setup(driver: str):
         sim = SimConfig(record=True, host_loop=driver, physics=physics.PhysicsConfig(backend="mujoco"))
-        return scenario.setup("sinusoid", duration=ticks * 0.01, sim=sim)
+        return scenario.setup("sinusoid", duration=ticks * 0.01, sim=sim, controller=controller)
 
     # The Python loop of ticks, its stages timed by wrapping what run_host calls.
     st = setup("python")
@@ -344,6 +351,11 @@ def main(argv=None) -> dict:
     p.add_argument("--parts", nargs="+", default=list(PARTS), choices=PARTS)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--ticks", type=int, default=2000, help="ticks of the profiled sinusoid")
+    p.add_argument(
+        "--qp-engine",
+        default="jax",
+        help="the profiled controller's force QP engine (ControllerConfig.qp_engine: jax, eiquadprog, ...)",
+    )
     p.add_argument("--acceptance-baseline", default=str(ROOT / "results" / "balance_acceptance.json"))
     p.add_argument("--acceptance-summary", default=None, help="compare this summary instead of running the scenarios")
     args = p.parse_args(argv)
@@ -377,7 +389,7 @@ def main(argv=None) -> dict:
         print(json.dumps({part: value}), flush=True)
 
     if "profile" in args.parts:
-        save("profile", profile(args.repeats, args.ticks))
+        save("profile", profile(args.repeats, args.ticks, args.qp_engine))
     if "sinusoid" in args.parts:
         save("sinusoid", sinusoid(work))
     if "rerun" in args.parts:

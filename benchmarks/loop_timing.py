@@ -30,7 +30,7 @@ def add_qp_arguments(parser, recorded_loop: bool = False) -> None:
         choices=qp.QP_ENGINES,
         default="jax",
         help="the force QP's solver (ControllerConfig.qp_engine; warp: the interior point as one Warp kernel, "
-        "warp_active_set: the dual active-set method as one)" + also,
+        "warp_active_set: the dual active-set method as one; eiquadprog: that method by eiquadprog on the CPU)" + also,
     )
 
 
@@ -46,8 +46,8 @@ def check_qp_arguments(parser, args) -> None:
         parser.error(
             f"--qp-engine {args.qp_engine} takes --qp-unrolled-steps 0 (the Warp kernel has no while loop to unroll)"
         )
-    if args.qp_engine == "warp_active_set" and getattr(args, "qp_warm_start", False):
-        parser.error("--qp-engine warp_active_set takes no --qp-warm-start (the active-set method starts cold)")
+    if args.qp_engine in ("warp_active_set", "eiquadprog") and getattr(args, "qp_warm_start", False):
+        parser.error(f"--qp-engine {args.qp_engine} takes no --qp-warm-start (the active-set method starts cold)")
 
 
 def make_setup(

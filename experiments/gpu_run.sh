@@ -69,6 +69,9 @@ for job in "$@"; do
       mkdir -p "$OUT/cpu_peer"; lscpu | grep -E "Model name|^CPU\(s\)|MHz" > "$OUT/cpu_peer/cpu.txt"; uptime >> "$OUT/cpu_peer/cpu.txt"
       for i in $(seq 1 ${CPU_PEER_RUNS:-3}); do
         run cpu_peer_wbc_$i taskset -c 1 python3 benchmarks/cpu_loop.py --parts profile --out "$OUT/cpu_peer/wbc_$i.json"
+        # CPU_PEER_QP_ENGINE=eiquadprog (s60): also our loop with that force QP engine (its library from .wa's site)
+        [ -n "${CPU_PEER_QP_ENGINE:-}" ] && run cpu_peer_wbc_qp_$i taskset -c 1 python3 benchmarks/cpu_loop.py \
+          --parts profile --qp-engine $CPU_PEER_QP_ENGINE --out "$OUT/cpu_peer/wbc_${CPU_PEER_QP_ENGINE}_$i.json"
         # CPU_PEER_ISA=AVX2: also our loop with XLA's code capped at that ISA (AVX-512 may lower an Intel core's clock;
         # on the AMD EPYC the cap changed nothing beyond noise, 2026-11-26), its own compilation cache
         [ -n "${CPU_PEER_ISA:-}" ] && run cpu_peer_wbc_isa_$i env XLA_FLAGS=--xla_cpu_max_isa=$CPU_PEER_ISA \
@@ -82,8 +85,9 @@ for job in "$@"; do
             # results/cpu_targets/xeon_s55); run with JAX_PLATFORMS=cpu. About 210 s (its compiles) on the loaded AMD:
             # a limit of 150 s on the Xeon stopped every run before it printed (2026-11-27), allow 400
       mkdir -p "$OUT/cpu_stages"; lscpu | grep -E "Model name|^CPU\(s\)|Flags" > "$OUT/cpu_stages/cpu.txt"
+      # CPU_STAGES_QP_ENGINE=eiquadprog (s60): also the stages with that force QP engine, interleaved
       run cpu_stages taskset -c 1 python3 benchmarks/controller_stages.py --ticks 300 --repeats 5 \
-        --out "$OUT/cpu_stages/controller_stages.json" ;;
+        ${CPU_STAGES_QP_ENGINE:+--qp-engine $CPU_STAGES_QP_ENGINE} --out "$OUT/cpu_stages/controller_stages.json" ;;
     cpu_profile)  # issue 46 on this host's Intel Xeon, op by op: profile_tick at batch 1 on core 1 (the CPU loop's
             # case) with --trace, so profile_tick.json says per source function where the tick's time goes, beside
             # the same run on the AMD EPYC (results/cpu_targets/profile_s56/); run with JAX_PLATFORMS=cpu (175 s on

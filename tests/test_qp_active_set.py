@@ -1,8 +1,9 @@
-"""The force QP's dual active-set engine (wbc_jax/control/qp_active_set_kernel.py, engine "warp_active_set", issue 46)
-against quadprog (the Goldfarb-Idnani method in C) and the interior point: the solution and the multipliers on
-random problems of the controller's shapes, dependent and inactive rows, infeasible and non-finite problems, the
-implicit derivative, and the settings it refuses. Runs on Warp's CPU backend where warp-lang is installed (the
-`cuda` extra); the `gpu` set runs it on the GPU."""
+"""The force QP's dual active-set engines (issue 46), each against quadprog (the Goldfarb-Idnani method in C) and the
+interior point: the solution and the multipliers on random problems of the controller's shapes, dependent and
+inactive rows, infeasible and non-finite problems, the implicit derivative, and the settings they refuse.
+``warp_active_set`` (wbc_jax/control/qp_active_set_kernel.py) runs on Warp's CPU backend where warp-lang is installed
+(the `cuda` extra; the `gpu` set runs it on the GPU); ``eiquadprog`` (wbc_jax/control/qp_eiquadprog.py) where its
+library builds (the `eiquadprog` extra, in `dev`, and a C++ compiler)."""
 
 import dataclasses
 import functools
@@ -12,12 +13,26 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-pytest.importorskip("warp", reason="the Warp engines need warp-lang (pip install 'wbc_jax[cuda]')")
 quadprog = pytest.importorskip("quadprog")
 
-from wbc_jax.control import controller, qp, qp_ipm, qp_warp  # noqa: E402
+from wbc_jax.control import controller, qp, qp_eiquadprog, qp_ipm  # noqa: E402
+from wbc_jax.sim import physics  # noqa: E402
 
 FIELDS = [f.name for f in dataclasses.fields(qp_ipm.IPMResult)]
+
+
+def _unavailable(engine: str) -> str | None:
+    if engine == "warp_active_set":
+        return None if physics.has_warp() else "the Warp engines need warp-lang (pip install 'wbc_jax[cuda]')"
+    return qp_eiquadprog.available()
+
+
+@pytest.fixture(params=qp.ACTIVE_SET_ENGINES)
+def engine(request):
+    reason = _unavailable(request.param)
+    if reason is not None:
+        pytest.skip(reason)
+    return request.param
 
 
 def _problems(batch, n=6, m=38, dtype=np.float64, seed=0):
@@ -30,9 +45,14 @@ def _problems(batch, n=6, m=38, dtype=np.float64, seed=0):
     return [np.asarray(a, dtype) for a in (H, g, C, b)]
 
 
-def _active_set(H, g, C, b, *, tol, weight=None):
+def _active_set(engine, H, g, C, b, *, tol, weight=None):
     def one(H, g, C, b, weight):
-        result = qp_warp.active_set_warp(H, g, C, b, tol, weight)
+        if engine == "warp_active_set":
+            from wbc_jax.control import qp_warp
+
+            result = qp_warp.active_set_warp(H, g, C, b, tol, weight)
+        else:
+            result = qp_eiquadprog.active_set_eiquadprog(H, g, C, b, tol, weight)
         return tuple(getattr(result, name) for name in FIELDS)
 
     axes = (0, 0, 0, 0, None if weight is None else 0)
@@ -52,12 +72,12 @@ def _relative(a, ref):
 
 @pytest.mark.parametrize("dtype, bound", [(np.float64, 1e-11), (np.float32, 2e-6)])
 @pytest.mark.parametrize("n", [6, 12])
-def test_the_solution_and_multipliers_are_quadprogs(dtype, bound, n):
+def test_the_solution_and_multipliers_are_quadprogs(engine, dtype, bound, n):
     """Random problems of the equality QP's (6 x 38) and the soft QP's (12 x 38) shapes, 3-10 rows active: x and
     the multipliers within float64 rounding of quadprog's (measured 4e-14), or float32's rounding of the inputs
     and outputs (measured 4e-7; the interior point's float32 error is up to 9e-5, wbc_jax/control/qp.py)."""
     H, g, C, b = _problems(48, n=n, dtype=dtype, seed=n)
-    got = _active_set(H, g, C, b, tol=1e-11 if dtype == np.float64 else 2e-6)
+    got = _active_set(engine, H, g, C, b, tol=1e-11 if dtype == np.float64 else 2e-6)
     assert np.all(got["converged"]) and np.all(got["finite"])
     active = []
     for i in range(len(g)):
@@ -72,7 +92,7 @@ def test_the_solution_and_multipliers_are_quadprogs(dtype, bound, n):
     assert np.max(got["kkt_residual"]) < 1e-12  # the float64 solve's own KKT residual, scaled
 
 
-def test_dependent_rows_inactive_rows_and_row_weights():
+def test_dependent_rows_inactive_rows_and_row_weights(engine):
     """A row repeated, a row that is a multiple of another, and a problem whose unconstrained minimiser is feasible
     (no step): quadprog's solution; row weights change the scaling, not the solution."""
     H, g, C, b = _problems(8, seed=21)
@@ -82,7 +102,7 @@ def test_dependent_rows_inactive_rows_and_row_weights():
     b[2] = C[2] @ x0[2] + 1.0  # no row active
     weight = np.random.default_rng(22).uniform(0.5, 3.0, size=(8, 38))
     for w in (None, weight):
-        got = _active_set(H, g, C, b, tol=1e-11, weight=w)
+        got = _active_set(engine, H, g, C, b, tol=1e-11, weight=w)
         assert np.all(got["converged"])
         for i in range(8):
             assert _relative(got["x"][i], _quadprog(H[i], g[i], C[i], b[i])[0]) < 1e-11, (i, w is None)
@@ -90,14 +110,14 @@ def test_dependent_rows_inactive_rows_and_row_weights():
         np.testing.assert_allclose(got["x"][2], x0[2], rtol=1e-12)
 
 
-def test_an_infeasible_or_non_finite_problem_is_flagged_and_falls_back_as_the_interior_points():
+def test_an_infeasible_or_non_finite_problem_is_flagged_and_falls_back_as_the_interior_points(engine):
     """x_0 <= -1 and -x_0 <= -1 cannot both hold: not converged, and solve_qp falls back to the unconstrained
     minimiser as with the interior point; NaN data: not finite, x NaN. The batch's other problems are untouched."""
     H, g, C, b = _problems(6, seed=23)
     C[1, :2] = 0.0
     C[1, 0, 0], C[1, 1, 0], b[1, 0], b[1, 1] = 1.0, -1.0, -1.0, -1.0
     g[4, 0] = np.nan
-    got = _active_set(H, g, C, b, tol=1e-11)
+    got = _active_set(engine, H, g, C, b, tol=1e-11)
     assert not got["converged"][1] and got["finite"][1]
     assert not got["finite"][4] and not got["converged"][4] and np.all(np.isnan(got["x"][4]))
     for i in (0, 2, 3, 5):
@@ -106,13 +126,13 @@ def test_an_infeasible_or_non_finite_problem_is_flagged_and_falls_back_as_the_in
     def solve(engine):
         return jax.vmap(lambda H, g, C, b: qp.solve_qp(H, g, C, b, engine=engine))(H, g, C, b)
 
-    (x_as, info_as), (x_ipm, info_ipm) = solve("warp_active_set"), solve("jax")
+    (x_as, info_as), (x_ipm, info_ipm) = solve(engine), solve("jax")
     np.testing.assert_array_equal(info_as.infeasible, info_ipm.infeasible)
     assert info_as.infeasible[1] and info_as.infeasible[4]
     np.testing.assert_allclose(x_as[1], x_ipm[1], rtol=1e-12)  # the same fallback point
 
 
-def test_solve_qp_differentiates_the_active_set_solution_as_the_interior_points():
+def test_solve_qp_differentiates_the_active_set_solution_as_the_interior_points(engine):
     """The kernel is never differentiated; solve_qp's implicit derivative at its (exact) solution is the interior
     point's, at float64's interior-point tolerance (1e-11): reverse and forward mode within 1e-6 relative."""
     H, g, C, b = (jnp.asarray(a) for a in _problems(4, seed=24))
@@ -121,33 +141,34 @@ def test_solve_qp_differentiates_the_active_set_solution_as_the_interior_points(
         x, _ = jax.vmap(lambda H, g, C, b: qp.solve_qp(H, g, C, b, engine=engine))(H, g, C, b)
         return jnp.sum(x**2)
 
-    grads = {e: jax.jit(jax.grad(loss), static_argnums=1)(g, e) for e in ("jax", "warp_active_set")}
+    grads = {e: jax.jit(jax.grad(loss), static_argnums=1)(g, e) for e in ("jax", engine)}
     assert np.max(np.abs(grads["jax"])) > 1e-3
-    np.testing.assert_allclose(grads["warp_active_set"], grads["jax"], rtol=1e-6, atol=1e-9)
-    tangents = {
-        e: jax.jvp(functools.partial(loss, engine=e), (g,), (jnp.ones_like(g),))[1] for e in ("jax", "warp_active_set")
-    }
-    np.testing.assert_allclose(tangents["warp_active_set"], tangents["jax"], rtol=1e-6)
+    np.testing.assert_allclose(grads[engine], grads["jax"], rtol=1e-6, atol=1e-9)
+    tangents = {e: jax.jvp(functools.partial(loss, engine=e), (g,), (jnp.ones_like(g),))[1] for e in ("jax", engine)}
+    np.testing.assert_allclose(tangents[engine], tangents["jax"], rtol=1e-6)
 
 
-def test_a_warm_start_or_unrolled_steps_with_the_active_set_engine_are_refused_in_one_line():
+@pytest.mark.parametrize("name", qp.ACTIVE_SET_ENGINES)
+def test_a_warm_start_or_unrolled_steps_with_an_active_set_engine_are_refused_in_one_line(name):
     H, g, C, b = (jnp.asarray(a[0]) for a in _problems(1, seed=25))
     with pytest.raises(ValueError, match="takes no start"):
-        qp.solve_qp(H, g, C, b, engine="warp_active_set", start=jnp.ones((2, 38)))
+        qp.solve_qp(H, g, C, b, engine=name, start=jnp.ones((2, 38)))
     with pytest.raises(ValueError, match="takes unrolled 0"):
-        qp.solve_qp(H, g, C, b, engine="warp_active_set", unrolled=2)
+        qp.solve_qp(H, g, C, b, engine=name, unrolled=2)
     with pytest.raises(ValueError, match="qp_warm_start False"):
-        controller.ControllerConfig(qp_engine="warp_active_set", qp_warm_start=True)
+        controller.ControllerConfig(qp_engine=name, qp_warm_start=True)
     with pytest.raises(ValueError, match="qp_unrolled_steps 0"):
-        controller.ControllerConfig(qp_engine="warp_active_set", qp_unrolled_steps=3)
+        controller.ControllerConfig(qp_engine=name, qp_unrolled_steps=3)
 
 
 @pytest.mark.gpu
 def test_on_the_gpu_the_solution_is_quadprogs():
     """The kernel as CUDA code (NVRTC), float32 data as the controller's: quadprog's solution to float32 rounding."""
     assert jax.devices()[0].platform == "gpu"
+    if _unavailable("warp_active_set"):
+        pytest.skip(_unavailable("warp_active_set"))
     H, g, C, b = _problems(256, dtype=np.float32, seed=26)
-    got = _active_set(H, g, C, b, tol=2e-6)
+    got = _active_set("warp_active_set", H, g, C, b, tol=2e-6)
     assert np.all(got["converged"])
     for i in range(256):
         assert _relative(got["x"][i], _quadprog(H[i], g[i], C[i], b[i])[0]) < 2e-6, i

@@ -108,12 +108,16 @@ def test_qp_engine_setting_reaches_the_force_qp_and_bad_values_are_refused():
     "warp" with unrolled steps is refused (before Warp is imported)."""
     assert controller.ControllerConfig().force_settings.qp_engine == "jax"
     assert controller.ControllerConfig(qp_engine="warp").force_settings.qp_engine == "warp"
-    with pytest.raises(ValueError, match=r"qp_engine 'cuda'; valid: \['jax', 'warp', 'warp_active_set'\]"):
+    with pytest.raises(
+        ValueError, match=r"qp_engine 'cuda'; valid: \['jax', 'warp', 'warp_active_set', 'eiquadprog'\]"
+    ):
         controller.ControllerConfig(qp_engine="cuda")
     with pytest.raises(ValueError, match=r"qp_engine 'warp' takes qp_unrolled_steps 0 .*no while loop.*got 2"):
         controller.ControllerConfig(qp_engine="warp", qp_unrolled_steps=2)
     H, g, C, b = jnp.eye(2), jnp.ones(2), jnp.eye(2), jnp.ones(2)
-    with pytest.raises(ValueError, match=r"unknown engine 'cuda'; valid: \['jax', 'warp', 'warp_active_set'\]"):
+    with pytest.raises(
+        ValueError, match=r"unknown engine 'cuda'; valid: \['jax', 'warp', 'warp_active_set', 'eiquadprog'\]"
+    ):
         qp.solve_qp(H, g, C, b, engine="cuda")
     with pytest.raises(ValueError, match=r"engine 'warp' takes unrolled 0 \(the Warp kernel has no while loop"):
         qp.solve_qp(H, g, C, b, engine="warp", unrolled=2)
@@ -151,4 +155,32 @@ def test_the_warp_qp_without_warp_lang_is_refused_in_one_line_before_anything_co
     assert len(errors) == 1, errors
     line = errors[0]
     assert "qp_engine 'warp'" in line and "pip install 'wbc_jax[cuda]'" in line and "valid here: ['jax']" in line
+    assert not (tmp_path / "b" / "metrics.json").exists()
+
+
+def test_the_eiquadprog_qp_where_it_cannot_build_is_refused_in_one_line_before_anything_compiles(
+    monkeypatch, capsys, tmp_path
+):
+    """``--qp-engine eiquadprog`` where its library cannot be built (no eiquadprog, no Eigen headers, no compiler):
+    the loop's set-up refuses it with the reason and the engine valid here, before the first program is traced."""
+    from wbc_jax import cli
+    from wbc_jax.control import qp_eiquadprog
+
+    reason = "the force QP's eiquadprog engine needs eiquadprog: pip install eiquadprog cmeel-eigen"
+    monkeypatch.setattr(qp_eiquadprog, "available", lambda: reason)
+    argv = [
+        "balance",
+        "--task",
+        "stand",
+        "--duration",
+        "0.1",
+        "--qp-engine",
+        "eiquadprog",
+        "--out",
+        str(tmp_path / "b"),
+    ]
+    assert cli.main(argv) == 2
+    errors = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
+    assert len(errors) == 1, errors
+    assert "qp_engine 'eiquadprog'" in errors[0] and reason in errors[0] and "valid here: ['jax']" in errors[0]
     assert not (tmp_path / "b" / "metrics.json").exists()

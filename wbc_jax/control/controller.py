@@ -63,8 +63,9 @@ class ControllerConfig:
         host (BENCHMARKS.md, issue 46). 0 by default.
       qp_engine: the force QPs' solver, :data:`wbc_jax.control.qp.QP_ENGINES`: ``"jax"`` (default, the interior
         point), ``"warp"`` (the same as one Warp kernel, one thread per problem, :mod:`wbc_jax.control.qp_warp`) or
-        ``"warp_active_set"`` (the dual active-set method as one Warp kernel: the exact solution, no warm start).
-        The Warp engines need warp-lang and qp_unrolled_steps 0.
+        ``"warp_active_set"`` (the dual active-set method as one Warp kernel: the exact solution, no warm start) or
+        ``"eiquadprog"`` (the same method by eiquadprog in C++, CPU programs, :mod:`wbc_jax.control.qp_eiquadprog`).
+        The Warp engines need warp-lang; every engine but ``"jax"`` takes qp_unrolled_steps 0.
       torque_weight_soft: |tau|^2 against |A f - w|^2 in the soft momentum QP.
       angular_weight_soft: the angular rows of |A f - w|^2 against the linear ones in the soft
         momentum QP (1: WBC; < 1: the CoM first where a push asks more than the feet can give).
@@ -167,14 +168,15 @@ class ControllerConfig:
             )
         if self.qp_engine not in qp.QP_ENGINES:
             raise ValueError(f"unknown controller setting qp_engine {self.qp_engine!r}; valid: {list(qp.QP_ENGINES)}")
-        if self.qp_engine in qp.WARP_ENGINES and steps:
+        if self.qp_engine != "jax" and steps:
             raise ValueError(
-                f"controller setting qp_engine {self.qp_engine!r} takes qp_unrolled_steps 0 (the Warp kernel has no "
-                f"while loop to unroll), got {steps!r}"
+                f"controller setting qp_engine {self.qp_engine!r} takes qp_unrolled_steps 0 ("
+                f"{'the Warp kernel' if self.qp_engine in qp.WARP_ENGINES else 'eiquadprog'} has no while loop to "
+                f"unroll), got {steps!r}"
             )
-        if self.qp_engine == "warp_active_set" and self.qp_warm_start:
+        if self.qp_engine in qp.ACTIVE_SET_ENGINES and self.qp_warm_start:
             raise ValueError(
-                "controller setting qp_engine 'warp_active_set' takes qp_warm_start False (the active-set method "
+                f"controller setting qp_engine {self.qp_engine!r} takes qp_warm_start False (the active-set method "
                 "starts from the unconstrained minimiser); warm starts: qp_engine 'jax' or 'warp'"
             )
         if isinstance(self.effort_damping, bool) or not (

@@ -50,8 +50,9 @@ class ControllerFlags:
     qp_engine: str = option(
         "jax",
         "the force QP's solver: jax (the interior point), warp (the same as one Warp kernel, one thread per problem, "
-        "wbc_jax/control/qp_warp.py) or warp_active_set (the dual active-set method as one Warp kernel: the exact "
-        "solution, no --qp-warm-start); the Warp engines need warp-lang and --qp-unrolled-steps 0",
+        "wbc_jax/control/qp_warp.py), warp_active_set (the dual active-set method as one Warp kernel: the exact "
+        "solution, no --qp-warm-start) or eiquadprog (the same method by eiquadprog on the CPU); the Warp engines "
+        "need warp-lang, eiquadprog the 'eiquadprog' extra; all but jax take --qp-unrolled-steps 0",
         choices=qp.QP_ENGINES,
     )
 

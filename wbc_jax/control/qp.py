@@ -92,12 +92,16 @@ from wbc_jax.core.math import batch_any
 Array = jax.Array
 
 
-QP_ENGINES = ("jax", "warp", "warp_active_set")
+QP_ENGINES = ("jax", "warp", "warp_active_set", "eiquadprog")
 """Engines of :func:`solve_qp` (its ``engine``): the interior point in JAX or as one Warp kernel, or the dual
-active-set method as one Warp kernel (:mod:`wbc_jax.control.qp_active_set_kernel`)."""
+active-set method as one Warp kernel (:mod:`wbc_jax.control.qp_active_set_kernel`) or by eiquadprog on the CPU
+(:mod:`wbc_jax.control.qp_eiquadprog`)."""
 
 WARP_ENGINES = ("warp", "warp_active_set")
-"""The engines that need warp-lang and take no ``unrolled`` steps."""
+"""The engines that need warp-lang."""
+
+ACTIVE_SET_ENGINES = ("warp_active_set", "eiquadprog")
+"""The engines of the dual active-set method: the exact solution, no warm start (``start``)."""
 
 
 DEFAULT_ITERATIONS = 25
@@ -225,8 +229,10 @@ def solve_qp(
             :func:`wbc_jax.control.qp_ipm.interior_point`), ``"warp"`` (the same as one Warp kernel, one thread
             per problem, :func:`wbc_jax.control.qp_warp.interior_point_warp`) or ``"warp_active_set"`` (the dual
             active-set method as one Warp kernel, :func:`wbc_jax.control.qp_warp.active_set_warp`: the exact
-            solution, to float64 rounding, whatever ``tol``; no ``start``). The Warp engines need warp-lang and
-            ``unrolled`` 0. The derivative and the fallback stay JAX's.
+            solution, to float64 rounding, whatever ``tol``; no ``start``) or ``"eiquadprog"`` (the same method by
+            eiquadprog in C++, in CPU programs: :func:`wbc_jax.control.qp_eiquadprog.active_set_eiquadprog`). The
+            Warp engines need warp-lang; every engine but ``"jax"`` takes ``unrolled`` 0. The derivative and the
+            fallback stay JAX's.
 
     Returns:
         ``(x, info)``: x (n,) in the promoted float dtype of the inputs, and a
@@ -248,13 +254,14 @@ def solve_qp(
         raise ValueError(f"solve_qp: unrolled must be an integer from 0 to iterations ({iterations}), got {unrolled!r}")
     if engine not in QP_ENGINES:
         raise ValueError(f"solve_qp: unknown engine {engine!r}; valid: {list(QP_ENGINES)}")
-    if engine in WARP_ENGINES and unrolled != 0:
+    if engine != "jax" and unrolled != 0:
+        solver = "the Warp kernel" if engine in WARP_ENGINES else "eiquadprog"
         raise ValueError(
-            f"solve_qp: engine {engine!r} takes unrolled 0 (the Warp kernel has no while loop to unroll), got {unrolled!r}"
+            f"solve_qp: engine {engine!r} takes unrolled 0 ({solver} has no while loop to unroll), got {unrolled!r}"
         )
-    if engine == "warp_active_set" and start is not None:
+    if engine in ACTIVE_SET_ENGINES and start is not None:
         raise ValueError(
-            "solve_qp: engine 'warp_active_set' takes no start (the active-set method starts from the "
+            f"solve_qp: engine {engine!r} takes no start (the active-set method starts from the "
             "unconstrained minimiser); warm starts: engines ['jax', 'warp']"
         )
     d_tol, d_fallback = default_tolerances(dtype, warm_start=start is not None)
@@ -281,6 +288,10 @@ def solve_qp(
             ipm = qp_warp.interior_point_warp(Hp, gp, Cp, bp, int(iterations), tol, weight, start)
         else:
             ipm = qp_warp.active_set_warp(Hp, gp, Cp, bp, tol, weight)
+    elif engine == "eiquadprog":
+        from wbc_jax.control import qp_eiquadprog  # its library is built at first use
+
+        ipm = qp_eiquadprog.active_set_eiquadprog(Hp, gp, Cp, bp, tol, weight)
     else:
         ipm = interior_point(Hp, gp, Cp, bp, int(iterations), tol, weight, start, unrolled)
 

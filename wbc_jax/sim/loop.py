@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from wbc_jax.control import constraints
+from wbc_jax.control import constraints, qp, qp_eiquadprog
 from wbc_jax.control.controller import Controller
 from wbc_jax.control.gains import Gains
 from wbc_jax.control.references import Schedule
@@ -102,11 +102,14 @@ class ClosedLoop:
         # (the gradient-free searches' forward rollouts); 'auto' then means 'jax'.
         requested = cfg.physics.backend
         self.backend = physics.resolve_backend(requested, differentiable=trace is not None and requested != "warp")
-        if controller.config.qp_engine != "jax" and not physics.has_warp():
+        engine = controller.config.qp_engine
+        if engine in qp.WARP_ENGINES and not physics.has_warp():
             raise ValueError(
-                f"controller setting qp_engine {controller.config.qp_engine!r} (the force QP as one Warp kernel) "
-                "needs warp-lang: pip install 'wbc_jax[cuda]'; valid here: ['jax']"
+                f"controller setting qp_engine {engine!r} (the force QP as one Warp kernel) needs warp-lang: "
+                "pip install 'wbc_jax[cuda]'; valid here: ['jax']"
             )
+        if engine == "eiquadprog" and (problem := qp_eiquadprog.available()) is not None:
+            raise ValueError(f"controller setting qp_engine 'eiquadprog': {problem}; valid here: ['jax']")
         if self.backend == "warp" and controller.config.contact_detection:
             raise ValueError(
                 "contact detection reads the simulator's contact forces, which the 'warp' backend does not "

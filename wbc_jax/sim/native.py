@@ -10,10 +10,8 @@
     physics_cpu(reset=False)             -> (CPU seconds inside the physics, ticks) so far
     terms_cpu()                          -> CPU seconds extracting the dynamics terms so far
 
-``mujoco_ffi.cc`` is compiled at first use with the system's C++ compiler (``$CXX``, ``c++``,
-``g++`` or ``clang++``) against the FFI headers jaxlib ships and the MuJoCo library the
-``mujoco`` package ships, into a folder beside JAX's compilation cache (a temporary folder without
-one), keyed by the source, the compiler and both versions; later processes load it from there.
+``mujoco_ffi.cc`` is compiled at first use (:mod:`wbc_jax.core.native_build`) against the MuJoCo
+library the ``mujoco`` package ships; later processes load it from beside JAX's compilation cache.
 The handlers are registered with :func:`jax.ffi.register_ffi_target` by name, so programs that
 call them are ordinary XLA programs: JAX's persistent cache and serialised executables work
 (programs with Python callbacks get neither). Without a compiler, :func:`available` says so and
@@ -24,18 +22,14 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import hashlib
-import os
 import pathlib
-import shutil
 import subprocess
-import tempfile
-from importlib import metadata
 
 import jax
 import mujoco
 import numpy as np
 
+from wbc_jax.core import native_build
 from wbc_jax.core.constants import DIVERGED_SPEED
 from wbc_jax.robot.dynamics import EngineTerms
 
@@ -45,14 +39,6 @@ TARGETS = {
     "wbc_mujoco_contacts": "WbcMujocoContacts",
     "wbc_mujoco_step_terms": "WbcMujocoStepTerms",
 }
-BUILD_TIMEOUT_S = 300
-
-
-def compiler() -> str | None:
-    """The C++ compiler: ``$CXX``, else the first of c++, g++, clang++ on the PATH."""
-    if os.environ.get("CXX"):
-        return shutil.which(os.environ["CXX"]) or os.environ["CXX"]
-    return next((path for name in ("c++", "g++", "clang++") if (path := shutil.which(name))), None)
 
 
 def mujoco_library() -> pathlib.Path:
@@ -66,48 +52,17 @@ def mujoco_library() -> pathlib.Path:
     return found[0]
 
 
-def build_dir() -> pathlib.Path:
-    """Where built libraries go: beside JAX's compilation cache, or a temporary folder."""
-    cache = jax.config.jax_compilation_cache_dir
-    if cache:
-        return pathlib.Path(cache) / "wbc_native"
-    return pathlib.Path(tempfile.gettempdir()) / f"wbc_jax_native_{os.getuid() if hasattr(os, 'getuid') else 0}"
-
-
 def _build(cxx: str) -> pathlib.Path:
     """Compile the handlers (once per source, compiler and versions); the library's path."""
     lib = mujoco_library()
-    include = [jax.ffi.include_dir(), str(pathlib.Path(mujoco.__file__).parent / "include")]
-    source = SOURCE.read_bytes()
-    key = hashlib.sha256(
-        b"\0".join(
-            [source, cxx.encode(), metadata.version("jaxlib").encode(), mujoco.__version__.encode(), str(lib).encode()]
-        )
-    ).hexdigest()[:16]
-    out = build_dir() / f"libwbc_mujoco_ffi_{key}.so"
-    if out.exists():
-        return out
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(f".{os.getpid()}.tmp")
-    cmd = [
+    return native_build.build_library(
         cxx,
-        "-O2",
-        "-std=c++17",
-        "-shared",
-        "-fPIC",
-        *(f"-I{d}" for d in include),
-        str(SOURCE),
-        "-o",
-        str(tmp),
-        str(lib),
-        f"-Wl,-rpath,{lib.parent}",
-    ]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
-    if proc.returncode != 0:
-        tmp.unlink(missing_ok=True)
-        raise RuntimeError(f"{' '.join(cmd)} failed: {proc.stderr.strip()[-2000:]}")
-    os.replace(tmp, out)  # atomic: processes building at once each install a whole library
-    return out
+        SOURCE,
+        "wbc_mujoco_ffi",
+        include_dirs=[str(pathlib.Path(mujoco.__file__).parent / "include")],
+        libraries=[lib],
+        key=[mujoco.__version__, str(lib)],
+    )
 
 
 _LIBRARY: list = []  # the loaded library, once registered
@@ -118,7 +73,7 @@ def _register() -> str | None:
     """Build, load and register the handlers once per process: None, or why not."""
     if jax.default_backend() != "cpu":
         return f"the native step runs in CPU programs (JAX's default device here: {jax.default_backend()})"
-    cxx = compiler()
+    cxx = native_build.compiler()
     if cxx is None:
         return "no C++ compiler found (set $CXX or install g++/clang++)"
     try:
