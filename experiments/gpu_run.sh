@@ -80,6 +80,16 @@ for job in "$@"; do
         PYTHONPATH=$IC/lib/python3.12/site-packages:$TS/cmeel.prefix/lib/python3.12/site-packages:$TS:$PYTHONPATH run cpu_peer_tsid_$i \
           python3 benchmarks/tsid_peer.py --cpu 1 --no-envelope --out "$OUT/cpu_peer/tsid_$i.json"
       done ;;
+    cpu_loop_qp)  # issue 46 (s60) on this host's Intel Xeon: our compiled loop's tick with the JAX QP and with
+            # eiquadprog (--qp-engine eiquadprog, its library from .wa's site), alternating CPU_PEER_RUNS times on
+            # core 1, no TSID wheels needed (TSID's Xeon figures: results/cpu_targets/xeon_s55); JAX_PLATFORMS=cpu
+      mkdir -p "$OUT/cpu_loop_qp"; lscpu | grep -E "Model name|^CPU\(s\)" > "$OUT/cpu_loop_qp/cpu.txt"
+      for i in $(seq 1 ${CPU_PEER_RUNS:-3}); do
+        for e in jax eiquadprog; do
+          run cpu_loop_${e}_$i taskset -c 1 python3 benchmarks/cpu_loop.py --parts profile --qp-engine $e \
+            --out "$OUT/cpu_loop_qp/${e}_$i.json"
+        done
+      done ;;
     cpu_stages)  # issue 46 on this host's Intel Xeon, stage by stage: where our controller's tick goes there (on the
             # AMD EPYC it costs 0.81x TSID's, on this Xeon about 1.3x against each run's own physics:
             # results/cpu_targets/xeon_s55); run with JAX_PLATFORMS=cpu. About 210 s (its compiles) on the loaded AMD:
