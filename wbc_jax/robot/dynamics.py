@@ -308,3 +308,71 @@ def terms_from_engine(idx: RobotIndex, qpos: Array, qvel: Array, e: EngineTerms,
         L_G=L_G,
         xpos=e.xpos,
     )
+
+
+def terms_from_split(idx: RobotIndex, mj_model, d, frames: Frames) -> DynamicsTerms:
+    """The controller-side dynamics terms from MJX-Warp data after MuJoCo Warp's ``step1`` at the state
+    (:mod:`wbc_jax.sim.warp_split`; one environment): :func:`terms`'s, up to float32 rounding, without computing
+    the kinematics again.
+
+    ``mj_model``: the robot's MjModel (static: masses, inertias and the sparse layout of the mass matrix). The
+    Jacobians come from ``cdof`` at the root's subtree CoM, as in :func:`terms`; their derivative along the motion
+    from ``cdof_dot`` (the spatial acceleration at that fixed point) plus omega x v of the point (the classical
+    acceleration of a moving point), so ``Jdot nu`` needs no derivative of the kinematics."""
+    qpos, qvel = d.qpos, d.qvel
+    dtype = qpos.dtype
+    nu = mixed_velocity(idx, qpos, qvel)
+    R = d.xmat[idx.base_body]
+    c = d.subtree_com[idx.base_body]
+    cdof_ang, cdof_lin = d.cdof[:, :3], d.cdof[:, 3:]
+    dot_ang, dot_lin = d.cdof_dot[:, :3], d.cdof_dot[:, 3:]
+    masks = jnp.asarray(idx.body_ancestor_dofs, dtype=dtype)  # (nbody, nv)
+
+    def point(p: Array, mask: Array, body: Array):
+        jacp = (cdof_lin + jnp.cross(cdof_ang, p - c)) * mask[:, None]
+        jacr = cdof_ang * mask[:, None]
+        omega, v_at_c = d.cvel[body, :3], d.cvel[body, 3:]
+        v_p = v_at_c + jnp.cross(omega, p - c)
+        bias_lin = ((dot_lin + jnp.cross(dot_ang, p - c)) * mask[:, None]).T @ qvel + jnp.cross(omega, v_p)
+        bias_ang = (dot_ang * mask[:, None]).T @ qvel
+        return jacp.T, jacr.T, jnp.concatenate([bias_lin, bias_ang])
+
+    bodies = np.asarray(frames.bodies, dtype=int)
+    W_p, W_R = _frame_poses(d.xpos, d.xmat, frames)
+    jp, jr, jdot = jax.vmap(point)(W_p, masks[bodies], jnp.asarray(bodies))
+    all_bodies = np.arange(1, masks.shape[0])
+    jp_b, jr_b, jdot_b = jax.vmap(point)(d.xipos[all_bodies], masks[all_bodies], jnp.asarray(all_bodies))
+    mass_b = jnp.asarray(mj_model.body_mass[all_bodies], dtype)
+    ximat = d.ximat[all_bodies]
+    I_W = jnp.einsum("bij,bj,bkj->bik", ximat, jnp.asarray(mj_model.body_inertia[all_bodies], dtype), ximat)
+    lin = jnp.einsum("b,bjv->jv", mass_b, jp_b)
+    ang = jnp.einsum("bij,bjv->iv", I_W, jr_b) + jnp.einsum(
+        "b,bij,bjv->iv", mass_b, skew(d.xipos[all_bodies] - c), jp_b
+    )
+    A_G = _to_mixed_cols(idx, jnp.concatenate([lin, ang], axis=0), R)
+    # The mass matrix: MuJoCo's sparse lower triangle (rows of M_rownnz entries at columns M_colind), made dense.
+    rows = np.repeat(np.arange(idx.nv), mj_model.M_rownnz)
+    lower = jnp.zeros((idx.nv, idx.nv), dtype).at[rows, np.asarray(mj_model.M_colind)].set(d._impl.M)
+    M = lower + lower.T - jnp.diag(jnp.diagonal(lower))
+    L_G = A_G @ nu
+    return DynamicsTerms(
+        nu=nu,
+        s=qpos[idx.qpos_joints],
+        s_dot=nu[6:],
+        W_p_B=d.xpos[idx.base_body],
+        W_R_B=R,
+        M=_to_mixed_rows(idx, _to_mixed_cols(idx, M, R), R),
+        h=_to_mixed_rows(idx, d.qfrc_bias, R),
+        tau_passive=_to_mixed_rows(idx, d.qfrc_passive, R),
+        W_p_frames=W_p,
+        W_R_frames=W_R,
+        J_frames=_to_mixed_cols(idx, jnp.concatenate([jp, jr], axis=1), R),
+        Jdot_nu_frames=jdot,
+        W_p_CoM=c,
+        W_v_CoM=L_G[:3] / idx.mass,
+        J_CoM=A_G[:3] / idx.mass,
+        Jdot_nu_CoM=jnp.einsum("b,bj->j", mass_b, jdot_b[:, :3]) / idx.mass,
+        A_G=A_G,
+        L_G=L_G,
+        xpos=d.xpos,
+    )

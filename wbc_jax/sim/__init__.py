@@ -3,4 +3,5 @@
 or ``host_scan``: one compiled program calling C MuJoCo through ``native``), the metrics
 (``metrics``), scenes and set-ups (``scenario``), batched runs on any engine and device mesh
 (``runner``, one program per device: ``per_device``, under a ``watchdog``; MJX-Warp's CUDA graph
-cache: ``warp_graphs``) and compiled programs kept on disk (``executables``)."""
+cache: ``warp_graphs``; MuJoCo Warp's step in two phases: ``warp_split``) and compiled programs kept on disk
+(``executables``)."""
