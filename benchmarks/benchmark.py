@@ -60,8 +60,8 @@ JSON_KEYS = (
     "sweep_run_s",
     "sweep_envs",
 )
-# qp_warm_start, qp_unrolled_steps, qp_engine, xla_flags: only in the row of a run that set them (the rows before, at
-# the defaults, have no such key)
+# qp_warm_start, qp_unrolled_steps, qp_engine, warp_terms, xla_flags: only in the row of a run that set them (the rows
+# before, at the defaults, have no such key)
 JSON_ROW_KEY = (
     "device",
     "backend",
@@ -72,6 +72,7 @@ JSON_ROW_KEY = (
     "qp_warm_start",
     "qp_unrolled_steps",
     "qp_engine",
+    "warp_terms",
     "xla_flags",
 )
 
@@ -148,6 +149,8 @@ def json_rows(result: dict) -> list[dict]:
             entry["qp_unrolled_steps"] = row["qp_unrolled_steps"]
         if row.get("qp_engine", "jax") != "jax":  # the force QP in a Warp kernel: a setting of its own
             entry["qp_engine"] = row["qp_engine"]
+        if row.get("warp_terms", "jax") != "jax":  # the controller's terms off the physics' step1: a setting of its own
+            entry["warp_terms"] = row["warp_terms"]
         if row.get("xla_flags"):  # XLA's flags of the run (command buffers, say): a setting of its own
             entry["xla_flags"] = row["xla_flags"]
         rows.append(entry)
@@ -188,9 +191,10 @@ def parse_args(argv=None):
         action="store_true",
         help="the closed loops' force QP warm-started from the last tick (ControllerConfig.qp_warm_start)",
     )
-    from loop_timing import add_qp_arguments, check_qp_arguments
+    from loop_timing import add_qp_arguments, add_warp_terms_argument, check_qp_arguments
 
     add_qp_arguments(parser)
+    add_warp_terms_argument(parser)
     parser.add_argument(
         "--json",
         default=None,
@@ -328,6 +332,7 @@ def main(argv=None) -> dict:
                 qp_warm_start=args.qp_warm_start,
                 qp_unrolled_steps=args.qp_unrolled_steps,
                 qp_engine=args.qp_engine,
+                warp_terms=args.warp_terms if backend == "warp" else "jax",
             )
             iterations = int(physics.solver_mj_model(st.robot.mj_model, st.loop.cfg.physics).opt.iterations)
             tau = None if args.skip_physics_only else hold_torques(st)
@@ -337,6 +342,7 @@ def main(argv=None) -> dict:
                     "qp_warm_start": args.qp_warm_start,
                     "qp_unrolled_steps": args.qp_unrolled_steps,
                     "qp_engine": args.qp_engine,
+                    "warp_terms": args.warp_terms if backend == "warp" else "jax",
                     "xla_flags": os.environ.get("XLA_FLAGS") or None,
                     "device": device_description(backend),
                     "batch": batch,

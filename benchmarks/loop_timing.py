@@ -34,6 +34,17 @@ def add_qp_arguments(parser, recorded_loop: bool = False) -> None:
     )
 
 
+def add_warp_terms_argument(parser) -> None:
+    """``--warp-terms`` (PhysicsConfig.warp_terms) on a benchmark's parser."""
+    parser.add_argument(
+        "--warp-terms",
+        choices=("jax", "step1"),  # wbc_jax.sim.warp_split.TERMS
+        default="jax",
+        help="on the warp backend, the controller's dynamics terms computed in MJX-JAX (jax) or read off MuJoCo "
+        "Warp's first phase of the tick's first step (step1, wbc_jax/sim/warp_split.py); other backends: jax",
+    )
+
+
 def check_qp_arguments(parser, args) -> None:
     """Refuse, as argparse does, what :func:`add_qp_arguments`' flags cannot take."""
     from wbc_jax.control.qp import DEFAULT_ITERATIONS  # the controller's QP budget
@@ -59,16 +70,21 @@ def make_setup(
     qp_warm_start: bool = False,
     qp_unrolled_steps: int = 0,
     qp_engine: str = "jax",
+    warp_terms: str = "jax",
 ):
     """The stand task's closed loop on ``backend`` (default gains, the two feet; ``qp_warm_start``: the
     controller's force QP warm-started, ``ControllerConfig.qp_warm_start``; ``qp_unrolled_steps``: its first
     Newton steps written out before the while loop, ``ControllerConfig.qp_unrolled_steps``; ``qp_engine``:
-    its interior point's engine, ``ControllerConfig.qp_engine``)."""
+    its solver, ``ControllerConfig.qp_engine``; ``warp_terms``: where the controller's dynamics terms come from on
+    the warp backend, ``PhysicsConfig.warp_terms``)."""
     from wbc_jax.control.controller import ControllerConfig
     from wbc_jax.sim import physics, scenario
     from wbc_jax.sim.state import SimConfig
 
-    sim = SimConfig(record=record, physics=physics.PhysicsConfig(backend=backend, solver_iterations=iterations))
+    sim = SimConfig(
+        record=record,
+        physics=physics.PhysicsConfig(backend=backend, solver_iterations=iterations, warp_terms=warp_terms),
+    )
     controller = ControllerConfig(qp_warm_start=qp_warm_start, qp_unrolled_steps=qp_unrolled_steps, qp_engine=qp_engine)
     return scenario.setup("stand", duration=horizon, sim=sim, controller=controller)
 

@@ -232,6 +232,16 @@ for job in "$@"; do
         profile_tick_was) profile46 $job --qp-engine warp_active_set ;;
         bench46_was) bench46_run $job --qp-engine warp_active_set ;;
       esac ;;
+    bench46_split|bench46_was_split)  # issue 46 (s60): the controller's dynamics terms read off MuJoCo Warp's step1
+            # (--warp-terms step1, wbc_jax/sim/warp_split.py) instead of MJX-JAX's 0.21 µs per env a tick; _was_split
+            # with the active-set QP too. Run beside bench46 / bench46_was on the same machine
+      case $job in
+        bench46_split) bench46_run $job --warp-terms step1 ;;
+        bench46_was_split) bench46_run $job --warp-terms step1 --qp-engine warp_active_set ;;
+      esac ;;
+    gpu_tests_warp)  # the GPU set's Warp engine tests that run on the CPU elsewhere: the QP engines and the split step
+      run $job env JAX_PLATFORMS=cuda,cpu python3 -m pytest -q -p no:cacheprovider -o addopts="" tests/test_qp_warp.py \
+        tests/test_qp_active_set.py tests/test_warp_split.py ;;
     gpu_tests_qp)  # the force QP's Warp engines' GPU tests (tests/test_qp_warp.py, tests/test_qp_active_set.py)
       run $job env JAX_PLATFORMS=cuda,cpu python3 -m pytest -q -p no:cacheprovider -o addopts="" -m gpu tests/test_qp_warp.py \
         tests/test_qp_active_set.py ;;

@@ -79,3 +79,40 @@ def test_the_terms_off_the_first_phase_are_the_controllers_own(split_run):
         scale = max(np.max(np.abs(b)), 1e-3)
         assert np.max(np.abs(a - b)) <= 2e-6 * scale, (name, np.max(np.abs(a - b)), scale)
     assert np.max(np.abs(np.asarray(ref.Jdot_nu_frames))) > 0.1  # the states move: the bias terms are not zeros
+
+
+@pytest.mark.slow
+def test_the_warp_loop_with_the_terms_off_step1_is_the_loop_with_its_own_terms(monkeypatch):
+    """The stand task with a push, 0.3 s on the warp backend (Warp's CPU backend): the controller's terms read off
+    step1 (PhysicsConfig.warp_terms 'step1') or computed in MJX-JAX give the same trajectory to float32 rounding.
+    Nightly: each loop compiles for about 80 s on the CPU."""
+    from wbc_jax.sim import physics, runner, scenario
+    from wbc_jax.sim.state import Push, SimConfig
+
+    monkeypatch.setenv("WBC_JAX_WARP_ON_CPU", "1")
+    out = {}
+    with jax.enable_x64(False):  # the warp loop runs in float32, as on a GPU
+        for terms in ("jax", "step1"):
+            cfg = physics.PhysicsConfig(backend="warp", warp_graph_mode="none", warp_terms=terms)
+            st = scenario.setup("stand", duration=0.3, sim=SimConfig(record=True, physics=cfg))
+            push = Push(
+                force=np.array([[0.0, 40.0, 0.0]]), onset=np.array([0.1]), duration=np.array([0.1]), body=np.array([-1])
+            )
+            out[terms] = runner.run(st, scenario.single(st, push=push)).records
+    r_jax, r_split = out["jax"], out["step1"]
+    com_jax, com_split = np.asarray(r_jax.com)[0], np.asarray(r_split.com)[0]  # (T, 3) of the one environment
+    assert np.max(np.abs(com_jax - com_jax[0])) > 1e-3  # the push moved the CoM
+    np.testing.assert_allclose(com_split, com_jax, rtol=0, atol=2e-5)
+    np.testing.assert_allclose(np.asarray(r_split.tau), np.asarray(r_jax.tau), rtol=0, atol=1e-2)
+
+
+def test_step1_terms_on_another_backend_or_a_perturbed_plant_are_refused_in_one_line():
+    from wbc_jax.sim import physics, scenario
+    from wbc_jax.sim.state import SimConfig
+
+    with pytest.raises(ValueError, match=r"warp_terms 'step1' .* needs the 'warp' backend .*valid here: \['jax'\]"):
+        scenario.setup(
+            "stand", duration=0.1, sim=SimConfig(physics=physics.PhysicsConfig(backend="jax", warp_terms="step1"))
+        )
+    with pytest.raises(ValueError, match=r"unknown warp_terms 'mjx'; valid: \['jax', 'step1'\]"):
+        physics.PhysicsConfig(warp_terms="mjx")

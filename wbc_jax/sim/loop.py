@@ -110,6 +110,12 @@ class ClosedLoop:
             )
         if engine == "eiquadprog" and (problem := qp_eiquadprog.available()) is not None:
             raise ValueError(f"controller setting qp_engine 'eiquadprog': {problem}; valid here: ['jax']")
+        if cfg.physics.warp_terms == "step1" and (self.backend != "warp" or cfg.perturb_plant):
+            raise ValueError(
+                "warp_terms 'step1' reads the controller's dynamics terms off the plant's own step: it needs the "
+                f"'warp' backend (here {self.backend!r}) and an unperturbed plant (perturb_plant "
+                f"{cfg.perturb_plant}); valid here: ['jax']"
+            )
         if self.backend == "warp" and controller.config.contact_detection:
             raise ValueError(
                 "contact detection reads the simulator's contact forces, which the 'warp' backend does not "

@@ -16,8 +16,9 @@ import jax.numpy as jnp
 from wbc_jax.control.gains import Gains
 from wbc_jax.core.mjx import mjx
 from wbc_jax.core.types import Array
+from wbc_jax.robot import dynamics
 from wbc_jax.sim import metrics as metrics_lib
-from wbc_jax.sim import physics
+from wbc_jax.sim import physics, warp_split
 from wbc_jax.sim.state import Feedforward, Push, Scenario, traced_at_matmul_precision
 
 
@@ -73,11 +74,21 @@ def chunk(
     (carry, records with a leading time axis or None). ``feedforward``: torques added to the
     controller's (:class:`wbc_jax.sim.state.Feedforward`; None: none)."""
 
+    split = loop.cfg.physics.warp_terms == "step1"  # the terms off the first step's first phase (warp_split)
+
     def tick(carry, k):
         d, state, ok = carry
-        state, ctrl, record = loop.control(gains, state, d.qpos, d.qvel, k, ok, push, feedforward)
         xfrc = loop.xfrc(push, k).astype(d.qpos.dtype)
-        d_new, _ = jax.lax.scan(lambda dd, x: (physics.step(plant, dd, ctrl, x), None), d, xfrc)
+        if split:
+            step1, step2 = warp_split.phases()
+            d = step1(plant, d)
+            terms = dynamics.terms_from_split(loop.idx, loop.robot.mj_model, d, loop.controller.frames)
+            state, ctrl, record = loop.control(gains, state, d.qpos, d.qvel, k, ok, push, feedforward, terms=terms)
+            first = step2(plant, d.replace(ctrl=ctrl, xfrc_applied=xfrc[0]))
+            d_new, _ = jax.lax.scan(lambda dd, x: (physics.step(plant, dd, ctrl, x), None), first, xfrc[1:])
+        else:
+            state, ctrl, record = loop.control(gains, state, d.qpos, d.qvel, k, ok, push, feedforward)
+            d_new, _ = jax.lax.scan(lambda dd, x: (physics.step(plant, dd, ctrl, x), None), d, xfrc)
         finite = physics.state_ok(d_new.qpos, d_new.qvel)
         d_new = d_new.where(~finite, d)  # a diverged env keeps its last sound state
         if loop.cfg.record and loop.backend == "warp":  # no per-environment contact forces there

@@ -36,7 +36,7 @@ from wbc_jax.core import mjx as mjx_device
 from wbc_jax.core.constants import DIVERGED_SPEED
 from wbc_jax.core.mjx import mjx
 from wbc_jax.core.types import Array
-from wbc_jax.sim import warp_graphs
+from wbc_jax.sim import warp_graphs, warp_split
 
 BACKENDS = ("auto", "jax", "warp", "mujoco")
 FLOOR_GEOM = 0  # the floor is the model's first geom (the model builders of assets/; tested)
@@ -50,11 +50,11 @@ class PhysicsConfig:
     Attributes:
       backend: one of :data:`BACKENDS`.
       solver_iterations / ls_iterations: Newton / line-search iterations (None: the model's).
-      warp_graph_mode: who captures MJX-Warp's CUDA graphs (:data:`warp_graphs.GRAPH_MODES`):
-        ``warp`` (MJX's default on a GPU), ``jax`` (XLA, within its own command buffers), ``none``.
-      warp_graph_cache: CUDA graphs each Warp foreign call keeps, for all devices together
-        (:mod:`wbc_jax.sim.warp_graphs`; 0: no bound; None: Warp's 32 per device of the run). Shapes no program and
-        changes no result: left out of the repr, so of ``ClosedLoop.structure_key``.
+      warp_graph_mode: who captures MJX-Warp's CUDA graphs (:data:`warp_graphs.GRAPH_MODES`): ``warp`` (MJX's default
+        on a GPU), ``jax`` (XLA, within its own command buffers), ``none``.
+      warp_graph_cache: CUDA graphs each Warp foreign call keeps, for all devices together (:mod:`wbc_jax.sim.warp_graphs`;
+        0: no bound; None: Warp's 32 per device). No program or result changes: out of the repr (``structure_key``).
+      warp_terms: the controller's dynamics terms on the ``warp`` backend, :data:`wbc_jax.sim.warp_split.TERMS`.
     """
 
     backend: str = "auto"
@@ -62,10 +62,13 @@ class PhysicsConfig:
     ls_iterations: int | None = None
     warp_graph_mode: str = "warp"
     warp_graph_cache: int | None = dataclasses.field(default=None, repr=False, compare=False)
+    warp_terms: str = "jax"
 
     def __post_init__(self):
         if self.backend not in BACKENDS:
             raise ValueError(f"unknown physics backend {self.backend!r}; valid: {list(BACKENDS)}")
+        if self.warp_terms not in warp_split.TERMS:
+            raise ValueError(f"unknown warp_terms {self.warp_terms!r}; valid: {list(warp_split.TERMS)}")
         for name in ("solver_iterations", "ls_iterations"):
             value = getattr(self, name)
             if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):

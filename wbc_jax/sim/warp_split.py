@@ -21,6 +21,12 @@ import types
 
 import jax
 
+TERMS = ("jax", "step1")
+"""Where the controller's dynamics terms come from on the ``warp`` backend (``PhysicsConfig.warp_terms``): ``jax``
+(MJX-JAX's ``dynamics.terms`` at the state) or ``step1`` (read off :func:`phases`' first phase of the tick's first
+step by ``dynamics.terms_from_split``: the same terms to float32 rounding without a kinematics pass of their own;
+not with a perturbed plant, whose dynamics the controller must not see)."""
+
 
 def _rebound(fn, **names):
     """``fn`` with some of its module's global names bound to other objects (its code and annotations unchanged)."""
