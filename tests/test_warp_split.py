@@ -84,7 +84,8 @@ def test_the_terms_off_the_first_phase_are_the_controllers_own(split_run):
 @pytest.mark.slow
 def test_the_warp_loop_with_the_terms_off_step1_is_the_loop_with_its_own_terms(monkeypatch):
     """The stand task with a push, 0.3 s on the warp backend (Warp's CPU backend): the controller's terms read off
-    step1 (PhysicsConfig.warp_terms 'step1') or computed in MJX-JAX give the same trajectory to float32 rounding.
+    step1 (PhysicsConfig.warp_terms 'step1') or computed in MJX-JAX give the same trajectory to float32 rounding
+    (bounds about 10x the measured differences).
     Nightly: each loop compiles for about 80 s on the CPU."""
     from wbc_jax.sim import physics, runner, scenario
     from wbc_jax.sim.state import Push, SimConfig
@@ -102,8 +103,9 @@ def test_the_warp_loop_with_the_terms_off_step1_is_the_loop_with_its_own_terms(m
     r_jax, r_split = out["jax"], out["step1"]
     com_jax, com_split = np.asarray(r_jax.com)[0], np.asarray(r_split.com)[0]  # (T, 3) of the one environment
     assert np.max(np.abs(com_jax - com_jax[0])) > 1e-3  # the push moved the CoM
-    np.testing.assert_allclose(com_split, com_jax, rtol=0, atol=2e-5)
-    np.testing.assert_allclose(np.asarray(r_split.tau), np.asarray(r_jax.tau), rtol=0, atol=1e-2)
+    # measured: CoM 1.2e-7 m, torques 7.2e-5 N m of 5.8 (float32 rounding of the terms, carried over 30 ticks)
+    np.testing.assert_allclose(com_split, com_jax, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(r_split.tau), np.asarray(r_jax.tau), rtol=0, atol=1e-3)
 
 
 def test_step1_terms_on_another_backend_or_a_perturbed_plant_are_refused_in_one_line():
