@@ -361,6 +361,10 @@ def main(argv=None) -> dict:
     args = p.parse_args(argv)
     if args.repeats < 1 or args.ticks < 1:
         p.error("--repeats and --ticks must be >= 1")
+    from wbc_jax.control.qp import QP_ENGINES
+
+    if args.qp_engine not in QP_ENGINES:
+        p.error(f"--qp-engine must be one of {list(QP_ENGINES)}, got {args.qp_engine!r}")
     out = pathlib.Path(args.out)
     result = json.loads(out.read_text()) if out.exists() else {}
     result.update(

@@ -36,9 +36,11 @@ def add_qp_arguments(parser, recorded_loop: bool = False) -> None:
 
 def add_warp_terms_argument(parser) -> None:
     """``--warp-terms`` (PhysicsConfig.warp_terms) on a benchmark's parser."""
+    from wbc_jax.sim.warp_split import TERMS
+
     parser.add_argument(
         "--warp-terms",
-        choices=("jax", "step1"),  # wbc_jax.sim.warp_split.TERMS
+        choices=TERMS,
         default="jax",
         help="on the warp backend, the controller's dynamics terms computed in MJX-JAX (jax) or read off MuJoCo "
         "Warp's first phase of the tick's first step (step1, wbc_jax/sim/warp_split.py); other backends: jax",
@@ -57,7 +59,9 @@ def check_qp_arguments(parser, args) -> None:
         parser.error(
             f"--qp-engine {args.qp_engine} takes --qp-unrolled-steps 0 (the Warp kernel has no while loop to unroll)"
         )
-    if args.qp_engine in ("warp_active_set", "eiquadprog") and getattr(args, "qp_warm_start", False):
+    from wbc_jax.control.qp import ACTIVE_SET_ENGINES
+
+    if args.qp_engine in ACTIVE_SET_ENGINES and getattr(args, "qp_warm_start", False):
         parser.error(f"--qp-engine {args.qp_engine} takes no --qp-warm-start (the active-set method starts cold)")
 
 

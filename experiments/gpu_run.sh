@@ -239,12 +239,11 @@ for job in "$@"; do
         bench46_split) bench46_run $job --warp-terms step1 ;;
         bench46_was_split) bench46_run $job --warp-terms step1 --qp-engine warp_active_set ;;
       esac ;;
-    gpu_tests_warp)  # the GPU set's Warp engine tests that run on the CPU elsewhere: the QP engines and the split step
-      run $job env JAX_PLATFORMS=cuda,cpu python3 -m pytest -q -p no:cacheprovider -o addopts="" tests/test_qp_warp.py \
-        tests/test_qp_active_set.py tests/test_warp_split.py ;;
-    gpu_tests_qp)  # the force QP's Warp engines' GPU tests (tests/test_qp_warp.py, tests/test_qp_active_set.py)
-      run $job env JAX_PLATFORMS=cuda,cpu python3 -m pytest -q -p no:cacheprovider -o addopts="" -m gpu tests/test_qp_warp.py \
-        tests/test_qp_active_set.py ;;
+    gpu_tests_qp|gpu_tests_warp)  # the Warp engines' tests on the GPU: gpu_tests_qp the force QP's `gpu` tests
+            # (s60); gpu_tests_warp every test of the QP engines and of the split step (tests/test_warp_split.py)
+      files="tests/test_qp_warp.py tests/test_qp_active_set.py"
+      case $job in gpu_tests_qp) sel="-m gpu" ;; gpu_tests_warp) sel=""; files="$files tests/test_warp_split.py" ;; esac
+      run $job env JAX_PLATFORMS=cuda,cpu python3 -m pytest -q -p no:cacheprovider -o addopts="" $sel $files ;;
     profile_tick_cbuf|bench46_cbuf)  # issue 46 (s57): profile_tick / bench46 with XLA's command buffers taking while
             # loops and conditionals too (CUDA graph conditional nodes: the predicate stays on the GPU), CBUF_TYPES
             # (default below). The tick has one QP while loop and four batch_any conds on its path, and at 65,536

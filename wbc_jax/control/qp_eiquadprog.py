@@ -23,7 +23,7 @@ from importlib import metadata
 import jax
 import jax.numpy as jnp
 
-from wbc_jax.control.qp_ipm import IPMResult
+from wbc_jax.control.qp_ipm import IPMResult, result_of_outputs
 from wbc_jax.core import native_build
 
 SOURCE = pathlib.Path(__file__).with_name("qp_eiquadprog.cc")
@@ -99,14 +99,4 @@ def active_set_eiquadprog(
     ]
     call = jax.ffi.ffi_call(TARGET, shapes, vmap_method="broadcast_all")
     x, lam, s, flags, stats = call(H, g, C, b, w, tol=float(tol), weighted=weighted)
-    return IPMResult(
-        x=x,
-        lam=lam,
-        s=s,
-        converged=flags[..., 0] == 1,
-        finite=flags[..., 1] == 1,
-        violation=stats[..., 0],
-        kkt_residual=stats[..., 1],
-        iterations=flags[..., 2],
-        residual_parts=stats[..., 2:],
-    )
+    return result_of_outputs(x, lam, s, flags, stats)

@@ -47,6 +47,24 @@ class IPMResult:
     residual_parts: Array
 
 
+def result_of_outputs(x: Array, lam: Array, s: Array, flags: Array, stats: Array) -> IPMResult:
+    """:class:`IPMResult` from the outputs of a solver engine called outside JAX's ops (the Warp kernels,
+    :mod:`wbc_jax.control.qp_warp`; eiquadprog, :mod:`wbc_jax.control.qp_eiquadprog`), any leading batch shape:
+    x (..., n), lam (..., m), s (..., m), flags (..., 3) int32 (converged, finite, iterations) and stats (..., 5)
+    (violation, KKT residual, its dual, primal and complementarity parts)."""
+    return IPMResult(
+        x=x,
+        lam=lam,
+        s=s,
+        converged=flags[..., 0] == 1,
+        finite=flags[..., 1] == 1,
+        violation=stats[..., 0],
+        kkt_residual=stats[..., 1],
+        iterations=flags[..., 2],
+        residual_parts=stats[..., 2:],
+    )
+
+
 def _max_step(v: Array, dv: Array) -> Array:
     """Largest alpha in (0, 1] with ``v + alpha dv >= 0`` (v > 0 elementwise); NaN where some
     entry of dv is not finite (``0 dv`` is NaN there), so one reduction also tests the direction."""

@@ -22,7 +22,7 @@ import numpy as np
 from jax.custom_batching import custom_vmap
 
 from wbc_jax.control.qp_active_set_kernel import active_set_kernel
-from wbc_jax.control.qp_ipm import IPMResult
+from wbc_jax.control.qp_ipm import IPMResult, result_of_outputs
 from wbc_jax.control.qp_warp_kernel import ipm_kernel
 
 Array = jax.Array
@@ -103,17 +103,7 @@ def interior_point_warp(
     w = weight if weighted else jnp.zeros((), dtype)
     s0 = start if warm else jnp.zeros((), dtype)
     x, lam, s, flags, stats = _batched(int(iterations), float(tol), weighted, warm)(H, g, C, b, w, s0)
-    return IPMResult(
-        x=x,
-        lam=lam,
-        s=s,
-        converged=flags[..., 0] == 1,
-        finite=flags[..., 1] == 1,
-        violation=stats[..., 0],
-        kkt_residual=stats[..., 1],
-        iterations=flags[..., 2],
-        residual_parts=stats[..., 2:],
-    )
+    return result_of_outputs(x, lam, s, flags, stats)
 
 
 def active_set_warp(H: Array, g: Array, C: Array, b: Array, tol: float, weight: Array | None = None) -> IPMResult:
@@ -130,14 +120,4 @@ def active_set_warp(H: Array, g: Array, C: Array, b: Array, tol: float, weight: 
     x, lam, s, flags, stats = _batched(0, float(tol), weighted, False, "active_set")(
         H, g, C, b, w, jnp.zeros((), dtype)
     )
-    return IPMResult(
-        x=x,
-        lam=lam,
-        s=s,
-        converged=flags[..., 0] == 1,
-        finite=flags[..., 1] == 1,
-        violation=stats[..., 0],
-        kkt_residual=stats[..., 1],
-        iterations=flags[..., 2],
-        residual_parts=stats[..., 2:],
-    )
+    return result_of_outputs(x, lam, s, flags, stats)

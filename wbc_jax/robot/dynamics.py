@@ -183,6 +183,24 @@ def _frame_poses(xpos: Array, xmat: Array, frames: Frames) -> tuple[Array, Array
     return xpos[bodies] + jnp.einsum("kij,kj->ki", W_R, jnp.asarray(np.asarray(frames.points), W_R.dtype)), W_R
 
 
+def _point_jacobian(cdof: Array, c: Array, point: Array, mask: Array) -> tuple[Array, Array]:
+    """The linear (of ``point``, (3,)) and angular Jacobians (3, nv) each of a point of a body whose ancestor dofs
+    are ``mask`` (nv,), from MuJoCo's ``cdof`` (nv, 6) [angular; linear] at the com-based origin ``c`` (3,)."""
+    jacp = (cdof[:, 3:] + jnp.cross(cdof[:, :3], point - c)) * mask[:, None]
+    jacr = cdof[:, :3] * mask[:, None]
+    return jacp.T, jacr.T
+
+
+def _centroidal_matrix(mass: Array, inertia: Array, ximat: Array, xipos: Array, c: Array, jp: Array, jr: Array):
+    """The centroidal momentum matrix (6, nv), MuJoCo's columns: the sum over bodies of [m Jp; I_W Jr + m S(c_b - c)
+    Jp], from the bodies' masses (B,), principal inertias (B, 3), inertial frames ximat (B, 3, 3) and xipos (B, 3),
+    and the Jacobians jp, jr (B, 3, nv) of their CoMs."""
+    I_W = jnp.einsum("bij,bj,bkj->bik", ximat, inertia, ximat)
+    lin = jnp.einsum("b,bjv->jv", mass, jp)
+    ang = jnp.einsum("bij,bjv->iv", I_W, jr) + jnp.einsum("b,bij,bjv->iv", mass, skew(xipos - c), jp)
+    return jnp.concatenate([lin, ang], axis=0)
+
+
 def _kinematics(m: mjx.Model, d: mjx.Data, idx: RobotIndex, qpos: Array, frames: Frames):
     """Frame Jacobians, centroidal momentum matrix and poses as functions of qpos only."""
     d = d.replace(qpos=qpos)
@@ -190,30 +208,20 @@ def _kinematics(m: mjx.Model, d: mjx.Data, idx: RobotIndex, qpos: Array, frames:
     d = mjx.com_pos(m, d)
     R = d.xmat[idx.base_body]
     c = d.subtree_com[idx.base_body]  # com-based frame origin of cdof = whole-robot CoM
-    cdof_ang, cdof_lin = d.cdof[:, :3], d.cdof[:, 3:]
     masks = jnp.asarray(idx.body_ancestor_dofs, dtype=d.cdof.dtype)  # (nbody, nv)
-
-    def point_jacobian(point: Array, mask: Array) -> tuple[Array, Array]:
-        jacp = (cdof_lin + jnp.cross(cdof_ang, point - c)) * mask[:, None]
-        jacr = cdof_ang * mask[:, None]
-        return jacp.T, jacr.T  # (3, nv) each
+    point_jacobian = jax.vmap(lambda point, mask: _point_jacobian(d.cdof, c, point, mask))
 
     # Frame Jacobians [linear of the point; angular of its body].
     W_p, W_R = _frame_poses(d.xpos, d.xmat, frames)
-    jp, jr = jax.vmap(point_jacobian)(W_p, masks[np.asarray(frames.bodies, dtype=int)])
+    jp, jr = point_jacobian(W_p, masks[np.asarray(frames.bodies, dtype=int)])
     J_frames = _to_mixed_cols(idx, jnp.concatenate([jp, jr], axis=1), R)
 
-    # Centroidal momentum matrix: sum over bodies of [m Jp; I_W Jr + m S(c_b - c) Jp].
     all_bodies = np.arange(1, masks.shape[0])
-    jp_b, jr_b = jax.vmap(point_jacobian)(d.xipos[all_bodies], masks[all_bodies])
-    mass_b = m.body_mass[all_bodies]
-    ximat = d.ximat[all_bodies]
-    I_W = jnp.einsum("bij,bj,bkj->bik", ximat, m.body_inertia[all_bodies], ximat)
-    lin = jnp.einsum("b,bjv->jv", mass_b, jp_b)
-    ang = jnp.einsum("bij,bjv->iv", I_W, jr_b) + jnp.einsum(
-        "b,bij,bjv->iv", mass_b, skew(d.xipos[all_bodies] - c), jp_b
+    jp_b, jr_b = point_jacobian(d.xipos[all_bodies], masks[all_bodies])
+    A_mj = _centroidal_matrix(
+        m.body_mass[all_bodies], m.body_inertia[all_bodies], d.ximat[all_bodies], d.xipos[all_bodies], c, jp_b, jr_b
     )
-    A_G = _to_mixed_cols(idx, jnp.concatenate([lin, ang], axis=0), R)
+    A_G = _to_mixed_cols(idx, A_mj, R)
     return (J_frames, A_G, W_p, W_R), d
 
 
@@ -324,18 +332,16 @@ def terms_from_split(idx: RobotIndex, mj_model, d, frames: Frames) -> DynamicsTe
     nu = mixed_velocity(idx, qpos, qvel)
     R = d.xmat[idx.base_body]
     c = d.subtree_com[idx.base_body]
-    cdof_ang, cdof_lin = d.cdof[:, :3], d.cdof[:, 3:]
     dot_ang, dot_lin = d.cdof_dot[:, :3], d.cdof_dot[:, 3:]
     masks = jnp.asarray(idx.body_ancestor_dofs, dtype=dtype)  # (nbody, nv)
 
     def point(p: Array, mask: Array, body: Array):
-        jacp = (cdof_lin + jnp.cross(cdof_ang, p - c)) * mask[:, None]
-        jacr = cdof_ang * mask[:, None]
+        jacp, jacr = _point_jacobian(d.cdof, c, p, mask)
         omega, v_at_c = d.cvel[body, :3], d.cvel[body, 3:]
         v_p = v_at_c + jnp.cross(omega, p - c)
         bias_lin = ((dot_lin + jnp.cross(dot_ang, p - c)) * mask[:, None]).T @ qvel + jnp.cross(omega, v_p)
         bias_ang = (dot_ang * mask[:, None]).T @ qvel
-        return jacp.T, jacr.T, jnp.concatenate([bias_lin, bias_ang])
+        return jacp, jacr, jnp.concatenate([bias_lin, bias_ang])
 
     bodies = np.asarray(frames.bodies, dtype=int)
     W_p, W_R = _frame_poses(d.xpos, d.xmat, frames)
@@ -343,13 +349,9 @@ def terms_from_split(idx: RobotIndex, mj_model, d, frames: Frames) -> DynamicsTe
     all_bodies = np.arange(1, masks.shape[0])
     jp_b, jr_b, jdot_b = jax.vmap(point)(d.xipos[all_bodies], masks[all_bodies], jnp.asarray(all_bodies))
     mass_b = jnp.asarray(mj_model.body_mass[all_bodies], dtype)
-    ximat = d.ximat[all_bodies]
-    I_W = jnp.einsum("bij,bj,bkj->bik", ximat, jnp.asarray(mj_model.body_inertia[all_bodies], dtype), ximat)
-    lin = jnp.einsum("b,bjv->jv", mass_b, jp_b)
-    ang = jnp.einsum("bij,bjv->iv", I_W, jr_b) + jnp.einsum(
-        "b,bij,bjv->iv", mass_b, skew(d.xipos[all_bodies] - c), jp_b
-    )
-    A_G = _to_mixed_cols(idx, jnp.concatenate([lin, ang], axis=0), R)
+    inertia_b = jnp.asarray(mj_model.body_inertia[all_bodies], dtype)
+    A_mj = _centroidal_matrix(mass_b, inertia_b, d.ximat[all_bodies], d.xipos[all_bodies], c, jp_b, jr_b)
+    A_G = _to_mixed_cols(idx, A_mj, R)
     # The mass matrix: MuJoCo's sparse lower triangle (rows of M_rownnz entries at columns M_colind), made dense.
     rows = np.repeat(np.arange(idx.nv), mj_model.M_rownnz)
     lower = jnp.zeros((idx.nv, idx.nv), dtype).at[rows, np.asarray(mj_model.M_colind)].set(d._impl.M)
