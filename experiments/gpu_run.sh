@@ -53,9 +53,9 @@ for job in "$@"; do
     cpu_peer)  # issue 46 on this host's own CPU (an Intel Xeon on these machines; the CI machine is an AMD EPYC):
             # our compiled loop's tick (benchmarks/cpu_loop.py --parts profile) and TSID's (benchmarks/tsid_peer.py)
             # on core 1, alternating, CPU_PEER_RUNS times each. Needs TSID's Python 3.12 wheels, carried in .wt1/
-            # (cmeel-boost), .wt3/ (icub-models) and .wt2/ (tsid, pin, coal, eigenpy, eiquadprog, their cmeel libraries, and libtsid's
-            # files as libtsid-1.10.0.tar.xz: the package index here has no libtsid wheel), installed apart in
-            # /tmp/site-tsid.
+            # (cmeel-boost without its headers, cmeel-assimp, cmeel-zlib), .wt3/ (icub-models, eigenpy) and .wt2/ (tsid,
+            # pin, coal, eiquadprog, their other cmeel libraries, and libtsid's files as libtsid-1.10.0.tar.xz: the
+            # package index here has no libtsid wheel), 24 MB each, one a call; installed apart in /tmp/site-tsid.
       TS=/tmp/site-tsid
       if [ ! -d $TS/cmeel.prefix ]; then
         python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target $TS ~/wp/*.whl \

@@ -7,6 +7,11 @@ library builds (the `eiquadprog` extra, in `dev`, and a C++ compiler)."""
 
 import dataclasses
 import functools
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -130,6 +135,51 @@ def test_an_infeasible_or_non_finite_problem_is_flagged_and_falls_back_as_the_in
     np.testing.assert_array_equal(info_as.infeasible, info_ipm.infeasible)
     assert info_as.infeasible[1] and info_as.infeasible[4]
     np.testing.assert_allclose(x_as[1], x_ipm[1], rtol=1e-12)  # the same fallback point
+
+
+FALLING_ROBOT = Path(__file__).with_name("qp_falling_robot.npz")
+"""Eleven equality QPs (6 x 38, float32) of robots falling after a 300-400 N push, captured from the controller in
+`wbc-jax push-sweep --horizon 3 --push-onset 0.5 --push-duration 0.1 --magnitudes 300 400 2 --directions 4 --backend
+jax --qp-engine warp_active_set`: infeasible, with rows that float32 rounding alone keeps independent."""
+
+
+def _falling_robot():
+    data = np.load(FALLING_ROBOT)
+    return [data[k] for k in "HgCb"]
+
+
+def test_a_falling_robots_infeasible_problems_are_flagged_in_few_steps(engine):
+    """quadprog finds each inconsistent; the engine flags each not converged (solve_qp falls back), finite, within
+    STEP_LIMIT_PER_ROW's bound. The Warp kernel took up to 114 steps here and wrote past its n-row arrays before
+    qp_active_set_kernel.DEPENDENT_ROW (an illegal address on the GPU: results/gpu_h100/s61)."""
+    H, g, C, b = _falling_robot()
+    for i in range(len(g)):
+        with pytest.raises(ValueError, match="inconsistent"):
+            _quadprog(H[i], g[i], C[i], b[i])
+    got = _active_set(engine, H, g, C, b, tol=2e-6)
+    assert np.all(got["finite"]) and not np.any(got["converged"])
+    assert np.max(got["iterations"]) <= 30  # measured: at most 22 (warp_active_set), 7 (eiquadprog); the limit 114
+
+
+def test_the_warp_kernel_stays_inside_its_arrays_under_warps_bounds_checks():
+    """The kernel built in Warp's debug mode (every vector and matrix index checked, a failed check aborts) on the
+    falling robot's problems: the active set never exceeds n rows. A child process, as the abort would end pytest's."""
+    if _unavailable("warp_active_set"):
+        pytest.skip(_unavailable("warp_active_set"))
+    code = f"""
+import warp as wp
+wp.config.mode = "debug"
+import jax, numpy as np
+from wbc_jax.control import qp_warp
+d = np.load({str(FALLING_ROBOT)!r})
+solve = jax.vmap(lambda H, g, C, b: qp_warp.active_set_warp(H, g, C, b, 2e-6).iterations)
+print("steps", np.asarray(jax.jit(solve)(d["H"], d["g"], d["C"], d["b"])).tolist())
+"""
+    env = dict(os.environ, JAX_PLATFORMS="cpu", WARP_CACHE_PATH=str(Path(tempfile.mkdtemp()) / "warp"))
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, env=env)
+    out = run.stdout + run.stderr
+    assert run.returncode == 0 and "out of bounds" not in out, out[-2000:]
+    assert "steps" in run.stdout
 
 
 def test_solve_qp_differentiates_the_active_set_solution_as_the_interior_points(engine):

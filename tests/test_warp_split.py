@@ -56,9 +56,9 @@ def test_the_terms_off_the_first_phase_are_the_controllers_own(split_run):
     """Each term within float32 rounding of its scale (measured: at most 2e-7 relative; h, of 3e2 N m, within 6e-5)."""
     robot, qs, vs, d1, _, _ = split_run
     idx, frames = robot.index, dynamics.sole_frames(robot.index)
-    got = jax.jit(jax.vmap(lambda dd: dynamics.terms_from_split(idx, robot.mj_model, dd, frames)))(d1)
     mx, dj = mjx_device.put_model(robot.mj_model), mjx_device.make_data(robot.mj_model)
-    with jax.default_matmul_precision("highest"):
+    with jax.default_matmul_precision("highest"):  # as the loop traces both (SimConfig.matmul_precision); TF32 on a GPU
+        got = jax.jit(jax.vmap(lambda dd: dynamics.terms_from_split(idx, robot.mj_model, dd, frames)))(d1)
         ref = jax.jit(jax.vmap(lambda q, v: dynamics.terms(mx, dj.replace(qpos=q, qvel=v), idx)))(qs, vs)
     for name in (
         "M",

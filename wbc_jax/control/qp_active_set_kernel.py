@@ -38,13 +38,22 @@ method never repeats an active set, so a problem that reaches it has cycled on r
 converged (the caller's fallback decides)."""
 
 
+DEPENDENT_ROW = 1e-10
+"""A row to be added counts as dependent on the active rows (z = 0: only a partial step, dropping a row, or the
+problem is infeasible) where its curvature along the primal direction, a'z = z'Hz, is below this fraction of a'H^-1 a:
+the squared sine of its angle to their span in H^-1's metric. Above it the active rows' Schur complement keeps a
+condition number below about 1e10, so its float64 solves keep 6 digits. Rows that float32 rounding alone makes
+independent (a contact cone's opposite faces, 1e-7 apart, in a falling robot's problems) were added at 1e-12 by the
+earlier bound of 1e3 eps, after which the solves were rounding and the active set grew past n rows
+(tests/test_qp_active_set.py)."""
+
+
 @functools.cache
 def active_set_kernel(n: int, m: int, tol: float, out_float64: bool, weighted: bool):
     """The Warp kernel of problems with n unknowns and m rows (one thread each); outputs in float64 or float32."""
     wp = warp_module()
     real = wp.float64  # the solve's precision, whatever the inputs'
     io = wp.float64 if out_float64 else wp.float32
-    eps = float(np.finfo(np.float64).eps)
     vec_n = wp.types.vector(length=n, dtype=real)
     vec_m = wp.types.vector(length=m, dtype=real)
     mat_nn = wp.types.matrix(shape=(n, n), dtype=real)
@@ -53,8 +62,8 @@ def active_set_kernel(n: int, m: int, tol: float, out_float64: bool, weighted: b
     inf = real(math.inf)
     nan_io = io(math.nan)
     tol_ = real(tol)
-    small = real(1e3 * eps)  # a direction whose curvature along the new row is below this is none
     tiny = real(np.finfo(np.float32).tiny)
+    dependent = real(DEPENDENT_ROW)
     limit = STEP_LIMIT_PER_ROW * m
 
     @wp.func
@@ -237,7 +246,7 @@ def active_set_kernel(n: int, m: int, tol: float, out_float64: bool, weighted: b
                     scale = row_dot(C, p, q_new, inv_row[q_new], v)  # a_new' H^-1 a_new
                     # Step lengths: t_full makes row q_new active; t_drop is where an active multiplier reaches 0.
                     t_full = inf
-                    if curvature > small * scale:
+                    if k_act < n and curvature > dependent * scale:  # n active rows: z = 0, only a partial step
                         t_full = (row_dot(C, p, q_new, inv_row[q_new], x) - bs[q_new]) / curvature
                     t_drop = inf
                     drop = int(-1)
