@@ -60,7 +60,7 @@ JSON_KEYS = (
     "sweep_run_s",
     "sweep_envs",
 )
-# qp_warm_start, qp_unrolled_steps, qp_engine, warp_terms, xla_flags: only in the row of a run that set them (the rows
+# qp_warm_start, qp_unrolled_steps, qp_engine, warp_terms, mass_solve_engine, xla_flags: only in the row of a run that set them (the rows
 # before, at the defaults, have no such key)
 JSON_ROW_KEY = (
     "device",
@@ -73,6 +73,7 @@ JSON_ROW_KEY = (
     "qp_unrolled_steps",
     "qp_engine",
     "warp_terms",
+    "mass_solve_engine",
     "xla_flags",
 )
 
@@ -151,6 +152,8 @@ def json_rows(result: dict) -> list[dict]:
             entry["qp_engine"] = row["qp_engine"]
         if row.get("warp_terms", "jax") != "jax":  # the controller's terms off the physics' step1: a setting of its own
             entry["warp_terms"] = row["warp_terms"]
+        if row.get("mass_solve_engine", "jax") != "jax":  # the torque law's M solve in a Warp kernel
+            entry["mass_solve_engine"] = row["mass_solve_engine"]
         if row.get("xla_flags"):  # XLA's flags of the run (command buffers, say): a setting of its own
             entry["xla_flags"] = row["xla_flags"]
         rows.append(entry)
@@ -333,6 +336,7 @@ def main(argv=None) -> dict:
                 qp_unrolled_steps=args.qp_unrolled_steps,
                 qp_engine=args.qp_engine,
                 warp_terms=args.warp_terms if backend == "warp" else "jax",
+                mass_solve_engine=args.mass_solve_engine,
             )
             iterations = int(physics.solver_mj_model(st.robot.mj_model, st.loop.cfg.physics).opt.iterations)
             tau = None if args.skip_physics_only else hold_torques(st)
@@ -343,6 +347,7 @@ def main(argv=None) -> dict:
                     "qp_unrolled_steps": args.qp_unrolled_steps,
                     "qp_engine": args.qp_engine,
                     "warp_terms": args.warp_terms if backend == "warp" else "jax",
+                    "mass_solve_engine": args.mass_solve_engine,
                     "xla_flags": os.environ.get("XLA_FLAGS") or None,
                     "device": device_description(backend),
                     "batch": batch,

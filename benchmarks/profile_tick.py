@@ -187,6 +187,7 @@ def stage_functions(st) -> dict:
             kp_postural_reg=state.controller.kp_postural_reg,
             compensate_passive=cfg.compensate_passive,
             freeze_projector=cfg.freeze_postural_projector,
+            mass_solve_engine=cfg.mass_solve_engine,
         )
 
     def force_inputs(t, k, Ldot_star):
@@ -376,7 +377,10 @@ def main(argv=None) -> dict:
     runner.enable_compilation_cache()
     # benchmark.py's closed loop (the JAX engine: the states are recorded), at the scale step's backend.
     qp_flags = dict(
-        qp_warm_start=args.qp_warm_start, qp_unrolled_steps=args.qp_unrolled_steps, qp_engine=args.qp_engine
+        qp_warm_start=args.qp_warm_start,
+        qp_unrolled_steps=args.qp_unrolled_steps,
+        qp_engine=args.qp_engine,
+        mass_solve_engine=args.mass_solve_engine,
     )
     st = make_setup("jax", args.horizon, None, **qp_flags)
     fns = stage_functions(st)
@@ -388,6 +392,7 @@ def main(argv=None) -> dict:
         "qp_warm_start": args.qp_warm_start,
         "qp_unrolled_steps": args.qp_unrolled_steps,
         "qp_engine": args.qp_engine,
+        "mass_solve_engine": args.mass_solve_engine,
         "device": provenance.device_label(),
         "dtype": str(st.dtype),
         "matmul_precision": st.loop.cfg.matmul_precision,

@@ -232,6 +232,16 @@ for job in "$@"; do
         profile_tick_was) profile46 $job --qp-engine warp_active_set ;;
         bench46_was) bench46_run $job --qp-engine warp_active_set ;;
       esac ;;
+    mass_solve_cost)  # issue 46 (s61): the torque law's M solve by JAX (batched potrf + trsm) and by one Warp tile kernel
+            # (wbc_jax/control/cholesky_warp.py), 65,536 environments, µs per environment and their agreement
+      run $job python3 benchmarks/mass_solve_cost.py --batch 65536 --repeats 5 --out "$OUT/$job/mass_solve_cost.json" ;;
+    bench46_msw|bench46_was_split_msw)  # issue 46 (s61): bench46 with the M solve as one Warp tile kernel
+            # (--mass-solve-engine warp); _was_split: with the active-set QP and the terms off step1 too. Run beside
+            # bench46 / bench46_was_split on the same machine
+      case $job in
+        bench46_msw) bench46_run $job --mass-solve-engine warp ;;
+        bench46_was_split_msw) bench46_run $job --warp-terms step1 --qp-engine warp_active_set --mass-solve-engine warp ;;
+      esac ;;
     bench46_split|bench46_was_split)  # issue 46 (s60): the controller's dynamics terms read off MuJoCo Warp's step1
             # (--warp-terms step1, wbc_jax/sim/warp_split.py) instead of MJX-JAX's 0.21 µs per env a tick; _was_split
             # with the active-set QP too. Run beside bench46 / bench46_was on the same machine
@@ -241,7 +251,7 @@ for job in "$@"; do
       esac ;;
     gpu_tests_qp|gpu_tests_warp)  # the Warp engines' tests on the GPU: gpu_tests_qp the force QP's `gpu` tests
             # (s60); gpu_tests_warp every test of the QP engines and of the split step (tests/test_warp_split.py)
-      files="tests/test_qp_warp.py tests/test_qp_active_set.py"
+      files="tests/test_qp_warp.py tests/test_qp_active_set.py tests/test_cholesky_warp.py"
       case $job in gpu_tests_qp) sel="-m gpu" ;; gpu_tests_warp) sel=""; files="$files tests/test_warp_split.py" ;; esac
       run $job env JAX_PLATFORMS=cuda,cpu python3 -m pytest -q -p no:cacheprovider -o addopts="" $sel $files ;;
     profile_tick_cbuf|bench46_cbuf)  # issue 46 (s57): profile_tick / bench46 with XLA's command buffers taking while

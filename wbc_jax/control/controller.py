@@ -66,6 +66,9 @@ class ControllerConfig:
         ``"warp_active_set"`` (the dual active-set method as one Warp kernel: the exact solution, no warm start) or
         ``"eiquadprog"`` (the same method by eiquadprog in C++, CPU programs, :mod:`wbc_jax.control.qp_eiquadprog`).
         The Warp engines need warp-lang; every engine but ``"jax"`` takes qp_unrolled_steps 0.
+      mass_solve_engine: who factorises the mass matrix and solves with it in the torque law,
+        :data:`wbc_jax.control.torques.MASS_SOLVE_ENGINES`: ``"jax"`` (default) or ``"warp"`` (one Warp tile kernel,
+        a block per environment, :mod:`wbc_jax.control.cholesky_warp`; needs warp-lang; derivatives by JAX's solve).
       torque_weight_soft: |tau|^2 against |A f - w|^2 in the soft momentum QP.
       angular_weight_soft: the angular rows of |A f - w|^2 against the linear ones in the soft
         momentum QP (1: WBC; < 1: the CoM first where a push asks more than the feet can give).
@@ -103,6 +106,7 @@ class ControllerConfig:
     qp_tol: float | None = None
     qp_unrolled_steps: int = 0
     qp_engine: str = "jax"
+    mass_solve_engine: str = "jax"
     torque_weight_soft: float = 1e-4
     angular_weight_soft: float = 1.0
     normal_force_weight: float = 1e3
@@ -173,6 +177,11 @@ class ControllerConfig:
                 f"controller setting qp_engine {self.qp_engine!r} takes qp_unrolled_steps 0 ("
                 f"{'the Warp kernel' if self.qp_engine in qp.WARP_ENGINES else 'eiquadprog'} has no while loop to "
                 f"unroll), got {steps!r}"
+            )
+        if self.mass_solve_engine not in torques.MASS_SOLVE_ENGINES:
+            raise ValueError(
+                f"unknown controller setting mass_solve_engine {self.mass_solve_engine!r}; "
+                f"valid: {list(torques.MASS_SOLVE_ENGINES)}"
             )
         if self.qp_engine in qp.ACTIVE_SET_ENGINES and self.qp_warm_start:
             raise ValueError(
@@ -378,6 +387,7 @@ def make_controller(
                 kp_postural_reg=state.kp_postural_reg,
                 compensate_passive=config.compensate_passive,
                 freeze_projector=config.freeze_postural_projector,
+                mass_solve_engine=config.mass_solve_engine,
             )
 
         # Force task: the contact wrenches.

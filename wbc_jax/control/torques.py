@@ -26,11 +26,14 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from wbc_jax.core.math import batch_any, cho_solve_spd, damped_pinv
+from wbc_jax.core.math import batch_any, cho_solve_spd, cholesky_solve, damped_pinv
 from wbc_jax.core.types import Array, pytree_dataclass
 from wbc_jax.robot.dynamics import DynamicsTerms
 
 POSTURAL_VARIANTS = ("stable", "seed")
+MASS_SOLVE_ENGINES = ("jax", "warp")
+"""Who factorises M and solves with it (:func:`torque_terms`): JAX (:func:`wbc_jax.core.math.cholesky_solve`) or one
+Warp tile kernel per batch (:mod:`wbc_jax.control.cholesky_warp`; needs warp-lang)."""
 
 
 @pytree_dataclass
@@ -231,19 +234,28 @@ def postural_torque(
     raise ValueError(f"unknown postural variant {variant!r}; valid: {list(POSTURAL_VARIANTS)}")
 
 
-def _mass_solve(t: DynamicsTerms, J_c: Array, compensate_passive: bool, stable: bool):
+def _mass_solve(t: DynamicsTerms, J_c: Array, compensate_passive: bool, stable: bool, engine: str = "jax"):
     """(L, h, Minv): M = L L^T, the bias h, M^-1 (J_c^T, h[, the joint columns of I]).
 
     One Cholesky factorisation of M and one solve with stacked right-hand sides serve the tick:
     M^-1 (J_c^T, h) and, for the projector (``stable``), M^-1's joint columns, whose joint block is
-    Mbar^-1 (the base-eliminated inertia Mbar = M_s - M_sb M_b^-1 M_bs = L_s L_s^T)."""
+    Mbar^-1 (the base-eliminated inertia Mbar = M_s - M_sb M_b^-1 M_bs = L_s L_s^T). ``engine``:
+    :data:`MASS_SOLVE_ENGINES`."""
     n, M = t.s.shape[0], t.M
     h = t.h - t.tau_passive if compensate_passive else t.h
-    L = jnp.linalg.cholesky(M)
     columns = [J_c.T, h[:, None]]
     if stable:
         columns.append(jnp.eye(n + 6, n, -6, dtype=M.dtype))
-    return L, h, jax.scipy.linalg.cho_solve((L, True), jnp.concatenate(columns, axis=1))
+    B = jnp.concatenate(columns, axis=1)
+    if engine == "warp":
+        from wbc_jax.control import cholesky_warp  # Warp only where asked for
+
+        L, Minv = cholesky_warp.cholesky_solve_warp(M, B)
+    elif engine == "jax":
+        L, Minv = cholesky_solve(M, B)
+    else:
+        raise ValueError(f"unknown mass_solve_engine {engine!r}; valid: {list(MASS_SOLVE_ENGINES)}")
+    return L, h, Minv
 
 
 def torque_terms(
@@ -260,6 +272,7 @@ def torque_terms(
     kp_postural_reg: float = 0.1,
     compensate_passive: bool = True,
     freeze_projector: bool = False,
+    mass_solve_engine: str = "jax",
 ) -> TorqueTerms:
     """Build the affine torque law at one state.
 
@@ -275,6 +288,7 @@ def torque_terms(
       kp_postural_reg: the 0.1 I added to K_P (WBC ``Reg.KP_postural``).
       compensate_passive: include the model's joint damping in the bias h.
       freeze_projector: hold the postural projector constant in derivatives (:func:`postural_torque`).
+      mass_solve_engine: who factorises M and solves with it, :data:`MASS_SOLVE_ENGINES`.
 
     Returns:
       :class:`TorqueTerms`.
@@ -282,7 +296,7 @@ def torque_terms(
     n, D = t.s.shape[0], J_c.shape[0]
     M = t.M
     stable = postural == "stable"
-    L, h, Minv = _mass_solve(t, J_c, compensate_passive, stable)
+    L, h, Minv = _mass_solve(t, J_c, compensate_passive, stable, mass_solve_engine)
     Minv_JcT, Minv_h = Minv[:, :D], Minv[:, D]  # (nv, D), (nv,)
     Lambda = Minv_JcT.T[:, 6:]  # M symmetric
     Lambda_pinv = damped_pinv(Lambda, pinv_damping)

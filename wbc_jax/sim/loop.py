@@ -108,6 +108,11 @@ class ClosedLoop:
                 f"controller setting qp_engine {engine!r} (the force QP as one Warp kernel) needs warp-lang: "
                 "pip install 'wbc_jax[cuda]'; valid here: ['jax']"
             )
+        if controller.config.mass_solve_engine == "warp" and not physics.has_warp():
+            raise ValueError(
+                "controller setting mass_solve_engine 'warp' (the torque law's mass-matrix solve as one Warp kernel) "
+                "needs warp-lang: pip install 'wbc_jax[cuda]'; valid here: ['jax']"
+            )
         if engine == "eiquadprog" and (problem := qp_eiquadprog.available()) is not None:
             raise ValueError(f"controller setting qp_engine 'eiquadprog': {problem}; valid here: ['jax']")
         if cfg.physics.warp_terms == "step1" and (self.backend != "warp" or cfg.perturb_plant):

@@ -1,0 +1,102 @@
+"""The torque law's mass-matrix solve as one Warp tile kernel (``ControllerConfig.mass_solve_engine = "warp"``):
+``M = L L^T`` and ``X = M^-1 B`` for each environment's M (nv x nv) and right-hand sides B (nv x c), one block of
+threads per environment, the matrices in the block's shared memory (``warp.tile_cholesky`` and
+``warp.tile_cholesky_solve``, MathDx on CUDA).
+
+Why: under vmap XLA runs the JAX solve (:func:`wbc_jax.core.math.cholesky_solve`) as batched library calls on
+small matrices (cuSOLVER ``potrf``, cuBLAS ``trsm``), each a full pass over the batch's matrices in the GPU's memory;
+on the H100 the Cholesky and its two triangular solves were 0.091 µs of the torque law's 0.22 per environment and
+tick (BENCHMARKS.md, "The torque law's 0.223 by library call"). Here each environment's M and B are read once and
+L and X written once.
+
+Derivatives: the kernel is not differentiated; :func:`cholesky_solve_warp`'s JVP is the JAX solve's, at the same
+inputs (so a differentiated program also runs the JAX solve). Needs ``warp-lang`` (``pip install wbc_jax[cuda]``);
+runs on CUDA and on the CPU (Warp's CPU backend, one thread per block).
+"""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.custom_batching import custom_vmap
+
+from wbc_jax.control.qp_warp_kernel import warp_module
+from wbc_jax.core.math import cholesky_solve
+
+Array = jax.Array
+
+BLOCK_THREADS_CUDA = 64
+"""Threads of each environment's block on CUDA: the tile routines' cooperative width."""
+
+
+@functools.cache
+def _kernel(r: int, c: int, float64: bool, block: int):
+    """The tile kernel for K (r, r) and B (r, c), one block of ``block`` threads per problem."""
+    wp = warp_module()
+    real = wp.float64 if float64 else wp.float32
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def cholesky_solve(
+        K: wp.array3d(dtype=real),
+        B: wp.array3d(dtype=real),
+        L_out: wp.array3d(dtype=real),
+        X_out: wp.array3d(dtype=real),
+    ):
+        p, _lane = wp.tid()
+        L = wp.tile_cholesky(wp.tile_load(K[p], shape=(r, r)))
+        X = wp.tile_cholesky_solve(L, wp.tile_load(B[p], shape=(r, c)))
+        wp.tile_store(L_out[p], L)
+        wp.tile_store(X_out[p], X)
+
+    return wp.jax_kernel(cholesky_solve, num_outputs=2, block_dim=block)
+
+
+def _block_threads() -> int:
+    return BLOCK_THREADS_CUDA if jax.default_backend() == "gpu" else 1
+
+
+def _flat(K, B):
+    """The kernel over problems with any leading batch shape (flattened into one launch)."""
+    lead = K.shape[:-2]
+    r, c = B.shape[-2], B.shape[-1]
+    size = int(np.prod(lead)) if lead else 1
+    block = _block_threads()
+    f = _kernel(r, c, K.dtype == jnp.float64, block)
+    L, X = f(
+        K.reshape(size, r, r),
+        B.reshape(size, r, c),
+        launch_dims=(size, block),
+        output_dims={"L_out": (size, r, r), "X_out": (size, r, c)},
+    )
+    return L.reshape(lead + (r, r)), X.reshape(lead + (r, c))
+
+
+@custom_vmap
+def _batched(K, B):
+    return _flat(K, B)
+
+
+@_batched.def_vmap
+def _(axis_size, in_batched, K, B):
+    args = [a if batched else jnp.broadcast_to(a, (axis_size,) + a.shape) for a, batched in zip((K, B), in_batched)]
+    return _batched(*args), (True, True)
+
+
+@jax.custom_jvp
+def cholesky_solve_warp(K: Array, B: Array) -> tuple[Array, Array]:
+    """(L, K^-1 B) as :func:`wbc_jax.core.math.cholesky_solve`, by the Warp tile kernel: K (r, r) symmetric positive definite,
+    B (r, c), float32 or float64 (both alike); under ``vmap`` one launch over the batch. Its derivatives are the JAX
+    solve's (module docstring)."""
+    if K.dtype != B.dtype or K.shape[-1] != K.shape[-2] or B.shape[-2] != K.shape[-1]:
+        raise ValueError(
+            f"cholesky_solve_warp: K (r, r) and B (r, c) of one dtype, got {K.shape} {K.dtype}, {B.shape} {B.dtype}"
+        )
+    return _batched(K, B)
+
+
+@cholesky_solve_warp.defjvp
+def _cholesky_solve_warp_jvp(primals, tangents):
+    out = cholesky_solve_warp(*primals)
+    _, tangent_out = jax.jvp(cholesky_solve, primals, tangents)
+    return out, tangent_out
