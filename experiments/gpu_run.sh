@@ -235,10 +235,12 @@ for job in "$@"; do
     mass_solve_cost)  # issue 46 (s61): the torque law's M solve by JAX (batched potrf + trsm) and by one Warp tile kernel
             # (wbc_jax/control/cholesky_warp.py), 65,536 environments, µs per environment and their agreement
       run $job python3 benchmarks/mass_solve_cost.py --batch 65536 --repeats 5 --out "$OUT/$job/mass_solve_cost.json" ;;
-    bench46_msw|bench46_was_split_msw)  # issue 46 (s61): bench46 with the M solve as one Warp tile kernel
-            # (--mass-solve-engine warp); _was_split: with the active-set QP and the terms off step1 too. Run beside
-            # bench46 / bench46_was_split on the same machine
+    bench46_msw|bench46_was_split_msw|profile_tick_msw)  # issue 46 (s61): bench46 with the M solve as one Warp tile
+            # kernel (--mass-solve-engine warp); _was_split: with the active-set QP and the terms off step1 too. Run
+            # beside bench46 / bench46_was_split on the same machine. profile_tick_msw: the tick's stages and trace with
+            # the tile kernel and the active-set QP (against profile_tick_was)
       case $job in
+        profile_tick_msw) profile46 $job --qp-engine warp_active_set --mass-solve-engine warp ;;
         bench46_msw) bench46_run $job --mass-solve-engine warp ;;
         bench46_was_split_msw) bench46_run $job --warp-terms step1 --qp-engine warp_active_set --mass-solve-engine warp ;;
       esac ;;
