@@ -4,10 +4,9 @@ threads per environment, the matrices in the block's shared memory (``warp.tile_
 ``warp.tile_cholesky_solve``, MathDx on CUDA).
 
 Why: under vmap XLA runs the JAX solve (:func:`wbc_jax.core.math.cholesky_solve`) as batched library calls on
-small matrices (cuSOLVER ``potrf``, cuBLAS ``trsm``), each a full pass over the batch's matrices in the GPU's memory;
-on the H100 the Cholesky and its two triangular solves were 0.091 µs of the torque law's 0.22 per environment and
-tick (BENCHMARKS.md, "The torque law's 0.223 by library call"). Here each environment's M and B are read once and
-L and X written once.
+small matrices (cuSOLVER ``potrf``, cuBLAS ``trsm``), each a full pass over the batch's matrices in the GPU's memory:
+on the H100 the Cholesky and its two triangular solves were the torque law's largest part (BENCHMARKS.md, "The torque
+law's 0.223 by library call"). Here each environment's M and B are read once and L and X written once.
 
 Derivatives: the kernel is not differentiated; :func:`cholesky_solve_warp`'s JVP is the JAX solve's, at the same
 inputs (so a differentiated program also runs the JAX solve). Needs ``warp-lang`` (``pip install wbc_jax[cuda]``);

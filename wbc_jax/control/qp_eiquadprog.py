@@ -3,9 +3,9 @@ solver of TSID's controller; pip ``eiquadprog``, with Eigen's headers from ``cme
 XLA program through XLA's FFI (``qp_eiquadprog.cc``, built at first use by :mod:`wbc_jax.core.native_build`), one
 problem after another of a batch.
 
-Why: on the CPU the interior point in XLA costs some 45-56 µs per QP (6 Newton steps of about 70 small kernels each,
-BENCHMARKS.md), while the whole problem is 6 unknowns and 38 rows of which at most 6 are active; an active-set solve in
-C++ takes a few µs. The method is the Warp kernel's (:mod:`wbc_jax.control.qp_active_set_kernel`, the GPU's engine
+Why: on the CPU the interior point in XLA runs some 6 Newton steps of about 70 small kernels each (BENCHMARKS.md), while
+the whole problem is 6 unknowns and 38 rows of which at most 6 are active: an active-set solve in C++ is a few small
+dense updates. The method is the Warp kernel's (:mod:`wbc_jax.control.qp_active_set_kernel`, the GPU's engine
 ``"warp_active_set"``), and the outputs are the same :class:`wbc_jax.control.qp_ipm.IPMResult`.
 
     available() -> None, or why the engine cannot run here (no eiquadprog, no Eigen headers, no C++ compiler)

@@ -2,8 +2,8 @@
 factor, the bias forces) and ``step2`` (actuation, the constraint solve, integration), as JAX calls on MJX-Warp data
 (issue 46).
 
-Why: on a GPU the controller's dynamics terms computed in MJX-JAX cost about 0.21 µs per environment and tick
-(BENCHMARKS.md), while the tick's first physics step computes the same quantities at the same state a moment later.
+Why: on a GPU the controller's dynamics terms computed in MJX-JAX are a large part of its tick (BENCHMARKS.md), while
+the tick's first physics step computes the same quantities at the same state a moment later.
 Split there, the controller reads them off ``step1``'s data (:func:`wbc_jax.robot.dynamics.terms_from_split`), and
 ``step2`` finishes the step with its torques: C MuJoCo's ``mj_step1``/``mj_step2`` contract, which the C MuJoCo engine
 already uses (wbc_jax/sim/native.py). MJX wraps only ``step`` and ``forward``; each phase here is MJX's own ``step``
