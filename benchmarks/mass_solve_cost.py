@@ -21,9 +21,9 @@ import jax.numpy as jnp
 import numpy as np
 
 # from this script's folder (Python puts it first on sys.path): profile_tick's timing (best of --repeats, compiled
-# first) and warp_terms_cost's states
+# first) and warp_terms_cost's flags and states
 from profile_tick import timed
-from warp_terms_cost import states
+from warp_terms_cost import batch_parser, checked, states
 
 from wbc_jax.control.torques import MASS_SOLVE_ENGINES
 from wbc_jax.core import io, provenance
@@ -35,16 +35,7 @@ from wbc_jax.sim import physics
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--batch", type=int, default=1024)
-    p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--robot", default="icub")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default=None, help="JSON file of the result (written atomically)")
-    a = p.parse_args(argv)
-    if a.batch < 1 or a.repeats < 1:
-        p.error(f"--batch and --repeats must be >= 1, got {a.batch} and {a.repeats}")
-    return a
+    return checked(batch_parser(__doc__), argv)
 
 
 def main(argv=None) -> dict:

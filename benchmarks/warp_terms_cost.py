@@ -36,18 +36,30 @@ from wbc_jax.sim import physics
 ENGINES = ("jax_terms", "warp_forward", "warp_step")
 
 
-def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def batch_parser(doc: str) -> argparse.ArgumentParser:
+    """The flags of a vmapped cost script (this one, mass_solve_cost.py): --batch, --repeats, --robot, --seed, --out;
+    check them with :func:`checked`."""
+    p = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--batch", type=int, default=1024)
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--robot", default="icub")
-    p.add_argument("--engines", nargs="+", default=list(ENGINES), choices=ENGINES)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="JSON file of the result (written atomically)")
+    return p
+
+
+def checked(p: argparse.ArgumentParser, argv) -> argparse.Namespace:
+    """The parsed flags of :func:`batch_parser`'s parser, refused as argparse does where --batch or --repeats < 1."""
     a = p.parse_args(argv)
     if a.batch < 1 or a.repeats < 1:
         p.error(f"--batch and --repeats must be >= 1, got {a.batch} and {a.repeats}")
     return a
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = batch_parser(__doc__)
+    p.add_argument("--engines", nargs="+", default=list(ENGINES), choices=ENGINES)
+    return checked(p, argv)
 
 
 def states(robot, batch: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
