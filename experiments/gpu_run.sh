@@ -232,6 +232,14 @@ for job in "$@"; do
         profile_tick_was) profile46 $job --qp-engine warp_active_set ;;
         bench46_was) bench46_run $job --qp-engine warp_active_set ;;
       esac ;;
+    loop_trace46)  # issue 46 (s61): the Warp closed loop at 65,536 envs traced, kernels summed per JAX scope per tick
+            # (benchmarks/loop_trace.py): the active-set QP with the terms off step1 and without, so the split's own
+            # cost shows (it saved 0.049 of the terms' 0.21 µs per environment and tick); the traces stay on the machine
+      for v in was_split was; do
+        f="--qp-engine warp_active_set"; [ $v = was_split ] && f="$f --warp-terms step1"
+        run loop_trace46_$v python3 benchmarks/loop_trace.py --batch 65536 --backend warp $f --out /tmp/loop_trace/$v
+        mkdir -p "$OUT/loop_trace46"; cp /tmp/loop_trace/$v/loop_trace.json "$OUT/loop_trace46/$v.json"
+      done ;;
     mass_solve_cost)  # issue 46 (s61): the torque law's M solve by JAX (batched potrf + trsm) and by one Warp tile kernel
             # (wbc_jax/control/cholesky_warp.py), 65,536 environments, µs per environment and their agreement
       run $job python3 benchmarks/mass_solve_cost.py --batch 65536 --repeats 5 --out "$OUT/$job/mass_solve_cost.json" ;;
