@@ -10,7 +10,9 @@ law's 0.223 by library call"). Here each environment's M and B are read once and
 
 Derivatives: the kernel is not differentiated; :func:`cholesky_solve_warp`'s JVP is the JAX solve's, at the same
 inputs (so a differentiated program also runs the JAX solve). Needs ``warp-lang`` (``pip install wbc_jax[cuda]``);
-runs on CUDA and on the CPU (Warp's CPU backend, one thread per block).
+runs on CUDA and on the CPU (Warp's CPU backend, one thread per block). The block's width follows JAX's default
+backend when the program is traced: a program placed on the CPU of a GPU machine would run each block's routine once
+per thread (the same result, at that many times the work), so the engine is for programs on the default device.
 """
 
 import functools
