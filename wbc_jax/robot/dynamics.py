@@ -257,28 +257,52 @@ def terms(m: mjx.Model, d: mjx.Data, idx: RobotIndex, frames: Frames | None = No
     dk = mjx.com_vel(m, dk)
     dk = mjx.passive(m, dk)
     dk = mjx.rne(m, dk)
-    M = _to_mixed_rows(idx, _to_mixed_cols(idx, mjx.full_m(m, dk), R), R)
+    return _assemble(
+        idx,
+        qpos,
+        nu,
+        R,
+        dk.xpos,
+        mjx.full_m(m, dk),
+        dk.qfrc_bias,
+        dk.qfrc_passive,
+        W_p_frames,
+        W_R_frames,
+        J_frames,
+        dJ_frames @ nu,
+        dk.subtree_com[idx.base_body],
+        A_G,
+        dA_G[:3] @ nu / idx.mass,
+    )
+
+
+def _assemble(
+    idx, qpos, nu, R, xpos, M, bias, passive, W_p_frames, W_R_frames, J_frames, Jdot_nu_frames, com, A_G, Jdot_nu_CoM
+) -> DynamicsTerms:
+    """:class:`DynamicsTerms` of every engine's terms (:func:`terms`, :func:`terms_from_engine`,
+    :func:`terms_from_split`): M, the bias and the passive forces in MuJoCo's representation (made mixed here with the
+    base rotation R); the frame Jacobians, their Jdot nu, A_G and the CoM's Jdot nu already mixed."""
     L_G = A_G @ nu
     return DynamicsTerms(
         nu=nu,
         s=qpos[idx.qpos_joints],
         s_dot=nu[6:],
-        W_p_B=dk.xpos[idx.base_body],
+        W_p_B=xpos[idx.base_body],
         W_R_B=R,
-        M=M,
-        h=_to_mixed_rows(idx, dk.qfrc_bias, R),
-        tau_passive=_to_mixed_rows(idx, dk.qfrc_passive, R),
+        M=_to_mixed_rows(idx, _to_mixed_cols(idx, M, R), R),
+        h=_to_mixed_rows(idx, bias, R),
+        tau_passive=_to_mixed_rows(idx, passive, R),
         W_p_frames=W_p_frames,
         W_R_frames=W_R_frames,
         J_frames=J_frames,
-        Jdot_nu_frames=dJ_frames @ nu,
-        W_p_CoM=dk.subtree_com[idx.base_body],
+        Jdot_nu_frames=Jdot_nu_frames,
+        W_p_CoM=com,
         W_v_CoM=L_G[:3] / idx.mass,
         J_CoM=A_G[:3] / idx.mass,
-        Jdot_nu_CoM=dA_G[:3] @ nu / idx.mass,
+        Jdot_nu_CoM=Jdot_nu_CoM,
         A_G=A_G,
         L_G=L_G,
-        xpos=dk.xpos,
+        xpos=xpos,
     )
 
 
@@ -293,28 +317,22 @@ def terms_from_engine(idx: RobotIndex, qpos: Array, qvel: Array, e: EngineTerms,
     nu = mixed_velocity(idx, qpos, qvel)
     R = e.xmat[idx.base_body]
     W_p, W_R = _frame_poses(e.xpos, e.xmat, frames)
-    A_G = _to_mixed_cols(idx, e.A_G, R)
-    L_G = A_G @ nu
-    return DynamicsTerms(
-        nu=nu,
-        s=qpos[idx.qpos_joints],
-        s_dot=nu[6:],
-        W_p_B=e.xpos[idx.base_body],
-        W_R_B=R,
-        M=_to_mixed_rows(idx, _to_mixed_cols(idx, e.M, R), R),
-        h=_to_mixed_rows(idx, e.bias, R),
-        tau_passive=_to_mixed_rows(idx, e.passive, R),
-        W_p_frames=W_p,
-        W_R_frames=W_R,
-        J_frames=_to_mixed_cols(idx, e.J, R),
-        Jdot_nu_frames=e.Jdot_qvel,
-        W_p_CoM=e.com,
-        W_v_CoM=L_G[:3] / idx.mass,
-        J_CoM=A_G[:3] / idx.mass,
-        Jdot_nu_CoM=e.com_Jdot_qvel / idx.mass,
-        A_G=A_G,
-        L_G=L_G,
-        xpos=e.xpos,
+    return _assemble(
+        idx,
+        qpos,
+        nu,
+        R,
+        e.xpos,
+        e.M,
+        e.bias,
+        e.passive,
+        W_p,
+        W_R,
+        _to_mixed_cols(idx, e.J, R),
+        e.Jdot_qvel,
+        e.com,
+        _to_mixed_cols(idx, e.A_G, R),
+        e.com_Jdot_qvel / idx.mass,
     )
 
 
@@ -351,30 +369,24 @@ def terms_from_split(idx: RobotIndex, mj_model, d, frames: Frames) -> DynamicsTe
     mass_b = jnp.asarray(mj_model.body_mass[all_bodies], dtype)
     inertia_b = jnp.asarray(mj_model.body_inertia[all_bodies], dtype)
     A_mj = _centroidal_matrix(mass_b, inertia_b, d.ximat[all_bodies], d.xipos[all_bodies], c, jp_b, jr_b)
-    A_G = _to_mixed_cols(idx, A_mj, R)
     # The mass matrix: MuJoCo's sparse lower triangle (rows of M_rownnz entries at columns M_colind), made dense.
     rows = np.repeat(np.arange(idx.nv), mj_model.M_rownnz)
     lower = jnp.zeros((idx.nv, idx.nv), dtype).at[rows, np.asarray(mj_model.M_colind)].set(d._impl.M)
     M = lower + lower.T - jnp.diag(jnp.diagonal(lower))
-    L_G = A_G @ nu
-    return DynamicsTerms(
-        nu=nu,
-        s=qpos[idx.qpos_joints],
-        s_dot=nu[6:],
-        W_p_B=d.xpos[idx.base_body],
-        W_R_B=R,
-        M=_to_mixed_rows(idx, _to_mixed_cols(idx, M, R), R),
-        h=_to_mixed_rows(idx, d.qfrc_bias, R),
-        tau_passive=_to_mixed_rows(idx, d.qfrc_passive, R),
-        W_p_frames=W_p,
-        W_R_frames=W_R,
-        J_frames=_to_mixed_cols(idx, jnp.concatenate([jp, jr], axis=1), R),
-        Jdot_nu_frames=jdot,
-        W_p_CoM=c,
-        W_v_CoM=L_G[:3] / idx.mass,
-        J_CoM=A_G[:3] / idx.mass,
-        Jdot_nu_CoM=jnp.einsum("b,bj->j", mass_b, jdot_b[:, :3]) / idx.mass,
-        A_G=A_G,
-        L_G=L_G,
-        xpos=d.xpos,
+    return _assemble(
+        idx,
+        qpos,
+        nu,
+        R,
+        d.xpos,
+        M,
+        d.qfrc_bias,
+        d.qfrc_passive,
+        W_p,
+        W_R,
+        _to_mixed_cols(idx, jnp.concatenate([jp, jr], axis=1), R),
+        jdot,
+        c,
+        _to_mixed_cols(idx, A_mj, R),
+        jnp.einsum("b,bj->j", mass_b, jdot_b[:, :3]) / idx.mass,
     )
