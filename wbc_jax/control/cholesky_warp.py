@@ -8,8 +8,8 @@ small matrices (cuSOLVER ``potrf``, cuBLAS ``trsm``), each a full pass over the 
 on the H100 the Cholesky and its two triangular solves were the torque law's largest part (BENCHMARKS.md, "The torque
 law's 0.223 by library call"). Here each environment's M and B are read once and L and X written once.
 
-Derivatives: the kernel is not differentiated; :func:`cholesky_solve_warp`'s JVP is the JAX solve's, at the same
-inputs (so a differentiated program also runs the JAX solve). Needs ``warp-lang`` (``pip install wbc_jax[cuda]``);
+Derivatives: the kernel is not differentiated; :func:`cholesky_solve_warp`'s JVP is the JAX solve's, value and
+tangent (so a differentiated program runs the JAX solve in place of the kernel). Needs ``warp-lang`` (``pip install wbc_jax[cuda]``);
 runs on CUDA and on the CPU (Warp's CPU backend, one thread per block). The block's width follows JAX's default
 backend when the program is traced: a program placed on the CPU of a GPU machine would run each block's routine once
 per thread (the same result, at that many times the work), so the engine is for programs on the default device.
@@ -98,6 +98,5 @@ def cholesky_solve_warp(K: Array, B: Array) -> tuple[Array, Array]:
 
 @cholesky_solve_warp.defjvp
 def _cholesky_solve_warp_jvp(primals, tangents):
-    out = cholesky_solve_warp(*primals)
-    _, tangent_out = jax.jvp(cholesky_solve, primals, tangents)
-    return out, tangent_out
+    # The JAX solve's value and tangent: a differentiated program runs it in place of the kernel, not beside it.
+    return jax.jvp(cholesky_solve, primals, tangents)
