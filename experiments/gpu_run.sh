@@ -234,9 +234,11 @@ for job in "$@"; do
       esac ;;
     loop_trace46)  # issue 46 (s61): the Warp closed loop at 65,536 envs traced, kernels summed per JAX scope per tick
             # (benchmarks/loop_trace.py): the active-set QP with the terms off step1 and without, so the split's own
-            # cost shows (it saved 0.049 of the terms' 0.21 µs per environment and tick); the traces stay on the machine
-      for v in was_split was; do
-        f="--qp-engine warp_active_set"; [ $v = was_split ] && f="$f --warp-terms step1"
+            # cost shows (it saved 0.049 of the terms' 0.21 µs per environment and tick); the traces stay on the machine.
+            # LOOP_TRACE_VARIANTS picks them (default "was_split was"; was_split_msw: with the Warp M solve too, s62)
+      for v in ${LOOP_TRACE_VARIANTS:-was_split was}; do
+        f="--qp-engine warp_active_set"
+        case $v in was_split) f="$f --warp-terms step1" ;; was_split_msw) f="$f --warp-terms step1 --mass-solve-engine warp" ;; esac
         run loop_trace46_$v python3 benchmarks/loop_trace.py --batch 65536 --backend warp $f --out /tmp/loop_trace/$v
         mkdir -p "$OUT/loop_trace46"; cp /tmp/loop_trace/$v/loop_trace.json "$OUT/loop_trace46/$v.json"
       done ;;

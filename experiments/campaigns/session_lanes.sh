@@ -42,8 +42,13 @@ case "$ACTION" in
     G="OUT=$LANES/scaling/out"
     if [ "$PLAN" = one ]; then
       W=${ONE_WARP_JOBS-}  # jobs that need Warp's wheels (e.g. "bench46_warm bench46"): after /tmp/warp_ready
+      # ONE_PAR_JOBS (untimed on the GPU, e.g. "was_sweep gpu_tests_warp") after those, on cores 2.. while ONE_CPU_JOBS
+      # (e.g. cpu_peer: core 1, once the call carrying TSID's last wheels touched /tmp/tsid_ready) run beside them
+      P=${ONE_PAR_JOBS-}; C=${ONE_CPU_JOBS-}; after=""
+      [ -n "$C" ] && after="{ $(wait_for /tmp/tsid_ready) OUT=$LANES/cpu/out bash experiments/gpu_run.sh $C; } &"
+      [ -n "$P" ] && after="$after OUT=$LANES/par/out taskset -c 2-$(($(nproc) - 1)) bash experiments/gpu_run.sh $P;"
       bg scaling "$G bash experiments/gpu_run.sh ${ONE_JOBS-profile_tick profile_tick_warm} \
-        ${W:+; $(wait_for /tmp/warp_ready) $G bash experiments/gpu_run.sh $W}"
+        ${W:+; $(wait_for /tmp/warp_ready) $G bash experiments/gpu_run.sh $W}; $after wait"
       sleep 2; echo "lanes started ($(nproc) cores, plan one): $(ls "$LANES")"; exit 0
     fi
     if [ "$PLAN" = two ]; then
