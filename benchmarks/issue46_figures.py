@@ -24,25 +24,38 @@ from wbc_jax.core import io, provenance
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 GPU_TARGET_STEPS = 6_000_000
 GPU_TARGET_SHARE = 0.25
-GPU_RUNS = ("bench46_was_split", "bench46_was", "bench46_split", "bench46")
-GPU_DIR = "results/gpu_h100/s61/machine_a"
+GPU_RUNS = {  # folder: the runs of one machine
+    "results/gpu_h100/s61/machine_a": ("bench46_was_split", "bench46_was", "bench46_split", "bench46"),
+    "results/gpu_h100/s62/machine_a": (
+        "bench46_was_split_msw",
+        "bench46_was_split",
+        "bench46_was_split_msw_r2",
+        "bench46_was_split_r2",
+    ),
+}
 CPU_RUNS = {  # folder, our engines, TSID beside them (tsid_timing_<round>.json) or not
     "AMD EPYC (2 cores, the CI machine's kind), core 1": ("results/cpu_targets/eq61", ("jax", "eiquadprog"), True),
     "Intel Xeon (a GPU host's 16 cores), core 1": ("results/cpu_targets/xeon_s61", ("jax", "eiquadprog"), False),
+    "Intel Xeon (a GPU host's 16 cores), core 1, beside TSID": (
+        "results/cpu_targets/xeon_s62",
+        ("jax", "eiquadprog"),
+        True,
+    ),
 }
 
 
 def gpu_rows(inputs: dict) -> list[dict]:
     rows = []
-    for run in GPU_RUNS:
-        path = ROOT / GPU_DIR / run / "benchmarks.json"
-        inputs[f"gpu/{run}"] = path
+    for folder, run in ((folder, run) for folder, runs in GPU_RUNS.items() for run in runs):
+        path = ROOT / folder / run / "benchmarks.json"
+        inputs[f"{folder}/{run}"] = path
         for r in json.loads(path.read_text()):
             share = 1.0 - r["closed_loop_steps_per_s"] / r["physics_only_steps_per_s"]
             rows.append(
                 {
                     "setting": {k: r.get(k, "jax") for k in ("qp_engine", "warp_terms", "mass_solve_engine")},
                     "device": r["device"],
+                    "machine": folder,
                     "date": r["date"],
                     "batch": r["batch"],
                     "closed_loop_steps_per_s": round(r["closed_loop_steps_per_s"]),

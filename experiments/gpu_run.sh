@@ -239,9 +239,16 @@ for job in "$@"; do
       for v in ${LOOP_TRACE_VARIANTS:-was_split was}; do
         f="--qp-engine warp_active_set"
         case $v in was_split) f="$f --warp-terms step1" ;; was_split_msw) f="$f --warp-terms step1 --mass-solve-engine warp" ;; esac
-        run loop_trace46_$v python3 benchmarks/loop_trace.py --batch 65536 --backend warp $f --out /tmp/loop_trace/$v
+        run loop_trace46_$v python3 benchmarks/loop_trace.py --batch 65536 --backend warp $f --out /tmp/loop_trace/$v \
+          --depth ${LOOP_TRACE_DEPTH:-3}
         mkdir -p "$OUT/loop_trace46"; cp /tmp/loop_trace/$v/loop_trace.json "$OUT/loop_trace46/$v.json"
+        # LOOP_TRACE_KEEP=1 (s62): the trace itself too (trace_summary.py by_scope at any depth, off the machine)
+        [ -n "${LOOP_TRACE_KEEP:-}" ] && cp "$(ls -t /tmp/loop_trace/$v/trace/plugins/profile/*/*perfetto_trace.json.gz | head -1)" \
+          "$OUT/loop_trace46/$v.trace.json.gz"
       done ;;
+    projector_cost)  # issue 46 (s62): the stable postural projector's parts (Householder QR or Gram-Schmidt basis, the
+            # small and the whole eigh, the certified Ritz projector), 65,536 environments (benchmarks/projector_cost.py)
+      run $job python3 benchmarks/projector_cost.py --batch 65536 --repeats 5 --out "$OUT/$job/projector_cost.json" ;;
     mass_solve_cost)  # issue 46 (s61): the torque law's M solve by JAX (batched potrf + trsm) and by one Warp tile kernel
             # (wbc_jax/control/cholesky_warp.py), 65,536 environments, µs per environment and their agreement
       run $job python3 benchmarks/mass_solve_cost.py --batch 65536 --repeats 5 --out "$OUT/$job/mass_solve_cost.json" ;;

@@ -107,7 +107,7 @@ def test_projector_from_ritz_vectors_equals_the_whole_eigenproblem(state_terms, 
     Mbar_inv = jnp.linalg.inv(Mbar)
     X_inv = Mbar_inv @ (damping * jnp.eye(23) + Lambda.T @ Lambda)
     cut = (damping / 1e-5) ** 2
-    ritz, certified = torques._ritz_projector(X_inv @ X_inv.T, cut, Mbar_inv @ Lambda.T)
+    ritz, certified = torques.ritz_projector(X_inv @ X_inv.T, cut, Mbar_inv @ Lambda.T)
     assert bool(certified)
     whole = torques.spectral_projector(X_inv @ X_inv.T, cut)
     assert 0 < int(jnp.round(jnp.trace(whole))) <= 12
@@ -129,7 +129,7 @@ def test_projector_where_ritz_vectors_fail_solves_the_whole_eigenproblem(state_t
     reference = (Vt.T * keep) @ Vt
     Mbar_inv = np.linalg.inv(Mbar)
     X_inv = Mbar_inv @ (np.eye(23) + Lambda.T @ Lambda)
-    ritz, certified = torques._ritz_projector(jnp.asarray(X_inv @ X_inv.T), 100.0, jnp.asarray(Mbar_inv @ Lambda.T))
+    ritz, certified = torques.ritz_projector(jnp.asarray(X_inv @ X_inv.T), 100.0, jnp.asarray(Mbar_inv @ Lambda.T))
     assert not bool(certified)
     assert np.abs(np.eye(23) - np.asarray(ritz) - reference).max() > 0.1
     P = torques.postural_projector(tt.Lambda, tt.Mbar, 1.0, 0.1)

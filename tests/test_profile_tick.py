@@ -60,7 +60,7 @@ def test_projector_certification_is_the_torque_laws(robot):
             t, ct.J, ct.Jdot_nu, postural="stable", kp_postural=st.gains.kp_postural, kd_postural=st.gains.kd_postural,
             s_des=t.s, pinv_damping=cfg.pinv_damping, pinv_tol=pinv_tol,
         )  # fmt: skip
-        A, threshold, _ = torques._projector_problem(tt.Lambda, tt.Mbar, cfg.pinv_damping, pinv_tol, None)
+        A, threshold, _ = torques.projector_problem(tt.Lambda, tt.Mbar, cfg.pinv_damping, pinv_tol, None)
         return certified, jnp.sum(jnp.linalg.eigvalsh(A) > threshold)
 
     D = loop.contact_set.dim

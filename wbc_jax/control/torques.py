@@ -94,11 +94,11 @@ def postural_projector(
     cut direction u (singular value of damping X^-1 above damping / tol) lies within
     sin = tol |Mbar^-1| of F's range (3e-3 for the default robot), and at most D are cut where that is below 1.
     """
-    A, threshold, start = _projector_problem(Lambda, Mbar, pinv_damping, pinv_tol, Mbar_inv)
+    A, threshold, start = projector_problem(Lambda, Mbar, pinv_damping, pinv_tol, Mbar_inv)
     return jnp.eye(Mbar.shape[0], dtype=Mbar.dtype) - spectral_projector(A, threshold, start)
 
 
-def _projector_problem(Lambda, Mbar, pinv_damping, pinv_tol, Mbar_inv):
+def projector_problem(Lambda, Mbar, pinv_damping, pinv_tol, Mbar_inv):
     """(A (n, n), threshold, start (n, D)): the eigenproblem of :func:`postural_projector`."""
     eye = jnp.eye(Mbar.shape[0], dtype=Mbar.dtype)
     Mbar_inv = cho_solve_spd(Mbar, eye) if Mbar_inv is None else Mbar_inv
@@ -121,8 +121,8 @@ def projector_certified(
     D = J_c.shape[0]
     L, _, Minv = _mass_solve(t, J_c, compensate_passive, stable=True)
     Mbar = L[6:, 6:] @ L[6:, 6:].T
-    problem = _projector_problem(Minv[:, :D].T[:, 6:], Mbar, pinv_damping, pinv_tol, Minv[6:, D + 1 :])
-    return _ritz_projector(*problem)[1]
+    problem = projector_problem(Minv[:, :D].T[:, 6:], Mbar, pinv_damping, pinv_tol, Minv[6:, D + 1 :])
+    return ritz_projector(*problem)[1]
 
 
 @jax.custom_jvp
@@ -153,7 +153,7 @@ def spectral_projector(A: Array, threshold: Array | float, start: Array | None =
     projector's derivative is defined there, and equals eigh's elsewhere."""
     if start is None:
         return _projector(*_cut_eigenvectors(A, threshold)[1:])
-    P, certified = _ritz_projector(A, threshold, start)
+    P, certified = ritz_projector(A, threshold, start)
     # batch_any: a branch under vmap too, the whole eigenproblem only in ticks where some robot needs it.
     return jax.lax.cond(batch_any(~certified), lambda: _projector(*_cut_eigenvectors(A, threshold)[1:]), lambda: P)
 
@@ -167,11 +167,12 @@ def _cut_eigenvectors(A, threshold):
     return w, V, w > threshold
 
 
-def _ritz_projector(A, threshold, start):
+def ritz_projector(A, threshold, start, basis=None):
     """The projector on A's Ritz vectors (on the span of A start) above ``threshold`` and whether
-    it is certified (:func:`spectral_projector`)."""
+    it is certified (:func:`spectral_projector`). ``basis``: B (n, D) -> orthonormal Q (n, D) spanning it
+    (None: Householder QR; benchmarks/projector_cost.py measures Gram-Schmidt against it)."""
     n = A.shape[0]
-    Q = jnp.linalg.qr(A @ start)[0]
+    Q = jnp.linalg.qr(A @ start)[0] if basis is None else basis(A @ start)
     AQ = A @ Q
     ritz, W = jnp.linalg.eigh(Q.T @ AQ)
     cut = ritz > threshold

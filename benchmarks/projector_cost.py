@@ -1,0 +1,131 @@
+"""What the torque law's postural projector costs, part by part (issue 46; wbc_jax/control/torques.py).
+
+The ``stable`` postural task's projector cuts the eigenvectors of A (n x n) above a threshold, taken first from A's
+Ritz vectors on the span of A S (S: n x D, :func:`wbc_jax.control.torques.ritz_projector`): an orthonormal basis of
+A S, a D x D ``eigh``, and the certification's products; the whole n x n ``eigh`` runs only where that is not
+certified. On the H100 the basis (a Householder QR) cost 0.048 µs per environment and the small ``eigh`` 0.020
+(BENCHMARKS.md). This times each part vmapped over ``--batch`` environments at the standing posture with random
+joint offsets and velocities (benchmarks/warp_terms_cost.py's states), µs per environment (best of ``--repeats``,
+compiled first), with the basis by Householder QR (``jnp.linalg.qr``) and by Gram-Schmidt
+(:func:`gram_schmidt`, classical Gram-Schmidt twice), and how far the two bases' projectors lie apart:
+
+    python benchmarks/projector_cost.py --batch 65536 --out results/gpu_h100/projector_cost.json
+"""
+
+import argparse
+import json
+import pathlib
+
+import jax
+import jax.numpy as jnp
+
+# from this script's folder (Python puts it first on sys.path): profile_tick's timing and warp_terms_cost's flags/states
+from profile_tick import timed
+from warp_terms_cost import batch_parser, checked, states
+
+from wbc_jax.control import torques
+from wbc_jax.core import io, provenance
+from wbc_jax.robot import contacts
+from wbc_jax.sim import scenario
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    return checked(batch_parser(__doc__), argv)
+
+
+def main(argv=None) -> dict:
+    a = parse_args(argv)
+    with jax.default_matmul_precision("highest"):  # the closed loop's (SimConfig.matmul_precision)
+        result = _measure(a)
+    result["provenance"] = provenance.record(argv=provenance.script_argv(__file__, argv))
+    print(json.dumps(result, indent=1))
+    if a.out:
+        io.atomic_write_json(pathlib.Path(a.out), result)
+    return result
+
+
+def _problems(a: argparse.Namespace):
+    """(A (B, n, n), threshold, S (B, n, D)) at the batch's states, as the torque law builds them."""
+    st = scenario.setup("stand", duration=0.1, robot_name=a.robot)
+    loop, cfg = st.loop, st.loop.controller.config
+    qpos, qvel = (jnp.asarray(x, st.dtype) for x in states(st.robot, a.batch, a.seed))
+
+    def one(q, v):
+        t = loop.terms(q, v)
+        ct = contacts.contact_terms(loop.contact_set, t, 0.0, jnp.ones(2, st.dtype))
+        tt = torques.torque_terms(
+            t, ct.J, ct.Jdot_nu, postural="stable", kp_postural=st.gains.kp_postural, kd_postural=st.gains.kd_postural,
+            s_des=t.s, pinv_damping=cfg.pinv_damping, pinv_tol=cfg.pinv_tol,
+        )  # fmt: skip
+        return torques.projector_problem(tt.Lambda, tt.Mbar, cfg.pinv_damping, cfg.pinv_tol, None)
+
+    A, threshold, S = jax.jit(jax.vmap(one))(qpos, qvel)
+    return A, threshold[0], S
+
+
+def _measure(a: argparse.Namespace) -> dict:
+    A, threshold, S = _problems(a)
+    bases = {"householder_qr": _householder, "gram_schmidt": gram_schmidt}
+    parts = {f"basis_{k}": _of_product(f) for k, f in bases.items()}
+    parts["small_eigh"] = _small_eigh
+    parts["whole_eigh"] = lambda A, S: jnp.linalg.eigh(A)
+    parts.update({f"ritz_projector_{k}": _ritz_with(threshold, f) for k, f in bases.items()})
+    result = {
+        "batch": a.batch,
+        "robot": a.robot,
+        "shape": {"A": list(A.shape[1:]), "S": list(S.shape[1:])},
+        "dtype": str(A.dtype),
+        "device": provenance.device_label(),
+        "us_per_env": {},
+    }
+    outputs = {}
+    for name, f in parts.items():
+        fn = jax.jit(jax.vmap(f))
+        outputs[name] = fn(A, S)
+        result["us_per_env"][name] = round(timed(fn, A, S, repeats=a.repeats) * 1e6 / a.batch, 4)
+    (P_h, c_h), (P_g, c_g) = outputs["ritz_projector_householder_qr"], outputs["ritz_projector_gram_schmidt"]
+    result["gram_schmidt_against_householder"] = {
+        "projector_max_abs": float(jnp.max(jnp.abs(P_g - P_h))),
+        "certified": {"householder_qr": float(jnp.mean(c_h)), "gram_schmidt": float(jnp.mean(c_g))},
+    }
+    return result
+
+
+def gram_schmidt(B: jax.Array) -> jax.Array:
+    """Q (m, k): orthonormal columns spanning B's (m, k), k <= m, by classical Gram-Schmidt with each column
+    orthogonalised twice ("twice is enough": Giraud, Langou, Rozloznik, Comput. Math. Appl. 50, 2005), which
+    leaves Q orthonormal to rounding as a Householder QR does. Matrix-vector products only: no library call under
+    vmap. The alternative to the Householder QR measured here (not the torque law's: see the docstring above).
+    A column that lies in the span of those before it (to rounding) comes out zero, where a Householder QR
+    would complete the basis with an arbitrary direction."""
+    m, k = B.shape
+    Q = jnp.zeros_like(B)
+    scale = jnp.max(jnp.abs(B)) * m * jnp.finfo(B.dtype).eps
+    for j in range(k):
+        v = B[:, j]
+        for _ in range(2):
+            v = v - Q @ (Q.T @ v)
+        norm = jnp.linalg.norm(v)
+        Q = Q.at[:, j].set(jnp.where(norm > scale, v / jnp.where(norm > scale, norm, 1.0), 0.0))
+    return Q
+
+
+def _householder(B):
+    return jnp.linalg.qr(B)[0]
+
+
+def _of_product(basis):
+    return lambda A, S: basis(A @ S)
+
+
+def _small_eigh(A, S):
+    Q = _householder(A @ S)
+    return jnp.linalg.eigh(Q.T @ A @ Q)
+
+
+def _ritz_with(threshold, basis):
+    return lambda A, S: torques.ritz_projector(A, threshold, S, basis=basis)
+
+
+if __name__ == "__main__":
+    main()
