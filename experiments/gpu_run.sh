@@ -56,6 +56,7 @@ for job in "$@"; do
             # (cmeel-boost without its headers, cmeel-assimp, cmeel-zlib), .wt3/ (icub-models, eigenpy) and .wt2/ (tsid,
             # pin, coal, eiquadprog, their other cmeel libraries, and libtsid's files as libtsid-1.10.0.tar.xz: the
             # package index here has no libtsid wheel), 24 MB each, one a call; installed apart in /tmp/site-tsid.
+      export JAX_PLATFORMS=cpu  # our loop on this host's CPU even where the job's caller left the GPU visible
       TS=/tmp/site-tsid
       if [ ! -d $TS/cmeel.prefix ]; then
         python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target $TS ~/wp/*.whl \
