@@ -36,8 +36,13 @@ GPU_RUNS = {  # folder: the runs of one machine
 CPU_RUNS = {  # folder, our engines, TSID beside them (tsid_timing_<round>.json) or not
     "AMD EPYC (2 cores, the CI machine's kind), core 1": ("results/cpu_targets/eq61", ("jax", "eiquadprog"), True),
     "Intel Xeon (a GPU host's 16 cores), core 1": ("results/cpu_targets/xeon_s61", ("jax", "eiquadprog"), False),
-    "Intel Xeon (a GPU host's 16 cores), core 1, beside TSID": (
+    "Intel Xeon (a GPU host's 16 cores), core 1, beside TSID, a GPU sweep on cores 2-15": (
         "results/cpu_targets/xeon_s62",
+        ("jax", "eiquadprog"),
+        True,
+    ),
+    "Intel Xeon (a GPU host's 16 cores), core 1, beside TSID, the host idle": (
+        "results/cpu_targets/xeon_s62_idle",
         ("jax", "eiquadprog"),
         True,
     ),

@@ -293,21 +293,30 @@ class ClosedLoop:
         )
         return new, anchors, anchor_normals
 
+    def push_forces_at(self, push: Push, k, i):
+        """(P, 3) each push's force during physics step i (traced) of tick k: the one place push timing is
+        computed (the host loop scatters these, so every backend pushes alike)."""
+        return push_forces(push, k * self.cfg.control_dt + self.physics_dt * i, self.physics_dt)
+
     def step_push_forces(self, push: Push, k):
-        """(n_sub, P, 3) each push's force during the physics steps of tick k: the one place push
-        timing is computed (the host loop scatters these, so every backend pushes alike)."""
-        t = k * self.cfg.control_dt + self.physics_dt * jnp.arange(self.n_sub)
-        return jax.vmap(lambda s: push_forces(push, s, self.physics_dt))(t)
+        """(n_sub, P, 3) each push's force during the physics steps of tick k (:meth:`push_forces_at`)."""
+        return jax.vmap(lambda i: self.push_forces_at(push, k, i))(jnp.arange(self.n_sub))
 
     def push_bodies(self, push: Push):
         """(P,) the body id of each push."""
         return jnp.where(push.body >= 0, push.body, self.push_body)
 
+    def xfrc_at(self, push: Push, k, i):
+        """(nbody, 6) body wrenches of physics step i (traced) of tick k (each push at its body). The MJX loop
+        builds each step's inside its scan: a stack of the tick's steps, sliced per step, cost the loop more on a
+        GPU than the steps' wrenches themselves (BENCHMARKS.md, issue 46)."""
+        force = self.push_forces_at(push, k, i)
+        out = jnp.zeros((self.robot.mj_model.nbody, 6), force.dtype)
+        return out.at[self.push_bodies(push), :3].add(force)
+
     def xfrc(self, push: Push, k):
-        """(n_sub, nbody, 6) body wrenches of the physics steps of tick k (each push at its body)."""
-        force = self.step_push_forces(push, k)
-        out = jnp.zeros((self.n_sub, self.robot.mj_model.nbody, 6), force.dtype)
-        return out.at[:, self.push_bodies(push), :3].add(force)
+        """(n_sub, nbody, 6) body wrenches of the physics steps of tick k (:meth:`xfrc_at`)."""
+        return jax.vmap(lambda i: self.xfrc_at(push, k, i))(jnp.arange(self.n_sub))
 
     @property
     def observes_contacts(self) -> bool:

@@ -78,17 +78,23 @@ def chunk(
 
     def tick(carry, k):
         d, state, ok = carry
-        xfrc = loop.xfrc(push, k).astype(d.qpos.dtype)
+
+        def steps(dd, ctrl, first: int):  # physics steps first..n_sub-1 of tick k, each step's wrenches built in it
+            def one(dd, i):
+                return physics.step(plant, dd, ctrl, loop.xfrc_at(push, k, i).astype(dd.qpos.dtype)), None
+
+            return jax.lax.scan(one, dd, jnp.arange(first, loop.n_sub))[0]
+
         if split:
             step1, step2 = warp_split.phases()
             d = step1(plant, d)
             terms = dynamics.terms_from_split(loop.idx, loop.robot.mj_model, d, loop.controller.frames)
             state, ctrl, record = loop.control(gains, state, d.qpos, d.qvel, k, ok, push, feedforward, terms=terms)
-            first = step2(plant, d.replace(ctrl=ctrl, xfrc_applied=xfrc[0]))
-            d_new, _ = jax.lax.scan(lambda dd, x: (physics.step(plant, dd, ctrl, x), None), first, xfrc[1:])
+            first = step2(plant, d.replace(ctrl=ctrl, xfrc_applied=loop.xfrc_at(push, k, 0).astype(d.qpos.dtype)))
+            d_new = steps(first, ctrl, 1)
         else:
             state, ctrl, record = loop.control(gains, state, d.qpos, d.qvel, k, ok, push, feedforward)
-            d_new, _ = jax.lax.scan(lambda dd, x: (physics.step(plant, dd, ctrl, x), None), d, xfrc)
+            d_new = steps(d, ctrl, 0)
         finite = physics.state_ok(d_new.qpos, d_new.qvel)
         d_new = d_new.where(~finite, d)  # a diverged env keeps its last sound state
         if loop.cfg.record and loop.backend == "warp":  # no per-environment contact forces there
