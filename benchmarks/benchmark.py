@@ -60,7 +60,7 @@ JSON_KEYS = (
     "sweep_run_s",
     "sweep_envs",
 )
-# qp_warm_start, qp_unrolled_steps, qp_engine, warp_terms, mass_solve_engine, xla_flags: only in the row of a run that set them (the rows
+# qp_warm_start, qp_unrolled_steps, qp_engine, warp_terms, mass_solve_engine, ritz_engine, xla_flags: only in the row of a run that set them (the rows
 # before, at the defaults, have no such key)
 JSON_ROW_KEY = (
     "device",
@@ -74,6 +74,7 @@ JSON_ROW_KEY = (
     "qp_engine",
     "warp_terms",
     "mass_solve_engine",
+    "ritz_engine",
     "xla_flags",
 )
 
@@ -154,6 +155,8 @@ def json_rows(result: dict) -> list[dict]:
             entry["warp_terms"] = row["warp_terms"]
         if row.get("mass_solve_engine", "jax") != "jax":  # the torque law's M solve in a Warp kernel
             entry["mass_solve_engine"] = row["mass_solve_engine"]
+        if row.get("ritz_engine", "jax") != "jax":  # the postural projector's Ritz decomposition in a Warp kernel
+            entry["ritz_engine"] = row["ritz_engine"]
         if row.get("xla_flags"):  # XLA's flags of the run (command buffers, say): a setting of its own
             entry["xla_flags"] = row["xla_flags"]
         rows.append(entry)
@@ -337,6 +340,7 @@ def main(argv=None) -> dict:
                 qp_engine=args.qp_engine,
                 warp_terms=args.warp_terms if backend == "warp" else "jax",
                 mass_solve_engine=args.mass_solve_engine,
+                ritz_engine=args.ritz_engine,
             )
             iterations = int(physics.solver_mj_model(st.robot.mj_model, st.loop.cfg.physics).opt.iterations)
             tau = None if args.skip_physics_only else hold_torques(st)
@@ -348,6 +352,7 @@ def main(argv=None) -> dict:
                     "qp_engine": args.qp_engine,
                     "warp_terms": args.warp_terms if backend == "warp" else "jax",
                     "mass_solve_engine": args.mass_solve_engine,
+                    "ritz_engine": args.ritz_engine,
                     "xla_flags": os.environ.get("XLA_FLAGS") or None,
                     "device": device_description(backend),
                     "batch": batch,

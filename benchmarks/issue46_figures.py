@@ -10,7 +10,8 @@ setting with its command and device; this file says, row by row and round by rou
 - ``cpu``: per CPU, round by round, our compiled loop's tick and controller's part (benchmarks/cpu_loop.py
   ``--parts profile``) beside TSID's tick and controller (benchmarks/tsid_peer.py) where TSID ran in the same run,
   and whether the CPU target holds there (our tick <= TSID's and our controller <= TSID's); without TSID in the same
-  run, ``target_met`` is null (not measured).
+  run, ``target_met`` is null (not measured). ``median``: each figure's median over a CPU's rounds beside TSID, and the
+  target on those medians.
 
 The inputs' paths and sha256 are in ``provenance.inputs``. The figures are the files' own; nothing is measured here.
 """
@@ -18,6 +19,7 @@ The inputs' paths and sha256 are in ``provenance.inputs``. The figures are the f
 import argparse
 import json
 import pathlib
+import statistics
 
 from wbc_jax.core import io, provenance
 
@@ -58,7 +60,9 @@ def gpu_rows(inputs: dict) -> list[dict]:
             share = 1.0 - r["closed_loop_steps_per_s"] / r["physics_only_steps_per_s"]
             rows.append(
                 {
-                    "setting": {k: r.get(k, "jax") for k in ("qp_engine", "warp_terms", "mass_solve_engine")},
+                    "setting": {
+                        k: r.get(k, "jax") for k in ("qp_engine", "warp_terms", "mass_solve_engine", "ritz_engine")
+                    },
                     "device": r["device"],
                     "machine": folder,
                     "date": r["date"],
@@ -113,6 +117,29 @@ def cpu_rounds(folder: str, engines: tuple[str, ...], with_tsid: bool, inputs: d
     return rounds
 
 
+def _with_medians(run: dict) -> dict:
+    """``run`` with ``median``: each figure's median over the rounds beside TSID (a core's speed moves between
+    rounds on these hosts; the median is the figure one slow round does not decide) and the target on those."""
+    rounds = [r for r in run["rounds"] if r["tsid"] is not None]
+    if not rounds:
+        run["median"] = None
+        return run
+    med = {
+        "ours": {
+            e: {k: float(statistics.median(r["ours"][e][k] for r in rounds)) for k in ("tick_us", "controller_us")}
+            for e in rounds[0]["ours"]
+        },
+        "tsid": {k: float(statistics.median(r["tsid"][k] for r in rounds)) for k in ("tick_us", "controller_us")},
+        "rounds": len(rounds),
+    }
+    med["target_met"] = {
+        e: o["tick_us"] <= med["tsid"]["tick_us"] and o["controller_us"] <= med["tsid"]["controller_us"]
+        for e, o in med["ours"].items()
+    }
+    run["median"] = med
+    return run
+
+
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default=str(ROOT / "results" / "issue46_targets.json"))
@@ -123,7 +150,7 @@ def main(argv=None) -> dict:
         "gpu_target": {"closed_loop_steps_per_s": GPU_TARGET_STEPS, "controller_share_max": GPU_TARGET_SHARE},
         "gpu": gpu_rows(inputs),
         "cpu": {
-            cpu: {"folder": folder, "rounds": cpu_rounds(folder, engines, with_tsid, inputs)}
+            cpu: _with_medians({"folder": folder, "rounds": cpu_rounds(folder, engines, with_tsid, inputs)})
             for cpu, (folder, engines, with_tsid) in CPU_RUNS.items()
         },
     }

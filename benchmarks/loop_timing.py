@@ -12,7 +12,7 @@ PUSH_MAGNITUDE = 40.0  # N, horizontal, azimuths spread over 360 deg
 
 
 def add_qp_arguments(parser, recorded_loop: bool = False) -> None:
-    """``--qp-unrolled-steps``, ``--qp-engine`` and ``--mass-solve-engine`` (ControllerConfig's) on a benchmark's parser; check them after
+    """``--qp-unrolled-steps``, ``--qp-engine``, ``--mass-solve-engine`` and ``--ritz-engine`` (ControllerConfig's) on a benchmark's parser; check them after
     parsing with :func:`check_qp_arguments`. ``recorded_loop``: say that they also hold in the loop the states come
     from (profile_tick.py)."""
     from wbc_jax.control import qp
@@ -32,7 +32,7 @@ def add_qp_arguments(parser, recorded_loop: bool = False) -> None:
         help="the force QP's solver (ControllerConfig.qp_engine; warp: the interior point as one Warp kernel, "
         "warp_active_set: the dual active-set method as one; eiquadprog: that method by eiquadprog on the CPU)" + also,
     )
-    from wbc_jax.control.torques import MASS_SOLVE_ENGINES
+    from wbc_jax.control.torques import MASS_SOLVE_ENGINES, RITZ_ENGINES
 
     parser.add_argument(
         "--mass-solve-engine",
@@ -40,6 +40,13 @@ def add_qp_arguments(parser, recorded_loop: bool = False) -> None:
         default="jax",
         help="who factorises M and solves with it in the torque law (ControllerConfig.mass_solve_engine; warp: one "
         "Warp tile kernel, a block per environment, wbc_jax/control/cholesky_warp.py)" + also,
+    )
+    parser.add_argument(
+        "--ritz-engine",
+        choices=RITZ_ENGINES,
+        default="jax",
+        help="who computes the postural projector's Ritz decomposition (ControllerConfig.ritz_engine; warp: one Warp "
+        "kernel, a thread per environment, wbc_jax/control/ritz_warp.py)" + also,
     )
 
 
@@ -85,12 +92,13 @@ def make_setup(
     qp_engine: str = "jax",
     warp_terms: str = "jax",
     mass_solve_engine: str = "jax",
+    ritz_engine: str = "jax",
 ):
     """The stand task's closed loop on ``backend`` (default gains, the two feet; ``qp_warm_start``: the
     controller's force QP warm-started, ``ControllerConfig.qp_warm_start``; ``qp_unrolled_steps``: its first
     Newton steps written out before the while loop, ``ControllerConfig.qp_unrolled_steps``; ``qp_engine``:
     its solver, ``ControllerConfig.qp_engine``; ``warp_terms``: where the controller's dynamics terms come from on
-    the warp backend, ``PhysicsConfig.warp_terms``; ``mass_solve_engine``: ``ControllerConfig.mass_solve_engine``)."""
+    the warp backend, ``PhysicsConfig.warp_terms``; ``mass_solve_engine``, ``ritz_engine``: ControllerConfig's)."""
     from wbc_jax.control.controller import ControllerConfig
     from wbc_jax.sim import physics, scenario
     from wbc_jax.sim.state import SimConfig
@@ -104,6 +112,7 @@ def make_setup(
         qp_unrolled_steps=qp_unrolled_steps,
         qp_engine=qp_engine,
         mass_solve_engine=mass_solve_engine,
+        ritz_engine=ritz_engine,
     )
     return scenario.setup("stand", duration=horizon, sim=sim, controller=controller)
 

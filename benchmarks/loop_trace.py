@@ -55,6 +55,7 @@ def main(argv=None) -> dict:
         qp_engine=a.qp_engine,
         warp_terms=a.warp_terms if a.backend == "warp" else "jax",
         mass_solve_engine=a.mass_solve_engine,
+        ritz_engine=a.ritz_engine,
     )
     scen = push_batch(st, a.batch, a.push_onset, a.push_duration)
     first = runner.run(st, scen)  # compiled here
@@ -70,6 +71,7 @@ def main(argv=None) -> dict:
         "qp_engine": a.qp_engine,
         "warp_terms": a.warp_terms,
         "mass_solve_engine": a.mass_solve_engine,
+        "ritz_engine": a.ritz_engine,
         "ticks": ticks,
         "physics_steps_per_tick": st.loop.n_sub,
         "run_s": {"untraced": round(first.run_s, 4), "traced": round(traced.run_s, 4)},

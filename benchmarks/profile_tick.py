@@ -188,6 +188,7 @@ def stage_functions(st) -> dict:
             compensate_passive=cfg.compensate_passive,
             freeze_projector=cfg.freeze_postural_projector,
             mass_solve_engine=cfg.mass_solve_engine,
+            ritz_engine=cfg.ritz_engine,
         )
 
     def force_inputs(t, k, Ldot_star):
@@ -381,6 +382,7 @@ def main(argv=None) -> dict:
         qp_unrolled_steps=args.qp_unrolled_steps,
         qp_engine=args.qp_engine,
         mass_solve_engine=args.mass_solve_engine,
+        ritz_engine=args.ritz_engine,
     )
     st = make_setup("jax", args.horizon, None, **qp_flags)
     fns = stage_functions(st)
@@ -393,6 +395,7 @@ def main(argv=None) -> dict:
         "qp_unrolled_steps": args.qp_unrolled_steps,
         "qp_engine": args.qp_engine,
         "mass_solve_engine": args.mass_solve_engine,
+        "ritz_engine": args.ritz_engine,
         "device": provenance.device_label(),
         "dtype": str(st.dtype),
         "matmul_precision": st.loop.cfg.matmul_precision,

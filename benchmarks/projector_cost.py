@@ -6,8 +6,10 @@ A S, a D x D ``eigh``, and the certification's products; the whole n x n ``eigh`
 certified. On the H100 the basis (a Householder QR) cost 0.048 µs per environment and the small ``eigh`` 0.020
 (BENCHMARKS.md). This times each part vmapped over ``--batch`` environments at the standing posture with random
 joint offsets and velocities (benchmarks/warp_terms_cost.py's states), µs per environment (best of ``--repeats``,
-compiled first), with the basis by Householder QR (``jnp.linalg.qr``) and by Gram-Schmidt
-(:func:`gram_schmidt`, classical Gram-Schmidt twice), and how far the two bases' projectors lie apart:
+compiled first): the Ritz decomposition by Householder QR and ``eigh`` (``ritz_engine`` jax), with a Gram-Schmidt basis
+(:func:`gram_schmidt`, classical Gram-Schmidt twice) and as one Warp kernel (``ritz_engine`` warp,
+wbc_jax/control/ritz_warp.py; skipped without warp-lang), the certified projector of each, how far each projector lies
+from the Householder one's and the share of environments each certifies:
 
     python benchmarks/projector_cost.py --batch 65536 --out results/gpu_h100/projector_cost.json
 """
@@ -26,7 +28,7 @@ from warp_terms_cost import batch_parser, checked, states
 from wbc_jax.control import torques
 from wbc_jax.core import io, provenance
 from wbc_jax.robot import contacts
-from wbc_jax.sim import scenario
+from wbc_jax.sim import physics, scenario
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -65,11 +67,17 @@ def _problems(a: argparse.Namespace):
 
 def _measure(a: argparse.Namespace) -> dict:
     A, threshold, S = _problems(a)
-    bases = {"householder_qr": _householder, "gram_schmidt": gram_schmidt}
-    parts = {f"basis_{k}": _of_product(f) for k, f in bases.items()}
+    decompositions = {"householder_qr": torques.ritz_decomposition, "gram_schmidt": _gram_schmidt_decomposition}
+    skipped = {}
+    if physics.has_warp():
+        decompositions["warp"] = torques.ritz_decomposer("warp")
+    else:
+        skipped["warp"] = "warp-lang is not installed"
+    parts = {"basis_householder_qr": _of_product(_householder), "basis_gram_schmidt": _of_product(gram_schmidt)}
     parts["small_eigh"] = _small_eigh
     parts["whole_eigh"] = lambda A, S: jnp.linalg.eigh(A)
-    parts.update({f"ritz_projector_{k}": _ritz_with(threshold, f) for k, f in bases.items()})
+    parts.update({f"ritz_decomposition_{k}": _of_product_with_A(f) for k, f in decompositions.items()})
+    parts.update({f"ritz_projector_{k}": _ritz_with(threshold, f) for k, f in decompositions.items()})
     result = {
         "batch": a.batch,
         "robot": a.robot,
@@ -77,16 +85,20 @@ def _measure(a: argparse.Namespace) -> dict:
         "dtype": str(A.dtype),
         "device": provenance.device_label(),
         "us_per_env": {},
+        "skipped": skipped,
     }
     outputs = {}
     for name, f in parts.items():
         fn = jax.jit(jax.vmap(f))
         outputs[name] = fn(A, S)
         result["us_per_env"][name] = round(timed(fn, A, S, repeats=a.repeats) * 1e6 / a.batch, 4)
-    (P_h, c_h), (P_g, c_g) = outputs["ritz_projector_householder_qr"], outputs["ritz_projector_gram_schmidt"]
-    result["gram_schmidt_against_householder"] = {
-        "projector_max_abs": float(jnp.max(jnp.abs(P_g - P_h))),
-        "certified": {"householder_qr": float(jnp.mean(c_h)), "gram_schmidt": float(jnp.mean(c_g))},
+    P_h, _ = outputs["ritz_projector_householder_qr"]
+    result["against_householder_qr"] = {
+        k: {
+            "projector_max_abs": float(jnp.max(jnp.abs(outputs[f"ritz_projector_{k}"][0] - P_h))),
+            "certified": float(jnp.mean(outputs[f"ritz_projector_{k}"][1])),
+        }
+        for k in decompositions
     }
     return result
 
@@ -118,13 +130,25 @@ def _of_product(basis):
     return lambda A, S: basis(A @ S)
 
 
+def _of_product_with_A(decompose):
+    return lambda A, S: decompose(A, A @ S)
+
+
+def _gram_schmidt_decomposition(A, B):
+    """torques.ritz_decomposition with the basis by :func:`gram_schmidt`."""
+    Q = gram_schmidt(B)
+    AQ = A @ Q
+    theta, W = jnp.linalg.eigh(Q.T @ AQ)
+    return Q, AQ, theta, W
+
+
 def _small_eigh(A, S):
     Q = _householder(A @ S)
     return jnp.linalg.eigh(Q.T @ A @ Q)
 
 
-def _ritz_with(threshold, basis):
-    return lambda A, S: torques.ritz_projector(A, threshold, S, basis=basis)
+def _ritz_with(threshold, decompose):
+    return lambda A, S: torques.ritz_projector(A, threshold, S, decompose)
 
 
 if __name__ == "__main__":

@@ -236,10 +236,12 @@ for job in "$@"; do
     loop_trace46)  # issue 46 (s61): the Warp closed loop at 65,536 envs traced, kernels summed per JAX scope per tick
             # (benchmarks/loop_trace.py): the active-set QP with the terms off step1 and without, so the split's own
             # cost shows (it saved 0.049 of the terms' 0.21 µs per environment and tick); the traces stay on the machine.
-            # LOOP_TRACE_VARIANTS picks them (default "was_split was"; was_split_msw: with the Warp M solve too, s62)
+            # LOOP_TRACE_VARIANTS picks them (default "was_split was"; was_split_msw: with the Warp M solve too, s62;
+            # was_split_msw_ritz: and the Warp Ritz decomposition)
       for v in ${LOOP_TRACE_VARIANTS:-was_split was}; do
         f="--qp-engine warp_active_set"
-        case $v in was_split) f="$f --warp-terms step1" ;; was_split_msw) f="$f --warp-terms step1 --mass-solve-engine warp" ;; esac
+        case $v in was_split) f="$f --warp-terms step1" ;; was_split_msw) f="$f --warp-terms step1 --mass-solve-engine warp" ;;
+          was_split_msw_ritz) f="$f --warp-terms step1 --mass-solve-engine warp --ritz-engine warp" ;; esac
         run loop_trace46_$v python3 benchmarks/loop_trace.py --batch 65536 --backend warp $f --out /tmp/loop_trace/$v \
           --depth ${LOOP_TRACE_DEPTH:-3}
         mkdir -p "$OUT/loop_trace46"; cp /tmp/loop_trace/$v/loop_trace.json "$OUT/loop_trace46/$v.json"
@@ -262,6 +264,10 @@ for job in "$@"; do
         bench46_msw) bench46_run $job --mass-solve-engine warp ;;
         bench46_was_split_msw) bench46_run $job --warp-terms step1 --qp-engine warp_active_set --mass-solve-engine warp ;;
       esac ;;
+    bench46_ritz)  # issue 46 (s62): bench46_was_split_msw with the postural projector's Ritz decomposition as one Warp
+            # kernel too (--ritz-engine warp, wbc_jax/control/ritz_warp.py: the QR's forming of Q and the small eigh
+            # cost 0.061 µs per environment and tick in the loop trace). Run beside bench46_was_split_msw on one machine
+      bench46_run $job --warp-terms step1 --qp-engine warp_active_set --mass-solve-engine warp --ritz-engine warp ;;
     bench46_split|bench46_was_split)  # issue 46 (s60): the controller's dynamics terms read off MuJoCo Warp's step1
             # (--warp-terms step1, wbc_jax/sim/warp_split.py) instead of MJX-JAX's 0.21 µs per env a tick; _was_split
             # with the active-set QP too. Run beside bench46 / bench46_was on the same machine
@@ -271,7 +277,7 @@ for job in "$@"; do
       esac ;;
     gpu_tests_qp|gpu_tests_warp)  # the Warp engines' tests on the GPU: gpu_tests_qp the force QP's `gpu` tests
             # (s60); gpu_tests_warp every test of the QP engines and of the split step (tests/test_warp_split.py)
-      files="tests/test_qp_warp.py tests/test_qp_active_set.py tests/test_cholesky_warp.py"
+      files="tests/test_qp_warp.py tests/test_qp_active_set.py tests/test_cholesky_warp.py tests/test_ritz_warp.py"
       case $job in gpu_tests_qp) sel="-m gpu" ;; gpu_tests_warp) sel=""; files="$files tests/test_warp_split.py" ;; esac
       run $job env JAX_PLATFORMS=cuda,cpu python3 -m pytest -q -p no:cacheprovider -o addopts="" $sel $files ;;
     profile_tick_cbuf|bench46_cbuf)  # issue 46 (s57): profile_tick / bench46 with XLA's command buffers taking while

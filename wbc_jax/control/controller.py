@@ -69,6 +69,9 @@ class ControllerConfig:
       mass_solve_engine: who factorises the mass matrix and solves with it in the torque law,
         :data:`wbc_jax.control.torques.MASS_SOLVE_ENGINES`: ``"jax"`` (default) or ``"warp"`` (one Warp tile kernel,
         a block per environment, :mod:`wbc_jax.control.cholesky_warp`; needs warp-lang; derivatives by JAX's solve).
+      ritz_engine: who computes the ``stable`` postural projector's Ritz decomposition,
+        :data:`wbc_jax.control.torques.RITZ_ENGINES`: ``"jax"`` (default: QR and ``eigh``) or ``"warp"`` (one Warp
+        kernel, a thread per environment, :mod:`wbc_jax.control.ritz_warp`; needs warp-lang; certified alike).
       torque_weight_soft: |tau|^2 against |A f - w|^2 in the soft momentum QP.
       angular_weight_soft: the angular rows of |A f - w|^2 against the linear ones in the soft
         momentum QP (1: WBC; < 1: the CoM first where a push asks more than the feet can give).
@@ -107,6 +110,7 @@ class ControllerConfig:
     qp_unrolled_steps: int = 0
     qp_engine: str = "jax"
     mass_solve_engine: str = "jax"
+    ritz_engine: str = "jax"
     torque_weight_soft: float = 1e-4
     angular_weight_soft: float = 1.0
     normal_force_weight: float = 1e3
@@ -182,6 +186,10 @@ class ControllerConfig:
             raise ValueError(
                 f"unknown controller setting mass_solve_engine {self.mass_solve_engine!r}; "
                 f"valid: {list(torques.MASS_SOLVE_ENGINES)}"
+            )
+        if self.ritz_engine not in torques.RITZ_ENGINES:
+            raise ValueError(
+                f"unknown controller setting ritz_engine {self.ritz_engine!r}; valid: {list(torques.RITZ_ENGINES)}"
             )
         if self.qp_engine in qp.ACTIVE_SET_ENGINES and self.qp_warm_start:
             raise ValueError(
@@ -388,6 +396,7 @@ def make_controller(
                 compensate_passive=config.compensate_passive,
                 freeze_projector=config.freeze_postural_projector,
                 mass_solve_engine=config.mass_solve_engine,
+                ritz_engine=config.ritz_engine,
             )
 
         # Force task: the contact wrenches.

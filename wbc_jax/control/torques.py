@@ -23,6 +23,8 @@ Postural u_0, two variants:
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
@@ -32,6 +34,7 @@ from wbc_jax.robot.dynamics import DynamicsTerms
 
 POSTURAL_VARIANTS = ("stable", "seed")
 MASS_SOLVE_ENGINES = ("jax", "warp")
+RITZ_ENGINES = ("jax", "warp")
 """Who factorises M and solves with it (:func:`torque_terms`): JAX (:func:`wbc_jax.core.math.cholesky_solve`) or one
 Warp tile kernel per batch (:mod:`wbc_jax.control.cholesky_warp`; needs warp-lang)."""
 
@@ -72,14 +75,20 @@ class TorqueTerms:
 
 
 def postural_projector(
-    Lambda: Array, Mbar: Array, pinv_damping: Array | float, pinv_tol: float, Mbar_inv: Array | None = None
+    Lambda: Array,
+    Mbar: Array,
+    pinv_damping: Array | float,
+    pinv_tol: float,
+    Mbar_inv: Array | None = None,
+    ritz_engine: str = "jax",
 ) -> Array:
     """P (n, n) = pinv(X, tol) X for X = N_Lambda Mbar: the projector on X's right singular
     vectors whose singular values exceed ``pinv_tol`` (absolute, as MATLAB's ``pinv(X, tol)``).
 
     Lambda: (D, n); Mbar: (n, n) positive definite; pinv_damping > 0 (of N_Lambda's damped
     pseudo-inverse); Mbar_inv: (n, n) Mbar^-1 where the caller has it (:func:`torque_terms` reads
-    it off its solve with M), None: solved here. With that pseudo-inverse N_Lambda = (I + Lambda^T Lambda / damping)^-1
+    it off its solve with M), None: solved here; ritz_engine: :data:`RITZ_ENGINES` (:func:`spectral_projector`).
+    With that pseudo-inverse N_Lambda = (I + Lambda^T Lambda / damping)^-1
     (Woodbury), so X^-1 = Mbar^-1 (I + Lambda^T Lambda / damping) = V S^-1 U^T and the cut
     directions are the eigenvectors of X^-1 X^-T = V S^-2 V^T with eigenvalues 1 / s^2 above
     1 / tol^2 (computed for damping X^-1, whose entries stay in float32's range for any damping).
@@ -95,7 +104,7 @@ def postural_projector(
     sin = tol |Mbar^-1| of F's range (3e-3 for the default robot), and at most D are cut where that is below 1.
     """
     A, threshold, start = projector_problem(Lambda, Mbar, pinv_damping, pinv_tol, Mbar_inv)
-    return jnp.eye(Mbar.shape[0], dtype=Mbar.dtype) - spectral_projector(A, threshold, start)
+    return jnp.eye(Mbar.shape[0], dtype=Mbar.dtype) - spectral_projector(A, threshold, start, ritz_engine)
 
 
 def projector_problem(Lambda, Mbar, pinv_damping, pinv_tol, Mbar_inv):
@@ -125,8 +134,10 @@ def projector_certified(
     return ritz_projector(*problem)[1]
 
 
-@jax.custom_jvp
-def spectral_projector(A: Array, threshold: Array | float, start: Array | None = None) -> Array:
+@functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
+def spectral_projector(
+    A: Array, threshold: Array | float, start: Array | None = None, ritz_engine: str = "jax"
+) -> Array:
     """(n, n) the orthogonal projector V_c V_c^T on the eigenvectors of the symmetric A (n, n)
     whose eigenvalues exceed ``threshold`` (not differentiated: the cut is a step).
 
@@ -150,10 +161,12 @@ def spectral_projector(A: Array, threshold: Array | float, start: Array | None =
     The eigenvector derivatives of ``jnp.linalg.eigh`` divide by every eigenvalue gap, so its JVP
     is NaN wherever two eigenvalues coincide, even with a zero tangent (inf x 0): at any
     left-right symmetric posture of the robot, whose mirrored limbs give equal pairs. The
-    projector's derivative is defined there, and equals eigh's elsewhere."""
+    projector's derivative is defined there, and equals eigh's elsewhere.
+
+    ``ritz_engine``: who computes the Ritz decomposition, :data:`RITZ_ENGINES` (the certification is the same)."""
     if start is None:
         return _projector(*_cut_eigenvectors(A, threshold)[1:])
-    P, certified = ritz_projector(A, threshold, start)
+    P, certified = ritz_projector(A, threshold, start, ritz_decomposer(ritz_engine))
     # batch_any: a branch under vmap too, the whole eigenproblem only in ticks where some robot needs it.
     return jax.lax.cond(batch_any(~certified), lambda: _projector(*_cut_eigenvectors(A, threshold)[1:]), lambda: P)
 
@@ -167,14 +180,33 @@ def _cut_eigenvectors(A, threshold):
     return w, V, w > threshold
 
 
-def ritz_projector(A, threshold, start, basis=None):
-    """The projector on A's Ritz vectors (on the span of A start) above ``threshold`` and whether
-    it is certified (:func:`spectral_projector`). ``basis``: B (n, D) -> orthonormal Q (n, D) spanning it
-    (None: Householder QR; benchmarks/projector_cost.py measures Gram-Schmidt against it)."""
-    n = A.shape[0]
-    Q = jnp.linalg.qr(A @ start)[0] if basis is None else basis(A @ start)
+def ritz_decomposition(A: Array, B: Array) -> tuple[Array, Array, Array, Array]:
+    """(Q (n, k), A Q (n, k), theta (k,), W (k, k)): Q an orthonormal basis of B's (n, k) columns (Householder QR),
+    and the eigenpairs of Q' A Q (ascending) for the symmetric A (n, n): A's Ritz pairs on span(B) are theta, Q W."""
+    Q = jnp.linalg.qr(B)[0]
     AQ = A @ Q
-    ritz, W = jnp.linalg.eigh(Q.T @ AQ)
+    theta, W = jnp.linalg.eigh(Q.T @ AQ)
+    return Q, AQ, theta, W
+
+
+def ritz_decomposer(engine: str):
+    """The Ritz decomposition of ``engine`` (:data:`RITZ_ENGINES`): ``jax`` :func:`ritz_decomposition`, ``warp``
+    the same as one Warp kernel (:func:`wbc_jax.control.ritz_warp.ritz_decomposition_warp`)."""
+    if engine == "jax":
+        return ritz_decomposition
+    if engine == "warp":
+        from wbc_jax.control.ritz_warp import ritz_decomposition_warp
+
+        return ritz_decomposition_warp
+    raise ValueError(f"unknown ritz_engine {engine!r}; valid: {list(RITZ_ENGINES)}")
+
+
+def ritz_projector(A, threshold, start, decompose=ritz_decomposition):
+    """The projector on A's Ritz vectors (on the span of A start) above ``threshold`` and whether
+    it is certified (:func:`spectral_projector`). ``decompose``: (A, B) -> (Q, A Q, theta, W) as
+    :func:`ritz_decomposition` (benchmarks/projector_cost.py measures other bases through it)."""
+    n = A.shape[0]
+    Q, AQ, ritz, W = decompose(A, A @ start)
     cut = ritz > threshold
     V = Q @ W
     P = _projector(V, cut)
@@ -189,14 +221,14 @@ def ritz_projector(A, threshold, start, basis=None):
 
 
 @spectral_projector.defjvp
-def _spectral_projector_jvp(primals, tangents):
+def _spectral_projector_jvp(ritz_engine, primals, tangents):
     A, threshold, start = primals
     dA = tangents[0]
     w, V, cut = _cut_eigenvectors(A, threshold)
     across = cut[:, None] & ~cut[None, :]  # (i cut, j kept)
     gap = jnp.where(across, w[:, None] - w[None, :], 1.0)
     F = jnp.where(across, (V.T @ dA @ V) / gap, 0.0)
-    P = _projector(V, cut) if start is None else spectral_projector(A, threshold, start)
+    P = _projector(V, cut) if start is None else spectral_projector(A, threshold, start, ritz_engine)
     return P, V @ (F + F.T) @ V.T
 
 
@@ -215,8 +247,9 @@ def postural_torque(
     kp_reg: float = 0.1,
     freeze_projector: bool = False,
     Mbar_inv: Array | None = None,
+    ritz_engine: str = "jax",
 ) -> Array:
-    """u_0 (n,) of the postural task (module docstring). kp, kd, s_err, s_dot: (n,); Mbar_inv:
+    """u_0 (n,) of the postural task (module docstring). kp, kd, s_err, s_dot: (n,); Mbar_inv, ritz_engine:
     as :func:`postural_projector`'s.
 
     For ``stable``, diag(k) pinv(X) X v is evaluated as diag(k) P v with P = pinv(X) X
@@ -229,7 +262,7 @@ def postural_torque(
     if variant == "seed":
         return -kp * s_err - kd * s_dot
     if variant == "stable":
-        P = postural_projector(Lambda, Mbar, pinv_damping, pinv_tol, Mbar_inv)
+        P = postural_projector(Lambda, Mbar, pinv_damping, pinv_tol, Mbar_inv, ritz_engine)
         P = jax.lax.stop_gradient(P) if freeze_projector else P
         return -kp * (P @ s_err) - kp_reg * (N_Lambda @ (Mbar @ s_err)) - kd * (P @ s_dot)
     raise ValueError(f"unknown postural variant {variant!r}; valid: {list(POSTURAL_VARIANTS)}")
@@ -274,6 +307,7 @@ def torque_terms(
     compensate_passive: bool = True,
     freeze_projector: bool = False,
     mass_solve_engine: str = "jax",
+    ritz_engine: str = "jax",
 ) -> TorqueTerms:
     """Build the affine torque law at one state.
 
@@ -290,6 +324,7 @@ def torque_terms(
       compensate_passive: include the model's joint damping in the bias h.
       freeze_projector: hold the postural projector constant in derivatives (:func:`postural_torque`).
       mass_solve_engine: who factorises M and solves with it, :data:`MASS_SOLVE_ENGINES`.
+      ritz_engine: who computes the postural projector's Ritz decomposition, :data:`RITZ_ENGINES`.
 
     Returns:
       :class:`TorqueTerms`.
@@ -321,6 +356,7 @@ def torque_terms(
         kp_reg=kp_postural_reg,
         freeze_projector=freeze_projector,
         Mbar_inv=Minv[6:, D + 1 :] if stable else None,
+        ritz_engine=ritz_engine,
     )
     Sigma_c = -Lambda_pinv @ (J_c @ Minv_JcT)
     tau_c = Lambda_pinv @ (J_c @ Minv_h - Jdot_nu_c)

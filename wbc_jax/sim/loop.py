@@ -113,6 +113,11 @@ class ClosedLoop:
                 "controller setting mass_solve_engine 'warp' (the torque law's mass-matrix solve as one Warp kernel) "
                 "needs warp-lang: pip install 'wbc_jax[cuda]'; valid here: ['jax']"
             )
+        if controller.config.ritz_engine == "warp" and not physics.has_warp():
+            raise ValueError(
+                "controller setting ritz_engine 'warp' (the postural projector's Ritz decomposition as one Warp kernel) "
+                "needs warp-lang: pip install 'wbc_jax[cuda]'; valid here: ['jax']"
+            )
         if engine == "eiquadprog" and (problem := qp_eiquadprog.available()) is not None:
             raise ValueError(f"controller setting qp_engine 'eiquadprog': {problem}; valid here: ['jax']")
         if cfg.physics.warp_terms == "step1" and (self.backend != "warp" or cfg.perturb_plant):
