@@ -86,31 +86,35 @@ def _kernel(n: int, k: int, out_float64: bool):
                     for i in range(j, n):
                         H[i, c] = H[i, c] - t * s * H[i, j]
             tau[j] = t
-        # Q = H_0 ... H_{k-1} [I; 0], the reflectors applied last to first.
-        Q = mat_nk()
-        for j in range(k):
-            Q[j, j] = real(1.0)
+        # Q = H_0 ... H_{k-1} [I; 0] in H, in place of the reflectors (LAPACK's orgqr): from the last reflector to the first,
+        # H_j applied to the columns already formed, then column j = H_j e_j (rows above j zero).
         for jj in range(k):
             j = k - 1 - jj
-            for c in range(j, k):
+            for c in range(j + 1, k):
                 s = real(0.0)
                 for i in range(j, n):
-                    s += H[i, j] * Q[i, c]
+                    s += H[i, j] * H[i, c]
                 for i in range(j, n):
-                    Q[i, c] = Q[i, c] - tau[j] * s * H[i, j]
+                    H[i, c] = H[i, c] - tau[j] * s * H[i, j]
+            vj = H[j, j]
+            for i in range(j + 1, n):
+                H[i, j] = -tau[j] * vj * H[i, j]
+            H[j, j] = real(1.0) - tau[j] * vj * vj
+            for i in range(j):
+                H[i, j] = real(0.0)
         AQ = mat_nk()
         for i in range(n):
             for c in range(k):
                 s = real(0.0)
                 for q in range(n):
-                    s += A[i, q] * Q[q, c]
+                    s += A[i, q] * H[q, c]
                 AQ[i, c] = s
         T = mat_kk()
         for a in range(k):
             for c in range(a, k):
                 s = real(0.0)
                 for i in range(n):
-                    s += Q[i, a] * AQ[i, c] + Q[i, c] * AQ[i, a]
+                    s += H[i, a] * AQ[i, c] + H[i, c] * AQ[i, a]
                 T[a, c] = real(0.5) * s
                 T[c, a] = real(0.5) * s
         # Cyclic Jacobi: T <- J' T J per pair (a, c), V <- V J (Golub and Van Loan, "Matrix Computations", 8.5).
@@ -179,7 +183,7 @@ def _kernel(n: int, k: int, out_float64: bool):
                     V[r, best] = tv
         for i in range(n):
             for c in range(k):
-                Q_out[p, i, c] = io(Q[i, c])
+                Q_out[p, i, c] = io(H[i, c])
                 AQ_out[p, i, c] = io(AQ[i, c])
         for a in range(k):
             theta_out[p, a] = io(w[a])
