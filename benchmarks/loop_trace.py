@@ -4,7 +4,8 @@ benchmarks/profile_tick.py times the controller's stages alone; the settings tha
 (``--warp-terms step1``: the first step split into MuJoCo Warp's ``step1`` and ``step2`` around the controller) are
 seen only in the loop itself. This runs benchmark.py's closed loop (the stand task, ``--horizon`` s, one 40 N push per
 environment) once to compile, then once under the JAX profiler, and sums the trace's GPU kernels per JAX scope
-(benchmarks/trace_summary.py ``by_scope``), in µs per environment and control tick:
+(benchmarks/trace_summary.py ``by_scope``) and per kernel (``by_kernel``, with the device's busy time: copies on a copy
+engine overlap the kernels, so the sums over-count them), in µs per environment and control tick:
 
     python benchmarks/loop_trace.py --batch 65536 --backend warp --qp-engine warp_active_set --warp-terms step1 \\
         --out runs/loop_trace
@@ -41,7 +42,7 @@ def main(argv=None) -> dict:
     a = parse_args(argv)
     import jax
     from loop_timing import make_setup, push_batch
-    from trace_summary import by_scope
+    from trace_summary import by_kernel, by_scope
 
     from wbc_jax.core import io, provenance
     from wbc_jax.sim import runner
@@ -80,12 +81,32 @@ def main(argv=None) -> dict:
             "by_scope": {k: round(v / ticks, 5) for k, v in summary["by_scope"].items()},
         },
         "kernels_per_tick": round(summary["kernels_per_call"] / ticks, 1),
+        # per kernel, µs per environment and tick (launches per tick); busy: the union of the device's events
+        "by_kernel": _per_tick(by_kernel(trace_dir, "jit_one", calls=1, batch=a.batch), ticks),
         "device": provenance.device_label(),
         "provenance": provenance.record(argv=provenance.script_argv(__file__, argv)),
     }
     print(json.dumps(result, indent=1))
     io.atomic_write_json(out / "loop_trace.json", result)
     return result
+
+
+def _per_tick(summary: dict, ticks: int) -> dict:
+    """trace_summary.by_kernel's figures of one call divided into its ``ticks``."""
+    return {
+        "sum_us_per_env_and_tick": round(summary["sum_us_per_env"] / ticks, 5),
+        "busy_us_per_env_and_tick": None
+        if summary["busy_us_per_env"] is None
+        else round(summary["busy_us_per_env"] / ticks, 5),
+        "kernels": [
+            {
+                "name": k["name"],
+                "us_per_env_and_tick": round(k["us_per_env"] / ticks, 5),
+                "per_tick": k["launches"] / ticks,
+            }
+            for k in summary["kernels"]
+        ],
+    }
 
 
 if __name__ == "__main__":

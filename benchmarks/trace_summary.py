@@ -286,6 +286,31 @@ def by_scope(trace_dir: str | pathlib.Path, module: str, calls: int, batch: int,
     }
 
 
+def by_kernel(trace_dir: str | pathlib.Path, module: str, calls: int, batch: int, top: int = 40) -> dict:
+    """``module``'s GPU events summed per kernel (the event's own name: a Warp kernel, a cuBLAS or cuSOLVER routine,
+    an XLA fusion, a copy), µs per environment and call with launches per call, the ``top`` largest; and the device's
+    busy time, the union of all its events (copies on a copy engine overlap the kernels: the sum over-counts them)."""
+    events, names = _events(trace_dir)
+    gpu = {pid for pid, name in names.items() if name.startswith("/device:GPU")}
+    times: dict[str, float] = collections.defaultdict(float)
+    launches: collections.Counter = collections.Counter()
+    for e in events:
+        args = e.get("args") or {}
+        if e.get("ph") == "X" and e.get("pid") in gpu and same_module(str(args.get("hlo_module")), module):
+            times[e.get("name", "?")] += float(e["dur"])
+            launches[e.get("name", "?")] += 1
+    scale = 1.0 / (calls * batch)
+    idle = device_idle(trace_dir, calls)
+    return {
+        "sum_us_per_env": round(sum(times.values()) * scale, 5),
+        "busy_us_per_env": round(idle["busy_us_per_call"] * calls * scale, 5) if idle else None,
+        "kernels": [
+            {"name": k[:120], "us_per_env": round(v * scale, 5), "launches": round(launches[k] / calls, 1)}
+            for k, v in sorted(times.items(), key=lambda kv: -kv[1])[:top]
+        ],
+    }
+
+
 if __name__ == "__main__":
     import argparse
 
