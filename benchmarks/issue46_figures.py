@@ -34,6 +34,11 @@ GPU_RUNS = {  # folder: the runs of one machine
         "bench46_was_split_msw_r2",
         "bench46_was_split_r2",
     ),
+    "results/gpu_h100/s62/machine_c": (
+        "bench46_was_split_msw_xfrc",
+        "bench46_was_split_msw",
+        "bench46_was_split_msw_xfrc_r2",
+    ),
 }
 CPU_RUNS = {  # folder, our engines, TSID beside them (tsid_timing_<round>.json) or not
     "AMD EPYC (2 cores, the CI machine's kind), core 1": ("results/cpu_targets/eq61", ("jax", "eiquadprog"), True),
