@@ -13,8 +13,6 @@ Engines that cannot run here (no warp-lang) are skipped and named in the result.
 """
 
 import argparse
-import json
-import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -23,11 +21,11 @@ import numpy as np
 # from this script's folder (Python puts it first on sys.path): profile_tick's timing (best of --repeats, compiled
 # first) and warp_terms_cost's flags and states
 from profile_tick import timed
-from warp_terms_cost import batch_parser, checked, states
+from warp_terms_cost import batch_parser, checked, measured, states
 
 from wbc_jax.control.torques import MASS_SOLVE_ENGINES
-from wbc_jax.core import io, provenance
 from wbc_jax.core import mjx as mjx_device
+from wbc_jax.core import provenance
 from wbc_jax.core.math import cholesky_solve
 from wbc_jax.robot import dynamics
 from wbc_jax.robot.model import load_robot
@@ -39,14 +37,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def main(argv=None) -> dict:
-    a = parse_args(argv)
-    with jax.default_matmul_precision("highest"):  # the closed loop's (SimConfig.matmul_precision)
-        result = _measure(a)
-    result["provenance"] = provenance.record(argv=provenance.script_argv(__file__, argv))
-    print(json.dumps(result, indent=1))
-    if a.out:
-        io.atomic_write_json(pathlib.Path(a.out), result)
-    return result
+    return measured(_measure, parse_args(argv), __file__, argv)
 
 
 def _measure(a: argparse.Namespace) -> dict:

@@ -15,18 +15,16 @@ from the Householder one's and the share of environments each certifies:
 """
 
 import argparse
-import json
-import pathlib
 
 import jax
 import jax.numpy as jnp
 
 # from this script's folder (Python puts it first on sys.path): profile_tick's timing and warp_terms_cost's flags/states
 from profile_tick import timed
-from warp_terms_cost import batch_parser, checked, states
+from warp_terms_cost import batch_parser, checked, measured, states
 
 from wbc_jax.control import torques
-from wbc_jax.core import io, provenance
+from wbc_jax.core import provenance
 from wbc_jax.robot import contacts
 from wbc_jax.sim import physics, scenario
 
@@ -36,14 +34,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def main(argv=None) -> dict:
-    a = parse_args(argv)
-    with jax.default_matmul_precision("highest"):  # the closed loop's (SimConfig.matmul_precision)
-        result = _measure(a)
-    result["provenance"] = provenance.record(argv=provenance.script_argv(__file__, argv))
-    print(json.dumps(result, indent=1))
-    if a.out:
-        io.atomic_write_json(pathlib.Path(a.out), result)
-    return result
+    return measured(_measure, parse_args(argv), __file__, argv)
 
 
 def _problems(a: argparse.Namespace):

@@ -62,6 +62,19 @@ def parse_args(argv=None) -> argparse.Namespace:
     return checked(p, argv)
 
 
+def measured(measure, a: argparse.Namespace, script: str, argv) -> dict:
+    """A cost script's run (this folder's mass_solve_cost.py, projector_cost.py): ``measure(a)`` at the closed loop's
+    matmul precision (SimConfig.matmul_precision: "highest"), with its provenance, printed, and written atomically
+    to ``a.out`` where given."""
+    with jax.default_matmul_precision("highest"):
+        result = measure(a)
+    result["provenance"] = provenance.record(argv=provenance.script_argv(script, argv))
+    print(json.dumps(result, indent=1))
+    if a.out:
+        io.atomic_write_json(pathlib.Path(a.out), result)
+    return result
+
+
 def states(robot, batch: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """(qpos (B, nq), qvel (B, nv)): the standing posture with joint offsets of 0.05 rad and velocities of 0.2 rad/s."""
     rng = np.random.default_rng(seed)

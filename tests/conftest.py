@@ -174,6 +174,23 @@ def random_state(robot: model.Robot, seed: int, joint_scale: float = 0.3):
     return qpos, qvel
 
 
+def moving_terms(robot: model.Robot, batch: int, seed: int = 0):
+    """(DynamicsTerms batched over ``batch`` moving states near the standing posture: joint offsets of 0.1 rad,
+    velocities of 0.3 (float32, MJX-JAX at the loop's matmul precision), the rng for more of the test's data)."""
+    from wbc_jax.core import mjx as mjx_device
+    from wbc_jax.robot import dynamics
+
+    idx = robot.index
+    rng = np.random.default_rng(seed)
+    qpos = np.tile(robot.home_qpos(), (batch, 1)).astype(np.float32)
+    qpos[:, idx.qpos_joints] += rng.normal(0.0, 0.1, (batch, len(idx.qpos_joints)))
+    qvel = rng.normal(0.0, 0.3, (batch, idx.nv)).astype(np.float32)
+    mx, d0 = mjx_device.put_model(robot.mj_model), mjx_device.make_data(robot.mj_model)
+    with jax.default_matmul_precision("highest"):
+        t = jax.jit(jax.vmap(lambda q, v: dynamics.terms(mx, d0.replace(qpos=q, qvel=v), idx)))(qpos, qvel)
+    return t, rng
+
+
 def assert_close(actual, expected, name: str, rtol: float, atol: float = 0.0):
     np.testing.assert_allclose(np.asarray(actual), np.asarray(expected), rtol=rtol, atol=atol, err_msg=name)
 

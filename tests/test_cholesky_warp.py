@@ -7,11 +7,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import moving_terms
 
 from wbc_jax.control.controller import ControllerConfig
-from wbc_jax.core import mjx as mjx_device
 from wbc_jax.core.math import cholesky_solve
-from wbc_jax.robot import dynamics
 from wbc_jax.robot.model import load_robot
 from wbc_jax.sim import physics
 
@@ -23,13 +22,7 @@ def standing():
     """(robot, DynamicsTerms batched over BATCH states near the standing posture, right-hand sides (B, 29, 36))."""
     robot = load_robot("icub")
     idx = robot.index
-    rng = np.random.default_rng(0)
-    qpos = np.tile(robot.home_qpos(), (BATCH, 1)).astype(np.float32)
-    qpos[:, idx.qpos_joints] += rng.normal(0.0, 0.1, (BATCH, len(idx.qpos_joints)))
-    qvel = rng.normal(0.0, 0.3, (BATCH, idx.nv)).astype(np.float32)
-    mx, d0 = mjx_device.put_model(robot.mj_model), mjx_device.make_data(robot.mj_model)
-    with jax.default_matmul_precision("highest"):
-        t = jax.jit(jax.vmap(lambda q, v: dynamics.terms(mx, d0.replace(qpos=q, qvel=v), idx)))(qpos, qvel)
+    t, rng = moving_terms(robot, BATCH)
     B = rng.normal(size=(BATCH, idx.nv, 12 + 1 + idx.nv - 6)).astype(np.float32)
     return robot, t, B
 

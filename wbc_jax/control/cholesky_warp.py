@@ -20,9 +20,8 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.custom_batching import custom_vmap
 
-from wbc_jax.control.qp_warp_kernel import warp_module
+from wbc_jax.control.warp_launch import one_launch_under_vmap, warp_module
 from wbc_jax.core.math import cholesky_solve
 
 Array = jax.Array
@@ -73,15 +72,7 @@ def _flat(K, B):
     return L.reshape(lead + (r, r)), X.reshape(lead + (r, c))
 
 
-@custom_vmap
-def _batched(K, B):
-    return _flat(K, B)
-
-
-@_batched.def_vmap
-def _(axis_size, in_batched, K, B):
-    args = [a if batched else jnp.broadcast_to(a, (axis_size,) + a.shape) for a, batched in zip((K, B), in_batched)]
-    return _batched(*args), (True, True)
+_batched = one_launch_under_vmap(_flat)
 
 
 @jax.custom_jvp

@@ -30,7 +30,7 @@ import math
 
 import numpy as np
 
-from wbc_jax.control.qp_warp_kernel import warp_module
+from wbc_jax.control.warp_launch import warp_module
 
 STEP_LIMIT_PER_ROW = 3
 """The kernel's bound on added and dropped rows, per constraint row (3 m): each outer step adds a row and the

@@ -14,17 +14,7 @@ import math
 import numpy as np
 
 from wbc_jax.control.qp_ipm import STEP_TO_BOUNDARY, WARM_START_FLOOR
-
-
-def warp_module():
-    try:
-        import warp as wp
-    except ImportError as e:  # pragma: no cover - the message is what matters
-        raise ImportError(
-            "the force QP's Warp engine (qp_engine='warp') needs warp-lang: pip install 'wbc_jax[cuda]' "
-            "(or use qp_engine='jax')"
-        ) from e
-    return wp
+from wbc_jax.control.warp_launch import warp_module
 
 
 @functools.cache

@@ -23,9 +23,8 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.custom_batching import custom_vmap
 
-from wbc_jax.control.qp_warp_kernel import warp_module
+from wbc_jax.control.warp_launch import one_launch_under_vmap, warp_module
 
 Array = jax.Array
 
@@ -208,15 +207,7 @@ def _flat(A, B):
     return Q.reshape(lead + (n, k)), AQ.reshape(lead + (n, k)), theta.reshape(lead + (k,)), W.reshape(lead + (k, k))
 
 
-@custom_vmap
-def _batched(A, B):
-    return _flat(A, B)
-
-
-@_batched.def_vmap
-def _(axis_size, in_batched, A, B):
-    args = [a if batched else jnp.broadcast_to(a, (axis_size,) + a.shape) for a, batched in zip((A, B), in_batched)]
-    return _batched(*args), (True, True, True, True)
+_batched = one_launch_under_vmap(_flat)
 
 
 def ritz_decomposition_warp(A: Array, B: Array) -> tuple[Array, Array, Array, Array]:
