@@ -141,6 +141,18 @@ for job in "$@"; do
         run envelope_$b python3 experiments/checks/envelope_check.py --grid /tmp/sw/agree_$b --out "$OUT/envelope_$b" -- \
           --backend $b
       done ;;
+    ab_sweep)  # issue 46 (s62), defaults that the push-sweep CLI does not expose (warp_terms, mass_solve_engine,
+            # ritz_engine): the default-gain grid on Warp three times with this checkout and twice with another
+            # commit's package carried in AB_SWEEP_DIR (default .wnew: its wbc_jax/, assets linked from here), each
+            # compared cell by cell with the first grid (island_check), as was_sweep
+      nd=${AB_SWEEP_DIR:-.wnew}; ln -sfn "$PWD/assets" "$nd/assets"; mkdir -p "$OUT/$job"
+      for r in cold1 cold2 cold3 new1 new2; do
+        case $r in cold*) pp=$SITE:$PWD ;; *) pp=$SITE:$PWD/$nd ;; esac
+        run ${job}_$r env PYTHONPATH=$pp $SW --chunk-size 2048 --backend warp --out /tmp/sw/${job}_$r
+        cp /tmp/sw/${job}_$r/summary.json "$OUT/$job/$r.summary.json"
+      done
+      run $job python3 experiments/checks/island_check.py /tmp/sw/${job}_cold1 /tmp/sw/${job}_cold2 \
+        /tmp/sw/${job}_cold3 /tmp/sw/${job}_new1 /tmp/sw/${job}_new2 --out "$OUT/$job/islands.json" ;;
     warm_sweep|wqp_sweep|was_sweep)  # issue 46, a setting of the force QP as the default: the default-gain grid
             # (2,048 envs, 3 s) on Warp three times as now (the engine's run-to-run floor) and twice with the setting,
             # each compared cell by cell with the first grid (island_check: differing cells, their distance from its
