@@ -86,9 +86,9 @@ def _best(fn, repeats: int):
     return best
 
 
-def profile(repeats: int, ticks: int, qp_engine: str = "jax") -> dict:
+def profile(repeats: int, ticks: int, qp_engine: str = "auto") -> dict:
     """The ``profile`` part (module docstring); ``qp_engine``: the controller's force QP engine
-    (``ControllerConfig.qp_engine``)."""
+    (``ControllerConfig.qp_engine``; ``auto`` recorded as the engine it resolves to here)."""
     import jax
     import jax.numpy as jnp
 
@@ -99,12 +99,12 @@ def profile(repeats: int, ticks: int, qp_engine: str = "jax") -> dict:
 
     runner.enable_compilation_cache()
     us = lambda s: round(1e6 * s / ticks, 1)  # noqa: E731
+    controller = ControllerConfig(qp_engine=qp_engine)
     out: dict = {
         "ticks": ticks,
         "task": f"sinusoid, {ticks * 0.01:g} s, trajectories recorded, one robot",
-        "qp_engine": qp_engine,
+        "qp_engine": controller.qp_engine,
     }
-    controller = ControllerConfig(qp_engine=qp_engine)
 
     def setup(driver: str):
         sim = SimConfig(record=True, host_loop=driver, physics=physics.PhysicsConfig(backend="mujoco"))
@@ -353,18 +353,19 @@ def main(argv=None) -> dict:
     p.add_argument("--ticks", type=int, default=2000, help="ticks of the profiled sinusoid")
     p.add_argument(
         "--qp-engine",
-        default="jax",
-        help="the profiled controller's force QP engine (ControllerConfig.qp_engine: jax, eiquadprog, ...)",
+        default="auto",
+        help="the profiled controller's force QP engine (ControllerConfig.qp_engine: auto, the controller's default; "
+        "jax, eiquadprog, ...)",
     )
     p.add_argument("--acceptance-baseline", default=str(ROOT / "results" / "balance_acceptance.json"))
     p.add_argument("--acceptance-summary", default=None, help="compare this summary instead of running the scenarios")
     args = p.parse_args(argv)
     if args.repeats < 1 or args.ticks < 1:
         p.error("--repeats and --ticks must be >= 1")
-    from wbc_jax.control.qp import QP_ENGINES
+    from wbc_jax.control.qp import ENGINE_CHOICES
 
-    if args.qp_engine not in QP_ENGINES:
-        p.error(f"--qp-engine must be one of {list(QP_ENGINES)}, got {args.qp_engine!r}")
+    if args.qp_engine not in ENGINE_CHOICES:
+        p.error(f"--qp-engine must be one of {list(ENGINE_CHOICES)}, got {args.qp_engine!r}")
     out = pathlib.Path(args.out)
     result = json.loads(out.read_text()) if out.exists() else {}
     result.update(

@@ -148,13 +148,15 @@ def test_qp_unrolled_steps_flag_reaches_the_controller_and_refuses_what_the_qp_c
 
 
 def test_qp_engine_flag_reaches_the_controller_and_refuses_what_the_qp_cannot_take(capsys):
-    """Issue 46 (s58): ``--qp-engine`` (jax by default) is the controller's ``qp_engine``; an unknown engine is
-    refused by the parser, and warp with unrolled steps (the Warp kernel has no while loop) by the controller."""
+    """Issue 46 (s58): ``--qp-engine`` (auto by default, resolved when the job's config is made: s62) is the
+    controller's ``qp_engine``; an unknown engine is refused by the parser, and warp with unrolled steps (the Warp
+    kernel has no while loop) by the controller."""
     from wbc_jax import cli
+    from wbc_jax.control import qp
     from wbc_jax.control.controller import ControllerConfig
 
     for command in ("push-sweep", "balance"):
-        for flags, engine in (([], "jax"), (["--qp-engine", "warp"], "warp")):
+        for flags, engine in (([], qp.resolve_engine("auto")), (["--qp-engine", "warp"], "warp")):
             config = cli.config_from_args(
                 cli.build_parser().parse_args([command, *flags]), registry()[command].default_config()
             )

@@ -106,7 +106,7 @@ def test_qp_tol_setting_reaches_the_force_qp_and_bad_values_are_refused():
 def test_qp_engine_setting_reaches_the_force_qp_and_bad_values_are_refused():
     """``engine`` (ControllerConfig.qp_engine): "jax" or "warp"; the Warp kernel has no while loop to unroll, so
     "warp" with unrolled steps is refused (before Warp is imported)."""
-    assert controller.ControllerConfig().force_settings.qp_engine == "jax"
+    assert controller.ControllerConfig().force_settings.qp_engine == qp.resolve_engine("auto")
     assert controller.ControllerConfig(qp_engine="warp").force_settings.qp_engine == "warp"
     with pytest.raises(
         ValueError, match=r"qp_engine 'cuda'; valid: \['jax', 'warp', 'warp_active_set', 'eiquadprog'\]"
@@ -184,3 +184,32 @@ def test_the_eiquadprog_qp_where_it_cannot_build_is_refused_in_one_line_before_a
     assert len(errors) == 1, errors
     assert "qp_engine 'eiquadprog'" in errors[0] and reason in errors[0] and "valid here: ['jax']" in errors[0]
     assert not (tmp_path / "b" / "metrics.json").exists()
+
+
+def test_the_auto_engine_is_eiquadprog_on_the_cpu_where_it_builds_else_the_interior_point(monkeypatch):
+    """Issue 46 (s62): ``qp_engine`` ``auto`` (the default) resolves when the controller's config is made (and in
+    jobs' fingerprints, :func:`wbc_jax.jobs.runs.fingerprint`), so that they record the engine that ran: eiquadprog in a CPU program where it builds, the interior
+    point where it does not, with a warm start or unrolled steps (the active-set method takes neither) and on a GPU."""
+    from wbc_jax.control import qp_eiquadprog
+    from wbc_jax.control.flags import ControllerFlags
+
+    if jax.default_backend() != "cpu":
+        assert qp.resolve_engine("auto") == "jax"
+        return
+    builds = qp_eiquadprog.available() is None
+    assert controller.ControllerConfig().qp_engine == ("eiquadprog" if builds else "jax")
+    assert ControllerFlags().config().qp_engine == ("eiquadprog" if builds else "jax")
+    assert controller.ControllerConfig(qp_warm_start=True).qp_engine == "jax"
+    assert controller.ControllerConfig(qp_unrolled_steps=3).qp_engine == "jax"
+    assert ControllerFlags(qp_warm_start=True).config().qp_engine == "jax"
+    assert controller.ControllerConfig(qp_engine="jax").qp_engine == "jax"
+    from wbc_jax.jobs import runs
+
+    config = {"qp_engine": "auto", "qp_warm_start": False, "qp_unrolled_steps": 0}
+    assert runs.fingerprint(config, [], "icub")["config"]["qp_engine"] == ("eiquadprog" if builds else "jax")
+    warm = runs.fingerprint({**config, "qp_warm_start": True}, [], "icub")
+    assert warm["config"]["qp_engine"] == "jax"
+    monkeypatch.setattr(qp_eiquadprog, "available", lambda: "no C++ compiler")
+    assert controller.ControllerConfig().qp_engine == "jax"
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert qp.resolve_engine("auto") == "jax"

@@ -61,8 +61,9 @@ class ControllerConfig:
       qp_unrolled_steps: the force QPs' first Newton steps written out before their while loop (0 to
         qp_iterations; the same solutions): on a GPU each pass of the loop waits for its predicate on the
         host (BENCHMARKS.md, issue 46). 0 by default.
-      qp_engine: the force QPs' solver, :data:`wbc_jax.control.qp.QP_ENGINES`: ``"jax"`` (default, the interior
-        point), ``"warp"`` (the same as one Warp kernel, one thread per problem, :mod:`wbc_jax.control.qp_warp`) or
+      qp_engine: the force QPs' solver, :data:`wbc_jax.control.qp.QP_ENGINES`, or ``"auto"`` (default: eiquadprog
+        in a CPU program where it builds, else the interior point; :func:`wbc_jax.control.qp.resolve_engine`, resolved
+        when the config is made): ``"jax"`` (the interior point), ``"warp"`` (the same as one Warp kernel, one thread per problem, :mod:`wbc_jax.control.qp_warp`) or
         ``"warp_active_set"`` (the dual active-set method as one Warp kernel: the exact solution, no warm start) or
         ``"eiquadprog"`` (the same method by eiquadprog in C++, CPU programs, :mod:`wbc_jax.control.qp_eiquadprog`).
         The Warp engines need warp-lang; every engine but ``"jax"`` takes qp_unrolled_steps 0.
@@ -108,7 +109,7 @@ class ControllerConfig:
     qp_warm_start: bool = False
     qp_tol: float | None = None
     qp_unrolled_steps: int = 0
-    qp_engine: str = "jax"
+    qp_engine: str = "auto"
     mass_solve_engine: str = "jax"
     ritz_engine: str = "jax"
     torque_weight_soft: float = 1e-4
@@ -131,6 +132,10 @@ class ControllerConfig:
         return np.asarray(index.torque_limit, float) if self.torque_limit is None else self.torque_limit
 
     def __post_init__(self):
+        if self.qp_engine == "auto":  # the engine it names on this machine, recorded as such (qp.resolve_engine)
+            object.__setattr__(
+                self, "qp_engine", qp.resolve_engine("auto", self.qp_warm_start is True, self.qp_unrolled_steps)
+            )
         if self.forces not in FORCE_MODES:
             raise ValueError(f"unknown forces mode {self.forces!r}; valid: {list(FORCE_MODES)}")
         if self.postural not in torques.POSTURAL_VARIANTS:

@@ -103,6 +103,23 @@ WARP_ENGINES = ("warp", "warp_active_set")
 ACTIVE_SET_ENGINES = ("warp_active_set", "eiquadprog")
 """The engines of the dual active-set method: the exact solution, no warm start (``start``)."""
 
+ENGINE_CHOICES = ("auto",) + QP_ENGINES
+"""What the controller's ``qp_engine`` setting takes: an engine, or ``auto`` (:func:`resolve_engine`)."""
+
+
+def resolve_engine(engine: str, warm_start: bool = False, unrolled_steps: int = 0) -> str:
+    """The engine that ``engine`` names here: itself, or for ``auto`` eiquadprog where JAX's default device is the CPU
+    and the engine builds (:func:`wbc_jax.control.qp_eiquadprog.available`; on the CPU it costs about half the
+    interior point's controller tick, BENCHMARKS.md, issue 46) and no warm start or unrolled steps are asked for
+    (the active-set method takes neither); else the interior point in JAX."""
+    if engine != "auto":
+        return engine
+    if warm_start or unrolled_steps or jax.default_backend() != "cpu":
+        return "jax"
+    from wbc_jax.control import qp_eiquadprog
+
+    return "eiquadprog" if qp_eiquadprog.available() is None else "jax"
+
 
 DEFAULT_ITERATIONS = 25
 """Default (maximum) number of interior-point (Newton) steps: the contact problems

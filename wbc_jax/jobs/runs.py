@@ -41,10 +41,16 @@ def fingerprint(config: dict, files, robot: str) -> dict:
     """What determines a run's results: the config (its ``robot`` among its fields) without its
     output-only fields, each input file (paths in ``files``; None skipped) as its contents' sha256
     wherever the config names it (a path, or NAME=PATH), the robot's model file and the package
-    version. ``inputs`` records the resolved path of each file (kept in the manifest, not compared)."""
+    version; a ``qp_engine`` of ``auto`` as the engine it names here (:func:`wbc_jax.control.qp.resolve_engine`).
+    ``inputs`` records the resolved path of each file (kept in the manifest, not compared)."""
     from wbc_jax import __version__
     from wbc_jax.robot.robots import describe
 
+    if config.get("qp_engine") == "auto":  # the force QP engine it names here (as a backend's "auto")
+        from wbc_jax.control import qp
+
+        steps = config.get("qp_unrolled_steps") or 0
+        config = {**config, "qp_engine": qp.resolve_engine("auto", config.get("qp_warm_start") is True, steps)}
     contents = {str(f): _content(f) for f in files if f}
 
     def canonical(value):
