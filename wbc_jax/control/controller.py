@@ -63,7 +63,8 @@ class ControllerConfig:
         host (BENCHMARKS.md, issue 46). 0 by default.
       qp_engine: the force QPs' solver, :data:`wbc_jax.control.qp.QP_ENGINES`, or ``"auto"`` (default: eiquadprog
         in a CPU program where it builds, else the interior point; :func:`wbc_jax.control.qp.resolve_engine`, resolved
-        when the config is made): ``"jax"`` (the interior point), ``"warp"`` (the same as one Warp kernel, one thread per problem, :mod:`wbc_jax.control.qp_warp`) or
+        when the config is made): ``"jax"`` (the interior point), ``"warp"`` (the same as one Warp kernel, one
+        thread per problem, :mod:`wbc_jax.control.qp_warp`) or
         ``"warp_active_set"`` (the dual active-set method as one Warp kernel: the exact solution, no warm start) or
         ``"eiquadprog"`` (the same method by eiquadprog in C++, CPU programs, :mod:`wbc_jax.control.qp_eiquadprog`).
         The Warp engines need warp-lang; every engine but ``"jax"`` takes qp_unrolled_steps 0.

@@ -85,8 +85,8 @@ def _kernel(n: int, k: int, out_float64: bool):
                     for i in range(j, n):
                         H[i, c] = H[i, c] - t * s * H[i, j]
             tau[j] = t
-        # Q = H_0 ... H_{k-1} [I; 0] in H, in place of the reflectors (LAPACK's orgqr): from the last reflector to the first,
-        # H_j applied to the columns already formed, then column j = H_j e_j (rows above j zero).
+        # Q = H_0 ... H_{k-1} [I; 0] in H, in place of the reflectors (LAPACK's orgqr): from the last reflector to the
+        # first, H_j applied to the columns already formed, then column j = H_j e_j (rows above j zero).
         for jj in range(k):
             j = k - 1 - jj
             for c in range(j + 1, k):
@@ -213,7 +213,8 @@ _batched = one_launch_under_vmap(_flat)
 def ritz_decomposition_warp(A: Array, B: Array) -> tuple[Array, Array, Array, Array]:
     """(Q (n, k), A Q (n, k), theta (k,), W (k, k)) as :func:`wbc_jax.control.torques.ritz_decomposition`, by the
     Warp kernel: A (n, n) symmetric, B (n, k) with k <= n, float32 or float64 (both alike; computed in float64);
-    under ``vmap`` one launch over the batch. Not differentiated (module docstring): the inputs' tangents are dropped."""
+    under ``vmap`` one launch over the batch. Not differentiated (module docstring): the inputs' tangents are
+    dropped."""
     if A.dtype != B.dtype or A.shape[-1] != A.shape[-2] or B.shape[-2] != A.shape[-1] or B.shape[-1] > B.shape[-2]:
         raise ValueError(
             f"ritz_decomposition_warp: A (n, n) and B (n, k <= n) of one dtype, got {A.shape} {A.dtype}, "

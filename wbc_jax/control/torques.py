@@ -34,9 +34,12 @@ from wbc_jax.robot.dynamics import DynamicsTerms
 
 POSTURAL_VARIANTS = ("stable", "seed")
 MASS_SOLVE_ENGINES = ("jax", "warp")
-RITZ_ENGINES = ("jax", "warp")
 """Who factorises M and solves with it (:func:`torque_terms`): JAX (:func:`wbc_jax.core.math.cholesky_solve`) or one
 Warp tile kernel per batch (:mod:`wbc_jax.control.cholesky_warp`; needs warp-lang)."""
+
+RITZ_ENGINES = ("jax", "warp")
+"""Who computes the ``stable`` projector's Ritz decomposition (:func:`spectral_projector`): JAX
+(:func:`ritz_decomposition`) or one Warp kernel per batch (:mod:`wbc_jax.control.ritz_warp`; needs warp-lang)."""
 
 
 @pytree_dataclass
