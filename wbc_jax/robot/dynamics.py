@@ -369,10 +369,12 @@ def terms_from_split(idx: RobotIndex, mj_model, d, frames: Frames) -> DynamicsTe
     mass_b = jnp.asarray(mj_model.body_mass[all_bodies], dtype)
     inertia_b = jnp.asarray(mj_model.body_inertia[all_bodies], dtype)
     A_mj = _centroidal_matrix(mass_b, inertia_b, d.ximat[all_bodies], d.xipos[all_bodies], c, jp_b, jr_b)
-    # The mass matrix: MuJoCo's sparse lower triangle (rows of M_rownnz entries at columns M_colind), made dense.
+    # The mass matrix: MuJoCo's sparse lower triangle (rows of M_rownnz entries at columns M_colind), made dense and
+    # symmetric by one gather (a scatter of the entries cost the GPU several passes over the batch's matrices).
     rows = np.repeat(np.arange(idx.nv), mj_model.M_rownnz)
-    lower = jnp.zeros((idx.nv, idx.nv), dtype).at[rows, np.asarray(mj_model.M_colind)].set(d._impl.M)
-    M = lower + lower.T - jnp.diag(jnp.diagonal(lower))
+    entry = np.full((idx.nv, idx.nv), len(rows))  # the index of each (i, j) among the entries; the last: a zero
+    entry[rows, np.asarray(mj_model.M_colind)] = entry[np.asarray(mj_model.M_colind), rows] = np.arange(len(rows))
+    M = jnp.concatenate([d._impl.M.astype(dtype), jnp.zeros(1, dtype)])[entry]
     return _assemble(
         idx,
         qpos,

@@ -8,6 +8,7 @@ next scenario.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 
 import jax
@@ -58,6 +59,35 @@ def touch(tree, seed):
     return jax.tree_util.tree_map(one, tree)
 
 
+STEP_STATE = (
+    "time", "qpos", "qvel", "act", "history", "qacc_warmstart", "plugin_state",
+    "ctrl", "qfrc_applied", "xfrc_applied", "eq_active", "mocap_pos", "mocap_quat", "userdata",
+)  # fmt: skip
+"""The fields of ``mjx.Data`` that a physics step reads from the step before it: MuJoCo's integration state
+(``mjSTATE_INTEGRATION``: time, physics state, warm start, controls and applied forces, mocap, user data). A step
+computes the other fields anew, but for :data:`STALE_ROWS` (tests/test_keep_sound.py checks both on each engine)."""
+
+STALE_ROWS = ("efc__J", "efc__D")
+"""MuJoCo Warp's constraint rows (``Data._impl``) that a step reads beyond the rows it writes (its padded products
+weigh them by zero): zero in a fresh ``mjx.Data``, they must not hold a diverged step's NaN."""
+
+
+def keep_sound(new: mjx.Data, sound: Array, old: mjx.Data, whole: bool) -> mjx.Data:
+    """``new`` where ``sound`` (() bool, an environment's under vmap), else ``old``'s :data:`STEP_STATE` and zero
+    :data:`STALE_ROWS`: a diverged environment steps on from its last sound state. ``whole``: every field of ``old``
+    taken instead, the derived ones too (kinematics, contacts), for a caller that reads them before the next step
+    (records, contact observation); otherwise the other derived fields stay ``new``'s, which spares the batch a pass
+    over the whole of both."""
+    if whole:
+        return new.where(~sound, old)
+    names = {f.name for f in dataclasses.fields(new)}
+    kept = {f: jnp.where(sound, getattr(new, f), getattr(old, f)) for f in STEP_STATE if f in names}
+    impl = new._impl
+    impl_names = {f.name for f in dataclasses.fields(impl)}
+    stale = {f: jnp.where(sound, getattr(impl, f), 0) for f in STALE_ROWS if f in impl_names}
+    return new.replace(**kept, _impl=impl.replace(**stale)) if stale else new.replace(**kept)
+
+
 @traced_at_matmul_precision
 def start(loop, qpos: Array, batch: int = 1):
     """Initial carry (physics data, loop state, physics_ok) of an MJX backend at ``qpos``;
@@ -96,7 +126,7 @@ def chunk(
             state, ctrl, record = loop.control(gains, state, d.qpos, d.qvel, k, ok, push, feedforward)
             d_new = steps(d, ctrl, 0)
         finite = physics.state_ok(d_new.qpos, d_new.qvel)
-        d_new = d_new.where(~finite, d)  # a diverged env keeps its last sound state
+        d_new = keep_sound(d_new, finite, d, whole=loop.cfg.record or loop.observes_contacts)
         if loop.cfg.record and loop.backend == "warp":  # no per-environment contact forces there
             nan = jnp.full_like(record.f_meas, jnp.nan)
             record = record.replace(f_meas=nan, Ldot_meas=jnp.full_like(record.Ldot_meas, jnp.nan))
