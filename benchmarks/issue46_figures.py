@@ -39,6 +39,9 @@ GPU_RUNS = {  # folder: the runs of one machine
         "bench46_was_split_msw",
         "bench46_was_split_msw_xfrc_r2",
     ),
+    "results/gpu_h100/s63/machine_0": ("bench46_ritz", "bench46_was_split_msw"),
+    # new: 7d17fb9 (keep_sound), old: dde4e26, alternating (its README)
+    "results/gpu_h100/s63/machine_a": ("new1", "old1", "new2", "new3", "old2"),
 }
 CPU_RUNS = {  # folder, our engines, TSID beside them (tsid_timing_<round>.json) or not
     "AMD EPYC (2 cores, the CI machine's kind), core 1": ("results/cpu_targets/eq61", ("jax", "eiquadprog"), True),
@@ -70,6 +73,7 @@ def gpu_rows(inputs: dict) -> list[dict]:
                     },
                     "device": r["device"],
                     "machine": folder,
+                    "run": run,
                     "date": r["date"],
                     "batch": r["batch"],
                     "closed_loop_steps_per_s": round(r["closed_loop_steps_per_s"]),
