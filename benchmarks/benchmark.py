@@ -349,9 +349,10 @@ def main(argv=None) -> dict:
                     "backend": backend,
                     "qp_warm_start": args.qp_warm_start,
                     "qp_unrolled_steps": args.qp_unrolled_steps,
-                    "qp_engine": args.qp_engine,
-                    "warp_terms": args.warp_terms if backend == "warp" else "jax",
-                    "mass_solve_engine": args.mass_solve_engine,
+                    # the engines as resolved here (an "auto" recorded as what it names)
+                    "qp_engine": st.loop.controller.config.qp_engine,
+                    "warp_terms": st.loop.warp_terms,
+                    "mass_solve_engine": st.loop.controller.config.mass_solve_engine,
                     "ritz_engine": args.ritz_engine,
                     "xla_flags": os.environ.get("XLA_FLAGS") or None,
                     "device": device_description(backend),

@@ -11,10 +11,11 @@ import time
 PUSH_MAGNITUDE = 40.0  # N, horizontal, azimuths spread over 360 deg
 
 
-def add_qp_arguments(parser, recorded_loop: bool = False) -> None:
-    """``--qp-unrolled-steps``, ``--qp-engine``, ``--mass-solve-engine`` and ``--ritz-engine`` (ControllerConfig's) on a benchmark's parser; check them after
-    parsing with :func:`check_qp_arguments`. ``recorded_loop``: say that they also hold in the loop the states come
-    from (profile_tick.py)."""
+def add_qp_arguments(parser, recorded_loop: bool = False, engine_default: str = "auto") -> None:
+    """``--qp-unrolled-steps``, ``--qp-engine``, ``--mass-solve-engine`` and ``--ritz-engine`` (ControllerConfig's) on
+    a benchmark's parser; check them after parsing with :func:`check_qp_arguments`. ``recorded_loop``: say that they
+    also hold in the loop the states come from (profile_tick.py). ``engine_default``: the QP's and the M solve's
+    default, ``auto`` (the controller's own: the engines it names on this machine) or ``jax``."""
     from wbc_jax.control import qp
 
     also = ", in the recorded loop too" if recorded_loop else ""
@@ -27,18 +28,20 @@ def add_qp_arguments(parser, recorded_loop: bool = False) -> None:
     )
     parser.add_argument(
         "--qp-engine",
-        choices=qp.QP_ENGINES,
-        default="jax",
-        help="the force QP's solver (ControllerConfig.qp_engine; warp: the interior point as one Warp kernel, "
+        choices=qp.ENGINE_CHOICES,
+        default=engine_default,
+        help="the force QP's solver (ControllerConfig.qp_engine; auto: the controller's default, "
+        "qp.resolve_engine; warp: the interior point as one Warp kernel, "
         "warp_active_set: the dual active-set method as one; eiquadprog: that method by eiquadprog on the CPU)" + also,
     )
-    from wbc_jax.control.torques import MASS_SOLVE_ENGINES, RITZ_ENGINES
+    from wbc_jax.control.torques import MASS_SOLVE_CHOICES, RITZ_ENGINES
 
     parser.add_argument(
         "--mass-solve-engine",
-        choices=MASS_SOLVE_ENGINES,
-        default="jax",
-        help="who factorises M and solves with it in the torque law (ControllerConfig.mass_solve_engine; warp: one "
+        choices=MASS_SOLVE_CHOICES,
+        default=engine_default,
+        help="who factorises M and solves with it in the torque law (ControllerConfig.mass_solve_engine; auto: the "
+        "controller's default, warp on a GPU with warp-lang; warp: one "
         "Warp tile kernel, a block per environment, wbc_jax/control/cholesky_warp.py)" + also,
     )
     parser.add_argument(
@@ -52,14 +55,15 @@ def add_qp_arguments(parser, recorded_loop: bool = False) -> None:
 
 def add_warp_terms_argument(parser) -> None:
     """``--warp-terms`` (PhysicsConfig.warp_terms) on a benchmark's parser."""
-    from wbc_jax.sim.warp_split import TERMS
+    from wbc_jax.sim.warp_split import TERMS_CHOICES
 
     parser.add_argument(
         "--warp-terms",
-        choices=TERMS,
-        default="jax",
+        choices=TERMS_CHOICES,
+        default="auto",
         help="on the warp backend, the controller's dynamics terms computed in MJX-JAX (jax) or read off MuJoCo "
-        "Warp's first phase of the tick's first step (step1, wbc_jax/sim/warp_split.py); other backends: jax",
+        "Warp's first phase of the tick's first step (step1, wbc_jax/sim/warp_split.py); auto (default): step1 there; "
+        "other backends: jax",
     )
 
 
@@ -71,7 +75,7 @@ def check_qp_arguments(parser, args) -> None:
         parser.error(
             f"--qp-unrolled-steps must be from 0 to {DEFAULT_ITERATIONS} (the QP's iterations), got {args.qp_unrolled_steps}"
         )
-    if args.qp_engine != "jax" and args.qp_unrolled_steps:
+    if args.qp_engine not in ("jax", "auto") and args.qp_unrolled_steps:
         parser.error(
             f"--qp-engine {args.qp_engine} takes --qp-unrolled-steps 0 (the Warp kernel has no while loop to unroll)"
         )

@@ -69,9 +69,9 @@ def main(argv=None) -> dict:
     result = {
         "batch": a.batch,
         "backend": a.backend,
-        "qp_engine": a.qp_engine,
-        "warp_terms": a.warp_terms,
-        "mass_solve_engine": a.mass_solve_engine,
+        "qp_engine": st.loop.controller.config.qp_engine,  # as resolved here
+        "warp_terms": st.loop.warp_terms,
+        "mass_solve_engine": st.loop.controller.config.mass_solve_engine,
         "ritz_engine": a.ritz_engine,
         "ticks": ticks,
         "physics_steps_per_tick": st.loop.n_sub,

@@ -64,7 +64,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     from loop_timing import add_qp_arguments, check_qp_arguments
 
-    add_qp_arguments(p, recorded_loop=True)
+    add_qp_arguments(p, recorded_loop=True, engine_default="jax")  # the stages of the JAX interior point by default
     args = p.parse_args(argv)
     check_qp_arguments(p, args)
     for name in ("batch", "repeats", "loop_envs"):

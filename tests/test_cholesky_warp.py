@@ -109,7 +109,7 @@ def test_the_torque_law_is_the_same_with_either_engine(cholesky_solve_warp, stan
 
 
 def test_an_unknown_engine_or_warp_without_warp_lang_is_refused_in_one_line(monkeypatch):
-    with pytest.raises(ValueError, match=r"mass_solve_engine 'cusolver'; valid: \['jax', 'warp'\]"):
+    with pytest.raises(ValueError, match=r"mass_solve_engine 'cusolver'; valid: \['auto', 'jax', 'warp'\]"):
         ControllerConfig(mass_solve_engine="cusolver")
     from wbc_jax.sim import scenario
 

@@ -189,12 +189,13 @@ def test_the_eiquadprog_qp_where_it_cannot_build_is_refused_in_one_line_before_a
 def test_the_auto_engine_is_eiquadprog_on_the_cpu_where_it_builds_else_the_interior_point(monkeypatch):
     """Issue 46 (s62): ``qp_engine`` ``auto`` (the default) resolves when the controller's config is made (and in
     jobs' fingerprints, :func:`wbc_jax.jobs.runs.fingerprint`), so that they record the engine that ran: eiquadprog in a CPU program where it builds, the interior
-    point where it does not, with a warm start or unrolled steps (the active-set method takes neither) and on a GPU."""
+    point where it does not and with a warm start or unrolled steps (the active-set method takes neither); on a GPU
+    the next test's."""
     from wbc_jax.control import qp_eiquadprog
     from wbc_jax.control.flags import ControllerFlags
 
     if jax.default_backend() != "cpu":
-        assert qp.resolve_engine("auto") == "jax"
+        assert qp.resolve_engine("auto") in ("warp_active_set", "jax")  # the next test's
         return
     builds = qp_eiquadprog.available() is None
     assert controller.ControllerConfig().qp_engine == ("eiquadprog" if builds else "jax")
@@ -211,5 +212,37 @@ def test_the_auto_engine_is_eiquadprog_on_the_cpu_where_it_builds_else_the_inter
     assert warm["config"]["qp_engine"] == "jax"
     monkeypatch.setattr(qp_eiquadprog, "available", lambda: "no C++ compiler")
     assert controller.ControllerConfig().qp_engine == "jax"
+
+
+def test_the_auto_engines_on_a_gpu_are_the_warp_kernels_where_warp_lang_is_installed(monkeypatch):
+    """Issue 46 (s63): on a GPU the ``auto`` QP is the active-set Warp kernel and the ``auto`` M solve the Warp tile
+    kernel where warp-lang is installed (JAX's engines without it, and the interior point with a warm start or
+    unrolled steps); on the CPU the M solve stays JAX's. ``warp_terms`` ``auto`` is the split on the warp backend
+    with an unperturbed plant only, resolved by the loop."""
+    from wbc_jax.control import torques, warp_launch
+    from wbc_jax.sim import physics, scenario, warp_split
+    from wbc_jax.sim.state import SimConfig
+
+    if jax.default_backend() == "cpu":
+        assert controller.ControllerConfig().mass_solve_engine == "jax"
+    assert controller.ControllerConfig(mass_solve_engine="jax").mass_solve_engine == "jax"
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    assert qp.resolve_engine("auto") == "jax"
+    for installed, engines in ((True, ("warp_active_set", "warp")), (False, ("jax", "jax"))):
+        monkeypatch.setattr(warp_launch, "installed", lambda installed=installed: installed)
+        assert (qp.resolve_engine("auto"), torques.resolve_mass_solve_engine("auto")) == engines
+        c = controller.ControllerConfig()
+        assert (c.qp_engine, c.mass_solve_engine) == engines
+        assert controller.ControllerConfig(qp_warm_start=True).qp_engine == "jax"
+        assert controller.ControllerConfig(qp_unrolled_steps=2).qp_engine == "jax"
+    with pytest.raises(ValueError, match=r"mass_solve_engine 'cusolver'; valid: \['auto', 'jax', 'warp'\]"):
+        controller.ControllerConfig(mass_solve_engine="cusolver")
+    monkeypatch.undo()
+    assert physics.PhysicsConfig().warp_terms == "auto"
+    assert warp_split.resolve_terms("auto", "warp", perturbed=False) == "step1"
+    assert warp_split.resolve_terms("auto", "warp", perturbed=True) == "jax"
+    assert warp_split.resolve_terms("auto", "jax", perturbed=False) == "jax"
+    assert warp_split.resolve_terms("jax", "warp", perturbed=False) == "jax"
+    with pytest.raises(ValueError, match=r"unknown warp_terms 'mjx'; valid: \['auto', 'jax', 'step1'\]"):
+        physics.PhysicsConfig(warp_terms="mjx")
+    st = scenario.setup("stand", duration=0.02, sim=SimConfig(physics=physics.PhysicsConfig(backend="jax")))
+    assert st.loop.warp_terms == "jax"

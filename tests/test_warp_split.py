@@ -116,5 +116,5 @@ def test_step1_terms_on_another_backend_or_a_perturbed_plant_are_refused_in_one_
         scenario.setup(
             "stand", duration=0.1, sim=SimConfig(physics=physics.PhysicsConfig(backend="jax", warp_terms="step1"))
         )
-    with pytest.raises(ValueError, match=r"unknown warp_terms 'mjx'; valid: \['jax', 'step1'\]"):
+    with pytest.raises(ValueError, match=r"unknown warp_terms 'mjx'; valid: \['auto', 'jax', 'step1'\]"):
         physics.PhysicsConfig(warp_terms="mjx")

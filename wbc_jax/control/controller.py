@@ -61,16 +61,19 @@ class ControllerConfig:
       qp_unrolled_steps: the force QPs' first Newton steps written out before their while loop (0 to
         qp_iterations; the same solutions): on a GPU each pass of the loop waits for its predicate on the
         host (BENCHMARKS.md, issue 46). 0 by default.
-      qp_engine: the force QPs' solver, :data:`wbc_jax.control.qp.QP_ENGINES`, or ``"auto"`` (default: eiquadprog
-        in a CPU program where it builds, else the interior point; :func:`wbc_jax.control.qp.resolve_engine`, resolved
-        when the config is made): ``"jax"`` (the interior point), ``"warp"`` (the same as one Warp kernel, one
+      qp_engine: the force QPs' solver, :data:`wbc_jax.control.qp.QP_ENGINES`, or ``"auto"`` (default: the dual
+        active-set method, as one Warp kernel on a GPU with warp-lang or by eiquadprog in a CPU program where it
+        builds, else the interior point; :func:`wbc_jax.control.qp.resolve_engine`, resolved when the config is
+        made): ``"jax"`` (the interior point), ``"warp"`` (the same as one Warp kernel, one
         thread per problem, :mod:`wbc_jax.control.qp_warp`) or
         ``"warp_active_set"`` (the dual active-set method as one Warp kernel: the exact solution, no warm start) or
         ``"eiquadprog"`` (the same method by eiquadprog in C++, CPU programs, :mod:`wbc_jax.control.qp_eiquadprog`).
         The Warp engines need warp-lang; every engine but ``"jax"`` takes qp_unrolled_steps 0.
       mass_solve_engine: who factorises the mass matrix and solves with it in the torque law,
-        :data:`wbc_jax.control.torques.MASS_SOLVE_ENGINES`: ``"jax"`` (default) or ``"warp"`` (one Warp tile kernel,
-        a block per environment, :mod:`wbc_jax.control.cholesky_warp`; needs warp-lang; derivatives by JAX's solve).
+        :data:`wbc_jax.control.torques.MASS_SOLVE_ENGINES`: ``"jax"`` or ``"warp"`` (one Warp tile kernel, a block
+        per environment, :mod:`wbc_jax.control.cholesky_warp`; needs warp-lang; derivatives by JAX's solve), or
+        ``"auto"`` (default: ``"warp"`` on a GPU with warp-lang, else ``"jax"``;
+        :func:`wbc_jax.control.torques.resolve_mass_solve_engine`, resolved when the config is made).
       ritz_engine: who computes the ``stable`` postural projector's Ritz decomposition,
         :data:`wbc_jax.control.torques.RITZ_ENGINES`: ``"jax"`` (default: QR and ``eigh``) or ``"warp"`` (one Warp
         kernel, a thread per environment, :mod:`wbc_jax.control.ritz_warp`; needs warp-lang; certified alike).
@@ -111,7 +114,7 @@ class ControllerConfig:
     qp_tol: float | None = None
     qp_unrolled_steps: int = 0
     qp_engine: str = "auto"
-    mass_solve_engine: str = "jax"
+    mass_solve_engine: str = "auto"
     ritz_engine: str = "jax"
     torque_weight_soft: float = 1e-4
     angular_weight_soft: float = 1.0
@@ -137,6 +140,8 @@ class ControllerConfig:
             object.__setattr__(
                 self, "qp_engine", qp.resolve_engine("auto", self.qp_warm_start is True, self.qp_unrolled_steps)
             )
+        if self.mass_solve_engine == "auto":  # likewise (torques.resolve_mass_solve_engine)
+            object.__setattr__(self, "mass_solve_engine", torques.resolve_mass_solve_engine("auto"))
         if self.forces not in FORCE_MODES:
             raise ValueError(f"unknown forces mode {self.forces!r}; valid: {list(FORCE_MODES)}")
         if self.postural not in torques.POSTURAL_VARIANTS:
@@ -191,7 +196,7 @@ class ControllerConfig:
         if self.mass_solve_engine not in torques.MASS_SOLVE_ENGINES:
             raise ValueError(
                 f"unknown controller setting mass_solve_engine {self.mass_solve_engine!r}; "
-                f"valid: {list(torques.MASS_SOLVE_ENGINES)}"
+                f"valid: {list(torques.MASS_SOLVE_CHOICES)}"
             )
         if self.ritz_engine not in torques.RITZ_ENGINES:
             raise ValueError(

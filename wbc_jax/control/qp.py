@@ -108,13 +108,21 @@ ENGINE_CHOICES = ("auto",) + QP_ENGINES
 
 
 def resolve_engine(engine: str, warm_start: bool = False, unrolled_steps: int = 0) -> str:
-    """The engine that ``engine`` names here: itself, or for ``auto`` eiquadprog where JAX's default device is the CPU
-    and the engine builds (:func:`wbc_jax.control.qp_eiquadprog.available`; on the CPU it costs about half the
-    interior point's controller tick, BENCHMARKS.md, issue 46) and no warm start or unrolled steps are asked for
-    (the active-set method takes neither); else the interior point in JAX."""
+    """The engine that ``engine`` names here: itself, or for ``auto``, where no warm start or unrolled steps are asked
+    for (the active-set method takes neither), the dual active-set method: as one Warp kernel where JAX's default
+    device is a GPU and warp-lang is installed (:func:`wbc_jax.control.warp_launch.gpu_default`; the loop's fastest
+    engine there), by eiquadprog where it is the CPU and the engine builds
+    (:func:`wbc_jax.control.qp_eiquadprog.available`; about half the interior point's controller tick there; both
+    BENCHMARKS.md, issue 46); else the interior point in JAX."""
     if engine != "auto":
         return engine
-    if warm_start or unrolled_steps or jax.default_backend() != "cpu":
+    if warm_start or unrolled_steps:
+        return "jax"
+    from wbc_jax.control import warp_launch
+
+    if warp_launch.gpu_default():
+        return "warp_active_set"
+    if jax.default_backend() != "cpu":
         return "jax"
     from wbc_jax.control import qp_eiquadprog
 

@@ -37,6 +37,20 @@ MASS_SOLVE_ENGINES = ("jax", "warp")
 """Who factorises M and solves with it (:func:`torque_terms`): JAX (:func:`wbc_jax.core.math.cholesky_solve`) or one
 Warp tile kernel per batch (:mod:`wbc_jax.control.cholesky_warp`; needs warp-lang)."""
 
+MASS_SOLVE_CHOICES = ("auto",) + MASS_SOLVE_ENGINES
+"""What ``ControllerConfig.mass_solve_engine`` takes: an engine, or ``auto`` (:func:`resolve_mass_solve_engine`)."""
+
+
+def resolve_mass_solve_engine(engine: str) -> str:
+    """The engine that ``engine`` names here: itself, or for ``auto`` the Warp kernel where JAX's default device is a
+    GPU and warp-lang is installed (:func:`wbc_jax.control.warp_launch.gpu_default`), else JAX's solve."""
+    if engine != "auto":
+        return engine
+    from wbc_jax.control import warp_launch
+
+    return "warp" if warp_launch.gpu_default() else "jax"
+
+
 RITZ_ENGINES = ("jax", "warp")
 """Who computes the ``stable`` projector's Ritz decomposition (:func:`spectral_projector`): JAX
 (:func:`ritz_decomposition`) or one Warp kernel per batch (:mod:`wbc_jax.control.ritz_warp`; needs warp-lang)."""

@@ -3,8 +3,23 @@
 Warp imported with a one-line error naming the fix where warp-lang is missing, and a kernel launch over a batch of
 problems that stays one launch under ``vmap``."""
 
+import importlib.util
+
+import jax
 import jax.numpy as jnp
 from jax.custom_batching import custom_vmap
+
+
+def installed() -> bool:
+    """Whether warp-lang is installed (without importing it)."""
+    return importlib.util.find_spec("warp") is not None
+
+
+def gpu_default() -> bool:
+    """Whether JAX's default device is a GPU and warp-lang is installed: where the controller's ``auto`` engines name
+    the Warp kernels (measured faster there, BENCHMARKS.md, issue 46; on the CPU a Warp kernel called from XLA goes
+    through Python)."""
+    return jax.default_backend() == "gpu" and installed()
 
 
 def warp_module():

@@ -36,7 +36,7 @@ from wbc_jax.core.types import Array
 from wbc_jax.robot import dynamics
 from wbc_jax.robot.model import Robot
 from wbc_jax.sim import metrics as metrics_lib
-from wbc_jax.sim import physics
+from wbc_jax.sim import physics, warp_split
 from wbc_jax.sim import state as state_lib
 from wbc_jax.sim.state import Feedforward, LoopState, LossTrace, Push, SimConfig, Trajectory, push_force, push_forces
 from wbc_jax.sim.state import traced_at_matmul_precision as _traced_at_matmul_precision
@@ -120,7 +120,9 @@ class ClosedLoop:
             )
         if engine == "eiquadprog" and (problem := qp_eiquadprog.available()) is not None:
             raise ValueError(f"controller setting qp_engine 'eiquadprog': {problem}; valid here: ['jax']")
-        if cfg.physics.warp_terms == "step1" and (self.backend != "warp" or cfg.perturb_plant):
+        # Where the controller's dynamics terms come from on this backend (PhysicsConfig.warp_terms).
+        self.warp_terms = warp_split.resolve_terms(cfg.physics.warp_terms, self.backend, cfg.perturb_plant)
+        if self.warp_terms == "step1" and (self.backend != "warp" or cfg.perturb_plant):
             raise ValueError(
                 "warp_terms 'step1' reads the controller's dynamics terms off the plant's own step: it needs the "
                 f"'warp' backend (here {self.backend!r}) and an unperturbed plant (perturb_plant "

@@ -104,7 +104,7 @@ def chunk(
     (carry, records with a leading time axis or None). ``feedforward``: torques added to the
     controller's (:class:`wbc_jax.sim.state.Feedforward`; None: none)."""
 
-    split = loop.cfg.physics.warp_terms == "step1"  # the terms off the first step's first phase (warp_split)
+    split = loop.warp_terms == "step1"  # the terms off the first step's first phase (warp_split)
 
     def tick(carry, k):
         d, state, ok = carry

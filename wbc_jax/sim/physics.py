@@ -21,7 +21,6 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
-import importlib.util
 import math
 import os
 import threading
@@ -32,6 +31,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from wbc_jax.control import warp_launch
 from wbc_jax.core import mjx as mjx_device
 from wbc_jax.core.constants import DIVERGED_SPEED
 from wbc_jax.core.mjx import mjx
@@ -54,7 +54,7 @@ class PhysicsConfig:
         on a GPU), ``jax`` (XLA, within its own command buffers), ``none``.
       warp_graph_cache: CUDA graphs each Warp foreign call keeps, for all devices together (:mod:`wbc_jax.sim.warp_graphs`;
         0: no bound; None: Warp's 32 per device). No program or result changes: out of the repr (``structure_key``).
-      warp_terms: the controller's dynamics terms on the ``warp`` backend, :data:`wbc_jax.sim.warp_split.TERMS`.
+      warp_terms: the terms' source on ``warp``, :data:`warp_split.TERMS_CHOICES` (``auto``: the loop resolves it).
     """
 
     backend: str = "auto"
@@ -62,13 +62,13 @@ class PhysicsConfig:
     ls_iterations: int | None = None
     warp_graph_mode: str = "warp"
     warp_graph_cache: int | None = dataclasses.field(default=None, repr=False, compare=False)
-    warp_terms: str = "jax"
+    warp_terms: str = "auto"
 
     def __post_init__(self):
         if self.backend not in BACKENDS:
             raise ValueError(f"unknown physics backend {self.backend!r}; valid: {list(BACKENDS)}")
-        if self.warp_terms not in warp_split.TERMS:
-            raise ValueError(f"unknown warp_terms {self.warp_terms!r}; valid: {list(warp_split.TERMS)}")
+        if self.warp_terms not in warp_split.TERMS_CHOICES:
+            raise ValueError(f"unknown warp_terms {self.warp_terms!r}; valid: {list(warp_split.TERMS_CHOICES)}")
         for name in ("solver_iterations", "ls_iterations"):
             value = getattr(self, name)
             if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
@@ -81,7 +81,7 @@ def has_cuda() -> bool:
 
 
 def has_warp() -> bool:
-    return importlib.util.find_spec("warp") is not None
+    return warp_launch.installed()
 
 
 def warp_on_cpu() -> bool:

@@ -27,6 +27,18 @@ TERMS = ("jax", "step1")
 step by ``dynamics.terms_from_split``: the same terms to float32 rounding without a kinematics pass of their own;
 not with a perturbed plant, whose dynamics the controller must not see)."""
 
+TERMS_CHOICES = ("auto",) + TERMS
+"""What ``PhysicsConfig.warp_terms`` takes: a source of :data:`TERMS`, or ``auto`` (:func:`resolve_terms`)."""
+
+
+def resolve_terms(choice: str, backend: str, perturbed: bool) -> str:
+    """The source of the controller's terms that ``choice`` names on ``backend``: itself, or for ``auto`` ``step1`` on
+    the ``warp`` backend with an unperturbed plant (the loop's faster source there, BENCHMARKS.md, issue 46), else
+    ``jax``."""
+    if choice != "auto":
+        return choice
+    return "step1" if backend == "warp" and not perturbed else "jax"
+
 
 def _rebound(fn, **names):
     """``fn`` with some of its module's global names bound to other objects (its code and annotations unchanged)."""
