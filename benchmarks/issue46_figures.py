@@ -42,6 +42,8 @@ GPU_RUNS = {  # folder: the runs of one machine
     "results/gpu_h100/s63/machine_0": ("bench46_ritz", "bench46_was_split_msw"),
     # new: 7d17fb9 (keep_sound), old: dde4e26, alternating (its README)
     "results/gpu_h100/s63/machine_a": ("new1", "old1", "new2", "new3", "old2"),
+    # the command with every engine at its default (0377830: the auto engines on a GPU)
+    "results/gpu_h100/s63/machine_c": ("bench46_r1", "bench46_r2"),
 }
 CPU_RUNS = {  # folder, our engines, TSID beside them (tsid_timing_<round>.json) or not
     "AMD EPYC (2 cores, the CI machine's kind), core 1": ("results/cpu_targets/eq61", ("jax", "eiquadprog"), True),
