@@ -49,8 +49,9 @@ class ControllerFlags:
     )
     qp_engine: str = option(
         "auto",
-        "the force QP's solver: auto (eiquadprog in a CPU program where it builds and no warm start or unrolled "
-        "steps are asked for, else jax; the job's fingerprint records the engine it names), jax (the interior "
+        "the force QP's solver: auto (where no warm start or unrolled steps are asked for, warp_active_set on a GPU "
+        "with warp-lang and eiquadprog in a CPU program where it builds, else jax; the job's fingerprint records the "
+        "engine it names), jax (the interior "
         "point), warp (the same as one Warp kernel, one thread per problem, "
         "wbc_jax/control/qp_warp.py), warp_active_set (the dual active-set method as one Warp kernel: the exact "
         "solution, no --qp-warm-start) or eiquadprog (the same method by eiquadprog on the CPU); the Warp engines "
