@@ -58,6 +58,8 @@ CPU_RUNS = {  # folder, our engines, TSID beside them (tsid_timing_<round>.json)
         ("jax", "eiquadprog"),
         True,
     ),
+    # 0377830, the default engine (auto: eiquadprog), the machine otherwise idle
+    "AMD EPYC (2 cores, the CI machine's kind), core 1, s63": ("results/cpu_targets/amd_s63", ("eiquadprog",), True),
 }
 
 
