@@ -63,17 +63,15 @@ class ControllerConfig:
         host (BENCHMARKS.md, issue 46). 0 by default.
       qp_engine: the force QPs' solver, :data:`wbc_jax.control.qp.QP_ENGINES`, or ``"auto"`` (default: the dual
         active-set method, as one Warp kernel on a GPU with warp-lang or by eiquadprog in a CPU program where it
-        builds, else the interior point; :func:`wbc_jax.control.qp.resolve_engine`, resolved when the config is
-        made): ``"jax"`` (the interior point), ``"warp"`` (the same as one Warp kernel, one
-        thread per problem, :mod:`wbc_jax.control.qp_warp`) or
+        builds, else the interior point; :func:`wbc_jax.control.qp.resolve_engine`, resolved when the config is made):
+        ``"jax"`` (the interior point), ``"warp"`` (it as one Warp kernel, :mod:`wbc_jax.control.qp_warp`) or
         ``"warp_active_set"`` (the dual active-set method as one Warp kernel: the exact solution, no warm start) or
         ``"eiquadprog"`` (the same method by eiquadprog in C++, CPU programs, :mod:`wbc_jax.control.qp_eiquadprog`).
         The Warp engines need warp-lang; every engine but ``"jax"`` takes qp_unrolled_steps 0.
       mass_solve_engine: who factorises the mass matrix and solves with it in the torque law,
         :data:`wbc_jax.control.torques.MASS_SOLVE_ENGINES`: ``"jax"`` or ``"warp"`` (one Warp tile kernel, a block
         per environment, :mod:`wbc_jax.control.cholesky_warp`; needs warp-lang; derivatives by JAX's solve), or
-        ``"auto"`` (default: ``"warp"`` on a GPU with warp-lang, else ``"jax"``;
-        :func:`wbc_jax.control.torques.resolve_mass_solve_engine`, resolved when the config is made).
+        ``"auto"`` (default: ``"warp"`` on a GPU with warp-lang, else ``"jax"``; resolved when the config is made).
       ritz_engine: who computes the ``stable`` postural projector's Ritz decomposition,
         :data:`wbc_jax.control.torques.RITZ_ENGINES`: ``"jax"`` (default: QR and ``eigh``) or ``"warp"`` (one Warp
         kernel, a thread per environment, :mod:`wbc_jax.control.ritz_warp`; needs warp-lang; certified alike).
