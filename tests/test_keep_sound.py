@@ -36,7 +36,7 @@ def _poisoned(d, first, shared=()):
             return x
         return jnp.where(x == x0, x, jnp.nan)
 
-    return jax.tree_util.tree_map_with_path(one, d, first)
+    return jax.jit(lambda d, first: jax.tree_util.tree_map_with_path(one, d, first))(d, first)
 
 
 def _engine(impl):
@@ -57,20 +57,18 @@ def test_restoring_the_step_state_alone_is_restoring_everything(impl):
     robot, m, d, shared = _engine(impl)
     qpos, qvel, ctrl = _states(robot)
 
-    def run(q, v, u):
-        first = d.replace(qpos=q, qvel=v, ctrl=u)
-        sound = mjx.step(m, first)  # derived fields computed, a warm start set
-        return first, sound, mjx.step(m, sound)
-
-    first, sound, new = jax.jit(jax.vmap(run))(qpos, qvel, ctrl)
+    step = jax.jit(jax.vmap(lambda dd: mjx.step(m, dd)))  # one program for every step here
+    first = jax.vmap(lambda q, v, u: d.replace(qpos=q, qvel=v, ctrl=u))(qpos, qvel, ctrl)
+    sound = step(first)  # derived fields computed, a warm start set
+    new = step(sound)
     diverged = _poisoned(new, first, shared)
     assert np.isnan(np.asarray(diverged.qacc)).all() and np.isnan(np.asarray(diverged.qpos)).all()
     bad = jnp.zeros(BATCH, bool)
 
     def restored(whole):
-        return jax.vmap(lambda n, s, o: mjx_loop.keep_sound(n, s, o, whole=whole))(diverged, bad, sound)
+        keep = jax.vmap(lambda n, s, o: mjx_loop.keep_sound(n, s, o, whole=whole))
+        return jax.jit(keep)(diverged, bad, sound)
 
-    step = jax.jit(jax.vmap(lambda dd: mjx.step(m, dd)))
     want, got = step(restored(True)), step(restored(False))
     leaves = jax.tree_util.tree_leaves_with_path(want)
     for (path, a), b in zip(leaves, jax.tree_util.tree_leaves(got), strict=True):
@@ -84,6 +82,6 @@ def test_restoring_the_step_state_alone_is_restoring_everything(impl):
         np.testing.assert_array_equal(b, a, err_msg=name)
     assert np.all(np.isfinite(np.asarray(got.qpos))) and float(jnp.max(jnp.abs(got.qpos - sound.qpos))) > 1e-6
     # A sound environment keeps its new state whole.
-    kept = jax.vmap(lambda n, o: mjx_loop.keep_sound(n, jnp.ones((), bool), o, whole=False))(new, sound)
+    kept = jax.jit(jax.vmap(lambda n, o: mjx_loop.keep_sound(n, jnp.ones((), bool), o, whole=False)))(new, sound)
     for a, b in zip(jax.tree_util.tree_leaves(kept), jax.tree_util.tree_leaves(new), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
