@@ -103,21 +103,17 @@ class ClosedLoop:
         requested = cfg.physics.backend
         self.backend = physics.resolve_backend(requested, differentiable=trace is not None and requested != "warp")
         engine = controller.config.qp_engine
-        if engine in qp.WARP_ENGINES and not physics.has_warp():
-            raise ValueError(
-                f"controller setting qp_engine {engine!r} (the force QP as one Warp kernel) needs warp-lang: "
-                "pip install 'wbc_jax[cuda]'; valid here: ['jax']"
-            )
-        if controller.config.mass_solve_engine == "warp" and not physics.has_warp():
-            raise ValueError(
-                "controller setting mass_solve_engine 'warp' (the torque law's mass-matrix solve as one Warp kernel) "
-                "needs warp-lang: pip install 'wbc_jax[cuda]'; valid here: ['jax']"
-            )
-        if controller.config.ritz_engine == "warp" and not physics.has_warp():
-            raise ValueError(
-                "controller setting ritz_engine 'warp' (the postural projector's Ritz decomposition as one Warp kernel) "
-                "needs warp-lang: pip install 'wbc_jax[cuda]'; valid here: ['jax']"
-            )
+        for name, what in (  # the settings whose values name Warp kernels ("warp", "warp_active_set")
+            ("qp_engine", "the force QP"),
+            ("mass_solve_engine", "the torque law's mass-matrix solve"),
+            ("ritz_engine", "the postural projector's Ritz decomposition"),
+        ):
+            value = getattr(controller.config, name)
+            if value in qp.WARP_ENGINES and not physics.has_warp():
+                raise ValueError(
+                    f"controller setting {name} {value!r} ({what} as one Warp kernel) needs warp-lang: "
+                    "pip install 'wbc_jax[cuda]'; valid here: ['jax']"
+                )
         if engine == "eiquadprog" and (problem := qp_eiquadprog.available()) is not None:
             raise ValueError(f"controller setting qp_engine 'eiquadprog': {problem}; valid here: ['jax']")
         # Where the controller's dynamics terms come from on this backend (PhysicsConfig.warp_terms).
